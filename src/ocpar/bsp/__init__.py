@@ -1,0 +1,62 @@
+"""The superstep engine: a coordinator hands independent tasks to workers, one superstep at a
+time, and gets the results back in task order.
+
+>>> from ocpar.bsp import open_backend
+>>> with open_backend("serial") as backend:
+...     backend.superstep("math:sqrt", [4.0, 9.0])
+[2.0, 3.0]
+
+Backends: ``serial`` (in process), ``mpi`` (SPMD under ``mpirun``), ``dask`` (embedded
+``LocalCluster`` or an existing scheduler). Every superstep is timed (:class:`SuperstepTrace`).
+"""
+
+from __future__ import annotations
+
+from ocpar.bsp.backend import Backend, BackendError
+from ocpar.bsp.kernel import ChunkResult, kernel_name, run_chunk
+from ocpar.bsp.mpi import launched_by_mpirun
+from ocpar.bsp.partition import contiguous_blocks
+from ocpar.bsp.trace import SuperstepTrace
+
+BACKENDS = ("serial", "mpi", "dask")
+
+
+def open_backend(
+    name: str, workers: int | None = None, scheduler: str | None = None
+) -> Backend:
+    """Start the backend ``name`` with ``workers`` workers.
+
+    ``serial`` ignores ``workers``; ``mpi`` takes its size from the MPI launcher (``workers``,
+    if given, must match); ``dask`` starts ``workers`` local worker processes (default 1), or
+    connects to ``scheduler`` and uses ``workers`` of its workers (default all).
+    """
+    if name == "serial":
+        from ocpar.bsp.serial import SerialBackend
+
+        return SerialBackend()
+    if name == "mpi":
+        from ocpar.bsp.mpi import MpiBackend
+
+        backend = MpiBackend()
+        if workers is not None and workers != backend.workers:
+            raise BackendError(f"--workers {workers} but mpirun started {backend.workers} ranks")
+        return backend
+    if name == "dask":
+        from ocpar.bsp.dask import DaskBackend
+
+        return DaskBackend(workers=workers, scheduler=scheduler)
+    raise BackendError(f"unknown backend {name!r}; choose one of {', '.join(BACKENDS)}")
+
+
+__all__ = [
+    "BACKENDS",
+    "Backend",
+    "BackendError",
+    "ChunkResult",
+    "SuperstepTrace",
+    "contiguous_blocks",
+    "kernel_name",
+    "launched_by_mpirun",
+    "open_backend",
+    "run_chunk",
+]

@@ -1,0 +1,38 @@
+"""Timing records of supersteps (all times in seconds)."""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass
+
+
+@dataclass
+class SuperstepTrace:
+    """Measurements of one superstep.
+
+    ``task_wall_s``/``task_cpu_s`` are per task in task order; ``worker_busy_s``/``worker_cpu_s``
+    per worker; ``overhead_s`` = ``wall_s`` - max(``worker_busy_s``): communication, barrier
+    and scheduling cost.
+    """
+
+    index: int
+    tasks: int
+    wall_s: float
+    worker_busy_s: list[float]
+    worker_cpu_s: list[float]
+    worker_tasks: list[int]
+    task_wall_s: list[float]
+    task_cpu_s: list[float]
+
+    @property
+    def overhead_s(self) -> float:
+        return self.wall_s - max(self.worker_busy_s, default=0.0)
+
+    @property
+    def imbalance(self) -> float:
+        """max/mean worker busy time (1 = perfectly balanced)."""
+        busy = [b for b in self.worker_busy_s]
+        mean = sum(busy) / len(busy) if busy else 0.0
+        return max(busy) / mean if mean > 0 else 1.0
+
+    def to_dict(self) -> dict:
+        return asdict(self) | {"overhead_s": self.overhead_s, "imbalance": self.imbalance}

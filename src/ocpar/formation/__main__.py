@@ -1,0 +1,72 @@
+"""Command line: ``python -m ocpar.formation`` (or ``mpirun -n P python -m ocpar.formation``).
+
+A thin layer over :func:`ocpar.formation.solve_formation`; see ``--help``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+
+from ocpar.cli import (
+    OneLineParser,
+    add_backend_arguments,
+    choose_backend,
+    positive_float,
+    positive_int,
+    prepare_output_dir,
+    start_backend,
+)
+from ocpar.formation.plot import plot_formation
+from ocpar.formation.problem import paper_example
+from ocpar.formation.solve import MODES, FormationOptions, solve_formation
+
+PROG = "ocpar.formation"
+
+
+def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
+    parser = OneLineParser(
+        prog=PROG,
+        description="Hierarchical formation reconfiguration (the paper's 60 point masses by "
+        "default): outer SQP over the final angles, inner DMOC solves in parallel supersteps.",
+    )
+    parser.add_argument("--agents", type=positive_int, default=60,
+                        help="number of point masses (>= 2, default 60)")
+    parser.add_argument("--radius", type=positive_float, default=10.0,
+                        help="radius of the final circle (default 10)")
+    parser.add_argument("--mode", choices=MODES, default="hierarchical",
+                        help="hierarchical (default) or monolithic (one NLP, for reference)")
+    add_backend_arguments(parser)
+    parser.add_argument("--output", default=None, metavar="DIR",
+                        help="write DIR/result.json and DIR/formation.png")
+    parser.add_argument("--quiet", action="store_true", help="no progress lines")
+    args = parser.parse_args(argv)
+    if args.agents < 2:
+        parser.error(f"--agents must be at least 2, got {args.agents}")
+    return args
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = parse_args(argv)
+    backend_name = choose_backend(args, PROG)
+    out = prepare_output_dir(args.output, PROG)
+    problem = paper_example(agents=args.agents, radius=args.radius)
+    options = FormationOptions(mode=args.mode)
+    with start_backend(args, backend_name, PROG) as backend:
+        if not backend.is_coordinator:
+            backend.serve()
+            return 0
+        say = (lambda line: None) if args.quiet else (lambda line: print(line, flush=True))
+        say(f"{PROG}: {problem.agents} agents, mode {args.mode}, backend {backend.name} "
+            f"with {backend.workers} worker(s)")
+        result = solve_formation(problem, backend, options, progress=say)
+    print(result.summary(), flush=True)
+    if out is not None:
+        json_path = result.write_json(out)
+        png_path = plot_formation(problem, result, out / "formation.png")
+        print(f"wrote {json_path} and {png_path}")
+    return 0 if result.converged else 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,104 @@
+"""The hierarchical scheme (paper §IV): outer SQP over φ, one superstep of n inner DMOC solves
+per outer evaluation.
+
+Outer problem: min_φ Σ_i Ĵ_i(φ_i) s.t. c(φ) = 0 (scaled, reduced g = dG/dφ), solved by SLSQP
+on J/J_0. The outer gradient comes from the inner sensitivities (envelope theorem):
+dĴ_i/dφ_i = (dJ*_i/dq_N) · r (−sin φ_i, cos φ_i).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import numpy as np
+from scipy.optimize import minimize
+
+from ocpar.bsp import Backend
+from ocpar.formation.potential import coupling_functions
+from ocpar.formation.problem import FormationProblem
+from ocpar.ocp import DmocSolution, solve_dmoc_task
+
+
+class InnerSolveFailed(RuntimeError):
+    """Some inner solves of a superstep failed; the outer problem cannot go on."""
+
+
+class OuterObjective:
+    """Σ_i Ĵ_i(φ_i) and its gradient, one superstep per new φ (cached for the last φ)."""
+
+    def __init__(
+        self,
+        problem: FormationProblem,
+        backend: Backend,
+        progress: Callable[[str], None] | None = None,
+    ) -> None:
+        self.problem, self.backend, self.progress = problem, backend, progress
+        self.inner_solves = 0
+        self.failed_solves = 0
+        self._phi: np.ndarray | None = None
+        self._solutions: list[DmocSolution] = []
+        self._c, _ = coupling_functions(problem.agents, problem.radius)
+
+    def solutions(self, phi: np.ndarray) -> list[DmocSolution]:
+        """Inner solutions for angles φ: one superstep, unless φ is the last one asked for."""
+        phi = np.asarray(phi, float)
+        if self._phi is None or not np.array_equal(phi, self._phi):
+            sols = self.backend.superstep(solve_dmoc_task, self.problem.tasks(phi))
+            self.inner_solves += len(sols)
+            failed = [i for i, s in enumerate(sols) if not s.success]
+            self.failed_solves += len(failed)
+            self._phi, self._solutions = phi.copy(), sols
+            self._report(phi, sols)
+            if failed:
+                raise InnerSolveFailed(
+                    f"{len(failed)} inner solve(s) failed, first agent {failed[0]}: "
+                    f"{sols[failed[0]].status}"
+                )
+        return self._solutions
+
+    def value(self, phi: np.ndarray) -> float:
+        return float(sum(s.cost for s in self.solutions(phi)))
+
+    def gradient(self, phi: np.ndarray) -> np.ndarray:
+        """dJ/dφ (n,) from each agent's dJ*/dq_N (entries 2nq..3nq of dJ*/dp)."""
+        sols = self.solutions(phi)
+        nq = self.problem.shape.model.nq
+        d_end = np.array([s.cost_gradient[2 * nq : 3 * nq] for s in sols])
+        phi = np.asarray(phi, float)
+        d_end_d_phi = self.problem.radius * np.column_stack([-np.sin(phi), np.cos(phi)])
+        return np.sum(d_end * d_end_d_phi, axis=1)
+
+    def _report(self, phi: np.ndarray, sols: list[DmocSolution]) -> None:
+        if self.progress is None:
+            return
+        trace = self.backend.traces[-1]
+        cost = sum(s.cost for s in sols)
+        violation = float(np.max(np.abs(np.asarray(self._c(phi)))))
+        self.progress(
+            f"superstep {trace.index:4d}  cost {cost:.12e}  |c(phi)| {violation:.1e}  "
+            f"wall {trace.wall_s * 1e3:7.1f} ms  overhead {trace.overhead_s * 1e3:6.1f} ms"
+        )
+
+
+def solve_outer(
+    objective: OuterObjective, phi0: np.ndarray, tol: float, max_iterations: int
+) -> tuple[np.ndarray, int, bool, str]:
+    """SLSQP on J(φ)/J(φ_0) s.t. c(φ) = 0. Returns (φ, iterations, success, message)."""
+    problem = objective.problem
+    c, dc = coupling_functions(problem.agents, problem.radius)
+    scale = 1.0 / max(objective.value(phi0), 1e-300)
+    result = minimize(
+        lambda phi: objective.value(phi) * scale,
+        phi0,
+        jac=lambda phi: objective.gradient(phi) * scale,
+        method="SLSQP",
+        constraints=[
+            {
+                "type": "eq",
+                "fun": lambda phi: np.asarray(c(phi)).ravel(),
+                "jac": lambda phi: np.asarray(dc(phi)),
+            }
+        ],
+        options={"ftol": tol, "maxiter": max_iterations},
+    )
+    return np.asarray(result.x, float), int(result.nit), bool(result.success), str(result.message)

@@ -1,0 +1,47 @@
+"""Picture of a formation result as in the paper's Fig. 3: starts, trajectories, final circle."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from ocpar.formation.problem import FormationProblem
+from ocpar.formation.result import FormationResult
+
+
+def plot_formation(problem: FormationProblem, result: FormationResult, path: Path) -> Path:
+    """Write a two-panel PNG to ``path``: the whole manoeuvre, and a close-up of the circle
+    with the last portions of the trajectories."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, (ax_all, ax_end) = plt.subplots(1, 2, figsize=(12, 5.5))
+    circle = problem.center + problem.radius * np.column_stack(
+        [np.cos(np.linspace(0, 2 * np.pi, 400)), np.sin(np.linspace(0, 2 * np.pi, 400))]
+    )
+    ends = problem.final_positions(result.phi)
+    tail = max(2, result.trajectories.shape[1] // 3)
+    for ax, paths in ((ax_all, result.trajectories), (ax_end, result.trajectories[:, -tail:])):
+        for path_i in paths:
+            ax.plot(path_i[:, 0], path_i[:, 1], "-", color="tab:blue", lw=0.7, alpha=0.7)
+        ax.plot(circle[:, 0], circle[:, 1], "k--", lw=0.8)
+        ax.plot(ends[:, 0], ends[:, 1], "x", color="tab:red", ms=5, label="final positions")
+        ax.set_aspect("equal")
+        ax.set_xlabel("$x_1$")
+        ax.set_ylabel("$x_2$")
+    ax_all.plot(problem.starts[:, 0], problem.starts[:, 1], "o", mfc="none", color="k", ms=3,
+                label="start positions")
+    ax_all.set_title(f"{result.agents} agents, total cost {result.total_cost:.6e}")
+    ax_all.legend(loc="upper left", fontsize=8)
+    margin = 1.5 * problem.radius
+    ax_end.set_xlim(problem.center[0] - margin, problem.center[0] + margin)
+    ax_end.set_ylim(problem.center[1] - margin, problem.center[1] + margin)
+    ax_end.set_title("final positions and last portions of the trajectories")
+    fig.tight_layout()
+    path = Path(path)
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+    return path

@@ -1,0 +1,99 @@
+"""The result of a formation run, as an object and as ``result.json``."""
+
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from ocpar.bsp import SuperstepTrace
+from ocpar.formation.potential import equidistance_error
+
+
+@dataclass
+class FormationResult:
+    """Outcome of :func:`ocpar.formation.solve_formation`.
+
+    ``phi`` (n,) final angles (rad); ``agent_costs`` (n,) inner optimal costs Ĵ_i;
+    ``trajectories`` (n, N+1, 2) DMOC node paths; ``trace`` one record per superstep.
+    """
+
+    problem: str
+    agents: int
+    backend: str
+    workers: int
+    mode: str
+    status: str
+    message: str
+    total_cost: float
+    phi: np.ndarray
+    agent_costs: np.ndarray
+    trajectories: np.ndarray
+    outer_iterations: int
+    inner_solves: int
+    failed_solves: int
+    wall_time_s: float
+    trace: list[SuperstepTrace] = field(default_factory=list)
+
+    @property
+    def converged(self) -> bool:
+        return self.status == "converged"
+
+    @property
+    def supersteps(self) -> int:
+        return len(self.trace)
+
+    @property
+    def equidistance_error(self) -> float:
+        """max |gap − 2π/n| between neighbours on the circle (rad)."""
+        return equidistance_error(self.phi)
+
+    def to_dict(self) -> dict:
+        """The ``result.json`` contract (plus per-agent costs, final positions, trajectories)."""
+        return {
+            "scheme": "formation",
+            "problem": self.problem,
+            "agents": self.agents,
+            "backend": self.backend,
+            "workers": self.workers,
+            "mode": self.mode,
+            "status": self.status,
+            "message": self.message,
+            "total_cost": _finite_or_none(self.total_cost),
+            "phi": [float(p) for p in self.phi],
+            "equidistance_error": _finite_or_none(self.equidistance_error),
+            "outer_iterations": self.outer_iterations,
+            "supersteps": self.supersteps,
+            "inner_solves": self.inner_solves,
+            "failed_solves": self.failed_solves,
+            "wall_time_s": self.wall_time_s,
+            "agent_costs": [_finite_or_none(c) for c in self.agent_costs],
+            "trajectories": np.asarray(self.trajectories, float).tolist(),
+            "trace": [t.to_dict() for t in self.trace],
+        }
+
+    def write_json(self, path: Path) -> Path:
+        """Write :meth:`to_dict` as JSON to ``path`` (a file, or a directory → result.json)."""
+        path = Path(path)
+        if path.is_dir():
+            path = path / "result.json"
+        path.write_text(json.dumps(self.to_dict(), indent=1))
+        return path
+
+    def summary(self) -> str:
+        """A few lines for people: the headline numbers of the run."""
+        return (
+            f"status {self.status} ({self.message})\n"
+            f"total cost {self.total_cost:.12e}   equidistance error {self.equidistance_error:.1e} rad\n"
+            f"outer iterations {self.outer_iterations}   supersteps {self.supersteps}   "
+            f"inner solves {self.inner_solves} (failed {self.failed_solves})\n"
+            f"wall time {self.wall_time_s:.2f} s on {self.workers} {self.backend} worker(s), "
+            f"mode {self.mode}"
+        )
+
+
+def _finite_or_none(x: float) -> float | None:
+    return float(x) if math.isfinite(x) else None

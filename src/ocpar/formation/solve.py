@@ -1,0 +1,105 @@
+"""The formation scheme's Python API: :func:`solve_formation`."""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+
+from ocpar.bsp import Backend
+from ocpar.bsp.serial import SerialBackend
+from ocpar.formation.hierarchical import InnerSolveFailed, OuterObjective, solve_outer
+from ocpar.formation.monolithic import solve_monolithic
+from ocpar.formation.problem import FormationProblem
+from ocpar.formation.result import FormationResult
+
+MODES = ("hierarchical", "monolithic")
+
+
+@dataclass(frozen=True)
+class FormationOptions:
+    """How to solve.
+
+    ``mode``: ``hierarchical`` (outer SLSQP, inner DMOC solves in supersteps) or
+    ``monolithic`` (one IPOPT NLP in the coordinator). ``outer_tol`` is SLSQP's ``ftol`` on
+    J/J_0 (keep it above the inner solves' noise); ``monolithic_tol`` is IPOPT's ``tol``.
+    """
+
+    mode: str = "hierarchical"
+    outer_tol: float = 1e-12
+    max_outer_iterations: int = 200
+    monolithic_tol: float = 1e-12
+
+    def __post_init__(self) -> None:
+        if self.mode not in MODES:
+            raise ValueError(f"unknown mode {self.mode!r}; choose one of {', '.join(MODES)}")
+        if not (self.outer_tol > 0 and self.monolithic_tol > 0):
+            raise ValueError("tolerances must be positive")
+        if self.max_outer_iterations < 1:
+            raise ValueError("max_outer_iterations must be at least 1")
+
+
+def solve_formation(
+    problem: FormationProblem,
+    backend: Backend | None = None,
+    options: FormationOptions | None = None,
+    phi0: np.ndarray | None = None,
+    progress: Callable[[str], None] | None = None,
+) -> FormationResult:
+    """Solve ``problem`` from the angles ``phi0`` (default :meth:`FormationProblem.initial_phi`).
+
+    ``backend`` runs the inner solves (default: serial, in this process); ``progress`` is
+    called with one line per superstep. The backend is left open for the caller to close.
+    """
+    options = options or FormationOptions()
+    backend = backend or SerialBackend()
+    phi0 = problem.initial_phi() if phi0 is None else np.asarray(phi0, float)
+    if phi0.shape != (problem.agents,):
+        raise ValueError(f"phi0 must have shape ({problem.agents},), got {phi0.shape}")
+    first_trace = len(backend.traces)
+    start = time.perf_counter()
+    common = {"problem": problem.name, "agents": problem.agents, "backend": backend.name,
+              "workers": backend.workers, "mode": options.mode}
+
+    if options.mode == "monolithic":
+        sol = solve_monolithic(problem, phi0, options.monolithic_tol, options.max_outer_iterations)
+        return FormationResult(
+            **common,
+            status="converged" if sol.success else "not_converged",
+            message=sol.status,
+            total_cost=float(np.sum(sol.agent_costs)),
+            phi=sol.phi,
+            agent_costs=sol.agent_costs,
+            trajectories=sol.trajectories,
+            outer_iterations=sol.iterations,
+            inner_solves=0,
+            failed_solves=0,
+            wall_time_s=time.perf_counter() - start,
+        )
+
+    objective = OuterObjective(problem, backend, progress)
+    try:
+        phi, iterations, success, message = solve_outer(
+            objective, phi0, options.outer_tol, options.max_outer_iterations
+        )
+        sols = objective.solutions(phi)
+        status = "converged" if success else "not_converged"
+    except InnerSolveFailed as exc:
+        phi, iterations, status, message = objective._phi, -1, "inner_failure", str(exc)
+        sols = objective._solutions
+    return FormationResult(
+        **common,
+        status=status,
+        message=message,
+        total_cost=float(sum(s.cost for s in sols)),
+        phi=phi,
+        agent_costs=np.array([s.cost for s in sols]),
+        trajectories=np.stack([s.q for s in sols]),
+        outer_iterations=iterations,
+        inner_solves=objective.inner_solves,
+        failed_solves=objective.failed_solves,
+        wall_time_s=time.perf_counter() - start,
+        trace=backend.traces[first_trace:],
+    )

@@ -1,0 +1,219 @@
+"""DMOC: Discrete Mechanics and Optimal Control (discrete Lagrange–d'Alembert principle).
+
+A mechanical system with Lagrangian L(q, q̇) moves on [0, T] from (q_0, q̇_0) to (q_N, q̇_N)
+under controls u, minimising ∫|u|² dt. The path is discretised at N+1 nodes q_k = q(kh),
+h = T/N, with the midpoint discrete Lagrangian
+
+    L_d(q_k, q_{k+1}) = h L((q_k + q_{k+1})/2, (q_{k+1} - q_k)/h)
+
+and one control u_k per interval (the average of the paper's node forces, whose alternating
+component (-1)^k a changes neither cost nor dynamics). The left and right discrete forces of
+interval k are f⁻_k = f⁺_k = (h/2) F(q_{k+½}, u_k), F the model's generalised force. The
+constraints are the discrete Euler–Lagrange equations with the boundary momenta:
+
+    D2L(q_0, q̇_0) + D1L_d(q_0, q_1) + f⁻_0 = 0
+    D2L_d(q_{k-1}, q_k) + D1L_d(q_k, q_{k+1}) + f⁺_{k-1} + f⁻_k = 0,   k = 1..N-1
+    -D2L(q_N, q̇_N) + D2L_d(q_{N-1}, q_N) + f⁺_{N-1} = 0
+
+and the cost is J_d = h Σ_k |u_k|². Boundary data p = (q_0, q̇_0, q_N, q̇_N) ∈ R^{4 nq} are NLP
+parameters; the decision variables are w = (q_1..q_{N-1}, u_0..u_{N-1}).
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from functools import cached_property, lru_cache
+
+import casadi as ca
+import numpy as np
+
+from ocpar.models.mechanical import MechanicalSystem
+
+
+@dataclass(frozen=True)
+class DmocShape:
+    """Everything that fixes the structure of a DMOC NLP (the solver-cache key).
+
+    ``duration`` is T in the model's time unit; ``intervals`` is N; ``tol`` is IPOPT's tolerance.
+    """
+
+    model: MechanicalSystem
+    intervals: int = 10
+    duration: float = 1.0
+    tol: float = 1e-12
+    max_iter: int = 500
+
+    def __post_init__(self) -> None:
+        if self.intervals < 1:
+            raise ValueError(f"DMOC needs at least 1 interval, got {self.intervals}")
+        if not self.duration > 0:
+            raise ValueError(f"DMOC duration must be > 0, got {self.duration}")
+
+    @property
+    def n_params(self) -> int:
+        """Length of the boundary-data vector p = (q_0, q̇_0, q_N, q̇_N)."""
+        return 4 * self.model.nq
+
+
+@dataclass(frozen=True)
+class DmocTask:
+    """One inner solve: a shape and its boundary data p (length 4 nq), picklable and small."""
+
+    shape: DmocShape
+    params: tuple[float, ...]
+
+
+@dataclass
+class DmocSolution:
+    """Result of one DMOC solve.
+
+    ``cost`` is J*; ``cost_gradient`` is dJ*/dp (length 4 nq, from the NLP multipliers);
+    ``q`` is the node path, shape (N+1, nq); ``u`` the interval controls, shape (N, nu).
+    """
+
+    cost: float
+    cost_gradient: np.ndarray
+    q: np.ndarray
+    u: np.ndarray
+    status: str
+    success: bool
+    iterations: int
+    solve_time_s: float
+    extra: dict = field(default_factory=dict)
+
+
+class DmocTranscription:
+    """The DMOC NLP of one shape, as CasADi functions of (w, p), plus its IPOPT solver."""
+
+    def __init__(self, shape: DmocShape) -> None:
+        self.shape = shape
+        model, n = shape.model, shape.intervals
+        nq, nu = model.nq, model.nu
+        h = shape.duration / n
+        self.h = h
+        self.nq, self.nu, self.n = nq, nu, n
+
+        a, b = ca.SX.sym("a", nq), ca.SX.sym("b", nq)
+        q, v, u = ca.SX.sym("q", nq), ca.SX.sym("v", nq), ca.SX.sym("u", nu)
+        lag = model.lagrangian(q, v)
+        momentum = ca.Function("D2L", [q, v], [ca.gradient(lag, v)])
+        ld = h * ca.substitute(lag, ca.vertcat(q, v), ca.vertcat((a + b) / 2, (b - a) / h))
+        d1ld = ca.Function("D1Ld", [a, b], [ca.gradient(ld, a)])
+        d2ld = ca.Function("D2Ld", [a, b], [ca.gradient(ld, b)])
+        force = ca.Function("F", [q, u], [model.generalized_force(q, u)])
+
+        p = ca.SX.sym("p", 4 * nq)
+        q0, v0, qn, vn = (p[i * nq : (i + 1) * nq] for i in range(4))
+        q_inner = ca.SX.sym("q_inner", nq * (n - 1))
+        u_all = ca.SX.sym("u", nu * n)
+        qs = [q0] + [q_inner[k * nq : (k + 1) * nq] for k in range(n - 1)] + [qn]
+        us = [u_all[k * nu : (k + 1) * nu] for k in range(n)]
+        f_half = [0.5 * h * force((qs[k] + qs[k + 1]) / 2, us[k]) for k in range(n)]
+
+        eqs = [momentum(q0, v0) + d1ld(qs[0], qs[1]) + f_half[0]]
+        eqs += [
+            d2ld(qs[k - 1], qs[k]) + d1ld(qs[k], qs[k + 1]) + f_half[k - 1] + f_half[k]
+            for k in range(1, n)
+        ]
+        eqs.append(-momentum(qn, vn) + d2ld(qs[n - 1], qs[n]) + f_half[n - 1])
+
+        w = ca.vertcat(q_inner, u_all)
+        self.nw = w.numel()
+        self.ng = nq * (n + 1)
+        self.cost = ca.Function("J", [w, p], [h * ca.sumsqr(u_all)], ["w", "p"], ["J"])
+        self.constraints = ca.Function("g", [w, p], [ca.vertcat(*eqs)], ["w", "p"], ["g"])
+        self._w, self._p = w, p
+
+    @cached_property
+    def solver(self) -> ca.Function:
+        """IPOPT solver of this shape, built on first use and then reused."""
+        w, p = self._w, self._p
+        nlp = {"x": w, "p": p, "f": self.cost(w, p), "g": self.constraints(w, p)}
+        return ca.nlpsol("dmoc", "ipopt", nlp, ipopt_options(self.shape.tol, self.shape.max_iter))
+
+    def initial_guess(self, params: np.ndarray) -> np.ndarray:
+        """Cubic Hermite path through the boundary data, zero controls (the double integrator's
+        minimum-energy path for a point mass)."""
+        nq, n = self.nq, self.n
+        q0, v0, qn, vn = np.asarray(params, float).reshape(4, nq)
+        s = np.arange(1, n)[:, None] / n
+        t = self.shape.duration
+        h00, h10 = 2 * s**3 - 3 * s**2 + 1, s**3 - 2 * s**2 + s
+        h01, h11 = -2 * s**3 + 3 * s**2, s**3 - s**2
+        path = h00 * q0 + h10 * t * v0 + h01 * qn + h11 * t * vn
+        return np.concatenate([path.ravel(), np.zeros(self.nu * n)])
+
+    def unpack(self, w: np.ndarray, params: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Split w into the node path q (N+1, nq) and the interval controls u (N, nu)."""
+        nq, n = self.nq, self.n
+        q0, _, qn, _ = np.asarray(params, float).reshape(4, nq)
+        inner = np.asarray(w[: nq * (n - 1)], float).reshape(n - 1, nq)
+        q = np.vstack([q0, inner, qn])
+        u = np.asarray(w[nq * (n - 1) :], float).reshape(n, self.nu)
+        return q, u
+
+    def solve(self, params: np.ndarray, w0: np.ndarray | None = None) -> DmocSolution:
+        """Solve for boundary data ``params``; a failed solve is returned, not raised."""
+        params = np.asarray(params, float)
+        if params.shape != (4 * self.nq,):
+            raise ValueError(f"DMOC params must have length {4 * self.nq}, got {params.shape}")
+        x0 = self.initial_guess(params) if w0 is None else np.asarray(w0, float)
+        zero_g = np.zeros(self.ng)
+        start = time.perf_counter()
+        try:
+            out = self.solver(x0=x0, p=params, lbg=zero_g, ubg=zero_g)
+        except RuntimeError as exc:  # CasADi raises on evaluation errors (NaN in the model, ...)
+            nan_q, nan_u = self.unpack(np.full(self.nw, np.nan), params)
+            return DmocSolution(
+                cost=float("nan"),
+                cost_gradient=np.full(params.shape, np.nan),
+                q=nan_q,
+                u=nan_u,
+                status=f"error: {exc}".splitlines()[0],
+                success=False,
+                iterations=0,
+                solve_time_s=time.perf_counter() - start,
+            )
+        elapsed = time.perf_counter() - start
+        stats = self.solver.stats()
+        q, u = self.unpack(np.asarray(out["x"]).ravel(), params)
+        return DmocSolution(
+            cost=float(out["f"]),
+            # CasADi's lam_p is -dJ*/dp (checked against finite differences in the tests).
+            cost_gradient=-np.asarray(out["lam_p"]).ravel(),
+            q=q,
+            u=u,
+            status=str(stats["return_status"]),
+            success=bool(stats["success"]),
+            iterations=int(stats["iter_count"]),
+            solve_time_s=elapsed,
+        )
+
+
+def ipopt_options(tol: float, max_iter: int) -> dict:
+    """Silent IPOPT options with the given tolerance (exact Hessians, MUMPS)."""
+    return {
+        "print_time": False,
+        "ipopt": {"print_level": 0, "sb": "yes", "tol": tol, "max_iter": max_iter},
+    }
+
+
+@lru_cache(maxsize=32)
+def dmoc_problem(shape: DmocShape) -> DmocTranscription:
+    """The process-wide DMOC transcription of ``shape``: built once, then reused."""
+    return DmocTranscription(shape)
+
+
+def solve_dmoc_task(task: DmocTask) -> DmocSolution:
+    """Engine kernel: solve one DMOC task with this process's cached solver."""
+    return dmoc_problem(task.shape).solve(np.asarray(task.params, float))
+
+
+def cache_report(_task: object = None) -> dict:
+    """Engine kernel for diagnostics: this process's id and its DMOC solver-cache counters
+    (``builds`` = transcriptions built, ``hits`` = reuses)."""
+    import os
+
+    info = dmoc_problem.cache_info()
+    return {"pid": os.getpid(), "builds": info.misses, "hits": info.hits, "cached": info.currsize}

@@ -1,0 +1,76 @@
+"""Shared fixtures: paths of the tools the tests launch, and small problems."""
+
+from __future__ import annotations
+
+import os
+import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+BIN = Path(sys.executable).parent
+REPO = Path(__file__).resolve().parents[1]
+
+
+def tool(name: str) -> str:
+    """A console script installed beside this Python (mpirun, dask)."""
+    path = BIN / name
+    if not path.exists():
+        pytest.fail(f"{name} not found beside {sys.executable}; install the package first")
+    return str(path)
+
+
+def run_cli(*args: str, mpi_ranks: int | None = None, timeout: float = 300) -> subprocess.CompletedProcess:
+    """Run ``python -m ...`` (optionally under ``mpirun -n``) and capture its output."""
+    cmd = [sys.executable, *args]
+    if mpi_ranks is not None:
+        cmd = [tool("mpirun"), "-n", str(mpi_ranks), *cmd]
+    return subprocess.run(cmd, capture_output=True, text=True, timeout=timeout, cwd=REPO)
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+@pytest.fixture(scope="session")
+def dask_cluster():
+    """A real ``dask scheduler`` and two single-threaded ``dask worker`` processes on
+    127.0.0.1; yields the scheduler address."""
+    from distributed import Client
+
+    port = free_port()
+    address = f"tcp://127.0.0.1:{port}"
+    env = dict(os.environ, OMP_NUM_THREADS="1")
+    dask = tool("dask")
+    procs = [subprocess.Popen([dask, "scheduler", "--host", "127.0.0.1", "--port", str(port),
+                               "--no-dashboard"], env=env,
+                              stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)]
+    try:
+        deadline = time.monotonic() + 60
+        while True:
+            try:
+                with socket.create_connection(("127.0.0.1", port), timeout=1):
+                    break
+            except OSError:
+                if time.monotonic() > deadline:
+                    pytest.fail("dask scheduler did not start")
+                time.sleep(0.2)
+        procs.append(subprocess.Popen([dask, "worker", address, "--nworkers", "2", "--nthreads",
+                                       "1", "--no-dashboard"], env=env,
+                                      stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL))
+        with Client(address, timeout="30s") as client:
+            client.wait_for_workers(2, timeout=60)
+        yield address
+    finally:
+        for proc in reversed(procs):
+            proc.terminate()
+        for proc in procs:
+            try:
+                proc.wait(timeout=20)
+            except subprocess.TimeoutExpired:
+                proc.kill()

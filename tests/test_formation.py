@@ -1,0 +1,99 @@
+"""The hierarchical formation scheme on the paper's first example."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from ocpar.bsp import open_backend
+from ocpar.formation import FormationOptions, paper_example, solve_formation
+from ocpar.formation.hierarchical import OuterObjective
+from ocpar.formation.potential import coupling_functions, equidistance_error
+
+
+def test_outer_gradient_from_sensitivities_matches_finite_differences():
+    problem = paper_example(agents=6)
+    rng = np.random.default_rng(0)
+    phi = problem.initial_phi() + 0.1 * rng.standard_normal(6)
+    with open_backend("serial") as backend:
+        objective = OuterObjective(problem, backend)
+        grad = objective.gradient(phi)
+        step = 1e-6
+        fd = np.array([
+            (objective.value(phi + step * e) - objective.value(phi - step * e)) / (2 * step)
+            for e in np.eye(6)
+        ])
+    np.testing.assert_allclose(grad, fd, rtol=1e-6)
+
+
+def test_coupling_vanishes_exactly_at_equidistant_angles():
+    c, dc = coupling_functions(60, 10.0)
+    equidistant = 0.3 + 2 * np.pi * np.arange(60) / 60
+    assert np.max(np.abs(np.asarray(c(equidistant)))) < 1e-12
+    perturbed = equidistant.copy()
+    perturbed[5] += 1e-3
+    assert np.max(np.abs(np.asarray(c(perturbed)))) > 1e-6
+    # rank n-1 after dropping one row: a common rotation is the only null direction
+    assert np.linalg.matrix_rank(np.asarray(dc(equidistant))) == 59
+    assert equidistance_error(equidistant) < 1e-13
+    assert equidistance_error(perturbed) == pytest.approx(1e-3, rel=1e-6)
+
+
+def test_initial_guess_places_agents_sorted_by_x_counter_clockwise():
+    problem = paper_example(agents=60)
+    phi0 = problem.initial_phi()
+    assert np.all(np.diff(phi0) > 0)  # starts are sorted by x already
+    np.testing.assert_allclose(np.diff(phi0), 2 * np.pi / 60)
+    assert np.mean(phi0) == pytest.approx(-3 * np.pi / 4)
+
+
+@pytest.fixture(scope="module")
+def sixty_agents():
+    problem = paper_example(agents=60)
+    hierarchical = solve_formation(problem)
+    monolithic = solve_formation(problem, options=FormationOptions(mode="monolithic"))
+    return hierarchical, monolithic
+
+
+def test_hierarchical_equals_monolithic_sixty_agents(sixty_agents):
+    """The paper's equivalence theorem (§IV-B) on its 60-point-mass example."""
+    hierarchical, monolithic = sixty_agents
+    assert hierarchical.converged, hierarchical.message
+    assert monolithic.converged, monolithic.message
+    assert hierarchical.total_cost == pytest.approx(monolithic.total_cost, rel=1e-8)
+    np.testing.assert_allclose(hierarchical.phi, monolithic.phi, atol=1e-5)
+    np.testing.assert_allclose(hierarchical.agent_costs, monolithic.agent_costs, rtol=1e-4)
+    assert hierarchical.equidistance_error <= 1e-9
+    assert monolithic.equidistance_error <= 1e-9
+
+
+def test_hierarchical_run_bookkeeping(sixty_agents):
+    result, _ = sixty_agents
+    assert result.inner_solves == 60 * result.supersteps
+    assert result.failed_solves == 0
+    assert len(result.trace) == result.supersteps > 1
+    assert all(t.tasks == 60 for t in result.trace)
+    np.testing.assert_allclose(result.trajectories[:, -1], paper_example(60).final_positions(result.phi))
+    np.testing.assert_allclose(result.trajectories[:, 0, 0], np.linspace(-30, 30, 60))
+
+
+def test_optimum_is_a_rotation_minimum():
+    """For rest-to-rest straight-line transfers J(θ) is a sinusoid in the common rotation θ:
+    the optimum must beat any rotated copy of itself."""
+    problem = paper_example(agents=12)
+    result = solve_formation(problem)
+    with open_backend("serial") as backend:
+        objective = OuterObjective(problem, backend)
+        for dtheta in (-1e-2, 1e-2, 0.5):
+            assert objective.value(result.phi + dtheta) > result.total_cost
+
+
+def test_bad_problems_are_refused():
+    with pytest.raises(ValueError, match="at least 2"):
+        paper_example(agents=1)
+    with pytest.raises(ValueError, match="radius"):
+        paper_example(agents=4, radius=0.0)
+    with pytest.raises(ValueError, match="mode"):
+        FormationOptions(mode="parallel")
+    with pytest.raises(ValueError, match="phi0"):
+        solve_formation(paper_example(agents=4), phi0=np.zeros(3))
