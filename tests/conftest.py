@@ -23,7 +23,9 @@ def tool(name: str) -> str:
     return str(path)
 
 
-def run_cli(*args: str, mpi_ranks: int | None = None, timeout: float = 300) -> subprocess.CompletedProcess:
+def run_cli(
+    *args: str, mpi_ranks: int | None = None, timeout: float = 300
+) -> subprocess.CompletedProcess:
     """Run ``python -m ...`` (optionally under ``mpirun -n``) and capture its output."""
     cmd = [sys.executable, *args]
     if mpi_ranks is not None:
@@ -60,8 +62,9 @@ def dask_cluster():
                 if time.monotonic() > deadline:
                     pytest.fail("dask scheduler did not start")
                 time.sleep(0.2)
+        preload = str(REPO / "workers" / "ocpar_preload.py")
         procs.append(subprocess.Popen([dask, "worker", address, "--nworkers", "2", "--nthreads",
-                                       "1", "--no-dashboard"], env=env,
+                                       "1", "--no-dashboard", "--preload", preload], env=env,
                                       stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL))
         with Client(address, timeout="30s") as client:
             client.wait_for_workers(2, timeout=60)

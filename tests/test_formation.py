@@ -73,7 +73,8 @@ def test_hierarchical_run_bookkeeping(sixty_agents):
     assert result.failed_solves == 0
     assert len(result.trace) == result.supersteps > 1
     assert all(t.tasks == 60 for t in result.trace)
-    np.testing.assert_allclose(result.trajectories[:, -1], paper_example(60).final_positions(result.phi))
+    ends = paper_example(60).final_positions(result.phi)
+    np.testing.assert_allclose(result.trajectories[:, -1], ends)
     np.testing.assert_allclose(result.trajectories[:, 0, 0], np.linspace(-30, 30, 60))
 
 

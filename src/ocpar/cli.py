@@ -22,8 +22,10 @@ class OneLineParser(argparse.ArgumentParser):
 
 
 def fail(prog: str, message: str) -> NoReturn:
-    """Print ``prog: error: message`` (one line) and exit with status 2."""
-    print(f"{prog}: error: {' '.join(str(message).split())}", file=sys.stderr)
+    """Print ``prog: error: message`` (one line; under mpirun from rank 0 only) and exit 2."""
+    rank = os.environ.get("PMI_RANK", os.environ.get("OMPI_COMM_WORLD_RANK", "0"))
+    if rank == "0":
+        print(f"{prog}: error: {' '.join(str(message).split())}", file=sys.stderr)
     sys.exit(EXIT_USAGE)
 
 

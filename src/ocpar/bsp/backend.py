@@ -63,7 +63,7 @@ class Backend(ABC):
     def _run_chunks(self, name: str, chunks: list[list[Any]]) -> list[ChunkResult]:
         """Run chunk w on worker w; return the chunk results in worker order."""
 
-    def close(self) -> None:
+    def close(self) -> None:  # noqa: B027 - backends without resources need no cleanup
         """Release workers (idempotent)."""
 
     def __enter__(self) -> Backend:

@@ -20,7 +20,9 @@ def kernel_name(kernel: KernelRef) -> str:
         return kernel
     module, qualname = getattr(kernel, "__module__", None), getattr(kernel, "__qualname__", "")
     if not module or "<" in qualname or "." in qualname:
-        raise ValueError(f"kernel {kernel!r} is not a module-level function; workers cannot import it")
+        raise ValueError(
+            f"kernel {kernel!r} is not a module-level function; workers cannot import it"
+        )
     return f"{module}:{qualname}"
 
 

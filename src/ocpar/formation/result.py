@@ -87,7 +87,8 @@ class FormationResult:
         """A few lines for people: the headline numbers of the run."""
         return (
             f"status {self.status} ({self.message})\n"
-            f"total cost {self.total_cost:.12e}   equidistance error {self.equidistance_error:.1e} rad\n"
+            f"total cost {self.total_cost:.12e}   "
+            f"equidistance error {self.equidistance_error:.1e} rad\n"
             f"outer iterations {self.outer_iterations}   supersteps {self.supersteps}   "
             f"inner solves {self.inner_solves} (failed {self.failed_solves})\n"
             f"wall time {self.wall_time_s:.2f} s on {self.workers} {self.backend} worker(s), "

@@ -1,0 +1,93 @@
+"""The command line contract: result.json fields, plot, one-line errors with exit status 2."""
+
+from __future__ import annotations
+
+import json
+import math
+import subprocess
+from pathlib import Path
+
+import pytest
+from conftest import REPO, run_cli
+
+REQUIRED = {
+    "scheme": str, "problem": str, "agents": int, "backend": str, "workers": int, "mode": str,
+    "status": str, "total_cost": float, "phi": list, "equidistance_error": float,
+    "outer_iterations": int, "supersteps": int, "inner_solves": int, "failed_solves": int,
+    "wall_time_s": float, "trace": list,
+}
+
+
+def test_small_run_writes_result_and_plot(tmp_path):
+    proc = run_cli("-m", "ocpar.formation", "--agents", "8", "--radius", "5",
+                   "--output", str(tmp_path / "run"))
+    assert proc.returncode == 0, proc.stderr
+    data = json.loads((tmp_path / "run" / "result.json").read_text())
+    for key, typ in REQUIRED.items():
+        assert isinstance(data[key], typ), key
+    assert data["scheme"] == "formation" and data["agents"] == 8 and len(data["phi"]) == 8
+    assert data["backend"] == "serial" and data["mode"] == "hierarchical"
+    assert data["equidistance_error"] <= 1e-9
+    assert data["supersteps"] == len(data["trace"]) == proc.stdout.count("superstep ")
+    assert data["inner_solves"] == 8 * data["supersteps"]
+    assert {"wall_s", "overhead_s", "worker_busy_s", "task_cpu_s"} <= set(data["trace"][0])
+    png = (tmp_path / "run" / "formation.png").read_bytes()
+    assert png.startswith(b"\x89PNG") and len(png) > 10_000
+    assert "total cost" in proc.stdout and "wall time" in proc.stdout
+    checker = REPO.parent / "shared" / "tools" / "check-result"
+    if checker.exists():
+        check = subprocess.run([str(checker), str(tmp_path / "run")], capture_output=True,
+                               text=True)
+        assert check.returncode == 0, check.stdout
+
+
+def test_monolithic_mode_from_the_command_line(tmp_path):
+    proc = run_cli("-m", "ocpar.formation", "--agents", "8", "--radius", "5", "--mode",
+                   "monolithic", "--quiet", "--output", str(tmp_path))
+    assert proc.returncode == 0, proc.stderr
+    data = json.loads((tmp_path / "result.json").read_text())
+    assert data["mode"] == "monolithic" and data["supersteps"] == 0 and data["trace"] == []
+    assert math.isfinite(data["total_cost"]) and data["equidistance_error"] <= 1e-9
+
+
+def _unwritable_dir(tmp_path: Path) -> str:
+    blocker = tmp_path / "file"
+    blocker.write_text("not a directory")
+    return str(blocker / "out")
+
+
+@pytest.mark.parametrize(
+    ("args", "needle"),
+    [
+        (["--agents", "1"], "--agents"),
+        (["--agents", "many"], "--agents"),
+        (["--radius", "0"], "--radius"),
+        (["--radius", "nan"], "--radius"),
+        (["--radius", "-2"], "--radius"),
+        (["--backend", "threads"], "--backend"),
+        (["--mode", "parallel"], "--mode"),
+        (["--workers", "0"], "--workers"),
+        (["--backend", "serial", "--workers", "3"], "serial"),
+        (["--backend", "mpi"], "mpirun"),
+        (["--scheduler", "not-an-address"], "--scheduler"),
+        (["--backend", "dask", "--scheduler", "tcp://127.0.0.1:9"], "scheduler"),
+        (["--output", "UNWRITABLE"], "not writable"),
+        (["--agnets", "3"], "unrecognized"),
+    ],
+)
+def test_bad_input_gets_one_line_and_status_2(args, needle, tmp_path):
+    args = [_unwritable_dir(tmp_path) if a == "UNWRITABLE" else a for a in args]
+    proc = run_cli("-m", "ocpar.formation", *args, timeout=120)
+    assert proc.returncode == 2
+    lines = proc.stderr.strip().splitlines()
+    assert len(lines) == 1, proc.stderr
+    assert lines[0].startswith("ocpar.formation: error:") and needle in lines[0]
+    assert "Traceback" not in proc.stderr + proc.stdout
+
+
+def test_bad_input_under_mpirun_ends_every_rank(tmp_path):
+    proc = run_cli("-m", "ocpar.formation", "--agents", "1", mpi_ranks=2, timeout=120)
+    assert proc.returncode == 2
+    assert proc.stderr.count("error: --agents") == 1 and "Traceback" not in proc.stderr
+
+
