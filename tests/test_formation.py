@@ -98,3 +98,14 @@ def test_bad_problems_are_refused():
         FormationOptions(mode="parallel")
     with pytest.raises(ValueError, match="phi0"):
         solve_formation(paper_example(agents=4), phi0=np.zeros(3))
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("agents", [120, 200])
+def test_hierarchical_equals_monolithic_many_agents(agents):
+    problem = paper_example(agents=agents)
+    hierarchical = solve_formation(problem)
+    monolithic = solve_formation(problem, options=FormationOptions(mode="monolithic"))
+    assert hierarchical.converged and monolithic.converged
+    assert hierarchical.total_cost == pytest.approx(monolithic.total_cost, rel=1e-8)
+    assert max(hierarchical.equidistance_error, monolithic.equidistance_error) <= 1e-9

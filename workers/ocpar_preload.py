@@ -2,8 +2,9 @@
 
     dask worker tcp://SCHEDULER:8786 --nthreads 1 --preload /path/to/workers/ocpar_preload.py
 
-Importing ocpar pins BLAS/OpenMP to one thread in this process (unless already set). Building
-the 60-point-mass formation's inner solver here takes it out of the first superstep's time.
+Importing ocpar pins BLAS/OpenMP to one thread in this process (unless already set); malloc is
+tuned for IPOPT's workspaces (see ``ocpar.bsp.malloc``). Building the 60-point-mass formation's
+inner solver here takes it out of the first superstep's time.
 """
 
 from __future__ import annotations
@@ -11,6 +12,7 @@ from __future__ import annotations
 import logging
 
 import ocpar  # noqa: F401  (sets one BLAS/OpenMP thread per process)
+from ocpar.bsp.malloc import keep_solver_workspaces_on_heap
 from ocpar.formation import paper_example
 from ocpar.ocp import dmoc_problem
 
@@ -19,6 +21,7 @@ logger = logging.getLogger("ocpar.preload")
 
 def dask_setup(worker) -> None:
     """Called by ``dask worker --preload`` once the worker starts."""
+    keep_solver_workspaces_on_heap()
     shape = paper_example(agents=2).shape
     dmoc_problem(shape).solver  # noqa: B018  (builds and caches the IPOPT solver)
     logger.info("ocpar preload: DMOC solver for %s built on %s", shape, worker.address)
