@@ -8,6 +8,7 @@ to the same worker, so each worker's solver cache stays warm.
 from __future__ import annotations
 
 import itertools
+import os
 from typing import Any
 
 from ocpar.bsp.backend import Backend, BackendError
@@ -47,7 +48,7 @@ class DaskBackend(Backend):
         self._run_id = next(self._ids)
         with dask.config.set(WORKER_CONFIG):
             if scheduler is None:
-                n = workers or 1
+                n = workers or os.cpu_count() or 1
                 self._cluster = LocalCluster(
                     n_workers=n,
                     threads_per_worker=1,
