@@ -6,12 +6,15 @@ import argparse
 import os
 import sys
 import tempfile
+from collections.abc import Callable
 from pathlib import Path
-from typing import NoReturn
+from typing import NoReturn, TypeVar
 
 from ocpar.bsp import BACKENDS, Backend, BackendError, launched_by_mpirun, open_backend
 
 EXIT_USAGE = 2
+R = TypeVar("R")
+Progress = Callable[[str], None]
 
 
 class OneLineParser(argparse.ArgumentParser):
@@ -100,3 +103,19 @@ def prepare_output_dir(path: str | None, prog: str) -> Path | None:
     if not os.access(out, os.W_OK):
         fail(prog, f"output directory {out} is not writable")
     return out
+
+
+def run_on_backend(
+    args: argparse.Namespace, prog: str, body: Callable[[Backend, Progress], R]
+) -> R | None:
+    """Start the backend the arguments ask for and run ``body(backend, progress)`` in the
+    coordinator; other MPI ranks serve supersteps instead and get None. ``progress`` prints a
+    line unless ``--quiet``."""
+    name = choose_backend(args, prog)
+    with start_backend(args, name, prog) as backend:
+        if not backend.is_coordinator:
+            backend.serve()
+            return None
+        if getattr(args, "quiet", False):
+            return body(backend, lambda line: None)
+        return body(backend, lambda line: print(line, flush=True))

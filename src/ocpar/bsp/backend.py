@@ -53,6 +53,7 @@ class Backend(ABC):
                 worker_busy_s=[c.busy_s for c in chunks],
                 worker_cpu_s=[c.cpu_s for c in chunks],
                 worker_tasks=[len(c.results) for c in chunks],
+                worker_peak_rss_mb=[c.peak_rss_mb for c in chunks],
                 task_wall_s=[t for c in chunks for t in c.task_wall_s],
                 task_cpu_s=[t for c in chunks for t in c.task_cpu_s],
             )

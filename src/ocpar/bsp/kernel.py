@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import importlib
+import resource
+import sys
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
@@ -37,7 +39,8 @@ def resolve_kernel(name: str) -> Callable[[Any], Any]:
 class ChunkResult:
     """What one worker returns for its chunk of a superstep.
 
-    ``task_wall_s``/``task_cpu_s`` are per task (s); ``busy_s``/``cpu_s`` cover the whole chunk.
+    ``task_wall_s``/``task_cpu_s`` are per task (s); ``busy_s``/``cpu_s`` cover the whole chunk;
+    ``peak_rss_mb`` is the worker process's peak resident memory so far (MiB).
     """
 
     results: list[Any]
@@ -45,6 +48,7 @@ class ChunkResult:
     task_cpu_s: list[float]
     busy_s: float
     cpu_s: float
+    peak_rss_mb: float
 
 
 def run_chunk(name: str, tasks: Sequence[Any]) -> ChunkResult:
@@ -63,4 +67,11 @@ def run_chunk(name: str, tasks: Sequence[Any]) -> ChunkResult:
         task_cpu_s=cpus,
         busy_s=time.perf_counter() - start_wall,
         cpu_s=time.process_time() - start_cpu,
+        peak_rss_mb=peak_rss_mb(),
     )
+
+
+def peak_rss_mb() -> float:
+    """Peak resident set size of this process so far, MiB (ru_maxrss: KiB on Linux)."""
+    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    return peak / (2**20 if sys.platform == "darwin" else 2**10)

@@ -10,6 +10,7 @@ class SuperstepTrace:
     """Measurements of one superstep.
 
     ``task_wall_s``/``task_cpu_s`` are per task in task order; ``worker_busy_s``/``worker_cpu_s``
+    and ``worker_peak_rss_mb`` (peak resident memory of the worker process so far, MiB)
     per worker; ``overhead_s`` = ``wall_s`` - max(``worker_busy_s``): communication, barrier
     and scheduling cost.
     """
@@ -20,6 +21,7 @@ class SuperstepTrace:
     worker_busy_s: list[float]
     worker_cpu_s: list[float]
     worker_tasks: list[int]
+    worker_peak_rss_mb: list[float]
     task_wall_s: list[float]
     task_cpu_s: list[float]
 
@@ -30,7 +32,7 @@ class SuperstepTrace:
     @property
     def imbalance(self) -> float:
         """max/mean worker busy time (1 = perfectly balanced)."""
-        busy = [b for b in self.worker_busy_s]
+        busy = self.worker_busy_s
         mean = sum(busy) / len(busy) if busy else 0.0
         return max(busy) / mean if mean > 0 else 1.0
 

@@ -15,7 +15,7 @@ from ocpar.cli import (
     positive_float,
     positive_int,
     prepare_output_dir,
-    start_backend,
+    run_on_backend,
 )
 from ocpar.formation.plot import plot_formation
 from ocpar.formation.problem import paper_example
@@ -48,25 +48,25 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
 
 def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
-    backend_name = choose_backend(args, PROG)
+    choose_backend(args, PROG)
     out = prepare_output_dir(args.output, PROG)
     problem = paper_example(agents=args.agents, radius=args.radius)
     options = FormationOptions(mode=args.mode)
-    with start_backend(args, backend_name, PROG) as backend:
-        if not backend.is_coordinator:
-            backend.serve()
-            return 0
-        say = (lambda line: None) if args.quiet else (lambda line: print(line, flush=True))
+
+    def solve(backend, say):
         say(f"{PROG}: {problem.agents} agents, mode {args.mode}, backend {backend.name} "
             f"with {backend.workers} worker(s)")
-        result = solve_formation(problem, backend, options, progress=say)
+        return solve_formation(problem, backend, options, progress=say)
+
+    result = run_on_backend(args, PROG, solve)
+    if result is None:  # an MPI rank other than 0
+        return 0
     print(result.summary(), flush=True)
     if out is not None:
         json_path = result.write_json(out)
         png_path = plot_formation(problem, result, out / "formation.png")
         print(f"wrote {json_path} and {png_path}")
     return 0 if result.converged else 1
-
 
 if __name__ == "__main__":
     sys.exit(main())

@@ -16,7 +16,7 @@ import numpy as np
 from ocpar.formation.potential import coupling_expr
 from ocpar.formation.problem import FormationProblem
 from ocpar.ocp import dmoc_problem
-from ocpar.ocp.dmoc import ipopt_options
+from ocpar.ocp.ipopt import ipopt_options
 
 
 @dataclass

@@ -29,6 +29,7 @@ import casadi as ca
 import numpy as np
 
 from ocpar.models.mechanical import MechanicalSystem
+from ocpar.ocp.ipopt import ipopt_options
 
 
 @dataclass(frozen=True)
@@ -189,14 +190,6 @@ class DmocTranscription:
             iterations=int(stats["iter_count"]),
             solve_time_s=elapsed,
         )
-
-
-def ipopt_options(tol: float, max_iter: int) -> dict:
-    """Silent IPOPT options with the given tolerance (exact Hessians, MUMPS)."""
-    return {
-        "print_time": False,
-        "ipopt": {"print_level": 0, "sb": "yes", "tol": tol, "max_iter": max_iter},
-    }
 
 
 @lru_cache(maxsize=32)

@@ -1,0 +1,222 @@
+"""Sampled local pursuit (SLP) with multiple-shooting subproblems: PBMS, pipelined.
+
+Agent 0 follows the feasible trajectory. Agent k leaves x_I at kΔ; at each of its update
+times (every δ) it solves, by multiple shooting,
+
+* a **catch-up** problem while its leader has not reached S_Q: a fixed-time Δ transfer from
+  its own state to the leader's current state (r, ṙ, θ̇; the leader's mass is not a terminal
+  constraint, or every path would burn the same fuel), or
+* a **free-running** problem once the leader is in S_Q: to S_Q over its remaining time,
+
+and applies the first δ of the plan. With Δ = (N_Δ−1)h, δ = N_δ h, the catch-up problem has
+N_Δ samples; in local sample indices, agent k's update at index j needs its leader's states up
+to index j + N_Δ − 1 (the leader is Δ ahead in time).
+
+All agents whose next update has what it needs (from earlier supersteps) solve in one
+superstep, so about (N−1)/(N_Δ−1) agents run in parallel. The computation is the SLP of the
+paper whatever the schedule: each update depends only on data fixed by the rules, so results
+do not depend on the backend or the worker count.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from ocpar.bsp import Backend
+from ocpar.models.orbit_transfer import KG_PER_T
+from ocpar.ocp import MsShape, MsSolution, MsTask, solve_ms_task
+from ocpar.pursuit.problem import TARGET_COMPONENTS, OrbitTransferProblem
+
+
+@dataclass(frozen=True)
+class PursuitSettings:
+    """SLP settings: ``window`` N_Δ (samples per catch-up problem), ``update`` N_δ (samples
+    applied per update), ``epsilon_kg`` the stopping threshold on the fuel improvement between
+    successive agents (kg), ``max_agents`` a bound on the number of pursuing agents."""
+
+    window: int = 60
+    update: int = 32
+    epsilon_kg: float = 1e-5
+    max_agents: int = 100_000
+
+    def check(self, samples: int) -> None:
+        """Raise ValueError unless 1 ≤ N_δ < N_Δ < N."""
+        if not 2 <= self.window < samples:
+            raise ValueError(f"window N_Δ must satisfy 2 <= N_Δ < N = {samples}, got {self.window}")
+        if not 1 <= self.update < self.window:
+            raise ValueError(f"update N_δ must satisfy 1 <= N_δ < N_Δ = {self.window}, "
+                             f"got {self.update}")
+        if not (self.epsilon_kg > 0 and np.isfinite(self.epsilon_kg)):
+            raise ValueError(f"epsilon must be a positive number of kg, got {self.epsilon_kg}")
+        if self.max_agents < 2:
+            raise ValueError(f"max_agents must be at least 2, got {self.max_agents}")
+
+
+@dataclass
+class Agent:
+    """One agent's sampled trajectory on its own clock: states ``x`` (N, nx) known up to
+    index ``position``, controls ``u`` (N−1, nu) applied so far."""
+
+    index: int
+    x: np.ndarray
+    u: np.ndarray
+    position: int = 0
+    solves: int = 0
+
+    @property
+    def done(self) -> bool:
+        return self.position == len(self.x) - 1
+
+    @property
+    def final_mass_kg(self) -> float:
+        return float(self.x[-1, 3] * KG_PER_T)
+
+
+@dataclass
+class PursuitOutcome:
+    """What the pursuit loop returns: the last finished agent (the result), every finished
+    agent's final mass (kg, agent 0 first), counters and status."""
+
+    best: Agent
+    initial: Agent
+    final_masses_kg: list[float]
+    subproblem_solves: int
+    failed_solves: int
+    max_in_flight: int
+    converged: bool
+    message: str
+    failures: list[str] = field(default_factory=list)
+
+
+class PursuitTrain:
+    """The coordinator's state: agents in flight, each one's leader, the finished masses."""
+
+    def __init__(self, problem: OrbitTransferProblem, settings: PursuitSettings) -> None:
+        settings.check(problem.samples)
+        self.problem, self.settings = problem, settings
+        n = problem.samples
+        x0, u0 = problem.feasible_trajectory()
+        self.initial = Agent(0, x0, u0, position=n - 1)
+        model = problem.model
+        self._catch_up = MsShape(model, settings.window - 1, problem.step, TARGET_COMPONENTS,
+                                 warm_start=True)
+        self.leaders: dict[int, Agent] = {0: self.initial}
+        self.in_flight: list[Agent] = []
+        self.final_masses_kg = [self.initial.final_mass_kg]
+        self.solves = 0
+        self.failed = 0
+        self.failures: list[str] = []
+        self.launched = 0
+
+    def _shape(self, intervals: int) -> MsShape:
+        if intervals == self.settings.window - 1:
+            return self._catch_up
+        return MsShape(self.problem.model, intervals, self.problem.step, TARGET_COMPONENTS,
+                       warm_start=True)
+
+    def _new_agent(self) -> Agent:
+        n, nx = self.problem.samples, self.problem.model.nx
+        self.launched += 1
+        x = np.full((n, nx), np.nan)
+        x[0] = self.problem.initial_state
+        return Agent(self.launched, x, np.full((n - 1, self.problem.model.nu), np.nan))
+
+    def ready(self) -> list[tuple[Agent, MsTask]]:
+        """Agents whose next update can be computed now, with their subproblems; launches a
+        new agent when the last one has gone far enough for it to start."""
+        n, window = self.problem.samples, self.settings.window
+        last = self.in_flight[-1] if self.in_flight else self.initial
+        if self.launched < self.settings.max_agents and last.position >= window - 1:
+            agent = self._new_agent()
+            self.leaders[agent.index] = last
+            self.in_flight.append(agent)
+        work = []
+        for agent in self.in_flight:
+            leader, j = self.leaders[agent.index], agent.position
+            free_running = j >= n - window
+            if free_running and not leader.done:
+                continue
+            if not free_running and leader.position < j + window - 1:
+                continue
+            end = n - 1 if free_running else j + window - 1
+            target = self.problem.target if free_running else leader.x[end, list(TARGET_COMPONENTS)]
+            guess_x, guess_u = leader.x[j : end + 1].copy(), leader.u[j:end]
+            guess_x[0] = agent.x[j]
+            shape = self._shape(end - j)
+            task = MsTask(shape, tuple(agent.x[j]), tuple(target),
+                          tuple(np.concatenate([guess_x[1:].ravel(), guess_u.ravel()])))
+            work.append((agent, task))
+        return work
+
+    def apply(self, agent: Agent, sol: MsSolution) -> None:
+        """Move ``agent`` along the first δ of its plan (or to its end)."""
+        self.solves += 1
+        agent.solves += 1
+        if not sol.success:
+            self.failed += 1
+            self.failures.append(f"agent {agent.index} at sample {agent.position}: {sol.status}")
+        j = agent.position
+        steps = min(self.settings.update, len(sol.u))
+        agent.x[j + 1 : j + steps + 1] = sol.x[1 : steps + 1]
+        agent.u[j : j + steps] = sol.u[:steps]
+        agent.position = j + steps
+
+    def retire_finished(self) -> tuple[bool, str] | None:
+        """Take finished agents off the train in order; return (converged, message) when the
+        stopping test fires or the agent budget is spent, else None."""
+        while self.in_flight and self.in_flight[0].done:
+            agent = self.in_flight.pop(0)
+            self.final_masses_kg.append(agent.final_mass_kg)
+            self.leaders.pop(agent.index, None)
+            self.best = agent
+            if agent.index >= 2:
+                improvement = self.final_masses_kg[-1] - self.final_masses_kg[-2]
+                if improvement < self.settings.epsilon_kg:
+                    return True, (f"fuel improvement {improvement:.2e} kg < epsilon "
+                                  f"{self.settings.epsilon_kg:g} kg after agent {agent.index}")
+            if agent.index >= self.settings.max_agents:
+                return False, f"max_agents {self.settings.max_agents} reached"
+        return None
+
+
+def run_pursuit(
+    problem: OrbitTransferProblem,
+    settings: PursuitSettings,
+    backend: Backend,
+    progress: Callable[[str], None] | None = None,
+) -> PursuitOutcome:
+    """Run PBMS until the stopping test; one superstep per wave of ready updates."""
+    train = PursuitTrain(problem, settings)
+    max_in_flight = 0
+    while True:
+        work = train.ready()
+        if not work:
+            raise RuntimeError("pursuit schedule stalled: no agent can move")  # a bug if seen
+        max_in_flight = max(max_in_flight, len(work))
+        sols = backend.superstep(solve_ms_task, [task for _, task in work])
+        for (agent, _), sol in zip(work, sols, strict=True):
+            train.apply(agent, sol)
+        verdict = train.retire_finished()
+        if progress is not None:
+            trace = backend.traces[-1]
+            progress(
+                f"superstep {trace.index:5d}  agents in flight {len(work):3d}  "
+                f"finished {len(train.final_masses_kg) - 1:5d}  last final mass "
+                f"{train.final_masses_kg[-1]:.6f} kg  wall {trace.wall_s * 1e3:6.1f} ms"
+            )
+        if verdict is not None:
+            converged, message = verdict
+            return PursuitOutcome(
+                best=train.best,
+                initial=train.initial,
+                final_masses_kg=train.final_masses_kg,
+                subproblem_solves=train.solves,
+                failed_solves=train.failed,
+                max_in_flight=max_in_flight,
+                converged=converged,
+                message=message,
+                failures=train.failures[:20],
+            )

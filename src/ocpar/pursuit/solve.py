@@ -1,0 +1,92 @@
+"""The pursuit scheme's Python API: :func:`solve_pursuit`."""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+
+import numpy as np
+
+from ocpar.bsp import Backend
+from ocpar.bsp.serial import SerialBackend
+from ocpar.models.orbit_transfer import KG_PER_T
+from ocpar.ocp import MsShape, MsSolution, MsTask, solve_ms_task
+from ocpar.pursuit.problem import TARGET_COMPONENTS, OrbitTransferProblem
+from ocpar.pursuit.result import PursuitResult
+from ocpar.pursuit.slp import PursuitSettings, run_pursuit
+from ocpar.pursuit.validate import euler_residual, rk_check
+
+MODES = ("pbms", "ms")
+#: Largest N for which a PBMS run also solves the full-horizon MS problem for comparison.
+REFERENCE_MAX_SAMPLES = 1001
+
+
+def solve_full_horizon(problem: OrbitTransferProblem, backend: Backend) -> MsSolution:
+    """Plain multiple shooting over [0, T] with N samples, from agent 0's trajectory, as one
+    task on the backend."""
+    x0, u0 = problem.feasible_trajectory()
+    shape = MsShape(problem.model, problem.samples - 1, problem.step, TARGET_COMPONENTS)
+    guess = tuple(np.concatenate([x0[1:].ravel(), u0.ravel()]))
+    task = MsTask(shape, tuple(problem.initial_state), tuple(problem.target), guess)
+    return backend.superstep(solve_ms_task, [task])[0]
+
+
+def solve_pursuit(
+    problem: OrbitTransferProblem,
+    settings: PursuitSettings | None = None,
+    backend: Backend | None = None,
+    mode: str = "pbms",
+    reference: bool = True,
+    progress: Callable[[str], None] | None = None,
+) -> PursuitResult:
+    """Solve ``problem`` by pursuit-based multiple shooting (``mode="pbms"``) or by plain
+    multiple shooting over the whole horizon (``mode="ms"``).
+
+    With ``reference`` (and N ≤ 1001) a PBMS run also solves the full-horizon MS problem
+    afterwards, for comparison. ``progress`` gets one line per superstep.
+    """
+    if mode not in MODES:
+        raise ValueError(f"unknown mode {mode!r}; choose one of {', '.join(MODES)}")
+    settings = settings or PursuitSettings()
+    settings.check(problem.samples)
+    backend = backend or SerialBackend()
+    first_trace = len(backend.traces)
+    start = time.perf_counter()
+    initial_x, _ = problem.feasible_trajectory()
+    reference_mass, reference_x = None, None
+
+    if mode == "ms":
+        sol = solve_full_horizon(problem, backend)
+        x, u = sol.x, sol.u
+        status = "converged" if sol.success else "failed"
+        message, agents, solves = sol.status, 0, 1
+        failed, in_flight, masses = int(not sol.success), 1, []
+    else:
+        outcome = run_pursuit(problem, settings, backend, progress)
+        x, u = outcome.best.x, outcome.best.u
+        status = "converged" if outcome.converged else "not_converged"
+        message, agents, solves = outcome.message, outcome.best.index, outcome.subproblem_solves
+        failed, in_flight, masses = (outcome.failed_solves, outcome.max_in_flight,
+                                     outcome.final_masses_kg)
+    trace = backend.traces[first_trace:]
+    wall = time.perf_counter() - start
+    if mode == "pbms" and reference and problem.samples <= REFERENCE_MAX_SAMPLES:
+        ref = solve_full_horizon(problem, backend)
+        if ref.success:
+            reference_mass, reference_x = float(ref.x[-1, 3] * KG_PER_T), ref.x
+    check = rk_check(problem, x, u)
+    final_mass = float(x[-1, 3] * KG_PER_T)
+    return PursuitResult(
+        problem=problem.name, case=problem.case, samples=problem.samples, mode=mode,
+        window=settings.window, update=settings.update, epsilon_kg=settings.epsilon_kg,
+        backend=backend.name, workers=backend.workers, status=status, message=message,
+        final_mass_kg=final_mass, fuel_kg=problem.initial_mass * KG_PER_T - final_mass,
+        agents=agents, subproblem_solves=solves, failed_solves=failed,
+        max_agents_in_flight=in_flight,
+        constraint_violation=euler_residual(problem, x, u),
+        rk_final_altitude_error_m=check.final_altitude_error_m,
+        rk_final_radial_velocity_mps=check.final_radial_velocity_mps,
+        rk_final_position_error_m=check.final_position_error_m,
+        wall_time_s=wall, x=x, u=u, initial_x=initial_x, final_masses_kg=masses,
+        reference_final_mass_kg=reference_mass, reference_x=reference_x, trace=trace,
+    )
