@@ -58,18 +58,21 @@ class MsShape:
 @dataclass(frozen=True)
 class MsTask:
     """One MS solve: shape, initial state (nx,), terminal target (len(terminal),) and an
-    optional warm start w0 (flattened states x_1..x_N then controls)."""
+    optional warm start: w0 (flattened states x_1..x_N then controls) and constraint
+    multipliers λ_g0 (from a neighbouring solve of the same shape)."""
 
     shape: MsShape
     initial_state: tuple[float, ...]
     target: tuple[float, ...]
     warm_start: tuple[float, ...] | None = None
+    multipliers: tuple[float, ...] | None = None
 
 
 @dataclass
 class MsSolution:
     """Result of one MS solve: ``cost``; states ``x`` (N+1, nx) including x_0; controls ``u``
-    (N, nu); ``constraint_violation`` = max |continuity or terminal residual|."""
+    (N, nu); ``constraint_violation`` = max |continuity or terminal residual|; ``w`` and
+    ``lam_g`` the NLP solution and constraint multipliers (to warm-start a similar solve)."""
 
     cost: float
     x: np.ndarray
@@ -79,6 +82,8 @@ class MsSolution:
     iterations: int
     solve_time_s: float
     constraint_violation: float
+    w: np.ndarray
+    lam_g: np.ndarray
 
 
 def step_function(model: OdeModel, step: float, integrator: str) -> ca.Function:
@@ -144,21 +149,28 @@ class MsTranscription:
         return x, np.asarray(w[nx * n :]).reshape(n, self.nu)
 
     def solve(
-        self, x0: np.ndarray, target: np.ndarray, w0: np.ndarray | None = None
+        self,
+        x0: np.ndarray,
+        target: np.ndarray,
+        w0: np.ndarray | None = None,
+        lam_g0: np.ndarray | None = None,
     ) -> MsSolution:
-        """Solve from x0 to the target; w0 defaults to x0 held and zero controls. A failed
-        solve is returned, not raised."""
+        """Solve from x0 to the target; w0 defaults to x0 held and zero controls, λ_g0 to
+        zero. A failed solve is returned, not raised."""
         x0, target = np.asarray(x0, float), np.asarray(target, float)
         if w0 is None:
             w0 = self.pack(np.tile(x0, (self.n + 1, 1)), np.zeros((self.n, self.nu)))
         p = np.concatenate([x0, target])
         start = time.perf_counter()
         try:
-            out = self.solver(x0=w0, p=p, lbg=0, ubg=0, lbx=self.lbw, ubx=self.ubw)
+            out = self.solver(x0=w0, p=p, lbg=0, ubg=0, lbx=self.lbw, ubx=self.ubw,
+                              lam_g0=0 if lam_g0 is None else lam_g0)
         except RuntimeError as exc:  # evaluation errors (NaN) in CasADi
-            x, u = self.unpack(np.full(self.nw, np.nan), x0)
+            w = np.full(self.nw, np.nan)
+            x, u = self.unpack(w, x0)
             return MsSolution(float("nan"), x, u, f"error: {exc}".splitlines()[0], False, 0,
-                              time.perf_counter() - start, float("inf"))
+                              time.perf_counter() - start, float("inf"), w,
+                              np.full(self.ng, np.nan))
         elapsed = time.perf_counter() - start
         stats = self.solver.stats()
         w = np.asarray(out["x"]).ravel()
@@ -172,6 +184,8 @@ class MsTranscription:
             iterations=int(stats["iter_count"]),
             solve_time_s=elapsed,
             constraint_violation=float(np.max(np.abs(np.asarray(out["g"])))),
+            w=w,
+            lam_g=np.asarray(out["lam_g"]).ravel(),
         )
 
 
@@ -184,5 +198,6 @@ def ms_problem(shape: MsShape) -> MsTranscription:
 def solve_ms_task(task: MsTask) -> MsSolution:
     """Engine kernel: solve one MS task with this process's cached solver."""
     w0 = None if task.warm_start is None else np.asarray(task.warm_start, float)
+    lam = None if task.multipliers is None else np.asarray(task.multipliers, float)
     return ms_problem(task.shape).solve(np.asarray(task.initial_state, float),
-                                        np.asarray(task.target, float), w0)
+                                        np.asarray(task.target, float), w0, lam)

@@ -8,7 +8,9 @@ times (every δ) it solves, by multiple shooting,
   constraint, or every path would burn the same fuel), or
 * a **free-running** problem once the leader is in S_Q: to S_Q over its remaining time,
 
-and applies the first δ of the plan. With Δ = (N_Δ−1)h, δ = N_δ h, the catch-up problem has
+and applies the first δ of the plan. Each subproblem is warm-started from the leader's plan
+at the same update index (same shape; primal and multipliers): ~3 IPOPT iterations instead
+of ~4 from the leader's trajectory. With Δ = (N_Δ−1)h, δ = N_δ h, the catch-up problem has
 N_Δ samples; in local sample indices, agent k's update at index j needs its leader's states up
 to index j + N_Δ − 1 (the leader is Δ ahead in time).
 
@@ -58,13 +60,15 @@ class PursuitSettings:
 @dataclass
 class Agent:
     """One agent's sampled trajectory on its own clock: states ``x`` (N, nx) known up to
-    index ``position``, controls ``u`` (N−1, nu) applied so far."""
+    index ``position``, controls ``u`` (N−1, nu) applied so far, and the plans it solved at
+    each update index, kept until its follower has used them as warm starts."""
 
     index: int
     x: np.ndarray
     u: np.ndarray
     position: int = 0
     solves: int = 0
+    plans: dict[int, MsSolution] = field(default_factory=dict)
 
     @property
     def done(self) -> bool:
@@ -135,6 +139,8 @@ class PursuitTrain:
             self.in_flight.append(agent)
         work = []
         for agent in self.in_flight:
+            if agent.done:
+                continue
             leader, j = self.leaders[agent.index], agent.position
             free_running = j >= n - window
             if free_running and not leader.done:
@@ -143,11 +149,14 @@ class PursuitTrain:
                 continue
             end = n - 1 if free_running else j + window - 1
             target = self.problem.target if free_running else leader.x[end, list(TARGET_COMPONENTS)]
-            guess_x, guess_u = leader.x[j : end + 1].copy(), leader.u[j:end]
-            guess_x[0] = agent.x[j]
-            shape = self._shape(end - j)
-            task = MsTask(shape, tuple(agent.x[j]), tuple(target),
-                          tuple(np.concatenate([guess_x[1:].ravel(), guess_u.ravel()])))
+            plan = leader.plans.pop(j, None)
+            if plan is not None and len(plan.u) == end - j:
+                guess, lam = tuple(plan.w), tuple(plan.lam_g)
+            else:  # agent 0 has no plans: its trajectory, no multipliers
+                guess = tuple(np.concatenate([leader.x[j + 1 : end + 1].ravel(),
+                                              leader.u[j:end].ravel()]))
+                lam = None
+            task = MsTask(self._shape(end - j), tuple(agent.x[j]), tuple(target), guess, lam)
             work.append((agent, task))
         return work
 
@@ -159,6 +168,7 @@ class PursuitTrain:
             self.failed += 1
             self.failures.append(f"agent {agent.index} at sample {agent.position}: {sol.status}")
         j = agent.position
+        agent.plans[j] = sol
         steps = min(self.settings.update, len(sol.u))
         agent.x[j + 1 : j + steps + 1] = sol.x[1 : steps + 1]
         agent.u[j : j + steps] = sol.u[:steps]

@@ -1,0 +1,75 @@
+"""Multiple shooting on the orbit transfer: the paper's MS optimum and the integrators."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy.integrate import solve_ivp
+
+from ocpar.models import OrbitTransfer
+from ocpar.ocp import MsShape, MsTask, ms_problem, solve_ms_task
+from ocpar.pursuit import OrbitTransferProblem
+from ocpar.pursuit.problem import TARGET_COMPONENTS
+
+PAPER_MS_FINAL_MASS_KG = 523.979819  # Table II, N = 301
+
+
+def full_horizon(problem: OrbitTransferProblem, integrator: str):
+    x0, u0 = problem.feasible_trajectory()
+    shape = MsShape(problem.model, problem.samples - 1, problem.step, TARGET_COMPONENTS,
+                    integrator)
+    guess = np.concatenate([x0[1:].ravel(), u0.ravel()])
+    return solve_ms_task(MsTask(shape, tuple(problem.initial_state), tuple(problem.target),
+                                tuple(guess)))
+
+
+def test_euler_ms_reproduces_the_paper_case_1():
+    problem = OrbitTransferProblem(case=1, samples=301)
+    sol = full_horizon(problem, "euler")
+    assert sol.success, sol.status
+    assert sol.x[-1, 3] * 1e3 == pytest.approx(PAPER_MS_FINAL_MASS_KG, abs=0.01)
+    np.testing.assert_allclose(sol.x[-1, :3], problem.target, atol=1e-10)
+    assert sol.constraint_violation < 1e-12
+    assert sol.x[-1, 3] * 1e3 > 523.9  # the optimum burns ~1 kg, the guess 53.5 kg
+
+
+def test_rk4_steps_match_an_accurate_integration_and_euler_does_not():
+    """Each NLP step must be the integrator's step with u held: RK4 agrees with an adaptive
+    integration of its own controls to ~h⁴, Euler only to ~h."""
+    problem = OrbitTransferProblem(case=1, samples=101)
+    model = problem.model
+    errors = {}
+    for integrator in ("euler", "rk4"):
+        sol = full_horizon(problem, integrator)
+        assert sol.success, sol.status
+        x = problem.initial_state
+        for uj in sol.u:
+            x = solve_ivp(lambda _t, y, uj=uj: model.rhs_numpy(y, uj), (0, problem.step), x,
+                          rtol=1e-12, atol=1e-13).y[:, -1]
+        errors[integrator] = abs(x[0] - sol.x[-1, 0])  # final radius, Mm
+    assert errors["rk4"] < 1e-5
+    assert errors["euler"] > 1e3 * errors["rk4"]
+
+
+def test_target_set_leaves_mass_free_and_solver_is_cached():
+    model = OrbitTransfer()
+    shape = MsShape(model, 20, 1.0, (0, 1, 2))
+    problem = ms_problem(shape)
+    assert ms_problem(MsShape(model, 20, 1.0, (0, 1, 2))) is problem
+    x0 = np.array([9.6, 0.0, model.circular_rate(9.6), 0.525])
+    target = np.array([9.65, 0.0, model.circular_rate(9.65)])
+    sol = problem.solve(x0, target)
+    assert sol.success, sol.status
+    np.testing.assert_allclose(sol.x[-1, :3], target, atol=1e-10)
+    assert sol.x[-1, 3] < x0[3]  # burning fuel is the only way up
+    assert sol.cost == pytest.approx((x0[3] - sol.x[-1, 3]) * 1e3, rel=1e-9)
+
+
+def test_bad_shapes_are_refused():
+    model = OrbitTransfer()
+    with pytest.raises(ValueError, match="integrator"):
+        MsShape(model, 10, 1.0, (0,), "rk45")
+    with pytest.raises(ValueError, match="terminal"):
+        MsShape(model, 10, 1.0, (7,))
+    with pytest.raises(ValueError, match="interval"):
+        MsShape(model, 0, 1.0, (0,))
