@@ -26,8 +26,8 @@ def dmoc_tasks(n: int) -> list[DmocTask]:
 
 def test_contiguous_blocks_cover_tasks_in_order():
     blocks = contiguous_blocks(10, 3)
-    assert [list(b) for b in blocks] == [[0, 1, 2, 3], [4, 5, 6], [7, 8, 9]]
-    assert [len(b) for b in contiguous_blocks(2, 4)] == [1, 1, 0, 0]
+    assert [list(b) for b in blocks] == [[0, 1, 2], [3, 4, 5], [6, 7, 8, 9]]
+    assert [len(b) for b in contiguous_blocks(2, 4)] == [0, 0, 1, 1]
     with pytest.raises(ValueError):
         contiguous_blocks(3, 0)
 
@@ -67,7 +67,7 @@ def test_dask_results_in_task_order_and_equal_to_serial(local_dask):
     got = local_dask.superstep("ocpar.ocp:solve_dmoc_task", tasks)
     assert [g.cost for g in got] == [e.cost for e in expected]  # bitwise
     trace = local_dask.traces[-1]
-    assert trace.worker_tasks == [4, 3] and len(trace.task_cpu_s) == 7
+    assert trace.worker_tasks == [3, 4] and len(trace.task_cpu_s) == 7
 
 
 def test_dask_workers_build_each_solver_once(local_dask):
