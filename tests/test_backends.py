@@ -21,7 +21,7 @@ SHAPE = DmocShape(PointMass(), 10)
 
 def dmoc_tasks(n: int) -> list[DmocTask]:
     rng = np.random.default_rng(1)
-    return [DmocTask(SHAPE, tuple(rng.standard_normal(8))) for _ in range(n)]
+    return [DmocTask(SHAPE, rng.standard_normal(8)) for _ in range(n)]
 
 
 def test_contiguous_blocks_cover_tasks_in_order():

@@ -70,7 +70,7 @@ def test_solver_is_built_once_per_shape():
     shape = DmocShape(PointMass(), 7)
     before = cache_report()
     for _ in range(3):
-        solve_dmoc_task(DmocTask(shape, tuple(PARAMS)))
+        solve_dmoc_task(DmocTask(shape, PARAMS))
     after = cache_report()
     assert after["builds"] - before["builds"] == 1
     assert after["hits"] - before["hits"] == 2

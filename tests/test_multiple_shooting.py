@@ -19,8 +19,7 @@ def full_horizon(problem: OrbitTransferProblem, integrator: str):
     shape = MsShape(problem.model, problem.samples - 1, problem.step, TARGET_COMPONENTS,
                     integrator)
     guess = np.concatenate([x0[1:].ravel(), u0.ravel()])
-    return solve_ms_task(MsTask(shape, tuple(problem.initial_state), tuple(problem.target),
-                                tuple(guess)))
+    return solve_ms_task(MsTask(shape, problem.initial_state, problem.target, guess))
 
 
 def test_euler_ms_reproduces_the_paper_case_1():

@@ -53,7 +53,7 @@ class DaskBackend(Backend):
                     n_workers=n,
                     threads_per_worker=1,
                     processes=True,
-                    dashboard_address=None,
+                    dashboard_address=":0",
                     env=WORKER_ENV,
                 )
                 self.client = Client(self._cluster)

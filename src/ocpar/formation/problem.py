@@ -59,7 +59,7 @@ class FormationProblem:
     def tasks(self, phi: np.ndarray) -> list[DmocTask]:
         """One inner DMOC task per agent for the final angles φ."""
         return [
-            DmocTask(self.shape, tuple(self.boundary_params(i, float(p))))
+            DmocTask(self.shape, self.boundary_params(i, float(p)))
             for i, p in enumerate(phi)
         ]
 

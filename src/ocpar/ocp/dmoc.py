@@ -62,7 +62,7 @@ class DmocTask:
     """One inner solve: a shape and its boundary data p (length 4 nq), picklable and small."""
 
     shape: DmocShape
-    params: tuple[float, ...]
+    params: np.ndarray
 
 
 @dataclass
@@ -200,7 +200,7 @@ def dmoc_problem(shape: DmocShape) -> DmocTranscription:
 
 def solve_dmoc_task(task: DmocTask) -> DmocSolution:
     """Engine kernel: solve one DMOC task with this process's cached solver."""
-    return dmoc_problem(task.shape).solve(np.asarray(task.params, float))
+    return dmoc_problem(task.shape).solve(task.params)
 
 
 def cache_report(_task: object = None) -> dict:

@@ -63,13 +63,14 @@ class MsShape:
 class MsTask:
     """One MS solve: shape, initial state (nx,), terminal target (len(terminal),) and an
     optional warm start: w0 (flattened states x_1..x_N then controls) and constraint
-    multipliers λ_g0 (from a neighbouring solve of the same shape)."""
+    multipliers λ_g0 (from a neighbouring solve of the same shape). Numbers travel as float
+    arrays (a tuple of numpy scalars pickles ~30x slower)."""
 
     shape: MsShape
-    initial_state: tuple[float, ...]
-    target: tuple[float, ...]
-    warm_start: tuple[float, ...] | None = None
-    multipliers: tuple[float, ...] | None = None
+    initial_state: np.ndarray
+    target: np.ndarray
+    warm_start: np.ndarray | None = None
+    multipliers: np.ndarray | None = None
 
 
 @dataclass
@@ -201,7 +202,5 @@ def ms_problem(shape: MsShape) -> MsTranscription:
 
 def solve_ms_task(task: MsTask) -> MsSolution:
     """Engine kernel: solve one MS task with this process's cached solver."""
-    w0 = None if task.warm_start is None else np.asarray(task.warm_start, float)
-    lam = None if task.multipliers is None else np.asarray(task.multipliers, float)
-    return ms_problem(task.shape).solve(np.asarray(task.initial_state, float),
-                                        np.asarray(task.target, float), w0, lam)
+    return ms_problem(task.shape).solve(task.initial_state, task.target, task.warm_start,
+                                        task.multipliers)

@@ -151,12 +151,12 @@ class PursuitTrain:
             target = self.problem.target if free_running else leader.x[end, list(TARGET_COMPONENTS)]
             plan = leader.plans.pop(j, None)
             if plan is not None and len(plan.u) == end - j:
-                guess, lam = tuple(plan.w), tuple(plan.lam_g)
+                guess, lam = plan.w, plan.lam_g
             else:  # agent 0 has no plans: its trajectory, no multipliers
-                guess = tuple(np.concatenate([leader.x[j + 1 : end + 1].ravel(),
-                                              leader.u[j:end].ravel()]))
+                guess = np.concatenate([leader.x[j + 1 : end + 1].ravel(),
+                                        leader.u[j:end].ravel()])
                 lam = None
-            task = MsTask(self._shape(end - j), tuple(agent.x[j]), tuple(target), guess, lam)
+            task = MsTask(self._shape(end - j), agent.x[j].copy(), np.array(target), guess, lam)
             work.append((agent, task))
         return work
 

@@ -26,8 +26,8 @@ def solve_full_horizon(problem: OrbitTransferProblem, backend: Backend) -> MsSol
     task on the backend."""
     x0, u0 = problem.feasible_trajectory()
     shape = MsShape(problem.model, problem.samples - 1, problem.step, TARGET_COMPONENTS)
-    guess = tuple(np.concatenate([x0[1:].ravel(), u0.ravel()]))
-    task = MsTask(shape, tuple(problem.initial_state), tuple(problem.target), guess)
+    guess = np.concatenate([x0[1:].ravel(), u0.ravel()])
+    task = MsTask(shape, problem.initial_state, problem.target, guess)
     return backend.superstep(solve_ms_task, [task])[0]
 
 
