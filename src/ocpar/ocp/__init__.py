@@ -5,9 +5,11 @@ Each transcription is built once per problem shape per process (:func:`dmoc_prob
 parameters, warm starts).
 
 - :mod:`ocpar.ocp.dmoc`: discrete mechanics and optimal control (Lagrangian systems);
-- :mod:`ocpar.ocp.multiple_shooting`: direct multiple shooting, Euler or RK4 (ODE models).
+- :mod:`ocpar.ocp.multiple_shooting`: direct multiple shooting, Euler or RK4 (ODE models);
+- :mod:`ocpar.ocp.dfet`: direct finite elements in time, free final time (ODE models).
 """
 
+from ocpar.ocp.dfet import DfetShape, DfetTranscription, dfet_problem
 from ocpar.ocp.dmoc import (
     DmocShape,
     DmocSolution,
@@ -26,6 +28,8 @@ from ocpar.ocp.multiple_shooting import (
 )
 
 __all__ = [
+    "DfetShape",
+    "DfetTranscription",
     "DmocShape",
     "DmocSolution",
     "DmocTask",
@@ -34,6 +38,7 @@ __all__ = [
     "MsSolution",
     "MsTask",
     "MsTranscription",
+    "dfet_problem",
     "dmoc_problem",
     "ms_problem",
     "solve_dmoc_task",

@@ -1,0 +1,1 @@
+"""Multi-objective optimal control with Multi Agent Collaborative Search (MACS)."""

@@ -1,0 +1,268 @@
+"""MACSoc (Algorithm 1): a population of agents, individualistic and social actions, a Pareto
+archive with a potential-field filter, and subproblem allocation.
+
+Each iteration is two supersteps: every agent's individualistic action (a Pascoletti–Serafini
+local search, Algorithm 2) in one, every agent's social action (a differential-evolution
+candidate followed by constraint restoration, Algorithms 3–4) in the other. All random draws
+come from per-agent generators seeded from (seed, agent), in agent order on the coordinator,
+so results do not depend on the backend or the worker count.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy.stats import qmc
+
+from ocpar.bsp import Backend
+from ocpar.macs.archive import Archive, Member, dominates
+from ocpar.macs.local_search import SearchResult, SearchTask, run_search
+from ocpar.macs.problems import MacsProblem
+from ocpar.ocp import dfet_problem
+
+#: Subproblems: 0 and 1 minimise one objective (λ = e_i), 2 the equal-weight direction.
+EQUAL = 2
+WEIGHTS = (np.array([1.0, 0.0]), np.array([0.0, 1.0]), np.full(2, 1 / np.sqrt(2)))
+
+
+@dataclass(frozen=True)
+class MacsSettings:
+    """Table I of the paper: ``max_evaluations`` (max_fun_eval), ``population`` (pop_size),
+    ``rho_initial`` (ρ_ini, as a fraction of each decision variable's range), ``de_weight``
+    (F), ``crossover`` (CR), ``social_fraction`` (p_social), ``archive_size`` (max_arch),
+    ``max_contractions`` (max_contr_ratio); ``contraction`` is the factor applied to ρ on a
+    failed local search, ``seed`` the master seed."""
+
+    max_evaluations: int = 10_000
+    population: int = 10
+    archive_size: int = 10
+    rho_initial: float = 1.0
+    de_weight: float = 0.9
+    crossover: float = 0.9
+    social_fraction: float = 1.0
+    max_contractions: int = 5
+    contraction: float = 0.5
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        checks = [
+            (self.max_evaluations >= 1, "max_evaluations must be >= 1"),
+            (self.population >= 4, "population must be >= 4 (differential evolution)"),
+            (self.archive_size >= 2, "archive_size must be >= 2"),
+            (0 < self.rho_initial <= 1, "rho_initial must be in (0, 1]"),
+            (0 < self.de_weight <= 2, "de_weight F must be in (0, 2]"),
+            (0 <= self.crossover <= 1, "crossover CR must be in [0, 1]"),
+            (0 <= self.social_fraction <= 1, "social_fraction must be in [0, 1]"),
+            (self.max_contractions >= 0, "max_contractions must be >= 0"),
+            (0 < self.contraction < 1, "contraction must be in (0, 1)"),
+            (self.seed >= 0, "seed must be >= 0"),
+        ]
+        for ok, message in checks:
+            if not ok:
+                raise ValueError(message)
+
+
+@dataclass
+class Agent:
+    """One MACS agent: its point (``z``, ``objectives``; None before its first feasible
+    point), neighbourhood radius ``rho``, subproblem, and random generator."""
+
+    index: int
+    rng: np.random.Generator
+    subproblem: int
+    rho: float
+    decision: np.ndarray
+    z: np.ndarray | None = None
+    objectives: np.ndarray | None = None
+    contractions: int = 0
+    fresh: bool = True
+    moved: bool = False
+
+
+@dataclass
+class MacsOutcome:
+    """Archive, counters and per-iteration history of a MACS run."""
+
+    archive: Archive
+    evaluations: int
+    iterations: int
+    failed_searches: int
+    history: list[dict] = field(default_factory=list)
+
+
+class Macs:
+    """The MACSoc coordinator for one problem on one backend."""
+
+    def __init__(
+        self,
+        problem: MacsProblem,
+        settings: MacsSettings,
+        backend: Backend,
+        progress: Callable[[str], None] | None = None,
+        indicator: Callable[[np.ndarray], float] | None = None,
+    ) -> None:
+        self.problem, self.settings, self.backend = problem, settings, backend
+        self.progress, self.indicator = progress, indicator
+        dfet = dfet_problem(problem.shape)
+        self.lower, self.upper = dfet.p_lower, dfet.p_upper
+        self.decision_slice = dfet.decision_slice
+        self.archive = Archive(settings.archive_size)
+        self.evaluations = 0
+        self.failed = 0
+        seeds = np.random.SeedSequence(settings.seed).spawn(settings.population + 1)
+        sample = qmc.LatinHypercube(d=len(self.lower), seed=np.random.default_rng(seeds[-1]))
+        starts = qmc.scale(sample.random(settings.population), self.lower, self.upper)
+        self.agents = [
+            Agent(j, np.random.default_rng(seeds[j]), j if j < 2 else EQUAL,
+                  settings.rho_initial, starts[j])
+            for j in range(settings.population)
+        ]
+
+    # -- supersteps -------------------------------------------------------------------------
+    def _superstep(self, tasks: list[SearchTask]) -> list[SearchResult]:
+        results = self.backend.superstep(run_search, tasks)
+        self.evaluations += sum(r.evaluations for r in results)
+        self.failed += sum(not r.feasible for r in results)
+        return results
+
+    def _archive(self, results: list[SearchResult], optimised: bool) -> None:
+        self.archive.add([Member(r.z, r.objectives, optimised) for r in results if r.feasible])
+
+    def _utopia(self) -> np.ndarray:
+        """z̃ = 2z − z*_A from the archive (eq. 15), pushed away when the archive is flat."""
+        ideal, nadir = self.archive.ideal_and_nadir()
+        span = np.maximum(nadir - ideal, 1e-3 * np.maximum(np.abs(ideal), 1.0))
+        return ideal - span
+
+    def _neighbour(self, agent: Agent) -> np.ndarray:
+        """A random decision vector in agent's neighbourhood B_j (radius ρ_j of the range)."""
+        step = agent.rho * (self.upper - self.lower) * agent.rng.uniform(-1, 1, len(self.lower))
+        return np.clip(agent.decision + step, self.lower, self.upper)
+
+    def initialise(self) -> None:
+        """Restore feasibility of the Latin-hypercube population; seed the archive."""
+        tasks = [SearchTask(self.problem, "restore", p0=a.decision) for a in self.agents]
+        results = self._superstep(tasks)
+        for agent, result in zip(self.agents, results, strict=True):
+            if result.feasible:
+                self._move(agent, result)
+        self._archive(results, optimised=False)
+
+    def individualistic(self) -> None:
+        """Algorithm 2 for every agent: a scalarised local search from the agent's point if it
+        moved since its last one; otherwise from an archive member that only restoration has
+        produced (it gets polished onto the front: our addition), or else from a random point
+        of the agent's neighbourhood B_j. ρ_j contracts when the search does not move the
+        agent (infeasible or no better) and resets after ``max_contractions``."""
+        utopia = self._utopia()
+        unpolished = [m for m in self.archive.members if not m.optimised]
+        tasks = []
+        for agent in self.agents:
+            weights = WEIGHTS[agent.subproblem]
+            if agent.fresh and agent.z is not None:
+                task = SearchTask(self.problem, "scalarised", z0=agent.z, weights=weights,
+                                  utopia=utopia)
+            elif unpolished:
+                member = unpolished.pop(0)
+                member.optimised = True  # claimed: polished by this search
+                task = SearchTask(self.problem, "scalarised", z0=member.z,
+                                  weights=WEIGHTS[EQUAL], utopia=utopia)
+            else:
+                task = SearchTask(self.problem, "scalarised", p0=self._neighbour(agent),
+                                  weights=weights, utopia=utopia)
+            tasks.append(task)
+        results = self._superstep(tasks)
+        for agent, result in zip(self.agents, results, strict=True):
+            agent.fresh = False
+            moved = result.feasible and self._improves(agent, result)
+            if moved:
+                self._move(agent, result)
+            elif agent.contractions >= self.settings.max_contractions:
+                agent.rho, agent.contractions = self.settings.rho_initial, 0
+            else:
+                agent.rho *= self.settings.contraction
+                agent.contractions += 1
+        self._archive(results, optimised=True)
+
+    def _tchebycheff(self, agent: Agent, objectives: np.ndarray | None) -> float:
+        """max_i λ_i |J_i − z_i| / (z*_A,i − z_i): the agent's scalar figure of merit."""
+        if objectives is None:
+            return np.inf
+        ideal, nadir = self.archive.ideal_and_nadir()
+        span = np.maximum(nadir - ideal, 1e-12)
+        return float(np.max(WEIGHTS[agent.subproblem] * np.abs(objectives - ideal) / span))
+
+    def _improves(self, agent: Agent, result: SearchResult) -> bool:
+        """The result is better for the agent: it dominates the agent's point or has a lower
+        Tchebycheff value."""
+        if agent.objectives is None or dominates(result.objectives, agent.objectives):
+            return True
+        return self._tchebycheff(agent, result.objectives) < self._tchebycheff(
+            agent, agent.objectives)
+
+    def social(self) -> None:
+        """Algorithms 3–4: a DE/rand/1/bin candidate from agents of the same subproblem and
+        archive members, made feasible by restoration; kept if it improves the agent's
+        Tchebycheff value."""
+        social = [a for a in self.agents
+                  if a.rng.random() < self.settings.social_fraction]
+        if not social:
+            return
+        archive_points = [m.z[self.decision_slice] for m in self.archive.members]
+        tasks = []
+        for agent in social:
+            pool = [a.decision for a in self.agents
+                    if a.subproblem == agent.subproblem and a is not agent] + archive_points
+            if len(pool) < 3:
+                pool += [a.decision for a in self.agents if a is not agent]
+            r1, r2, r3 = agent.rng.choice(len(pool), 3, replace=False)
+            mutant = pool[r1] + self.settings.de_weight * (pool[r2] - pool[r3])
+            mask = agent.rng.random(len(mutant)) < self.settings.crossover
+            mask[agent.rng.integers(len(mutant))] = True
+            candidate = np.clip(np.where(mask, mutant, agent.decision), self.lower, self.upper)
+            tasks.append(SearchTask(self.problem, "restore", p0=candidate))
+        results = self._superstep(tasks)
+        for agent, result in zip(social, results, strict=True):
+            if result.feasible and self._improves(agent, result):
+                self._move(agent, result)
+        self._archive(results, optimised=False)
+
+    def reallocate(self) -> None:
+        """Line 10: an agent that did not move this iteration switches between its
+        single-objective subproblem and the equal-weight direction."""
+        for agent in self.agents:
+            if not agent.moved:
+                agent.subproblem = (int(agent.rng.integers(2)) if agent.subproblem == EQUAL
+                                    else EQUAL)
+            agent.moved = False
+
+    def _move(self, agent: Agent, result: SearchResult) -> None:
+        moved = agent.objectives is None or not np.allclose(
+            agent.objectives, result.objectives, rtol=1e-9, atol=1e-12)
+        agent.z, agent.objectives = result.z, result.objectives
+        agent.decision = result.z[self.decision_slice]
+        agent.fresh = agent.fresh or moved
+        agent.moved = agent.moved or moved
+
+    # -- main loop ----------------------------------------------------------------------------
+    def run(self) -> MacsOutcome:
+        self.initialise()
+        history, iteration = [], 0
+        while self.evaluations < self.settings.max_evaluations:
+            if not self.archive.members:  # nothing feasible yet: restart from new points
+                self.initialise()
+            else:
+                self.individualistic()
+                self.social()
+                self.reallocate()
+            iteration += 1
+            figure = (self.indicator(self.archive.objectives())
+                      if self.indicator and self.archive.members else float("nan"))
+            history.append({"iteration": iteration, "evaluations": self.evaluations,
+                            "archive": len(self.archive.members), "hv": figure})
+            if self.progress:
+                self.progress(f"iteration {iteration:4d}  evaluations {self.evaluations:6d}  "
+                              f"archive {len(self.archive.members):3d}  hypervolume {figure:.6f}")
+        return MacsOutcome(self.archive, self.evaluations, iteration, self.failed, history)

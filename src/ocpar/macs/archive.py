@@ -1,0 +1,76 @@
+"""The global archive A_g: non-dominated solutions, bounded in size by a potential-field filter.
+
+When the archive exceeds its size, members are removed one at a time, each time the one with
+the largest pseudo-electric potential Σ_k 1/d_ik (d in objective space normalised to the
+archive's ideal and nadir), never one of the extremes (the best of each objective): what is
+left is spread along the front (after Ricciardi & Vasile, Eurogen 2015).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+#: Objective differences below this (relative) count as ties: solutions on a bound of t_f
+#: differ by IPOPT's bound relaxation (~1e-8) and must still dominate each other.
+TIE_TOL = 1e-7
+
+
+@dataclass
+class Member:
+    """One archived solution: its NLP vector ``z``, objectives ``objectives`` (2,), and
+    whether a scalarised local search produced it (``optimised``) or only restoration."""
+
+    z: np.ndarray
+    objectives: np.ndarray
+    optimised: bool = True
+
+
+def dominates(a: np.ndarray, b: np.ndarray) -> bool:
+    """a Pareto-dominates b (minimisation), with ties up to :data:`TIE_TOL`."""
+    tol = TIE_TOL * (1 + np.abs(b))
+    return bool(np.all(a <= b + tol) and np.any(a < b - tol))
+
+
+@dataclass
+class Archive:
+    """Non-dominated members, at most ``size`` of them."""
+
+    size: int
+    members: list[Member] = field(default_factory=list)
+
+    def objectives(self) -> np.ndarray:
+        """Objectives of the members, shape (len, 2)."""
+        return np.array([m.objectives for m in self.members]).reshape(-1, 2)
+
+    def ideal_and_nadir(self) -> tuple[np.ndarray, np.ndarray]:
+        """Componentwise best (utopia z) and worst (nadir z*_A) objectives of the members."""
+        f = self.objectives()
+        return f.min(axis=0), f.max(axis=0)
+
+    def add(self, candidates: list[Member]) -> int:
+        """Insert the non-dominated candidates, drop what they dominate, filter to ``size``.
+        Returns how many candidates are in the archive afterwards."""
+        pool = self.members + candidates
+        keep = []
+        for i, m in enumerate(pool):
+            dominated = any(dominates(o.objectives, m.objectives) for o in pool if o is not m)
+            duplicate = any(np.allclose(o.objectives, m.objectives, rtol=TIE_TOL, atol=TIE_TOL)
+                            for o in pool[:i])
+            if not dominated and not duplicate:
+                keep.append(m)
+        self.members = self._filter(keep)
+        return sum(any(m is c for m in self.members) for c in candidates)
+
+    def _filter(self, members: list[Member]) -> list[Member]:
+        while len(members) > self.size:
+            f = np.array([m.objectives for m in members])
+            span = np.maximum(f.max(axis=0) - f.min(axis=0), 1e-300)
+            g = (f - f.min(axis=0)) / span
+            d = np.linalg.norm(g[:, None, :] - g[None, :, :], axis=2)
+            np.fill_diagonal(d, np.inf)
+            potential = np.sum(1.0 / np.maximum(d, 1e-12), axis=1)
+            potential[np.argmin(f, axis=0)] = -np.inf  # keep the extremes
+            members = [m for i, m in enumerate(members) if i != int(np.argmax(potential))]
+        return members

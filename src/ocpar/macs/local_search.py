@@ -1,0 +1,146 @@
+"""The two inner NLPs of MACSoc, built once per problem per worker process, and the kernel
+that runs one of them.
+
+* **Pascoletti–Serafini local search** (eq. 11–13, individualistic action): variables
+  (z, α), min α + 1e-3 Σ_i ϑ_i s.t. λ_i ϑ_i(z) ≤ α, ϑ_i = (J_i(z) − z̃_i)/(z*_i − z̃_i),
+  the DFET constraints and bounds. Parameters: λ (2), z̃ (2), z* (2).
+* **Constraint restoration** (eq. 14 inner level, social action): min 1 s.t. the DFET
+  constraints and bounds, from a candidate.
+
+Counting evaluations: a local search counts one objective evaluation per evaluation of its
+constraint function (each one evaluates J(z)) plus one for the start point; a restoration
+counts one (the objectives of the point it returns).
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+from functools import lru_cache
+
+import casadi as ca
+import numpy as np
+
+from ocpar.macs.problems import MacsProblem
+from ocpar.ocp import DfetTranscription, dfet_problem
+from ocpar.ocp.ipopt import ipopt_options
+
+#: A result counts as feasible when IPOPT succeeds and max |g| ≤ this (the paper's tol_con).
+FEASIBILITY_TOL = 1e-6
+#: IPOPT iteration limit of one local search (the paper gave fmincon 100 evaluations).
+MAX_ITER = 100
+KINDS = ("scalarised", "restore")
+#: Weight of Σ_i ϑ_i added to α (augmented Pascoletti–Serafini): without it a search that
+#: reaches a bound of one objective (t_f = 20 in orbit raising) stops at a weakly Pareto
+#: optimal point instead of also improving the other objective.
+AUGMENTATION = 1e-3
+
+
+@dataclass(frozen=True)
+class SearchTask:
+    """One inner solve: ``kind`` "scalarised" (Pascoletti–Serafini, needs ``weights`` λ,
+    ``utopia`` z̃) or "restore"; the start is ``z0`` (full NLP vector) or, if None, the
+    decision vector ``p0`` (controls and t_f) from which the states are integrated. The
+    result is clipped to the bounds (IPOPT relaxes them by ~1e-8)."""
+
+    problem: MacsProblem
+    kind: str
+    z0: np.ndarray | None = None
+    p0: np.ndarray | None = None
+    weights: np.ndarray | None = None
+    utopia: np.ndarray | None = None
+
+
+@dataclass
+class SearchResult:
+    """``z`` the NLP vector reached, ``objectives`` J(z) (2,), ``feasible``, ``evaluations``
+    counted as in the module docstring, IPOPT ``status`` and ``iterations``."""
+
+    z: np.ndarray
+    objectives: np.ndarray
+    feasible: bool
+    evaluations: int
+    status: str
+    iterations: int
+    solve_time_s: float
+
+
+class InnerSolvers:
+    """The DFET transcription of a problem with its two solvers and J(z) as a function."""
+
+    def __init__(self, problem: MacsProblem) -> None:
+        self.problem = problem
+        self.dfet: DfetTranscription = dfet_problem(problem.shape)
+        z = self.dfet.z
+        j1, j2 = problem.objectives(self.dfet.final_state(z), self.dfet.final_time(z))
+        objectives = ca.vertcat(j1, j2)
+        self.objectives = ca.Function("J", [z], [objectives])
+        self.residual = ca.Function("g", [z], [self.dfet.constraints])
+        g = self.dfet.constraints
+        self.ng = g.numel()
+
+        alpha = ca.SX.sym("alpha")
+        lam, utopia, start = ca.SX.sym("lam", 2), ca.SX.sym("zt", 2), ca.SX.sym("zs", 2)
+        theta = (objectives - utopia) / (start - utopia)
+        scalarised = {"x": ca.vertcat(z, alpha), "p": ca.vertcat(lam, utopia, start),
+                      "f": alpha + AUGMENTATION * ca.sum1(theta),
+                      "g": ca.vertcat(g, lam * theta - alpha)}
+        opts = ipopt_options(1e-8, MAX_ITER)
+        self.scalarised = ca.nlpsol("ps", "ipopt", scalarised, opts)
+        self.restore = ca.nlpsol("restore", "ipopt", {"x": z, "f": 0, "g": g}, opts)
+
+    def start_point(self, task: SearchTask) -> np.ndarray:
+        if task.z0 is not None:
+            return np.clip(task.z0, self.dfet.lbz, self.dfet.ubz)
+        return self.dfet.guess_from_decision(task.p0)
+
+    def run(self, task: SearchTask) -> SearchResult:
+        z0 = self.start_point(task)
+        start_objectives = np.asarray(self.objectives(z0)).ravel()
+        t0 = time.perf_counter()
+        zeros = np.zeros(self.ng)
+        if task.kind == "scalarised":
+            # keep z* − z̃ positive when the start lies beyond the shifted utopia point
+            start = np.maximum(start_objectives, task.utopia + 1e-6 * (1 + np.abs(task.utopia)))
+            params = np.concatenate([task.weights, task.utopia, start])
+            alpha0 = 1.0
+            out = self.scalarised(
+                x0=np.append(z0, alpha0), p=params,
+                lbx=np.append(self.dfet.lbz, -np.inf), ubx=np.append(self.dfet.ubz, np.inf),
+                lbg=np.concatenate([zeros, [-np.inf, -np.inf]]),
+                # λ_i = 0 drops objective i (its row would only say α ≥ 0)
+                ubg=np.concatenate([zeros, np.where(task.weights > 0, 0.0, np.inf)]),
+            )
+            stats = self.scalarised.stats()
+            z = np.clip(np.asarray(out["x"]).ravel()[:-1], self.dfet.lbz, self.dfet.ubz)
+            evaluations = int(stats.get("n_call_nlp_g", 0)) + 1
+        elif task.kind == "restore":
+            out = self.restore(x0=z0, lbx=self.dfet.lbz, ubx=self.dfet.ubz, lbg=zeros, ubg=zeros)
+            stats = self.restore.stats()
+            z = np.clip(np.asarray(out["x"]).ravel(), self.dfet.lbz, self.dfet.ubz)
+            evaluations = 1
+        else:
+            raise ValueError(f"unknown search kind {task.kind!r}; choose one of {KINDS}")
+        violation = float(np.max(np.abs(np.asarray(self.residual(z)))))
+        feasible = (bool(stats["success"]) and violation <= FEASIBILITY_TOL
+                    and bool(np.all(np.isfinite(z))))
+        return SearchResult(
+            z=z,
+            objectives=np.asarray(self.objectives(z)).ravel(),
+            feasible=feasible,
+            evaluations=evaluations,
+            status=str(stats["return_status"]),
+            iterations=int(stats["iter_count"]),
+            solve_time_s=time.perf_counter() - t0,
+        )
+
+
+@lru_cache(maxsize=8)
+def inner_solvers(problem: MacsProblem) -> InnerSolvers:
+    """This process's inner solvers of ``problem``: built once, then reused."""
+    return InnerSolvers(problem)
+
+
+def run_search(task: SearchTask) -> SearchResult:
+    """Engine kernel: one local search or restoration with this process's cached solvers."""
+    return inner_solvers(task.problem).run(task)

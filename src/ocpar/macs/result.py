@@ -1,0 +1,85 @@
+"""The result of a MACS run, as an object and as ``result.json``."""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from ocpar.bsp import SuperstepTrace
+
+
+@dataclass
+class MacsResult:
+    """Outcome of :func:`ocpar.macs.solve_macs`.
+
+    ``front`` (k, 2): the archive's objectives recomputed by integrating each member's control
+    law accurately (sorted by J1); ``front_transcribed`` the DFET's own values; ``gd``, ``igd``,
+    ``hv`` of ``front`` against the reference front (both normalised to the reference's ideal
+    and nadir); ``decisions`` the members' decision vectors (controls and t_f).
+    """
+
+    problem: str
+    seed: int
+    backend: str
+    workers: int
+    status: str
+    front: np.ndarray
+    front_transcribed: np.ndarray
+    decisions: np.ndarray
+    evaluations: int
+    iterations: int
+    failed_searches: int
+    gd: float
+    igd: float
+    hv: float
+    wall_time_s: float
+    settings: dict
+    history: list[dict] = field(default_factory=list)
+    trace: list[SuperstepTrace] = field(default_factory=list)
+
+    @property
+    def supersteps(self) -> int:
+        return len(self.trace)
+
+    def to_dict(self) -> dict:
+        return {
+            "scheme": "macs",
+            "problem": self.problem,
+            "seed": self.seed,
+            "backend": self.backend,
+            "workers": self.workers,
+            "status": self.status,
+            "front": np.asarray(self.front).tolist(),
+            "front_transcribed": np.asarray(self.front_transcribed).tolist(),
+            "evaluations": self.evaluations,
+            "iterations": self.iterations,
+            "supersteps": self.supersteps,
+            "failed_searches": self.failed_searches,
+            "gd": self.gd,
+            "igd": self.igd,
+            "hv": self.hv,
+            "wall_time_s": self.wall_time_s,
+            "settings": self.settings,
+            "decisions": np.asarray(self.decisions).tolist(),
+            "history": self.history,
+            "trace": [t.to_dict() for t in self.trace],
+        }
+
+    def write_json(self, path: Path) -> Path:
+        path = Path(path)
+        if path.is_dir():
+            path = path / "result.json"
+        path.write_text(json.dumps(self.to_dict()))
+        return path
+
+    def summary(self) -> str:
+        return (
+            f"status {self.status}: {len(self.front)} archive members after {self.evaluations} "
+            f"evaluations, {self.iterations} iterations, {self.supersteps} supersteps "
+            f"({self.failed_searches} infeasible searches rejected)\n"
+            f"GD {self.gd:.3e}   IGD {self.igd:.3e}   HV {self.hv:.6f}\n"
+            f"wall time {self.wall_time_s:.2f} s on {self.workers} {self.backend} worker(s)"
+        )

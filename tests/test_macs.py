@@ -1,0 +1,143 @@
+"""MACSoc: archive filter, inner searches, determinism across backends, command line."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+from conftest import run_cli
+
+from ocpar.bsp import open_backend
+from ocpar.macs.algorithm import MacsSettings
+from ocpar.macs.archive import Archive, Member, dominates
+from ocpar.macs.local_search import SearchTask, run_search
+from ocpar.macs.problems import GoddardProblem, OrbitRaisingProblem, make_problem
+from ocpar.macs.reference import reference_front
+from ocpar.macs.solve import resimulated_objectives, solve_macs
+from ocpar.ocp import dfet_problem
+
+
+def member(j1: float, j2: float) -> Member:
+    return Member(np.zeros(1), np.array([j1, j2]))
+
+
+def test_archive_keeps_non_dominated_and_spreads():
+    archive = Archive(size=5)
+    archive.add([member(x, 1 - x) for x in np.linspace(0, 1, 41)] + [member(0.5, 0.9)])
+    f = archive.objectives()
+    assert len(f) == 5
+    assert {0.0, 1.0} <= set(f[:, 0])  # the extremes stay
+    gaps = np.diff(np.sort(f[:, 0]))
+    assert gaps.min() > 0.15  # spread, not clustered
+    assert not any(dominates(a, b) for a in f for b in f)
+    # a bound of t_f met to IPOPT's relaxation still counts as a tie
+    assert dominates(np.array([20.0, 0.3]), np.array([20.0 + 1e-8, 0.4]))
+
+
+@pytest.mark.parametrize("problem", [GoddardProblem(), OrbitRaisingProblem()])
+def test_scalarised_search_dominates_its_start(problem):
+    dfet = dfet_problem(problem.shape)
+    rng = np.random.default_rng(3)
+    p = dfet.p_lower + (dfet.p_upper - dfet.p_lower) * rng.random(len(dfet.p_lower))
+    start = run_search(SearchTask(problem, "restore", p0=p))
+    assert start.feasible, start.status
+    utopia = start.objectives - np.abs(start.objectives) - 1
+    result = run_search(SearchTask(problem, "scalarised", z0=start.z,
+                                   weights=np.full(2, 2**-0.5), utopia=utopia))
+    assert result.feasible, result.status
+    assert dominates(result.objectives, start.objectives)
+    assert result.evaluations > 1
+    # the DFET's objectives agree with an accurate re-simulation of the control law, to the
+    # transcription's accuracy (order 6 on Goddard; the paper's order 1 on orbit raising)
+    tol = 1e-4 if problem.name == "goddard" else 1e-2
+    np.testing.assert_allclose(resimulated_objectives(problem, result.z), result.objectives,
+                               atol=tol)
+
+
+def test_goddard_single_objective_searches_reach_the_front_extremes():
+    """λ = e_1 finds the minimum time (109.109: thrust straight up, then straight down; the
+    DFET's polynomial control of order 6 cannot jump, so it gets within 0.1), λ = e_2 the
+    largest vx at t_f = 250, both on the analytic reference front."""
+    problem = GoddardProblem()
+    dfet = dfet_problem(problem.shape)
+    start = run_search(SearchTask(problem, "restore", p0=(dfet.p_lower + dfet.p_upper) / 2))
+    reference = reference_front("goddard")
+    utopia = np.array([0.0, -2.0])
+    fastest = run_search(SearchTask(problem, "scalarised", z0=start.z,
+                                    weights=np.array([1.0, 0.0]), utopia=utopia))
+    assert fastest.objectives[0] == pytest.approx(reference[:, 0].min(), abs=0.1)
+    farthest = run_search(SearchTask(problem, "scalarised", z0=start.z,
+                                     weights=np.array([0.0, 1.0]), utopia=utopia))
+    assert farthest.objectives[0] == pytest.approx(250.0, abs=1e-6)
+    assert farthest.objectives[1] == pytest.approx(reference[:, 1].min(), abs=1e-4)
+
+
+SHORT = MacsSettings(max_evaluations=1500, archive_size=10, seed=7)
+
+
+@pytest.fixture(scope="module")
+def short_serial():
+    return solve_macs(GoddardProblem(), SHORT)
+
+
+def test_short_goddard_run_approaches_the_front(short_serial):
+    result = short_serial
+    assert result.evaluations >= 1500 and result.supersteps == 1 + 2 * (result.iterations - 0)
+    assert len(result.front) >= 5
+    assert result.gd < 0.05 and result.hv > 0.7
+
+
+def test_same_seed_same_front_on_two_dask_workers(short_serial):
+    with open_backend("dask", workers=2) as backend:
+        result = solve_macs(GoddardProblem(), SHORT, backend)
+    np.testing.assert_array_equal(result.front, short_serial.front)
+    assert result.evaluations == short_serial.evaluations
+
+
+def test_command_line_contract_under_mpirun(short_serial, tmp_path):
+    proc = run_cli("-m", "ocpar.macs", "--problem", "goddard", "--seed", "7", "--max-evals",
+                   "1500", "--archive", "10", "--output", str(tmp_path), mpi_ranks=2)
+    assert proc.returncode == 0, proc.stderr
+    data = json.loads((tmp_path / "result.json").read_text())
+    assert data["scheme"] == "macs" and data["workers"] == 2
+    assert data["front"] == short_serial.front.tolist()  # same seed, 1 vs 2 workers
+    for key in ("evaluations", "iterations", "supersteps"):
+        assert isinstance(data[key], int)
+    assert all(len(p) == 2 for p in data["front"])
+    assert proc.stdout.count("iteration ") == data["iterations"]
+    for name in ("front.png", "controls.png"):
+        assert (tmp_path / name).read_bytes().startswith(b"\x89PNG")
+
+
+@pytest.mark.parametrize(
+    ("args", "needle"),
+    [
+        (["--problem", "rocket"], "--problem"),
+        (["--seed", "-1"], "--seed"),
+        (["--max-evals", "0"], "--max-evals"),
+        (["--archive", "1"], "archive_size"),
+        (["--population", "3"], "population"),
+    ],
+)
+def test_bad_command_lines_get_one_line_and_status_2(args, needle):
+    proc = run_cli("-m", "ocpar.macs", *args, timeout=120)
+    assert proc.returncode == 2
+    lines = proc.stderr.strip().splitlines()
+    assert len(lines) == 1 and needle in lines[0] and "Traceback" not in proc.stderr
+
+
+def test_unknown_problem_in_the_api():
+    with pytest.raises(ValueError, match="unknown problem"):
+        make_problem("rocket")
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("problem", ["goddard", "orbit-raising"])
+def test_ten_seeds_quality(problem):
+    """The issue's target over 10 seeds, 10,000 evaluations, archive 20: mean GD ≤ 5e-3 and
+    mean IGD ≤ 0.025 (measured figures are in the closing note and the benchmark)."""
+    results = [solve_macs(make_problem(problem), MacsSettings(archive_size=20, seed=s))
+               for s in range(10)]
+    assert np.mean([r.igd for r in results]) <= 0.025
+    assert np.mean([r.gd for r in results]) <= 5e-3
