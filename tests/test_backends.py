@@ -11,6 +11,7 @@ import pytest
 from conftest import run_cli
 
 from ocpar.bsp import contiguous_blocks, kernel_name, open_backend
+from ocpar.bsp.partition import longest_first
 from ocpar.bsp.backend import BackendError
 from ocpar.formation import paper_example, solve_formation
 from ocpar.models import PointMass
@@ -30,6 +31,21 @@ def test_contiguous_blocks_cover_tasks_in_order():
     assert [len(b) for b in contiguous_blocks(2, 4)] == [0, 0, 1, 1]
     with pytest.raises(ValueError):
         contiguous_blocks(3, 0)
+
+
+def test_longest_first_balances_and_spares_worker_0():
+    assert longest_first([12, 44, 59, 59, 59], 2) == [[0, 1, 3], [2, 4]]  # loads 115 vs 118
+    assert [len(g) for g in longest_first([1.0] * 5, 2)] == [2, 3]
+    assert longest_first([], 3) == [[], [], []]
+
+
+def test_cost_balanced_superstep_keeps_task_order(local_dask):
+    values = [float(v) for v in range(1, 8)]
+    got = local_dask.superstep("math:sqrt", values, costs=[7, 1, 6, 2, 5, 3, 4])
+    assert got == [v**0.5 for v in values]
+    assert sorted(local_dask.traces[-1].worker_tasks) == [3, 4]
+    with pytest.raises(ValueError, match="costs"):
+        local_dask.superstep("math:sqrt", values, costs=[1.0])
 
 
 def test_kernel_must_be_importable():

@@ -8,7 +8,7 @@ from collections.abc import Sequence
 from typing import Any
 
 from ocpar.bsp.kernel import ChunkResult, KernelRef, kernel_name
-from ocpar.bsp.partition import contiguous_blocks
+from ocpar.bsp.partition import contiguous_blocks, longest_first
 from ocpar.bsp.trace import SuperstepTrace
 
 
@@ -34,17 +34,31 @@ class Backend(ABC):
         """True in the process that runs the outer problem (always, except MPI ranks > 0)."""
         return True
 
-    def superstep(self, kernel: KernelRef, tasks: Sequence[Any]) -> list[Any]:
-        """Run ``kernel`` on every task, one contiguous chunk per worker; wait for all (the
-        barrier) and return the results in task order. The superstep's timings are appended
-        to :attr:`traces`."""
+    def superstep(
+        self, kernel: KernelRef, tasks: Sequence[Any], costs: Sequence[float] | None = None
+    ) -> list[Any]:
+        """Run ``kernel`` on every task, one chunk per worker; wait for all (the barrier) and
+        return the results in task order. Chunks are contiguous blocks of equal size, or,
+        given estimated ``costs`` (one per task, any unit), assigned longest-first to balance
+        the workers. The superstep's timings are appended to :attr:`traces` (per-task times
+        in task order)."""
         name = kernel_name(kernel)
         tasks = list(tasks)
-        blocks = contiguous_blocks(len(tasks), self.workers)
+        if costs is None:
+            groups = [list(b) for b in contiguous_blocks(len(tasks), self.workers)]
+        else:
+            if len(costs) != len(tasks):
+                raise ValueError(f"{len(costs)} costs for {len(tasks)} tasks")
+            groups = longest_first(list(costs), self.workers)
         start = time.perf_counter()
-        chunks = self._run_chunks(name, [[tasks[i] for i in block] for block in blocks])
+        chunks = self._run_chunks(name, [[tasks[i] for i in group] for group in groups])
         wall = time.perf_counter() - start
-        results = [r for chunk in chunks for r in chunk.results]
+        order = [i for group in groups for i in group]
+        position = {task: k for k, task in enumerate(order)}
+        flat = [r for chunk in chunks for r in chunk.results]
+        walls = [t for chunk in chunks for t in chunk.task_wall_s]
+        cpus = [t for chunk in chunks for t in chunk.task_cpu_s]
+        results = [flat[position[i]] for i in range(len(tasks))]
         self.traces.append(
             SuperstepTrace(
                 index=len(self.traces),
@@ -54,8 +68,8 @@ class Backend(ABC):
                 worker_cpu_s=[c.cpu_s for c in chunks],
                 worker_tasks=[len(c.results) for c in chunks],
                 worker_peak_rss_mb=[c.peak_rss_mb for c in chunks],
-                task_wall_s=[t for c in chunks for t in c.task_wall_s],
-                task_cpu_s=[t for c in chunks for t in c.task_cpu_s],
+                task_wall_s=[walls[position[i]] for i in range(len(tasks))],
+                task_cpu_s=[cpus[position[i]] for i in range(len(tasks))],
             )
         )
         return results

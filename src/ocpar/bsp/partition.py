@@ -16,3 +16,19 @@ def contiguous_blocks(n_tasks: int, n_workers: int) -> list[range]:
         blocks.append(range(start, start + size))
         start += size
     return blocks
+
+
+def longest_first(costs: list[float], n_workers: int) -> list[list[int]]:
+    """Assign task indices to workers by longest-processing-time-first on the given cost
+    estimates; ties go to the highest-numbered least-loaded worker (worker 0 also coordinates
+    under MPI) and to the lower task index, so the assignment is deterministic. Each worker's
+    indices come back in increasing order."""
+    if n_workers < 1:
+        raise ValueError(f"need at least one worker, got {n_workers}")
+    loads = [0.0] * n_workers
+    groups: list[list[int]] = [[] for _ in range(n_workers)]
+    for i in sorted(range(len(costs)), key=lambda i: (-costs[i], i)):
+        w = min(range(n_workers), key=lambda w: (loads[w], -w))
+        loads[w] += costs[i]
+        groups[w].append(i)
+    return [sorted(g) for g in groups]

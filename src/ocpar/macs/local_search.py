@@ -27,6 +27,11 @@ from ocpar.ocp.ipopt import ipopt_options
 
 #: A result counts as feasible when IPOPT succeeds and max |g| ≤ this (the paper's tol_con).
 FEASIBILITY_TOL = 1e-6
+#: ... and when its objectives, recomputed by integrating its control law accurately, agree
+#: with the transcription's to this (relative to 1 + |J|): otherwise the optimiser has
+#: exploited the transcription's error (seen on orbit raising, 30 elements of order 1, near
+#: t_f = 80) and the point is rejected like an infeasible one.
+CONSISTENCY_TOL = 1e-2
 #: IPOPT iteration limit of one local search (the paper gave fmincon 100 evaluations).
 MAX_ITER = 100
 KINDS = ("scalarised", "restore")
@@ -89,6 +94,17 @@ class InnerSolvers:
         self.scalarised = ca.nlpsol("ps", "ipopt", scalarised, opts)
         self.restore = ca.nlpsol("restore", "ipopt", {"x": z, "f": 0, "g": g}, opts)
 
+    def consistent(self, z: np.ndarray, objectives: np.ndarray) -> bool:
+        """The transcription's objectives agree with an accurate re-simulation of z's
+        control law (:data:`CONSISTENCY_TOL`)."""
+        try:
+            final = self.dfet.simulate(z, rtol=1e-8)
+        except RuntimeError:
+            return False
+        simulated = np.array(self.problem.objectives(final, float(self.dfet.final_time(z))))
+        return bool(np.all(np.abs(simulated - objectives) <= CONSISTENCY_TOL
+                           * (1 + np.abs(objectives))))
+
     def start_point(self, task: SearchTask) -> np.ndarray:
         if task.z0 is not None:
             return np.clip(task.z0, self.dfet.lbz, self.dfet.ubz)
@@ -122,11 +138,13 @@ class InnerSolvers:
         else:
             raise ValueError(f"unknown search kind {task.kind!r}; choose one of {KINDS}")
         violation = float(np.max(np.abs(np.asarray(self.residual(z)))))
+        objectives = np.asarray(self.objectives(z)).ravel()
         feasible = (bool(stats["success"]) and violation <= FEASIBILITY_TOL
-                    and bool(np.all(np.isfinite(z))))
+                    and bool(np.all(np.isfinite(z)))
+                    and self.consistent(z, objectives))
         return SearchResult(
             z=z,
-            objectives=np.asarray(self.objectives(z)).ravel(),
+            objectives=objectives,
             feasible=feasible,
             evaluations=evaluations,
             status=str(stats["return_status"]),

@@ -206,7 +206,10 @@ def run_pursuit(
         if not work:
             raise RuntimeError("pursuit schedule stalled: no agent can move")  # a bug if seen
         max_in_flight = max(max_in_flight, len(work))
-        sols = backend.superstep(solve_ms_task, [task for _, task in work])
+        # cost estimate: a subproblem's size, its number of intervals (free-running ones are
+        # shorter); longest-first keeps the two or three catch-ups of a wave on different workers
+        sols = backend.superstep(solve_ms_task, [task for _, task in work],
+                                 costs=[task.shape.intervals for _, task in work])
         for (agent, _), sol in zip(work, sols, strict=True):
             train.apply(agent, sol)
         verdict = train.retire_finished()
