@@ -35,26 +35,26 @@ class OuterObjective:
         self.problem, self.backend, self.progress = problem, backend, progress
         self.inner_solves = 0
         self.failed_solves = 0
-        self._phi: np.ndarray | None = None
-        self._solutions: list[DmocSolution] = []
+        self.last_phi: np.ndarray | None = None
+        self.last_solutions: list[DmocSolution] = []
         self._c, _ = coupling_functions(problem.agents, problem.radius)
 
     def solutions(self, phi: np.ndarray) -> list[DmocSolution]:
         """Inner solutions for angles φ: one superstep, unless φ is the last one asked for."""
         phi = np.asarray(phi, float)
-        if self._phi is None or not np.array_equal(phi, self._phi):
+        if self.last_phi is None or not np.array_equal(phi, self.last_phi):
             sols = self.backend.superstep(solve_dmoc_task, self.problem.tasks(phi))
             self.inner_solves += len(sols)
             failed = [i for i, s in enumerate(sols) if not s.success]
             self.failed_solves += len(failed)
-            self._phi, self._solutions = phi.copy(), sols
+            self.last_phi, self.last_solutions = phi.copy(), sols
             self._report(phi, sols)
             if failed:
                 raise InnerSolveFailed(
                     f"{len(failed)} inner solve(s) failed, first agent {failed[0]}: "
                     f"{sols[failed[0]].status}"
                 )
-        return self._solutions
+        return self.last_solutions
 
     def value(self, phi: np.ndarray) -> float:
         return float(sum(s.cost for s in self.solutions(phi)))

@@ -2,19 +2,18 @@
 
 from __future__ import annotations
 
-import json
 import math
 from dataclasses import dataclass, field
-from pathlib import Path
 
 import numpy as np
 
 from ocpar.bsp import SuperstepTrace
 from ocpar.formation.potential import equidistance_error
+from ocpar.results import RunResult
 
 
 @dataclass
-class FormationResult:
+class FormationResult(RunResult):
     """Outcome of :func:`ocpar.formation.solve_formation`.
 
     ``phi`` (n,) final angles (rad); ``agent_costs`` (n,) inner optimal costs Ĵ_i;
@@ -41,10 +40,6 @@ class FormationResult:
     @property
     def converged(self) -> bool:
         return self.status == "converged"
-
-    @property
-    def supersteps(self) -> int:
-        return len(self.trace)
 
     @property
     def equidistance_error(self) -> float:
@@ -74,14 +69,6 @@ class FormationResult:
             "trajectories": np.asarray(self.trajectories, float).tolist(),
             "trace": [t.to_dict() for t in self.trace],
         }
-
-    def write_json(self, path: Path) -> Path:
-        """Write :meth:`to_dict` as JSON to ``path`` (a file, or a directory → result.json)."""
-        path = Path(path)
-        if path.is_dir():
-            path = path / "result.json"
-        path.write_text(json.dumps(self.to_dict(), indent=1))
-        return path
 
     def summary(self) -> str:
         """A few lines for people: the headline numbers of the run."""

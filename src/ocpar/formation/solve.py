@@ -87,8 +87,8 @@ def solve_formation(
         sols = objective.solutions(phi)
         status = "converged" if success else "not_converged"
     except InnerSolveFailed as exc:
-        phi, iterations, status, message = objective._phi, -1, "inner_failure", str(exc)
-        sols = objective._solutions
+        phi, iterations, status, message = objective.last_phi, -1, "inner_failure", str(exc)
+        sols = objective.last_solutions
     return FormationResult(
         **common,
         status=status,

@@ -2,17 +2,16 @@
 
 from __future__ import annotations
 
-import json
 from dataclasses import dataclass, field
-from pathlib import Path
 
 import numpy as np
 
 from ocpar.bsp import SuperstepTrace
+from ocpar.results import RunResult
 
 
 @dataclass
-class MacsResult:
+class MacsResult(RunResult):
     """Outcome of :func:`ocpar.macs.solve_macs`.
 
     ``front`` (k, 2): the archive's objectives recomputed by integrating each member's control
@@ -40,10 +39,6 @@ class MacsResult:
     history: list[dict] = field(default_factory=list)
     trace: list[SuperstepTrace] = field(default_factory=list)
 
-    @property
-    def supersteps(self) -> int:
-        return len(self.trace)
-
     def to_dict(self) -> dict:
         return {
             "scheme": "macs",
@@ -67,13 +62,6 @@ class MacsResult:
             "history": self.history,
             "trace": [t.to_dict() for t in self.trace],
         }
-
-    def write_json(self, path: Path) -> Path:
-        path = Path(path)
-        if path.is_dir():
-            path = path / "result.json"
-        path.write_text(json.dumps(self.to_dict()))
-        return path
 
     def summary(self) -> str:
         return (

@@ -2,17 +2,16 @@
 
 from __future__ import annotations
 
-import json
 from dataclasses import dataclass, field
-from pathlib import Path
 
 import numpy as np
 
 from ocpar.bsp import SuperstepTrace
+from ocpar.results import RunResult
 
 
 @dataclass
-class PursuitResult:
+class PursuitResult(RunResult):
     """Outcome of :func:`ocpar.pursuit.solve_pursuit`.
 
     Masses in kg, times in s; ``x`` (N, 4) and ``u`` (N−1, 2) are the result trajectory;
@@ -54,10 +53,6 @@ class PursuitResult:
         return self.status == "converged"
 
     @property
-    def supersteps(self) -> int:
-        return len(self.trace)
-
-    @property
     def peak_rss_mb_per_worker(self) -> float:
         """Largest peak resident memory of any worker process during the run (MiB)."""
         return max((m for t in self.trace for m in t.worker_peak_rss_mb), default=0.0)
@@ -96,14 +91,6 @@ class PursuitResult:
             "controls": np.asarray(self.u).tolist(),
             "trace": [t.to_dict() for t in self.trace],
         }
-
-    def write_json(self, path: Path) -> Path:
-        """Write :meth:`to_dict` to ``path`` (a file, or a directory → result.json)."""
-        path = Path(path)
-        if path.is_dir():
-            path = path / "result.json"
-        path.write_text(json.dumps(self.to_dict()))
-        return path
 
     def summary(self) -> str:
         ref = ("" if self.reference_final_mass_kg is None
