@@ -28,6 +28,13 @@ INTEGRATORS = ("euler", "rk4")
 WARM_START_OPTIONS = {"mu_init": 1e-6, "warm_start_init_point": "yes", "bound_push": 1e-9,
                       "bound_frac": 1e-9, "nlp_scaling_method": "none", "mumps_scaling": 0,
                       "mumps_permuting_scaling": 0}
+#: CasADi sqpmethod options for warm-started re-solves (silent; a failed QP is a failed
+#: solve, not an exception).
+SQP_OPTIONS = {"qpsol": "qrqp", "max_iter": 50, "print_header": False,
+               "print_iteration": False, "print_status": False, "print_time": False,
+               "error_on_fail": False,
+               "qpsol_options": {"print_iter": False, "print_header": False,
+                                 "error_on_fail": False}}
 
 
 @dataclass(frozen=True)
@@ -143,6 +150,15 @@ class MsTranscription:
         return ca.nlpsol("ms", "ipopt", nlp,
                          ipopt_options(self.shape.tol, self.shape.max_iter, **extra))
 
+    @cached_property
+    def resolver(self) -> ca.Function:
+        """CasADi's SQP (exact Hessian, qrqp QP solver) for warm-started re-solves: from a
+        guess near the solution it needs no barrier iterations; on the pursuit subproblems
+        ~1.5 ms instead of IPOPT's ~3 ms, same optimum to ~1e-13."""
+        nlp = {"x": self.w, "p": self.p, "f": self.cost, "g": self.g}
+        return ca.nlpsol("ms_sqp", "sqpmethod", nlp, SQP_OPTIONS | {
+            "tol_pr": self.shape.tol, "tol_du": self.shape.tol})
+
     def pack(self, x: np.ndarray, u: np.ndarray) -> np.ndarray:
         """w from states x (N+1, nx) (x_0 is dropped) and controls u (N, nu)."""
         return np.concatenate([np.asarray(x)[1:].ravel(), np.asarray(u).ravel()])
@@ -161,15 +177,30 @@ class MsTranscription:
         lam_g0: np.ndarray | None = None,
     ) -> MsSolution:
         """Solve from x0 to the target; w0 defaults to x0 held and zero controls, λ_g0 to
-        zero. A failed solve is returned, not raised."""
+        zero. With a ``warm_start`` shape and a guess, the SQP :attr:`resolver` runs first and
+        IPOPT only if it fails. A failed solve is returned, not raised."""
+        if self.shape.warm_start and w0 is not None:
+            first = self._solve_with(self.resolver, x0, target, w0, lam_g0)
+            if first.success:
+                return first
+        return self._solve_with(self.solver, x0, target, w0, lam_g0)
+
+    def _solve_with(
+        self,
+        solver: ca.Function,
+        x0: np.ndarray,
+        target: np.ndarray,
+        w0: np.ndarray | None,
+        lam_g0: np.ndarray | None,
+    ) -> MsSolution:
         x0, target = np.asarray(x0, float), np.asarray(target, float)
         if w0 is None:
             w0 = self.pack(np.tile(x0, (self.n + 1, 1)), np.zeros((self.n, self.nu)))
         p = np.concatenate([x0, target])
         start = time.perf_counter()
         try:
-            out = self.solver(x0=w0, p=p, lbg=0, ubg=0, lbx=self.lbw, ubx=self.ubw,
-                              lam_g0=0 if lam_g0 is None else lam_g0)
+            out = solver(x0=w0, p=p, lbg=0, ubg=0, lbx=self.lbw, ubx=self.ubw,
+                         lam_g0=0 if lam_g0 is None else lam_g0)
         except RuntimeError as exc:  # evaluation errors (NaN) in CasADi
             w = np.full(self.nw, np.nan)
             x, u = self.unpack(w, x0)
@@ -177,7 +208,7 @@ class MsTranscription:
                               time.perf_counter() - start, float("inf"), w,
                               np.full(self.ng, np.nan))
         elapsed = time.perf_counter() - start
-        stats = self.solver.stats()
+        stats = solver.stats()
         w = np.asarray(out["x"]).ravel()
         x, u = self.unpack(w, x0)
         return MsSolution(
