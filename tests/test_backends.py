@@ -11,8 +11,8 @@ import pytest
 from conftest import run_cli
 
 from ocpar.bsp import contiguous_blocks, kernel_name, open_backend
-from ocpar.bsp.partition import longest_first
 from ocpar.bsp.backend import BackendError
+from ocpar.bsp.partition import longest_first
 from ocpar.formation import paper_example, solve_formation
 from ocpar.models import PointMass
 from ocpar.ocp import DmocShape, DmocTask
