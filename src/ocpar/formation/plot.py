@@ -8,16 +8,13 @@ import numpy as np
 
 from ocpar.formation.problem import FormationProblem
 from ocpar.formation.result import FormationResult
+from ocpar.plotting import pyplot
 
 
 def plot_formation(problem: FormationProblem, result: FormationResult, path: Path) -> Path:
     """Write a two-panel PNG to ``path``: the whole manoeuvre, and a close-up of the circle
     with the last portions of the trajectories."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
+    plt = pyplot()
     fig, (ax_all, ax_end) = plt.subplots(1, 2, figsize=(12, 5.5))
     circle = problem.center + problem.radius * np.column_stack(
         [np.cos(np.linspace(0, 2 * np.pi, 400)), np.sin(np.linspace(0, 2 * np.pi, 400))]

@@ -11,20 +11,12 @@ from ocpar.macs.problems import MacsProblem
 from ocpar.macs.reference import reference_front
 from ocpar.macs.result import MacsResult
 from ocpar.ocp import dfet_problem
-
-
-def _pyplot():
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    return plt
+from ocpar.plotting import pyplot
 
 
 def plot_front(result: MacsResult, path: Path) -> Path:
     """Archive (re-simulated objectives) over the reference front."""
-    plt = _pyplot()
+    plt = pyplot()
     reference = reference_front(result.problem)
     fig, ax = plt.subplots(figsize=(6.5, 4.8))
     ax.plot(reference[:, 0], reference[:, 1], "-", color="grey", lw=1, label="reference front")
@@ -44,7 +36,7 @@ def plot_front(result: MacsResult, path: Path) -> Path:
 
 def plot_controls(problem: MacsProblem, result: MacsResult, path: Path, count: int = 4) -> Path:
     """Control laws u(t) of ``count`` archive members spread along the front."""
-    plt = _pyplot()
+    plt = pyplot()
     dfet = dfet_problem(problem.shape)
     fig, ax = plt.subplots(figsize=(6.5, 4.5))
     picks = np.unique(np.linspace(0, len(result.decisions) - 1, count).round().astype(int))

@@ -7,6 +7,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ocpar.plotting import pyplot
 from ocpar.pursuit.problem import OrbitTransferProblem
 from ocpar.pursuit.result import PursuitResult
 from ocpar.pursuit.validate import longitude
@@ -14,18 +15,9 @@ from ocpar.pursuit.validate import longitude
 EARTH_RADIUS_MM = 6.378
 
 
-def _pyplot():
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    return plt
-
-
 def plot_trajectories(problem: OrbitTransferProblem, result: PursuitResult, path: Path) -> Path:
     """Initial (agent 0), PBMS and full-horizon MS trajectories in the orbit plane (Mm)."""
-    plt = _pyplot()
+    plt = pyplot()
     fig, ax = plt.subplots(figsize=(6.5, 6.5))
     ring = np.linspace(0, 2 * np.pi, 400)
     ax.fill(EARTH_RADIUS_MM * np.cos(ring), EARTH_RADIUS_MM * np.sin(ring), color="lightsteelblue",
@@ -55,7 +47,7 @@ def plot_trajectories(problem: OrbitTransferProblem, result: PursuitResult, path
 
 def plot_convergence(result: PursuitResult, path: Path) -> Path:
     """Final mass of each finished agent (agent 0 left out), with the MS reference."""
-    plt = _pyplot()
+    plt = pyplot()
     fig, ax = plt.subplots(figsize=(7, 4.5))
     masses = result.final_masses_kg[1:]
     ax.plot(np.arange(1, len(masses) + 1), masses, "-", color="tab:blue", label="PBMS agents")
