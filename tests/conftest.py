@@ -33,6 +33,16 @@ def run_cli(
     return subprocess.run(cmd, capture_output=True, text=True, timeout=timeout, cwd=REPO)
 
 
+def assert_result_contract(directory: Path) -> None:
+    """Run the shared ``check-result`` tool on a run's output, where the checkout has it
+    beside it (as CI does)."""
+    checker = REPO.parent / "shared" / "tools" / "check-result"
+    if checker.exists():
+        check = subprocess.run([sys.executable, str(checker), str(directory)],
+                               capture_output=True, text=True)
+        assert check.returncode == 0, check.stdout
+
+
 def free_port() -> int:
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))

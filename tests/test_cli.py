@@ -4,11 +4,10 @@ from __future__ import annotations
 
 import json
 import math
-import subprocess
 from pathlib import Path
 
 import pytest
-from conftest import REPO, run_cli
+from conftest import assert_result_contract, run_cli
 
 REQUIRED = {
     "scheme": str, "problem": str, "agents": int, "backend": str, "workers": int, "mode": str,
@@ -34,11 +33,7 @@ def test_small_run_writes_result_and_plot(tmp_path):
     png = (tmp_path / "run" / "formation.png").read_bytes()
     assert png.startswith(b"\x89PNG") and len(png) > 10_000
     assert "total cost" in proc.stdout and "wall time" in proc.stdout
-    checker = REPO.parent / "shared" / "tools" / "check-result"
-    if checker.exists():
-        check = subprocess.run([str(checker), str(tmp_path / "run")], capture_output=True,
-                               text=True)
-        assert check.returncode == 0, check.stdout
+    assert_result_contract(tmp_path / "run")
 
 
 def test_monolithic_mode_from_the_command_line(tmp_path):

@@ -6,7 +6,7 @@ import json
 
 import numpy as np
 import pytest
-from conftest import run_cli
+from conftest import assert_result_contract, run_cli
 
 from ocpar.bsp import open_backend
 from ocpar.macs.algorithm import MacsSettings
@@ -108,6 +108,7 @@ def test_command_line_contract_under_mpirun(short_serial, tmp_path):
     assert proc.stdout.count("iteration ") == data["iterations"]
     for name in ("front.png", "controls.png"):
         assert (tmp_path / name).read_bytes().startswith(b"\x89PNG")
+    assert_result_contract(tmp_path)
 
 
 @pytest.mark.parametrize(

@@ -6,7 +6,7 @@ import json
 
 import numpy as np
 import pytest
-from conftest import run_cli
+from conftest import assert_result_contract, run_cli
 
 from ocpar.bsp import open_backend
 from ocpar.pursuit import OrbitTransferProblem, PursuitSettings, solve_pursuit
@@ -119,6 +119,7 @@ def test_ms_mode_command_line_contract(tmp_path):
         assert isinstance(data[key], int)
     assert 1e3 < data["rk_final_altitude_error_m"] < 20e3  # paper, N = 301: 7.9 km
     assert (tmp_path / "pursuit.png").read_bytes().startswith(b"\x89PNG")
+    assert_result_contract(tmp_path)
 
 
 @pytest.mark.parametrize(
