@@ -7,8 +7,8 @@ to the same worker, so each worker's solver cache stays warm.
 
 from __future__ import annotations
 
-import itertools
 import os
+import uuid
 from typing import Any
 
 from ocpar.bsp.backend import Backend, BackendError
@@ -33,7 +33,6 @@ class DaskBackend(Backend):
     """Workers of a Dask cluster (embedded ``LocalCluster`` or an existing scheduler)."""
 
     name = "dask"
-    _ids = itertools.count()
 
     def __init__(
         self,
@@ -45,7 +44,9 @@ class DaskBackend(Backend):
         from distributed import Client, LocalCluster
 
         self._cluster = None
-        self._run_id = next(self._ids)
+        # task keys must be unique on a shared cluster: identical keys from two coordinators
+        # would be deduplicated by the scheduler, and one would get the other's results
+        self._run_id = uuid.uuid4().hex[:12]
         with dask.config.set(WORKER_CONFIG):
             if scheduler is None:
                 n = workers or os.cpu_count() or 1
