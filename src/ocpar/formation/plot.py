@@ -8,7 +8,7 @@ import numpy as np
 
 from ocpar.formation.problem import FormationProblem
 from ocpar.formation.result import FormationResult
-from ocpar.plotting import pyplot
+from ocpar.plotting import pyplot, save
 
 
 def plot_formation(problem: FormationProblem, result: FormationResult, path: Path) -> Path:
@@ -37,8 +37,4 @@ def plot_formation(problem: FormationProblem, result: FormationResult, path: Pat
     ax_end.set_xlim(problem.center[0] - margin, problem.center[0] + margin)
     ax_end.set_ylim(problem.center[1] - margin, problem.center[1] + margin)
     ax_end.set_title("final positions and last portions of the trajectories")
-    fig.tight_layout()
-    path = Path(path)
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
-    return path
+    return save(fig, path)

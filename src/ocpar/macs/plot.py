@@ -11,7 +11,7 @@ from ocpar.macs.problems import MacsProblem
 from ocpar.macs.reference import reference_front
 from ocpar.macs.result import MacsResult
 from ocpar.ocp import dfet_problem
-from ocpar.plotting import pyplot
+from ocpar.plotting import pyplot, save
 
 
 def plot_front(result: MacsResult, path: Path) -> Path:
@@ -28,10 +28,7 @@ def plot_front(result: MacsResult, path: Path) -> Path:
                  f"HV {result.hv:.4f} ({result.evaluations} evaluations)")
     ax.legend()
     ax.grid(alpha=0.3)
-    fig.tight_layout()
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
-    return Path(path)
+    return save(fig, path)
 
 
 def plot_controls(problem: MacsProblem, result: MacsResult, path: Path, count: int = 4) -> Path:
@@ -51,7 +48,4 @@ def plot_controls(problem: MacsProblem, result: MacsResult, path: Path, count: i
     ax.set_title(f"{result.problem}: controls of archive members")
     ax.legend(fontsize=8)
     ax.grid(alpha=0.3)
-    fig.tight_layout()
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
-    return Path(path)
+    return save(fig, path)

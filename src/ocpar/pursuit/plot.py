@@ -7,7 +7,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ocpar.plotting import pyplot
+from ocpar.plotting import pyplot, save
 from ocpar.pursuit.problem import OrbitTransferProblem
 from ocpar.pursuit.result import PursuitResult
 from ocpar.pursuit.validate import longitude
@@ -39,10 +39,7 @@ def plot_trajectories(problem: OrbitTransferProblem, result: PursuitResult, path
     ax.set_ylabel("y (10³ km)")
     ax.set_title(f"orbit transfer case {problem.case}, N = {problem.samples}")
     ax.legend(loc="lower left", fontsize=8)
-    fig.tight_layout()
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
-    return Path(path)
+    return save(fig, path)
 
 
 def plot_convergence(result: PursuitResult, path: Path) -> Path:
@@ -60,7 +57,4 @@ def plot_convergence(result: PursuitResult, path: Path) -> Path:
     ax.set_title(f"PBMS convergence, N_Δ = {result.window}, N_δ = {result.update}")
     ax.legend()
     ax.grid(alpha=0.3)
-    fig.tight_layout()
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
-    return Path(path)
+    return save(fig, path)
