@@ -8,8 +8,8 @@ that runs one of them.
   constraints and bounds, from a candidate.
 
 Counting evaluations: a local search counts one objective evaluation per evaluation of its
-constraint function (each one evaluates J(z)) plus one for the start point; a restoration
-counts one (the objectives of the point it returns).
+constraint function (each one evaluates J(z)) plus one for the start point, summed over its
+seam hops (below); a restoration counts one (the objectives of the point it returns).
 """
 
 from __future__ import annotations
@@ -39,6 +39,15 @@ KINDS = ("scalarised", "restore")
 #: reaches a bound of one objective (t_f = 20 in orbit raising) stops at a weakly Pareto
 #: optimal point instead of also improving the other objective.
 AUGMENTATION = 1e-3
+#: A control node of a periodic control within this (rad) of a bound is on the seam.
+SEAM_TOL = 1e-3
+#: At most this many seam hops (re-searches) per scalarised search.
+MAX_SEAM_HOPS = 3
+#: IPOPT's initial barrier parameter for the scalarised search (default 0.1): the start is
+#: a feasible or nearly feasible trajectory, and a smaller barrier keeps IPOPT from first
+#: pushing it into the interior of the control box (on orbit raising ~35 instead of ~57
+#: evaluations per search for the same results).
+SEARCH_MU_INIT = 1e-3
 
 
 @dataclass(frozen=True)
@@ -91,7 +100,8 @@ class InnerSolvers:
                       "f": alpha + AUGMENTATION * ca.sum1(theta),
                       "g": ca.vertcat(g, lam * theta - alpha)}
         opts = ipopt_options(1e-8, MAX_ITER)
-        self.scalarised = ca.nlpsol("ps", "ipopt", scalarised, opts)
+        self.scalarised = ca.nlpsol("ps", "ipopt", scalarised,
+                                    ipopt_options(1e-8, MAX_ITER, mu_init=SEARCH_MU_INIT))
         self.restore = ca.nlpsol("restore", "ipopt", {"x": z, "f": 0, "g": g}, opts)
 
     def consistent(self, z: np.ndarray, objectives: np.ndarray) -> bool:
@@ -111,9 +121,43 @@ class InnerSolvers:
         return self.dfet.guess_from_decision(task.p0)
 
     def run(self, task: SearchTask) -> SearchResult:
-        z0 = self.start_point(task)
-        start_objectives = np.asarray(self.objectives(z0)).ravel()
+        """One inner solve. A scalarised search of a problem with ``periodic_controls`` that
+        ends with control nodes on a bound of their period moves those nodes to the opposite
+        bound (the same thrust direction) and searches again, up to :data:`MAX_SEAM_HOPS`
+        times: the bound is where the angle wraps, not a limit, and a node resting on it is a
+        spurious local optimum. Evaluations and time of every search are summed."""
         t0 = time.perf_counter()
+        result = self._solve(task, self.start_point(task))
+        evaluations = result.evaluations
+        hop_seams = task.kind == "scalarised" and getattr(self.problem, "periodic_controls",
+                                                          False)
+        for _ in range(MAX_SEAM_HOPS if hop_seams else 0):
+            hopped = self._hop_seams(result.z) if result.feasible else None
+            if hopped is None:
+                break
+            retry = self._solve(task, hopped)
+            evaluations += retry.evaluations
+            if not retry.feasible:
+                break
+            result = retry
+        result.evaluations = evaluations
+        result.solve_time_s = time.perf_counter() - t0
+        return result
+
+    def _hop_seams(self, z: np.ndarray) -> np.ndarray | None:
+        """z with every control node within :data:`SEAM_TOL` of a bound moved to the opposite
+        bound, or None if no node is on a bound."""
+        controls = slice(self.dfet.decision_slice.start, self.dfet.nz - 1)
+        u, lower, upper = z[controls], self.dfet.lbz[controls], self.dfet.ubz[controls]
+        at_lower, at_upper = u <= lower + SEAM_TOL, u >= upper - SEAM_TOL
+        if not np.any(at_lower | at_upper):
+            return None
+        hopped = z.copy()
+        hopped[controls] = np.where(at_lower, upper, np.where(at_upper, lower, u))
+        return hopped
+
+    def _solve(self, task: SearchTask, z0: np.ndarray) -> SearchResult:
+        start_objectives = np.asarray(self.objectives(z0)).ravel()
         zeros = np.zeros(self.ng)
         if task.kind == "scalarised":
             # keep z* − z̃ positive when the start lies beyond the shifted utopia point
@@ -149,7 +193,7 @@ class InnerSolvers:
             evaluations=evaluations,
             status=str(stats["return_status"]),
             iterations=int(stats["iter_count"]),
-            solve_time_s=time.perf_counter() - t0,
+            solve_time_s=0.0,
         )
 
 

@@ -27,6 +27,8 @@ class GoddardProblem:
     elements: int = 4
     order: int = 6
     name: str = "goddard"
+    #: u ∈ [−π/2, π/2] is a true limit (no backward thrust), not one period of an angle
+    periodic_controls: bool = False
 
     @property
     def shape(self) -> DfetShape:
@@ -47,6 +49,9 @@ class OrbitRaisingProblem:
     elements: int = 30
     order: int = 1
     name: str = "orbit-raising"
+    #: the thrust angle is periodic: its bounds [−π, π] span one period, so a control node on
+    #: one bound is the same thrust direction as on the other (see ``local_search``)
+    periodic_controls: bool = True
 
     @property
     def shape(self) -> DfetShape:
