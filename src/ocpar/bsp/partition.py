@@ -2,6 +2,10 @@
 
 from __future__ import annotations
 
+import math
+from collections.abc import Sequence
+from numbers import Integral
+
 
 def contiguous_blocks(n_tasks: int, n_workers: int) -> list[range]:
     """Split task indices 0..n_tasks-1 into n_workers contiguous blocks whose sizes differ by
@@ -32,3 +36,84 @@ def longest_first(costs: list[float], n_workers: int) -> list[list[int]]:
         loads[w] += costs[i]
         groups[w].append(i)
     return [sorted(g) for g in groups]
+
+
+def sticky_longest_first(
+    costs: Sequence[float],
+    n_workers: int,
+    previous: Sequence[int | None] | None = None,
+    tolerance: float = 0.05,
+) -> list[list[int]]:
+    """Longest-processing-time-first on ``costs`` (≥ 0, e.g. each task's measured time in the
+    previous superstep) that keeps task i on worker ``previous[i]`` (its worker last superstep:
+    warm starts and cached solvers stay local) as long as the makespan stays within
+    (1 + ``tolerance``) × the makespan of plain :func:`longest_first`.
+
+    Two greedy passes over the tasks, longest first: a task stays on its previous worker if
+    that worker's load stays within the bound, otherwise it goes to the least-loaded worker,
+    either at once or after all the kept tasks. Of these two and the plain
+    :func:`longest_first` assignment, the one within the bound that keeps the most tasks in
+    place wins (earlier on ties), so the makespan never exceeds the bound and no fewer tasks
+    stay than with plain longest-first. Entries of ``previous`` that are None or
+    ≥ ``n_workers`` (the worker count changed) count as no previous worker; ``previous=None``
+    gives :func:`longest_first`. Ties as in :func:`longest_first` (highest-numbered
+    least-loaded worker, lower task index first), so the assignment is deterministic; each
+    worker's indices in increasing order.
+    """
+    if n_workers < 1:
+        raise ValueError(f"need at least one worker, got {n_workers}")
+    costs = [float(c) for c in costs]
+    if any(not math.isfinite(c) or c < 0 for c in costs):
+        raise ValueError("costs must be finite and ≥ 0")
+    if not (math.isfinite(tolerance) and tolerance >= 0):
+        raise ValueError(f"tolerance must be finite and ≥ 0, got {tolerance!r}")
+    plain = longest_first(costs, n_workers)
+    if previous is None:
+        return plain
+    if len(previous) != len(costs):
+        raise ValueError(f"{len(previous)} previous workers for {len(costs)} tasks")
+    for i, w in enumerate(previous):
+        if w is not None and (isinstance(w, bool) or not isinstance(w, Integral) or w < 0):
+            raise ValueError(f"previous[{i}] must be a worker index ≥ 0 or None, got {w!r}")
+    bound = (1.0 + tolerance) * max(sum(costs[i] for i in g) for g in plain)
+    order = sorted(range(len(costs)), key=lambda i: (-costs[i], i))
+    candidates = [_sticky_pass(costs, order, previous, n_workers, bound, defer)
+                  for defer in (False, True)]
+    best, best_kept = plain, -1
+    for groups in [*candidates, plain]:
+        if groups is not None:
+            kept = sum(previous[i] == w for w, g in enumerate(groups) for i in g)
+            if kept > best_kept:
+                best, best_kept = groups, kept
+    return [sorted(g) for g in best]
+
+
+def _sticky_pass(
+    costs: list[float],
+    order: list[int],
+    previous: Sequence[int | None],
+    n_workers: int,
+    bound: float,
+    defer: bool,
+) -> list[list[int]] | None:
+    """One greedy pass of :func:`sticky_longest_first` over tasks in ``order``: a task stays on
+    its previous worker if that worker's load stays ≤ ``bound``; otherwise it goes to the
+    least-loaded worker at once (``defer`` False) or after all kept tasks are placed (True).
+    None if the makespan ends above ``bound``."""
+    loads = [0.0] * n_workers
+    groups: list[list[int]] = [[] for _ in range(n_workers)]
+    rest = []
+    for i in order:
+        w = previous[i]
+        if w is None or w >= n_workers or loads[w] + costs[i] > bound:
+            if defer:
+                rest.append(i)
+                continue
+            w = min(range(n_workers), key=lambda w: (loads[w], -w))
+        loads[w] += costs[i]
+        groups[w].append(i)
+    for i in rest:
+        w = min(range(n_workers), key=lambda w: (loads[w], -w))
+        loads[w] += costs[i]
+        groups[w].append(i)
+    return groups if max(loads) <= bound else None

@@ -1,0 +1,255 @@
+"""A BSP cost model: predict wall time and speedup at any worker count from one measured run.
+
+A run is a serial coordinator part plus a sequence of supersteps, each a set of independent
+tasks followed by a barrier. With P workers the model predicts (all times in seconds)
+
+    T(P) = serial + Σ_supersteps [makespan_P(task times, policy) + σ(P)],
+    σ(P) = a + b·log2(P)            (tree barrier / gather: :class:`SyncCost`),
+
+where ``makespan_P`` schedules the superstep's measured per-task times onto P workers with the
+partitioning policy the engine would use (``"blocks"``: ``partition.contiguous_blocks``;
+``"lpt"``: ``partition.longest_first`` with the measured times as the cost estimates), and
+``serial`` (the coordinator's time outside supersteps: outer optimiser, I/O, ...) does not
+shrink with P. Speedup is T(1)/T(P) of the model itself.
+
+Assumptions worth remembering when reading the numbers: a task's time does not depend on P
+(no memory-bandwidth contention, no oversubscription), ``"lpt"`` sees the exact times (the
+engine only sees estimates, usually the previous superstep's), and the barrier cost grows
+like a tree (log2 P), not linearly.
+
+>>> sync = SyncCost(a_s=0.0, b_s=0.0)
+>>> [p.wall_s for p in predict([[1.0] * 8], [1, 2, 4], "blocks", sync)]
+[8.0, 4.0, 2.0]
+"""
+
+from __future__ import annotations
+
+import heapq
+import math
+from collections.abc import Iterable, Mapping, Sequence
+from dataclasses import dataclass
+from statistics import median
+from typing import Any
+
+import numpy as np
+from scipy.optimize import nnls
+
+from ocpar.bsp.partition import contiguous_blocks
+from ocpar.bsp.trace import SuperstepTrace
+
+POLICIES = ("blocks", "lpt")
+"""Partitioning policies the model knows: contiguous blocks, longest-processing-time-first."""
+
+TraceLike = SuperstepTrace | Mapping[str, Any]
+"""A :class:`SuperstepTrace` or its ``to_dict()`` (as saved in result.json's ``"trace"``)."""
+
+
+def _check_workers(workers: int) -> int:
+    if isinstance(workers, bool) or not isinstance(workers, int | np.integer):
+        raise ValueError(f"worker count must be an integer, got {workers!r}")
+    if workers < 1:
+        raise ValueError(f"worker count must be at least 1, got {workers}")
+    return int(workers)
+
+
+def _check_policy(policy: str) -> None:
+    if policy not in POLICIES:
+        raise ValueError(f"unknown policy {policy!r}; choose one of {', '.join(POLICIES)}")
+
+
+def _check_times(times: Iterable[float], what: str) -> list[float]:
+    out = []
+    for k, t in enumerate(times):
+        try:
+            value = float(t)
+        except (TypeError, ValueError):
+            raise ValueError(f"{what}[{k}] is not a number: {t!r}") from None
+        if not math.isfinite(value) or value < 0:
+            raise ValueError(f"{what}[{k}] must be a finite time ≥ 0 s, got {t!r}")
+        out.append(value)
+    return out
+
+
+def makespan(times: Sequence[float], workers: int, policy: str) -> float:
+    """Time (s) until the last of ``workers`` workers finishes when the tasks with the given
+    times (s, one per task in task order) are partitioned by ``policy`` (``"blocks"`` or
+    ``"lpt"``). No tasks → 0."""
+    _check_policy(policy)
+    return _makespan(_check_times(times, "times"), _check_workers(workers), policy)
+
+
+def _makespan(times: list[float], workers: int, policy: str) -> float:
+    if policy == "blocks":
+        blocks = contiguous_blocks(len(times), workers)
+        return max((sum(times[b.start:b.stop]) for b in blocks), default=0.0)
+    # The assignment of longest_first (least-loaded worker, ties to the highest-numbered one;
+    # longer tasks first, ties to the lower index) with a heap: O(n log P) instead of O(n P).
+    heap = [(0.0, -w) for w in range(workers)]
+    for i in sorted(range(len(times)), key=lambda i: (-times[i], i)):
+        load, neg_w = heap[0]
+        heapq.heapreplace(heap, (load + times[i], neg_w))
+    return max(load for load, _ in heap)
+
+
+@dataclass(frozen=True)
+class SyncCost:
+    """Per-superstep synchronisation cost σ(P) = ``a_s`` + ``b_s``·log2(P), in seconds: the
+    barrier, scatter of tasks and gather of results along a tree of P workers."""
+
+    a_s: float
+    b_s: float
+
+    def __post_init__(self) -> None:
+        for name in ("a_s", "b_s"):
+            value = getattr(self, name)
+            if not math.isfinite(value) or value < 0:
+                raise ValueError(f"SyncCost.{name} must be a finite time ≥ 0 s, got {value!r}")
+
+    def at(self, workers: int) -> float:
+        """σ(P) in seconds for ``workers`` = P ≥ 1."""
+        return self.a_s + self.b_s * math.log2(_check_workers(workers))
+
+    @classmethod
+    def fit(cls, overheads: Mapping[int, float]) -> SyncCost:
+        """Least-squares fit of a, b ≥ 0 to measured per-superstep overheads: ``overheads``
+        maps a worker count P to the median ``overhead_s`` (s) of the supersteps of a run with
+        P workers (see :func:`median_overhead`). One point gives b = 0 and a = that overhead.
+        The fit is non-negative least squares, so a coefficient that would come out negative
+        is 0 and the other one is refitted (noise, e.g. overheads falling with P)."""
+        if not overheads:
+            raise ValueError("SyncCost.fit needs at least one (workers, overhead) point")
+        ps = [_check_workers(p) for p in overheads]
+        ys = []
+        for p, y in overheads.items():
+            if not math.isfinite(y):
+                raise ValueError(f"overhead at P={p} must be finite, got {y!r}")
+            ys.append(float(y))
+        if len(ps) == 1:
+            return cls(a_s=max(ys[0], 0.0), b_s=0.0)
+        design = np.column_stack([np.ones(len(ps)), np.log2(np.asarray(ps, dtype=float))])
+        (a, b), _ = nnls(design, np.asarray(ys))
+        return cls(a_s=float(max(a, 0.0)), b_s=float(max(b, 0.0)))
+
+
+@dataclass(frozen=True)
+class Prediction:
+    """Predicted run at ``workers`` = P workers (times in seconds).
+
+    ``wall_s`` = ``serial_s`` + ``compute_s`` + ``sync_s``; ``compute_s`` is the sum over
+    supersteps of the makespan, ``sync_s`` the number of supersteps × σ(P). ``speedup`` is the
+    model's T(1)/T(P) (1 if both are 0); ``efficiency`` = ``speedup``/P.
+    """
+
+    workers: int
+    wall_s: float
+    compute_s: float
+    sync_s: float
+    serial_s: float
+    speedup: float
+    efficiency: float
+
+
+def _check_supersteps(supersteps: Sequence[Sequence[float]]) -> list[list[float]]:
+    if isinstance(supersteps, str | bytes) or not isinstance(supersteps, Sequence | np.ndarray):
+        raise ValueError(f"supersteps must be a list of per-task time lists, got {supersteps!r}")
+    out = []
+    for s, times in enumerate(supersteps):
+        if isinstance(times, str | bytes) or not isinstance(times, Sequence | np.ndarray):
+            raise ValueError(
+                f"supersteps[{s}] must be a list of per-task times (s), got {times!r}; "
+                "pass one list per superstep, e.g. [[t0, t1, ...], ...]"
+            )
+        out.append(_check_times(times, f"supersteps[{s}]"))
+    return out
+
+
+def predict(
+    supersteps: Sequence[Sequence[float]],
+    workers: Sequence[int],
+    policy: str,
+    sync: SyncCost,
+    serial_s: float = 0.0,
+) -> list[Prediction]:
+    """Predict the run at each worker count in ``workers``.
+
+    ``supersteps``: one list per superstep of per-task times in seconds (task order, as from
+    :func:`task_times`); ``policy``: ``"blocks"`` or ``"lpt"``; ``sync``: the per-superstep
+    synchronisation cost; ``serial_s``: coordinator time outside supersteps (s, does not
+    shrink with P). Returns one :class:`Prediction` per entry of ``workers``, in that order.
+    """
+    _check_policy(policy)
+    steps = _check_supersteps(supersteps)
+    counts = [_check_workers(p) for p in workers]
+    if not math.isfinite(serial_s) or serial_s < 0:
+        raise ValueError(f"serial_s must be a finite time ≥ 0 s, got {serial_s!r}")
+
+    def parts(p: int) -> tuple[float, float]:
+        compute = sum(_makespan(times, p, policy) for times in steps)
+        return compute, len(steps) * sync.at(p)
+
+    base = serial_s + sum(parts(1))
+    out = []
+    for p in counts:
+        compute, sync_s = parts(p)
+        wall = serial_s + compute + sync_s
+        speedup = base / wall if wall > 0 else 1.0
+        out.append(Prediction(workers=p, wall_s=wall, compute_s=compute, sync_s=sync_s,
+                              serial_s=serial_s, speedup=speedup, efficiency=speedup / p))
+    return out
+
+
+def _field(trace: TraceLike, name: str, k: int) -> Any:
+    if isinstance(trace, SuperstepTrace):
+        return getattr(trace, name)
+    if isinstance(trace, Mapping):
+        if name not in trace:
+            raise ValueError(f"trace[{k}] has no {name!r} (keys: {', '.join(sorted(trace))})")
+        return trace[name]
+    raise ValueError(f"trace[{k}] is neither a SuperstepTrace nor a dict: {trace!r}")
+
+
+def task_times(traces: Iterable[TraceLike], use: str = "cpu") -> list[list[float]]:
+    """Per-superstep lists of per-task times (s, task order) from a run's traces, for
+    :func:`predict`. ``use="cpu"`` takes the tasks' CPU times (insensitive to other load on
+    the machine, but they overcount multithreaded and undercount waiting tasks), ``"wall"``
+    their wall-clock times."""
+    if use not in ("cpu", "wall"):
+        raise ValueError(f"use must be 'cpu' or 'wall', got {use!r}")
+    name = f"task_{use}_s"
+    return [_check_times(_field(t, name, k), f"trace[{k}].{name}") for k, t in enumerate(traces)]
+
+
+def median_overhead(traces: Iterable[TraceLike]) -> float:
+    """Median per-superstep overhead (s: wall − max worker busy) of a run's traces, the
+    measurement :meth:`SyncCost.fit` takes per worker count."""
+    values = []
+    for k, t in enumerate(traces):
+        if isinstance(t, SuperstepTrace):
+            values.append(t.overhead_s)
+        elif isinstance(t, Mapping) and "overhead_s" in t:
+            values.append(float(t["overhead_s"]))
+        else:
+            busy = _field(t, "worker_busy_s", k)
+            values.append(float(_field(t, "wall_s", k)) - max(busy, default=0.0))
+    if not values:
+        raise ValueError("no supersteps in the traces")
+    return median(values)
+
+
+def serial_time(run_wall_s: float, traces: Iterable[TraceLike]) -> float:
+    """The coordinator's serial time (s): the run's total wall time minus the wall time of its
+    supersteps (clamped at 0)."""
+    inside = sum(float(_field(t, "wall_s", k)) for k, t in enumerate(traces))
+    return max(float(run_wall_s) - inside, 0.0)
+
+
+__all__ = [
+    "POLICIES",
+    "Prediction",
+    "SyncCost",
+    "makespan",
+    "median_overhead",
+    "predict",
+    "serial_time",
+    "task_times",
+]
