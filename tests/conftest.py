@@ -51,8 +51,8 @@ def free_port() -> int:
 
 @pytest.fixture(scope="session")
 def dask_cluster():
-    """A real ``dask scheduler`` and two single-threaded ``dask worker`` processes on
-    127.0.0.1; yields the scheduler address."""
+    """A real ``dask scheduler`` and two single-threaded ``dask worker`` processes started by
+    ``workers/start-dask-worker.sh`` on 127.0.0.1; yields the scheduler address."""
     from distributed import Client
 
     port = free_port()
@@ -72,9 +72,10 @@ def dask_cluster():
                 if time.monotonic() > deadline:
                     pytest.fail("dask scheduler did not start")
                 time.sleep(0.2)
-        preload = str(REPO / "workers" / "ocpar_preload.py")
-        procs.append(subprocess.Popen([dask, "worker", address, "--nworkers", "2", "--nthreads",
-                                       "1", "--no-dashboard", "--preload", preload], env=env,
+        # the workers start exactly as on a cluster node (and in docker/compose.yaml)
+        env["PATH"] = f"{Path(dask).parent}{os.pathsep}{env.get('PATH', '')}"
+        procs.append(subprocess.Popen([str(REPO / "workers" / "start-dask-worker.sh"), address,
+                                       "2"], env=env,
                                       stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL))
         with Client(address, timeout="30s") as client:
             client.wait_for_workers(2, timeout=60)

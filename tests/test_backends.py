@@ -68,6 +68,26 @@ def test_serial_superstep_is_timed():
 def test_unknown_backend_is_refused():
     with pytest.raises(BackendError, match="unknown backend"):
         open_backend("threads")
+    with pytest.raises(BackendError, match="unknown balance policy"):
+        open_backend("serial", balance="random")
+
+
+def test_lpt_balances_a_heterogeneous_workload_with_the_same_results():
+    """Tasks of 3, 6, …, 36 ms: contiguous blocks give one worker 63 ms and the other 171 ms
+    (max/mean busy 1.46); from the second superstep on, LPT on the measured times balances
+    them (≤ 1.1), keeps most tasks on their worker, and the results are unchanged."""
+    seconds = [0.003 * (i + 1) for i in range(12)]
+    with open_backend("dask", workers=2, balance="lpt") as backend:
+        results = [backend.superstep("ocpar.bsp.workload:spin", seconds) for _ in range(3)]
+        first, *later = backend.traces
+    assert all(r == seconds for r in results)
+    assert first.task_worker == [0] * 6 + [1] * 6 and first.imbalance > 1.3
+    for trace in later:
+        assert trace.imbalance < 1.1, trace.worker_busy_s
+    # 10 of 12 tasks stay where they were (only tasks 7 and 8 move to worker 0)
+    kept = np.equal(later[0].task_worker, first.task_worker)
+    assert kept.sum() == 10
+    assert later[1].task_worker == later[0].task_worker  # balanced: nothing moves again
 
 
 @pytest.fixture(scope="module")
@@ -123,6 +143,18 @@ def test_embedded_dask_matches_serial(serial_reference, local_dask):
     assert_same_run({"status": result.status, "total_cost": result.total_cost,
                      "phi": result.phi, "supersteps": result.supersteps}, serial_reference)
     assert result.workers == 2 and result.backend == "dask"
+
+
+def test_dask_mpi_matches_serial(serial_reference, tmp_path):
+    """mpirun -n 4 --backend dask-mpi: scheduler on rank 0, the run on rank 1, two workers."""
+    proc = run_cli("-m", "ocpar.formation", "--backend", "dask-mpi", "--output", str(tmp_path),
+                   mpi_ranks=4)
+    assert proc.returncode == 0, proc.stderr
+    data = json.loads((tmp_path / "result.json").read_text())
+    assert data["backend"] == "dask" and data["workers"] == 2
+    assert_same_run(data, serial_reference)
+    assert "Dask dashboard: http" in proc.stdout
+    assert proc.stderr.strip() == ""
 
 
 def test_external_dask_cluster_matches_serial(serial_reference, dask_cluster, tmp_path):

@@ -222,6 +222,7 @@ def make_trace(index: int, cpu: list[float], wall: list[float], overhead: float)
         worker_peak_rss_mb=[100.0, 100.0],
         task_wall_s=wall,
         task_cpu_s=cpu,
+        task_worker=[0] * (len(cpu) // 2) + [1] * (len(cpu) - len(cpu) // 2),
     )
 
 

@@ -2,13 +2,19 @@
 
 from __future__ import annotations
 
+import casadi as ca
 import numpy as np
 import pytest
 
 from ocpar.bsp import open_backend
 from ocpar.formation import FormationOptions, paper_example, solve_formation
 from ocpar.formation.hierarchical import OuterObjective
-from ocpar.formation.potential import coupling_functions, equidistance_error
+from ocpar.formation.potential import (
+    coupling,
+    coupling_expr,
+    coupling_jacobian,
+    equidistance_error,
+)
 
 
 def test_outer_gradient_from_sensitivities_matches_finite_differences():
@@ -26,8 +32,23 @@ def test_outer_gradient_from_sensitivities_matches_finite_differences():
     np.testing.assert_allclose(grad, fd, rtol=1e-6)
 
 
+def test_closed_form_coupling_equals_the_symbolic_one():
+    phi = np.random.default_rng(4).uniform(0, 2 * np.pi, 7)
+    sym = ca.SX.sym("phi", 7)
+    expr = coupling_expr(sym, 3.0)
+    c = ca.Function("c", [sym], [expr, ca.jacobian(expr, sym)])
+    value, jacobian = (np.asarray(v) for v in c(phi))
+    np.testing.assert_allclose(coupling(phi, 3.0), value.ravel(), rtol=1e-12, atol=1e-14)
+    np.testing.assert_allclose(coupling_jacobian(phi, 3.0), jacobian, rtol=1e-11, atol=1e-14)
+
+
 def test_coupling_vanishes_exactly_at_equidistant_angles():
-    c, dc = coupling_functions(60, 10.0)
+    def c(phi):
+        return coupling(phi, 10.0)
+
+    def dc(phi):
+        return coupling_jacobian(phi, 10.0)
+
     equidistant = 0.3 + 2 * np.pi * np.arange(60) / 60
     assert np.max(np.abs(np.asarray(c(equidistant)))) < 1e-12
     perturbed = equidistant.copy()

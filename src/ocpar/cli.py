@@ -10,7 +10,14 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import NoReturn, TypeVar
 
-from ocpar.bsp import BACKENDS, Backend, BackendError, launched_by_mpirun, open_backend
+from ocpar.bsp import (
+    BACKENDS,
+    BALANCE_POLICIES,
+    Backend,
+    BackendError,
+    launched_by_mpirun,
+    open_backend,
+)
 
 EXIT_USAGE = 2
 R = TypeVar("R")
@@ -65,12 +72,17 @@ def positive_float(text: str) -> float:
 def add_backend_arguments(parser: argparse.ArgumentParser) -> None:
     group = parser.add_argument_group("parallel backend")
     group.add_argument("--backend", choices=BACKENDS, default=None,
-                       help="serial (default), mpi (implied under mpirun), or dask")
+                       help="serial (default), mpi (implied under mpirun), dask, or dask-mpi "
+                            "(under mpirun -n P: a Dask cluster of P - 2 workers)")
     group.add_argument("--workers", type=positive_int, default=None,
                        help="number of workers (dask: local worker processes, or how many of "
                             "the cluster's workers to use; mpi: must equal the rank count)")
     group.add_argument("--scheduler", default=None, metavar="ADDR",
                        help="address of an existing Dask scheduler, e.g. tcp://HOST:8786")
+    group.add_argument("--balance", choices=BALANCE_POLICIES, default="blocks",
+                       help="task assignment: contiguous blocks (default), or lpt: longest "
+                            "first on the previous superstep's times, tasks kept on their "
+                            "worker where that does not hurt the balance")
 
 
 def choose_backend(args: argparse.Namespace, prog: str) -> str:
@@ -79,8 +91,10 @@ def choose_backend(args: argparse.Namespace, prog: str) -> str:
     backend = args.backend or ("mpi" if under_mpi else "dask" if args.scheduler else "serial")
     if backend == "mpi" and not under_mpi:
         fail(prog, "--backend mpi needs an MPI launcher: mpirun -n P python -m ...")
-    if under_mpi and backend != "mpi":
-        fail(prog, f"under mpirun the backend is mpi, not {backend}")
+    if backend == "dask-mpi" and not under_mpi:
+        fail(prog, "--backend dask-mpi needs an MPI launcher: mpirun -n P python -m ...")
+    if under_mpi and backend not in ("mpi", "dask-mpi"):
+        fail(prog, f"under mpirun the backend is mpi or dask-mpi, not {backend}")
     if args.scheduler is not None:
         if backend != "dask":
             fail(prog, "--scheduler only applies to --backend dask")
@@ -94,7 +108,8 @@ def choose_backend(args: argparse.Namespace, prog: str) -> str:
 def start_backend(args: argparse.Namespace, backend_name: str, prog: str) -> Backend:
     """Open the backend or exit 2 with a one-line message (e.g. unreachable scheduler)."""
     try:
-        return open_backend(backend_name, workers=args.workers, scheduler=args.scheduler)
+        return open_backend(backend_name, workers=args.workers, scheduler=args.scheduler,
+                            balance=args.balance)
     except BackendError as exc:
         fail(prog, str(exc))
 
@@ -128,4 +143,6 @@ def run_on_backend(
             return None
         if getattr(args, "quiet", False):
             return body(backend, lambda line: None)
+        if link := getattr(backend, "dashboard_link", None):
+            print(f"Dask dashboard: {link}", flush=True)
         return body(backend, lambda line: print(line, flush=True))

@@ -7,49 +7,62 @@ time, and gets the results back in task order.
 [2.0, 3.0]
 
 Backends: ``serial`` (in process), ``mpi`` (SPMD under ``mpirun``), ``dask`` (embedded
-``LocalCluster`` or an existing scheduler). Every superstep is timed (:class:`SuperstepTrace`).
+``LocalCluster`` or an existing scheduler), ``dask-mpi`` (a Dask cluster made of the ranks of
+an MPI allocation). Every superstep is timed (:class:`SuperstepTrace`).
 """
 
 from __future__ import annotations
 
-from ocpar.bsp.backend import Backend, BackendError
+from ocpar.bsp.backend import BALANCE_POLICIES, Backend, BackendError
 from ocpar.bsp.kernel import ChunkResult, kernel_name, run_chunk
 from ocpar.bsp.mpi import launched_by_mpirun
 from ocpar.bsp.partition import contiguous_blocks
 from ocpar.bsp.trace import SuperstepTrace
 
-BACKENDS = ("serial", "mpi", "dask")
+BACKENDS = ("serial", "mpi", "dask", "dask-mpi")
 
 
 def open_backend(
-    name: str, workers: int | None = None, scheduler: str | None = None
+    name: str, workers: int | None = None, scheduler: str | None = None,
+    balance: str = "blocks",
 ) -> Backend:
-    """Start the backend ``name`` with ``workers`` workers.
+    """Start the backend ``name`` with ``workers`` workers and the ``balance`` policy
+    (``blocks`` or ``lpt``, see :data:`BALANCE_POLICIES`).
 
     ``serial`` ignores ``workers``; ``mpi`` takes its size from the MPI launcher (``workers``,
     if given, must match); ``dask`` starts ``workers`` local worker processes (default 1), or
-    connects to ``scheduler`` and uses ``workers`` of its workers (default all).
+    connects to ``scheduler`` and uses ``workers`` of its workers (default all); ``dask-mpi``
+    (under ``mpirun -n P``, P ≥ 3) makes rank 0 a Dask scheduler, ranks 2… workers and returns
+    in rank 1 only, as the coordinator (see :mod:`ocpar.bsp.dask_mpi`).
     """
+    if balance not in BALANCE_POLICIES:
+        raise BackendError(
+            f"unknown balance policy {balance!r}; choose one of {', '.join(BALANCE_POLICIES)}")
     if name == "serial":
         from ocpar.bsp.serial import SerialBackend
 
-        return SerialBackend()
+        return SerialBackend(balance=balance)
     if name == "mpi":
         from ocpar.bsp.mpi import MpiBackend
 
-        backend = MpiBackend()
+        backend = MpiBackend(balance=balance)
         if workers is not None and workers != backend.workers:
             raise BackendError(f"--workers {workers} but mpirun started {backend.workers} ranks")
         return backend
     if name == "dask":
         from ocpar.bsp.dask import DaskBackend
 
-        return DaskBackend(workers=workers, scheduler=scheduler)
+        return DaskBackend(workers=workers, scheduler=scheduler, balance=balance)
+    if name == "dask-mpi":
+        from ocpar.bsp.dask_mpi import open_dask_mpi
+
+        return open_dask_mpi(workers=workers, balance=balance)
     raise BackendError(f"unknown backend {name!r}; choose one of {', '.join(BACKENDS)}")
 
 
 __all__ = [
     "BACKENDS",
+    "BALANCE_POLICIES",
     "Backend",
     "BackendError",
     "ChunkResult",

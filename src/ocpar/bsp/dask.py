@@ -39,6 +39,7 @@ class DaskBackend(Backend):
         workers: int | None = None,
         scheduler: str | None = None,
         timeout_s: float = 10.0,
+        balance: str = "blocks",
     ) -> None:
         import dask
         from distributed import Client, LocalCluster
@@ -76,7 +77,12 @@ class DaskBackend(Backend):
             self.close()
             raise BackendError("Dask cluster has no workers")
         self.addresses = addresses[: workers or len(addresses)]
-        super().__init__(workers=len(self.addresses))
+        super().__init__(workers=len(self.addresses), balance=balance)
+
+    @property
+    def dashboard_link(self) -> str | None:
+        """Address of the cluster's Dask dashboard (None if it has none)."""
+        return self.client.dashboard_link if self.client is not None else None
 
     def _worker_addresses(self) -> list[str]:
         return sorted(self.client.scheduler_info(n_workers=-1)["workers"])

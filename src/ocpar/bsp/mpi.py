@@ -25,13 +25,13 @@ class MpiBackend(Backend):
 
     name = "mpi"
 
-    def __init__(self, comm: Any = None) -> None:
+    def __init__(self, comm: Any = None, balance: str = "blocks") -> None:
         from mpi4py import MPI
 
         self.comm = comm if comm is not None else MPI.COMM_WORLD
         self.rank = self.comm.Get_rank()
         self._closed = False
-        super().__init__(workers=self.comm.Get_size())
+        super().__init__(workers=self.comm.Get_size(), balance=balance)
 
     @property
     def is_coordinator(self) -> bool:

@@ -13,8 +13,8 @@ class SerialBackend(Backend):
 
     name = "serial"
 
-    def __init__(self) -> None:
-        super().__init__(workers=1)
+    def __init__(self, balance: str = "blocks") -> None:
+        super().__init__(workers=1, balance=balance)
 
     def _run_chunks(self, name: str, chunks: list[list[Any]]) -> list[ChunkResult]:
         return [run_chunk(name, chunk) for chunk in chunks]

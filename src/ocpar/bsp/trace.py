@@ -9,7 +9,8 @@ from dataclasses import asdict, dataclass
 class SuperstepTrace:
     """Measurements of one superstep.
 
-    ``task_wall_s``/``task_cpu_s`` are per task in task order; ``worker_busy_s``/``worker_cpu_s``
+    ``task_wall_s``/``task_cpu_s``/``task_worker`` (the worker that ran it) are per task in
+    task order; ``worker_busy_s``/``worker_cpu_s``
     and ``worker_peak_rss_mb`` (peak resident memory of the worker process so far, MiB)
     per worker; ``overhead_s`` = ``wall_s`` - max(``worker_busy_s``): communication, barrier
     and scheduling cost.
@@ -24,6 +25,11 @@ class SuperstepTrace:
     worker_peak_rss_mb: list[float]
     task_wall_s: list[float]
     task_cpu_s: list[float]
+    task_worker: list[int]
+
+    @property
+    def workers(self) -> int:
+        return len(self.worker_busy_s)
 
     @property
     def overhead_s(self) -> float:

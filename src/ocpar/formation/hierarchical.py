@@ -14,7 +14,7 @@ import numpy as np
 from scipy.optimize import minimize
 
 from ocpar.bsp import Backend
-from ocpar.formation.potential import coupling_functions
+from ocpar.formation.potential import coupling, coupling_jacobian
 from ocpar.formation.problem import FormationProblem
 from ocpar.ocp import DmocSolution, solve_dmoc_task
 
@@ -37,7 +37,6 @@ class OuterObjective:
         self.failed_solves = 0
         self.last_phi: np.ndarray | None = None
         self.last_solutions: list[DmocSolution] = []
-        self._c, _ = coupling_functions(problem.agents, problem.radius)
 
     def solutions(self, phi: np.ndarray) -> list[DmocSolution]:
         """Inner solutions for angles φ: one superstep, unless φ is the last one asked for."""
@@ -73,7 +72,7 @@ class OuterObjective:
             return
         trace = self.backend.traces[-1]
         cost = sum(s.cost for s in sols)
-        violation = float(np.max(np.abs(np.asarray(self._c(phi)))))
+        violation = float(np.max(np.abs(coupling(phi, self.problem.radius))))
         self.progress(
             f"superstep {trace.index:4d}  cost {cost:.12e}  |c(phi)| {violation:.1e}  "
             f"wall {trace.wall_s * 1e3:7.1f} ms  overhead {trace.overhead_s * 1e3:6.1f} ms"
@@ -85,7 +84,7 @@ def solve_outer(
 ) -> tuple[np.ndarray, int, bool, str]:
     """SLSQP on J(φ)/J(φ_0) s.t. c(φ) = 0. Returns (φ, iterations, success, message)."""
     problem = objective.problem
-    c, dc = coupling_functions(problem.agents, problem.radius)
+    radius = problem.radius
     scale = 1.0 / max(objective.value(phi0), 1e-300)
     result = minimize(
         lambda phi: objective.value(phi) * scale,
@@ -95,8 +94,8 @@ def solve_outer(
         constraints=[
             {
                 "type": "eq",
-                "fun": lambda phi: np.asarray(c(phi)).ravel(),
-                "jac": lambda phi: np.asarray(dc(phi)),
+                "fun": lambda phi: coupling(phi, radius),
+                "jac": lambda phi: coupling_jacobian(phi, radius),
             }
         ],
         options={"ftol": tol, "maxiter": max_iterations},
