@@ -1,16 +1,29 @@
 #!/usr/bin/env python
-"""Speedup of the formation scheme versus worker count, per backend.
+"""Speedup versus worker count of any scheme, per backend, with a BSP cost model's prediction.
 
-    python scripts/speedup.py --agents 60 --backend mpi dask --workers 1 2 --repeat 3 \
-        --output runs/speedup
+    python scripts/speedup.py --scheme formation --agents 60 --backend mpi dask \
+        --workers 1 2 --repeat 3 --output runs/speedup
+    python scripts/speedup.py --scheme pursuit --samples 301 --backend mpi --workers 1 2
+    python scripts/speedup.py --scheme macs --problem goddard --max-evals 2000 --backend mpi
+    python scripts/speedup.py ... --predict-agents 1000     # formation: model at 1000 agents
 
-Each (backend, workers, repetition) is one run of ``python -m ocpar.formation`` (under
-``mpirun -n P`` for mpi) in its own process, writing its result.json. The script gathers
-their superstep traces and writes ``speedup.json`` (per backend and worker count: median solve
-wall time, median superstep time, speedup and efficiency against 1 worker of the same backend,
-median superstep overhead, load imbalance = max/mean worker busy time, and the spread of total
-costs across all runs) and ``speedup.png`` (speedup vs workers, ideal line, the paper's
-Table I for reference). Times exclude process start-up and cluster start.
+Each (backend, workers, repetition) is one run of ``python -m ocpar.<scheme>`` in its own
+process (``mpirun -n P`` for mpi, ``mpirun -n P+2`` for dask-mpi), writing its result.json.
+The script gathers their superstep traces and writes
+
+* ``speedup.json``: per backend and worker count the median solve wall time (process and
+  cluster start-up excluded), median superstep time, speedup and efficiency of both against
+  1 worker of the same backend, median per-superstep overhead (wall − busiest worker) and
+  load imbalance (max/mean worker busy time); the cost model's predictions (P = 1 … 64, both
+  partitioning policies) from each backend's 1-worker runs, and its error at the measured
+  2-worker point;
+* ``speedup.png``: measured and predicted speedup vs workers, the ideal line and the paper's
+  table.
+
+The cost model (``ocpar.bsp.cost_model``) schedules a run's measured per-task CPU times on P
+workers and adds the per-superstep synchronisation cost fitted to the measured overheads, and
+the coordinator's serial time. ``--predict-agents N`` (formation) also runs one serial
+N-agent formation and predicts its speedup with the same synchronisation cost.
 """
 
 from __future__ import annotations
@@ -22,17 +35,50 @@ import subprocess
 import sys
 from pathlib import Path
 
-PAPER_TABLE_I = {2: 2.15, 4: 5.57, 8: 9.65, 16: 15.73, 32: 34.94, 64: 53.0}
+from ocpar.bsp.cost_model import (
+    POLICIES,
+    SyncCost,
+    median_overhead,
+    predict,
+    serial_time,
+    task_times,
+)
+
+#: Speedups the PUB implementation reported (hierarchical-formation paper, Tables I and II).
+PAPER_TABLES = {
+    "formation": ("paper Table I (PUB, 60 point masses)",
+                  {2: 2.15, 4: 5.57, 8: 9.65, 16: 15.73, 32: 34.94, 64: 53.0}),
+}
+PREDICT_WORKERS = (1, 2, 4, 8, 16, 32, 64)
+BACKENDS = ("serial", "mpi", "dask", "dask-mpi")
 
 
-def run_once(backend: str, workers: int, agents: int, out: Path) -> dict:
-    """One formation run in a fresh process; returns its result.json."""
-    cmd = [sys.executable, "-m", "ocpar.formation", "--agents", str(agents), "--quiet",
+def scheme_arguments(args: argparse.Namespace) -> list[str]:
+    """The scheme's own command-line options for this benchmark."""
+    if args.scheme == "formation":
+        return ["--agents", str(args.agents)]
+    if args.scheme == "pursuit":
+        return ["--case", str(args.case), "--samples", str(args.samples), "--no-reference"]
+    return ["--problem", args.problem, "--max-evals", str(args.max_evals), "--seed", "0"]
+
+
+def command(scheme: str, backend: str, workers: int, extra: list[str], balance: str,
+            out: Path) -> list[str]:
+    """The command line of one run."""
+    mpirun = str(Path(sys.executable).parent / "mpirun")
+    cmd = [sys.executable, "-m", f"ocpar.{scheme}", *extra, "--balance", balance, "--quiet",
            "--output", str(out)]
     if backend == "mpi":
-        cmd = [str(Path(sys.executable).parent / "mpirun"), "-n", str(workers), *cmd]
-    else:
-        cmd += ["--backend", backend] + (["--workers", str(workers)] if backend == "dask" else [])
+        return [mpirun, "-n", str(workers), *cmd]
+    if backend == "dask-mpi":
+        return [mpirun, "-n", str(workers + 2), *cmd, "--backend", "dask-mpi"]
+    if backend == "dask":
+        return [*cmd, "--backend", "dask", "--workers", str(workers)]
+    return [*cmd, "--backend", "serial"]
+
+
+def run_once(cmd: list[str], out: Path) -> dict:
+    """One run in a fresh process; returns its result.json."""
     proc = subprocess.run(cmd, capture_output=True, text=True)
     if proc.returncode != 0:
         raise SystemExit(f"run failed ({' '.join(cmd)}):\n{proc.stderr[-2000:]}")
@@ -42,89 +88,179 @@ def run_once(backend: str, workers: int, agents: int, out: Path) -> dict:
 def summarise(runs: list[dict]) -> dict:
     """Medians over repetitions (and over supersteps within each run)."""
     steps = [t for r in runs for t in r["trace"]]
-    busy = [t["worker_busy_s"] for t in steps]
     return {
         "runs": len(runs),
         "wall_time_s": statistics.median(r["wall_time_s"] for r in runs),
         "superstep_s": statistics.median(t["wall_s"] for t in steps),
-        "overhead_s": statistics.median(t["overhead_s"] for t in steps),
-        "imbalance": statistics.median(max(b) / (sum(b) / len(b)) for b in busy),
-        "solve_ms": 1e3 * statistics.median(x for t in steps for x in t["task_wall_s"]),
-        "total_cost": runs[0]["total_cost"],
+        "supersteps": statistics.median(len(r["trace"]) for r in runs),
+        "overhead_s": median_overhead(steps),
+        "imbalance": statistics.median(t["imbalance"] for t in steps),
+        "task_ms": 1e3 * statistics.median(x for t in steps for x in t["task_wall_s"]),
     }
 
 
-def plot(table: dict, path: Path) -> None:
-    import matplotlib
+def model_of(runs: list[dict], sync: SyncCost, workers: list[int]) -> dict:
+    """Predictions from the median-wall-time run of ``runs`` (1 worker) for each policy."""
+    run = sorted(runs, key=lambda r: r["wall_time_s"])[len(runs) // 2]
+    tasks = task_times(run["trace"], use="cpu")
+    serial = serial_time(run["wall_time_s"], run["trace"])
+    return {"sync": {"a_s": sync.a_s, "b_s": sync.b_s}, "serial_s": serial,
+            "tasks_per_superstep": statistics.median(len(t) for t in tasks),
+            "policies": {policy: [vars(p) for p in predict(tasks, workers, policy, sync, serial)]
+                         for policy in POLICIES}}
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
 
-    fig, ax = plt.subplots(figsize=(6, 4.5))
+def headline(result: dict) -> float:
+    """The scheme's headline figure, compared across all runs (must not depend on P)."""
+    for key in ("total_cost", "final_mass_kg", "hv"):
+        if key in result:
+            return float(result[key])
+    raise KeyError("result.json has no headline figure")
+
+
+def plot(table: dict, models: dict, scheme: str, path: Path) -> None:
+    from ocpar.plotting import pyplot, save
+
+    plt = pyplot()
+    fig, ax = plt.subplots(figsize=(6.5, 4.5))
     top = max([2, *(int(p) for rows in table.values() for p in rows)])
-    ax.plot([1, top], [1, top], "k--", lw=0.8, label="ideal")
+    top_model = max([top, *(p["workers"] for m in models.values()
+                            for p in m["policies"]["blocks"])])
+    ax.plot([1, top_model], [1, top_model], "k--", lw=0.8, label="ideal")
     for backend, rows in table.items():
         ps = sorted(int(p) for p in rows)
-        ax.plot(ps, [rows[str(p)]["speedup"] for p in ps], "o-", label=backend)
-    paper = {p: s for p, s in PAPER_TABLE_I.items() if p <= max(top, 2)}
-    ax.plot(list(paper), list(paper.values()), "s:", color="grey",
-            label="paper Table I (PUB, 60 point masses)")
+        (line,) = ax.plot(ps, [rows[str(p)]["speedup"] for p in ps], "o-",
+                          label=f"{backend}, measured")
+        if backend in models:
+            predicted = models[backend]["policies"]["blocks"]
+            ax.plot([p["workers"] for p in predicted], [p["speedup"] for p in predicted], ":",
+                    color=line.get_color(), label=f"{backend}, cost model (blocks)")
+    if scheme in PAPER_TABLES:
+        label, paper = PAPER_TABLES[scheme]
+        ax.plot(list(paper), list(paper.values()), "s:", color="grey", label=label)
+    ax.set_xscale("log", base=2)
+    ax.set_yscale("log", base=2)
     ax.set_xlabel("workers")
-    ax.set_ylabel("speedup (superstep wall time vs 1 worker)")
-    ax.legend()
-    ax.grid(alpha=0.3)
-    fig.tight_layout()
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
+    ax.set_ylabel("speedup (solve wall time vs 1 worker)")
+    ax.legend(fontsize=8)
+    ax.grid(alpha=0.3, which="both")
+    save(fig, path)
+
+
+def print_table(table: dict, models: dict) -> None:
+    print(f"\n{'backend':9s}{'P':>3s}{'wall s':>9s}{'speedup':>9s}{'effic.':>8s}"
+          f"{'step ms':>9s}{'step speedup':>14s}{'overhead ms':>13s}{'imbalance':>11s}"
+          f"{'model':>8s}")
+    for backend, rows in table.items():
+        predicted = {p["workers"]: p for p in models.get(backend, {}).get(
+            "policies", {}).get("blocks", [])}
+        for p in sorted(rows, key=int):
+            r = rows[p]
+            model = predicted.get(int(p))
+            print(f"{backend:9s}{p:>3s}{r['wall_time_s']:9.3f}{r['speedup']:9.2f}"
+                  f"{r['efficiency']:8.2f}{r['superstep_s'] * 1e3:9.1f}"
+                  f"{r['superstep_speedup']:14.2f}{r['overhead_s'] * 1e3:13.1f}"
+                  f"{r['imbalance']:11.2f}{model['speedup'] if model else float('nan'):8.2f}")
+
+
+def print_predictions(title: str, model: dict) -> None:
+    print(f"\ncost model, {title}: serial part {model['serial_s']:.3f} s, sync "
+          f"{model['sync']['a_s'] * 1e3:.2f} ms + {model['sync']['b_s'] * 1e3:.2f} ms·log2 P "
+          f"per superstep")
+    print(f"{'P':>4s}" + "".join(f"{policy + ' wall s':>14s}{'speedup':>9s}{'effic.':>8s}"
+                                 for policy in POLICIES))
+    rows = zip(*(model["policies"][policy] for policy in POLICIES), strict=True)
+    for row in rows:
+        print(f"{row[0]['workers']:4d}" + "".join(
+            f"{p['wall_s']:14.3f}{p['speedup']:9.2f}{p['efficiency']:8.2f}" for p in row))
 
 
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--agents", type=int, default=60)
-    parser.add_argument("--backend", nargs="+", choices=("serial", "mpi", "dask"),
-                        default=["mpi", "dask"])
+    parser.add_argument("--scheme", choices=("formation", "pursuit", "macs"),
+                        default="formation")
+    parser.add_argument("--agents", type=int, default=60, help="formation: point masses")
+    parser.add_argument("--case", type=int, default=1, help="pursuit: case 1 or 2")
+    parser.add_argument("--samples", type=int, default=301, help="pursuit: samples N")
+    parser.add_argument("--problem", default="goddard", help="macs: goddard|orbit-raising")
+    parser.add_argument("--max-evals", type=int, default=2000, help="macs: evaluations")
+    parser.add_argument("--backend", nargs="+", choices=BACKENDS, default=["mpi", "dask"])
     parser.add_argument("--workers", nargs="+", type=int, default=[1, 2])
+    parser.add_argument("--balance", choices=("blocks", "lpt"), default="blocks")
     parser.add_argument("--repeat", type=int, default=3)
+    parser.add_argument("--predict-workers", nargs="+", type=int, default=list(PREDICT_WORKERS))
+    parser.add_argument("--predict-agents", type=int, default=None,
+                        help="formation: also predict a serial run with this many agents")
     parser.add_argument("--output", type=Path, default=Path("runs/speedup"))
     args = parser.parse_args()
-    if 1 not in args.workers:
-        parser.error("--workers must include 1 (the speedup baseline)")
+    if 1 not in args.workers or min(args.workers) < 1:
+        parser.error("--workers must be positive and include 1 (the speedup baseline)")
+    if args.predict_agents is not None and args.scheme != "formation":
+        parser.error("--predict-agents applies to --scheme formation")
     args.output.mkdir(parents=True, exist_ok=True)
+    extra = scheme_arguments(args)
 
     table: dict[str, dict[str, dict]] = {}
-    costs = []
+    models: dict[str, dict] = {}
+    raw: dict[str, dict[int, list[dict]]] = {}
+    figures = []
     for backend in args.backend:
         counts = [1] if backend == "serial" else sorted(set(args.workers))
         for p in counts:
-            runs = []
             for rep in range(args.repeat):
-                out = args.output / f"{backend}-{p}-{rep}"
-                runs.append(run_once(backend, p, args.agents, out))
-                print(f"{backend:6s} workers {p:2d} rep {rep}: "
-                      f"{runs[-1]['wall_time_s']:.3f} s", flush=True)
-            table.setdefault(backend, {})[str(p)] = summarise(runs)
-            costs += [r["total_cost"] for r in runs]
-        base = table[backend]["1"]["superstep_s"]
+                out = args.output / f"{args.scheme}-{backend}-{p}-{rep}"
+                result = run_once(command(args.scheme, backend, p, extra, args.balance, out), out)
+                raw.setdefault(backend, {}).setdefault(p, []).append(result)
+                figures.append(headline(result))
+                print(f"{backend:8s} workers {p:2d} rep {rep}: {result['wall_time_s']:.3f} s",
+                      flush=True)
+            table.setdefault(backend, {})[str(p)] = summarise(raw[backend][p])
+        base = table[backend]["1"]
+        for row in table[backend].values():
+            row["speedup"] = base["wall_time_s"] / row["wall_time_s"]
+            row["superstep_speedup"] = base["superstep_s"] / row["superstep_s"]
         for p, row in table[backend].items():
-            row["speedup"] = base / row["superstep_s"]
             row["efficiency"] = row["speedup"] / int(p)
+        sync = SyncCost.fit({p: table[backend][str(p)]["overhead_s"] for p in raw[backend]})
+        models[backend] = model_of(raw[backend][1], sync, sorted(set(args.predict_workers)
+                                                                | set(raw[backend])))
+        if "2" in table[backend]:
+            predicted = next(p for p in models[backend]["policies"][args.balance]
+                             if p["workers"] == 2)
+            measured = table[backend]["2"]["speedup"]
+            models[backend]["check_2_workers"] = {
+                "measured_speedup": measured, "predicted_speedup": predicted["speedup"],
+                "relative_error": predicted["speedup"] / measured - 1}
 
-    spread = (max(costs) - min(costs)) / abs(min(costs))
-    report = {"scheme": "formation", "agents": args.agents, "repeat": args.repeat,
-              "total_cost_relative_spread": spread, "backends": table,
-              "paper_table_I": PAPER_TABLE_I}
+    report = {"scheme": args.scheme, "arguments": extra, "balance": args.balance,
+              "repeat": args.repeat, "backends": table, "models": models,
+              "headline_relative_spread": (max(figures) - min(figures))
+              / max(abs(min(figures)), 1e-300),
+              "paper": PAPER_TABLES.get(args.scheme, (None, {}))[1]}
+    if args.predict_agents is not None:
+        big = args.output / f"formation-serial-{args.predict_agents}-agents"
+        result = run_once(command("formation", "serial", 1, ["--agents", str(args.predict_agents)],
+                                  args.balance, big), big)
+        sync_backend = "mpi" if "mpi" in models else next(iter(models))
+        sync = SyncCost(**models[sync_backend]["sync"])
+        report["prediction_large"] = {"agents": args.predict_agents, "sync_from": sync_backend,
+                                      **model_of([result], sync, sorted(set(
+                                          args.predict_workers)))}
     (args.output / "speedup.json").write_text(json.dumps(report, indent=1))
-    plot(table, args.output / "speedup.png")
+    plot(table, models, args.scheme, args.output / "speedup.png")
 
-    print(f"\n{'backend':8s}{'P':>3s}{'superstep ms':>14s}{'speedup':>9s}{'effic.':>8s}"
-          f"{'overhead ms':>13s}{'imbalance':>11s}{'solve ms':>10s}")
-    for backend, rows in table.items():
-        for p in sorted(rows, key=int):
-            r = rows[p]
-            print(f"{backend:8s}{p:>3s}{r['superstep_s'] * 1e3:14.1f}{r['speedup']:9.2f}"
-                  f"{r['efficiency']:8.2f}{r['overhead_s'] * 1e3:13.1f}{r['imbalance']:11.2f}"
-                  f"{r['solve_ms']:10.3f}")
-    print(f"total cost relative spread over all runs: {spread:.1e}")
+    print_table(table, models)
+    for backend, model in models.items():
+        print_predictions(f"{backend}, from its 1-worker runs", model)
+        if check := model.get("check_2_workers"):
+            print(f"  2 workers: measured speedup {check['measured_speedup']:.2f}, predicted "
+                  f"{check['predicted_speedup']:.2f} ({check['relative_error']:+.1%})")
+    if "prediction_large" in report:
+        large = report["prediction_large"]
+        print_predictions(f"{large['agents']} agents (serial run, sync of {large['sync_from']})",
+                          large)
+    print(f"headline figure's relative spread over all runs: "
+          f"{report['headline_relative_spread']:.1e}")
     print(f"wrote {args.output / 'speedup.json'} and {args.output / 'speedup.png'}")
     return 0
 
