@@ -106,6 +106,20 @@ def test_dask_results_in_task_order_and_equal_to_serial(local_dask):
     assert trace.worker_tasks == [3, 4] and len(trace.task_cpu_s) == 7
 
 
+def test_dask_task_dispatch_equals_direct_dispatch(local_dask):
+    """The two ways of handing chunks to Dask workers give bit-identical results."""
+    from ocpar.bsp.dask import DaskBackend
+
+    tasks = dmoc_tasks(5)
+    direct = local_dask.superstep("ocpar.ocp:solve_dmoc_task", tasks)
+    scheduler = local_dask.client.scheduler.address
+    with DaskBackend(workers=2, scheduler=scheduler, dispatch="tasks") as backend:
+        via_tasks = backend.superstep("ocpar.ocp:solve_dmoc_task", tasks)
+    assert [t.cost for t in via_tasks] == [d.cost for d in direct]
+    with pytest.raises(BackendError, match="unknown dispatch"):
+        DaskBackend(workers=1, scheduler=scheduler, dispatch="rpc")
+
+
 def test_dask_workers_build_each_solver_once(local_dask):
     """Build once, solve many: after several supersteps each worker process has built the
     DMOC solver of this shape once, and always the same worker gets the same chunk."""
