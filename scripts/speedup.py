@@ -78,11 +78,18 @@ def command(scheme: str, backend: str, workers: int, extra: list[str], balance: 
 
 
 def run_once(cmd: list[str], out: Path) -> dict:
-    """One run in a fresh process; returns its result.json."""
+    """One run in a fresh process; returns its result.json. A run that ends with a status
+    other than success (e.g. a failed inner solve) still has a trace to time: it is used and
+    its status is reported; a run without result.json stops the benchmark."""
     proc = subprocess.run(cmd, capture_output=True, text=True)
-    if proc.returncode != 0:
+    path = out / "result.json"
+    if proc.returncode != 0 and not path.exists():
         raise SystemExit(f"run failed ({' '.join(cmd)}):\n{proc.stderr[-2000:]}")
-    return json.loads((out / "result.json").read_text())
+    result = json.loads(path.read_text())
+    if proc.returncode != 0:
+        print(f"note: {' '.join(cmd[-8:])} ended with status {result.get('status')!r}: "
+              f"{result.get('message', '')}", flush=True)
+    return result
 
 
 def summarise(runs: list[dict]) -> dict:
@@ -244,6 +251,8 @@ def main() -> int:
         sync_backend = "mpi" if "mpi" in models else next(iter(models))
         sync = SyncCost(**models[sync_backend]["sync"])
         report["prediction_large"] = {"agents": args.predict_agents, "sync_from": sync_backend,
+                                      "status": result.get("status"),
+                                      "wall_time_s": result["wall_time_s"],
                                       **model_of([result], sync, sorted(set(
                                           args.predict_workers)))}
     (args.output / "speedup.json").write_text(json.dumps(report, indent=1))

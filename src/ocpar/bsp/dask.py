@@ -28,6 +28,9 @@ from ocpar.bsp.malloc import keep_solver_workspaces_on_heap
 #: Environment of worker processes spawned by the embedded cluster: one BLAS/OpenMP thread.
 WORKER_ENV = {"OMP_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
 
+#: Modules the embedded cluster's workers import at start-up.
+WORKER_PRELOAD = ("ocpar.ocp",)
+
 #: Worker settings for CPU-bound ~ms kernels: no statistical profiler sampling the solves.
 WORKER_CONFIG = {"distributed.worker.profile.enabled": False}
 
@@ -84,6 +87,9 @@ class DaskBackend(Backend):
                     processes=True,
                     dashboard_address=":0",
                     env=WORKER_ENV,
+                    # import the transcriptions (CasADi, SciPy: ~0.3 s) when a worker starts,
+                    # as MPI ranks do, not in the first superstep
+                    preload=list(WORKER_PRELOAD),
                 )
                 self.client = Client(self._cluster)
             else:
