@@ -56,7 +56,7 @@ BACKENDS = ("serial", "mpi", "dask", "dask-mpi")
 def scheme_arguments(args: argparse.Namespace) -> list[str]:
     """The scheme's own command-line options for this benchmark."""
     if args.scheme == "formation":
-        return ["--agents", str(args.agents)]
+        return ["--agents", str(args.agents), "--outer", args.outer]
     if args.scheme == "pursuit":
         return ["--case", str(args.case), "--samples", str(args.samples), "--no-reference"]
     return ["--problem", args.problem, "--max-evals", str(args.max_evals), "--seed", "0"]
@@ -187,6 +187,8 @@ def main() -> int:
     parser.add_argument("--scheme", choices=("formation", "pursuit", "macs"),
                         default="formation")
     parser.add_argument("--agents", type=int, default=60, help="formation: point masses")
+    parser.add_argument("--outer", choices=("sqp", "offset"), default="sqp",
+                        help="formation: outer solver")
     parser.add_argument("--case", type=int, default=1, help="pursuit: case 1 or 2")
     parser.add_argument("--samples", type=int, default=301, help="pursuit: samples N")
     parser.add_argument("--problem", default="goddard", help="macs: goddard|orbit-raising")
@@ -246,7 +248,8 @@ def main() -> int:
               "paper": PAPER_TABLES.get(args.scheme, (None, {}))[1]}
     if args.predict_agents is not None:
         big = args.output / f"formation-serial-{args.predict_agents}-agents"
-        result = run_once(command("formation", "serial", 1, ["--agents", str(args.predict_agents)],
+        result = run_once(command("formation", "serial", 1, ["--agents", str(args.predict_agents),
+                                                             "--outer", args.outer],
                                   args.balance, big), big)
         sync_backend = "mpi" if "mpi" in models else next(iter(models))
         sync = SyncCost(**models[sync_backend]["sync"])

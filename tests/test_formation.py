@@ -88,6 +88,22 @@ def test_hierarchical_equals_monolithic_sixty_agents(sixty_agents):
     assert monolithic.equidistance_error <= 1e-9
 
 
+def test_offset_outer_solver_finds_the_sqp_optimum(sixty_agents):
+    """Optimising only the common offset of the equidistant angles reaches SLSQP's optimum
+    (the feasible set c(φ) = 0 near equidistant angles is that one-parameter family)."""
+    sqp, _ = sixty_agents
+    offset = solve_formation(paper_example(agents=60), options=FormationOptions(outer="offset"))
+    assert offset.converged, offset.message
+    assert offset.total_cost == pytest.approx(sqp.total_cost, rel=1e-11)
+    np.testing.assert_allclose(offset.phi, sqp.phi, atol=1e-6)
+    assert offset.equidistance_error <= 1e-12
+    with pytest.raises(ValueError, match="equidistant"):
+        solve_formation(paper_example(agents=4), phi0=np.array([0.0, 0.1, 0.2, 0.3]),
+                        options=FormationOptions(outer="offset"))
+    with pytest.raises(ValueError, match="unknown outer solver"):
+        FormationOptions(outer="newton")
+
+
 def test_hierarchical_run_bookkeeping(sixty_agents):
     result, _ = sixty_agents
     assert result.inner_solves == 60 * result.supersteps

@@ -19,7 +19,7 @@ from ocpar.cli import (
 )
 from ocpar.formation.plot import plot_formation
 from ocpar.formation.problem import paper_example
-from ocpar.formation.solve import MODES, FormationOptions, solve_formation
+from ocpar.formation.solve import MODES, OUTER_SOLVERS, FormationOptions, solve_formation
 
 PROG = "ocpar.formation"
 
@@ -36,6 +36,10 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
                         help="radius of the final circle (default 10)")
     parser.add_argument("--mode", choices=MODES, default="hierarchical",
                         help="hierarchical (default) or monolithic (one NLP, for reference)")
+    parser.add_argument("--outer", choices=OUTER_SOLVERS, default="sqp",
+                        help="hierarchical outer solver: sqp (SLSQP in all angles, default) or "
+                             "offset (the common offset of equidistant angles: same optimum, "
+                             "far fewer supersteps for many agents)")
     add_backend_arguments(parser)
     parser.add_argument("--output", default=None, metavar="DIR",
                         help="write DIR/result.json and DIR/formation.png")
@@ -51,7 +55,7 @@ def main(argv: list[str] | None = None) -> int:
     choose_backend(args, PROG)
     out = prepare_output_dir(args.output, PROG)
     problem = paper_example(agents=args.agents, radius=args.radius)
-    options = FormationOptions(mode=args.mode)
+    options = FormationOptions(mode=args.mode, outer=args.outer)
 
     def solve(backend, say):
         say(f"{PROG}: {problem.agents} agents, mode {args.mode}, backend {backend.name} "

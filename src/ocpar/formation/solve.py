@@ -10,12 +10,18 @@ import numpy as np
 
 from ocpar.bsp import Backend
 from ocpar.bsp.serial import SerialBackend
-from ocpar.formation.hierarchical import InnerSolveFailed, OuterObjective, solve_outer
+from ocpar.formation.hierarchical import (
+    InnerSolveFailed,
+    OuterObjective,
+    solve_outer,
+    solve_outer_offset,
+)
 from ocpar.formation.monolithic import solve_monolithic
 from ocpar.formation.problem import FormationProblem
 from ocpar.formation.result import FormationResult
 
 MODES = ("hierarchical", "monolithic")
+OUTER_SOLVERS = ("sqp", "offset")
 
 
 @dataclass(frozen=True)
@@ -23,11 +29,15 @@ class FormationOptions:
     """How to solve.
 
     ``mode``: ``hierarchical`` (outer SLSQP, inner DMOC solves in supersteps) or
-    ``monolithic`` (one IPOPT NLP in the coordinator). ``outer_tol`` is SLSQP's ``ftol`` on
-    J/J_0 (keep it above the inner solves' noise); ``monolithic_tol`` is IPOPT's ``tol``.
+    ``monolithic`` (one IPOPT NLP in the coordinator). ``outer``: the hierarchical mode's
+    outer solver, ``sqp`` (SLSQP in all angles, the paper's) or ``offset`` (the common offset
+    of equidistant angles, see :mod:`ocpar.formation.hierarchical`). ``outer_tol`` is SLSQP's
+    ``ftol`` on J/J_0 (keep it above the inner solves' noise), or for ``offset`` the bound on
+    |d(J/J_0)/dθ|; ``monolithic_tol`` is IPOPT's ``tol``.
     """
 
     mode: str = "hierarchical"
+    outer: str = "sqp"
     outer_tol: float = 1e-12
     max_outer_iterations: int = 200
     monolithic_tol: float = 1e-12
@@ -35,6 +45,9 @@ class FormationOptions:
     def __post_init__(self) -> None:
         if self.mode not in MODES:
             raise ValueError(f"unknown mode {self.mode!r}; choose one of {', '.join(MODES)}")
+        if self.outer not in OUTER_SOLVERS:
+            raise ValueError(
+                f"unknown outer solver {self.outer!r}; choose one of {', '.join(OUTER_SOLVERS)}")
         if not (self.outer_tol > 0 and self.monolithic_tol > 0):
             raise ValueError("tolerances must be positive")
         if self.max_outer_iterations < 1:
@@ -81,7 +94,8 @@ def solve_formation(
 
     objective = OuterObjective(problem, backend, progress)
     try:
-        phi, iterations, success, message = solve_outer(
+        outer = solve_outer_offset if options.outer == "offset" else solve_outer
+        phi, iterations, success, message = outer(
             objective, phi0, options.outer_tol, options.max_outer_iterations
         )
         sols = objective.solutions(phi)
