@@ -32,8 +32,8 @@ class FormationOptions:
     ``monolithic`` (one IPOPT NLP in the coordinator). ``outer``: the hierarchical mode's
     outer solver, ``sqp`` (SLSQP in all angles, the paper's) or ``offset`` (the common offset
     of equidistant angles, see :mod:`ocpar.formation.hierarchical`). ``outer_tol`` is SLSQP's
-    ``ftol`` on J/J_0 (keep it above the inner solves' noise), or for ``offset`` the bound on
-    |d(J/J_0)/dθ|; ``monolithic_tol`` is IPOPT's ``tol``.
+    ``ftol`` on J/J_0 (keep it above the inner solves' noise), or for ``offset`` the relative
+    tolerance on the offset θ; ``monolithic_tol`` is IPOPT's ``tol``.
     """
 
     mode: str = "hierarchical"
