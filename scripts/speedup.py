@@ -8,7 +8,9 @@
     python scripts/speedup.py ... --predict-agents 1000     # formation: model at 1000 agents
 
 Each (backend, workers, repetition) is one run of ``python -m ocpar.<scheme>`` in its own
-process (``mpirun -n P`` for mpi, ``mpirun -n P+2`` for dask-mpi), writing its result.json.
+process (``mpirun -n P`` for mpi, ``mpirun -n P+2`` for dask-mpi), writing its result.json;
+repetitions are outermost (every configuration once, then again), so that a drift in the
+machine's speed affects all configurations alike.
 The script gathers their superstep traces and writes
 
 * ``speedup.json``: per backend and worker count the median solve wall time (process and
@@ -213,17 +215,20 @@ def main() -> int:
     models: dict[str, dict] = {}
     raw: dict[str, dict[int, list[dict]]] = {}
     figures = []
+    # repetitions outermost: a drift in the machine's speed hits every configuration alike
+    configurations = [(backend, p) for backend in args.backend
+                      for p in ([1] if backend == "serial" else sorted(set(args.workers)))]
+    for rep in range(args.repeat):
+        for backend, p in configurations:
+            out = args.output / f"{args.scheme}-{backend}-{p}-{rep}"
+            result = run_once(command(args.scheme, backend, p, extra, args.balance, out), out)
+            raw.setdefault(backend, {}).setdefault(p, []).append(result)
+            figures.append(headline(result))
+            print(f"{backend:8s} workers {p:2d} rep {rep}: {result['wall_time_s']:.3f} s",
+                  flush=True)
+    for backend, p in configurations:
+        table.setdefault(backend, {})[str(p)] = summarise(raw[backend][p])
     for backend in args.backend:
-        counts = [1] if backend == "serial" else sorted(set(args.workers))
-        for p in counts:
-            for rep in range(args.repeat):
-                out = args.output / f"{args.scheme}-{backend}-{p}-{rep}"
-                result = run_once(command(args.scheme, backend, p, extra, args.balance, out), out)
-                raw.setdefault(backend, {}).setdefault(p, []).append(result)
-                figures.append(headline(result))
-                print(f"{backend:8s} workers {p:2d} rep {rep}: {result['wall_time_s']:.3f} s",
-                      flush=True)
-            table.setdefault(backend, {})[str(p)] = summarise(raw[backend][p])
         base = table[backend]["1"]
         for row in table[backend].values():
             row["speedup"] = base["wall_time_s"] / row["wall_time_s"]
