@@ -81,9 +81,11 @@ class OuterObjective:
             return
         trace = self.backend.traces[-1]
         cost = sum(s.cost for s in sols)
-        violation = float(np.max(np.abs(coupling(phi, self.problem.radius))))
+        # the gaps' deviation, O(n log n): |c(φ)| would cost O(n²) per superstep (50 ms at
+        # 1000 agents, as much as the superstep itself on 64 workers)
+        error = equidistance_error(phi)
         self.progress(
-            f"superstep {trace.index:4d}  cost {cost:.12e}  |c(phi)| {violation:.1e}  "
+            f"superstep {trace.index:4d}  cost {cost:.12e}  equidistance {error:.1e} rad  "
             f"wall {trace.wall_s * 1e3:7.1f} ms  overhead {trace.overhead_s * 1e3:6.1f} ms"
         )
 
