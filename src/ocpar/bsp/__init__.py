@@ -13,7 +13,7 @@ an MPI allocation). Every superstep is timed (:class:`SuperstepTrace`).
 
 from __future__ import annotations
 
-from ocpar.bsp.backend import BALANCE_POLICIES, Backend, BackendError
+from ocpar.bsp.backend import BALANCE_POLICIES, Backend, BackendError, check_balance
 from ocpar.bsp.kernel import ChunkResult, kernel_name, run_chunk
 from ocpar.bsp.mpi import launched_by_mpirun
 from ocpar.bsp.partition import contiguous_blocks
@@ -35,9 +35,7 @@ def open_backend(
     (under ``mpirun -n P``, P ≥ 3) makes rank 0 a Dask scheduler, ranks 2… workers and returns
     in rank 1 only, as the coordinator (see :mod:`ocpar.bsp.dask_mpi`).
     """
-    if balance not in BALANCE_POLICIES:
-        raise BackendError(
-            f"unknown balance policy {balance!r}; choose one of {', '.join(BALANCE_POLICIES)}")
+    check_balance(balance)  # before dask-mpi turns ranks into a scheduler and workers
     if name == "serial":
         from ocpar.bsp.serial import SerialBackend
 

@@ -19,8 +19,16 @@ BALANCE_POLICIES = ("blocks", "lpt")
 AFFINITY_TOLERANCE = 0.05
 
 
+
 class BackendError(RuntimeError):
     """A backend could not be started (bad address, unreachable scheduler, too few workers)."""
+
+
+def check_balance(balance: str) -> None:
+    """Raise :class:`BackendError` unless ``balance`` is one of :data:`BALANCE_POLICIES`."""
+    if balance not in BALANCE_POLICIES:
+        raise BackendError(
+            f"unknown balance policy {balance!r}; choose one of {', '.join(BALANCE_POLICIES)}")
 
 
 class Backend(ABC):
@@ -33,9 +41,7 @@ class Backend(ABC):
     name: str = "backend"
 
     def __init__(self, workers: int, balance: str = "blocks") -> None:
-        if balance not in BALANCE_POLICIES:
-            raise BackendError(
-                f"unknown balance policy {balance!r}; choose one of {', '.join(BALANCE_POLICIES)}")
+        check_balance(balance)
         self.workers = workers
         self.balance = balance
         self.traces: list[SuperstepTrace] = []

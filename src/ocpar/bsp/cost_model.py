@@ -24,7 +24,6 @@ like a tree (log2 P), not linearly.
 
 from __future__ import annotations
 
-import heapq
 import math
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass
@@ -34,7 +33,7 @@ from typing import Any
 import numpy as np
 from scipy.optimize import nnls
 
-from ocpar.bsp.partition import contiguous_blocks
+from ocpar.bsp.partition import contiguous_blocks, longest_first
 from ocpar.bsp.trace import SuperstepTrace
 
 POLICIES = ("blocks", "lpt")
@@ -82,13 +81,8 @@ def _makespan(times: list[float], workers: int, policy: str) -> float:
     if policy == "blocks":
         blocks = contiguous_blocks(len(times), workers)
         return max((sum(times[b.start:b.stop]) for b in blocks), default=0.0)
-    # The assignment of longest_first (least-loaded worker, ties to the highest-numbered one;
-    # longer tasks first, ties to the lower index) with a heap: O(n log P) instead of O(n P).
-    heap = [(0.0, -w) for w in range(workers)]
-    for i in sorted(range(len(times)), key=lambda i: (-times[i], i)):
-        load, neg_w = heap[0]
-        heapq.heapreplace(heap, (load + times[i], neg_w))
-    return max(load for load, _ in heap)
+    return max((sum(times[i] for i in group) for group in longest_first(times, workers)),
+               default=0.0)
 
 
 @dataclass(frozen=True)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import heapq
 import math
 from collections.abc import Sequence
 from numbers import Integral
@@ -29,13 +30,18 @@ def longest_first(costs: list[float], n_workers: int) -> list[list[int]]:
     indices come back in increasing order."""
     if n_workers < 1:
         raise ValueError(f"need at least one worker, got {n_workers}")
-    loads = [0.0] * n_workers
     groups: list[list[int]] = [[] for _ in range(n_workers)]
+    heap = [(0.0, -w) for w in reversed(range(n_workers))]  # (load, -worker), a heap: sorted
     for i in sorted(range(len(costs)), key=lambda i: (-costs[i], i)):
-        w = min(range(n_workers), key=lambda w: (loads[w], -w))
-        loads[w] += costs[i]
-        groups[w].append(i)
+        load, neg_w = heap[0]
+        heapq.heapreplace(heap, (load + costs[i], neg_w))
+        groups[-neg_w].append(i)
     return [sorted(g) for g in groups]
+
+
+def _least_loaded(loads: list[float]) -> int:
+    """The least-loaded worker, ties to the highest-numbered one (as :func:`longest_first`)."""
+    return min(range(len(loads)), key=lambda w: (loads[w], -w))
 
 
 def sticky_longest_first(
@@ -109,11 +115,11 @@ def _sticky_pass(
             if defer:
                 rest.append(i)
                 continue
-            w = min(range(n_workers), key=lambda w: (loads[w], -w))
+            w = _least_loaded(loads)
         loads[w] += costs[i]
         groups[w].append(i)
     for i in rest:
-        w = min(range(n_workers), key=lambda w: (loads[w], -w))
+        w = _least_loaded(loads)
         loads[w] += costs[i]
         groups[w].append(i)
     return groups if max(loads) <= bound else None

@@ -129,8 +129,7 @@ class InnerSolvers:
         t0 = time.perf_counter()
         result = self._solve(task, self.start_point(task))
         evaluations = result.evaluations
-        hop_seams = task.kind == "scalarised" and getattr(self.problem, "periodic_controls",
-                                                          False)
+        hop_seams = task.kind == "scalarised" and self.problem.periodic_controls
         for _ in range(MAX_SEAM_HOPS if hop_seams else 0):
             hopped = self._hop_seams(result.z) if result.feasible else None
             if hopped is None:
