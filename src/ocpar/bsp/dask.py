@@ -22,7 +22,8 @@ import uuid
 from typing import Any
 
 from ocpar.bsp.backend import Backend, BackendError
-from ocpar.bsp.kernel import ChunkResult, run_chunk
+from ocpar.bsp.columns import Columns, to_columns
+from ocpar.bsp.kernel import ChunkResult, run_packed_chunk, unpack_results
 from ocpar.bsp.malloc import keep_solver_workspaces_on_heap
 
 #: Environment of worker processes spawned by the embedded cluster: one BLAS/OpenMP thread.
@@ -35,14 +36,16 @@ WORKER_PRELOAD = ("ocpar.ocp",)
 WORKER_CONFIG = {"distributed.worker.profile.enabled": False}
 
 
-def run_chunk_in_worker(name: str, tasks: list[Any]) -> ChunkResult:
-    """:func:`run_chunk` on a Dask worker, with malloc tuned for IPOPT first (see
-    :mod:`ocpar.bsp.malloc`: Dask's ``MALLOC_TRIM_THRESHOLD_`` costs ~30% per small solve)."""
+def run_chunk_in_worker(name: str, tasks: Columns | list[Any]) -> ChunkResult:
+    """:func:`~ocpar.bsp.kernel.run_packed_chunk` on a Dask worker, with malloc tuned for
+    IPOPT first (see :mod:`ocpar.bsp.malloc`: Dask's ``MALLOC_TRIM_THRESHOLD_`` costs ~30% per
+    small solve)."""
     keep_solver_workspaces_on_heap()
-    return run_chunk(name, tasks)
+    return run_packed_chunk(name, tasks)
 
 
-async def run_chunk_in_worker_thread(name: str, tasks: list[Any], dask_worker: Any) -> ChunkResult:
+async def run_chunk_in_worker_thread(name: str, tasks: Columns | list[Any],
+                                     dask_worker: Any) -> ChunkResult:
     """For ``Client.run``: :func:`run_chunk_in_worker` in the worker's task thread pool (not in
     its event loop, which keeps serving the scheduler meanwhile)."""
     loop = asyncio.get_running_loop()
@@ -121,24 +124,28 @@ class DaskBackend(Backend):
         return sorted(self.client.scheduler_info(n_workers=-1)["workers"])
 
     def _run_chunks(self, name: str, chunks: list[list[Any]]) -> list[ChunkResult]:
+        packed = [to_columns(chunk) for chunk in chunks]
         if self.dispatch == "direct":
-            return self.client.sync(self._run_direct, name, chunks)
-        step = len(self.traces)
-        futures = [
-            self.client.submit(
-                run_chunk_in_worker,
-                name,
-                chunk,
-                key=f"ocpar-{self._run_id}-superstep-{step}-chunk-{w}",
-                workers=[address],
-                allow_other_workers=False,
-                pure=False,
-            )
-            for w, (address, chunk) in enumerate(zip(self.addresses, chunks, strict=True))
-        ]
-        return self.client.gather(futures)
+            replies = self.client.sync(self._run_direct, name, packed)
+        else:
+            step = len(self.traces)
+            futures = [
+                self.client.submit(
+                    run_chunk_in_worker,
+                    name,
+                    chunk,
+                    key=f"ocpar-{self._run_id}-superstep-{step}-chunk-{w}",
+                    workers=[address],
+                    allow_other_workers=False,
+                    pure=False,
+                )
+                for w, (address, chunk) in enumerate(zip(self.addresses, packed, strict=True))
+            ]
+            replies = self.client.gather(futures)
+        return [unpack_results(reply) for reply in replies]
 
-    async def _run_direct(self, name: str, chunks: list[list[Any]]) -> list[ChunkResult]:
+    async def _run_direct(self, name: str, chunks: list[Columns | list[Any]]
+                          ) -> list[ChunkResult]:
         replies = await asyncio.gather(*(
             self.client.run(run_chunk_in_worker_thread, name, chunk, workers=[address],
                             asynchronous=True)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import importlib
 import resource
 import sys
@@ -10,6 +11,8 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from functools import lru_cache
 from typing import Any
+
+from ocpar.bsp.columns import Columns, from_columns, to_columns
 
 KernelRef = str | Callable[[Any], Any]
 
@@ -69,6 +72,19 @@ def run_chunk(name: str, tasks: Sequence[Any]) -> ChunkResult:
         cpu_s=time.process_time() - start_cpu,
         peak_rss_mb=peak_rss_mb(),
     )
+
+
+def run_packed_chunk(name: str, tasks: Columns | list[Any]) -> ChunkResult:
+    """:func:`run_chunk` for backends that pickle chunks: the tasks arrive as
+    :func:`~ocpar.bsp.columns.to_columns` made them, and the results leave the same way
+    (undo with :func:`unpack_results`)."""
+    chunk = run_chunk(name, from_columns(tasks))
+    return dataclasses.replace(chunk, results=to_columns(chunk.results))
+
+
+def unpack_results(chunk: ChunkResult) -> ChunkResult:
+    """A :func:`run_packed_chunk` result with its results as a list again."""
+    return dataclasses.replace(chunk, results=from_columns(chunk.results))
 
 
 def peak_rss_mb() -> float:

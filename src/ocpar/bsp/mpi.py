@@ -1,7 +1,8 @@
 """MPI backend (SPMD under ``mpirun -n P``): rank 0 coordinates, every rank solves a chunk.
 
 Each superstep rank 0 scatters (kernel name, chunk) to all ranks, solves its own chunk, and
-gathers the chunk results. Ranks > 0 run :meth:`MpiBackend.serve` until rank 0 closes.
+gathers the chunk results; tasks and results travel as columns (:mod:`ocpar.bsp.columns`).
+Ranks > 0 run :meth:`MpiBackend.serve` until rank 0 closes.
 """
 
 from __future__ import annotations
@@ -10,7 +11,8 @@ import os
 from typing import Any
 
 from ocpar.bsp.backend import Backend
-from ocpar.bsp.kernel import ChunkResult, run_chunk
+from ocpar.bsp.columns import to_columns
+from ocpar.bsp.kernel import ChunkResult, run_packed_chunk, unpack_results
 
 _MPI_ENV_SIZE = ("PMI_SIZE", "OMPI_COMM_WORLD_SIZE", "MPI_LOCALNRANKS", "PMIX_SIZE")
 
@@ -38,13 +40,13 @@ class MpiBackend(Backend):
         return self.rank == 0
 
     def _run_chunks(self, name: str, chunks: list[list[Any]]) -> list[ChunkResult]:
-        mine = self.comm.scatter([(name, chunk) for chunk in chunks], root=0)
-        return self.comm.gather(run_chunk(*mine), root=0)
+        mine = self.comm.scatter([(name, to_columns(chunk)) for chunk in chunks], root=0)
+        return [unpack_results(c) for c in self.comm.gather(run_packed_chunk(*mine), root=0)]
 
     def serve(self) -> None:
         """On ranks > 0: solve the chunks rank 0 scatters until it closes the backend."""
         while (message := self.comm.scatter(None, root=0)) is not None:
-            self.comm.gather(run_chunk(*message), root=0)
+            self.comm.gather(run_packed_chunk(*message), root=0)
 
     def close(self) -> None:
         if self.is_coordinator and not self._closed:

@@ -57,11 +57,12 @@ class FormationProblem:
         )
 
     def tasks(self, phi: np.ndarray) -> list[DmocTask]:
-        """One inner DMOC task per agent for the final angles φ."""
-        return [
-            DmocTask(self.shape, self.boundary_params(i, float(p)))
-            for i, p in enumerate(phi)
-        ]
+        """One inner DMOC task per agent for the final angles φ (the rows of the boundary
+        data are :meth:`boundary_params`, computed for all agents at once)."""
+        n = self.agents
+        params = np.hstack([self.starts, self.start_velocities, self.final_positions(phi),
+                            np.broadcast_to(self.final_velocity, (n, 2))])
+        return [DmocTask(self.shape, row) for row in params]
 
     def initial_phi(self) -> np.ndarray:
         """The documented initial guess for φ (rad).
