@@ -6,7 +6,15 @@ from dataclasses import dataclass, field
 import numpy as np
 import pytest
 
-from ocpar.bsp.columns import LISTED, SHARED, STACKED, Columns, from_columns, to_columns
+from ocpar.bsp.columns import (
+    LISTED,
+    SHARED,
+    STACKED,
+    VALUES,
+    Columns,
+    from_columns,
+    to_columns,
+)
 from ocpar.formation import paper_example
 from ocpar.ocp import DmocTask, solve_dmoc_task
 
@@ -27,7 +35,7 @@ def _same(a, b) -> bool:
 
 def test_dmoc_tasks_and_solutions_round_trip_bit_for_bit_through_pickle():
     problem = paper_example(agents=6)
-    tasks = problem.tasks(problem.initial_phi() + 0.3)
+    tasks = problem.tasks(problem.initial_phi() + 0.3).items()
     packed = to_columns(tasks)
     assert isinstance(packed, Columns)
     assert packed.fields["shape"][0] == SHARED and packed.fields["params"][0] == STACKED
@@ -73,5 +81,50 @@ def test_unstackable_fields_stay_lists_and_keep_their_values(xs):
     [Frozen(np.zeros(1), "a"), DmocTask(None, np.zeros(1))],  # two classes
 ])
 def test_other_lists_pass_through_unchanged(items):
-    assert to_columns(items) is items
+    assert to_columns(items) == items
     assert from_columns(items) is items
+
+
+@dataclass
+class Scalars:
+    flag: bool
+    count: int
+    value: float
+    big: int
+
+
+def test_python_scalars_become_value_columns_and_come_back_as_python_scalars():
+    items = [Scalars(i % 2 == 0, i, 0.1 * i, 2**70 + i) for i in range(5)]
+    packed = to_columns(items)
+    kinds = {k: kind for k, (kind, _) in packed.fields.items()}
+    assert kinds == {"flag": VALUES, "count": VALUES, "value": VALUES, "big": LISTED}
+    for b, i in zip(packed.items(), items, strict=True):
+        assert all(_same(vars(b)[k], vars(i)[k]) for k in vars(i))
+
+
+def test_take_and_concat_select_and_join_items_in_order():
+    items = [Frozen(np.full(2, float(i)), f"t{i}") for i in range(6)]
+    packed = to_columns(items)
+    parts = [packed.take([4, 1]), packed.take([]), packed.take([0, 5, 2])]
+    joined = Columns.concat(parts)
+    assert [b.label for b in joined.items()] == ["t4", "t1", "t0", "t5", "t2"]
+    assert joined.column("x")[:, 0].tolist() == [4.0, 1.0, 0.0, 5.0, 2.0]
+    assert joined.fields["x"][0] == STACKED
+
+
+def test_concat_keeps_columns_that_differ_between_parts_as_lists():
+    a = to_columns([Frozen(np.zeros(2), "a", {}) for _ in range(2)])   # extra shared
+    b = to_columns([Frozen(np.zeros(3), "b", {}) for _ in range(2)])   # other row shape
+    joined = Columns.concat([a, b])
+    assert joined.fields["x"][0] == LISTED and joined.fields["extra"][0] == LISTED
+    assert [len(item.x) for item in joined.items()] == [2, 2, 3, 3]
+    with pytest.raises(ValueError, match="different classes"):
+        Columns.concat([a, to_columns([Scalars(True, 1, 1.0, 1)])])
+
+
+def test_columns_of_stacks_arrays_with_one_row_per_item_and_shares_the_rest():
+    params = np.arange(12.0).reshape(3, 4)
+    packed = Columns.of(DmocTask, 3, shape="s", params=params)
+    tasks = packed.items()
+    assert [t.shape for t in tasks] == ["s"] * 3
+    assert np.array_equal(np.stack([t.params for t in tasks]), params)

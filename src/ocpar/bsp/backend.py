@@ -2,11 +2,15 @@
 
 from __future__ import annotations
 
+import itertools
 import time
 from abc import ABC, abstractmethod
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from typing import Any
 
+import numpy as np
+
+from ocpar.bsp.columns import Columns, from_columns, to_columns
 from ocpar.bsp.kernel import ChunkResult, KernelRef, kernel_name
 from ocpar.bsp.partition import contiguous_blocks, longest_first, sticky_longest_first
 from ocpar.bsp.trace import SuperstepTrace
@@ -63,52 +67,85 @@ class Backend(ABC):
         contiguous blocks until then). The assignment never changes the results. The
         superstep's timings are appended to :attr:`traces` (per-task times and workers in
         task order)."""
-        name = kernel_name(kernel)
         tasks = list(tasks)
-        if costs is not None:
-            if len(costs) != len(tasks):
-                raise ValueError(f"{len(costs)} costs for {len(tasks)} tasks")
-            groups = longest_first(list(costs), self.workers)
-        elif self.balance == "lpt" and self._repeats_last_superstep(name, len(tasks)):
-            last = self.traces[-1]
-            groups = sticky_longest_first(last.task_wall_s, self.workers, last.task_worker,
-                                          AFFINITY_TOLERANCE)
-        else:
-            groups = [list(b) for b in contiguous_blocks(len(tasks), self.workers)]
+        return self._superstep(kernel, len(tasks), lambda group: [tasks[i] for i in group],
+                               costs, columns=False)
+
+    def superstep_columns(
+        self, kernel: KernelRef, tasks: Columns, costs: Sequence[float] | None = None
+    ) -> Columns:
+        """:meth:`superstep` with the tasks and the results in columnar form
+        (:class:`~ocpar.bsp.columns.Columns`), for many small tasks: the coordinator then
+        selects, joins and reorders whole columns instead of handling each task (~µs per
+        superstep instead of ~5 µs per task). The kernel's results must be instances of one
+        dataclass; at least one task."""
+        if not isinstance(tasks, Columns) or len(tasks) == 0:
+            raise ValueError("superstep_columns needs a non-empty Columns of tasks")
+        return self._superstep(kernel, len(tasks), tasks.take, costs, columns=True)
+
+    def _superstep(self, kernel: KernelRef, n: int, select: Callable[[list[int]], Any],
+                   costs: Sequence[float] | None, columns: bool) -> Any:
+        name = kernel_name(kernel)
         start = time.perf_counter()
-        chunks = self._run_chunks(name, [[tasks[i] for i in group] for group in groups])
+        groups = self._assign(name, n, costs)
+        chunks = self._run_chunks(name, [select(group) for group in groups])
+        order = np.fromiter(itertools.chain.from_iterable(groups), dtype=np.intp, count=n)
+        position = np.empty(n, dtype=np.intp)
+        position[order] = np.arange(n)
+        if columns:
+            packed = [to_columns(c.results) for c in chunks if len(c.results)]
+            if not all(isinstance(p, Columns) for p in packed):
+                raise TypeError(f"superstep_columns: the results of {name} are not instances "
+                                "of one dataclass")
+            results: Any = Columns.concat(packed).take(position)
+        else:
+            flat = [r for c in chunks for r in from_columns(c.results)]
+            results = [flat[i] for i in position.tolist()]
+
+        def per_task(values: list[float]) -> list[float]:
+            return np.asarray(values, dtype=float)[position].tolist()
+
+        walls = per_task([t for c in chunks for t in c.task_wall_s])
+        cpus = per_task([t for c in chunks for t in c.task_cpu_s])
+        workers = np.repeat(np.arange(len(groups)), [len(g) for g in groups])[position]
         wall = time.perf_counter() - start
-        order = [i for group in groups for i in group]
-        position = {task: k for k, task in enumerate(order)}
-        worker_of = {i: w for w, group in enumerate(groups) for i in group}
-        flat = [r for chunk in chunks for r in chunk.results]
-        walls = [t for chunk in chunks for t in chunk.task_wall_s]
-        cpus = [t for chunk in chunks for t in chunk.task_cpu_s]
-        results = [flat[position[i]] for i in range(len(tasks))]
         self.traces.append(
             SuperstepTrace(
                 index=len(self.traces),
-                tasks=len(tasks),
+                tasks=n,
                 wall_s=wall,
                 worker_busy_s=[c.busy_s for c in chunks],
                 worker_cpu_s=[c.cpu_s for c in chunks],
-                worker_tasks=[len(c.results) for c in chunks],
+                worker_tasks=[len(g) for g in groups],
                 worker_peak_rss_mb=[c.peak_rss_mb for c in chunks],
-                task_wall_s=[walls[position[i]] for i in range(len(tasks))],
-                task_cpu_s=[cpus[position[i]] for i in range(len(tasks))],
-                task_worker=[worker_of[i] for i in range(len(tasks))],
+                task_wall_s=walls,
+                task_cpu_s=cpus,
+                task_worker=workers.tolist(),
             )
         )
         self._last_kernel = name
         return results
+
+    def _assign(self, name: str, n: int, costs: Sequence[float] | None) -> list[list[int]]:
+        """Task indices per worker, by the estimated ``costs`` or the :attr:`balance` policy."""
+        if costs is not None:
+            if len(costs) != n:
+                raise ValueError(f"{len(costs)} costs for {n} tasks")
+            return longest_first(list(costs), self.workers)
+        if self.balance == "lpt" and self._repeats_last_superstep(name, n):
+            last = self.traces[-1]
+            return sticky_longest_first(last.task_wall_s, self.workers, last.task_worker,
+                                        AFFINITY_TOLERANCE)
+        return [list(b) for b in contiguous_blocks(n, self.workers)]
 
     def _repeats_last_superstep(self, name: str, n_tasks: int) -> bool:
         return (self._last_kernel == name and bool(self.traces)
                 and self.traces[-1].tasks == n_tasks and self.traces[-1].workers == self.workers)
 
     @abstractmethod
-    def _run_chunks(self, name: str, chunks: list[list[Any]]) -> list[ChunkResult]:
-        """Run chunk w on worker w; return the chunk results in worker order."""
+    def _run_chunks(self, name: str, chunks: list[list[Any] | Columns]) -> list[ChunkResult]:
+        """Run chunk w (a list of tasks, or :class:`Columns`) on worker w; return the chunk
+        results in worker order, each chunk's results as a list or as :class:`Columns`."""
 
     def close(self) -> None:  # noqa: B027 - backends without resources need no cleanup
         """Release workers (idempotent)."""

@@ -23,7 +23,7 @@ from typing import Any
 
 from ocpar.bsp.backend import Backend, BackendError
 from ocpar.bsp.columns import Columns, to_columns
-from ocpar.bsp.kernel import ChunkResult, run_packed_chunk, unpack_results
+from ocpar.bsp.kernel import ChunkResult, run_packed_chunk
 from ocpar.bsp.malloc import keep_solver_workspaces_on_heap
 
 #: Environment of worker processes spawned by the embedded cluster: one BLAS/OpenMP thread.
@@ -123,7 +123,7 @@ class DaskBackend(Backend):
     def _worker_addresses(self) -> list[str]:
         return sorted(self.client.scheduler_info(n_workers=-1)["workers"])
 
-    def _run_chunks(self, name: str, chunks: list[list[Any]]) -> list[ChunkResult]:
+    def _run_chunks(self, name: str, chunks: list[list[Any] | Columns]) -> list[ChunkResult]:
         packed = [to_columns(chunk) for chunk in chunks]
         if self.dispatch == "direct":
             replies = self.client.sync(self._run_direct, name, packed)
@@ -142,7 +142,7 @@ class DaskBackend(Backend):
                 for w, (address, chunk) in enumerate(zip(self.addresses, packed, strict=True))
             ]
             replies = self.client.gather(futures)
-        return [unpack_results(reply) for reply in replies]
+        return replies
 
     async def _run_direct(self, name: str, chunks: list[Columns | list[Any]]
                           ) -> list[ChunkResult]:

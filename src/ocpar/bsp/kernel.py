@@ -42,11 +42,13 @@ def resolve_kernel(name: str) -> Callable[[Any], Any]:
 class ChunkResult:
     """What one worker returns for its chunk of a superstep.
 
-    ``task_wall_s``/``task_cpu_s`` are per task (s); ``busy_s``/``cpu_s`` cover the whole chunk;
+    ``results`` is a list, or :class:`~ocpar.bsp.columns.Columns` where a backend packed
+    them; ``task_wall_s``/``task_cpu_s`` are per task (s); ``busy_s``/``cpu_s`` cover the
+    whole chunk (with its unpacking and packing, where there is any);
     ``peak_rss_mb`` is the worker process's peak resident memory so far (MiB).
     """
 
-    results: list[Any]
+    results: list[Any] | Columns
     task_wall_s: list[float]
     task_cpu_s: list[float]
     busy_s: float
@@ -76,15 +78,14 @@ def run_chunk(name: str, tasks: Sequence[Any]) -> ChunkResult:
 
 def run_packed_chunk(name: str, tasks: Columns | list[Any]) -> ChunkResult:
     """:func:`run_chunk` for backends that pickle chunks: the tasks arrive as
-    :func:`~ocpar.bsp.columns.to_columns` made them, and the results leave the same way
-    (undo with :func:`unpack_results`)."""
+    :func:`~ocpar.bsp.columns.to_columns` made them, and the results leave the same way (as
+    :class:`~ocpar.bsp.columns.Columns` where they are instances of one dataclass)."""
+    start_wall, start_cpu = time.perf_counter(), time.process_time()
     chunk = run_chunk(name, from_columns(tasks))
-    return dataclasses.replace(chunk, results=to_columns(chunk.results))
-
-
-def unpack_results(chunk: ChunkResult) -> ChunkResult:
-    """A :func:`run_packed_chunk` result with its results as a list again."""
-    return dataclasses.replace(chunk, results=from_columns(chunk.results))
+    results = to_columns(chunk.results)
+    return dataclasses.replace(chunk, results=results,
+                               busy_s=time.perf_counter() - start_wall,
+                               cpu_s=time.process_time() - start_cpu)
 
 
 def peak_rss_mb() -> float:

@@ -11,8 +11,8 @@ import os
 from typing import Any
 
 from ocpar.bsp.backend import Backend
-from ocpar.bsp.columns import to_columns
-from ocpar.bsp.kernel import ChunkResult, run_packed_chunk, unpack_results
+from ocpar.bsp.columns import Columns, to_columns
+from ocpar.bsp.kernel import ChunkResult, run_packed_chunk
 
 _MPI_ENV_SIZE = ("PMI_SIZE", "OMPI_COMM_WORLD_SIZE", "MPI_LOCALNRANKS", "PMIX_SIZE")
 
@@ -39,9 +39,9 @@ class MpiBackend(Backend):
     def is_coordinator(self) -> bool:
         return self.rank == 0
 
-    def _run_chunks(self, name: str, chunks: list[list[Any]]) -> list[ChunkResult]:
+    def _run_chunks(self, name: str, chunks: list[list[Any] | Columns]) -> list[ChunkResult]:
         mine = self.comm.scatter([(name, to_columns(chunk)) for chunk in chunks], root=0)
-        return [unpack_results(c) for c in self.comm.gather(run_packed_chunk(*mine), root=0)]
+        return self.comm.gather(run_packed_chunk(*mine), root=0)
 
     def serve(self) -> None:
         """On ranks > 0: solve the chunks rank 0 scatters until it closes the backend."""

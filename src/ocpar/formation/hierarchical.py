@@ -20,9 +20,10 @@ import numpy as np
 from scipy.optimize import minimize, root_scalar
 
 from ocpar.bsp import Backend
+from ocpar.bsp.columns import Columns
 from ocpar.formation.potential import coupling, coupling_jacobian, equidistance_error
 from ocpar.formation.problem import FormationProblem
-from ocpar.ocp import DmocSolution, solve_dmoc_task
+from ocpar.ocp import solve_dmoc_task
 
 #: Second iterate of the offset search (rad): 1/60 of a slot for the paper's 60 agents.
 OFFSET_FIRST_STEP = 1.7e-3
@@ -33,7 +34,13 @@ class InnerSolveFailed(RuntimeError):
 
 
 class OuterObjective:
-    """Σ_i Ĵ_i(φ_i) and its gradient, one superstep per new φ (cached for the last φ)."""
+    """Σ_i Ĵ_i(φ_i) and its gradient, one superstep per new φ (cached for the last φ).
+
+    The inner solutions of the last superstep are kept in columnar form (:attr:`last_solutions`,
+    a :class:`~ocpar.bsp.columns.Columns` of :class:`~ocpar.ocp.DmocSolution`): the
+    coordinator reads whole columns (costs (n,), gradients (n, 4 nq), paths (n, N+1, nq)),
+    never one object per agent.
+    """
 
     def __init__(
         self,
@@ -45,42 +52,42 @@ class OuterObjective:
         self.inner_solves = 0
         self.failed_solves = 0
         self.last_phi: np.ndarray | None = None
-        self.last_solutions: list[DmocSolution] = []
+        self.last_solutions: Columns | None = None
 
-    def solutions(self, phi: np.ndarray) -> list[DmocSolution]:
+    def solutions(self, phi: np.ndarray) -> Columns:
         """Inner solutions for angles φ: one superstep, unless φ is the last one asked for."""
         phi = np.asarray(phi, float)
         if self.last_phi is None or not np.array_equal(phi, self.last_phi):
-            sols = self.backend.superstep(solve_dmoc_task, self.problem.tasks(phi))
+            sols = self.backend.superstep_columns(solve_dmoc_task, self.problem.tasks(phi))
             self.inner_solves += len(sols)
-            failed = [i for i, s in enumerate(sols) if not s.success]
+            failed = np.flatnonzero(~np.asarray(sols.column("success"), dtype=bool))
             self.failed_solves += len(failed)
             self.last_phi, self.last_solutions = phi.copy(), sols
             self._report(phi, sols)
-            if failed:
+            if len(failed):
                 raise InnerSolveFailed(
                     f"{len(failed)} inner solve(s) failed, first agent {failed[0]}: "
-                    f"{sols[failed[0]].status}"
+                    f"{sols.column('status')[failed[0]]}"
                 )
         return self.last_solutions
 
     def value(self, phi: np.ndarray) -> float:
-        return float(sum(s.cost for s in self.solutions(phi)))
+        return float(np.sum(self.solutions(phi).column("cost")))
 
     def gradient(self, phi: np.ndarray) -> np.ndarray:
         """dJ/dφ (n,) from each agent's dJ*/dq_N (entries 2nq..3nq of dJ*/dp)."""
         sols = self.solutions(phi)
         nq = self.problem.shape.model.nq
-        d_end = np.array([s.cost_gradient[2 * nq : 3 * nq] for s in sols])
+        d_end = np.asarray(sols.column("cost_gradient"))[:, 2 * nq : 3 * nq]
         phi = np.asarray(phi, float)
         d_end_d_phi = self.problem.radius * np.column_stack([-np.sin(phi), np.cos(phi)])
         return np.sum(d_end * d_end_d_phi, axis=1)
 
-    def _report(self, phi: np.ndarray, sols: list[DmocSolution]) -> None:
+    def _report(self, phi: np.ndarray, sols: Columns) -> None:
         if self.progress is None:
             return
         trace = self.backend.traces[-1]
-        cost = sum(s.cost for s in sols)
+        cost = float(np.sum(sols.column("cost")))
         # the gaps' deviation, O(n log n): |c(φ)| would cost O(n²) per superstep (50 ms at
         # 1000 agents, as much as the superstep itself on 64 workers)
         error = equidistance_error(phi)

@@ -11,6 +11,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from ocpar.bsp.columns import Columns
 from ocpar.models import PointMass
 from ocpar.ocp import DmocShape, DmocTask
 
@@ -56,13 +57,14 @@ class FormationProblem:
             [self.starts[i], self.start_velocities[i], end, self.final_velocity]
         )
 
-    def tasks(self, phi: np.ndarray) -> list[DmocTask]:
-        """One inner DMOC task per agent for the final angles φ (the rows of the boundary
-        data are :meth:`boundary_params`, computed for all agents at once)."""
+    def tasks(self, phi: np.ndarray) -> Columns:
+        """One inner DMOC task per agent for the final angles φ, in columnar form (a
+        :class:`~ocpar.bsp.columns.Columns` of :class:`~ocpar.ocp.DmocTask`: the shared shape
+        and the (n, 8) boundary data, row i = :meth:`boundary_params` of agent i)."""
         n = self.agents
         params = np.hstack([self.starts, self.start_velocities, self.final_positions(phi),
                             np.broadcast_to(self.final_velocity, (n, 2))])
-        return [DmocTask(self.shape, row) for row in params]
+        return Columns.of(DmocTask, n, shape=self.shape, params=params)
 
     def initial_phi(self) -> np.ndarray:
         """The documented initial guess for φ (rad).

@@ -103,14 +103,15 @@ def solve_formation(
     except InnerSolveFailed as exc:
         phi, iterations, status, message = objective.last_phi, -1, "inner_failure", str(exc)
         sols = objective.last_solutions
+    costs = np.asarray(sols.column("cost"), dtype=float)
     return FormationResult(
         **common,
         status=status,
         message=message,
-        total_cost=float(sum(s.cost for s in sols)),
+        total_cost=float(np.sum(costs)),
         phi=phi,
-        agent_costs=np.array([s.cost for s in sols]),
-        trajectories=np.stack([s.q for s in sols]),
+        agent_costs=costs,
+        trajectories=np.asarray(sols.column("q")),
         outer_iterations=iterations,
         inner_solves=objective.inner_solves,
         failed_solves=objective.failed_solves,

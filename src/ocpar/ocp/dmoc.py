@@ -22,7 +22,7 @@ parameters; the decision variables are w = (q_1..q_{N-1}, u_0..u_{N-1}).
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from functools import cached_property, lru_cache
 
 import casadi as ca
@@ -81,7 +81,6 @@ class DmocSolution:
     success: bool
     iterations: int
     solve_time_s: float
-    extra: dict = field(default_factory=dict)
 
 
 class DmocTranscription:
