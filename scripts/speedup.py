@@ -48,10 +48,13 @@ from ocpar.bsp.cost_model import (
     task_times,
 )
 
-#: Speedups the PUB implementation reported (hierarchical-formation paper, Tables I and II).
+#: Speedups the PUB implementation reported (hierarchical-formation paper, Tables I and II),
+#: by formation problem.
 PAPER_TABLES = {
-    "formation": ("paper Table I (PUB, 60 point masses)",
-                  {2: 2.15, 4: 5.57, 8: 9.65, 16: 15.73, 32: 34.94, 64: 53.0}),
+    "point-mass-plane": ("paper Table I (PUB, 60 point masses)",
+                         {2: 2.15, 4: 5.57, 8: 9.65, 16: 15.73, 32: 34.94, 64: 53.0}),
+    "crtbp-rigid": ("paper Table II (PUB, 30 rigid spacecraft)",
+                    {2: 2.11, 4: 3.77, 8: 6.75, 16: 10.49, 32: 18.89}),
 }
 PREDICT_WORKERS = (1, 2, 4, 8, 16, 32, 64)
 BACKENDS = ("serial", "mpi", "dask", "dask-mpi")
@@ -60,10 +63,12 @@ BACKENDS = ("serial", "mpi", "dask", "dask-mpi")
 def scheme_arguments(args: argparse.Namespace) -> list[str]:
     """The scheme's own command-line options for this benchmark."""
     if args.scheme == "formation":
-        return ["--agents", str(args.agents), "--outer", args.outer]
+        agents = [] if args.agents is None else ["--agents", str(args.agents)]
+        return ["--problem", args.problem or "point-mass-plane", *agents, "--outer", args.outer]
     if args.scheme == "pursuit":
         return ["--case", str(args.case), "--samples", str(args.samples), "--no-reference"]
-    return ["--problem", args.problem, "--max-evals", str(args.max_evals), "--seed", "0"]
+    return ["--problem", args.problem or "goddard", "--max-evals", str(args.max_evals), "--seed",
+            "0"]
 
 
 def command(scheme: str, backend: str, workers: int, extra: list[str], balance: str,
@@ -129,7 +134,7 @@ def headline(result: dict) -> float:
     raise KeyError("result.json has no headline figure")
 
 
-def plot(table: dict, models: dict, scheme: str, path: Path) -> None:
+def plot(table: dict, models: dict, paper: tuple[str, dict] | None, path: Path) -> None:
     from ocpar.plotting import pyplot, save
 
     plt = pyplot()
@@ -146,9 +151,9 @@ def plot(table: dict, models: dict, scheme: str, path: Path) -> None:
             predicted = models[backend]["policies"]["blocks"]
             ax.plot([p["workers"] for p in predicted], [p["speedup"] for p in predicted], ":",
                     color=line.get_color(), label=f"{backend}, cost model (blocks)")
-    if scheme in PAPER_TABLES:
-        label, paper = PAPER_TABLES[scheme]
-        ax.plot(list(paper), list(paper.values()), "s:", color="grey", label=label)
+    if paper is not None:
+        label, speedups = paper
+        ax.plot(list(speedups), list(speedups.values()), "s:", color="grey", label=label)
     ax.set_xscale("log", base=2)
     ax.set_yscale("log", base=2)
     ax.set_xlabel("workers")
@@ -190,12 +195,15 @@ def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--scheme", choices=("formation", "pursuit", "macs"),
                         default="formation")
-    parser.add_argument("--agents", type=int, default=60, help="formation: point masses")
+    parser.add_argument("--agents", type=int, default=None,
+                        help="formation: agents (default: the problem's)")
     parser.add_argument("--outer", choices=("sqp", "offset"), default="sqp",
                         help="formation: outer solver")
     parser.add_argument("--case", type=int, default=1, help="pursuit: case 1 or 2")
     parser.add_argument("--samples", type=int, default=301, help="pursuit: samples N")
-    parser.add_argument("--problem", default="goddard", help="macs: goddard|orbit-raising")
+    parser.add_argument("--problem", default=None,
+                        help="formation: point-mass-plane (default) | crtbp-rigid; "
+                             "macs: goddard (default) | orbit-raising")
     parser.add_argument("--max-evals", type=int, default=2000, help="macs: evaluations")
     parser.add_argument("--backend", nargs="+", choices=BACKENDS, default=["mpi", "dask"])
     parser.add_argument("--workers", nargs="+", type=int, default=[1, 2])
@@ -212,6 +220,8 @@ def main() -> int:
         parser.error("--predict-agents applies to --scheme formation")
     args.output.mkdir(parents=True, exist_ok=True)
     extra = scheme_arguments(args)
+    paper = (PAPER_TABLES.get(args.problem or "point-mass-plane")
+             if args.scheme == "formation" else None)
 
     table: dict[str, dict[str, dict]] = {}
     models: dict[str, dict] = {}
@@ -252,7 +262,7 @@ def main() -> int:
               "repeat": args.repeat, "backends": table, "models": models,
               "headline_relative_spread": (max(figures) - min(figures))
               / max(abs(min(figures)), 1e-300),
-              "paper": PAPER_TABLES.get(args.scheme, (None, {}))[1]}
+              "paper": paper[1] if paper else {}}
     if args.predict_agents is not None:
         # the large run on 1 worker of the backend whose synchronisation cost is used: its
         # overheads include the per-task packing and unpacking at that task count, which a
@@ -261,7 +271,8 @@ def main() -> int:
         sync_backend = "mpi" if "mpi" in models else next(iter(models))
         big = args.output / f"formation-{sync_backend}-1-{args.predict_agents}-agents"
         result = run_once(command("formation", sync_backend, 1,
-                                  ["--agents", str(args.predict_agents), "--outer", args.outer],
+                                  ["--problem", args.problem or "point-mass-plane",
+                                   "--agents", str(args.predict_agents), "--outer", args.outer],
                                   args.balance, big), big)
         sync = SyncCost(a_s=median_overhead(result["trace"]),
                         b_s=models[sync_backend]["sync"]["b_s"])
@@ -271,7 +282,7 @@ def main() -> int:
                                       **model_of([result], sync, sorted(set(
                                           args.predict_workers)))}
     (args.output / "speedup.json").write_text(json.dumps(report, indent=1))
-    plot(table, models, args.scheme, args.output / "speedup.png")
+    plot(table, models, paper, args.output / "speedup.png")
 
     print_table(table, models)
     for backend, model in models.items():

@@ -3,7 +3,8 @@ DMOC solves per outer evaluation.
 
 Outer problem: min_φ Σ_i Ĵ_i(φ_i) s.t. c(φ) = 0 (scaled, reduced g = dG/dφ). The outer
 gradient comes from the inner sensitivities (envelope theorem):
-dĴ_i/dφ_i = (dJ*_i/dq_N) · r (−sin φ_i, cos φ_i). Two outer solvers:
+dĴ_i/dφ_i = (dJ*_i/dq_N) · dq_N/dφ_i (r (−sin φ_i, cos φ_i) in the circle's plane). Two
+outer solvers:
 
 * :func:`solve_outer` (``sqp``, the paper's): SLSQP on J/J_0 in all n angles;
 * :func:`solve_outer_offset` (``offset``): from equidistant angles, c(φ) = 0 keeps them
@@ -79,9 +80,7 @@ class OuterObjective:
         sols = self.solutions(phi)
         nq = self.problem.shape.model.nq
         d_end = np.asarray(sols.column("cost_gradient"))[:, 2 * nq : 3 * nq]
-        phi = np.asarray(phi, float)
-        d_end_d_phi = self.problem.radius * np.column_stack([-np.sin(phi), np.cos(phi)])
-        return np.sum(d_end * d_end_d_phi, axis=1)
+        return np.sum(d_end * self.problem.final_position_derivatives(phi), axis=1)
 
     def _report(self, phi: np.ndarray, sols: Columns) -> None:
         if self.progress is None:

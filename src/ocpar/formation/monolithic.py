@@ -21,11 +21,13 @@ from ocpar.ocp.ipopt import ipopt_options
 
 @dataclass
 class MonolithicSolution:
-    """φ (n,), per-agent costs (n,), trajectories (n, N+1, nq), and IPOPT's verdict."""
+    """φ (n,), per-agent costs (n,), trajectories (n, N+1, nq), controls (n, N, nu), and
+    IPOPT's verdict."""
 
     phi: np.ndarray
     agent_costs: np.ndarray
     trajectories: np.ndarray
+    controls: np.ndarray
     success: bool
     status: str
     iterations: int
@@ -40,10 +42,12 @@ def solve_monolithic(
     n, nw = problem.agents, dmoc.nw
     phi = ca.SX.sym("phi", n)
     w = ca.SX.sym("w", n * nw)
-    ends = [problem.center + problem.radius * ca.vertcat(ca.cos(phi[i]), ca.sin(phi[i]))
+    axes = problem.plane_axes
+    ends = [problem.center + problem.radius * (ca.cos(phi[i]) * axes[0] + ca.sin(phi[i]) * axes[1])
             for i in range(n)]
     params = [
-        ca.vertcat(problem.starts[i], problem.start_velocities[i], ends[i], problem.final_velocity)
+        ca.vertcat(problem.starts[i], problem.start_velocities[i], ends[i],
+                   problem.final_attitude, problem.final_velocity)
         for i in range(n)
     ]
     w_i = [w[i * nw : (i + 1) * nw] for i in range(n)]
@@ -64,16 +68,13 @@ def solve_monolithic(
     x_opt = np.asarray(out["x"]).ravel()
     phi_opt = x_opt[n * nw :]
     agent_costs = np.asarray(ca.Function("costs", [x], [costs])(x_opt)).ravel()
-    trajectories = np.stack(
-        [
-            dmoc.unpack(x_opt[i * nw : (i + 1) * nw], problem.boundary_params(i, phi_opt[i]))[0]
-            for i in range(n)
-        ]
-    )
+    paths = [dmoc.unpack(x_opt[i * nw : (i + 1) * nw], problem.boundary_params(i, phi_opt[i]))
+             for i in range(n)]
     return MonolithicSolution(
         phi=phi_opt,
         agent_costs=agent_costs,
-        trajectories=trajectories,
+        trajectories=np.stack([q for q, _ in paths]),
+        controls=np.stack([u for _, u in paths]),
         success=bool(stats["success"]),
         status=str(stats["return_status"]),
         iterations=int(stats["iter_count"]),

@@ -1,4 +1,5 @@
-"""Picture of a formation result as in the paper's Fig. 3: starts, trajectories, final circle."""
+"""Pictures of a formation result: the paper's Fig. 3 (planar: starts, trajectories, final
+circle) and Fig. 5 (3-D: initial grid, trajectories, final circle)."""
 
 from __future__ import annotations
 
@@ -12,8 +13,11 @@ from ocpar.plotting import pyplot, save
 
 
 def plot_formation(problem: FormationProblem, result: FormationResult, path: Path) -> Path:
-    """Write a two-panel PNG to ``path``: the whole manoeuvre, and a close-up of the circle
-    with the last portions of the trajectories."""
+    """Write a PNG to ``path``: for a planar problem two panels (the whole manoeuvre, and a
+    close-up of the circle with the last portions of the trajectories), in 3-D one perspective
+    view as the paper's Fig. 5."""
+    if len(problem.center) == 3:
+        return _plot_3d(problem, result, path)
     plt = pyplot()
     fig, (ax_all, ax_end) = plt.subplots(1, 2, figsize=(12, 5.5))
     circle = problem.center + problem.radius * np.column_stack(
@@ -37,4 +41,27 @@ def plot_formation(problem: FormationProblem, result: FormationResult, path: Pat
     ax_end.set_xlim(problem.center[0] - margin, problem.center[0] + margin)
     ax_end.set_ylim(problem.center[1] - margin, problem.center[1] + margin)
     ax_end.set_title("final positions and last portions of the trajectories")
+    return save(fig, path)
+
+
+def _plot_3d(problem: FormationProblem, result: FormationResult, path: Path) -> Path:
+    plt = pyplot()
+    fig = plt.figure(figsize=(8, 7))
+    ax = fig.add_subplot(projection="3d")
+    angles = np.linspace(0, 2 * np.pi, 200)
+    circle = problem.final_positions(angles)
+    ends = problem.final_positions(result.phi)
+    for path_i in result.trajectories:
+        ax.plot(path_i[:, 0], path_i[:, 1], path_i[:, 2], "-", color="tab:blue", lw=0.7,
+                alpha=0.8)
+    ax.plot(circle[:, 0], circle[:, 1], circle[:, 2], "k--", lw=0.8)
+    ax.plot(problem.starts[:, 0], problem.starts[:, 1], problem.starts[:, 2], "o", mfc="none",
+            color="k", ms=4, ls="", label="initial positions")
+    ax.plot(ends[:, 0], ends[:, 1], ends[:, 2], "x", color="tab:red", ms=6, ls="",
+            label="final positions")
+    ax.set_xlabel("$\\delta x_1$ [km]")
+    ax.set_ylabel("$\\delta x_2$ [km]")
+    ax.set_zlabel("$\\delta x_3$ [km]")
+    ax.set_title(f"{result.agents} spacecraft about the halo, total cost {result.total_cost:.6e}")
+    ax.legend(loc="upper left", fontsize=8)
     return save(fig, path)

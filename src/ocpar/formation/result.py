@@ -17,7 +17,9 @@ class FormationResult(RunResult):
     """Outcome of :func:`ocpar.formation.solve_formation`.
 
     ``phi`` (n,) final angles (rad); ``agent_costs`` (n,) inner optimal costs Ĵ_i;
-    ``trajectories`` (n, N+1, 2) DMOC node paths; ``trace`` one record per superstep.
+    ``trajectories`` (n, N+1, nq) DMOC node paths; ``cost_parts`` the total cost split by
+    control groups where the model names them (e.g. ``translational_cost``,
+    ``rotational_cost``); ``trace`` one record per superstep.
     """
 
     problem: str
@@ -36,6 +38,7 @@ class FormationResult(RunResult):
     failed_solves: int
     wall_time_s: float
     trace: list[SuperstepTrace] = field(default_factory=list)
+    cost_parts: dict[str, float] = field(default_factory=dict)
 
     @property
     def converged(self) -> bool:
@@ -58,6 +61,7 @@ class FormationResult(RunResult):
             "status": self.status,
             "message": self.message,
             "total_cost": _finite_or_none(self.total_cost),
+            **{name: _finite_or_none(value) for name, value in self.cost_parts.items()},
             "phi": [float(p) for p in self.phi],
             "equidistance_error": _finite_or_none(self.equidistance_error),
             "outer_iterations": self.outer_iterations,
@@ -72,9 +76,11 @@ class FormationResult(RunResult):
 
     def summary(self) -> str:
         """A few lines for people: the headline numbers of the run."""
+        parts = "".join(f"{name.replace('_', ' ')} {value:.6e}   "
+                        for name, value in self.cost_parts.items())
         return (
             f"status {self.status} ({self.message})\n"
-            f"total cost {self.total_cost:.12e}   "
+            f"total cost {self.total_cost:.12e}   {parts}"
             f"equidistance error {self.equidistance_error:.1e} rad\n"
             f"outer iterations {self.outer_iterations}   supersteps {self.supersteps}   "
             f"inner solves {self.inner_solves} (failed {self.failed_solves})\n"

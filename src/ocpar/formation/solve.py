@@ -22,6 +22,7 @@ from ocpar.formation.result import FormationResult
 
 MODES = ("hierarchical", "monolithic")
 OUTER_SOLVERS = ("sqp", "offset")
+ORDERINGS = ("keep", "optimal")
 
 
 @dataclass(frozen=True)
@@ -33,7 +34,10 @@ class FormationOptions:
     outer solver, ``sqp`` (SLSQP in all angles, the paper's) or ``offset`` (the common offset
     of equidistant angles, see :mod:`ocpar.formation.hierarchical`). ``outer_tol`` is SLSQP's
     ``ftol`` on J/J_0 (keep it above the inner solves' noise), or for ``offset`` the relative
-    tolerance on the offset θ; ``monolithic_tol`` is IPOPT's ``tol``.
+    tolerance on the offset θ; ``monolithic_tol`` is IPOPT's ``tol``. ``ordering``: which
+    agent goes to which place on the circle, ``keep`` (the initial angles' order, the
+    paper's) or ``optimal`` (:func:`ocpar.formation.ordering.optimal_ordering`, run on the
+    backend first; its angles start the chosen mode).
     """
 
     mode: str = "hierarchical"
@@ -41,6 +45,7 @@ class FormationOptions:
     outer_tol: float = 1e-12
     max_outer_iterations: int = 200
     monolithic_tol: float = 1e-12
+    ordering: str = "keep"
 
     def __post_init__(self) -> None:
         if self.mode not in MODES:
@@ -48,10 +53,21 @@ class FormationOptions:
         if self.outer not in OUTER_SOLVERS:
             raise ValueError(
                 f"unknown outer solver {self.outer!r}; choose one of {', '.join(OUTER_SOLVERS)}")
+        if self.ordering not in ORDERINGS:
+            raise ValueError(
+                f"unknown ordering {self.ordering!r}; choose one of {', '.join(ORDERINGS)}")
         if not (self.outer_tol > 0 and self.monolithic_tol > 0):
             raise ValueError("tolerances must be positive")
         if self.max_outer_iterations < 1:
             raise ValueError("max_outer_iterations must be at least 1")
+
+
+def cost_parts(problem: FormationProblem, controls: np.ndarray) -> dict[str, float]:
+    """The total cost h Σ |u|² split into the model's named control groups (e.g. force and
+    torque), from the controls (n, N, nu); empty if the model names none."""
+    h = problem.shape.duration / problem.shape.intervals
+    groups = getattr(problem.shape.model, "cost_parts", {})
+    return {name: float(h * np.sum(controls[..., a:b] ** 2)) for name, (a, b) in groups.items()}
 
 
 def solve_formation(
@@ -75,6 +91,12 @@ def solve_formation(
     start = time.perf_counter()
     common = {"problem": problem.name, "agents": problem.agents, "backend": backend.name,
               "workers": backend.workers, "mode": options.mode}
+    ordering_solves = 0
+    if options.ordering == "optimal":
+        from ocpar.formation.ordering import optimal_ordering
+
+        ordered = optimal_ordering(problem, backend, tol=options.outer_tol, progress=progress)
+        phi0, ordering_solves = ordered.phi, ordered.inner_solves
 
     if options.mode == "monolithic":
         sol = solve_monolithic(problem, phi0, options.monolithic_tol, options.max_outer_iterations)
@@ -86,10 +108,12 @@ def solve_formation(
             phi=sol.phi,
             agent_costs=sol.agent_costs,
             trajectories=sol.trajectories,
+            cost_parts=cost_parts(problem, sol.controls),
             outer_iterations=sol.iterations,
-            inner_solves=0,
+            inner_solves=ordering_solves,
             failed_solves=0,
             wall_time_s=time.perf_counter() - start,
+            trace=backend.traces[first_trace:],
         )
 
     objective = OuterObjective(problem, backend, progress)
@@ -112,8 +136,9 @@ def solve_formation(
         phi=phi,
         agent_costs=costs,
         trajectories=np.asarray(sols.column("q")),
+        cost_parts=cost_parts(problem, np.asarray(sols.column("u"))),
         outer_iterations=iterations,
-        inner_solves=objective.inner_solves,
+        inner_solves=ordering_solves + objective.inner_solves,
         failed_solves=objective.failed_solves,
         wall_time_s=time.perf_counter() - start,
         trace=backend.traces[first_trace:],

@@ -1,18 +1,24 @@
 """Models: mechanical systems (Lagrangians, for DMOC) and controlled ODEs (for multiple
 shooting), as small hashable value objects."""
 
+from ocpar.models.crtbp import Crtbp, HaloOrbit, halo_orbit
 from ocpar.models.goddard import GoddardAscent
 from ocpar.models.mechanical import MechanicalSystem
 from ocpar.models.ode import OdeModel
 from ocpar.models.orbit_raising import OrbitRaising
 from ocpar.models.orbit_transfer import OrbitTransfer
 from ocpar.models.point_mass import PointMass
+from ocpar.models.rigid_spacecraft import RelativeRigidSpacecraft
 
 __all__ = [
+    "Crtbp",
     "GoddardAscent",
+    "HaloOrbit",
     "MechanicalSystem",
     "OdeModel",
     "OrbitRaising",
     "OrbitTransfer",
     "PointMass",
+    "RelativeRigidSpacecraft",
+    "halo_orbit",
 ]

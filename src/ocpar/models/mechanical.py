@@ -13,6 +13,15 @@ class MechanicalSystem(Protocol):
 
     Implementations are frozen dataclasses: hashable (they key the per-process solver cache)
     and picklable (they travel inside tasks), and they hold no CasADi objects.
+
+    Time-dependent Lagrangians (e.g. linearised about a reference orbit) depend on which DMOC
+    interval they are evaluated on: ``interval`` k = 0 … N−1 is the interval [t_k, t_k+1];
+    the boundary momenta use the first and the last interval's Lagrangian. Autonomous
+    systems ignore it. Optional members: ``time_dependent`` (bool, default False: one
+    Lagrangian for all intervals) and ``intervals`` (N, if the model is tabulated per
+    interval); ``n_constraints``, ``constraints(q)`` (holonomic constraints c(q) = 0, nc
+    entries, each with a multiplier at every node) and ``project(q)`` (numpy rows (m, nq) to
+    the nearest configurations that satisfy them, for initial guesses).
     """
 
     @property
@@ -25,8 +34,8 @@ class MechanicalSystem(Protocol):
         """Dimension of the control u."""
         ...
 
-    def lagrangian(self, q: ca.SX, qdot: ca.SX) -> ca.SX:
-        """L(q, q̇), a scalar expression; q and q̇ are (nq, 1)."""
+    def lagrangian(self, q: ca.SX, qdot: ca.SX, interval: int = 0) -> ca.SX:
+        """L(q, q̇) on DMOC interval ``interval``, a scalar expression; q and q̇ are (nq, 1)."""
         ...
 
     def generalized_force(self, q: ca.SX, u: ca.SX) -> ca.SX:

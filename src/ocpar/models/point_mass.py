@@ -28,7 +28,7 @@ class PointMass:
     def nu(self) -> int:
         return self.dim
 
-    def lagrangian(self, q: ca.SX, qdot: ca.SX) -> ca.SX:
+    def lagrangian(self, q: ca.SX, qdot: ca.SX, interval: int = 0) -> ca.SX:
         return 0.5 * self.mass * ca.dot(qdot, qdot)
 
     def generalized_force(self, q: ca.SX, u: ca.SX) -> ca.SX:

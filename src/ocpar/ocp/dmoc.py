@@ -16,7 +16,13 @@ constraints are the discrete Euler–Lagrange equations with the boundary moment
     -D2L(q_N, q̇_N) + D2L_d(q_{N-1}, q_N) + f⁺_{N-1} = 0
 
 and the cost is J_d = h Σ_k |u_k|². Boundary data p = (q_0, q̇_0, q_N, q̇_N) ∈ R^{4 nq} are NLP
-parameters; the decision variables are w = (q_1..q_{N-1}, u_0..u_{N-1}).
+parameters; the decision variables are w = (q_1..q_{N-1}, u_0..u_{N-1}, λ_0..λ_N).
+
+A time-dependent Lagrangian gives each interval its own L_d (see
+:class:`~ocpar.models.MechanicalSystem`). Holonomic constraints c(q) = 0 (e.g. a unit
+quaternion) add the reaction ∇c(q_k)ᵀ λ_k to the equation of every node k = 0..N (boundary
+nodes included: without it the boundary momenta would over-determine the path) and
+c(q_k) = 0 at the inner nodes (the boundary nodes are data); λ is empty otherwise.
 """
 
 from __future__ import annotations
@@ -50,6 +56,10 @@ class DmocShape:
             raise ValueError(f"DMOC needs at least 1 interval, got {self.intervals}")
         if not self.duration > 0:
             raise ValueError(f"DMOC duration must be > 0, got {self.duration}")
+        model_intervals = getattr(self.model, "intervals", None)
+        if model_intervals is not None and model_intervals != self.intervals:
+            raise ValueError(f"the model is tabulated on {model_intervals} intervals, the "
+                             f"DMOC shape has {self.intervals}")
 
     @property
     def n_params(self) -> int:
@@ -96,31 +106,51 @@ class DmocTranscription:
 
         a, b = ca.SX.sym("a", nq), ca.SX.sym("b", nq)
         q, v, u = ca.SX.sym("q", nq), ca.SX.sym("v", nq), ca.SX.sym("u", nu)
-        lag = model.lagrangian(q, v)
-        momentum = ca.Function("D2L", [q, v], [ca.gradient(lag, v)])
-        ld = h * ca.substitute(lag, ca.vertcat(q, v), ca.vertcat((a + b) / 2, (b - a) / h))
-        d1ld = ca.Function("D1Ld", [a, b], [ca.gradient(ld, a)])
-        d2ld = ca.Function("D2Ld", [a, b], [ca.gradient(ld, b)])
+        # one discrete Lagrangian per interval for time-dependent systems, else one for all
+        intervals = range(n) if getattr(model, "time_dependent", False) else [0]
+        d1ld, d2ld = {}, {}
+        for k in intervals:
+            ld = h * ca.substitute(model.lagrangian(q, v, k), ca.vertcat(q, v),
+                                   ca.vertcat((a + b) / 2, (b - a) / h))
+            d1ld[k] = ca.Function(f"D1Ld_{k}", [a, b], [ca.gradient(ld, a)])
+            d2ld[k] = ca.Function(f"D2Ld_{k}", [a, b], [ca.gradient(ld, b)])
+        d1 = [d1ld.get(k, d1ld[0]) for k in range(n)]
+        d2 = [d2ld.get(k, d2ld[0]) for k in range(n)]
+        start_momentum = ca.Function("D2L_0", [q, v], [ca.gradient(model.lagrangian(q, v, 0), v)])
+        end_momentum = ca.Function(
+            "D2L_N", [q, v], [ca.gradient(model.lagrangian(q, v, max(intervals)), v)])
         force = ca.Function("F", [q, u], [model.generalized_force(q, u)])
+        nc = getattr(model, "n_constraints", 0)
+        self.nc = nc
 
         p = ca.SX.sym("p", 4 * nq)
         q0, v0, qn, vn = (p[i * nq : (i + 1) * nq] for i in range(4))
         q_inner = ca.SX.sym("q_inner", nq * (n - 1))
         u_all = ca.SX.sym("u", nu * n)
+        lam = ca.SX.sym("lambda", nc * (n + 1))
         qs = [q0] + [q_inner[k * nq : (k + 1) * nq] for k in range(n - 1)] + [qn]
         us = [u_all[k * nu : (k + 1) * nu] for k in range(n)]
         f_half = [0.5 * h * force((qs[k] + qs[k + 1]) / 2, us[k]) for k in range(n)]
+        if nc:
+            c = ca.Function("c", [q], [model.constraints(q)])
+            grad_c = ca.Function("Gt", [q], [ca.jacobian(model.constraints(q), q).T])
+            react = [grad_c(qs[k]) @ lam[k * nc : (k + 1) * nc] for k in range(n + 1)]
+        else:
+            react = [ca.SX.zeros(nq)] * (n + 1)
 
-        eqs = [momentum(q0, v0) + d1ld(qs[0], qs[1]) + f_half[0]]
+        eqs = [start_momentum(q0, v0) + d1[0](qs[0], qs[1]) + f_half[0] + react[0]]
         eqs += [
-            d2ld(qs[k - 1], qs[k]) + d1ld(qs[k], qs[k + 1]) + f_half[k - 1] + f_half[k]
+            d2[k - 1](qs[k - 1], qs[k]) + d1[k](qs[k], qs[k + 1]) + f_half[k - 1] + f_half[k]
+            + react[k]
             for k in range(1, n)
         ]
-        eqs.append(-momentum(qn, vn) + d2ld(qs[n - 1], qs[n]) + f_half[n - 1])
+        eqs.append(-end_momentum(qn, vn) + d2[n - 1](qs[n - 1], qs[n]) + f_half[n - 1] + react[n])
+        if nc:
+            eqs += [c(qs[k]) for k in range(1, n)]
 
-        w = ca.vertcat(q_inner, u_all)
+        w = ca.vertcat(q_inner, u_all, lam)
         self.nw = w.numel()
-        self.ng = nq * (n + 1)
+        self.ng = nq * (n + 1) + nc * (n - 1)
         self.cost = ca.Function("J", [w, p], [h * ca.sumsqr(u_all)], ["w", "p"], ["J"])
         self.constraints = ca.Function("g", [w, p], [ca.vertcat(*eqs)], ["w", "p"], ["g"])
         self._w, self._p = w, p
@@ -133,8 +163,9 @@ class DmocTranscription:
         return ca.nlpsol("dmoc", "ipopt", nlp, ipopt_options(self.shape.tol, self.shape.max_iter))
 
     def initial_guess(self, params: np.ndarray) -> np.ndarray:
-        """Cubic Hermite path through the boundary data, zero controls (the double integrator's
-        minimum-energy path for a point mass)."""
+        """Cubic Hermite path through the boundary data (projected onto the constraints, if
+        any), zero controls and multipliers (the double integrator's minimum-energy path for a
+        point mass)."""
         nq, n = self.nq, self.n
         q0, v0, qn, vn = np.asarray(params, float).reshape(4, nq)
         s = np.arange(1, n)[:, None] / n
@@ -142,7 +173,9 @@ class DmocTranscription:
         h00, h10 = 2 * s**3 - 3 * s**2 + 1, s**3 - 2 * s**2 + s
         h01, h11 = -2 * s**3 + 3 * s**2, s**3 - s**2
         path = h00 * q0 + h10 * t * v0 + h01 * qn + h11 * t * vn
-        return np.concatenate([path.ravel(), np.zeros(self.nu * n)])
+        if self.nc:
+            path = self.shape.model.project(path)
+        return np.concatenate([path.ravel(), np.zeros(self.nu * n + self.nc * (n + 1))])
 
     def unpack(self, w: np.ndarray, params: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Split w into the node path q (N+1, nq) and the interval controls u (N, nu)."""
@@ -150,7 +183,7 @@ class DmocTranscription:
         q0, _, qn, _ = np.asarray(params, float).reshape(4, nq)
         inner = np.asarray(w[: nq * (n - 1)], float).reshape(n - 1, nq)
         q = np.vstack([q0, inner, qn])
-        u = np.asarray(w[nq * (n - 1) :], float).reshape(n, self.nu)
+        u = np.asarray(w[nq * (n - 1) : nq * (n - 1) + self.nu * n], float).reshape(n, self.nu)
         return q, u
 
     def solve(self, params: np.ndarray, w0: np.ndarray | None = None) -> DmocSolution:

@@ -1,0 +1,43 @@
+"""The formation examples by name, as the command line offers them."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+
+from ocpar.formation.problem import FormationProblem, paper_example
+
+
+@dataclass(frozen=True)
+class Example:
+    """A named example: its builder ``build(agents, radius)`` and their defaults."""
+
+    build: Callable[[int, float], FormationProblem]
+    agents: int
+    radius: float
+    description: str
+
+
+def _halo_spacecraft(agents: int, radius: float) -> FormationProblem:
+    from ocpar.formation.spacecraft import halo_spacecraft_example  # integrates the halo
+
+    return halo_spacecraft_example(agents=agents, radius_km=radius)
+
+
+EXAMPLES = {
+    "point-mass-plane": Example(lambda n, r: paper_example(agents=n, radius=r), 60, 10.0,
+                                "the paper's planar point masses (Fig. 3)"),
+    "crtbp-rigid": Example(_halo_spacecraft, 30, 1.0,
+                           "rigid spacecraft about the Sun-Earth L2 halo (Fig. 5), radius in km"),
+}
+
+
+def make_example(name: str, agents: int | None = None,
+                 radius: float | None = None) -> FormationProblem:
+    """The example ``name`` (see :data:`EXAMPLES`) with ``agents`` agents and circle
+    ``radius`` (its defaults where None)."""
+    if name not in EXAMPLES:
+        raise ValueError(f"unknown problem {name!r}; choose one of {', '.join(EXAMPLES)}")
+    example = EXAMPLES[name]
+    return example.build(example.agents if agents is None else agents,
+                         example.radius if radius is None else radius)
