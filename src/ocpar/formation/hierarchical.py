@@ -29,6 +29,10 @@ from ocpar.ocp import solve_dmoc_task
 #: Second iterate of the offset search (rad): 1/60 of a slot for the paper's 60 agents.
 OFFSET_FIRST_STEP = 1.7e-3
 
+#: J values this close (relative) count as equal: the offset search starting at the optimum
+#: (e.g. after the optimal ordering) ends where rounding decides.
+ROUNDING_RTOL = 1e-12
+
 
 class InnerSolveFailed(RuntimeError):
     """Some inner solves of a superstep failed; the outer problem cannot go on."""
@@ -126,8 +130,8 @@ def solve_outer_offset(
     """Minimise J(φ⁰ + θ) over the common offset θ (rad) by the secant method on
     dJ/dθ = Σ_i dĴ_i/dφ_i = 0, from θ = 0 and θ = :data:`OFFSET_FIRST_STEP` (one superstep per
     iterate: each gives J and dJ/dθ). ``phi0`` must be equidistant. Converged when
-    θ changes by less than ``tol``·(1 + |θ|) and J did not increase. Returns (φ, iterations,
-    success, message)."""
+    θ changes by less than ``tol``·(1 + |θ|) and J did not increase (beyond rounding:
+    :data:`ROUNDING_RTOL`, then φ⁰ is returned). Returns (φ, iterations, success, message)."""
     error = equidistance_error(phi0)
     if error > 1e-9:
         raise ValueError(f"outer 'offset' needs equidistant starting angles; their gaps are "
@@ -137,7 +141,11 @@ def solve_outer_offset(
                          x0=0.0, x1=OFFSET_FIRST_STEP, method="secant", xtol=tol,
                          rtol=tol, maxiter=max_iterations)
     theta = float(result.root)
-    decreased = objective.value(phi0 + theta) <= start_value
-    success = bool(result.converged) and decreased
-    message = result.flag if decreased else "the offset found does not lower J"
+    value = objective.value(phi0 + theta)
+    same = abs(value - start_value) <= ROUNDING_RTOL * abs(start_value)
+    if value > start_value and same:  # φ⁰ was the optimum already: rounding decided
+        theta = 0.0
+    success = bool(result.converged) and (value <= start_value or same)
+    message = (result.flag if success or not result.converged
+               else "the offset found does not lower J")
     return phi0 + theta, int(result.iterations), success, message

@@ -17,12 +17,12 @@ from ocpar.formation.hierarchical import (
     solve_outer_offset,
 )
 from ocpar.formation.monolithic import solve_monolithic
+from ocpar.formation.ordering import ORDERINGS, optimal_ordering
 from ocpar.formation.problem import FormationProblem
 from ocpar.formation.result import FormationResult
 
 MODES = ("hierarchical", "monolithic")
 OUTER_SOLVERS = ("sqp", "offset")
-ORDERINGS = ("keep", "optimal")
 
 
 @dataclass(frozen=True)
@@ -93,8 +93,6 @@ def solve_formation(
               "workers": backend.workers, "mode": options.mode}
     ordering_solves = 0
     if options.ordering == "optimal":
-        from ocpar.formation.ordering import optimal_ordering
-
         ordered = optimal_ordering(problem, backend, tol=options.outer_tol, progress=progress)
         phi0, ordering_solves = ordered.phi, ordered.inner_solves
 
