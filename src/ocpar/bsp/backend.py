@@ -11,6 +11,7 @@ from typing import Any
 import numpy as np
 
 from ocpar.bsp.columns import Columns, from_columns, to_columns
+from ocpar.bsp.journal import Journal, digest
 from ocpar.bsp.kernel import ChunkResult, KernelRef, kernel_name
 from ocpar.bsp.partition import contiguous_blocks, longest_first, sticky_longest_first
 from ocpar.bsp.trace import SuperstepTrace
@@ -50,6 +51,8 @@ class Backend(ABC):
         self.balance = balance
         self.traces: list[SuperstepTrace] = []
         self._last_kernel: str | None = None
+        #: Where supersteps are checkpointed and replayed from (:mod:`ocpar.bsp.journal`).
+        self.journal: Journal | None = None
 
     @property
     def is_coordinator(self) -> bool:
@@ -86,6 +89,13 @@ class Backend(ABC):
     def _superstep(self, kernel: KernelRef, n: int, select: Callable[[list[int]], Any],
                    costs: Sequence[float] | None, columns: bool) -> Any:
         name = kernel_name(kernel)
+        tasks_digest = None
+        if self.journal is not None:
+            tasks_digest = digest(select(list(range(n))))
+            if (recorded := self.journal.replay(len(self.traces), name, tasks_digest)) is not None:
+                self.traces.append(recorded.trace)
+                self._last_kernel = name
+                return recorded.results if columns else from_columns(recorded.results)
         start = time.perf_counter()
         groups = self._assign(name, n, costs)
         chunks = self._run_chunks(name, [select(group) for group in groups])
@@ -124,6 +134,9 @@ class Backend(ABC):
             )
         )
         self._last_kernel = name
+        if self.journal is not None:
+            self.journal.record(len(self.traces) - 1, name, tasks_digest, results,
+                                self.traces[-1])
         return results
 
     def _assign(self, name: str, n: int, costs: Sequence[float] | None) -> list[list[int]]:

@@ -80,6 +80,7 @@ def run_packed_chunk(name: str, tasks: Columns | list[Any]) -> ChunkResult:
     """:func:`run_chunk` for backends that pickle chunks: the tasks arrive as
     :func:`~ocpar.bsp.columns.to_columns` made them, and the results leave the same way (as
     :class:`~ocpar.bsp.columns.Columns` where they are instances of one dataclass)."""
+    resolve_kernel(name)  # importing it on first use is not the chunk's work
     start_wall, start_cpu = time.perf_counter(), time.process_time()
     chunk = run_chunk(name, from_columns(tasks))
     results = to_columns(chunk.results)

@@ -56,6 +56,7 @@ class OuterObjective:
         self.problem, self.backend, self.progress = problem, backend, progress
         self.inner_solves = 0
         self.failed_solves = 0
+        self.retries = 0
         self.last_phi: np.ndarray | None = None
         self.last_solutions: Columns | None = None
 
@@ -63,8 +64,10 @@ class OuterObjective:
         """Inner solutions for angles φ: one superstep, unless φ is the last one asked for."""
         phi = np.asarray(phi, float)
         if self.last_phi is None or not np.array_equal(phi, self.last_phi):
-            sols = self.backend.superstep_columns(solve_dmoc_task, self.problem.tasks(phi))
+            tasks = self.problem.tasks(phi, self._warm_starts())
+            sols = self.backend.superstep_columns(solve_dmoc_task, tasks)
             self.inner_solves += len(sols)
+            self.retries += int(np.sum(np.asarray(sols.column("attempts")) - 1))
             failed = np.flatnonzero(~np.asarray(sols.column("success"), dtype=bool))
             self.failed_solves += len(failed)
             self.last_phi, self.last_solutions = phi.copy(), sols
@@ -75,6 +78,15 @@ class OuterObjective:
                     f"{sols.column('status')[failed[0]]}"
                 )
         return self.last_solutions
+
+    def _warm_starts(self) -> np.ndarray | None:
+        """The last superstep's paths and controls (n, nq (N−1) + nu N): each agent's retry
+        start if its next first attempt fails (the failure policy of
+        :func:`~ocpar.ocp.solve_dmoc_task`: previous solution, then the straight line)."""
+        if self.last_solutions is None:
+            return None
+        q, u = (np.asarray(self.last_solutions.column(name)) for name in ("q", "u"))
+        return np.hstack([q[:, 1:-1].reshape(len(q), -1), u.reshape(len(u), -1)])
 
     def value(self, phi: np.ndarray) -> float:
         return float(np.sum(self.solutions(phi).column("cost")))

@@ -87,22 +87,24 @@ class FormationProblem:
                                self.final_positions(np.array([phi_i]))[0],
                                self.final_attitude, self.final_velocity])
 
-    def tasks_for(self, agents: np.ndarray, phi: np.ndarray) -> Columns:
+    def tasks_for(self, agents: np.ndarray, phi: np.ndarray,
+                  warm_starts: np.ndarray | None = None) -> Columns:
         """Task k: agent ``agents[k]`` ending at angle ``phi[k]`` (rad), in columnar form (a
         :class:`~ocpar.bsp.columns.Columns` of :class:`~ocpar.ocp.DmocTask`: the shared
-        shape and the (len(agents), 4 nq) boundary data, row k =
-        :meth:`boundary_params` (agents[k], phi[k]))."""
+        shape, the (len(agents), 4 nq) boundary data, row k =
+        :meth:`boundary_params` (agents[k], phi[k]), and optional warm starts, one row per
+        task, to retry from if a first attempt fails)."""
         agents = np.asarray(agents, dtype=np.intp)
         m = len(agents)
         params = np.hstack([self.starts[agents], self.start_velocities[agents],
                             self.final_positions(phi),
                             np.broadcast_to(self.final_attitude, (m, len(self.final_attitude))),
                             np.broadcast_to(self.final_velocity, (m, len(self.final_velocity)))])
-        return Columns.of(DmocTask, m, shape=self.shape, params=params)
+        return Columns.of(DmocTask, m, shape=self.shape, params=params, warm_start=warm_starts)
 
-    def tasks(self, phi: np.ndarray) -> Columns:
+    def tasks(self, phi: np.ndarray, warm_starts: np.ndarray | None = None) -> Columns:
         """One inner DMOC task per agent, agent i ending at φ_i (see :meth:`tasks_for`)."""
-        return self.tasks_for(np.arange(self.agents), phi)
+        return self.tasks_for(np.arange(self.agents), phi, warm_starts)
 
     def initial_phi(self) -> np.ndarray:
         """The documented initial guess for φ (rad).

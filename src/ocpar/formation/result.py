@@ -38,6 +38,7 @@ class FormationResult(RunResult):
     failed_solves: int
     wall_time_s: float
     trace: list[SuperstepTrace] = field(default_factory=list)
+    retries: int = 0
     cost_parts: dict[str, float] = field(default_factory=dict)
 
     @property
@@ -68,6 +69,7 @@ class FormationResult(RunResult):
             "supersteps": self.supersteps,
             "inner_solves": self.inner_solves,
             "failed_solves": self.failed_solves,
+            "retries": self.retries,
             "wall_time_s": self.wall_time_s,
             "agent_costs": [_finite_or_none(c) for c in self.agent_costs],
             "trajectories": np.asarray(self.trajectories, float).tolist(),
@@ -83,7 +85,8 @@ class FormationResult(RunResult):
             f"total cost {self.total_cost:.12e}   {parts}"
             f"equidistance error {self.equidistance_error:.1e} rad\n"
             f"outer iterations {self.outer_iterations}   supersteps {self.supersteps}   "
-            f"inner solves {self.inner_solves} (failed {self.failed_solves})\n"
+            f"inner solves {self.inner_solves} (failed {self.failed_solves}, retries "
+            f"{self.retries})\n"
             f"wall time {self.wall_time_s:.2f} s on {self.workers} {self.backend} worker(s), "
             f"mode {self.mode}"
         )

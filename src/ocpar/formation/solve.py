@@ -138,6 +138,7 @@ def solve_formation(
         outer_iterations=iterations,
         inner_solves=ordering_solves + objective.inner_solves,
         failed_solves=objective.failed_solves,
+        retries=objective.retries,
         wall_time_s=time.perf_counter() - start,
         trace=backend.traces[first_trace:],
     )

@@ -53,6 +53,10 @@ class MacsResult(RunResult):
             "iterations": self.iterations,
             "supersteps": self.supersteps,
             "failed_searches": self.failed_searches,
+            # the same count under the name the other schemes use; MACS rejects a failed
+            # search (the paper's penalty) and does not retry it
+            "failed_solves": self.failed_searches,
+            "retries": 0,
             "gd": self.gd,
             "igd": self.igd,
             "hv": self.hv,

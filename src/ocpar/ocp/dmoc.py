@@ -34,6 +34,7 @@ from functools import cached_property, lru_cache
 import casadi as ca
 import numpy as np
 
+from ocpar import faults
 from ocpar.models.mechanical import MechanicalSystem
 from ocpar.ocp.ipopt import ipopt_options
 
@@ -69,10 +70,13 @@ class DmocShape:
 
 @dataclass(frozen=True)
 class DmocTask:
-    """One inner solve: a shape and its boundary data p (length 4 nq), picklable and small."""
+    """One inner solve: a shape, its boundary data p (length 4 nq) and optionally a warm
+    start (inner nodes then controls, length nq (N−1) + nu N: a previous solution of a nearby
+    problem) to retry from if the first attempt fails (:func:`solve_dmoc_task`)."""
 
     shape: DmocShape
     params: np.ndarray
+    warm_start: np.ndarray | None = None
 
 
 @dataclass
@@ -91,6 +95,7 @@ class DmocSolution:
     success: bool
     iterations: int
     solve_time_s: float
+    attempts: int = 1
 
 
 class DmocTranscription:
@@ -177,6 +182,22 @@ class DmocTranscription:
             path = self.shape.model.project(path)
         return np.concatenate([path.ravel(), np.zeros(self.nu * n + self.nc * (n + 1))])
 
+    def straight_line_guess(self, params: np.ndarray) -> np.ndarray:
+        """Nodes on the straight line from q_0 to q_N (projected onto the constraints, if any),
+        zero controls and multipliers."""
+        q0, _, qn, _ = np.asarray(params, float).reshape(4, self.nq)
+        path = q0 + np.arange(1, self.n)[:, None] / self.n * (qn - q0)
+        if self.nc:
+            path = self.shape.model.project(path)
+        return np.concatenate([path.ravel(), np.zeros(self.nu * self.n + self.nc * (self.n + 1))])
+
+    def failure(self, params: np.ndarray, status: str, elapsed: float) -> DmocSolution:
+        """A failed solve: NaN cost, gradient and path, with ``status``."""
+        nan_q, nan_u = self.unpack(np.full(self.nw, np.nan), params)
+        return DmocSolution(cost=float("nan"), cost_gradient=np.full(params.shape, np.nan),
+                            q=nan_q, u=nan_u, status=status, success=False, iterations=0,
+                            solve_time_s=elapsed)
+
     def unpack(self, w: np.ndarray, params: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Split w into the node path q (N+1, nq) and the interval controls u (N, nu)."""
         nq, n = self.nq, self.n
@@ -197,17 +218,8 @@ class DmocTranscription:
         try:
             out = self.solver(x0=x0, p=params, lbg=zero_g, ubg=zero_g)
         except RuntimeError as exc:  # CasADi raises on evaluation errors (NaN in the model, ...)
-            nan_q, nan_u = self.unpack(np.full(self.nw, np.nan), params)
-            return DmocSolution(
-                cost=float("nan"),
-                cost_gradient=np.full(params.shape, np.nan),
-                q=nan_q,
-                u=nan_u,
-                status=f"error: {exc}".splitlines()[0],
-                success=False,
-                iterations=0,
-                solve_time_s=time.perf_counter() - start,
-            )
+            return self.failure(params, f"error: {exc}".splitlines()[0],
+                                time.perf_counter() - start)
         elapsed = time.perf_counter() - start
         stats = self.solver.stats()
         q, u = self.unpack(np.asarray(out["x"]).ravel(), params)
@@ -231,8 +243,27 @@ def dmoc_problem(shape: DmocShape) -> DmocTranscription:
 
 
 def solve_dmoc_task(task: DmocTask) -> DmocSolution:
-    """Engine kernel: solve one DMOC task with this process's cached solver."""
-    return dmoc_problem(task.shape).solve(task.params)
+    """Engine kernel: solve one DMOC task with this process's cached solver. The failure
+    policy: if the first attempt (from :meth:`DmocTranscription.initial_guess`) fails, retry
+    from the task's warm start (if any), then from the straight line; the solution says how
+    many ``attempts`` it took, and is a failure if all failed. (Test-only: first attempts
+    chosen by :mod:`ocpar.faults` fail without solving.)"""
+    dmoc = dmoc_problem(task.shape)
+    params = np.asarray(task.params, float)
+    guesses: list[np.ndarray | None] = [None]
+    if task.warm_start is not None:
+        lam = np.zeros(dmoc.nc * (dmoc.n + 1))
+        guesses.append(np.concatenate([np.asarray(task.warm_start, float), lam]))
+    guesses.append(dmoc.straight_line_guess(params))
+    for attempt, guess in enumerate(guesses):
+        if attempt == 0 and faults.injected(params.tobytes()):
+            solution = dmoc.failure(params, faults.STATUS, 0.0)
+        else:
+            solution = dmoc.solve(params, guess)
+        solution.attempts = attempt + 1
+        if solution.success:
+            break
+    return solution
 
 
 def cache_report(_task: object = None) -> dict:

@@ -17,6 +17,7 @@ from functools import cached_property, lru_cache
 import casadi as ca
 import numpy as np
 
+from ocpar import faults
 from ocpar.models.ode import OdeModel
 from ocpar.ocp.ipopt import ipopt_options
 
@@ -70,14 +71,16 @@ class MsShape:
 class MsTask:
     """One MS solve: shape, initial state (nx,), terminal target (len(terminal),) and an
     optional warm start: w0 (flattened states x_1..x_N then controls) and constraint
-    multipliers λ_g0 (from a neighbouring solve of the same shape). Numbers travel as float
-    arrays (a tuple of numpy scalars pickles ~30x slower)."""
+    multipliers λ_g0 (from a neighbouring solve of the same shape); ``fallback`` an optional
+    second guess (like w0, without multipliers) to retry from if the first attempt fails.
+    Numbers travel as float arrays (a tuple of numpy scalars pickles ~30x slower)."""
 
     shape: MsShape
     initial_state: np.ndarray
     target: np.ndarray
     warm_start: np.ndarray | None = None
     multipliers: np.ndarray | None = None
+    fallback: np.ndarray | None = None
 
 
 @dataclass
@@ -96,6 +99,7 @@ class MsSolution:
     constraint_violation: float
     w: np.ndarray
     lam_g: np.ndarray
+    attempts: int = 1
 
 
 def step_function(model: OdeModel, step: float, integrator: str) -> ca.Function:
@@ -202,11 +206,8 @@ class MsTranscription:
             out = solver(x0=w0, p=p, lbg=0, ubg=0, lbx=self.lbw, ubx=self.ubw,
                          lam_g0=0 if lam_g0 is None else lam_g0)
         except RuntimeError as exc:  # evaluation errors (NaN) in CasADi
-            w = np.full(self.nw, np.nan)
-            x, u = self.unpack(w, x0)
-            return MsSolution(float("nan"), x, u, f"error: {exc}".splitlines()[0], False, 0,
-                              time.perf_counter() - start, float("inf"), w,
-                              np.full(self.ng, np.nan))
+            return self.failure(x0, f"error: {exc}".splitlines()[0],
+                                time.perf_counter() - start)
         elapsed = time.perf_counter() - start
         stats = solver.stats()
         w = np.asarray(out["x"]).ravel()
@@ -225,6 +226,14 @@ class MsTranscription:
         )
 
 
+    def failure(self, x0: np.ndarray, status: str, elapsed: float) -> MsSolution:
+        """A failed solve from ``x0``: NaN cost, path and multipliers, with ``status``."""
+        w = np.full(self.nw, np.nan)
+        x, u = self.unpack(w, np.asarray(x0, float))
+        return MsSolution(float("nan"), x, u, status, False, 0, elapsed, float("inf"), w,
+                          np.full(self.ng, np.nan))
+
+
 @lru_cache(maxsize=64)
 def ms_problem(shape: MsShape) -> MsTranscription:
     """The process-wide MS transcription of ``shape``: built once, then reused."""
@@ -232,6 +241,16 @@ def ms_problem(shape: MsShape) -> MsTranscription:
 
 
 def solve_ms_task(task: MsTask) -> MsSolution:
-    """Engine kernel: solve one MS task with this process's cached solver."""
-    return ms_problem(task.shape).solve(task.initial_state, task.target, task.warm_start,
-                                        task.multipliers)
+    """Engine kernel: solve one MS task with this process's cached solver; if that fails and
+    the task has a ``fallback`` guess, retry once from it (``attempts`` says how many were
+    made). (Test-only: first attempts chosen by :mod:`ocpar.faults` fail without solving.)"""
+    ms = ms_problem(task.shape)
+    key = np.concatenate([task.initial_state, task.target]).tobytes()
+    if faults.injected(key):
+        solution = ms.failure(task.initial_state, faults.STATUS, 0.0)
+    else:
+        solution = ms.solve(task.initial_state, task.target, task.warm_start, task.multipliers)
+    if not solution.success and task.fallback is not None:
+        solution = ms.solve(task.initial_state, task.target, task.fallback)
+        solution.attempts = 2
+    return solution

@@ -34,6 +34,7 @@ class PursuitResult(RunResult):
     agents: int
     subproblem_solves: int
     failed_solves: int
+    retries: int
     max_agents_in_flight: int
     constraint_violation: float
     rk_final_altitude_error_m: float
@@ -77,6 +78,7 @@ class PursuitResult(RunResult):
             "agents": self.agents,
             "subproblem_solves": self.subproblem_solves,
             "failed_solves": self.failed_solves,
+            "retries": self.retries,
             "supersteps": self.supersteps,
             "max_agents_in_flight": self.max_agents_in_flight,
             "constraint_violation": self.constraint_violation,
@@ -99,7 +101,8 @@ class PursuitResult(RunResult):
             f"status {self.status} ({self.message})\n"
             f"final mass {self.final_mass_kg:.6f} kg, fuel {self.fuel_kg:.6f} kg{ref}\n"
             f"agents {self.agents}   subproblem solves {self.subproblem_solves} "
-            f"(failed {self.failed_solves})   supersteps {self.supersteps}   "
+            f"(failed {self.failed_solves}, retries {self.retries})   "
+            f"supersteps {self.supersteps}   "
             f"max in flight {self.max_agents_in_flight}\n"
             f"constraint violation {self.constraint_violation:.1e}   RK re-simulation: "
             f"altitude error {self.rk_final_altitude_error_m / 1e3:.2f} km, radial velocity "

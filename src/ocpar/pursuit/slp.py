@@ -89,6 +89,7 @@ class PursuitOutcome:
     final_masses_kg: list[float]
     subproblem_solves: int
     failed_solves: int
+    retries: int
     max_in_flight: int
     converged: bool
     message: str
@@ -111,6 +112,7 @@ class PursuitTrain:
         self.in_flight: list[Agent] = []
         self.final_masses_kg = [self.initial.final_mass_kg]
         self.solves = 0
+        self.retries = 0
         self.failed = 0
         self.failures: list[str] = []
         self.launched = 0
@@ -150,28 +152,35 @@ class PursuitTrain:
             end = n - 1 if free_running else j + window - 1
             target = self.problem.target if free_running else leader.x[end, list(TARGET_COMPONENTS)]
             plan = leader.plans.pop(j, None)
-            if plan is not None and len(plan.u) == end - j:
-                guess, lam = plan.w, plan.lam_g
+            trajectory = np.concatenate([leader.x[j + 1 : end + 1].ravel(),
+                                         leader.u[j:end].ravel()])
+            if plan is not None and len(plan.u) == end - j and plan.success:
+                guess, lam = plan.w, plan.lam_g  # the leader's plan and multipliers
             else:  # agent 0 has no plans: its trajectory, no multipliers
-                guess = np.concatenate([leader.x[j + 1 : end + 1].ravel(),
-                                        leader.u[j:end].ravel()])
-                lam = None
-            task = MsTask(self._shape(end - j), agent.x[j].copy(), np.array(target), guess, lam)
+                guess, lam = trajectory, None
+            # the failure policy: a failed solve is retried from the leader's trajectory
+            task = MsTask(self._shape(end - j), agent.x[j].copy(), np.array(target), guess, lam,
+                          fallback=trajectory)
             work.append((agent, task))
         return work
 
     def apply(self, agent: Agent, sol: MsSolution) -> None:
         """Move ``agent`` along the first δ of its plan (or to its end)."""
         self.solves += 1
+        self.retries += sol.attempts - 1
         agent.solves += 1
-        if not sol.success:
-            self.failed += 1
-            self.failures.append(f"agent {agent.index} at sample {agent.position}: {sol.status}")
         j = agent.position
-        agent.plans[j] = sol
         steps = min(self.settings.update, len(sol.u))
-        agent.x[j + 1 : j + steps + 1] = sol.x[1 : steps + 1]
-        agent.u[j : j + steps] = sol.u[:steps]
+        if sol.success:
+            agent.plans[j] = sol
+            agent.x[j + 1 : j + steps + 1] = sol.x[1 : steps + 1]
+            agent.u[j : j + steps] = sol.u[:steps]
+        else:  # failed after its retry: this update follows the leader's trajectory
+            self.failed += 1
+            self.failures.append(f"agent {agent.index} at sample {j}: {sol.status}")
+            leader = self.leaders[agent.index]
+            agent.x[j + 1 : j + steps + 1] = leader.x[j + 1 : j + steps + 1]
+            agent.u[j : j + steps] = leader.u[j : j + steps]
         agent.position = j + steps
 
     def retire_finished(self) -> tuple[bool, str] | None:
@@ -228,6 +237,7 @@ def run_pursuit(
                 final_masses_kg=train.final_masses_kg,
                 subproblem_solves=train.solves,
                 failed_solves=train.failed,
+                retries=train.retries,
                 max_in_flight=max_in_flight,
                 converged=converged,
                 message=message,

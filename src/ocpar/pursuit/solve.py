@@ -61,6 +61,7 @@ def solve_pursuit(
         status = "converged" if sol.success else "failed"
         message, agents, solves = sol.status, 0, 1
         failed, in_flight, masses = int(not sol.success), 1, []
+        retries = sol.attempts - 1
     else:
         outcome = run_pursuit(problem, settings, backend, progress)
         x, u = outcome.best.x, outcome.best.u
@@ -68,6 +69,7 @@ def solve_pursuit(
         message, agents, solves = outcome.message, outcome.best.index, outcome.subproblem_solves
         failed, in_flight, masses = (outcome.failed_solves, outcome.max_in_flight,
                                      outcome.final_masses_kg)
+        retries = outcome.retries
     trace = backend.traces[first_trace:]
     wall = time.perf_counter() - start
     if mode == "pbms" and reference and problem.samples <= REFERENCE_MAX_SAMPLES:
@@ -81,7 +83,7 @@ def solve_pursuit(
         window=settings.window, update=settings.update, epsilon_kg=settings.epsilon_kg,
         backend=backend.name, workers=backend.workers, status=status, message=message,
         final_mass_kg=final_mass, fuel_kg=problem.initial_mass * KG_PER_T - final_mass,
-        agents=agents, subproblem_solves=solves, failed_solves=failed,
+        agents=agents, subproblem_solves=solves, failed_solves=failed, retries=retries,
         max_agents_in_flight=in_flight,
         constraint_violation=euler_residual(problem, x, u),
         rk_final_altitude_error_m=check.final_altitude_error_m,

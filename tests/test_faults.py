@@ -1,0 +1,81 @@
+"""Failed inner solves are data: with the test-only fault hook (``ocpar.faults``) failing the
+first attempt of a fraction of inner solves, every scheme's failure policy still gets it to
+its answer, and the failures are counted."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+from conftest import run_cli
+
+from ocpar import faults
+from ocpar.formation import paper_example, solve_formation
+from ocpar.macs import GoddardProblem, MacsSettings, solve_macs
+from ocpar.pursuit import OrbitTransferProblem, PursuitSettings, solve_pursuit
+
+
+@pytest.fixture
+def inject(monkeypatch):
+    """inject("0.3:1") switches the hook on in this process for one test."""
+    def set_rate(setting: str) -> None:
+        monkeypatch.setenv(faults.ENVIRONMENT_VARIABLE, setting)
+        faults._setting.cache_clear()
+
+    yield set_rate
+    monkeypatch.delenv(faults.ENVIRONMENT_VARIABLE, raising=False)
+    faults._setting.cache_clear()
+
+
+def test_the_hook_is_off_by_default_and_checks_its_setting(inject):
+    assert not any(faults.injected(bytes([k])) for k in range(256))
+    inject("0.5:3")
+    hits = sum(faults.injected(bytes([k, j])) for k in range(64) for j in range(16))
+    assert 400 < hits < 624  # about half of 1024, and the same in every process
+    inject("2")
+    with pytest.raises(ValueError, match="rate"):
+        faults.injected(b"x")
+
+
+def test_formation_retries_failed_solves_and_reaches_the_same_optimum(inject):
+    problem = paper_example(12)
+    clean = solve_formation(problem)
+    inject("0.3:1")
+    faulty = solve_formation(problem)
+    assert faulty.converged and faulty.failed_solves == 0
+    assert faulty.retries > 10  # ~30% of 108 first attempts failed and were retried
+    assert faulty.total_cost == pytest.approx(clean.total_cost, rel=1e-10)
+    assert clean.retries == 0
+
+
+def test_formation_faults_are_the_same_under_mpirun(tmp_path, inject):
+    """The hook reaches MPI ranks through the environment and fails the same solves: the
+    serial and the 2-rank runs retry equally often and agree."""
+    inject("0.3:1")
+    serial = solve_formation(paper_example(12))
+    out = tmp_path / "mpi"
+    proc = run_cli("-m", "ocpar.formation", "--agents", "12", "--quiet", "--output", str(out),
+                   mpi_ranks=2)
+    assert proc.returncode == 0, proc.stderr
+    result = json.loads((out / "result.json").read_text())
+    assert result["retries"] == serial.retries and result["failed_solves"] == 0
+    assert result["total_cost"] == pytest.approx(serial.total_cost, rel=1e-12)
+
+
+def test_pursuit_retries_from_the_leaders_trajectory(inject):
+    problem = OrbitTransferProblem(case=1, samples=101)
+    settings = PursuitSettings(window=32, update=16, max_agents=12)
+    clean = solve_pursuit(problem, settings, reference=False)
+    inject("0.3:2")
+    faulty = solve_pursuit(problem, settings, reference=False)
+    assert faulty.retries > 0 and faulty.failed_solves == 0
+    assert faulty.final_mass_kg == pytest.approx(clean.final_mass_kg, abs=1e-6)
+
+
+def test_macs_rejects_failed_searches_and_still_finds_the_front(inject):
+    settings = MacsSettings(max_evaluations=1500, archive_size=10, seed=7)
+    inject("0.2:4")
+    result = solve_macs(GoddardProblem(), settings)
+    assert result.failed_searches > 5
+    assert result.to_dict()["failed_solves"] == result.failed_searches
+    assert result.gd < 0.05 and result.hv > 0.7
