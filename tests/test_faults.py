@@ -5,13 +5,20 @@ its answer, and the failures are counted."""
 from __future__ import annotations
 
 import json
+import os
+import signal
+import threading
 
 import pytest
 from conftest import run_cli
 
 from ocpar import faults
+from ocpar.bsp.dask import DaskBackend
+from ocpar.bsp.serial import SerialBackend
+from ocpar.bsp.workload import Delayed
 from ocpar.formation import paper_example, solve_formation
 from ocpar.macs import GoddardProblem, MacsSettings, solve_macs
+from ocpar.ocp import solve_dmoc_task
 from ocpar.pursuit import OrbitTransferProblem, PursuitSettings, solve_pursuit
 
 
@@ -79,3 +86,24 @@ def test_macs_rejects_failed_searches_and_still_finds_the_front(inject):
     assert result.failed_searches > 5
     assert result.to_dict()["failed_solves"] == result.failed_searches
     assert result.gd < 0.05 and result.hv > 0.7
+
+
+def test_a_dask_worker_killed_in_the_middle_of_a_superstep_is_replaced():
+    """Six DMOC solves of the formation, each made to take 0.4 s, on two Dask workers: one
+    worker is killed (SIGKILL) 0.5 s into the superstep; its chunk runs again on a live
+    worker and the results equal the serial ones bit for bit. The next superstep runs on the
+    workers that are left."""
+    problem = paper_example(6)
+    tasks = problem.tasks(problem.initial_phi()).items()
+    slow = [Delayed(0.4, "ocpar.ocp:solve_dmoc_task", task) for task in tasks]
+    with SerialBackend() as serial:
+        expected = [s.cost for s in serial.superstep(solve_dmoc_task, tasks)]
+    with DaskBackend(workers=2) as backend:
+        pids = backend.client.run(os.getpid)
+        victim = pids[backend.addresses[1]]
+        threading.Timer(0.5, os.kill, (victim, signal.SIGKILL)).start()
+        got = backend.superstep("ocpar.bsp.workload:delayed", slow)
+        assert [s.cost for s in got] == expected
+        assert backend.lost_chunks == 1
+        again = backend.superstep(solve_dmoc_task, tasks)
+        assert [s.cost for s in again] == expected

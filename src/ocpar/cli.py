@@ -10,6 +10,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import NoReturn, TypeVar
 
+from ocpar import __version__
 from ocpar.bsp import (
     BACKENDS,
     BALANCE_POLICIES,
@@ -18,14 +19,41 @@ from ocpar.bsp import (
     launched_by_mpirun,
     open_backend,
 )
+from ocpar.bsp.journal import CheckpointError, Journal
+from ocpar.bsp.mpi import SUPERSTEP_TIMEOUT_S
 
 EXIT_USAGE = 2
+#: Most worker processes an embedded Dask cluster may be asked to start.
+MAX_LOCAL_WORKERS = 256
+#: Options that say where and how a run executes, not what it computes: they may differ
+#: between a run and its resumption (everything else must match the checkpoint).
+RUNTIME_OPTIONS = frozenset({
+    "backend", "workers", "scheduler", "balance", "output", "quiet", "checkpoint", "resume",
+    "superstep_timeout", "tls_ca_file", "tls_cert", "tls_key"})
 R = TypeVar("R")
 Progress = Callable[[str], None]
 
 
 class OneLineParser(argparse.ArgumentParser):
-    """argparse that reports bad input as one line on stderr and exits with status 2."""
+    """argparse that reports bad input as one line on stderr and exits with status 2, takes
+    no abbreviated option names and refuses an option given twice."""
+
+    def __init__(self, *args, **kwargs) -> None:
+        kwargs.setdefault("allow_abbrev", False)
+        super().__init__(*args, **kwargs)
+
+    def parse_args(self, args=None, namespace=None):  # type: ignore[override]
+        argv = sys.argv[1:] if args is None else list(args)
+        seen = set()
+        for token in argv:
+            if token == "--":
+                break
+            if token.startswith("--"):
+                name = token.split("=", 1)[0]
+                if name in seen:
+                    self.error(f"option {name} is given more than once")
+                seen.add(name)
+        return super().parse_args(argv, namespace)
 
     def error(self, message: str) -> NoReturn:
         fail(self.prog, message)
@@ -78,11 +106,34 @@ def add_backend_arguments(parser: argparse.ArgumentParser) -> None:
                        help="number of workers (dask: local worker processes, or how many of "
                             "the cluster's workers to use; mpi: must equal the rank count)")
     group.add_argument("--scheduler", default=None, metavar="ADDR",
-                       help="address of an existing Dask scheduler, e.g. tcp://HOST:8786")
+                       help="address of an existing Dask scheduler, e.g. tcp://HOST:8786 "
+                            "(tls://HOST:8786 for one secured with TLS)")
     group.add_argument("--balance", choices=BALANCE_POLICIES, default="blocks",
                        help="task assignment: contiguous blocks (default), or lpt: longest "
                             "first on the previous superstep's times, tasks kept on their "
                             "worker where that does not hurt the balance")
+    group.add_argument("--superstep-timeout", type=positive_float, default=SUPERSTEP_TIMEOUT_S,
+                       metavar="S", help="abort a superstep whose results have not all "
+                       f"arrived after S seconds (default {SUPERSTEP_TIMEOUT_S:g})")
+    checkpoints = parser.add_argument_group("checkpoints")
+    checkpoints.add_argument("--checkpoint", default=None, metavar="DIR",
+                             help="record every superstep in DIR as it completes (atomic "
+                                  "writes); a killed run continues with --resume DIR")
+    checkpoints.add_argument("--resume", default=None, metavar="DIR",
+                             help="continue the run checkpointed in DIR (same options), "
+                                  "recording on into DIR; the result is the uninterrupted "
+                                  "run's")
+    tls = parser.add_argument_group(
+        "TLS (dask backend; all three together)",
+        "certificates for a tls:// scheduler, or to secure the embedded cluster "
+        "(workers/tls.md)")
+    tls.add_argument("--tls-ca-file", default=None, metavar="PATH",
+                     help="CA certificate (PEM) that signed the scheduler's and workers' "
+                          "certificates")
+    tls.add_argument("--tls-cert", default=None, metavar="PATH",
+                     help="this client's certificate (PEM), signed by a CA the cluster trusts")
+    tls.add_argument("--tls-key", default=None, metavar="PATH",
+                     help="the private key (PEM, unencrypted) of --tls-cert")
 
 
 def choose_backend(args: argparse.Namespace, prog: str) -> str:
@@ -98,18 +149,56 @@ def choose_backend(args: argparse.Namespace, prog: str) -> str:
     if args.scheduler is not None:
         if backend != "dask":
             fail(prog, "--scheduler only applies to --backend dask")
-        if not args.scheduler.strip() or "://" not in args.scheduler:
-            fail(prog, f"--scheduler must look like tcp://HOST:PORT, got {args.scheduler!r}")
+        host_port = args.scheduler.partition("://")[2]
+        if not args.scheduler.strip() or "://" not in args.scheduler or ":" not in host_port \
+                or not host_port.rpartition(":")[2].isdigit() or not host_port.split(":")[0]:
+            fail(prog, "--scheduler must look like tcp://HOST:PORT or tls://HOST:PORT, got "
+                       f"{args.scheduler!r}")
+    tls_files = {option: getattr(args, option[2:].replace("-", "_"), None)
+                 for option in ("--tls-ca-file", "--tls-cert", "--tls-key")}
+    if any(path is not None for path in tls_files.values()):
+        missing = [option for option, path in tls_files.items() if path is None]
+        if missing:
+            fail(prog, f"--tls-ca-file, --tls-cert and --tls-key go together: {missing[0]} "
+                       "is missing")
+        if backend != "dask":
+            fail(prog, f"--tls-ca-file, --tls-cert and --tls-key only apply to --backend dask, "
+                       f"not {backend}")
+        if args.scheduler is not None and not args.scheduler.startswith("tls://"):
+            fail(prog, "--tls-ca-file, --tls-cert and --tls-key need a tls://HOST:PORT "
+                       f"scheduler address, got {args.scheduler!r}")
+        for option, path in tls_files.items():
+            try:
+                with open(path, "rb"):
+                    pass
+            except OSError as exc:
+                fail(prog, f"{option} {path}: {exc.strerror or exc}")
+            if not os.path.isfile(path):
+                fail(prog, f"{option} {path}: not a file")
     if backend == "serial" and args.workers not in (None, 1):
         fail(prog, "the serial backend has exactly 1 worker")
+    if backend == "dask" and args.scheduler is None and (args.workers or 1) > MAX_LOCAL_WORKERS:
+        fail(prog, f"an embedded Dask cluster starts at most {MAX_LOCAL_WORKERS} worker "
+                   f"processes, --workers {args.workers} asked")
+    if getattr(args, "checkpoint", None) is not None and getattr(args, "resume", None) is not None:
+        fail(prog, "give --checkpoint DIR or --resume DIR, not both (--resume records on into "
+                   "its DIR)")
     return backend
 
 
 def start_backend(args: argparse.Namespace, backend_name: str, prog: str) -> Backend:
-    """Open the backend or exit 2 with a one-line message (e.g. unreachable scheduler)."""
+    """Open the backend or exit 2 with a one-line message (e.g. unreachable scheduler, or one
+    that refuses this client's TLS certificate)."""
     try:
+        security = None
+        if getattr(args, "tls_cert", None) is not None:
+            from ocpar.bsp.dask import tls_security
+
+            security = tls_security(args.tls_ca_file, args.tls_cert, args.tls_key)
         return open_backend(backend_name, workers=args.workers, scheduler=args.scheduler,
-                            balance=args.balance)
+                            balance=args.balance, security=security,
+                            superstep_timeout_s=getattr(args, "superstep_timeout",
+                                                        SUPERSTEP_TIMEOUT_S))
     except BackendError as exc:
         fail(prog, str(exc))
 
@@ -118,7 +207,11 @@ def prepare_output_dir(path: str | None, prog: str) -> Path | None:
     """Create ``path`` if needed and check it is a writable directory (exits 2 if not)."""
     if path is None:
         return None
+    if not path.strip():
+        fail(prog, "--output needs a directory name, got ''")
     out = Path(path)
+    if out.exists() and not out.is_dir():
+        fail(prog, f"--output {out} is a file, not a directory")
     try:
         out.mkdir(parents=True, exist_ok=True)
         with tempfile.NamedTemporaryFile(dir=out, prefix=".ocpar-write-test-"):
@@ -137,12 +230,38 @@ def run_on_backend(
     coordinator; other MPI ranks serve supersteps instead and get None. ``progress`` prints a
     line unless ``--quiet``."""
     name = choose_backend(args, prog)
+    journal = open_journal(args, prog)
     with start_backend(args, name, prog) as backend:
         if not backend.is_coordinator:
             backend.serve()
             return None
+        backend.journal = journal
         if getattr(args, "quiet", False):
             return body(backend, lambda line: None)
         if link := getattr(backend, "dashboard_link", None):
             print(f"Dask dashboard: {link}", flush=True)
         return body(backend, lambda line: print(line, flush=True))
+
+
+def run_fingerprint(args: argparse.Namespace, prog: str) -> dict:
+    """What a checkpoint must match to be resumed by this run: the scheme, ocpar's version
+    and every option that changes what is computed (not :data:`RUNTIME_OPTIONS`)."""
+    options = {key: value for key, value in sorted(vars(args).items())
+               if key not in RUNTIME_OPTIONS
+               and (value is None or isinstance(value, bool | int | float | str))}
+    return {"scheme": prog, "ocpar": __version__, "options": options}
+
+
+def open_journal(args: argparse.Namespace, prog: str) -> Journal | None:
+    """The checkpoint journal ``--checkpoint``/``--resume`` ask for, opened (and checked
+    against this run) before any worker starts; None without them, and on MPI ranks other
+    than the coordinator's. Exits 2 with one line if it cannot be used."""
+    directory = getattr(args, "resume", None) or getattr(args, "checkpoint", None)
+    coordinator_rank = "1" if args.backend == "dask-mpi" else "0"
+    if directory is None or os.environ.get("PMI_RANK", "0") != coordinator_rank:
+        return None
+    try:
+        return Journal(directory, run_fingerprint(args, prog),
+                       resume=args.resume is not None)
+    except CheckpointError as exc:
+        fail(prog, str(exc))

@@ -15,7 +15,7 @@ from __future__ import annotations
 
 from ocpar.bsp.backend import BALANCE_POLICIES, Backend, BackendError, check_balance
 from ocpar.bsp.kernel import ChunkResult, kernel_name, run_chunk
-from ocpar.bsp.mpi import launched_by_mpirun
+from ocpar.bsp.mpi import SUPERSTEP_TIMEOUT_S, launched_by_mpirun
 from ocpar.bsp.partition import contiguous_blocks
 from ocpar.bsp.trace import SuperstepTrace
 
@@ -24,7 +24,8 @@ BACKENDS = ("serial", "mpi", "dask", "dask-mpi")
 
 def open_backend(
     name: str, workers: int | None = None, scheduler: str | None = None,
-    balance: str = "blocks",
+    balance: str = "blocks", security: object = None,
+    superstep_timeout_s: float = SUPERSTEP_TIMEOUT_S,
 ) -> Backend:
     """Start the backend ``name`` with ``workers`` workers and the ``balance`` policy
     (``blocks`` or ``lpt``, see :data:`BALANCE_POLICIES`).
@@ -34,8 +35,16 @@ def open_backend(
     connects to ``scheduler`` and uses ``workers`` of its workers (default all); ``dask-mpi``
     (under ``mpirun -n P``, P ≥ 3) makes rank 0 a Dask scheduler, ranks 2… workers and returns
     in rank 1 only, as the coordinator (see :mod:`ocpar.bsp.dask_mpi`).
+
+    ``superstep_timeout_s`` (``mpi``, ``dask``): a superstep whose results have not all arrived
+    by then ends the run with a message instead of waiting forever. ``security`` (``dask``
+    only): a :class:`distributed.Security` with the TLS certificates
+    for a ``tls://`` scheduler, or for an embedded cluster that then uses TLS (see
+    ``workers/tls.md`` and :func:`ocpar.bsp.dask.tls_security`).
     """
     check_balance(balance)  # before dask-mpi turns ranks into a scheduler and workers
+    if security is not None and name != "dask":
+        raise BackendError(f"TLS certificates only apply to the dask backend, not {name}")
     if name == "serial":
         from ocpar.bsp.serial import SerialBackend
 
@@ -43,14 +52,15 @@ def open_backend(
     if name == "mpi":
         from ocpar.bsp.mpi import MpiBackend
 
-        backend = MpiBackend(balance=balance)
+        backend = MpiBackend(balance=balance, timeout_s=superstep_timeout_s)
         if workers is not None and workers != backend.workers:
             raise BackendError(f"--workers {workers} but mpirun started {backend.workers} ranks")
         return backend
     if name == "dask":
         from ocpar.bsp.dask import DaskBackend
 
-        return DaskBackend(workers=workers, scheduler=scheduler, balance=balance)
+        return DaskBackend(workers=workers, scheduler=scheduler, balance=balance,
+                           security=security, superstep_timeout_s=superstep_timeout_s)
     if name == "dask-mpi":
         from ocpar.bsp.dask_mpi import open_dask_mpi
 

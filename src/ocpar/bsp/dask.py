@@ -4,6 +4,12 @@ With no scheduler address an embedded ``LocalCluster`` of single-threaded worker
 started; with ``scheduler="tcp://HOST:PORT"`` an existing cluster is used. Chunk w always goes
 to the same worker, so each worker's solver cache stays warm.
 
+TLS (``security``, a :class:`distributed.Security`): the client presents its certificate to a
+``tls://HOST:PORT`` scheduler, which refuses clients whose certificate its CA did not sign (and
+clients without one); an embedded cluster then listens on ``tls://`` only, its scheduler and
+workers using the client's certificate unless the ``Security`` names their own. See
+``workers/tls.md``.
+
 Two ways to hand a chunk to its worker (``dispatch``):
 
 * ``direct`` (default): ``Client.run`` sends the chunk to the worker, which runs it in its own
@@ -17,6 +23,8 @@ Two ways to hand a chunk to its worker (``dispatch``):
 from __future__ import annotations
 
 import asyncio
+import copy
+import gc
 import os
 import uuid
 from typing import Any
@@ -25,6 +33,7 @@ from ocpar.bsp.backend import Backend, BackendError
 from ocpar.bsp.columns import Columns, to_columns
 from ocpar.bsp.kernel import ChunkResult, run_packed_chunk
 from ocpar.bsp.malloc import keep_solver_workspaces_on_heap
+from ocpar.bsp.mpi import SUPERSTEP_TIMEOUT_S
 
 #: Environment of worker processes spawned by the embedded cluster: one BLAS/OpenMP thread.
 WORKER_ENV = {"OMP_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
@@ -55,6 +64,59 @@ async def run_chunk_in_worker_thread(name: str, tasks: Columns | list[Any],
 
 DISPATCH = ("direct", "tasks")
 
+#: How often one superstep may re-run a chunk whose worker was lost.
+MAX_CHUNK_RETRIES = 3
+
+#: The roles of a cluster's processes that hold a TLS certificate of their own.
+TLS_ROLES = ("scheduler", "worker")
+
+
+def tls_security(ca_file: str, cert: str, key: str) -> Any:
+    """A :class:`distributed.Security` for a client that presents ``cert`` (with its private
+    ``key``) and trusts the schedulers and workers whose certificates ``ca_file`` signed;
+    encryption required. Raises :class:`BackendError` if the files do not load."""
+    from distributed import Security
+
+    security = Security(tls_ca_file=ca_file, tls_client_cert=cert, tls_client_key=key,
+                        require_encryption=True)
+    try:
+        security.get_connection_args("client")  # loads the CA, certificate and key now
+    except (OSError, ValueError) as exc:  # ssl.SSLError is an OSError
+        raise BackendError(f"cannot load the TLS CA file {ca_file}, certificate {cert} and "
+                           f"key {key}: {' '.join(str(exc).split())}") from exc
+    return security
+
+
+def embedded_cluster_security(security: Any) -> Any:
+    """``security`` for an embedded cluster: encryption required, and the scheduler and workers
+    present the client's certificate and key where ``security`` names none of theirs."""
+    cluster = copy.copy(security)
+    cluster.require_encryption = True
+    for role in TLS_ROLES:
+        for part in ("cert", "key"):
+            if not getattr(cluster, f"tls_{role}_{part}"):
+                setattr(cluster, f"tls_{role}_{part}", getattr(security, f"tls_client_{part}"))
+    if not (cluster.tls_ca_file and all(getattr(cluster, f"tls_{role}_cert")
+                                        for role in ("client", *TLS_ROLES))):
+        raise BackendError("a TLS-secured embedded Dask cluster needs a CA file and a client "
+                           "certificate and key")
+    return cluster
+
+
+def connection_failure(scheduler: str, security: Any, exc: BaseException) -> BackendError:
+    """A one-line :class:`BackendError` for a client that could not connect to ``scheduler``."""
+    reason = " ".join(str(exc).split()) or type(exc).__name__
+    if (scheduler.startswith("tls://") and "ssl_context" in reason
+            and (security is None or not security.tls_client_cert)):
+        # distributed's own words ("TLS expects a `ssl_context` argument...") name no option
+        reason = ("the scheduler requires TLS and no client certificate was given "
+                  "(--tls-ca-file, --tls-cert and --tls-key; security= in the API)")
+    elif security is not None and any(word in reason for word in ("SSL", "TLS certificate")):
+        reason += (" (refused in the TLS handshake: the scheduler's CA must have signed this "
+                   "client's certificate, and the CA file must be the one that signed the "
+                   "scheduler's)")
+    return BackendError(f"cannot reach Dask scheduler {scheduler}: {reason}")
+
 
 class DaskBackend(Backend):
     """Workers of a Dask cluster (embedded ``LocalCluster`` or an existing scheduler)."""
@@ -68,14 +130,23 @@ class DaskBackend(Backend):
         timeout_s: float = 10.0,
         balance: str = "blocks",
         dispatch: str = "direct",
+        security: Any = None,
+        superstep_timeout_s: float = SUPERSTEP_TIMEOUT_S,
     ) -> None:
         import dask
-        from distributed import Client, LocalCluster
+        from distributed import Client, LocalCluster, Security
 
+        if security is not None and not isinstance(security, Security):
+            raise TypeError(f"security must be a distributed.Security, got {security!r}")
         if dispatch not in DISPATCH:
             raise BackendError(
                 f"unknown dispatch {dispatch!r}; choose one of {', '.join(DISPATCH)}")
         self.dispatch = dispatch
+        if not superstep_timeout_s > 0:
+            raise BackendError(f"the superstep timeout must be > 0 s, got {superstep_timeout_s}")
+        self.superstep_timeout_s = superstep_timeout_s
+        #: Chunks run again because their worker was lost (over the backend's life).
+        self.lost_chunks = 0
 
         self._cluster = None
         # task keys must be unique on a shared cluster: identical keys from two coordinators
@@ -84,30 +155,54 @@ class DaskBackend(Backend):
         with dask.config.set(WORKER_CONFIG):
             if scheduler is None:
                 n = workers or os.cpu_count() or 1
-                self._cluster = LocalCluster(
-                    n_workers=n,
-                    threads_per_worker=1,
-                    processes=True,
-                    dashboard_address=":0",
-                    env=WORKER_ENV,
-                    # import the transcriptions (CasADi, SciPy: ~0.3 s) when a worker starts,
-                    # as MPI ranks do, not in the first superstep
-                    preload=list(WORKER_PRELOAD),
-                )
-                self.client = Client(self._cluster)
-            else:
+                tls = {}
+                if security is not None:
+                    security = embedded_cluster_security(security)
+                    tls = {"security": security, "protocol": "tls://"}
                 try:
-                    self.client = Client(scheduler, timeout=f"{timeout_s}s")
-                except (OSError, TimeoutError, ValueError) as exc:
-                    raise BackendError(f"cannot reach Dask scheduler {scheduler}: {exc}") from exc
+                    self._cluster = LocalCluster(
+                        n_workers=n,
+                        threads_per_worker=1,
+                        processes=True,
+                        dashboard_address=":0",
+                        env=WORKER_ENV,
+                        # import the transcriptions (CasADi, SciPy: ~0.3 s) when a worker
+                        # starts, as MPI ranks do, not in the first superstep
+                        preload=list(WORKER_PRELOAD),
+                        **tls,
+                    )
+                except OSError as exc:  # e.g. ssl.SSLError: a certificate that does not load
+                    if not tls:
+                        raise
+                    raise BackendError(f"cannot start a TLS-secured Dask cluster: "
+                                       f"{' '.join(str(exc).split())}") from exc
+                self.client = Client(self._cluster, security=security)
+            else:
+                if (security is not None and security.require_encryption
+                        and not scheduler.startswith("tls://")):
+                    raise BackendError(f"TLS certificates need a tls:// scheduler address, "
+                                       f"not {scheduler}")
+                error = None
+                try:
+                    self.client = Client(scheduler, timeout=f"{timeout_s}s", security=security)
+                # TypeError: a tls:// address with no TLS context; RuntimeError: encryption
+                # required but refused by the other end
+                except (OSError, TimeoutError, ValueError, TypeError, RuntimeError) as exc:
+                    error = connection_failure(scheduler, security, exc)
+                if error is not None:
+                    # the half-started Client is garbage now (``exc`` and its frames are gone):
+                    # collect it here, so its __del__ stops its IO loop now, and not when the
+                    # garbage collector happens to run inside the start of a later Client, which
+                    # then deadlocks on distributed's LoopRunner lock
+                    gc.collect()
+                    raise error
         if workers is not None:
             try:
                 self.client.wait_for_workers(workers, timeout=timeout_s)
             except TimeoutError as exc:
+                have = len(self._worker_addresses())  # before close() drops the client
                 self.close()
-                raise BackendError(
-                    f"Dask cluster has {len(self._worker_addresses())} workers, {workers} asked"
-                ) from exc
+                raise BackendError(f"Dask cluster has {have} workers, {workers} asked") from exc
         addresses = self._worker_addresses()
         if not addresses:
             self.close()
@@ -128,6 +223,8 @@ class DaskBackend(Backend):
         if self.dispatch == "direct":
             replies = self.client.sync(self._run_direct, name, packed)
         else:
+            from distributed import wait
+
             step = len(self.traces)
             futures = [
                 self.client.submit(
@@ -135,22 +232,74 @@ class DaskBackend(Backend):
                     name,
                     chunk,
                     key=f"ocpar-{self._run_id}-superstep-{step}-chunk-{w}",
+                    # its worker first; if that worker is lost the scheduler runs it elsewhere
                     workers=[address],
-                    allow_other_workers=False,
+                    allow_other_workers=True,
                     pure=False,
                 )
                 for w, (address, chunk) in enumerate(zip(self.addresses, packed, strict=True))
             ]
+            if wait(futures, timeout=self.superstep_timeout_s).not_done:
+                self._timed_out()
             replies = self.client.gather(futures)
         return replies
 
     async def _run_direct(self, name: str, chunks: list[Columns | list[Any]]
                           ) -> list[ChunkResult]:
-        replies = await asyncio.gather(*(
-            self.client.run(run_chunk_in_worker_thread, name, chunk, workers=[address],
-                            asynchronous=True)
-            for address, chunk in zip(self.addresses, chunks, strict=True)))
-        return [reply[address] for reply, address in zip(replies, self.addresses, strict=True)]
+        """Chunk w on worker w; a chunk whose worker is lost meanwhile runs again on a live
+        worker (at most :data:`MAX_CHUNK_RETRIES` times), all within the superstep deadline."""
+        loop = asyncio.get_running_loop()
+        deadline = loop.time() + self.superstep_timeout_s
+        targets = list(self.addresses)
+        replies: list[ChunkResult | None] = [None] * len(chunks)
+        pending = list(range(len(chunks)))
+        for _ in range(MAX_CHUNK_RETRIES + 1):
+            runs = asyncio.gather(*(
+                self.client.run(run_chunk_in_worker_thread, name, chunks[w],
+                                workers=[targets[w]], asynchronous=True) for w in pending),
+                return_exceptions=True)
+            try:
+                outcomes = await asyncio.wait_for(runs, max(deadline - loop.time(), 0.0))
+            except TimeoutError:
+                self._timed_out()
+            failed = [(w, out) for w, out in zip(pending, outcomes, strict=True)
+                      if isinstance(out, BaseException)]
+            for w, out in zip(pending, outcomes, strict=True):
+                if not isinstance(out, BaseException):
+                    replies[w] = out[targets[w]]
+            if not failed:
+                return replies  # type: ignore[return-value]
+            live = await self._live_workers(lost={targets[w] for w, _ in failed})
+            for w, out in failed:
+                if targets[w] in live:  # the worker is fine: the kernel itself failed
+                    raise out
+            self.lost_chunks += len(failed)
+            if not live:
+                raise BackendError(f"superstep {len(self.traces)}: every Dask worker is lost")
+            # later supersteps: the live workers (fewer, if the lost ones are not replaced)
+            self.addresses = live[: len(self.addresses)]
+            self.workers = len(self.addresses)
+            pending = [w for w, _ in failed]
+            for k, w in enumerate(pending):
+                targets[w] = live[k % len(live)]
+        raise BackendError(f"superstep {len(self.traces)}: chunks lost their worker "
+                           f"{MAX_CHUNK_RETRIES + 1} times")
+
+    async def _live_workers(self, lost: set[str], wait_s: float = 10.0) -> list[str]:
+        """The scheduler's workers once it has noticed that ``lost`` are gone (or after
+        ``wait_s``), sorted."""
+        loop = asyncio.get_running_loop()
+        end = loop.time() + wait_s
+        while True:
+            info = await self.client.scheduler.identity(n_workers=-1)
+            live = sorted(info["workers"])
+            if not lost & set(live) or loop.time() > end:
+                return live
+            await asyncio.sleep(0.05)
+
+    def _timed_out(self) -> None:
+        raise BackendError(f"superstep {len(self.traces)}: not all Dask workers answered within "
+                           f"{self.superstep_timeout_s:g} s (lost or hung)")
 
     def close(self) -> None:
         client, self.client = getattr(self, "client", None), None

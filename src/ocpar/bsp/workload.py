@@ -1,4 +1,5 @@
-"""A synthetic kernel for exercising the engine: tasks of known, unequal duration.
+"""Synthetic kernels for exercising the engine: tasks of known, unequal duration, and real
+inner solves made slow enough to interrupt (fault tests).
 
 >>> spin(0.001)
 0.001
@@ -7,6 +8,8 @@
 from __future__ import annotations
 
 import time
+from dataclasses import dataclass
+from typing import Any
 
 
 def spin(seconds: float) -> float:
@@ -16,3 +19,21 @@ def spin(seconds: float) -> float:
     while time.perf_counter() < end:
         pass
     return seconds
+
+
+@dataclass(frozen=True)
+class Delayed:
+    """Run kernel ``kernel`` (``module:function``) on ``task`` after spinning ``seconds``."""
+
+    seconds: float
+    kernel: str
+    task: Any
+
+
+def delayed(task: Delayed) -> Any:
+    """Kernel: :func:`spin`, then the wrapped kernel's result (identical to running it
+    directly)."""
+    from ocpar.bsp.kernel import resolve_kernel
+
+    spin(task.seconds)
+    return resolve_kernel(task.kernel)(task.task)

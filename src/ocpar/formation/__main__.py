@@ -28,6 +28,12 @@ from ocpar.formation.solve import (
 )
 
 PROG = "ocpar.formation"
+#: Most agents a run may ask for (the paper's examples have 60 and 30).
+MAX_AGENTS = 100_000
+#: Most agents for ``--ordering optimal``, which fills n × n tables of inner solves.
+MAX_OPTIMAL_ORDERING_AGENTS = 1_000
+#: ``--radius`` must lie within this factor of the problem's default radius (its length scale).
+RADIUS_RANGE = 1e6
 
 
 def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
@@ -40,12 +46,13 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
                         help="; ".join(f"{name}: {e.description} (default {e.agents} agents, "
                                        f"radius {e.radius:g})" for name, e in EXAMPLES.items()))
     parser.add_argument("--agents", type=positive_int, default=None,
-                        help="number of agents (>= 2; default: the problem's)")
+                        help=f"number of agents (2 to {MAX_AGENTS}; default: the problem's)")
     parser.add_argument("--radius", type=positive_float, default=None,
-                        help="radius of the final circle (default: the problem's)")
+                        help="radius of the final circle, within a factor "
+                             f"{RADIUS_RANGE:g} of the problem's default (default: the problem's)")
     parser.add_argument("--mode", choices=MODES, default="hierarchical",
                         help="hierarchical (default) or monolithic (one NLP, for reference)")
-    parser.add_argument("--outer", choices=OUTER_SOLVERS, default="sqp",
+    parser.add_argument("--outer", choices=OUTER_SOLVERS, default=None,
                         help="hierarchical outer solver: sqp (SLSQP in all angles, default) or "
                              "offset (the common offset of equidistant angles: same optimum, "
                              "far fewer supersteps for many agents)")
@@ -58,8 +65,20 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
                         help="write DIR/result.json and DIR/formation.png")
     parser.add_argument("--quiet", action="store_true", help="no progress lines")
     args = parser.parse_args(argv)
-    if args.agents is not None and args.agents < 2:
-        parser.error(f"--agents must be at least 2, got {args.agents}")
+    example = EXAMPLES[args.problem]
+    agents = example.agents if args.agents is None else args.agents
+    if not 2 <= agents <= MAX_AGENTS:
+        parser.error(f"--agents must be between 2 and {MAX_AGENTS}, got {agents}")
+    if args.ordering == "optimal" and agents > MAX_OPTIMAL_ORDERING_AGENTS:
+        parser.error(f"--ordering optimal solves n^2 inner problems per table: at most "
+                     f"{MAX_OPTIMAL_ORDERING_AGENTS} agents, got {agents}")
+    low, high = example.radius / RADIUS_RANGE, example.radius * RADIUS_RANGE
+    if args.radius is not None and not low <= args.radius <= high:
+        parser.error(f"--radius for {args.problem} must be between {low:g} and {high:g}, "
+                     f"got {args.radius:g}")
+    if args.outer is not None and args.mode != "hierarchical":
+        parser.error(f"--outer only applies to --mode hierarchical, not {args.mode}")
+    args.outer = args.outer or "sqp"
     return args
 
 

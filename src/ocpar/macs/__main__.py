@@ -23,6 +23,8 @@ from ocpar.macs.problems import PROBLEMS, make_problem
 from ocpar.macs.solve import solve_macs
 
 PROG = "ocpar.macs"
+#: Most agents: each runs one local search per superstep (the paper used 10).
+MAX_POPULATION = 10_000
 
 
 def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
@@ -34,11 +36,12 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     parser.add_argument("--problem", choices=sorted(PROBLEMS), default="goddard")
     parser.add_argument("--seed", type=non_negative_int, default=0)
     parser.add_argument("--max-evals", type=positive_int, default=10_000,
-                        help="budget of objective evaluations (default 10000)")
+                        help="budget of objective evaluations, more than --population "
+                             "(default 10000)")
     parser.add_argument("--archive", type=positive_int, default=20,
                         help="archive size max_arch (default 20; the paper used 10)")
     parser.add_argument("--population", type=positive_int, default=10,
-                        help="number of agents pop_size (default 10)")
+                        help=f"number of agents pop_size, 4 to {MAX_POPULATION} (default 10)")
     add_backend_arguments(parser)
     parser.add_argument("--output", default=None, metavar="DIR",
                         help="write DIR/result.json, DIR/front.png, DIR/controls.png")
@@ -49,6 +52,12 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
                                      archive_size=args.archive, seed=args.seed)
     except ValueError as exc:
         parser.error(str(exc))
+    if args.population > MAX_POPULATION:
+        parser.error(f"--population must be at most {MAX_POPULATION}, got {args.population}")
+    if args.max_evals <= args.population:
+        parser.error(f"--max-evals {args.max_evals} leaves no iteration: initialising "
+                     f"--population {args.population} agents takes {args.population} "
+                     "evaluations")
     return args
 
 

@@ -1,0 +1,165 @@
+"""Checkpoints: a run killed (SIGKILL) after superstep k and resumed gives the result of an
+uninterrupted run; a checkpoint of another run or format is refused with one line."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+from conftest import REPO, run_cli
+
+from ocpar.bsp.journal import MANIFEST, CheckpointError, Journal
+from ocpar.bsp.serial import SerialBackend
+from ocpar.formation import paper_example, solve_formation
+
+
+def supersteps_recorded(directory: Path) -> int:
+    try:
+        return json.loads((directory / MANIFEST).read_text())["supersteps"]
+    except (OSError, ValueError, KeyError):
+        return 0
+
+
+def kill_after(args: list[str], checkpoint: Path, k: int, timeout: float = 120) -> int:
+    """Start ``python -m ...args --checkpoint DIR``, SIGKILL it once DIR holds k supersteps;
+    return how many it holds after the kill."""
+    proc = subprocess.Popen([sys.executable, "-m", *args, "--checkpoint", str(checkpoint)],
+                            cwd=REPO, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    deadline = time.monotonic() + timeout
+    while supersteps_recorded(checkpoint) < k:
+        assert proc.poll() is None, f"run ended before superstep {k}: {proc.stderr.read()}"
+        assert time.monotonic() < deadline, "no checkpoint progress"
+        time.sleep(0.002)
+    os.kill(proc.pid, signal.SIGKILL)
+    proc.wait()
+    return supersteps_recorded(checkpoint)
+
+
+@pytest.mark.parametrize("args, k, same", [
+    (["ocpar.formation", "--agents", "60", "--quiet"], 3,
+     lambda a, b: a["total_cost"] == b["total_cost"] and a["phi"] == b["phi"]),
+    (["ocpar.macs", "--problem", "goddard", "--max-evals", "1500", "--seed", "7", "--quiet"], 6,
+     lambda a, b: a["front"] == b["front"] and a["hv"] == b["hv"]),
+], ids=["formation", "macs"])
+def test_killed_run_resumes_to_the_uninterrupted_result(tmp_path, args, k, same):
+    whole = tmp_path / "whole"
+    proc = run_cli("-m", *args, "--output", str(whole))
+    assert proc.returncode == 0, proc.stderr
+    expected = json.loads((whole / "result.json").read_text())
+
+    checkpoint = tmp_path / "checkpoint"
+    kept = kill_after(args, checkpoint, k)
+    assert k <= kept < expected["supersteps"]  # killed in the middle, checkpoint intact
+    resumed = tmp_path / "resumed"
+    proc = run_cli("-m", *args, "--resume", str(checkpoint), "--output", str(resumed))
+    assert proc.returncode == 0, proc.stderr
+    result = json.loads((resumed / "result.json").read_text())
+    assert same(result, expected)
+    assert result["supersteps"] == expected["supersteps"]
+    assert supersteps_recorded(checkpoint) == expected["supersteps"]
+
+
+def test_a_checkpoint_of_another_run_or_format_is_refused(tmp_path):
+    checkpoint = tmp_path / "ck"
+    proc = run_cli("-m", "ocpar.formation", "--agents", "6", "--quiet", "--checkpoint",
+                   str(checkpoint))
+    assert proc.returncode == 0, proc.stderr
+    cases = [
+        (["--agents", "7", "--resume", str(checkpoint)], "checkpoint of another run"),
+        (["--agents", "6", "--checkpoint", str(checkpoint)], "already holds a checkpoint"),
+        (["--agents", "6", "--resume", str(tmp_path / "none")], "holds no checkpoint"),
+        (["--agents", "6", "--resume", str(checkpoint), "--checkpoint", str(checkpoint)],
+         "not both"),
+    ]
+    for extra, needle in cases:
+        proc = run_cli("-m", "ocpar.formation", "--quiet", *extra)
+        lines = proc.stderr.strip().splitlines()
+        assert proc.returncode == 2 and len(lines) == 1 and needle in lines[0], proc.stderr
+    manifest = checkpoint / MANIFEST
+    data = json.loads(manifest.read_text())
+    manifest.write_text(json.dumps(data | {"version": 999}))
+    proc = run_cli("-m", "ocpar.formation", "--agents", "6", "--quiet", "--resume",
+                   str(checkpoint))
+    assert proc.returncode == 2 and "format version" in proc.stderr
+
+
+def test_replay_refuses_a_superstep_with_other_tasks(tmp_path):
+    """The journal also checks each superstep's tasks: a coordinator that would ask for other
+    work than the recorded run (e.g. another problem with the same options) is stopped."""
+    journal = Journal(tmp_path, {"run": "x"}, resume=False)
+    backend = SerialBackend()
+    backend.journal = journal
+    solve_formation(paper_example(6), backend)
+    resumed = SerialBackend()
+    resumed.journal = Journal(tmp_path, {"run": "x"}, resume=True)
+    with pytest.raises(CheckpointError, match="other tasks"):
+        solve_formation(paper_example(6, radius=11.0), resumed)
+
+
+def test_checkpoint_files_hold_no_pickles(tmp_path):
+    backend = SerialBackend()
+    backend.journal = Journal(tmp_path, {"run": "y"}, resume=False)
+    solve_formation(paper_example(6), backend)
+    for path in sorted(tmp_path.glob("superstep-*.npz")):
+        with np.load(path, allow_pickle=False) as data:  # raises on any pickled entry
+            assert all(data[name].dtype != object for name in data.files)
+
+
+MPI_HANG = """
+from ocpar.bsp.mpi import MpiBackend
+backend = MpiBackend(timeout_s=1.0)
+if backend.is_coordinator:
+    backend.superstep("ocpar.bsp.workload:spin", [0.01, 30.0])   # rank 1 'hangs' for 30 s
+    print("not reached")
+else:
+    backend.serve()
+"""
+
+
+def test_an_mpi_superstep_past_its_deadline_aborts_with_a_clear_message(tmp_path):
+    script = tmp_path / "hang.py"
+    script.write_text(MPI_HANG)
+    start = time.monotonic()
+    proc = run_cli(str(script), mpi_ranks=2, timeout=60)
+    assert time.monotonic() - start < 25  # aborted at the deadline, not after the 30 s task
+    assert proc.returncode != 0 and "not reached" not in proc.stdout
+    assert "no result from MPI rank(s) 1 within 1 s" in proc.stderr
+
+
+def test_killing_an_mpi_rank_ends_the_run_and_keeps_the_checkpoint(tmp_path):
+    """SIGKILL of rank 1 mid-run: mpirun ends the job (no hang), the checkpoint holds the
+    supersteps before, and resuming on two ranks gives the uninterrupted result."""
+    args = ["ocpar.formation", "--agents", "300", "--quiet"]
+    whole = tmp_path / "whole"
+    proc = run_cli("-m", *args, "--output", str(whole), mpi_ranks=2)
+    assert proc.returncode == 0, proc.stderr
+    expected = json.loads((whole / "result.json").read_text())
+
+    checkpoint = tmp_path / "ck"
+    launcher = subprocess.Popen([str(Path(sys.executable).parent / "mpirun"), "-n", "2",
+                                 sys.executable, "-m", *args, "--checkpoint", str(checkpoint)],
+                                cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    deadline = time.monotonic() + 120
+    while supersteps_recorded(checkpoint) < 3:
+        assert launcher.poll() is None and time.monotonic() < deadline
+        time.sleep(0.002)
+    ranks = subprocess.run(["pgrep", "-f", f"{' '.join(args)} --checkpoint {checkpoint}"],
+                           capture_output=True, text=True).stdout.split()
+    os.kill(int(max(ranks, key=int)), signal.SIGKILL)  # the last started: a rank, not mpirun
+    launcher.wait(timeout=60)
+    assert launcher.returncode != 0
+    kept = supersteps_recorded(checkpoint)
+    assert 3 <= kept < expected["supersteps"]
+    resumed = tmp_path / "resumed"
+    proc = run_cli("-m", *args, "--resume", str(checkpoint), "--output", str(resumed),
+                   mpi_ranks=2)
+    assert proc.returncode == 0, proc.stderr
+    result = json.loads((resumed / "result.json").read_text())
+    assert result["total_cost"] == expected["total_cost"] and result["phi"] == expected["phi"]
