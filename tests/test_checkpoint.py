@@ -163,3 +163,41 @@ def test_killing_an_mpi_rank_ends_the_run_and_keeps_the_checkpoint(tmp_path):
     assert proc.returncode == 0, proc.stderr
     result = json.loads((resumed / "result.json").read_text())
     assert result["total_cost"] == expected["total_cost"] and result["phi"] == expected["phi"]
+
+
+class Crash(Exception):
+    """Stands in for the coordinator dying between supersteps."""
+
+
+def crash_after(backend, supersteps: int) -> None:
+    """Make ``backend`` die when it starts superstep ``supersteps`` + 1."""
+    run, started = backend._run_chunks, []
+
+    def run_or_crash(name, chunks):
+        started.append(name)
+        if len(started) > supersteps:
+            raise Crash
+        return run(name, chunks)
+
+    backend._run_chunks = run_or_crash
+
+
+def test_pursuit_resumes_to_the_uninterrupted_train(tmp_path):
+    """The pursuit scheme through the Python API: the agent train (positions, plans, warm
+    starts) is rebuilt by replay, and the final trajectory is identical."""
+    from ocpar.pursuit import OrbitTransferProblem, PursuitSettings, solve_pursuit
+
+    problem = OrbitTransferProblem(case=1, samples=101)
+    settings = PursuitSettings(window=32, update=16, max_agents=12)
+    expected = solve_pursuit(problem, settings, reference=False)
+    backend = SerialBackend()
+    backend.journal = Journal(tmp_path, {"run": "pursuit"}, resume=False)
+    crash_after(backend, 7)
+    with pytest.raises(Crash):
+        solve_pursuit(problem, settings, backend, reference=False)
+    resumed = SerialBackend()
+    resumed.journal = Journal(tmp_path, {"run": "pursuit"}, resume=True)
+    assert resumed.journal.recorded_supersteps == 7
+    result = solve_pursuit(problem, settings, resumed, reference=False)
+    assert np.array_equal(result.x, expected.x) and np.array_equal(result.u, expected.u)
+    assert result.supersteps == expected.supersteps
