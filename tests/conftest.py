@@ -2,11 +2,13 @@
 
 from __future__ import annotations
 
+import contextlib
 import os
 import socket
 import subprocess
 import sys
 import time
+from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
@@ -49,15 +51,16 @@ def free_port() -> int:
         return s.getsockname()[1]
 
 
-@pytest.fixture(scope="session")
-def dask_cluster():
+@contextlib.contextmanager
+def local_cluster(extra_env: dict[str, str] | None = None) -> Iterator[str]:
     """A real ``dask scheduler`` and two single-threaded ``dask worker`` processes started by
-    ``workers/start-dask-worker.sh`` on 127.0.0.1; yields the scheduler address."""
+    ``workers/start-dask-worker.sh`` on 127.0.0.1 (``extra_env`` added to their environment);
+    yields the scheduler address."""
     from distributed import Client
 
     port = free_port()
     address = f"tcp://127.0.0.1:{port}"
-    env = dict(os.environ, OMP_NUM_THREADS="1")
+    env = dict(os.environ, OMP_NUM_THREADS="1", **(extra_env or {}))
     dask = tool("dask")
     procs = [subprocess.Popen([dask, "scheduler", "--host", "127.0.0.1", "--port", str(port),
                                "--no-dashboard"], env=env,
@@ -88,3 +91,10 @@ def dask_cluster():
                 proc.wait(timeout=20)
             except subprocess.TimeoutExpired:
                 proc.kill()
+
+
+@pytest.fixture(scope="session")
+def dask_cluster():
+    """:func:`local_cluster` for the whole session."""
+    with local_cluster() as address:
+        yield address

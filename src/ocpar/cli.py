@@ -16,6 +16,7 @@ from ocpar.bsp import (
     BALANCE_POLICIES,
     Backend,
     BackendError,
+    RunCancelled,
     launched_by_mpirun,
     open_backend,
 )
@@ -23,13 +24,16 @@ from ocpar.bsp.journal import CheckpointError, Journal
 from ocpar.bsp.mpi import SUPERSTEP_TIMEOUT_S
 
 EXIT_USAGE = 2
+#: Exit status of a run stopped by its stop file (``--stop-file``, ``ocpar cancel``).
+EXIT_CANCELLED = 4
 #: Most worker processes an embedded Dask cluster may be asked to start.
 MAX_LOCAL_WORKERS = 256
 #: Options that say where and how a run executes, not what it computes: they may differ
 #: between a run and its resumption (everything else must match the checkpoint).
 RUNTIME_OPTIONS = frozenset({
     "backend", "workers", "scheduler", "balance", "output", "quiet", "checkpoint", "resume",
-    "superstep_timeout", "tls_ca_file", "tls_cert", "tls_key"})
+    "superstep_timeout", "tls_ca_file", "tls_cert", "tls_key", "stop_file", "dispatch",
+    "job_name"})
 R = TypeVar("R")
 Progress = Callable[[str], None]
 
@@ -115,10 +119,20 @@ def add_backend_arguments(parser: argparse.ArgumentParser) -> None:
     group.add_argument("--superstep-timeout", type=positive_float, default=SUPERSTEP_TIMEOUT_S,
                        metavar="S", help="abort a superstep whose results have not all "
                        f"arrived after S seconds (default {SUPERSTEP_TIMEOUT_S:g})")
+    group.add_argument("--dispatch", choices=("direct", "tasks"), default="direct",
+                       help="dask: chunks reach workers through Client.run (direct, default, "
+                            "~5 ms per superstep) or as named Dask tasks (tasks: seen on the "
+                            "dashboard as JOB-superstep-K-chunk-W)")
+    group.add_argument("--job-name", default=None, metavar="NAME",
+                       help="dask: the name the run's task keys start with (with --dispatch "
+                            "tasks)")
     checkpoints = parser.add_argument_group("checkpoints")
     checkpoints.add_argument("--checkpoint", default=None, metavar="DIR",
                              help="record every superstep in DIR as it completes (atomic "
                                   "writes); a killed run continues with --resume DIR")
+    checkpoints.add_argument("--stop-file", default=None, metavar="PATH",
+                             help="stop at the next superstep boundary once PATH exists "
+                                  f"(exit status {EXIT_CANCELLED}; the checkpoint is intact)")
     checkpoints.add_argument("--resume", default=None, metavar="DIR",
                              help="continue the run checkpointed in DIR (same options), "
                                   "recording on into DIR; the result is the uninterrupted "
@@ -198,7 +212,9 @@ def start_backend(args: argparse.Namespace, backend_name: str, prog: str) -> Bac
         return open_backend(backend_name, workers=args.workers, scheduler=args.scheduler,
                             balance=args.balance, security=security,
                             superstep_timeout_s=getattr(args, "superstep_timeout",
-                                                        SUPERSTEP_TIMEOUT_S))
+                                                        SUPERSTEP_TIMEOUT_S),
+                            dispatch=getattr(args, "dispatch", "direct"),
+                            run_name=getattr(args, "job_name", None))
     except BackendError as exc:
         fail(prog, str(exc))
 
@@ -236,11 +252,19 @@ def run_on_backend(
             backend.serve()
             return None
         backend.journal = journal
-        if getattr(args, "quiet", False):
-            return body(backend, lambda line: None)
-        if link := getattr(backend, "dashboard_link", None):
+        if getattr(args, "stop_file", None):
+            backend.stop_file = Path(args.stop_file)
+        quiet = getattr(args, "quiet", False)
+        if not quiet and (link := getattr(backend, "dashboard_link", None)):
             print(f"Dask dashboard: {link}", flush=True)
-        return body(backend, lambda line: print(line, flush=True))
+        try:
+            return body(backend, (lambda line: None) if quiet
+                        else (lambda line: print(line, flush=True)))
+        except RunCancelled as exc:
+            where = f"; resume with --resume {journal.directory}" if journal else ""
+            print(f"{prog}: {exc} (stop file {args.stop_file}){where}", file=sys.stderr,
+                  flush=True)
+            sys.exit(EXIT_CANCELLED)
 
 
 def run_fingerprint(args: argparse.Namespace, prog: str) -> dict:

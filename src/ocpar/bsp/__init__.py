@@ -13,7 +13,13 @@ an MPI allocation). Every superstep is timed (:class:`SuperstepTrace`).
 
 from __future__ import annotations
 
-from ocpar.bsp.backend import BALANCE_POLICIES, Backend, BackendError, check_balance
+from ocpar.bsp.backend import (
+    BALANCE_POLICIES,
+    Backend,
+    BackendError,
+    RunCancelled,
+    check_balance,
+)
 from ocpar.bsp.kernel import ChunkResult, kernel_name, run_chunk
 from ocpar.bsp.mpi import SUPERSTEP_TIMEOUT_S, launched_by_mpirun
 from ocpar.bsp.partition import contiguous_blocks
@@ -25,7 +31,8 @@ BACKENDS = ("serial", "mpi", "dask", "dask-mpi")
 def open_backend(
     name: str, workers: int | None = None, scheduler: str | None = None,
     balance: str = "blocks", security: object = None,
-    superstep_timeout_s: float = SUPERSTEP_TIMEOUT_S,
+    superstep_timeout_s: float = SUPERSTEP_TIMEOUT_S, dispatch: str = "direct",
+    run_name: str | None = None,
 ) -> Backend:
     """Start the backend ``name`` with ``workers`` workers and the ``balance`` policy
     (``blocks`` or ``lpt``, see :data:`BALANCE_POLICIES`).
@@ -37,7 +44,9 @@ def open_backend(
     in rank 1 only, as the coordinator (see :mod:`ocpar.bsp.dask_mpi`).
 
     ``superstep_timeout_s`` (``mpi``, ``dask``): a superstep whose results have not all arrived
-    by then ends the run with a message instead of waiting forever. ``security`` (``dask``
+    by then ends the run with a message instead of waiting forever. ``dispatch`` and
+    ``run_name`` (``dask``): how chunks reach workers (``direct`` or ``tasks``, see
+    :mod:`ocpar.bsp.dask`) and the name the tasks' keys start with. ``security`` (``dask``
     only): a :class:`distributed.Security` with the TLS certificates
     for a ``tls://`` scheduler, or for an embedded cluster that then uses TLS (see
     ``workers/tls.md`` and :func:`ocpar.bsp.dask.tls_security`).
@@ -60,7 +69,8 @@ def open_backend(
         from ocpar.bsp.dask import DaskBackend
 
         return DaskBackend(workers=workers, scheduler=scheduler, balance=balance,
-                           security=security, superstep_timeout_s=superstep_timeout_s)
+                           security=security, superstep_timeout_s=superstep_timeout_s,
+                           dispatch=dispatch, run_name=run_name)
     if name == "dask-mpi":
         from ocpar.bsp.dask_mpi import open_dask_mpi
 
@@ -74,6 +84,7 @@ __all__ = [
     "Backend",
     "BackendError",
     "ChunkResult",
+    "RunCancelled",
     "SuperstepTrace",
     "contiguous_blocks",
     "kernel_name",

@@ -6,6 +6,7 @@ import itertools
 import time
 from abc import ABC, abstractmethod
 from collections.abc import Callable, Sequence
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -23,6 +24,10 @@ from ocpar.bsp.trace import SuperstepTrace
 BALANCE_POLICIES = ("blocks", "lpt")
 AFFINITY_TOLERANCE = 0.05
 
+
+
+class RunCancelled(RuntimeError):
+    """The run was asked to stop (its stop file appeared) at a superstep boundary."""
 
 
 class BackendError(RuntimeError):
@@ -53,6 +58,9 @@ class Backend(ABC):
         self._last_kernel: str | None = None
         #: Where supersteps are checkpointed and replayed from (:mod:`ocpar.bsp.journal`).
         self.journal: Journal | None = None
+        #: If this file exists when a superstep is to start, the run stops there
+        #: (:class:`RunCancelled`): how a detached job is cancelled, its checkpoint intact.
+        self.stop_file: Path | None = None
 
     @property
     def is_coordinator(self) -> bool:
@@ -89,6 +97,8 @@ class Backend(ABC):
     def _superstep(self, kernel: KernelRef, n: int, select: Callable[[list[int]], Any],
                    costs: Sequence[float] | None, columns: bool) -> Any:
         name = kernel_name(kernel)
+        if self.stop_file is not None and self.stop_file.exists():
+            raise RunCancelled(f"cancelled before superstep {len(self.traces)}")
         tasks_digest = None
         if self.journal is not None:
             tasks_digest = digest(select(list(range(n))))

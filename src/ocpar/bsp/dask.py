@@ -132,6 +132,7 @@ class DaskBackend(Backend):
         dispatch: str = "direct",
         security: Any = None,
         superstep_timeout_s: float = SUPERSTEP_TIMEOUT_S,
+        run_name: str | None = None,
     ) -> None:
         import dask
         from distributed import Client, LocalCluster, Security
@@ -151,7 +152,8 @@ class DaskBackend(Backend):
         self._cluster = None
         # task keys must be unique on a shared cluster: identical keys from two coordinators
         # would be deduplicated by the scheduler, and one would get the other's results
-        self._run_id = uuid.uuid4().hex[:12]
+        self._run_id = (f"{run_name}-{uuid.uuid4().hex[:6]}" if run_name
+                        else uuid.uuid4().hex[:12])
         with dask.config.set(WORKER_CONFIG):
             if scheduler is None:
                 n = workers or os.cpu_count() or 1

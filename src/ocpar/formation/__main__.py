@@ -36,7 +36,9 @@ MAX_OPTIMAL_ORDERING_AGENTS = 1_000
 RADIUS_RANGE = 1e6
 
 
-def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
+def build_parser() -> OneLineParser:
+    """The command line's parser (its options are also the keys of a run configuration,
+    :mod:`ocpar.config`)."""
     parser = OneLineParser(
         prog=PROG,
         description="Hierarchical formation reconfiguration (the paper's 60 point masses by "
@@ -64,6 +66,11 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     parser.add_argument("--output", default=None, metavar="DIR",
                         help="write DIR/result.json and DIR/formation.png")
     parser.add_argument("--quiet", action="store_true", help="no progress lines")
+    return parser
+
+
+def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
+    parser = build_parser()
     args = parser.parse_args(argv)
     example = EXAMPLES[args.problem]
     agents = example.agents if args.agents is None else args.agents

@@ -27,7 +27,9 @@ PROG = "ocpar.macs"
 MAX_POPULATION = 10_000
 
 
-def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
+def build_parser() -> OneLineParser:
+    """The command line's parser (its options are also the keys of a run configuration,
+    :mod:`ocpar.config`)."""
     parser = OneLineParser(
         prog=PROG,
         description="MACSoc: multi-objective optimal control by multi-agent collaborative "
@@ -46,6 +48,11 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     parser.add_argument("--output", default=None, metavar="DIR",
                         help="write DIR/result.json, DIR/front.png, DIR/controls.png")
     parser.add_argument("--quiet", action="store_true", help="no progress lines")
+    return parser
+
+
+def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
+    parser = build_parser()
     args = parser.parse_args(argv)
     try:
         args.settings = MacsSettings(max_evaluations=args.max_evals, population=args.population,

@@ -29,7 +29,9 @@ PROG = "ocpar.pursuit"
 MAX_SAMPLES = 100_001
 
 
-def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
+def build_parser() -> OneLineParser:
+    """The command line's parser (its options are also the keys of a run configuration,
+    :mod:`ocpar.config`)."""
     parser = OneLineParser(
         prog=PROG,
         description="Pursuit-based multiple shooting (PBMS) on the paper's orbit transfer: a "
@@ -57,6 +59,11 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     parser.add_argument("--output", default=None, metavar="DIR",
                         help="write DIR/result.json, DIR/pursuit.png, DIR/convergence.png")
     parser.add_argument("--quiet", action="store_true", help="no progress lines")
+    return parser
+
+
+def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
+    parser = build_parser()
     args = parser.parse_args(argv)
     if args.samples > MAX_SAMPLES:
         parser.error(f"--samples must be at most {MAX_SAMPLES}, got {args.samples}")

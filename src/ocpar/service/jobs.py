@@ -1,0 +1,128 @@
+"""Jobs on the scheduler's host: one directory per job under the jobs root.
+
+The jobs root is ``$OCPAR_JOBS_DIR`` in the scheduler's environment (default
+``~/.ocpar/jobs`` of the user running the scheduler); clients never read it directly, they
+ask the scheduler (``Client.run_on_scheduler``) to run the functions below, so a client needs
+no shared file system. A job directory holds
+
+* ``job.json``: id, scheme, the scheme's command line, scheduler address, submission time;
+* ``state.json``: ``queued`` → ``running`` (with the coordinator's pid) → ``finished``,
+  ``failed`` or ``cancelled`` (with the exit status), written atomically;
+* ``checkpoint/`` (the run's journal: supersteps done, resumable with ``--resume``),
+  ``output/`` (``result.json`` and plots), ``log.txt`` (the coordinator's progress lines),
+  and ``cancel`` once a cancellation is asked for (the run stops at the next superstep
+  boundary).
+
+The coordinator runs as a detached process on the scheduler's host
+(:mod:`ocpar.service.coordinator`): it is a Dask client, not a Dask task, so it takes no worker
+slot and a one-worker cluster cannot deadlock; it survives the submitting process.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import secrets
+import subprocess
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+from ocpar.bsp.journal import MANIFEST
+
+JOBS_DIR_ENV = "OCPAR_JOBS_DIR"
+STATES = ("queued", "running", "finished", "failed", "cancelled")
+#: Files of a finished job that ``ocpar result`` fetches (from ``output/``).
+RESULT_SUFFIXES = (".json", ".png")
+
+
+class JobError(ValueError):
+    """No such job, or an action its state does not allow (one-line message)."""
+
+
+def jobs_root() -> Path:
+    """The jobs root on this host (created if missing)."""
+    root = Path(os.environ.get(JOBS_DIR_ENV) or Path.home() / ".ocpar" / "jobs")
+    root.mkdir(parents=True, exist_ok=True)
+    return root
+
+
+def job_dir(job_id: str) -> Path:
+    """The directory of ``job_id`` (a JobError if there is none)."""
+    if not job_id or not job_id.replace("-", "").isalnum():
+        raise JobError(f"not a job id: {job_id!r}")
+    path = jobs_root() / job_id
+    if not (path / "job.json").exists():
+        raise JobError(f"no job {job_id} on this cluster")
+    return path
+
+
+def _write_json(path: Path, data: dict) -> None:
+    tmp = path.with_name(f".{path.name}.{os.getpid()}")
+    tmp.write_text(json.dumps(data, indent=1))
+    os.replace(tmp, path)
+
+
+def write_state(path: Path, state: str, **details: Any) -> None:
+    """Set the state of the job in directory ``path``."""
+    _write_json(path / "state.json", {"state": state, "time": time.time(), **details})
+
+
+def create_and_start(scheme: str, argv: list[str], scheduler: str) -> str:
+    """Make a job directory for ``python -m ocpar.<scheme> argv`` against ``scheduler`` and
+    start its coordinator, detached (runs in the scheduler's process); returns the job id."""
+    job_id = f"{scheme}-{time.strftime('%Y%m%d-%H%M%S')}-{secrets.token_hex(3)}"
+    path = jobs_root() / job_id
+    path.mkdir()
+    _write_json(path / "job.json", {"id": job_id, "scheme": scheme, "argv": argv,
+                                    "scheduler": scheduler, "submitted": time.time()})
+    write_state(path, "queued")
+    with open(path / "log.txt", "ab") as log:
+        subprocess.Popen([sys.executable, "-m", "ocpar.service.coordinator", str(path)],
+                         stdin=subprocess.DEVNULL, stdout=log, stderr=log,
+                         start_new_session=True, cwd=path)
+    return job_id
+
+
+def job_status(job_id: str) -> dict:
+    """State, supersteps done and the last progress line of ``job_id``."""
+    path = job_dir(job_id)
+    job = json.loads((path / "job.json").read_text())
+    state = json.loads((path / "state.json").read_text())
+    try:
+        supersteps = json.loads((path / "checkpoint" / MANIFEST).read_text())["supersteps"]
+    except (OSError, ValueError, KeyError):
+        supersteps = 0
+    lines = [line for line in (path / "log.txt").read_text(errors="replace").splitlines()
+             if line.strip()] if (path / "log.txt").exists() else []
+    return {"id": job_id, "scheme": job["scheme"], **state, "supersteps": supersteps,
+            "progress": lines[-1] if lines else "", "submitted": job["submitted"],
+            "checkpoint": str(path / "checkpoint"), "cancel_requested":
+            (path / "cancel").exists()}
+
+
+def list_jobs() -> list[dict]:
+    """The status of every job, oldest first."""
+    ids = sorted((p.name for p in jobs_root().iterdir() if (p / "job.json").exists()),
+                 key=lambda name: (jobs_root() / name / "job.json").stat().st_mtime)
+    return [job_status(job_id) for job_id in ids]
+
+
+def result_files(job_id: str) -> dict[str, bytes]:
+    """``result.json`` and the plots of a finished job, by file name."""
+    status = job_status(job_id)
+    output = job_dir(job_id) / "output"
+    if not (output / "result.json").exists():
+        raise JobError(f"job {job_id} has no result yet (state {status['state']})")
+    return {p.name: p.read_bytes() for p in sorted(output.iterdir())
+            if p.suffix in RESULT_SUFFIXES}
+
+
+def cancel(job_id: str) -> dict:
+    """Ask ``job_id`` to stop at its next superstep boundary; returns its status."""
+    status = job_status(job_id)
+    if status["state"] in ("finished", "failed", "cancelled"):
+        raise JobError(f"job {job_id} is already {status['state']}")
+    (job_dir(job_id) / "cancel").touch()
+    return job_status(job_id)
