@@ -1,5 +1,8 @@
 """Command line: ``ocpar COMMAND`` (or ``python -m ocpar COMMAND``).
 
+Commands: ``run`` (a configuration, here), ``submit`` (a configuration as a detached job on a
+Dask cluster), ``jobs``, ``status``, ``result``, ``cancel`` (see :mod:`ocpar.service`).
+
 ``ocpar run CONFIG [--set KEY=VALUE ...] [--print-argv]`` runs the configuration file CONFIG
 (:mod:`ocpar.config`), or the packaged example of that name (``ocpar run --list``), through
 its scheme's own command line: ``ocpar run formation-60`` is ``python -m ocpar.formation
@@ -13,10 +16,17 @@ and exit status 2.
 from __future__ import annotations
 
 import argparse
+import json
 import sys
+import time
+from dataclasses import replace
 
 from ocpar.cli import OneLineParser, fail
 from ocpar.config import ConfigError, examples, load_config, parse_overrides, scheme_module
+
+#: Keys of a configuration that a submitted job sets itself: where it runs and writes.
+SERVICE_KEYS = ("backend", "scheduler", "output", "checkpoint", "resume", "stop_file",
+                "job_name", "dispatch")
 
 PROG = "ocpar"
 
@@ -46,6 +56,86 @@ def run(args: argparse.Namespace) -> int:
     return scheme.main(argv)
 
 
+def submit(args: argparse.Namespace) -> int:
+    from ocpar.service import client
+
+    prog = f"{PROG} submit"
+    try:
+        config = load_config(args.config, parse_overrides(args.overrides))
+    except ConfigError as exc:
+        fail(prog, str(exc))
+    config = replace(config, options={key: value for key, value in config.options.items()
+                                      if key not in SERVICE_KEYS})
+    try:
+        job = client.submit(config.scheme, config.argv(), args.scheduler)
+    except client.ServiceError as exc:
+        fail(prog, str(exc))
+    print(job)
+    return 0
+
+
+def _service_call(args: argparse.Namespace, action: str, call) -> object:
+    from ocpar.service.client import ServiceError
+
+    try:
+        return call()
+    except ServiceError as exc:
+        fail(f"{PROG} {action}", str(exc))
+
+
+def _describe(status: dict) -> str:
+    age = time.strftime("%Y-%m-%d %H:%M:%S", time.localtime(status["submitted"]))
+    cancel = "  (cancel requested)" if status["cancel_requested"] and \
+        status["state"] == "running" else ""
+    return (f"{status['id']:38} {status['state']:9} supersteps {status['supersteps']:5d}  "
+            f"submitted {age}{cancel}")
+
+
+def jobs(args: argparse.Namespace) -> int:
+    from ocpar.service import client
+
+    for status in _service_call(args, "jobs", lambda: client.list_jobs(args.scheduler)):
+        print(_describe(status))
+    return 0
+
+
+def status(args: argparse.Namespace) -> int:
+    from ocpar.service import client
+
+    state = _service_call(args, "status", lambda: client.status(args.job, args.scheduler))
+    if args.json:
+        print(json.dumps(state, indent=1))
+    else:
+        print(_describe(state))
+        if state["progress"]:
+            print(f"  {state['progress']}")
+    return 0
+
+
+def result(args: argparse.Namespace) -> int:
+    from ocpar.service import client
+
+    paths = _service_call(args, "result",
+                          lambda: client.result(args.job, args.scheduler, args.output))
+    print("wrote " + " and ".join(str(p) for p in paths))
+    return 0
+
+
+def cancel(args: argparse.Namespace) -> int:
+    from ocpar.service import client
+
+    state = _service_call(args, "cancel", lambda: client.cancel(args.job, args.scheduler))
+    print(f"{args.job}: cancel requested; it stops at its next superstep boundary (state "
+          f"{state['state']}, {state['supersteps']} supersteps done, checkpoint "
+          f"{state['checkpoint']})")
+    return 0
+
+
+def _add_scheduler(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--scheduler", required=True, metavar="ADDR",
+                        help="the Dask scheduler that keeps the jobs, e.g. tcp://HOST:8786")
+
+
 def build_parser() -> OneLineParser:
     parser = OneLineParser(
         prog=PROG,
@@ -72,6 +162,43 @@ def build_parser() -> OneLineParser:
     run_parser.add_argument("--list", action="store_true",
                             help="list the packaged example configurations")
     run_parser.set_defaults(handler=run)
+
+    submit_parser = commands.add_parser(
+        "submit", prog=f"{PROG} submit", help="start a configuration as a detached job",
+        description="Start CONFIG as a job on a Dask cluster and print its id at once: its "
+        "coordinator runs on the scheduler's host (no worker slot), survives this process, "
+        "checkpoints every superstep and writes its results where the scheduler keeps jobs "
+        "($OCPAR_JOBS_DIR there, default ~/.ocpar/jobs). Keys about where a run goes "
+        f"({', '.join(SERVICE_KEYS)}) are set by the service and ignored.")
+    submit_parser.add_argument("config", metavar="CONFIG",
+                               help="a TOML file, or an example name (ocpar run --list)")
+    _add_scheduler(submit_parser)
+    submit_parser.add_argument("--set", nargs="+", default=[], dest="overrides",
+                               metavar="KEY=VALUE", help="override keys of CONFIG")
+    submit_parser.set_defaults(handler=submit)
+
+    jobs_parser = commands.add_parser("jobs", prog=f"{PROG} jobs", help="list the jobs",
+                                      description="List the cluster's jobs: id, state "
+                                      "(queued, running, finished, failed, cancelled), "
+                                      "supersteps done.")
+    _add_scheduler(jobs_parser)
+    jobs_parser.set_defaults(handler=jobs)
+
+    for name, handler, text in (("status", status, "show one job: state, supersteps done and "
+                                 "its latest progress line (the scheme's headline figure)"),
+                                ("result", result, "fetch a finished job's result.json and "
+                                 "plots"),
+                                ("cancel", cancel, "stop a job at its next superstep "
+                                 "boundary, keeping its checkpoint")):
+        sub = commands.add_parser(name, prog=f"{PROG} {name}", help=text, description=text)
+        sub.add_argument("job", metavar="JOB", help="the job id that ocpar submit printed")
+        _add_scheduler(sub)
+        if name == "status":
+            sub.add_argument("--json", action="store_true", help="print the status as JSON")
+        if name == "result":
+            sub.add_argument("--output", required=True, metavar="DIR",
+                             help="where to write result.json and the plots")
+        sub.set_defaults(handler=handler)
     return parser
 
 

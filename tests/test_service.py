@@ -1,0 +1,125 @@
+"""The solver as a service: detached jobs on a real Dask cluster (``dask scheduler`` and two
+workers from ``workers/start-dask-worker.sh`` on 127.0.0.1), submitted, watched, fetched and
+cancelled by separate ``ocpar`` processes."""
+
+from __future__ import annotations
+
+import json
+import time
+from pathlib import Path
+
+import pytest
+from conftest import local_cluster, run_cli
+
+MACS = ["macs-goddard", "--set", "max_evals=1500", "seed=7"]
+
+
+@pytest.fixture(scope="module")
+def cluster(tmp_path_factory):
+    """A cluster whose scheduler keeps its jobs in a temporary directory."""
+    jobs_dir = tmp_path_factory.mktemp("jobs")
+    with local_cluster({"OCPAR_JOBS_DIR": str(jobs_dir)}) as address:
+        yield address, jobs_dir
+
+
+def ocpar(*args: str, timeout: float = 120):
+    return run_cli("-m", "ocpar", *args, timeout=timeout)
+
+
+def submit(address: str, *config: str) -> str:
+    proc = ocpar("submit", *config, "--scheduler", address)
+    assert proc.returncode == 0, proc.stderr
+    return proc.stdout.strip()
+
+
+def status(address: str, job: str) -> dict:
+    proc = ocpar("status", job, "--scheduler", address, "--json")
+    assert proc.returncode == 0, proc.stderr
+    return json.loads(proc.stdout)
+
+
+def wait_for(address: str, job: str, states: tuple[str, ...], timeout: float = 300) -> dict:
+    deadline = time.monotonic() + timeout
+    while (state := status(address, job))["state"] not in states:
+        assert time.monotonic() < deadline, state
+        time.sleep(0.5)
+    return state
+
+
+def run_here(tmp_path: Path, name: str, *config: str) -> dict:
+    """The same configuration through ``ocpar run``, serially, here."""
+    out = tmp_path / name
+    proc = ocpar("run", *config[:1], "--set", f"output={out}", "quiet=true", *config[2:])
+    assert proc.returncode == 0, proc.stderr
+    return json.loads((out / "result.json").read_text())
+
+
+def test_two_jobs_submitted_at_once_finish_and_match_ocpar_run(cluster, tmp_path):
+    """The formation (60 agents) and a MACS run are submitted at once on the two-worker
+    cluster; the submitting processes exit at once; a later process fetches both results,
+    which equal ``ocpar run`` of the same configurations."""
+    address, _ = cluster
+    formation = submit(address, "formation-60")
+    macs = submit(address, *MACS)
+    assert formation != macs
+    listed = ocpar("jobs", "--scheduler", address)
+    assert formation in listed.stdout and macs in listed.stdout
+
+    for job, expected, same in (
+        (formation, run_here(tmp_path, "formation", "formation-60"),
+         lambda a, b: a["total_cost"] == b["total_cost"] and a["phi"] == b["phi"]),
+        (macs, run_here(tmp_path, "macs", *MACS),
+         lambda a, b: a["front"] == b["front"] and a["hv"] == b["hv"]),
+    ):
+        final = wait_for(address, job, ("finished", "failed", "cancelled"))
+        assert final["state"] == "finished", final
+        assert final["supersteps"] == expected["supersteps"]
+        out = tmp_path / f"fetched-{job}"
+        proc = ocpar("result", job, "--scheduler", address, "--output", str(out))
+        assert proc.returncode == 0, proc.stderr
+        result = json.loads((out / "result.json").read_text())
+        assert same(result, expected)
+        assert result["backend"] == "dask" and result["workers"] == 2
+        assert any(p.suffix == ".png" for p in out.iterdir())
+
+
+def test_cancel_stops_within_a_superstep_and_the_checkpoint_resumes(cluster, tmp_path):
+    address, jobs_dir = cluster
+    config = ["macs-goddard", "--set", "max_evals=3000", "seed=3"]
+    job = submit(address, *config)
+    state = wait_for(address, job, ("running",))
+    while state["supersteps"] < 5:
+        time.sleep(0.2)
+        state = status(address, job)
+    proc = ocpar("cancel", job, "--scheduler", address)
+    assert proc.returncode == 0, proc.stderr
+    asked_at = status(address, job)["supersteps"]
+    final = wait_for(address, job, ("finished", "failed", "cancelled"), timeout=120)
+    assert final["state"] == "cancelled"
+    assert final["supersteps"] <= asked_at + 1  # within one superstep
+    proc = ocpar("result", job, "--scheduler", address, "--output", str(tmp_path / "none"))
+    assert proc.returncode == 2 and "no result yet" in proc.stderr
+
+    expected = run_here(tmp_path, "whole", *config)
+    resumed = tmp_path / "resumed"
+    proc = run_cli("-m", "ocpar.macs", "--problem", "goddard", "--max-evals", "3000",
+                   "--archive", "10", "--seed", "3", "--quiet",
+                   "--resume", str(jobs_dir / job / "checkpoint"), "--output", str(resumed))
+    assert proc.returncode == 0, proc.stderr
+    result = json.loads((resumed / "result.json").read_text())
+    assert result["front"] == expected["front"] and result["hv"] == expected["hv"]
+
+
+def test_service_commands_refuse_bad_input_with_one_line(cluster):
+    address, _ = cluster
+    cases = [
+        (["submit", "formation-60", "--set", "agents=1", "--scheduler", address], "--agents"),
+        (["submit", "no-such-config", "--scheduler", address], "no-such-config"),
+        (["status", "formation-19990101-000000-abcdef", "--scheduler", address], "no job"),
+        (["cancel", "../etc", "--scheduler", address], "not a job id"),
+        (["jobs", "--scheduler", "tcp://127.0.0.1:1"], "cannot reach"),
+    ]
+    for args, needle in cases:
+        proc = ocpar(*args)
+        lines = proc.stderr.strip().splitlines()
+        assert proc.returncode == 2 and len(lines) == 1 and needle in lines[0], proc.stderr
