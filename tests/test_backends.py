@@ -211,3 +211,21 @@ def test_external_dask_cluster_matches_serial(serial_reference, dask_cluster, tm
         reports = cluster.superstep("ocpar.ocp.dmoc:cache_report", [None, None])
     assert [r["builds"] for r in reports] == [1, 1]
     assert sum(r["hits"] for r in reports) == data["inner_solves"]
+
+
+def test_task_dispatch_names_tasks_after_the_run_and_superstep(local_dask):
+    """With ``dispatch="tasks"`` the dashboard's task stream shows which run (a job's name)
+    and which superstep each chunk belongs to."""
+    from distributed import get_task_stream
+
+    from ocpar.bsp.dask import DaskBackend
+
+    scheduler = local_dask.client.scheduler.address
+    with DaskBackend(workers=2, scheduler=scheduler, dispatch="tasks",
+                     run_name="job-42") as backend, get_task_stream(backend.client) as stream:
+        backend.superstep("math:sqrt", [4.0, 9.0, 16.0])
+        backend.superstep("math:sqrt", [4.0, 9.0, 16.0])
+    keys = {str(task["key"]) for task in stream.data}
+    assert {k.split("-superstep-")[1] for k in keys} == {"0-chunk-0", "0-chunk-1",
+                                                        "1-chunk-0", "1-chunk-1"}
+    assert all(k.startswith("ocpar-job-42-") for k in keys)
