@@ -32,7 +32,6 @@ from typing import Any
 from ocpar.bsp.journal import MANIFEST
 
 JOBS_DIR_ENV = "OCPAR_JOBS_DIR"
-STATES = ("queued", "running", "finished", "failed", "cancelled")
 #: Files of a finished job that ``ocpar result`` fetches (from ``output/``).
 RESULT_SUFFIXES = (".json", ".png")
 
