@@ -380,7 +380,9 @@ def test_other_schemes_refuse_out_of_range_values(scheme, text, needle, tmp_path
          "ocpar: error: option --set is given more than once"),
         (["run", "formation-60", "--bogus"], "ocpar: error: unrecognized arguments: --bogus"),
         ([], "ocpar: error: the following arguments are required: COMMAND"),
-        (["submit"], "ocpar: error: argument COMMAND: invalid choice: 'submit'"),
+        (["launch"], "ocpar: error: argument COMMAND: invalid choice: 'launch'"),
+        (["submit"], "ocpar submit: error: the following arguments are required: CONFIG, "
+                     "--scheduler"),
     ],
 )
 def test_bad_usage_refused(argv, needle, tmp_path, capsys):
@@ -390,7 +392,8 @@ def test_bad_usage_refused(argv, needle, tmp_path, capsys):
     needle = needle.replace("DIR", str(tmp_path / "DIR"))
     line = refused(capsys, argv)
     assert needle in line, line
-    assert line.startswith(("ocpar run: error: ", "ocpar: error: ", "ocpar.formation: error: "))
+    assert line.startswith(("ocpar run: error: ", "ocpar: error: ", "ocpar.formation: error: ",
+                            "ocpar submit: error: "))
 
 
 def test_refusal_from_a_separate_process(tmp_path):
