@@ -8,7 +8,7 @@ import socket
 import subprocess
 import sys
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
 
 import pytest
@@ -66,15 +66,7 @@ def local_cluster(extra_env: dict[str, str] | None = None) -> Iterator[str]:
                                "--no-dashboard"], env=env,
                               stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)]
     try:
-        deadline = time.monotonic() + 60
-        while True:
-            try:
-                with socket.create_connection(("127.0.0.1", port), timeout=1):
-                    break
-            except OSError:
-                if time.monotonic() > deadline:
-                    pytest.fail("dask scheduler did not start")
-                time.sleep(0.2)
+        wait_for_port(port, procs[0], 60, "dask scheduler did not start")
         # the workers start exactly as on a cluster node (and in docker/compose.yaml)
         env["PATH"] = f"{Path(dask).parent}{os.pathsep}{env.get('PATH', '')}"
         procs.append(subprocess.Popen([str(REPO / "workers" / "start-dask-worker.sh"), address,
@@ -84,13 +76,33 @@ def local_cluster(extra_env: dict[str, str] | None = None) -> Iterator[str]:
             client.wait_for_workers(2, timeout=60)
         yield address
     finally:
-        for proc in reversed(procs):
-            proc.terminate()
-        for proc in procs:
-            try:
-                proc.wait(timeout=20)
-            except subprocess.TimeoutExpired:
-                proc.kill()
+        stop_processes(procs)
+
+
+def wait_for_port(port: int, proc: subprocess.Popen, timeout_s: float,
+                  message: str | Callable[[], str]) -> None:
+    """Wait until 127.0.0.1:``port`` accepts connections; fail the test with ``message`` (or
+    what it returns) if ``proc`` ends or ``timeout_s`` passes first."""
+    deadline = time.monotonic() + timeout_s
+    while True:
+        try:
+            with socket.create_connection(("127.0.0.1", port), timeout=1):
+                return
+        except OSError:
+            if time.monotonic() > deadline or proc.poll() is not None:
+                pytest.fail(message() if callable(message) else message)
+            time.sleep(0.2)
+
+
+def stop_processes(procs: list[subprocess.Popen]) -> None:
+    """Terminate ``procs`` (last started first) and wait for them, killing any that hang."""
+    for proc in reversed(procs):
+        proc.terminate()
+    for proc in procs:
+        try:
+            proc.wait(timeout=20)
+        except subprocess.TimeoutExpired:
+            proc.kill()
 
 
 @pytest.fixture(scope="session")

@@ -22,7 +22,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from conftest import REPO, free_port, run_cli, tool
+from conftest import REPO, free_port, run_cli, stop_processes, tool, wait_for_port
 
 from ocpar.bsp import open_backend
 from ocpar.bsp.backend import BackendError
@@ -206,15 +206,8 @@ def tls_cluster(certs, tmp_path_factory):
                "--protocol", "tls", "--no-dashboard", "--tls-ca-file", str(certs / "ca.pem"),
                "--tls-cert", str(certs / "scheduler.pem"),
                "--tls-key", str(certs / "scheduler.key")], "scheduler.log")
-        deadline = time.monotonic() + 30
-        while True:
-            try:
-                with socket.create_connection(("127.0.0.1", port), timeout=1):
-                    break
-            except OSError:
-                if time.monotonic() > deadline or procs[0].poll() is not None:
-                    pytest.fail(f"TLS dask scheduler did not start\n{log_tail()}")
-                time.sleep(0.2)
+        wait_for_port(port, procs[0], 30,
+                      lambda: f"TLS dask scheduler did not start\n{log_tail()}")
         start([str(WORKER_SCRIPT), address, "2"], "workers.log",
               OCPAR_TLS_CA_FILE=str(certs / "ca.pem"), OCPAR_TLS_CERT=str(certs / "worker.pem"),
               OCPAR_TLS_KEY=str(certs / "worker.key"))
@@ -227,13 +220,7 @@ def tls_cluster(certs, tmp_path_factory):
         assert len(workers) == 2 and all(w.startswith("tls://") for w in workers), workers
         yield address
     finally:
-        for proc in reversed(procs):
-            proc.terminate()
-        for proc in procs:
-            try:
-                proc.wait(timeout=20)
-            except subprocess.TimeoutExpired:
-                proc.kill()
+        stop_processes(procs)
 
 
 def test_tls_cluster_runs_the_formation_like_serial(tls_cluster, certs, reference, tmp_path):
