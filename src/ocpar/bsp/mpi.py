@@ -28,6 +28,9 @@ TASKS, RESULTS = 11, 12
 SUPERSTEP_TIMEOUT_S = 3600.0
 #: Exit status of a job aborted on a superstep deadline.
 ABORT_STATUS = 3
+#: Pause (s) between printing the abort message and ``MPI_Abort``: the launcher forwards a
+#: rank's stderr asynchronously, and an abort that overtakes it loses the message.
+ABORT_GRACE_S = 0.5
 
 
 def launched_by_mpirun() -> bool:
@@ -82,6 +85,7 @@ class MpiBackend(Backend):
         print(f"ocpar: superstep {len(self.traces)}: no result from MPI rank(s) {ranks} within "
               f"{self.timeout_s:g} s (lost or hung); aborting the job. A checkpoint holds the "
               "supersteps completed before (--resume).", file=sys.stderr, flush=True)
+        time.sleep(ABORT_GRACE_S)
         self.comm.Abort(ABORT_STATUS)
 
     def serve(self) -> None:
