@@ -5,11 +5,16 @@ cancelled by separate ``ocpar`` processes."""
 from __future__ import annotations
 
 import json
+import re
 import time
 from pathlib import Path
+from types import SimpleNamespace
 
 import pytest
 from conftest import local_cluster, run_cli
+
+from ocpar.service import client, jobs
+from ocpar.service.client import ServiceError
 
 MACS = ["macs-goddard", "--set", "max_evals=1500", "seed=7"]
 
@@ -123,3 +128,27 @@ def test_service_commands_refuse_bad_input_with_one_line(cluster):
         proc = ocpar(*args)
         lines = proc.stderr.strip().splitlines()
         assert proc.returncode == 2 and len(lines) == 1 and needle in lines[0], proc.stderr
+
+
+@pytest.mark.parametrize("option", ["--output", "--tls-cert=client.pem", "--dispatch",
+                                    "--scheduler"])
+def test_submit_refuses_options_the_service_sets(option):
+    with pytest.raises(ServiceError, match=f"{option.split('=')[0]} is set by the service"):
+        client.check_run("formation", ["--agents", "6", option, "x"])
+
+
+@pytest.mark.parametrize(("files", "needle"), [
+    ({"tls_ca_file": "-----BEGIN CERTIFICATE-----\n..."}, "CA file is not a file (given inline)"),
+    ({"tls_scheduler_key": None}, "key is not a file (unset)"),
+])
+def test_a_tls_scheduler_without_certificate_files_cannot_start_jobs(tmp_path, files, needle):
+    paths = {name: str(tmp_path / name) for name in
+             ("tls_ca_file", "tls_scheduler_cert", "tls_scheduler_key")}
+    for path in paths.values():
+        Path(path).write_text("PEM")
+    scheduler = SimpleNamespace(security=SimpleNamespace(**{**paths, **files}))
+    with pytest.raises(jobs.JobError, match=re.escape(needle)):
+        jobs.scheduler_certificate(scheduler)
+    assert jobs.scheduler_certificate(SimpleNamespace(security=SimpleNamespace(**paths))) == {
+        "tls_ca_file": paths["tls_ca_file"], "tls_cert": paths["tls_scheduler_cert"],
+        "tls_key": paths["tls_scheduler_key"]}

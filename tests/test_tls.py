@@ -180,9 +180,10 @@ def assert_same_run(result: dict, reference) -> None:
 
 @pytest.fixture(scope="module")
 def tls_cluster(certs, tmp_path_factory):
-    """``dask scheduler --protocol tls`` on 127.0.0.1 with the scheduler's certificate, and two
-    workers started by workers/start-dask-worker.sh with the workers' certificate (through
-    OCPAR_TLS_*); yields the tls:// address."""
+    """``dask scheduler --protocol tls`` on 127.0.0.1 with the scheduler's certificate (keeping
+    its jobs in a temporary directory), and two workers started by
+    workers/start-dask-worker.sh with the workers' certificate (through OCPAR_TLS_*); yields
+    the tls:// address."""
     from distributed import Client
 
     logs = tmp_path_factory.mktemp("tls-logs")
@@ -193,19 +194,20 @@ def tls_cluster(certs, tmp_path_factory):
                PATH=f"{Path(dask).parent}{os.pathsep}{os.environ.get('PATH', '')}")
     procs = []
 
-    def start(cmd: list[str], log: str, **extra: str) -> None:
+    def start(cmd: list[str], log: str, cwd: Path | None = None, **extra: str) -> None:
         with open(logs / log, "wb") as out:
-            procs.append(subprocess.Popen(cmd, env=dict(env, **extra), stdout=out,
+            procs.append(subprocess.Popen(cmd, env=dict(env, **extra), stdout=out, cwd=cwd,
                                           stderr=subprocess.STDOUT))
 
     def log_tail() -> str:
         return "\n".join(f"--- {p.name}\n{p.read_text()[-2000:]}" for p in logs.iterdir())
 
     try:
+        # certificate paths relative to the scheduler's directory, as an admin may give them
         start([dask, "scheduler", "--host", "127.0.0.1", "--port", str(port),
-               "--protocol", "tls", "--no-dashboard", "--tls-ca-file", str(certs / "ca.pem"),
-               "--tls-cert", str(certs / "scheduler.pem"),
-               "--tls-key", str(certs / "scheduler.key")], "scheduler.log")
+               "--protocol", "tls", "--no-dashboard", "--tls-ca-file", "ca.pem",
+               "--tls-cert", "scheduler.pem", "--tls-key", "scheduler.key"], "scheduler.log",
+              cwd=certs, OCPAR_JOBS_DIR=str(tmp_path_factory.mktemp("tls-jobs")))
         wait_for_port(port, procs[0], 30,
                       lambda: f"TLS dask scheduler did not start\n{log_tail()}")
         start([str(WORKER_SCRIPT), address, "2"], "workers.log",
@@ -273,6 +275,32 @@ def test_command_line_without_certificates_is_refused_in_one_line(tls_cluster, c
     line = assert_one_line_error(proc, f"cannot reach Dask scheduler {tls_cluster}")
     assert "ssl" in line.lower()
     assert time.monotonic() - started < 30  # refused at once, not after timeouts
+
+
+def test_a_job_submitted_to_the_tls_cluster_matches_serial(tls_cluster, certs, reference,
+                                                          tmp_path):
+    """``ocpar submit`` with the client's certificate; the job's coordinator, on the scheduler's
+    host, connects with the scheduler's own certificate files (given relative to the
+    scheduler's directory); a later process fetches the result. Without a certificate the
+    service commands are refused in one line."""
+    def ocpar(*args: str) -> subprocess.CompletedProcess:
+        return run_cli("-m", "ocpar", *args, "--scheduler", tls_cluster, timeout=120)
+
+    assert_one_line_error(ocpar("jobs"), "no client certificate", prog="ocpar jobs")
+    proc = ocpar("submit", "formation-60", "--set", f"agents={AGENTS}", *tls_options(certs))
+    assert proc.returncode == 0, proc.stderr
+    job = proc.stdout.strip()
+    deadline = time.monotonic() + 120
+    while (state := json.loads(ocpar("status", job, "--json", *tls_options(certs)).stdout)
+           )["state"] not in ("finished", "failed", "cancelled"):
+        assert time.monotonic() < deadline, state
+        time.sleep(0.5)
+    assert state["state"] == "finished", state
+    proc = ocpar("result", job, "--output", str(tmp_path), *tls_options(certs))
+    assert proc.returncode == 0, proc.stderr
+    data = json.loads((tmp_path / "result.json").read_text())
+    assert data["backend"] == "dask" and data["workers"] == 2
+    assert_same_run(data, reference)
 
 
 def test_embedded_cluster_uses_tls_and_matches_serial(certs, reference, tmp_path_factory):

@@ -21,12 +21,12 @@ import sys
 import time
 from dataclasses import replace
 
-from ocpar.cli import OneLineParser, fail
+from ocpar.cli import OneLineParser, add_tls_arguments, check_tls_arguments, client_security, fail
 from ocpar.config import ConfigError, examples, load_config, parse_overrides, scheme_module
+from ocpar.service.client import SERVICE_OPTIONS
 
 #: Keys of a configuration that a submitted job sets itself: where it runs and writes.
-SERVICE_KEYS = ("backend", "scheduler", "output", "checkpoint", "resume", "stop_file",
-                "job_name", "dispatch")
+SERVICE_KEYS = tuple(option[2:].replace("-", "_") for option in SERVICE_OPTIONS)
 
 PROG = "ocpar"
 
@@ -66,21 +66,23 @@ def submit(args: argparse.Namespace) -> int:
         fail(prog, str(exc))
     config = replace(config, options={key: value for key, value in config.options.items()
                                       if key not in SERVICE_KEYS})
-    try:
-        job = client.submit(config.scheme, config.argv(), args.scheduler)
-    except client.ServiceError as exc:
-        fail(prog, str(exc))
+    job = _service_call(args, "submit", lambda security: client.submit(
+        config.scheme, config.argv(), args.scheduler, security=security))
     print(job)
     return 0
 
 
 def _service_call(args: argparse.Namespace, action: str, call) -> object:
+    """``call(security)`` with the TLS options' security (one line and exit 2 on an error)."""
     from ocpar.service.client import ServiceError
 
+    prog = f"{PROG} {action}"
+    check_tls_arguments(args, prog)
+    security = client_security(args, prog)
     try:
-        return call()
+        return call(security)
     except ServiceError as exc:
-        fail(f"{PROG} {action}", str(exc))
+        fail(prog, str(exc))
 
 
 def _describe(status: dict) -> str:
@@ -94,7 +96,7 @@ def _describe(status: dict) -> str:
 def jobs(args: argparse.Namespace) -> int:
     from ocpar.service import client
 
-    for status in _service_call(args, "jobs", lambda: client.list_jobs(args.scheduler)):
+    for status in _service_call(args, "jobs", lambda tls: client.list_jobs(args.scheduler, tls)):
         print(_describe(status))
     return 0
 
@@ -102,7 +104,8 @@ def jobs(args: argparse.Namespace) -> int:
 def status(args: argparse.Namespace) -> int:
     from ocpar.service import client
 
-    state = _service_call(args, "status", lambda: client.status(args.job, args.scheduler))
+    state = _service_call(args, "status",
+                          lambda tls: client.status(args.job, args.scheduler, tls))
     if args.json:
         print(json.dumps(state, indent=1))
     else:
@@ -116,7 +119,7 @@ def result(args: argparse.Namespace) -> int:
     from ocpar.service import client
 
     paths = _service_call(args, "result",
-                          lambda: client.result(args.job, args.scheduler, args.output))
+                          lambda tls: client.result(args.job, args.scheduler, args.output, tls))
     print("wrote " + " and ".join(str(p) for p in paths))
     return 0
 
@@ -124,7 +127,8 @@ def result(args: argparse.Namespace) -> int:
 def cancel(args: argparse.Namespace) -> int:
     from ocpar.service import client
 
-    state = _service_call(args, "cancel", lambda: client.cancel(args.job, args.scheduler))
+    state = _service_call(args, "cancel",
+                          lambda tls: client.cancel(args.job, args.scheduler, tls))
     print(f"{args.job}: cancel requested; it stops at its next superstep boundary (state "
           f"{state['state']}, {state['supersteps']} supersteps done, checkpoint "
           f"{state['checkpoint']})")
@@ -133,7 +137,9 @@ def cancel(args: argparse.Namespace) -> int:
 
 def _add_scheduler(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--scheduler", required=True, metavar="ADDR",
-                        help="the Dask scheduler that keeps the jobs, e.g. tcp://HOST:8786")
+                        help="the Dask scheduler that keeps the jobs, e.g. tcp://HOST:8786 "
+                             "(tls://HOST:8786 with this client's certificate)")
+    add_tls_arguments(parser)
 
 
 def build_parser() -> OneLineParser:

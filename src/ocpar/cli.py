@@ -8,7 +8,7 @@ import sys
 import tempfile
 from collections.abc import Callable
 from pathlib import Path
-from typing import NoReturn, TypeVar
+from typing import Any, NoReturn, TypeVar
 
 from ocpar import __version__
 from ocpar.bsp import (
@@ -28,12 +28,13 @@ EXIT_USAGE = 2
 EXIT_CANCELLED = 4
 #: Most worker processes an embedded Dask cluster may be asked to start.
 MAX_LOCAL_WORKERS = 256
+#: The TLS options (argparse destinations): a client's CA file, certificate and key.
+TLS_OPTIONS = ("tls_ca_file", "tls_cert", "tls_key")
 #: Options that say where and how a run executes, not what it computes: they may differ
 #: between a run and its resumption (everything else must match the checkpoint).
 RUNTIME_OPTIONS = frozenset({
     "backend", "workers", "scheduler", "balance", "output", "quiet", "checkpoint", "resume",
-    "superstep_timeout", "tls_ca_file", "tls_cert", "tls_key", "stop_file", "dispatch",
-    "job_name"})
+    "superstep_timeout", *TLS_OPTIONS, "stop_file", "dispatch", "job_name"})
 R = TypeVar("R")
 Progress = Callable[[str], None]
 
@@ -137,8 +138,14 @@ def add_backend_arguments(parser: argparse.ArgumentParser) -> None:
                              help="continue the run checkpointed in DIR (same options), "
                                   "recording on into DIR; the result is the uninterrupted "
                                   "run's")
+    add_tls_arguments(parser, "dask backend; ")
+
+
+def add_tls_arguments(parser: argparse.ArgumentParser, scope: str = "") -> None:
+    """``--tls-ca-file``, ``--tls-cert`` and ``--tls-key``: this client's certificate for a
+    ``tls://`` scheduler (checked by :func:`check_tls_arguments`)."""
     tls = parser.add_argument_group(
-        "TLS (dask backend; all three together)",
+        f"TLS ({scope}all three together)",
         "certificates for a tls:// scheduler, or to secure the embedded cluster "
         "(workers/tls.md)")
     tls.add_argument("--tls-ca-file", default=None, metavar="PATH",
@@ -168,27 +175,11 @@ def choose_backend(args: argparse.Namespace, prog: str) -> str:
                 or not host_port.rpartition(":")[2].isdigit() or not host_port.split(":")[0]:
             fail(prog, "--scheduler must look like tcp://HOST:PORT or tls://HOST:PORT, got "
                        f"{args.scheduler!r}")
-    tls_files = {option: getattr(args, option[2:].replace("-", "_"), None)
-                 for option in ("--tls-ca-file", "--tls-cert", "--tls-key")}
-    if any(path is not None for path in tls_files.values()):
-        missing = [option for option, path in tls_files.items() if path is None]
-        if missing:
-            fail(prog, f"--tls-ca-file, --tls-cert and --tls-key go together: {missing[0]} "
-                       "is missing")
+    if any(getattr(args, name, None) is not None for name in TLS_OPTIONS):
         if backend != "dask":
             fail(prog, f"--tls-ca-file, --tls-cert and --tls-key only apply to --backend dask, "
                        f"not {backend}")
-        if args.scheduler is not None and not args.scheduler.startswith("tls://"):
-            fail(prog, "--tls-ca-file, --tls-cert and --tls-key need a tls://HOST:PORT "
-                       f"scheduler address, got {args.scheduler!r}")
-        for option, path in tls_files.items():
-            try:
-                with open(path, "rb"):
-                    pass
-            except OSError as exc:
-                fail(prog, f"{option} {path}: {exc.strerror or exc}")
-            if not os.path.isfile(path):
-                fail(prog, f"{option} {path}: not a file")
+        check_tls_arguments(args, prog)
     if backend == "serial" and args.workers not in (None, 1):
         fail(prog, "the serial backend has exactly 1 worker")
     if backend == "dask" and args.scheduler is None and (args.workers or 1) > MAX_LOCAL_WORKERS:
@@ -200,15 +191,48 @@ def choose_backend(args: argparse.Namespace, prog: str) -> str:
     return backend
 
 
+def check_tls_arguments(args: argparse.Namespace, prog: str) -> None:
+    """The TLS options are all three or none, readable files, and go with a ``tls://``
+    scheduler address (exits 2 with one line if not)."""
+    tls_files = {"--" + name.replace("_", "-"): getattr(args, name, None)
+                 for name in TLS_OPTIONS}
+    if all(path is None for path in tls_files.values()):
+        return
+    missing = [option for option, path in tls_files.items() if path is None]
+    if missing:
+        fail(prog, f"--tls-ca-file, --tls-cert and --tls-key go together: {missing[0]} "
+                   "is missing")
+    if args.scheduler is not None and not args.scheduler.startswith("tls://"):
+        fail(prog, "--tls-ca-file, --tls-cert and --tls-key need a tls://HOST:PORT "
+                   f"scheduler address, got {args.scheduler!r}")
+    for option, path in tls_files.items():
+        try:
+            with open(path, "rb"):
+                pass
+        except OSError as exc:
+            fail(prog, f"{option} {path}: {exc.strerror or exc}")
+        if not os.path.isfile(path):
+            fail(prog, f"{option} {path}: not a file")
+
+
+def client_security(args: argparse.Namespace, prog: str) -> Any:
+    """The :class:`distributed.Security` of the TLS options (None without them); exits 2 with
+    one line if the certificate files do not load."""
+    if getattr(args, "tls_cert", None) is None:
+        return None
+    from ocpar.bsp.dask import tls_security
+
+    try:
+        return tls_security(args.tls_ca_file, args.tls_cert, args.tls_key)
+    except BackendError as exc:
+        fail(prog, str(exc))
+
+
 def start_backend(args: argparse.Namespace, backend_name: str, prog: str) -> Backend:
     """Open the backend or exit 2 with a one-line message (e.g. unreachable scheduler, or one
     that refuses this client's TLS certificate)."""
+    security = client_security(args, prog)
     try:
-        security = None
-        if getattr(args, "tls_cert", None) is not None:
-            from ocpar.bsp.dask import tls_security
-
-            security = tls_security(args.tls_ca_file, args.tls_cert, args.tls_key)
         return open_backend(backend_name, workers=args.workers, scheduler=args.scheduler,
                             balance=args.balance, security=security,
                             superstep_timeout_s=getattr(args, "superstep_timeout",

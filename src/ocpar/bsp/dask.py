@@ -118,6 +118,27 @@ def connection_failure(scheduler: str, security: Any, exc: BaseException) -> Bac
     return BackendError(f"cannot reach Dask scheduler {scheduler}: {reason}")
 
 
+def connect_client(scheduler: str, security: Any = None, timeout_s: float = 10.0) -> Any:
+    """A :class:`distributed.Client` of the scheduler at ``scheduler`` (``security``: a
+    :class:`distributed.Security` for a ``tls://`` one); a one-line :class:`BackendError` if it
+    cannot connect (unreachable, or refused in the TLS handshake)."""
+    from distributed import Client
+
+    error = None
+    try:
+        return Client(scheduler, timeout=f"{timeout_s}s", security=security)
+    # TypeError: a tls:// address with no TLS context; RuntimeError: encryption required but
+    # refused by the other end
+    except (OSError, TimeoutError, ValueError, TypeError, RuntimeError) as exc:
+        error = connection_failure(scheduler, security, exc)
+    # the half-started Client is garbage now (``exc`` and its frames are gone): collect it
+    # here, so its __del__ stops its IO loop now, and not when the garbage collector happens to
+    # run inside the start of a later Client, which then deadlocks on distributed's LoopRunner
+    # lock
+    gc.collect()
+    raise error
+
+
 class DaskBackend(Backend):
     """Workers of a Dask cluster (embedded ``LocalCluster`` or an existing scheduler)."""
 
@@ -184,20 +205,7 @@ class DaskBackend(Backend):
                         and not scheduler.startswith("tls://")):
                     raise BackendError(f"TLS certificates need a tls:// scheduler address, "
                                        f"not {scheduler}")
-                error = None
-                try:
-                    self.client = Client(scheduler, timeout=f"{timeout_s}s", security=security)
-                # TypeError: a tls:// address with no TLS context; RuntimeError: encryption
-                # required but refused by the other end
-                except (OSError, TimeoutError, ValueError, TypeError, RuntimeError) as exc:
-                    error = connection_failure(scheduler, security, exc)
-                if error is not None:
-                    # the half-started Client is garbage now (``exc`` and its frames are gone):
-                    # collect it here, so its __del__ stops its IO loop now, and not when the
-                    # garbage collector happens to run inside the start of a later Client, which
-                    # then deadlocks on distributed's LoopRunner lock
-                    gc.collect()
-                    raise error
+                self.client = connect_client(scheduler, security, timeout_s)
         if workers is not None:
             try:
                 self.client.wait_for_workers(workers, timeout=timeout_s)

@@ -1,5 +1,7 @@
 """The Python API behind ``ocpar submit|jobs|status|result|cancel``: talk to a Dask cluster's
-scheduler, which keeps the jobs (:mod:`ocpar.service.jobs`).
+scheduler, which keeps the jobs (:mod:`ocpar.service.jobs`). Every function takes
+``security``, this client's :class:`distributed.Security` (e.g. from
+:func:`ocpar.bsp.dask.tls_security`), for a cluster secured with TLS.
 
 >>> job = submit("formation", ["--agents", "60"], "tcp://HOST:8786")    # doctest: +SKIP
 >>> status(job, "tcp://HOST:8786")["state"]                             # doctest: +SKIP
@@ -16,6 +18,10 @@ from typing import Any, TypeVar
 from ocpar.service import jobs
 
 SCHEMES = ("formation", "pursuit", "macs")
+#: Options of a scheme's command line that the service sets for a submitted job.
+SERVICE_OPTIONS = ("--backend", "--scheduler", "--output", "--checkpoint", "--resume",
+                   "--stop-file", "--dispatch", "--job-name", "--tls-ca-file", "--tls-cert",
+                   "--tls-key")
 T = TypeVar("T")
 
 
@@ -24,14 +30,16 @@ class ServiceError(RuntimeError):
 
 
 def on_scheduler(scheduler: str, function: Callable[..., T], *args: Any,
-                 timeout_s: float = 10.0) -> T:
-    """Run ``function(*args)`` in the scheduler's process of the cluster at ``scheduler``."""
-    from distributed import Client
+                 security: Any = None, timeout_s: float = 10.0) -> T:
+    """Run ``function(*args)`` in the scheduler's process of the cluster at ``scheduler``
+    (``security``: this client's :class:`distributed.Security` for a ``tls://`` one)."""
+    from ocpar.bsp.backend import BackendError
+    from ocpar.bsp.dask import connect_client
 
     try:
-        client = Client(scheduler, timeout=f"{timeout_s}s")
-    except (OSError, TimeoutError, ValueError) as exc:
-        raise ServiceError(f"cannot reach Dask scheduler {scheduler}: {exc}") from None
+        client = connect_client(scheduler, security, timeout_s)
+    except BackendError as exc:
+        raise ServiceError(str(exc)) from None
     with client:
         try:
             return client.run_on_scheduler(function, *args)
@@ -44,34 +52,38 @@ def check_run(scheme: str, argv: list[str]) -> None:
     one-line message on bad input), before anything is sent to the cluster."""
     if scheme not in SCHEMES:
         raise ServiceError(f"unknown scheme {scheme!r}; choose one of {', '.join(SCHEMES)}")
+    given = {arg.split("=", 1)[0] for arg in argv}
+    for option in SERVICE_OPTIONS:
+        if option in given:
+            raise ServiceError(f"{option} is set by the service for a submitted job; leave "
+                               "it out")
     module = importlib.import_module(f"ocpar.{scheme}.__main__")
-    args = module.parse_args([*argv, "--backend", "dask", "--scheduler", "tcp://host:1"])
-    for option in ("output", "checkpoint", "resume", "stop_file", "job_name"):
-        if getattr(args, option, None) is not None:
-            raise ServiceError(f"--{option.replace('_', '-')} is set by the service for a "
-                               "submitted job; leave it out")
+    module.parse_args([*argv, "--backend", "dask", "--scheduler", "tcp://host:1"])
 
 
-def submit(scheme: str, argv: list[str], scheduler: str) -> str:
+def submit(scheme: str, argv: list[str], scheduler: str, security: Any = None) -> str:
     """Start ``python -m ocpar.<scheme> argv`` as a detached job on the cluster at
-    ``scheduler`` (its coordinator runs on the scheduler's host); returns the job id at once."""
+    ``scheduler`` (its coordinator runs on the scheduler's host, and on a ``tls://`` cluster
+    presents the scheduler's certificate); returns the job id at once."""
     check_run(scheme, argv)
-    return on_scheduler(scheduler, jobs.create_and_start, scheme, list(argv), scheduler)
+    return on_scheduler(scheduler, jobs.create_and_start, scheme, list(argv), scheduler,
+                        security=security)
 
 
-def list_jobs(scheduler: str) -> list[dict]:
+def list_jobs(scheduler: str, security: Any = None) -> list[dict]:
     """Every job of the cluster with its state (see :func:`ocpar.service.jobs.job_status`)."""
-    return on_scheduler(scheduler, jobs.list_jobs)
+    return on_scheduler(scheduler, jobs.list_jobs, security=security)
 
 
-def status(job_id: str, scheduler: str) -> dict:
+def status(job_id: str, scheduler: str, security: Any = None) -> dict:
     """One job's state, supersteps done and last progress line."""
-    return on_scheduler(scheduler, jobs.job_status, job_id)
+    return on_scheduler(scheduler, jobs.job_status, job_id, security=security)
 
 
-def result(job_id: str, scheduler: str, output: str | Path) -> list[Path]:
+def result(job_id: str, scheduler: str, output: str | Path,
+           security: Any = None) -> list[Path]:
     """Fetch a finished job's ``result.json`` and plots into ``output``; returns the paths."""
-    files = on_scheduler(scheduler, jobs.result_files, job_id)
+    files = on_scheduler(scheduler, jobs.result_files, job_id, security=security)
     out = Path(output)
     out.mkdir(parents=True, exist_ok=True)
     paths = []
@@ -81,6 +93,6 @@ def result(job_id: str, scheduler: str, output: str | Path) -> list[Path]:
     return paths
 
 
-def cancel(job_id: str, scheduler: str) -> dict:
+def cancel(job_id: str, scheduler: str, security: Any = None) -> dict:
     """Ask a job to stop at its next superstep boundary (its checkpoint stays)."""
-    return on_scheduler(scheduler, jobs.cancel, job_id)
+    return on_scheduler(scheduler, jobs.cancel, job_id, security=security)

@@ -24,7 +24,9 @@ def command(path: Path, job: dict) -> list[str]:
             "--backend", "dask", "--scheduler", job["scheduler"],
             "--checkpoint", str(path / "checkpoint"), "--output", str(path / "output"),
             "--stop-file", str(path / "cancel"), "--dispatch", "tasks",
-            "--job-name", job["id"]]
+            "--job-name", job["id"],
+            *(arg for name, path in (job.get("tls") or {}).items()
+              for arg in ("--" + name.replace("_", "-"), path))]
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -5,7 +5,8 @@ The jobs root is ``$OCPAR_JOBS_DIR`` in the scheduler's environment (default
 ask the scheduler (``Client.run_on_scheduler``) to run the functions below, so a client needs
 no shared file system. A job directory holds
 
-* ``job.json``: id, scheme, the scheme's command line, scheduler address, submission time;
+* ``job.json``: id, scheme, the scheme's command line, scheduler address, the paths of the
+  certificate files its coordinator presents on a ``tls://`` cluster, submission time;
 * ``state.json``: ``queued`` → ``running`` (with the coordinator's pid) → ``finished``,
   ``failed`` or ``cancelled`` (with the exit status), written atomically;
 * ``checkpoint/`` (the run's journal: supersteps done, resumable with ``--resume``),
@@ -15,7 +16,9 @@ no shared file system. A job directory holds
 
 The coordinator runs as a detached process on the scheduler's host
 (:mod:`ocpar.service.coordinator`): it is a Dask client, not a Dask task, so it takes no worker
-slot and a one-worker cluster cannot deadlock; it survives the submitting process.
+slot and a one-worker cluster cannot deadlock; it survives the submitting process. On a
+cluster secured with TLS it presents the scheduler's own CA file, certificate and key (so that
+certificate must be good for both ends, as workers/tls.md makes them).
 """
 
 from __future__ import annotations
@@ -68,14 +71,34 @@ def write_state(path: Path, state: str, **details: Any) -> None:
     _write_json(path / "state.json", {"state": state, "time": time.time(), **details})
 
 
-def create_and_start(scheme: str, argv: list[str], scheduler: str) -> str:
+def scheduler_certificate(dask_scheduler: Any) -> dict[str, str]:
+    """The CA file, certificate and key of the scheduler ``dask_scheduler`` (absolute paths),
+    which the coordinators of a ``tls://`` cluster's jobs present as clients."""
+    security = dask_scheduler.security
+    files = {"tls_ca_file": security.tls_ca_file, "tls_cert": security.tls_scheduler_cert,
+             "tls_key": security.tls_scheduler_key}
+    labels = {"tls_ca_file": "CA file", "tls_cert": "certificate", "tls_key": "key"}
+    for name, value in files.items():
+        if not value or "-----BEGIN" in value or not os.path.isfile(value):
+            raise JobError(f"the scheduler's TLS {labels[name]} is not a file "
+                           f"({'unset' if not value else 'given inline'}); a job's coordinator "
+                           "presents the scheduler's own certificate files (workers/tls.md)")
+    return {name: os.path.abspath(value) for name, value in files.items()}
+
+
+def create_and_start(scheme: str, argv: list[str], scheduler: str,
+                     dask_scheduler: Any = None) -> str:
     """Make a job directory for ``python -m ocpar.<scheme> argv`` against ``scheduler`` and
-    start its coordinator, detached (runs in the scheduler's process); returns the job id."""
+    start its coordinator, detached (runs in the scheduler's process, ``dask_scheduler``);
+    returns the job id. On a ``tls://`` cluster the coordinator connects with the scheduler's
+    own certificate files."""
+    tls = scheduler_certificate(dask_scheduler) if scheduler.startswith("tls://") else None
     job_id = f"{scheme}-{time.strftime('%Y%m%d-%H%M%S')}-{secrets.token_hex(3)}"
     path = jobs_root() / job_id
     path.mkdir()
     _write_json(path / "job.json", {"id": job_id, "scheme": scheme, "argv": argv,
-                                    "scheduler": scheduler, "submitted": time.time()})
+                                    "scheduler": scheduler, "tls": tls,
+                                    "submitted": time.time()})
     write_state(path, "queued")
     with open(path / "log.txt", "ab") as log:
         subprocess.Popen([sys.executable, "-m", "ocpar.service.coordinator", str(path)],
