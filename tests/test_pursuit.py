@@ -1,4 +1,4 @@
-"""Pursuit-based multiple shooting on the paper's orbit transfer."""
+"""Pursuit-based multiple shooting: the paper's orbit transfer, problems checked when built."""
 
 from __future__ import annotations
 
@@ -9,18 +9,19 @@ import pytest
 from conftest import assert_result_contract, run_cli
 
 from ocpar.bsp import open_backend
-from ocpar.pursuit import OrbitTransferProblem, PursuitSettings, solve_pursuit
+from ocpar.examples.pursuit_orbit_transfer import make
+from ocpar.pursuit import PursuitSettings, solve_pursuit
 from ocpar.pursuit.slp import PursuitTrain
 
 
 def test_feasible_trajectory_matches_the_papers_guess():
     """Eq. 16 integrated accurately: r(T) = 12.7778 Mm, θ̇(T) = 4.4e-4 rad/s, 53.5 kg fuel."""
-    x, u = OrbitTransferProblem(case=1, samples=301).feasible_trajectory()
+    x, u = make(case=1, samples=301).feasible_trajectory()
     assert x.shape == (301, 4) and u.shape == (300, 2)
     assert x[-1, 0] == pytest.approx(12.7778, abs=1e-3)
     assert x[-1, 2] / 60 == pytest.approx(4.4e-4, abs=5e-6)
     assert (0.525 - x[-1, 3]) * 1e3 == pytest.approx(53.5, abs=0.05)
-    x2, _ = OrbitTransferProblem(case=2, samples=301).feasible_trajectory()
+    x2, _ = make(case=2, samples=301).feasible_trajectory()
     assert x2[-1, 0] == pytest.approx(23.642, rel=0.02)  # paper: 23.642 Mm, 103 kg
     assert (0.525 - x2[-1, 3]) * 1e3 == pytest.approx(103, rel=0.05)
 
@@ -28,16 +29,16 @@ def test_feasible_trajectory_matches_the_papers_guess():
 @pytest.fixture(scope="module")
 def converged_small():
     """N = 101 with N_Δ = 32, N_δ = 16 (the paper's setting for N = 101: 746 agents)."""
-    problem = OrbitTransferProblem(case=1, samples=101)
-    return solve_pursuit(problem, PursuitSettings(window=32, update=16, epsilon_kg=1e-5))
+    problem = make(case=1, samples=101)
+    return solve_pursuit(problem, PursuitSettings(window=32, update=16, epsilon=1e-5))
 
 
 def test_pbms_converges_monotonically_to_the_ms_optimum(converged_small):
     result = converged_small
     assert result.converged, result.message
     assert result.failed_solves == 0
-    assert result.final_mass_kg == pytest.approx(result.reference_final_mass_kg, abs=0.01)
-    masses = np.array(result.final_masses_kg[1:])  # agent 0 does not end on S_Q
+    assert result.headline == pytest.approx(result.reference_headline, abs=0.01)
+    masses = np.array(result.headlines[1:])  # agent 0 does not end on S_Q
     assert np.all(np.diff(masses) >= 0), "Theorem 1: cost decreases monotonically"
     assert 200 < result.agents < 3000
     assert result.constraint_violation < 1e-10
@@ -49,11 +50,11 @@ def test_pbms_bookkeeping(converged_small):
     assert result.supersteps == len(result.trace)
     assert sum(t.tasks for t in result.trace) == result.subproblem_solves  # reference not traced
     assert result.peak_rss_mb_per_worker > 10
-    assert abs(result.rk_final_altitude_error_m) < 50e3
+    assert abs(result.rk_checks["final_altitude_error_m"]) < 50e3
 
 
 def test_every_finished_agent_ends_on_the_target_set():
-    problem = OrbitTransferProblem(case=1, samples=101)
+    problem = make(case=1, samples=101)
     train = PursuitTrain(problem, PursuitSettings(window=32, update=16))
     finished = []
     with open_backend("serial") as backend:
@@ -84,17 +85,17 @@ SHORT = ["--samples", "101", "--window", "32", "--update", "16", "--max-agents",
 
 @pytest.fixture(scope="module")
 def short_serial():
-    problem = OrbitTransferProblem(case=1, samples=101)
+    problem = make(case=1, samples=101)
     return solve_pursuit(problem, PursuitSettings(window=32, update=16, max_agents=12),
                          reference=False)
 
 
 def test_results_identical_on_dask(short_serial):
-    problem = OrbitTransferProblem(case=1, samples=101)
+    problem = make(case=1, samples=101)
     with open_backend("dask", workers=2) as backend:
         result = solve_pursuit(problem, PursuitSettings(window=32, update=16, max_agents=12),
                                backend, reference=False)
-    assert result.final_masses_kg == short_serial.final_masses_kg  # bitwise
+    assert result.headlines == short_serial.headlines  # bitwise
     np.testing.assert_array_equal(result.u, short_serial.u)
 
 
@@ -103,7 +104,7 @@ def test_results_identical_under_mpirun(short_serial, tmp_path):
     assert proc.returncode == 1, proc.stderr  # max_agents reached: not converged
     data = json.loads((tmp_path / "result.json").read_text())
     assert data["backend"] == "mpi" and data["workers"] == 2
-    assert data["final_masses_kg"] == short_serial.final_masses_kg
+    assert data["final_mass_kg_per_agent"] == short_serial.headlines
     assert data["supersteps"] == short_serial.supersteps
 
 
@@ -112,6 +113,7 @@ def test_ms_mode_command_line_contract(tmp_path):
     assert proc.returncode == 0, proc.stderr
     data = json.loads((tmp_path / "result.json").read_text())
     assert data["scheme"] == "pursuit" and data["mode"] == "ms"
+    assert data["headline"] == "final_mass_kg" and data["headline_unit"] == "kg"
     assert data["final_mass_kg"] == pytest.approx(523.979819, abs=0.01)
     assert data["fuel_kg"] == pytest.approx(525 - data["final_mass_kg"])
     for key in ("agents", "subproblem_solves", "failed_solves", "supersteps",
@@ -145,9 +147,9 @@ def test_bad_command_lines_get_one_line_and_status_2(args, needle):
 def test_paper_case_1_n301():
     """Table II: N = 301, N_Δ = 60, N_δ = 32: PBMS within 0.01 kg of MS, agent count
     comparable to the paper's 3344."""
-    problem = OrbitTransferProblem(case=1, samples=301)
-    result = solve_pursuit(problem, PursuitSettings(window=60, update=32, epsilon_kg=1e-5))
+    problem = make(case=1, samples=301)
+    result = solve_pursuit(problem, PursuitSettings(window=60, update=32, epsilon=1e-5))
     assert result.converged and result.failed_solves == 0
-    assert result.final_mass_kg == pytest.approx(result.reference_final_mass_kg, abs=0.01)
-    assert np.all(np.diff(result.final_masses_kg[1:]) >= 0)
+    assert result.headline == pytest.approx(result.reference_headline, abs=0.01)
+    assert np.all(np.diff(result.headlines[1:]) >= 0)
     assert 1500 < result.agents < 7000
