@@ -99,6 +99,13 @@ class PursuitTrain:
 
     def __init__(self, problem: PursuitProblem, settings: PursuitSettings) -> None:
         settings.check(problem.samples)
+        #: Fewest intervals a subproblem needs to have as many controls as fixed components.
+        self.min_intervals = -(-len(problem.target_components) // problem.model.nu)
+        if settings.window - settings.update < self.min_intervals:
+            raise ValueError(
+                f"N_Δ − N_δ must be at least {self.min_intervals} (intervals needed to reach "
+                f"{len(problem.target_components)} fixed components with {problem.model.nu} "
+                f"control(s)), got {settings.window} − {settings.update}")
         self.problem, self.settings = problem, settings
         n = problem.samples
         x0, u0 = problem.feasible_trajectory()
@@ -166,12 +173,15 @@ class PursuitTrain:
         return work
 
     def apply(self, agent: Agent, sol: MsSolution) -> None:
-        """Move ``agent`` along the first δ of its plan (or to its end)."""
+        """Move ``agent`` along the first δ of its plan, or to its end when it is a plan to
+        the target set that would leave fewer than :attr:`min_intervals` to go."""
         self.solves += 1
         self.retries += sol.attempts - 1
         agent.solves += 1
         j = agent.position
         steps = min(self.settings.update, len(sol.u))
+        if j + len(sol.u) == len(agent.x) - 1 and len(sol.u) - steps < self.min_intervals:
+            steps = len(sol.u)
         if sol.success:
             agent.plans[j] = sol
             agent.x[j + 1 : j + steps + 1] = sol.x[1 : steps + 1]
@@ -195,9 +205,9 @@ class PursuitTrain:
             if agent.index >= 2:
                 improvement = self.problem.improvement(*self.headlines[-2:])
                 if improvement < self.settings.epsilon:
-                    unit = self.problem.headline_unit
+                    unit = f" {self.problem.headline_unit}".rstrip()
                     return True, (f"{self.problem.headline_name} improvement "
-                                  f"{improvement:.2e} {unit} < epsilon {self.settings.epsilon:g} "
+                                  f"{improvement:.2e}{unit} < epsilon {self.settings.epsilon:g}"
                                   f"{unit} after agent {agent.index}")
             if agent.index >= self.settings.max_agents:
                 return False, f"max_agents {self.settings.max_agents} reached"
