@@ -225,9 +225,14 @@ def test_agent_0_given_as_samples_runs_the_same_train(vdp_result):
     assert result.headlines == vdp_result.headlines
 
 
-def test_settings_too_tight_for_the_target_set_are_refused():
-    with pytest.raises(ValueError, match="N_Δ − N_δ must be at least 2"):
-        solve_pursuit(van_der_pol.make(), PursuitSettings(window=11, update=10))
+@pytest.mark.parametrize(("window", "update"), [(4, 3), (11, 1)])
+def test_no_agent_is_left_too_few_intervals_to_reach_the_target_set(window, update):
+    """Two fixed components and one control need two intervals: with N_δ = N_Δ − 1 an agent
+    would be left one, an overconstrained problem; the schedule stops short instead."""
+    settings = PursuitSettings(window=window, update=update, max_agents=4)
+    result = solve_pursuit(van_der_pol.make(), settings, reference=False)
+    assert result.failed_solves == 0 and result.retries == 0
+    np.testing.assert_allclose(result.x[-1], 0.0, atol=1e-9)
 
 
 # -- a malformed problem: one ValueError naming the field -------------------------------------

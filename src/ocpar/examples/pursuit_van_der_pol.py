@@ -26,8 +26,13 @@ class VanDerPol:
     mu: float = 1.0
     u_max: float = 1.0
 
-    nx = property(lambda self: 2)
-    nu = property(lambda self: 1)
+    @property
+    def nx(self) -> int:
+        return 2
+
+    @property
+    def nu(self) -> int:
+        return 1
 
     def rhs(self, x: ca.SX, u: ca.SX) -> ca.SX:
         return ca.vertcat(x[1], self.mu * (1 - x[0] ** 2) * x[1] - x[0] + u[0])

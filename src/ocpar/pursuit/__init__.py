@@ -11,7 +11,7 @@ All agents in flight at one time solve in one superstep. A problem is any fixed-
 >>> from ocpar.pursuit import solve_pursuit
 >>> result = solve_pursuit(make(case=1, samples=301), mode="ms")
 >>> round(result.headline, 3)
-523.98
+523.975
 """
 
 import importlib

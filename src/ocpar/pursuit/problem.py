@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import importlib
 import math
+import numbers
 import re
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -96,7 +97,7 @@ class PursuitProblem:
         nx = self.model.nx
         if not isinstance(self.name, str) or not self.name:
             raise ValueError(f"name: must be a non-empty string, got {self.name!r}")
-        if not (isinstance(self.duration, int | float) and math.isfinite(self.duration)
+        if not (isinstance(self.duration, numbers.Real) and math.isfinite(self.duration)
                 and self.duration > 0):
             raise ValueError(f"duration: must be a finite number > 0, got {self.duration!r}")
         if not isinstance(self.samples, int | np.integer) or self.samples < 3:
@@ -120,10 +121,9 @@ class PursuitProblem:
         object.__setattr__(self, "target", target)
         first_control = self._check_plan()
         self._check_model_values(first_control)
-        values = ((self.headline,) if self.headline is not None else ()) + tuple(self.checks)
-        for label, value in zip(["headline"] * (self.headline is not None)
-                                + [f"checks[{k}]" for k in range(len(self.checks))],
-                                values, strict=True):
+        named = [("headline", self.headline)] if self.headline is not None else []
+        named += [(f"checks[{k}]", value) for k, value in enumerate(self.checks)]
+        for label, value in named:
             check_final_value(label, value, x0)
         for label in ("cost_name", "cost_unit"):
             if not isinstance(getattr(self, label), str):

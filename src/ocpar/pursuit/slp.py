@@ -99,13 +99,9 @@ class PursuitTrain:
 
     def __init__(self, problem: PursuitProblem, settings: PursuitSettings) -> None:
         settings.check(problem.samples)
-        #: Fewest intervals a subproblem needs to have as many controls as fixed components.
+        #: Fewest intervals a problem to the target set needs: as many controls as fixed
+        #: components (⌈|S| / nu⌉).
         self.min_intervals = -(-len(problem.target_components) // problem.model.nu)
-        if settings.window - settings.update < self.min_intervals:
-            raise ValueError(
-                f"N_Δ − N_δ must be at least {self.min_intervals} (intervals needed to reach "
-                f"{len(problem.target_components)} fixed components with {problem.model.nu} "
-                f"control(s)), got {settings.window} − {settings.update}")
         self.problem, self.settings = problem, settings
         n = problem.samples
         x0, u0 = problem.feasible_trajectory()
@@ -173,15 +169,17 @@ class PursuitTrain:
         return work
 
     def apply(self, agent: Agent, sol: MsSolution) -> None:
-        """Move ``agent`` along the first δ of its plan, or to its end when it is a plan to
-        the target set that would leave fewer than :attr:`min_intervals` to go."""
+        """Move ``agent`` along the first δ of its plan (or to its end), never leaving
+        fewer than :attr:`min_intervals` to go: a plan to the target set is then followed to
+        its end, a catch-up plan for fewer steps."""
         self.solves += 1
         self.retries += sol.attempts - 1
         agent.solves += 1
-        j = agent.position
+        j, last = agent.position, len(agent.x) - 1
         steps = min(self.settings.update, len(sol.u))
-        if j + len(sol.u) == len(agent.x) - 1 and len(sol.u) - steps < self.min_intervals:
-            steps = len(sol.u)
+        if 0 < last - (j + steps) < self.min_intervals:
+            to_target = j + len(sol.u) == last
+            steps = len(sol.u) if to_target else max(1, last - j - self.min_intervals)
         if sol.success:
             agent.plans[j] = sol
             agent.x[j + 1 : j + steps + 1] = sol.x[1 : steps + 1]
