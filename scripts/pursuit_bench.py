@@ -39,7 +39,7 @@ def run(args: list[str], out: Path, backend: str, workers: int) -> dict:
     if proc.returncode not in (0, 1):
         raise SystemExit(f"failed: {' '.join(cmd)}\n{proc.stderr[-2000:]}")
     data = json.loads((out / "result.json").read_text())
-    keep = ("mode", "case", "samples", "window", "update", "epsilon_kg", "backend", "workers",
+    keep = ("mode", "problem", "samples", "window", "update", "epsilon", "backend", "workers",
             "status", "message", "final_mass_kg", "agents", "subproblem_solves",
             "failed_solves", "supersteps", "max_agents_in_flight", "wall_time_s",
             "peak_rss_mb_per_worker", "rk_final_altitude_error_m")

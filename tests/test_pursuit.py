@@ -1,26 +1,30 @@
-"""Pursuit-based multiple shooting on the paper's orbit transfer."""
+"""Pursuit-based multiple shooting: the paper's orbit transfer, problems checked when built."""
 
 from __future__ import annotations
 
+import dataclasses
 import json
 
+import casadi as ca
 import numpy as np
 import pytest
 from conftest import assert_result_contract, run_cli
 
 from ocpar.bsp import open_backend
-from ocpar.pursuit import OrbitTransferProblem, PursuitSettings, solve_pursuit
+from ocpar.examples import pursuit_van_der_pol as van_der_pol
+from ocpar.examples.pursuit_orbit_transfer import make
+from ocpar.pursuit import ControlLaw, FinalValue, PursuitSettings, SampledPlan, solve_pursuit
 from ocpar.pursuit.slp import PursuitTrain
 
 
 def test_feasible_trajectory_matches_the_papers_guess():
     """Eq. 16 integrated accurately: r(T) = 12.7778 Mm, θ̇(T) = 4.4e-4 rad/s, 53.5 kg fuel."""
-    x, u = OrbitTransferProblem(case=1, samples=301).feasible_trajectory()
+    x, u = make(case=1, samples=301).feasible_trajectory()
     assert x.shape == (301, 4) and u.shape == (300, 2)
     assert x[-1, 0] == pytest.approx(12.7778, abs=1e-3)
     assert x[-1, 2] / 60 == pytest.approx(4.4e-4, abs=5e-6)
     assert (0.525 - x[-1, 3]) * 1e3 == pytest.approx(53.5, abs=0.05)
-    x2, _ = OrbitTransferProblem(case=2, samples=301).feasible_trajectory()
+    x2, _ = make(case=2, samples=301).feasible_trajectory()
     assert x2[-1, 0] == pytest.approx(23.642, rel=0.02)  # paper: 23.642 Mm, 103 kg
     assert (0.525 - x2[-1, 3]) * 1e3 == pytest.approx(103, rel=0.05)
 
@@ -28,16 +32,16 @@ def test_feasible_trajectory_matches_the_papers_guess():
 @pytest.fixture(scope="module")
 def converged_small():
     """N = 101 with N_Δ = 32, N_δ = 16 (the paper's setting for N = 101: 746 agents)."""
-    problem = OrbitTransferProblem(case=1, samples=101)
-    return solve_pursuit(problem, PursuitSettings(window=32, update=16, epsilon_kg=1e-5))
+    problem = make(case=1, samples=101)
+    return solve_pursuit(problem, PursuitSettings(window=32, update=16, epsilon=1e-5))
 
 
 def test_pbms_converges_monotonically_to_the_ms_optimum(converged_small):
     result = converged_small
     assert result.converged, result.message
     assert result.failed_solves == 0
-    assert result.final_mass_kg == pytest.approx(result.reference_final_mass_kg, abs=0.01)
-    masses = np.array(result.final_masses_kg[1:])  # agent 0 does not end on S_Q
+    assert result.headline == pytest.approx(result.reference_headline, abs=0.01)
+    masses = np.array(result.headlines[1:])  # agent 0 does not end on S_Q
     assert np.all(np.diff(masses) >= 0), "Theorem 1: cost decreases monotonically"
     assert 200 < result.agents < 3000
     assert result.constraint_violation < 1e-10
@@ -49,11 +53,11 @@ def test_pbms_bookkeeping(converged_small):
     assert result.supersteps == len(result.trace)
     assert sum(t.tasks for t in result.trace) == result.subproblem_solves  # reference not traced
     assert result.peak_rss_mb_per_worker > 10
-    assert abs(result.rk_final_altitude_error_m) < 50e3
+    assert abs(result.rk_checks["final_altitude_error_m"]) < 50e3
 
 
 def test_every_finished_agent_ends_on_the_target_set():
-    problem = OrbitTransferProblem(case=1, samples=101)
+    problem = make(case=1, samples=101)
     train = PursuitTrain(problem, PursuitSettings(window=32, update=16))
     finished = []
     with open_backend("serial") as backend:
@@ -78,24 +82,34 @@ def test_bad_settings_are_refused(window, update, samples, match):
         PursuitSettings(window=window, update=update).check(samples)
 
 
+#: The van der Pol example: N_Δ = 21, N_δ = 10 on its N = 41 samples.
+VDP_SETTINGS = PursuitSettings(window=21, update=10, epsilon=1e-9)
+
 SHORT = ["--samples", "101", "--window", "32", "--update", "16", "--max-agents", "12",
          "--no-reference", "--quiet"]
 
 
 @pytest.fixture(scope="module")
 def short_serial():
-    problem = OrbitTransferProblem(case=1, samples=101)
+    problem = make(case=1, samples=101)
     return solve_pursuit(problem, PursuitSettings(window=32, update=16, max_agents=12),
                          reference=False)
 
 
 def test_results_identical_on_dask(short_serial):
-    problem = OrbitTransferProblem(case=1, samples=101)
+    """The orbit transfer and the van der Pol example (whose model the workers import from
+    ocpar.examples) give bitwise the serial results."""
+    problem, oscillator = make(case=1, samples=101), van_der_pol.make()
+    short_vdp = dataclasses.replace(VDP_SETTINGS, max_agents=12)
     with open_backend("dask", workers=2) as backend:
         result = solve_pursuit(problem, PursuitSettings(window=32, update=16, max_agents=12),
                                backend, reference=False)
-    assert result.final_masses_kg == short_serial.final_masses_kg  # bitwise
+        vdp = solve_pursuit(oscillator, short_vdp, backend, reference=False)
+    assert result.headlines == short_serial.headlines  # bitwise
     np.testing.assert_array_equal(result.u, short_serial.u)
+    vdp_serial = solve_pursuit(oscillator, short_vdp, reference=False)
+    assert vdp.headlines == vdp_serial.headlines and len(vdp.headlines) == 13
+    np.testing.assert_array_equal(vdp.u, vdp_serial.u)
 
 
 def test_results_identical_under_mpirun(short_serial, tmp_path):
@@ -103,7 +117,7 @@ def test_results_identical_under_mpirun(short_serial, tmp_path):
     assert proc.returncode == 1, proc.stderr  # max_agents reached: not converged
     data = json.loads((tmp_path / "result.json").read_text())
     assert data["backend"] == "mpi" and data["workers"] == 2
-    assert data["final_masses_kg"] == short_serial.final_masses_kg
+    assert data["final_mass_kg_per_agent"] == short_serial.headlines
     assert data["supersteps"] == short_serial.supersteps
 
 
@@ -112,6 +126,7 @@ def test_ms_mode_command_line_contract(tmp_path):
     assert proc.returncode == 0, proc.stderr
     data = json.loads((tmp_path / "result.json").read_text())
     assert data["scheme"] == "pursuit" and data["mode"] == "ms"
+    assert data["headline"] == "final_mass_kg" and data["headline_unit"] == "kg"
     assert data["final_mass_kg"] == pytest.approx(523.979819, abs=0.01)
     assert data["fuel_kg"] == pytest.approx(525 - data["final_mass_kg"])
     for key in ("agents", "subproblem_solves", "failed_solves", "supersteps",
@@ -145,9 +160,144 @@ def test_bad_command_lines_get_one_line_and_status_2(args, needle):
 def test_paper_case_1_n301():
     """Table II: N = 301, N_Δ = 60, N_δ = 32: PBMS within 0.01 kg of MS, agent count
     comparable to the paper's 3344."""
-    problem = OrbitTransferProblem(case=1, samples=301)
-    result = solve_pursuit(problem, PursuitSettings(window=60, update=32, epsilon_kg=1e-5))
+    problem = make(case=1, samples=301)
+    result = solve_pursuit(problem, PursuitSettings(window=60, update=32, epsilon=1e-5))
     assert result.converged and result.failed_solves == 0
-    assert result.final_mass_kg == pytest.approx(result.reference_final_mass_kg, abs=0.01)
-    assert np.all(np.diff(result.final_masses_kg[1:]) >= 0)
+    assert result.headline == pytest.approx(result.reference_headline, abs=0.01)
+    assert np.all(np.diff(result.headlines[1:]) >= 0)
     assert 1500 < result.agents < 7000
+
+
+# -- the van der Pol worked example against an independent CasADi solve -----------------------
+
+def vdp_reference_cost(samples: int, duration: float, mu: float, u_max: float) -> float:
+    """The full-horizon optimum of the example's discretisation, written here with
+    casadi.Opti: RK4 steps, u piecewise constant in [−u_max, u_max], x(0) = (1, 0),
+    x(T) = 0, cost h Σ (x1² + x2² + u²)."""
+    opti, n = ca.Opti(), samples - 1
+    h = duration / n
+    x, u = opti.variable(2, n + 1), opti.variable(1, n)
+
+    def f(s, v):
+        return ca.vertcat(s[1], mu * (1 - s[0] ** 2) * s[1] - s[0] + v)
+
+    for j in range(n):
+        k1 = f(x[:, j], u[j])
+        k2 = f(x[:, j] + h / 2 * k1, u[j])
+        k3 = f(x[:, j] + h / 2 * k2, u[j])
+        k4 = f(x[:, j] + h * k3, u[j])
+        opti.subject_to(x[:, j + 1] == x[:, j] + h / 6 * (k1 + 2 * k2 + 2 * k3 + k4))
+    opti.subject_to(x[:, 0] == ca.DM([1, 0]))
+    opti.subject_to(x[:, n] == 0)
+    opti.subject_to(opti.bounded(-u_max, u, u_max))
+    opti.set_initial(x[0, :], np.linspace(1, 0, n + 1))
+    opti.minimize(h * (ca.sumsqr(x[:, :n]) + ca.sumsqr(u)))
+    opti.solver("ipopt", {"print_time": False}, {"print_level": 0, "tol": 1e-12})
+    return float(opti.solve().value(opti.f))
+
+
+@pytest.fixture(scope="module")
+def vdp_result():
+    return solve_pursuit(van_der_pol.make(), VDP_SETTINGS, reference=False)
+
+
+def test_van_der_pol_pbms_reaches_the_full_horizon_optimum(vdp_result):
+    problem = van_der_pol.make()
+    model = problem.model
+    reference = vdp_reference_cost(problem.samples, problem.duration, model.mu, model.u_max)
+    result = vdp_result
+    assert result.converged and result.failed_solves == 0, result.message
+    assert result.headline_name == "cost" and result.headline == result.cost
+    assert result.headline == pytest.approx(reference, rel=1e-4)
+    assert result.headlines[1] > result.headline  # agents improve on agent 0's plan
+    assert result.constraint_violation < 1e-9
+    np.testing.assert_allclose(result.x[-1], 0.0, atol=1e-9)
+    assert np.max(np.abs(result.u)) <= model.u_max + 1e-8
+    assert np.max(np.abs(result.u)) > model.u_max - 1e-3  # the control bound is active
+
+
+def test_agent_0_given_as_samples_runs_the_same_train(vdp_result):
+    problem = van_der_pol.make()
+    states, controls = problem.feasible_trajectory()
+    np.testing.assert_allclose(states[-1], 0.0, atol=1e-6)  # the flat law ends at rest
+    sampled = dataclasses.replace(problem, plan=SampledPlan(states, controls))
+    result = solve_pursuit(sampled, VDP_SETTINGS, reference=False)
+    assert result.headlines == vdp_result.headlines
+
+
+@pytest.mark.parametrize(("window", "update"), [(4, 3), (11, 1)])
+def test_no_agent_is_left_too_few_intervals_to_reach_the_target_set(window, update):
+    """Two fixed components and one control need two intervals: with N_δ = N_Δ − 1 an agent
+    would be left one, an overconstrained problem; the schedule stops short instead."""
+    settings = PursuitSettings(window=window, update=update, max_agents=4)
+    result = solve_pursuit(van_der_pol.make(), settings, reference=False)
+    assert result.failed_solves == 0 and result.retries == 0
+    np.testing.assert_allclose(result.x[-1], 0.0, atol=1e-9)
+
+
+# -- a malformed problem: one ValueError naming the field -------------------------------------
+
+class NoCost:
+    nx, nu = 2, 1
+
+    def rhs(self, x, u):
+        return x
+
+
+class ThreeStateRhs(van_der_pol.VanDerPol):
+    def rhs(self, x, u):
+        return ca.vertcat(x[1], x[2])  # written for three states
+
+
+class ScalarRhs(van_der_pol.VanDerPol):
+    def rhs(self, x, u):
+        return x[0] + u[0]
+
+
+@pytest.mark.parametrize(
+    ("changes", "field"),
+    [
+        ({"initial_state": [1.0, 0.0, 0.0]}, "initial_state: shape (3,)"),
+        ({"initial_state": [np.nan, 0.0]}, "initial_state: contains non-finite"),
+        ({"target": [0.0, np.inf]}, "target: contains non-finite"),
+        ({"target_components": (0, 2)}, "target_components"),
+        ({"target_components": ()}, "target_components"),
+        ({"target_components": (0,)}, "target: shape (2,), expected (1,)"),
+        ({"duration": -1.0}, "duration"),
+        ({"samples": 2}, "samples"),
+        ({"integrator": "rk45"}, "integrator"),
+        ({"model": NoCost()}, "model: not an OdeModel, it lacks running_cost"),
+        ({"model": ThreeStateRhs()}, "model.rhs: does not evaluate"),
+        ({"model": ScalarRhs()}, "model.rhs: shape (1, 1), expected (2, 1)"),
+        ({"model": van_der_pol.VanDerPol(u_max=0.1)}, "plan.law(0): value 0.625"),
+        ({"plan": ControlLaw(lambda t: [1.0, 2.0])}, "plan.law(0): shape (2,)"),
+        ({"plan": ControlLaw(lambda t: 1 / 0)}, "plan.law: fails at t = 0: ZeroDivisionError"),
+        ({"plan": SampledPlan(np.zeros((41, 2)), np.zeros((40, 1)))}, "plan.states: the first"),
+        ({"plan": SampledPlan(np.zeros((40, 2)), np.zeros((40, 1)))}, "plan.states: shape"),
+        ({"plan": "bang-bang"}, "plan: must be a ControlLaw or a SampledPlan"),
+        ({"headline": FinalValue("end", "", lambda x: x[5])}, "headline.of_state: fails"),
+        ({"checks": (FinalValue("r", "m", lambda x: np.nan),)}, "checks[0].of_state: not finite"),
+    ],
+)
+def test_malformed_problems_get_one_error_naming_the_field(changes, field):
+    with pytest.raises(ValueError) as error:
+        dataclasses.replace(van_der_pol.make(), **changes)
+    assert str(error.value).startswith(field.split(":")[0]) and field in str(error.value)
+    assert "\n" not in str(error.value)
+
+
+def test_a_control_law_that_leaves_the_bounds_is_refused_when_integrated():
+    model = van_der_pol.VanDerPol(u_max=0.7)  # the law's u(0) = 0.625 is fine, its peak is not
+    problem = dataclasses.replace(van_der_pol.make(), model=model)
+    with pytest.raises(ValueError, match=r"^plan.law: value 0.7\d* .* outside the model's bounds"):
+        problem.feasible_trajectory()
+
+
+def test_the_orbit_transfer_names_its_headline_and_checks():
+    problem = make(case=1, samples=101)
+    assert (problem.headline_key, problem.cost_key) == ("final_mass_kg", "fuel_kg")
+    x, u = problem.feasible_trajectory()
+    assert problem.headline_value(x, u) == x[-1, 3] * 1e3
+    # the running cost is the burn rate: the Euler cost is the mass an Euler plan loses
+    assert [c.key for c in problem.checks] == ["final_altitude_error_m",
+                                                "final_radial_velocity_mps"]

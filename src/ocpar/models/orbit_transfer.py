@@ -64,14 +64,3 @@ class OrbitTransfer:
     def circular_rate(self, radius: float) -> float:
         """Angular rate of the circular orbit of ``radius`` Mm, rad/min."""
         return float(np.sqrt(self.mu_earth / radius**3))
-
-    def rhs_numpy(self, x: np.ndarray, u: np.ndarray) -> np.ndarray:
-        """f(x, u) in numpy, for scipy's integrators."""
-        r, rdot, thdot, mass = x
-        a, b = self.thrust_gain, self.mass_flow
-        return np.array([
-            rdot,
-            thdot**2 * r - self.mu_earth / r**2 + a * u[0] / mass,
-            -2 * thdot * rdot / r + a * u[1] / (mass * r),
-            -b * (u[0] ** 2 + u[1] ** 2),
-        ])

@@ -5,7 +5,8 @@ continuity constraints x_{j+1} = Φ_h(x_j, u_j) use explicit Euler, Φ_h = x + h
 local-pursuit paper's eq. 13/17), or classical RK4. The cost is Σ_j h g(x_j, u_j). The initial
 state x_0 and the values of the terminal components x_N[i] (i in ``terminal``; the others are
 free: a target set Q(x) = x[terminal] − target = 0) are NLP parameters, p = (x_0, target).
-Decision variables w = (x_1..x_N, u_0..u_{N-1}); states are bounded by the model's bounds.
+Decision variables w = (x_1..x_N, u_0..u_{N-1}); states and controls are bounded by the
+model's bounds (controls only if the model has ``control_bounds``).
 """
 
 from __future__ import annotations
@@ -18,7 +19,7 @@ import casadi as ca
 import numpy as np
 
 from ocpar import faults
-from ocpar.models.ode import OdeModel
+from ocpar.models.ode import OdeModel, control_bounds
 from ocpar.ocp.ipopt import ipopt_options
 
 INTEGRATORS = ("euler", "rk4")
@@ -143,8 +144,9 @@ class MsTranscription:
         self.g = ca.vertcat(*gaps, *terminal)
         self.ng = self.g.numel()
         lower, upper = model.state_bounds()
-        self.lbw = np.concatenate([np.tile(lower, n), np.full(nu * n, -np.inf)])
-        self.ubw = np.concatenate([np.tile(upper, n), np.full(nu * n, np.inf)])
+        u_lower, u_upper = control_bounds(model)
+        self.lbw = np.concatenate([np.tile(lower, n), np.tile(u_lower, n)])
+        self.ubw = np.concatenate([np.tile(upper, n), np.tile(u_upper, n)])
 
     @cached_property
     def solver(self) -> ca.Function:

@@ -2,17 +2,33 @@
 
 A train of agents, each a copy of the system, improves on its predecessor by repeatedly
 solving small multiple-shooting problems to intercept it (Hristu-Varsakelis, Shao, Samaras).
-All agents in flight at one time solve in one superstep.
+All agents in flight at one time solve in one superstep. A problem is any fixed-horizon
+ẋ = f(x, u) with a running cost, a target set and agent 0's feasible plan
+(:class:`PursuitProblem`); the paper's orbit transfer is
+:mod:`ocpar.examples.pursuit_orbit_transfer`.
 
->>> from ocpar.pursuit import OrbitTransferProblem, PursuitSettings, solve_pursuit
->>> result = solve_pursuit(OrbitTransferProblem(case=1, samples=301), mode="ms")
->>> round(result.final_mass_kg, 3)
+>>> from ocpar.examples.pursuit_orbit_transfer import make
+>>> from ocpar.pursuit import solve_pursuit
+>>> result = solve_pursuit(make(case=1, samples=301), mode="ms")
+>>> round(result.headline, 3)
 523.975
 """
 
-from ocpar.pursuit.problem import OrbitTransferProblem
+import importlib
+
+from ocpar.pursuit.problem import ControlLaw, FinalValue, PursuitProblem, SampledPlan
 from ocpar.pursuit.result import PursuitResult
 from ocpar.pursuit.slp import PursuitSettings
 from ocpar.pursuit.solve import MODES, solve_pursuit
 
-__all__ = ["MODES", "OrbitTransferProblem", "PursuitResult", "PursuitSettings", "solve_pursuit"]
+__all__ = ["MODES", "ControlLaw", "FinalValue", "PursuitProblem", "PursuitResult",
+           "PursuitSettings", "SampledPlan", "solve_pursuit"]
+
+
+def __getattr__(name: str) -> object:
+    """``OrbitTransferProblem``, the command line's named problem, from
+    :mod:`ocpar.examples.pursuit_orbit_transfer` (imported on first use: it imports this
+    package)."""
+    if name == "OrbitTransferProblem":
+        return importlib.import_module("ocpar.examples.pursuit_orbit_transfer").OrbitTransferProblem
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

@@ -1,5 +1,5 @@
-"""Pictures of a pursuit result: trajectories around the Earth (the paper's Fig. 4) and the
-final mass of each agent (convergence of the train)."""
+"""Pictures of a pursuit result: the state components over time (agent 0, the result, the
+full-horizon MS solution) and the headline of each agent (convergence of the train)."""
 
 from __future__ import annotations
 
@@ -8,52 +8,56 @@ from pathlib import Path
 import numpy as np
 
 from ocpar.plotting import pyplot, save
-from ocpar.pursuit.problem import OrbitTransferProblem
+from ocpar.pursuit.problem import PursuitProblem
 from ocpar.pursuit.result import PursuitResult
-from ocpar.pursuit.validate import longitude
-
-EARTH_RADIUS_MM = 6.378
 
 
-def plot_trajectories(problem: OrbitTransferProblem, result: PursuitResult, path: Path) -> Path:
-    """Initial (agent 0), PBMS and full-horizon MS trajectories in the orbit plane (Mm)."""
+def headline_label(result: PursuitResult, value: float) -> str:
+    unit = f" {result.headline_unit}" if result.headline_unit else ""
+    return f"{result.headline_name} {value:.6f}{unit}"
+
+
+def plot_trajectories(problem: PursuitProblem, result: PursuitResult, path: Path) -> Path:
+    """One panel per state component x_i(t): agent 0, the result and the full-horizon MS
+    solution, with the targets of the fixed final components."""
     plt = pyplot()
-    fig, ax = plt.subplots(figsize=(6.5, 6.5))
-    ring = np.linspace(0, 2 * np.pi, 400)
-    ax.fill(EARTH_RADIUS_MM * np.cos(ring), EARTH_RADIUS_MM * np.sin(ring), color="lightsteelblue",
-            label="Earth")
-    for radius, style in ((problem.initial_radius, ":"), (problem.target_radius, "--")):
-        ax.plot(radius * np.cos(ring), radius * np.sin(ring), style, color="grey", lw=0.7)
-    curves = [("initial feasible (agent 0)", result.initial_x, "tab:orange", 1.0)]
+    nx = problem.model.nx
+    fig, axes = plt.subplots(nx, 1, figsize=(7, 1.8 * nx + 1), sharex=True, squeeze=False)
+    t = problem.grid
     label = "PBMS" if result.mode == "pbms" else "MS"
-    curves.append((f"{label}: {result.final_mass_kg:.6f} kg", result.x, "tab:blue", 1.6))
+    curves = [("initial feasible (agent 0)", result.initial_x, "tab:orange", "-", 1.0),
+              (f"{label}: {headline_label(result, result.headline)}", result.x, "tab:blue",
+               "-", 1.6)]
     if result.reference_x is not None:
-        curves.append((f"MS: {result.reference_final_mass_kg:.6f} kg", result.reference_x,
-                       "k", 0.8))
-    for name, x, colour, width in curves:
-        theta = longitude(problem, x)
-        ax.plot(x[:, 0] * np.cos(theta), x[:, 0] * np.sin(theta), color=colour, lw=width,
-                label=name, ls="--" if colour == "k" else "-")
-    ax.set_aspect("equal")
-    ax.set_xlabel("x (10³ km)")
-    ax.set_ylabel("y (10³ km)")
-    ax.set_title(f"orbit transfer case {problem.case}, N = {problem.samples}")
-    ax.legend(loc="lower left", fontsize=8)
+        curves.append((f"MS: {headline_label(result, result.reference_headline)}",
+                       result.reference_x, "k", "--", 0.8))
+    targets = dict(zip(problem.target_components, problem.target, strict=True))
+    for i, ax in enumerate(axes[:, 0]):
+        for name, x, colour, style, width in curves:
+            ax.plot(t, np.asarray(x)[:, i], style, color=colour, lw=width, label=name)
+        if i in targets:
+            ax.plot(t[-1], targets[i], "o", color="tab:red", ms=4)
+        ax.set_ylabel(f"x[{i}]")
+        ax.grid(alpha=0.3)
+    axes[0, 0].set_title(f"{problem.name}, N = {problem.samples} (dots: target set)")
+    axes[0, 0].legend(fontsize=8)
+    axes[-1, 0].set_xlabel("t")
     return save(fig, path)
 
 
 def plot_convergence(result: PursuitResult, path: Path) -> Path:
-    """Final mass of each finished agent (agent 0 left out), with the MS reference."""
+    """The headline of each finished agent (agent 0 left out), with the MS reference."""
     plt = pyplot()
     fig, ax = plt.subplots(figsize=(7, 4.5))
-    masses = result.final_masses_kg[1:]
-    ax.plot(np.arange(1, len(masses) + 1), masses, "-", color="tab:blue", label="PBMS agents")
-    if result.reference_final_mass_kg is not None:
-        ax.axhline(result.reference_final_mass_kg, color="k", ls="--", lw=0.8,
-                   label=f"full-horizon MS {result.reference_final_mass_kg:.6f} kg")
+    values = result.headlines[1:]
+    ax.plot(np.arange(1, len(values) + 1), values, "-", color="tab:blue", label="PBMS agents")
+    if result.reference_headline is not None:
+        ax.axhline(result.reference_headline, color="k", ls="--", lw=0.8,
+                   label=f"full-horizon MS {headline_label(result, result.reference_headline)}")
     ax.set_xscale("log")
     ax.set_xlabel("agent")
-    ax.set_ylabel("final mass (kg)")
+    unit = f" ({result.headline_unit})" if result.headline_unit else ""
+    ax.set_ylabel(f"{result.headline_name}{unit}")
     ax.set_title(f"PBMS convergence, N_Δ = {result.window}, N_δ = {result.update}")
     ax.legend()
     ax.grid(alpha=0.3)

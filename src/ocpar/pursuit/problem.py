@@ -1,91 +1,306 @@
-"""The orbit transfer problem of the local-pursuit paper (§VI), its two cases and the initial
-feasible trajectory that agent 0 follows.
+"""The pursuit problem (the local-pursuit paper's Problem 1 with T fixed and no Mayer term):
 
-Units: Mm, t, min (see :mod:`ocpar.models.orbit_transfer`). The spacecraft starts on the
-circular orbit r = 9.6 Mm with μ = 0.525 t and must reach, at T = 300 min, the circular orbit
-r = R_T (ṙ = 0, θ̇ = √(u_E/R_T³), longitude free) with the least fuel.
+    min Σ_j h g(x_j, u_j)   s.t.   x_{j+1} = Φ_h(x_j, u_j),  x_0 = x_I,  x_N[i] = target_i (i ∈ S),
+
+with N samples over [0, T] (h = T/(N−1)), state and control bounds from the model, and agent 0's
+feasible plan. Everything is checked when the problem is built: one ValueError naming the field.
 """
 
 from __future__ import annotations
 
+import importlib
+import math
+import numbers
+import re
+from collections.abc import Callable
 from dataclasses import dataclass, field
+from functools import cached_property
+from typing import Any
 
 import numpy as np
+from numpy.typing import ArrayLike
 from scipy.integrate import solve_ivp
 
-from ocpar.models import OrbitTransfer
+from ocpar.models.ode import OdeModel, check_ode_model, control_bounds, ode_functions
+from ocpar.ocp.multiple_shooting import INTEGRATORS
 
-#: Target radius (Mm) per case: case 1 the well-conditioned transfer (guess eq. 16), case 2
-#: the ill-conditioned one (guess eq. 20).
-CASE_RADIUS = {1: 12.7778, 2: 23.642}
-#: Components fixed on the target set S_Q: r, ṙ, θ̇ (the mass is what is optimised).
-TARGET_COMPONENTS = (0, 1, 2)
+#: Accuracy of the integration of a control law for agent 0 (scipy's RK45).
+LAW_RTOL, LAW_ATOL = 1e-11, 1e-13
+#: The integration's largest step, as a fraction of the horizon.
+LAW_MAX_STEP_FRACTION = 1 / 600
 
 
 @dataclass(frozen=True)
-class OrbitTransferProblem:
-    """One orbit transfer: ``case`` (1 or 2) sampled at ``samples`` points N over [0, T]
-    (h = T/(N−1) min)."""
+class FinalValue:
+    """A named function of the final state that a run reports, e.g. the final mass in kg:
+    ``of_state`` maps x(T) (nx,) to a float. ``larger_is_better`` says which way an
+    improvement goes when it is the problem's headline."""
 
-    case: int = 1
-    samples: int = 301
-    duration: float = 300.0
-    initial_radius: float = 9.6
-    initial_mass: float = 0.525
-    model: OrbitTransfer = field(default_factory=OrbitTransfer)
-
-    def __post_init__(self) -> None:
-        if self.case not in CASE_RADIUS:
-            raise ValueError(f"unknown case {self.case}; choose one of {sorted(CASE_RADIUS)}")
-        if self.samples < 3:
-            raise ValueError(f"need at least 3 samples, got {self.samples}")
+    name: str
+    unit: str
+    of_state: Callable[[np.ndarray], float]
+    larger_is_better: bool = False
 
     @property
-    def name(self) -> str:
-        return f"orbit-transfer-case{self.case}"
+    def key(self) -> str:
+        """Its ``result.json`` key: name and unit in snake case, e.g. ``final_mass_kg``."""
+        return snake_case(f"{self.name} {self.unit}")
+
+
+@dataclass(frozen=True)
+class ControlLaw:
+    """Agent 0's plan as a control law: ``law(t)`` gives u (nu,) at time t (the model's time
+    unit). It is integrated accurately from x_I (RK45, rtol 1e-11) and sampled on the grid;
+    its controls are taken at the grid points t_0..t_{N−2}."""
+
+    law: Callable[[float], ArrayLike]
+
+
+@dataclass(frozen=True, eq=False)
+class SampledPlan:
+    """Agent 0's plan as samples: ``states`` (N, nx) with states[0] = x_I, ``controls``
+    (N−1, nu), control j held on [t_j, t_{j+1})."""
+
+    states: np.ndarray
+    controls: np.ndarray
+
+
+@dataclass(frozen=True, eq=False)
+class PursuitProblem:
+    """A fixed-horizon optimal control problem for pursuit-based multiple shooting.
+
+    ``model`` the ODE with its running cost and bounds (:class:`ocpar.models.OdeModel`);
+    ``duration`` T and ``samples`` N (h = T/(N−1)); ``initial_state`` x_I (nx,);
+    ``target_components`` the indices S of the final state that are fixed (one up to all) and
+    ``target`` their values (len(S),); ``plan`` agent 0's feasible plan; ``headline`` what a run
+    reports first and stops on (None: the cost, smaller is better); ``cost_name`` and
+    ``cost_unit`` name Σ h g; ``checks`` final-state values also reported for the result's
+    controls re-simulated accurately; ``integrator`` Φ_h, ``"euler"`` or ``"rk4"``.
+    """
+
+    model: OdeModel
+    duration: float
+    samples: int
+    initial_state: np.ndarray
+    target_components: tuple[int, ...]
+    target: np.ndarray
+    plan: ControlLaw | SampledPlan
+    name: str = "pursuit"
+    headline: FinalValue | None = None
+    cost_name: str = "cost"
+    cost_unit: str = ""
+    checks: tuple[FinalValue, ...] = field(default=())
+    integrator: str = "euler"
+
+    def __post_init__(self) -> None:
+        check_ode_model(self.model)
+        nx = self.model.nx
+        if not isinstance(self.name, str) or not self.name:
+            raise ValueError(f"name: must be a non-empty string, got {self.name!r}")
+        if not (isinstance(self.duration, numbers.Real) and math.isfinite(self.duration)
+                and self.duration > 0):
+            raise ValueError(f"duration: must be a finite number > 0, got {self.duration!r}")
+        if not isinstance(self.samples, int | np.integer) or self.samples < 3:
+            raise ValueError(f"samples: must be an integer >= 3, got {self.samples!r}")
+        if self.integrator not in INTEGRATORS:
+            raise ValueError(f"integrator: {self.integrator!r} is not one of {INTEGRATORS}")
+        lower, upper = self.model.state_bounds()
+        lower, upper = np.asarray(lower, float), np.asarray(upper, float)
+        x0 = as_array("initial_state", self.initial_state, (nx,))
+        require_within("initial_state", x0, lower, upper)
+        comps = tuple(self.target_components)
+        if (not comps or len(set(comps)) != len(comps)
+                or not all(isinstance(i, int | np.integer) and 0 <= i < nx for i in comps)):
+            raise ValueError(f"target_components: need distinct indices in 0..{nx - 1}, one up "
+                             f"to all of them, got {self.target_components!r}")
+        comps = tuple(int(i) for i in comps)
+        target = as_array("target", self.target, (len(comps),))
+        require_within("target", target, lower[list(comps)], upper[list(comps)])
+        object.__setattr__(self, "initial_state", x0)
+        object.__setattr__(self, "target_components", comps)
+        object.__setattr__(self, "target", target)
+        first_control = self._check_plan()
+        self._check_model_values(first_control)
+        named = [("headline", self.headline)] if self.headline is not None else []
+        named += [(f"checks[{k}]", value) for k, value in enumerate(self.checks)]
+        for label, value in named:
+            check_final_value(label, value, x0)
+        for label in ("cost_name", "cost_unit"):
+            if not isinstance(getattr(self, label), str):
+                raise ValueError(f"{label}: must be a string")
+
+    def _check_plan(self) -> np.ndarray:
+        """Check agent 0's plan (shapes, finiteness, bounds, x_I); return its first control."""
+        nx, nu, n = self.model.nx, self.model.nu, self.samples
+        u_lower, u_upper = control_bounds(self.model)
+        if isinstance(self.plan, ControlLaw):
+            if not callable(self.plan.law):
+                raise ValueError("plan.law: must be a function of t")
+            u0 = evaluate_law(self.plan.law, 0.0, nu)
+            require_within("plan.law(0)", u0, u_lower, u_upper)
+            return u0
+        if not isinstance(self.plan, SampledPlan):
+            raise ValueError(f"plan: must be a ControlLaw or a SampledPlan, got "
+                             f"{type(self.plan).__name__}")
+        states = as_array("plan.states", self.plan.states, (n, nx))
+        controls = as_array("plan.controls", self.plan.controls, (n - 1, nu))
+        if not np.allclose(states[0], self.initial_state, rtol=1e-12, atol=1e-12):
+            raise ValueError("plan.states: the first sample must be initial_state")
+        lower, upper = self.model.state_bounds()
+        require_within("plan.states", states, np.asarray(lower, float), np.asarray(upper, float))
+        require_within("plan.controls", controls, u_lower, u_upper)
+        object.__setattr__(self, "plan", SampledPlan(states, controls))
+        return controls[0]
+
+    def _check_model_values(self, u0: np.ndarray) -> None:
+        """f and g must be finite at x_I and agent 0's first control."""
+        for label, function in zip(("model.rhs", "model.running_cost"), self._functions,
+                                   strict=True):
+            value = np.asarray(function(self.initial_state, u0), float)
+            if not np.isfinite(value).all():
+                raise ValueError(f"{label}: not finite at initial_state and agent 0's first "
+                                 "control")
+
+    @cached_property
+    def _functions(self) -> tuple[Any, Any]:
+        return ode_functions(self.model)
 
     @property
     def step(self) -> float:
-        """h = T/(N−1), min."""
+        """h = T/(N−1), in the model's time unit."""
         return self.duration / (self.samples - 1)
 
     @property
-    def target_radius(self) -> float:
-        return CASE_RADIUS[self.case]
+    def grid(self) -> np.ndarray:
+        """Sample times t_j = j h, (N,)."""
+        return np.arange(self.samples) * self.step
 
     @property
-    def initial_state(self) -> np.ndarray:
-        """x_I = (r0, 0, √(u_E/r0³), μ0)."""
-        r0 = self.initial_radius
-        return np.array([r0, 0.0, self.model.circular_rate(r0), self.initial_mass])
+    def headline_name(self) -> str:
+        return self.cost_name if self.headline is None else self.headline.name
 
     @property
-    def target(self) -> np.ndarray:
-        """Values of (r, ṙ, θ̇) on the target set S_Q."""
-        rt = self.target_radius
-        return np.array([rt, 0.0, self.model.circular_rate(rt)])
+    def headline_unit(self) -> str:
+        return self.cost_unit if self.headline is None else self.headline.unit
 
-    def guess_controls(self, t: np.ndarray) -> np.ndarray:
-        """The paper's suboptimal controls u = I (sin φ, cos φ) at times t (min): eq. 16 for
-        case 1, eq. 20 for case 2. Shape (len(t), 2)."""
-        t = np.asarray(t, float)
-        half, tt = t < self.duration / 2, self.duration
-        if self.case == 1:
-            thrust = np.where(half, 60 * (1.5 + np.sin(6 * np.pi * t / tt)) * 1e-4, 75e-4)
-            angle = np.where(half, (1 + np.sin(2 * np.pi * t / tt)) * np.pi, 0.4417 * np.pi)
-        else:
-            thrust = np.where(half, 90 * (1.5 + np.sin(6 * np.pi * t / tt)) * 1e-4, 75e-4)
-            angle = np.where(half, np.pi / 2, 0.4417 * np.pi)
-        return np.column_stack([thrust * np.sin(angle), thrust * np.cos(angle)])
+    @property
+    def headline_key(self) -> str:
+        """The headline's ``result.json`` key, e.g. ``final_mass_kg``."""
+        return snake_case(f"{self.headline_name} {self.headline_unit}")
+
+    @property
+    def cost_key(self) -> str:
+        """The cost's ``result.json`` key, e.g. ``fuel_kg``."""
+        return snake_case(f"{self.cost_name} {self.cost_unit}")
+
+    def cost(self, x: np.ndarray, u: np.ndarray) -> float:
+        """Σ_j h g(x_j, u_j) of states x (N, nx) and controls u (N−1, nu)."""
+        g = self._functions[1].map(len(u))
+        return float(self.step * np.sum(np.asarray(g(np.asarray(x)[:-1].T, np.asarray(u).T))))
+
+    def headline_value(self, x: np.ndarray, u: np.ndarray) -> float:
+        """The headline of a trajectory: its final value, or its cost."""
+        if self.headline is None:
+            return self.cost(x, u)
+        return float(self.headline.of_state(np.asarray(x)[-1]))
+
+    def improvement(self, previous: float, current: float) -> float:
+        """How much a headline ``current`` improves on ``previous`` (> 0: better)."""
+        larger = self.headline is not None and self.headline.larger_is_better
+        return current - previous if larger else previous - current
 
     def feasible_trajectory(self) -> tuple[np.ndarray, np.ndarray]:
-        """Agent 0: the guess controls integrated accurately (RK45, rtol 1e-11), states
-        sampled on the grid (N, 4), and the controls sampled at the grid points (N−1, 2).
-        Explicit Euler with h = 1 min would land far from the paper's r(T)."""
-        grid = np.arange(self.samples) * self.step
+        """Agent 0: states (N, nx) and controls (N−1, nu) (copies)."""
+        x, u = self._agent0
+        return x.copy(), u.copy()
+
+    @cached_property
+    def _agent0(self) -> tuple[np.ndarray, np.ndarray]:
+        if isinstance(self.plan, SampledPlan):
+            return self.plan.states, self.plan.controls
+        return self._integrate_law()
+
+    def _integrate_law(self) -> tuple[np.ndarray, np.ndarray]:
+        """The control law integrated accurately, sampled on the grid; its controls at the
+        grid points. Raises ValueError naming ``plan`` if the integration fails or leaves the
+        bounds."""
+        f, law, nu = self._functions[0], self.plan.law, self.model.nu
         sol = solve_ivp(
-            lambda t, x: self.model.rhs_numpy(x, self.guess_controls(np.array([t]))[0]),
-            (0.0, self.duration), self.initial_state, t_eval=grid, rtol=1e-11, atol=1e-13,
-            max_step=self.duration / 600,
+            lambda t, x: np.asarray(f(x, evaluate_law(law, t, nu))).ravel(),
+            (0.0, self.duration), self.initial_state, t_eval=self.grid, rtol=LAW_RTOL,
+            atol=LAW_ATOL, max_step=self.duration * LAW_MAX_STEP_FRACTION,
         )
-        return sol.y.T.copy(), self.guess_controls(grid[:-1])
+        if not sol.success or sol.y.shape[1] != self.samples or not np.isfinite(sol.y).all():
+            raise ValueError(f"plan: integrating the control law failed ({sol.message})")
+        x = sol.y.T.copy()
+        u = np.array([evaluate_law(law, t, nu) for t in self.grid[:-1]])
+        lower, upper = self.model.state_bounds()
+        require_within("plan (integrated states)", x, np.asarray(lower, float),
+                       np.asarray(upper, float))
+        require_within("plan.law", u, *control_bounds(self.model))
+        return x, u
+
+
+def snake_case(text: str) -> str:
+    """``"final mass kg"`` → ``"final_mass_kg"``; ``"cost "`` → ``"cost"``."""
+    return re.sub(r"\W+", "_", text.strip().lower()).strip("_")
+
+
+def as_array(label: str, value: object, shape: tuple[int, ...]) -> np.ndarray:
+    """``value`` as a finite float array of ``shape``, or one ValueError naming ``label``."""
+    try:
+        array = np.array(value, dtype=float)
+    except (TypeError, ValueError):
+        raise ValueError(f"{label}: not an array of numbers") from None
+    if array.shape != shape:
+        raise ValueError(f"{label}: shape {array.shape}, expected {shape}")
+    if not np.isfinite(array).all():
+        raise ValueError(f"{label}: contains non-finite values")
+    return array
+
+
+def require_within(label: str, value: np.ndarray, lower: np.ndarray, upper: np.ndarray) -> None:
+    """One ValueError naming ``label`` if ``value`` (…, n) leaves [lower, upper] (n,)."""
+    outside = (value < lower) | (value > upper)
+    if outside.any():
+        index = np.argwhere(outside)[0]
+        raise ValueError(f"{label}: value {value[tuple(index)]:g} at index {tuple(index.tolist())} "
+                         f"is outside the model's bounds")
+
+
+def evaluate_law(law: Callable[[float], ArrayLike], t: float, nu: int) -> np.ndarray:
+    """u = law(t) as a finite (nu,) array, or one ValueError naming ``plan.law``."""
+    try:
+        value = law(t)
+    except Exception as exc:
+        raise ValueError(f"plan.law: fails at t = {t:g}: {type(exc).__name__}: {exc}"
+                         .splitlines()[0]) from None
+    return as_array(f"plan.law({t:g})", value, (nu,))
+
+
+def check_final_value(label: str, value: object, x0: np.ndarray) -> None:
+    """A FinalValue whose function gives a finite number at ``x0``, or one ValueError."""
+    if not isinstance(value, FinalValue):
+        raise ValueError(f"{label}: must be a FinalValue, got {type(value).__name__}")
+    try:
+        number = float(value.of_state(x0.copy()))
+    except Exception as exc:
+        raise ValueError(f"{label}.of_state: fails at initial_state: {type(exc).__name__}: "
+                         f"{exc}".splitlines()[0]) from None
+    if not math.isfinite(number):
+        raise ValueError(f"{label}.of_state: not finite at initial_state")
+    if not snake_case(f"{value.name} {value.unit}"):
+        raise ValueError(f"{label}.name: must name the value")
+
+
+#: Names kept here for the command line (``ocpar.pursuit.__main__``), which predates problems
+#: by reference: the paper's orbit transfer now lives in
+#: :mod:`ocpar.examples.pursuit_orbit_transfer` (imported on first use: it imports this
+#: package).
+_ORBIT_TRANSFER_NAMES = ("CASE_RADIUS", "OrbitTransferProblem", "TARGET_COMPONENTS")
+
+
+def __getattr__(name: str) -> object:
+    if name in _ORBIT_TRANSFER_NAMES:
+        return getattr(importlib.import_module("ocpar.examples.pursuit_orbit_transfer"), name)
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

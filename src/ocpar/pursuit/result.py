@@ -14,38 +14,45 @@ from ocpar.results import RunResult
 class PursuitResult(RunResult):
     """Outcome of :func:`ocpar.pursuit.solve_pursuit`.
 
-    Masses in kg, times in s; ``x`` (N, 4) and ``u`` (N−1, 2) are the result trajectory;
-    ``initial_x`` agent 0's; ``reference_x`` the full-horizon MS solution when computed.
+    The headline (named by the problem: ``headline_name`` in ``headline_unit``, written to
+    ``result.json`` under ``headline_key``, e.g. the final mass in kg) of the result, of every
+    finished agent (``headlines``, agent 0 first) and of the full-horizon MS solution when
+    computed; ``cost`` Σ h g (under ``cost_key``); ``rk_checks`` the problem's checks of the
+    re-simulated final state by key. ``x`` (N, nx) and ``u`` (N−1, nu) are the result
+    trajectory, ``initial_x`` agent 0's, ``reference_x`` the full-horizon MS solution's.
+    Times in s.
     """
 
     problem: str
-    case: int
     samples: int
     mode: str
     window: int
     update: int
-    epsilon_kg: float
+    epsilon: float
     backend: str
     workers: int
     status: str
     message: str
-    final_mass_kg: float
-    fuel_kg: float
+    headline_key: str
+    headline_name: str
+    headline_unit: str
+    headline: float
+    cost_key: str
+    cost: float
     agents: int
     subproblem_solves: int
     failed_solves: int
     retries: int
     max_agents_in_flight: int
     constraint_violation: float
-    rk_final_altitude_error_m: float
-    rk_final_radial_velocity_mps: float
-    rk_final_position_error_m: float
+    rk_terminal_error: float
+    rk_checks: dict[str, float]
     wall_time_s: float
     x: np.ndarray
     u: np.ndarray
     initial_x: np.ndarray
-    final_masses_kg: list[float] = field(default_factory=list)
-    reference_final_mass_kg: float | None = None
+    headlines: list[float] = field(default_factory=list)
+    reference_headline: float | None = None
     reference_x: np.ndarray | None = None
     trace: list[SuperstepTrace] = field(default_factory=list)
 
@@ -59,22 +66,28 @@ class PursuitResult(RunResult):
         return max((m for t in self.trace for m in t.worker_peak_rss_mb), default=0.0)
 
     def to_dict(self) -> dict:
-        """The ``result.json`` contract, plus trajectories and per-agent final masses."""
+        """The ``result.json`` contract, plus trajectories and per-agent headlines. Keys named
+        by the problem: ``headline`` gives the headline's key (e.g. ``final_mass_kg``), which
+        also prefixes ``reference_ms_`` and suffixes ``_per_agent``; the cost's key (e.g.
+        ``fuel_kg``); ``rk_`` + each check's key."""
+        key = self.headline_key
         return {
             "scheme": "pursuit",
             "problem": self.problem,
-            "case": self.case,
             "samples": self.samples,
             "mode": self.mode,
             "window": self.window,
             "update": self.update,
-            "epsilon_kg": self.epsilon_kg,
+            "epsilon": self.epsilon,
             "backend": self.backend,
             "workers": self.workers,
             "status": self.status,
             "message": self.message,
-            "final_mass_kg": self.final_mass_kg,
-            "fuel_kg": self.fuel_kg,
+            "headline": key,
+            "headline_name": self.headline_name,
+            "headline_unit": self.headline_unit,
+            key: self.headline,
+            self.cost_key: self.cost,
             "agents": self.agents,
             "subproblem_solves": self.subproblem_solves,
             "failed_solves": self.failed_solves,
@@ -82,31 +95,32 @@ class PursuitResult(RunResult):
             "supersteps": self.supersteps,
             "max_agents_in_flight": self.max_agents_in_flight,
             "constraint_violation": self.constraint_violation,
-            "rk_final_altitude_error_m": self.rk_final_altitude_error_m,
-            "rk_final_radial_velocity_mps": self.rk_final_radial_velocity_mps,
-            "rk_final_position_error_m": self.rk_final_position_error_m,
+            "rk_terminal_error": self.rk_terminal_error,
+            **{f"rk_{name}": value for name, value in self.rk_checks.items()},
             "wall_time_s": self.wall_time_s,
             "peak_rss_mb_per_worker": self.peak_rss_mb_per_worker,
-            "reference_ms_final_mass_kg": self.reference_final_mass_kg,
-            "final_masses_kg": self.final_masses_kg,
+            f"reference_ms_{key}": self.reference_headline,
+            f"{key}_per_agent": self.headlines,
             "states": np.asarray(self.x).tolist(),
             "controls": np.asarray(self.u).tolist(),
             "trace": [t.to_dict() for t in self.trace],
         }
 
     def summary(self) -> str:
-        ref = ("" if self.reference_final_mass_kg is None
-               else f"   (full-horizon MS: {self.reference_final_mass_kg:.6f} kg)")
+        unit = f" {self.headline_unit}" if self.headline_unit else ""
+        ref = ("" if self.reference_headline is None
+               else f"   (full-horizon MS: {self.reference_headline:.6f}{unit})")
+        checks = "".join(f", {name} {value:.4g}" for name, value in self.rk_checks.items())
         return (
             f"status {self.status} ({self.message})\n"
-            f"final mass {self.final_mass_kg:.6f} kg, fuel {self.fuel_kg:.6f} kg{ref}\n"
+            f"{self.headline_name} {self.headline:.6f}{unit}, {self.cost_key} "
+            f"{self.cost:.6f}{ref}\n"
             f"agents {self.agents}   subproblem solves {self.subproblem_solves} "
             f"(failed {self.failed_solves}, retries {self.retries})   "
             f"supersteps {self.supersteps}   "
             f"max in flight {self.max_agents_in_flight}\n"
             f"constraint violation {self.constraint_violation:.1e}   RK re-simulation: "
-            f"altitude error {self.rk_final_altitude_error_m / 1e3:.2f} km, radial velocity "
-            f"{self.rk_final_radial_velocity_mps:.2f} m/s\n"
+            f"terminal error {self.rk_terminal_error:.3g}{checks}\n"
             f"wall time {self.wall_time_s:.2f} s on {self.workers} {self.backend} worker(s), "
             f"peak memory per worker {self.peak_rss_mb_per_worker:.0f} MiB"
         )

@@ -4,8 +4,9 @@ Agent 0 follows the feasible trajectory. Agent k leaves x_I at kΔ; at each of i
 times (every δ) it solves, by multiple shooting,
 
 * a **catch-up** problem while its leader has not reached S_Q: a fixed-time Δ transfer from
-  its own state to the leader's current state (r, ṙ, θ̇; the leader's mass is not a terminal
-  constraint, or every path would burn the same fuel), or
+  its own state to the leader's current state, in the target set's components only (on the
+  orbit transfer, r, ṙ, θ̇: were the leader's mass a terminal constraint, every path would burn
+  the same fuel), or
 * a **free-running** problem once the leader is in S_Q: to S_Q over its remaining time,
 
 and applies the first δ of the plan. Each subproblem is warm-started from the leader's plan
@@ -28,20 +29,20 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ocpar.bsp import Backend
-from ocpar.models.orbit_transfer import KG_PER_T
 from ocpar.ocp import MsShape, MsSolution, MsTask, solve_ms_task
-from ocpar.pursuit.problem import TARGET_COMPONENTS, OrbitTransferProblem
+from ocpar.pursuit.problem import PursuitProblem
 
 
 @dataclass(frozen=True)
 class PursuitSettings:
     """SLP settings: ``window`` N_Δ (samples per catch-up problem), ``update`` N_δ (samples
-    applied per update), ``epsilon_kg`` the stopping threshold on the fuel improvement between
-    successive agents (kg), ``max_agents`` a bound on the number of pursuing agents."""
+    applied per update), ``epsilon`` the stopping threshold on the improvement of the
+    problem's headline between successive agents (in the headline's unit), ``max_agents`` a
+    bound on the number of pursuing agents."""
 
     window: int = 60
     update: int = 32
-    epsilon_kg: float = 1e-5
+    epsilon: float = 1e-5
     max_agents: int = 100_000
 
     def check(self, samples: int) -> None:
@@ -51,8 +52,8 @@ class PursuitSettings:
         if not 1 <= self.update < self.window:
             raise ValueError(f"update N_δ must satisfy 1 <= N_δ < N_Δ = {self.window}, "
                              f"got {self.update}")
-        if not (self.epsilon_kg > 0 and np.isfinite(self.epsilon_kg)):
-            raise ValueError(f"epsilon must be a positive number of kg, got {self.epsilon_kg}")
+        if not (self.epsilon > 0 and np.isfinite(self.epsilon)):
+            raise ValueError(f"epsilon must be a positive number, got {self.epsilon}")
         if self.max_agents < 2:
             raise ValueError(f"max_agents must be at least 2, got {self.max_agents}")
 
@@ -74,19 +75,15 @@ class Agent:
     def done(self) -> bool:
         return self.position == len(self.x) - 1
 
-    @property
-    def final_mass_kg(self) -> float:
-        return float(self.x[-1, 3] * KG_PER_T)
-
 
 @dataclass
 class PursuitOutcome:
     """What the pursuit loop returns: the last finished agent (the result), every finished
-    agent's final mass (kg, agent 0 first), counters and status."""
+    agent's headline (agent 0 first), counters and status."""
 
     best: Agent
     initial: Agent
-    final_masses_kg: list[float]
+    headlines: list[float]
     subproblem_solves: int
     failed_solves: int
     retries: int
@@ -97,31 +94,37 @@ class PursuitOutcome:
 
 
 class PursuitTrain:
-    """The coordinator's state: agents in flight, each one's leader, the finished masses."""
+    """The coordinator's state: agents in flight, each one's leader, the finished agents'
+    headlines."""
 
-    def __init__(self, problem: OrbitTransferProblem, settings: PursuitSettings) -> None:
+    def __init__(self, problem: PursuitProblem, settings: PursuitSettings) -> None:
         settings.check(problem.samples)
+        #: Fewest intervals a problem to the target set needs: as many controls as fixed
+        #: components (⌈|S| / nu⌉).
+        self.min_intervals = -(-len(problem.target_components) // problem.model.nu)
         self.problem, self.settings = problem, settings
         n = problem.samples
         x0, u0 = problem.feasible_trajectory()
         self.initial = Agent(0, x0, u0, position=n - 1)
-        model = problem.model
-        self._catch_up = MsShape(model, settings.window - 1, problem.step, TARGET_COMPONENTS,
-                                 warm_start=True)
+        self._catch_up = self._new_shape(settings.window - 1)
         self.leaders: dict[int, Agent] = {0: self.initial}
         self.in_flight: list[Agent] = []
-        self.final_masses_kg = [self.initial.final_mass_kg]
+        self.headlines = [problem.headline_value(x0, u0)]
         self.solves = 0
         self.retries = 0
         self.failed = 0
         self.failures: list[str] = []
         self.launched = 0
 
+    def _new_shape(self, intervals: int) -> MsShape:
+        problem = self.problem
+        return MsShape(problem.model, intervals, problem.step, problem.target_components,
+                       problem.integrator, warm_start=True)
+
     def _shape(self, intervals: int) -> MsShape:
         if intervals == self.settings.window - 1:
             return self._catch_up
-        return MsShape(self.problem.model, intervals, self.problem.step, TARGET_COMPONENTS,
-                       warm_start=True)
+        return self._new_shape(intervals)
 
     def _new_agent(self) -> Agent:
         n, nx = self.problem.samples, self.problem.model.nx
@@ -150,7 +153,8 @@ class PursuitTrain:
             if not free_running and leader.position < j + window - 1:
                 continue
             end = n - 1 if free_running else j + window - 1
-            target = self.problem.target if free_running else leader.x[end, list(TARGET_COMPONENTS)]
+            target = (self.problem.target if free_running
+                      else leader.x[end, list(self.problem.target_components)])
             plan = leader.plans.pop(j, None)
             trajectory = np.concatenate([leader.x[j + 1 : end + 1].ravel(),
                                          leader.u[j:end].ravel()])
@@ -165,12 +169,17 @@ class PursuitTrain:
         return work
 
     def apply(self, agent: Agent, sol: MsSolution) -> None:
-        """Move ``agent`` along the first δ of its plan (or to its end)."""
+        """Move ``agent`` along the first δ of its plan (or to its end), never leaving
+        fewer than :attr:`min_intervals` to go: a plan to the target set is then followed to
+        its end, a catch-up plan for fewer steps."""
         self.solves += 1
         self.retries += sol.attempts - 1
         agent.solves += 1
-        j = agent.position
+        j, last = agent.position, len(agent.x) - 1
         steps = min(self.settings.update, len(sol.u))
+        if 0 < last - (j + steps) < self.min_intervals:
+            to_target = j + len(sol.u) == last
+            steps = len(sol.u) if to_target else max(1, last - j - self.min_intervals)
         if sol.success:
             agent.plans[j] = sol
             agent.x[j + 1 : j + steps + 1] = sol.x[1 : steps + 1]
@@ -188,21 +197,23 @@ class PursuitTrain:
         stopping test fires or the agent budget is spent, else None."""
         while self.in_flight and self.in_flight[0].done:
             agent = self.in_flight.pop(0)
-            self.final_masses_kg.append(agent.final_mass_kg)
+            self.headlines.append(self.problem.headline_value(agent.x, agent.u))
             self.leaders.pop(agent.index, None)
             self.best = agent
             if agent.index >= 2:
-                improvement = self.final_masses_kg[-1] - self.final_masses_kg[-2]
-                if improvement < self.settings.epsilon_kg:
-                    return True, (f"fuel improvement {improvement:.2e} kg < epsilon "
-                                  f"{self.settings.epsilon_kg:g} kg after agent {agent.index}")
+                improvement = self.problem.improvement(*self.headlines[-2:])
+                if improvement < self.settings.epsilon:
+                    unit = f" {self.problem.headline_unit}".rstrip()
+                    return True, (f"{self.problem.headline_name} improvement "
+                                  f"{improvement:.2e}{unit} < epsilon {self.settings.epsilon:g}"
+                                  f"{unit} after agent {agent.index}")
             if agent.index >= self.settings.max_agents:
                 return False, f"max_agents {self.settings.max_agents} reached"
         return None
 
 
 def run_pursuit(
-    problem: OrbitTransferProblem,
+    problem: PursuitProblem,
     settings: PursuitSettings,
     backend: Backend,
     progress: Callable[[str], None] | None = None,
@@ -226,15 +237,16 @@ def run_pursuit(
             trace = backend.traces[-1]
             progress(
                 f"superstep {trace.index:5d}  agents in flight {len(work):3d}  "
-                f"finished {len(train.final_masses_kg) - 1:5d}  last final mass "
-                f"{train.final_masses_kg[-1]:.6f} kg  wall {trace.wall_s * 1e3:6.1f} ms"
+                f"finished {len(train.headlines) - 1:5d}  last {problem.headline_name} "
+                f"{train.headlines[-1]:.6f} {problem.headline_unit}  "
+                f"wall {trace.wall_s * 1e3:6.1f} ms"
             )
         if verdict is not None:
             converged, message = verdict
             return PursuitOutcome(
                 best=train.best,
                 initial=train.initial,
-                final_masses_kg=train.final_masses_kg,
+                headlines=train.headlines,
                 subproblem_solves=train.solves,
                 failed_solves=train.failed,
                 retries=train.retries,

@@ -9,30 +9,30 @@ import numpy as np
 
 from ocpar.bsp import Backend
 from ocpar.bsp.serial import SerialBackend
-from ocpar.models.orbit_transfer import KG_PER_T
 from ocpar.ocp import MsShape, MsSolution, MsTask, solve_ms_task
-from ocpar.pursuit.problem import TARGET_COMPONENTS, OrbitTransferProblem
+from ocpar.pursuit.problem import PursuitProblem
 from ocpar.pursuit.result import PursuitResult
 from ocpar.pursuit.slp import PursuitSettings, run_pursuit
-from ocpar.pursuit.validate import euler_residual, rk_check
+from ocpar.pursuit.validate import discrete_residual, rk_check
 
 MODES = ("pbms", "ms")
 #: Largest N for which a PBMS run also solves the full-horizon MS problem for comparison.
 REFERENCE_MAX_SAMPLES = 1001
 
 
-def solve_full_horizon(problem: OrbitTransferProblem, backend: Backend) -> MsSolution:
+def solve_full_horizon(problem: PursuitProblem, backend: Backend) -> MsSolution:
     """Plain multiple shooting over [0, T] with N samples, from agent 0's trajectory, as one
     task on the backend."""
     x0, u0 = problem.feasible_trajectory()
-    shape = MsShape(problem.model, problem.samples - 1, problem.step, TARGET_COMPONENTS)
+    shape = MsShape(problem.model, problem.samples - 1, problem.step,
+                    problem.target_components, problem.integrator)
     guess = np.concatenate([x0[1:].ravel(), u0.ravel()])
     task = MsTask(shape, problem.initial_state, problem.target, guess)
     return backend.superstep(solve_ms_task, [task])[0]
 
 
 def solve_pursuit(
-    problem: OrbitTransferProblem,
+    problem: PursuitProblem,
     settings: PursuitSettings | None = None,
     backend: Backend | None = None,
     mode: str = "pbms",
@@ -53,42 +53,41 @@ def solve_pursuit(
     first_trace = len(backend.traces)
     start = time.perf_counter()
     initial_x, _ = problem.feasible_trajectory()
-    reference_mass, reference_x = None, None
+    reference_headline, reference_x = None, None
 
     if mode == "ms":
         sol = solve_full_horizon(problem, backend)
         x, u = sol.x, sol.u
         status = "converged" if sol.success else "failed"
         message, agents, solves = sol.status, 0, 1
-        failed, in_flight, masses = int(not sol.success), 1, []
+        failed, in_flight, headlines = int(not sol.success), 1, []
         retries = sol.attempts - 1
     else:
         outcome = run_pursuit(problem, settings, backend, progress)
         x, u = outcome.best.x, outcome.best.u
         status = "converged" if outcome.converged else "not_converged"
         message, agents, solves = outcome.message, outcome.best.index, outcome.subproblem_solves
-        failed, in_flight, masses = (outcome.failed_solves, outcome.max_in_flight,
-                                     outcome.final_masses_kg)
+        failed, in_flight, headlines = (outcome.failed_solves, outcome.max_in_flight,
+                                        outcome.headlines)
         retries = outcome.retries
     trace = backend.traces[first_trace:]
     wall = time.perf_counter() - start
     if mode == "pbms" and reference and problem.samples <= REFERENCE_MAX_SAMPLES:
         ref = solve_full_horizon(problem, backend)
         if ref.success:
-            reference_mass, reference_x = float(ref.x[-1, 3] * KG_PER_T), ref.x
-    check = rk_check(problem, x, u)
-    final_mass = float(x[-1, 3] * KG_PER_T)
+            reference_headline, reference_x = problem.headline_value(ref.x, ref.u), ref.x
+    check = rk_check(problem, u)
     return PursuitResult(
-        problem=problem.name, case=problem.case, samples=problem.samples, mode=mode,
-        window=settings.window, update=settings.update, epsilon_kg=settings.epsilon_kg,
+        problem=problem.name, samples=problem.samples, mode=mode,
+        window=settings.window, update=settings.update, epsilon=settings.epsilon,
         backend=backend.name, workers=backend.workers, status=status, message=message,
-        final_mass_kg=final_mass, fuel_kg=problem.initial_mass * KG_PER_T - final_mass,
+        headline_key=problem.headline_key, headline_name=problem.headline_name,
+        headline_unit=problem.headline_unit, headline=problem.headline_value(x, u),
+        cost_key=problem.cost_key, cost=problem.cost(x, u),
         agents=agents, subproblem_solves=solves, failed_solves=failed, retries=retries,
         max_agents_in_flight=in_flight,
-        constraint_violation=euler_residual(problem, x, u),
-        rk_final_altitude_error_m=check.final_altitude_error_m,
-        rk_final_radial_velocity_mps=check.final_radial_velocity_mps,
-        rk_final_position_error_m=check.final_position_error_m,
-        wall_time_s=wall, x=x, u=u, initial_x=initial_x, final_masses_kg=masses,
-        reference_final_mass_kg=reference_mass, reference_x=reference_x, trace=trace,
+        constraint_violation=discrete_residual(problem, x, u),
+        rk_terminal_error=check.terminal_error, rk_checks=check.values,
+        wall_time_s=wall, x=x, u=u, initial_x=initial_x, headlines=headlines,
+        reference_headline=reference_headline, reference_x=reference_x, trace=trace,
     )
