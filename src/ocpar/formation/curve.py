@@ -109,6 +109,17 @@ class Curve(ABC):
         off = np.angle(np.exp(1j * (np.arctan2(xy[:, 1], xy[:, 0]) - angle)))
         return float(phi[np.argmin(np.abs(off))])
 
+    def spread(self, phi_c: float, fractions: np.ndarray) -> np.ndarray:
+        """The angles (rad) of the points ``fractions`` (n,) of the curve's length on from the
+        point at ``phi_c`` (negative: before it): equidistant in arc length, by linear
+        interpolation of the cumulative length on :data:`SAMPLES` angles."""
+        grid = phi_c + np.arange(SAMPLES + 1) * 2 * np.pi / SAMPLES
+        speed = np.linalg.norm(self.tangents(grid), axis=1)
+        length = np.concatenate([[0.0], np.cumsum((speed[1:] + speed[:-1]) / 2)])
+        fractions = np.asarray(fractions, float)
+        turns = np.floor(fractions)
+        return np.interp((fractions - turns) * length[-1], length, grid) + 2 * np.pi * turns
+
     def check(self) -> None:
         """Raise ValueError (naming the curve) unless z evaluates to d finite entries, is
         closed with period 2π and has nonzero length."""
@@ -207,6 +218,10 @@ class Circle(PlaneCurve):
     def parameter_at(self, angle: float) -> float:
         """The polar angle is the parameter: ``angle`` itself."""
         return float(angle)
+
+    def spread(self, phi_c: float, fractions: np.ndarray) -> np.ndarray:
+        """Arc length is proportional to φ: φ_c + 2π ``fractions``, exactly."""
+        return phi_c + 2 * np.pi * np.asarray(fractions, float)
 
 
 @dataclass(frozen=True, eq=False, kw_only=True)

@@ -72,6 +72,7 @@ class FormationProblem:
         if not isinstance(self.curve, Curve):
             raise ValueError(f"curve: must be a Curve (Circle, Ellipse, PlaneCurve, "
                              f"ParametricCurve), got {type(self.curve).__name__}")
+        self.curve.check()  # built-in curves checked themselves; a user's subclass may not
         nq, d = self.shape.model.nq, self.curve.dim
         if d > nq:
             raise ValueError(f"curve: lies in {d}-D but the model's configuration has {nq} "
@@ -179,10 +180,12 @@ class FormationProblem:
         With the start positions projected into the curve's plane (coordinates along the
         axes of :meth:`~ocpar.formation.Curve.frame`, relative to its centre), the agents are
         ranked by their position along the counter-clockwise tangent at θ_c, the polar angle
-        of the start centroid seen from the centre, and placed equidistantly in φ,
+        of the start centroid seen from the centre, and placed equidistantly in arc length,
         counter-clockwise in that order, centred on φ_c, the parameter of the curve's point
-        seen at θ_c (:meth:`~ocpar.formation.Curve.parameter_at`; on a circle φ_c = θ_c):
-        φ_i = φ_c + 2π (rank_i − (n−1)/2) / n. In the paper's example θ_c = −3π/4 and the
+        seen at θ_c (:meth:`~ocpar.formation.Curve.parameter_at`): agent i a fraction
+        (rank_i − (n−1)/2)/n of the curve's length on from φ_c
+        (:meth:`~ocpar.formation.Curve.spread`). On a circle φ_c = θ_c and
+        φ_i = θ_c + 2π (rank_i − (n−1)/2) / n. In the paper's example θ_c = −3π/4 and the
         tangent points along +x, so agents sorted by x go counter-clockwise. This ordering
         decides which local optimum is found (see :mod:`ocpar.formation.ordering` on a
         circle).
@@ -195,4 +198,4 @@ class FormationProblem:
         tangent = np.array([-np.sin(theta_c), np.cos(theta_c)])
         rank = np.empty(n)
         rank[np.argsort(in_plane @ tangent, kind="stable")] = np.arange(n)
-        return self.curve.parameter_at(theta_c) + 2 * np.pi * (rank - (n - 1) / 2) / n
+        return self.curve.spread(self.curve.parameter_at(theta_c), (rank - (n - 1) / 2) / n)
