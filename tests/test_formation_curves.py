@@ -3,6 +3,8 @@ worked example (3-D point masses onto an ellipse in a tilted plane)."""
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import casadi as ca
 import numpy as np
 import pytest
@@ -97,17 +99,23 @@ def test_ellipse_outer_gradient_from_sensitivities_matches_finite_differences(el
     np.testing.assert_allclose(grad, fd, rtol=1e-6)
 
 
-def test_ellipse_initial_guess_is_ordered_and_equidistant_in_arc_length(ellipse_runs):
+def test_ellipse_initial_guess_is_the_nearest_minimum_of_the_potential(ellipse_runs):
     """Starts along x1 seen from below the ellipse's centre: θ_c = −π/2 in its plane, the
-    point there is φ_c = 3π/2 (to the sampling's 2π/1024), agents sorted by x1 go round
-    counter-clockwise, equidistant in arc length (to the interpolation's accuracy)."""
+    point there is φ_c = 3π/2 (to the sampling's 2π/1024); agents sorted by x1 are spread
+    counter-clockwise, equidistant in arc length (to the interpolation's accuracy), then
+    relaxed to a minimum of G: g = 0 with a positive definite Hessian, order kept."""
     problem, _, _ = ellipse_runs
+    curve = problem.curve
+    assert curve.parameter_at(-np.pi / 2) == pytest.approx(1.5 * np.pi, abs=np.pi / 1024)
+    spread = curve.spread(1.5 * np.pi, (np.arange(10) - 4.5) / 10)
+    arcs = [quad(lambda p: np.hypot(A * np.sin(p), B * np.cos(p)), a, b, epsabs=1e-12)[0]
+            for a, b in zip(spread, np.append(spread[1:], spread[0] + 2 * np.pi), strict=True)]
+    np.testing.assert_allclose(arcs, 4 * A * ellipe(1 - B**2 / A**2) / 10, rtol=1e-4)
     phi0 = problem.initial_phi()
     assert np.all(np.diff(phi0) > 0) and phi0[-1] - phi0[0] < 2 * np.pi
-    arcs = [quad(lambda p: np.hypot(A * np.sin(p), B * np.cos(p)), a, b, epsabs=1e-12)[0]
-            for a, b in zip(phi0, np.append(phi0[1:], phi0[0] + 2 * np.pi), strict=True)]
-    np.testing.assert_allclose(arcs, 4 * A * ellipe(1 - B**2 / A**2) / 10, rtol=1e-4)
-    assert abs((phi0[4] + phi0[5]) / 2 - 1.5 * np.pi) <= np.pi / 1024
+    assert np.max(np.abs(coupling(phi0, curve))) <= 1e-12
+    assert np.min(np.linalg.eigvalsh(coupling_jacobian(phi0, curve))) > 0
+    np.testing.assert_allclose(phi0, spread, atol=0.05)  # the spread was close already
 
 
 @pytest.mark.parametrize("curve", [
@@ -241,3 +249,35 @@ def test_a_users_own_curve_subclass_is_checked_and_solved():
     assert max(hierarchical.coupling_residual, monolithic.coupling_residual) <= 1e-9
     with pytest.raises(ValueError, match="curve: not closed"):
         FormationProblem(curve=Open(), **fields)
+
+
+@dataclass(frozen=True)
+class SpringMass:
+    """A user's own model: a unit mass on a spring to the origin in 3-D, pushed by a force u,
+    L = ½|q̇|² − ½ k|q|²."""
+
+    k: float = 0.5
+    nq = 3
+    nu = 3
+
+    def lagrangian(self, q, qdot, interval=0):
+        return 0.5 * ca.dot(qdot, qdot) - 0.5 * self.k * ca.dot(q, q)
+
+    def generalized_force(self, q, u):
+        return u
+
+
+def test_a_users_own_model_on_a_tilted_ellipse():
+    ellipse = Ellipse(semi_axes=(2.0, 1.0), center=np.array([0.0, 0.0, 3.0]),
+                      axes=np.array([E1, E2]))
+    problem = FormationProblem(name="springs", shape=DmocShape(SpringMass(), 10, 1.0),
+                               curve=ellipse,
+                               starts=np.outer(np.linspace(-1, 1, 5), [1.0, 0.5, 0.0]),
+                               start_velocities=np.ones((5, 3)))
+    hierarchical = solve_formation(problem)
+    monolithic = solve_formation(problem, options=FormationOptions(mode="monolithic"))
+    assert hierarchical.converged and monolithic.converged
+    assert hierarchical.total_cost == pytest.approx(monolithic.total_cost, rel=1e-8)
+    assert max(hierarchical.coupling_residual, monolithic.coupling_residual) <= 1e-9
+    np.testing.assert_allclose(hierarchical.trajectories[:, -1],
+                               ellipse.points(hierarchical.phi), atol=1e-12)

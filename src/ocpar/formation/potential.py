@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import casadi as ca
 import numpy as np
+from scipy.optimize import minimize
 
 from ocpar.formation.curve import Curve
 
@@ -52,6 +53,28 @@ def coupling_expr(phi: ca.SX | ca.MX, curve: Curve) -> ca.SX | ca.MX:
     n = phi.numel()
     gradient = ca.gradient(potential_expr(phi, curve), phi)
     return coupling_scale(curve, n) * gradient[: coupling_rows(curve, n)]
+
+
+def potential(phi: np.ndarray, curve: Curve) -> float:
+    """The scaled potential (ℓ²/n³) G(φ), closed form (its gradient is c(φ) off a circle)."""
+    phi = np.asarray(phi, float).ravel()
+    z = curve.points(phi)
+    s = np.sum((z[:, None, :] - z[None, :, :]) ** 2, axis=2)
+    np.fill_diagonal(s, np.inf)
+    return coupling_scale(curve, phi.size) * float(np.sum(1.0 / s))
+
+
+def relax(phi: np.ndarray, curve: Curve) -> np.ndarray:
+    """The local minimum of G reached from the angles ``phi`` (rad) by a trust-region Newton
+    method (exact gradient and Hessian, scaled gradient below 1e-12): on a curve that is not a
+    circle, the feasible set of g(φ) = 0 is a set of isolated points, and this picks the stable
+    one (a minimum, not a saddle) that the start leads to. Circles: ``phi`` unchanged."""
+    phi = np.asarray(phi, float)
+    if curve.rotation_invariant:
+        return phi
+    result = minimize(potential, phi, args=(curve,), jac=coupling, hess=coupling_jacobian,
+                      method="trust-exact", options={"gtol": 1e-12})
+    return np.asarray(result.x, float)
 
 
 def coupling(phi: np.ndarray, curve: Curve) -> np.ndarray:

@@ -20,6 +20,7 @@ import numpy as np
 
 from ocpar.bsp.columns import Columns
 from ocpar.formation.curve import Circle, Curve
+from ocpar.formation.potential import relax
 from ocpar.models import MechanicalSystem
 from ocpar.ocp import DmocShape, DmocTask
 
@@ -185,7 +186,11 @@ class FormationProblem:
         seen at θ_c (:meth:`~ocpar.formation.Curve.parameter_at`): agent i a fraction
         (rank_i − (n−1)/2)/n of the curve's length on from φ_c
         (:meth:`~ocpar.formation.Curve.spread`). On a circle φ_c = θ_c and
-        φ_i = θ_c + 2π (rank_i − (n−1)/2) / n. In the paper's example θ_c = −3π/4 and the
+        φ_i = θ_c + 2π (rank_i − (n−1)/2) / n, which satisfies g(φ) = 0. On any other curve
+        these angles are then relaxed to the local minimum of the potential G they lead to
+        (:func:`~ocpar.formation.potential.relax`): there g(φ) = 0 has isolated solutions
+        only, so the guess is the formation itself, and the hierarchical and the monolithic
+        mode start from the same feasible point. In the paper's example θ_c = −3π/4 and the
         tangent points along +x, so agents sorted by x go counter-clockwise. This ordering
         decides which local optimum is found (see :mod:`ocpar.formation.ordering` on a
         circle).
@@ -198,4 +203,5 @@ class FormationProblem:
         tangent = np.array([-np.sin(theta_c), np.cos(theta_c)])
         rank = np.empty(n)
         rank[np.argsort(in_plane @ tangent, kind="stable")] = np.arange(n)
-        return self.curve.spread(self.curve.parameter_at(theta_c), (rank - (n - 1) / 2) / n)
+        guess = self.curve.spread(self.curve.parameter_at(theta_c), (rank - (n - 1) / 2) / n)
+        return relax(guess, self.curve)
