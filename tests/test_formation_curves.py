@@ -176,6 +176,16 @@ def test_per_agent_final_velocities_hierarchical_equals_monolithic():
     assert hierarchical.coupling_residual <= 1e-9
 
 
+class BrokenForce(PointMass):
+    def generalized_force(self, q, u):
+        return u @ q  # (2, 1) @ (2, 1): does not evaluate
+
+
+class WrongForce(PointMass):
+    def generalized_force(self, q, u):
+        return ca.sum1(u)
+
+
 def _point_masses(**changes):
     fields = {"name": "bad", "shape": DmocShape(PointMass(dim=2), 10, 1.0),
               "curve": Circle(radius=1.0), "starts": np.zeros((3, 2))} | changes
@@ -205,6 +215,8 @@ def _point_masses(**changes):
     (lambda: _point_masses(curve=Circle(radius=1.0, center=np.zeros(3))), "curve: lies in 3-D"),
     (lambda: _point_masses(shape="dmoc"), "shape"),
     (lambda: _point_masses(final_attitude=np.zeros(1)), "final_attitude"),
+    (lambda: _point_masses(shape=DmocShape(BrokenForce(), 10, 1.0)), "shape: the model's"),
+    (lambda: _point_masses(shape=DmocShape(WrongForce(), 10, 1.0)), "column of 2"),
 ])
 def test_malformed_curves_and_problems_are_refused_naming_the_field(build, field):
     with pytest.raises(ValueError, match=field) as info:

@@ -73,6 +73,7 @@ class FormationProblem:
         if not isinstance(self.curve, Curve):
             raise ValueError(f"curve: must be a Curve (Circle, Ellipse, PlaneCurve, "
                              f"ParametricCurve), got {type(self.curve).__name__}")
+        self._check_model()
         self.curve.check()  # built-in curves checked themselves; a user's subclass may not
         nq, d = self.shape.model.nq, self.curve.dim
         if d > nq:
@@ -99,6 +100,25 @@ class FormationProblem:
                                  f"{d} position entries)")
             object.__setattr__(self, name, _array(name, value, shape))
         self._check_holonomic_constraints()
+
+    def _check_model(self) -> None:
+        """The model's L(q, q̇) must be a scalar and F(q, u) a column (nq,) of CasADi
+        expressions (checked on the first interval's Lagrangian)."""
+        model = self.shape.model
+        q, qdot, u = (ca.SX.sym(name, size) for name, size in
+                      (("q", model.nq), ("qdot", model.nq), ("u", model.nu)))
+        try:
+            lagrangian = ca.SX(model.lagrangian(q, qdot, 0))
+            force = ca.SX(model.generalized_force(q, u))
+        except Exception as exc:  # a user's model: any failure means "does not evaluate"
+            first = str(exc).splitlines()[0] if str(exc) else ""
+            raise ValueError(f"shape: the model's lagrangian or generalized_force does not "
+                             f"evaluate on CasADi symbols: {type(exc).__name__}: {first}"
+                             ) from None
+        if lagrangian.shape != (1, 1) or force.shape != (model.nq, 1):
+            raise ValueError(f"shape: the model's lagrangian must be a scalar and its "
+                             f"generalized_force a column of {model.nq}, got shapes "
+                             f"{lagrangian.shape} and {force.shape}")
 
     def _check_holonomic_constraints(self) -> None:
         """Starts and final configurations (at a point of the curve) must satisfy c(q) = 0."""
