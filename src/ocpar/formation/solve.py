@@ -72,6 +72,16 @@ def cost_parts(problem: FormationProblem, controls: np.ndarray) -> dict[str, flo
     return {name: float(h * np.sum(controls[..., a:b] ** 2)) for name, (a, b) in groups.items()}
 
 
+def check_applicable(problem: FormationProblem, options: FormationOptions) -> None:
+    """Raise ValueError (one line) if ``options`` ask for a circle's shortcut (``offset``
+    outer solver, ``optimal`` ordering) on a problem whose curve is not a circle; a driver
+    calls it before starting workers (:func:`solve_formation` calls it too)."""
+    if options.ordering == "optimal":
+        problem.require_circle("ordering 'optimal'")
+    if options.mode == "hierarchical" and options.outer == "offset":
+        problem.require_circle("outer 'offset'")
+
+
 def coupling_residual(problem: FormationProblem, phi: np.ndarray) -> float:
     """max_k |c_k(φ)|: the scaled coupling as the outer problem imposes it
     (:func:`~ocpar.formation.potential.coupling`), NaN if φ is not finite."""
@@ -94,10 +104,7 @@ def solve_formation(
     """
     options = options or FormationOptions()
     backend = backend or SerialBackend()
-    if options.ordering == "optimal":
-        problem.require_circle("ordering 'optimal'")
-    if options.mode == "hierarchical" and options.outer == "offset":
-        problem.require_circle("outer 'offset'")
+    check_applicable(problem, options)
     phi0 = problem.initial_phi() if phi0 is None else np.asarray(phi0, float)
     if phi0.shape != (problem.agents,):
         raise ValueError(f"phi0 must have shape ({problem.agents},), got {phi0.shape}")
