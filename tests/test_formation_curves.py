@@ -27,6 +27,7 @@ from ocpar.formation import (
 from ocpar.formation.hierarchical import OuterObjective, solve_outer_offset
 from ocpar.formation.ordering import optimal_ordering
 from ocpar.formation.potential import coupling, coupling_expr, coupling_jacobian
+from ocpar.formation.solve import check_applicable
 from ocpar.models import PointMass
 
 TILT = np.pi / 6
@@ -154,6 +155,10 @@ def test_circle_shortcuts_are_refused_on_other_curves(ellipse_runs):
     for options in (FormationOptions(outer="offset"), FormationOptions(ordering="optimal")):
         with pytest.raises(ValueError, match="only applies to a formation on a Circle"):
             solve_formation(problem, options=options)
+    with pytest.raises(ValueError, match="outer 'offset'"):
+        check_applicable(problem, FormationOptions(outer="offset"))
+    check_applicable(problem, FormationOptions(mode="monolithic", outer="offset"))  # unused
+    check_applicable(formation_halo.make(agents=2), FormationOptions(outer="offset"))
     with open_backend("serial") as backend:
         with pytest.raises(ValueError, match="Circle"):
             optimal_ordering(problem, backend)
