@@ -143,12 +143,20 @@ class Curve(ABC):
                              f"{gap:.1e}, size {size:.1e}")
 
 
+def _numbers(name: str, value: object) -> np.ndarray:
+    """``value`` as a float array, or ValueError naming the field."""
+    try:
+        return np.asarray(value, float)
+    except (TypeError, ValueError):
+        raise ValueError(f"{name}: must be numbers, got {value!r}") from None
+
+
 def _plane_axes(center: np.ndarray, axes: np.ndarray | None) -> np.ndarray:
     """Check ``center`` (d,) and ``axes`` (2, d) orthonormal rows (default the x1–x2 plane)."""
     d = len(center)
     if center.ndim != 1 or d not in (2, 3) or not np.all(np.isfinite(center)):
         raise ValueError(f"center: needs 2 or 3 finite entries, got {center.tolist()}")
-    plane = np.eye(2, d) if axes is None else np.asarray(axes, float)
+    plane = np.eye(2, d) if axes is None else _numbers("axes", axes)
     if plane.shape != (2, d) or not np.all(np.isfinite(plane)) \
             or not np.allclose(plane @ plane.T, np.eye(2), atol=1e-12):
         raise ValueError(f"axes: must be two orthonormal rows of length {d}")
@@ -170,7 +178,7 @@ class PlaneCurve(Curve):
     plane: np.ndarray = field(init=False, repr=False)
 
     def __post_init__(self) -> None:
-        center = np.atleast_1d(np.asarray(self.center, float))
+        center = np.atleast_1d(_numbers("center", self.center))
         object.__setattr__(self, "center", center)
         object.__setattr__(self, "plane", _plane_axes(center, self.axes))
         self.check()
@@ -200,8 +208,10 @@ class Circle(PlaneCurve):
     radius: float = 1.0
 
     def __post_init__(self) -> None:
-        if not (np.isfinite(self.radius) and self.radius > 0):
+        radius = _numbers("radius", self.radius)
+        if radius.shape != () or not (np.isfinite(radius) and radius > 0):
             raise ValueError(f"radius: must be a positive number, got {self.radius}")
+        object.__setattr__(self, "radius", float(radius))
         object.__setattr__(self, "profile", lambda phi: (self.radius * ca.cos(phi),
                                                          self.radius * ca.sin(phi)))
         super().__post_init__()
@@ -235,7 +245,7 @@ class Ellipse(PlaneCurve):
     semi_axes: tuple[float, float] = (1.0, 1.0)
 
     def __post_init__(self) -> None:
-        a_b = np.asarray(self.semi_axes, float)
+        a_b = _numbers("semi_axes", self.semi_axes)
         if a_b.shape != (2,) or not (np.all(np.isfinite(a_b)) and np.all(a_b > 0)):
             raise ValueError(f"semi_axes: must be two positive numbers, got {self.semi_axes}")
         a, b = (float(v) for v in a_b)
