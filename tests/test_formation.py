@@ -7,7 +7,8 @@ import numpy as np
 import pytest
 
 from ocpar.bsp import open_backend
-from ocpar.formation import FormationOptions, paper_example, solve_formation
+from ocpar.examples.formation_point_masses import make as paper_example
+from ocpar.formation import Circle, FormationOptions, solve_formation
 from ocpar.formation.hierarchical import OuterObjective
 from ocpar.formation.potential import (
     coupling,
@@ -35,19 +36,20 @@ def test_outer_gradient_from_sensitivities_matches_finite_differences():
 def test_closed_form_coupling_equals_the_symbolic_one():
     phi = np.random.default_rng(4).uniform(0, 2 * np.pi, 7)
     sym = ca.SX.sym("phi", 7)
-    expr = coupling_expr(sym, 3.0)
+    circle = Circle(radius=3.0)
+    expr = coupling_expr(sym, circle)
     c = ca.Function("c", [sym], [expr, ca.jacobian(expr, sym)])
     value, jacobian = (np.asarray(v) for v in c(phi))
-    np.testing.assert_allclose(coupling(phi, 3.0), value.ravel(), rtol=1e-12, atol=1e-14)
-    np.testing.assert_allclose(coupling_jacobian(phi, 3.0), jacobian, rtol=1e-11, atol=1e-14)
+    np.testing.assert_allclose(coupling(phi, circle), value.ravel(), rtol=1e-12, atol=1e-14)
+    np.testing.assert_allclose(coupling_jacobian(phi, circle), jacobian, rtol=1e-11, atol=1e-14)
 
 
 def test_coupling_vanishes_exactly_at_equidistant_angles():
     def c(phi):
-        return coupling(phi, 10.0)
+        return coupling(phi, Circle(radius=10.0))
 
     def dc(phi):
-        return coupling_jacobian(phi, 10.0)
+        return coupling_jacobian(phi, Circle(radius=10.0))
 
     equidistant = 0.3 + 2 * np.pi * np.arange(60) / 60
     assert np.max(np.abs(np.asarray(c(equidistant)))) < 1e-12

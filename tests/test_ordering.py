@@ -9,7 +9,9 @@ import pytest
 from scipy.optimize import linear_sum_assignment
 
 from ocpar.bsp.serial import SerialBackend
-from ocpar.formation import FormationOptions, FormationProblem, paper_example, solve_formation
+from ocpar.examples import formation_halo
+from ocpar.examples.formation_point_masses import make as paper_example
+from ocpar.formation import Circle, FormationOptions, FormationProblem, solve_formation
 from ocpar.formation.hierarchical import InnerSolveFailed, OuterObjective, solve_outer_offset
 from ocpar.formation.ordering import (
     ORDERINGS,
@@ -34,8 +36,9 @@ def scattered(agents: int, seed: int) -> FormationProblem:
     rng = np.random.default_rng(seed)
     center = np.array([100.0, 100.0])
     return FormationProblem(name=f"scattered-{agents}-{seed}",
-                            starts=center + rng.uniform(-20.0, 20.0, (agents, 2)),
-                            center=center, radius=10.0, start_velocities=np.zeros((agents, 2)))
+                            shape=DmocShape(PointMass(dim=2, mass=1.0), 10, 1.0),
+                            curve=Circle(radius=10.0, center=center),
+                            starts=center + rng.uniform(-20.0, 20.0, (agents, 2)))
 
 
 def keep_cost(problem: FormationProblem, backend) -> float:
@@ -98,8 +101,7 @@ def test_cost_table_validates_slots():
 
 def test_cost_table_reports_failed_inner_solves():
     problem = scattered(3, 3)
-    stalled = FormationProblem(name="stalled", starts=problem.starts, center=problem.center,
-                               radius=problem.radius, start_velocities=problem.start_velocities,
+    stalled = FormationProblem(name="stalled", curve=problem.curve, starts=problem.starts,
                                shape=DmocShape(PointMass(dim=2, mass=1.0), 10, 1.0, max_iter=0))
     with pytest.raises(InnerSolveFailed, match="cost-table solve"):
         cost_table(stalled, SerialBackend(), slot_base(stalled))
@@ -167,9 +169,7 @@ def test_optimal_ordering_equals_brute_force(agents):
 def test_optimal_ordering_equals_brute_force_for_rigid_spacecraft():
     """Five rigid spacecraft about the halo orbit (3-D, attitude fixed at the end): the inner
     cost is quadratic in the final position, so the surrogate is exact here too."""
-    from ocpar.formation.spacecraft import halo_spacecraft_example
-
-    problem = halo_spacecraft_example(agents=5)
+    problem = formation_halo.make(agents=5)
     backend = SerialBackend()
     result = optimal_ordering(problem, backend)
     check_result(problem, result, backend)
@@ -221,8 +221,8 @@ def test_relabelling_the_agents_relabels_the_ordering():
     backend = SerialBackend()
     result = optimal_ordering(problem, backend)
     perm = np.random.default_rng(7).permutation(6)
-    relabelled = FormationProblem(name="relabelled", starts=problem.starts[perm],
-                                  center=problem.center, radius=problem.radius,
+    relabelled = FormationProblem(name="relabelled", shape=problem.shape, curve=problem.curve,
+                                  starts=problem.starts[perm],
                                   start_velocities=problem.start_velocities[perm])
     again = optimal_ordering(relabelled, backend)
     assert again.total_cost == pytest.approx(result.total_cost, rel=1e-9)
@@ -239,12 +239,12 @@ def test_sixty_point_masses_reach_the_analytic_optimum():
     offsets is the best of those orderings at their own optimum offsets, 2r|Σ e^{iβ_σ(i)} z̄_i|.
     The optimal ordering is strictly cheaper than keep (by 0.26 %)."""
     problem = paper_example(60)
-    n, r = 60, problem.radius
+    n, r = 60, problem.curve.radius
     backend = SerialBackend()
     result = optimal_ordering(problem, backend)
     check_result(problem, result, backend)
 
-    z = (problem.starts - problem.center) @ np.array([1.0, 1.0j])
+    z = (problem.starts - problem.curve.center) @ np.array([1.0, 1.0j])
     base = slot_base(problem)
     one = problem.tasks_for(np.array([0]), base[:1])
     c = backend.superstep_columns(solve_dmoc_task, one).column("cost")[0] / abs(

@@ -11,13 +11,9 @@ import pytest
 from conftest import assert_result_contract, run_cli
 from scipy.integrate import solve_ivp
 
+from ocpar.examples.formation_halo import FINAL_ATTITUDE, START_ATTITUDE, default_halo
+from ocpar.examples.formation_halo import make as halo_spacecraft_example
 from ocpar.formation import FormationOptions, solve_formation
-from ocpar.formation.spacecraft import (
-    FINAL_ATTITUDE,
-    START_ATTITUDE,
-    default_halo,
-    halo_spacecraft_example,
-)
 from ocpar.models.rigid_spacecraft import CORIOLIS, RelativeRigidSpacecraft, quaternion_product
 from ocpar.ocp import DmocShape, dmoc_problem
 

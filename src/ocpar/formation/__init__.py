@@ -1,24 +1,53 @@
 """Hierarchical formation reconfiguration (Junge, Marsden, Ober-Blöbaum et al., DMOC).
 
-The outer problem chooses each agent's final angle φ_i on a circle subject to the equidistance
-constraint g(φ) = dG/dφ = 0; each inner problem moves one agent by DMOC to its point, and all
-inner problems of one outer evaluation run in one superstep.
+Any number of agents, each any Lagrangian mechanical system, move from their own start
+states to a final formation on a closed curve z(φ) (a :class:`Circle`, an :class:`Ellipse`, a
+:class:`PlaneCurve` in a tilted plane or any :class:`ParametricCurve`), subject to the
+coupling g(φ) = dG/dφ = 0 of the paper's potential. The outer problem chooses the final
+angles φ_i; each inner problem moves one agent by DMOC to its point, and all inner problems of
+one outer evaluation run in one superstep.
 
->>> from ocpar.formation import paper_example, solve_formation
->>> result = solve_formation(paper_example(agents=6))   # serial backend by default
->>> result.converged
+>>> import numpy as np
+>>> from ocpar.formation import Circle, DmocShape, FormationProblem, solve_formation
+>>> from ocpar.models import PointMass
+>>> problem = FormationProblem(name="six", shape=DmocShape(PointMass(dim=2), 10, 1.0),
+...                            curve=Circle(radius=10.0, center=np.array([100.0, 100.0])),
+...                            starts=np.column_stack([np.linspace(-30, 30, 6), np.zeros(6)]))
+>>> solve_formation(problem).converged   # serial backend by default
 True
+
+The paper's examples are built the same way in :mod:`ocpar.examples`
+(``formation_point_masses``, ``formation_halo``; ``formation_ellipse`` is a new one).
 """
 
-from ocpar.formation.problem import FormationProblem, paper_example
+from ocpar.formation.curve import Circle, Curve, Ellipse, ParametricCurve, PlaneCurve
+from ocpar.formation.problem import FormationProblem
 from ocpar.formation.result import FormationResult
 from ocpar.formation.solve import MODES, FormationOptions, solve_formation
+from ocpar.ocp import DmocShape
 
 __all__ = [
     "MODES",
+    "Circle",
+    "Curve",
+    "DmocShape",
+    "Ellipse",
     "FormationOptions",
     "FormationProblem",
     "FormationResult",
+    "ParametricCurve",
+    "PlaneCurve",
     "paper_example",
     "solve_formation",
 ]
+
+
+def __getattr__(name: str) -> object:
+    """``paper_example``: the paper's first example under its earlier name,
+    :func:`ocpar.examples.formation_point_masses.make` (imported on first use: the examples
+    are built on this package)."""
+    if name == "paper_example":
+        from ocpar.examples.formation_point_masses import make
+
+        return make
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

@@ -1,11 +1,13 @@
-"""The formation examples by name, as the command line offers them."""
+"""The formation examples by name, as the command line offers them: the factories of
+:mod:`ocpar.examples`."""
 
 from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass
 
-from ocpar.formation.problem import FormationProblem, paper_example
+from ocpar.examples import formation_halo, formation_point_masses
+from ocpar.formation.problem import FormationProblem
 
 
 @dataclass(frozen=True)
@@ -18,17 +20,13 @@ class Example:
     description: str
 
 
-def _halo_spacecraft(agents: int, radius: float) -> FormationProblem:
-    from ocpar.formation.spacecraft import halo_spacecraft_example  # integrates the halo
-
-    return halo_spacecraft_example(agents=agents, radius_km=radius)
-
-
 EXAMPLES = {
-    "point-mass-plane": Example(lambda n, r: paper_example(agents=n, radius=r), 60, 10.0,
-                                "the paper's planar point masses (Fig. 3)"),
-    "crtbp-rigid": Example(_halo_spacecraft, 30, 1.0,
-                           "rigid spacecraft about the Sun-Earth L2 halo (Fig. 5), radius in km"),
+    "point-mass-plane": Example(
+        lambda n, r: formation_point_masses.make(agents=n, radius=r), 60, 10.0,
+        "the paper's planar point masses (Fig. 3)"),
+    "crtbp-rigid": Example(
+        lambda n, r: formation_halo.make(agents=n, radius_km=r), 30, 1.0,
+        "rigid spacecraft about the Sun-Earth L2 halo (Fig. 5), radius in km"),
 }
 
 

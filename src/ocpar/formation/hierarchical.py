@@ -1,14 +1,14 @@
 """The hierarchical scheme (paper §IV): outer optimisation over φ, one superstep of n inner
 DMOC solves per outer evaluation.
 
-Outer problem: min_φ Σ_i Ĵ_i(φ_i) s.t. c(φ) = 0 (scaled, reduced g = dG/dφ). The outer
-gradient comes from the inner sensitivities (envelope theorem):
-dĴ_i/dφ_i = (dJ*_i/dq_N) · dq_N/dφ_i (r (−sin φ_i, cos φ_i) in the circle's plane). Two
-outer solvers:
+Outer problem: min_φ Σ_i Ĵ_i(φ_i) s.t. c(φ) = 0 (the scaled g = dG/dφ of
+:mod:`ocpar.formation.potential`). The outer gradient comes from the inner sensitivities
+(envelope theorem): dĴ_i/dφ_i = (dJ*_i/dq_N) · dq_N/dφ_i, dq_N/dφ_i = z′(φ_i) in the position
+entries, for any curve z. Two outer solvers:
 
-* :func:`solve_outer` (``sqp``, the paper's): SLSQP on J/J_0 in all n angles;
-* :func:`solve_outer_offset` (``offset``): from equidistant angles, c(φ) = 0 keeps them
-  equidistant in the same order, so the feasible set is the one-parameter family
+* :func:`solve_outer` (``sqp``, the paper's): SLSQP on J/J_0 in all n angles, any curve;
+* :func:`solve_outer_offset` (``offset``, circles only): from equidistant angles, c(φ) = 0
+  keeps them equidistant in the same order, so the feasible set is the one-parameter family
   φ_i = φ_i⁰ + θ; minimise J over the common offset θ (dJ/dθ = Σ_i dĴ_i/dφ_i). Same optimum,
   and the coordinator's work no longer grows like n³ (SLSQP's dense QP).
 """
@@ -103,11 +103,14 @@ class OuterObjective:
             return
         trace = self.backend.traces[-1]
         cost = float(np.sum(sols.column("cost")))
-        # the gaps' deviation, O(n log n): |c(φ)| would cost O(n²) per superstep (50 ms at
-        # 1000 agents, as much as the superstep itself on 64 workers)
-        error = equidistance_error(phi)
+        # on a circle the gaps' deviation, O(n log n): |c(φ)| would cost O(n²) per superstep
+        # (50 ms at 1000 agents, as much as the superstep itself on 64 workers)
+        if self.problem.on_circle:
+            feasibility = f"equidistance {equidistance_error(phi):.1e} rad"
+        else:
+            feasibility = f"coupling {np.max(np.abs(coupling(phi, self.problem.curve))):.1e}"
         self.progress(
-            f"superstep {trace.index:4d}  cost {cost:.12e}  equidistance {error:.1e} rad  "
+            f"superstep {trace.index:4d}  cost {cost:.12e}  {feasibility}  "
             f"wall {trace.wall_s * 1e3:7.1f} ms  overhead {trace.overhead_s * 1e3:6.1f} ms"
         )
 
@@ -116,8 +119,7 @@ def solve_outer(
     objective: OuterObjective, phi0: np.ndarray, tol: float, max_iterations: int
 ) -> tuple[np.ndarray, int, bool, str]:
     """SLSQP on J(φ)/J(φ_0) s.t. c(φ) = 0. Returns (φ, iterations, success, message)."""
-    problem = objective.problem
-    radius = problem.radius
+    curve = objective.problem.curve
     scale = 1.0 / max(objective.value(phi0), 1e-300)
     result = minimize(
         lambda phi: objective.value(phi) * scale,
@@ -127,8 +129,8 @@ def solve_outer(
         constraints=[
             {
                 "type": "eq",
-                "fun": lambda phi: coupling(phi, radius),
-                "jac": lambda phi: coupling_jacobian(phi, radius),
+                "fun": lambda phi: coupling(phi, curve),
+                "jac": lambda phi: coupling_jacobian(phi, curve),
             }
         ],
         options={"ftol": tol, "maxiter": max_iterations},
@@ -143,7 +145,9 @@ def solve_outer_offset(
     dJ/dθ = Σ_i dĴ_i/dφ_i = 0, from θ = 0 and θ = :data:`OFFSET_FIRST_STEP` (one superstep per
     iterate: each gives J and dJ/dθ). ``phi0`` must be equidistant. Converged when
     θ changes by less than ``tol``·(1 + |θ|) and J did not increase (beyond rounding:
-    :data:`ROUNDING_RTOL`, then φ⁰ is returned). Returns (φ, iterations, success, message)."""
+    :data:`ROUNDING_RTOL`, then φ⁰ is returned). Returns (φ, iterations, success, message).
+    Only for a problem on a :class:`~ocpar.formation.Circle` (ValueError otherwise)."""
+    objective.problem.require_circle("outer 'offset'")
     error = equidistance_error(phi0)
     if error > 1e-9:
         raise ValueError(f"outer 'offset' needs equidistant starting angles; their gaps are "

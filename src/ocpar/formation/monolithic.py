@@ -1,5 +1,6 @@
 """The monolithic formulation (paper §III): every agent's DMOC variables, the angles φ and the
-coupling c(φ) = 0 in one CasADi NLP, solved by IPOPT in the coordinator process.
+coupling c(φ) = 0 in one CasADi NLP, solved by IPOPT in the coordinator process. The final
+positions are the curve's symbolic z(φ_i), so any curve works.
 
 It is the reference for the paper's equivalence theorem (§IV-B): from the same initial guess it
 must reach the same optimum as the hierarchical scheme.
@@ -42,18 +43,16 @@ def solve_monolithic(
     n, nw = problem.agents, dmoc.nw
     phi = ca.SX.sym("phi", n)
     w = ca.SX.sym("w", n * nw)
-    axes = problem.plane_axes
-    ends = [problem.center + problem.radius * (ca.cos(phi[i]) * axes[0] + ca.sin(phi[i]) * axes[1])
-            for i in range(n)]
+    end_velocities = problem.final_velocities(np.arange(n))
     params = [
-        ca.vertcat(problem.starts[i], problem.start_velocities[i], ends[i],
-                   problem.final_attitude, problem.final_velocity)
+        ca.vertcat(problem.starts[i], problem.start_velocities[i], problem.curve.point(phi[i]),
+                   problem.final_attitude, end_velocities[i])
         for i in range(n)
     ]
     w_i = [w[i * nw : (i + 1) * nw] for i in range(n)]
     costs = ca.vertcat(*[dmoc.cost(w_i[i], params[i]) for i in range(n)])
     g = ca.vertcat(*[dmoc.constraints(w_i[i], params[i]) for i in range(n)],
-                   coupling_expr(phi, problem.radius))
+                   coupling_expr(phi, problem.curve))
     x = ca.vertcat(w, phi)
     nlp = {"x": x, "f": ca.sum1(costs), "g": g}
     solver = ca.nlpsol("formation", "ipopt", nlp, ipopt_options(tol, max_iterations))

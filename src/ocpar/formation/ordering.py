@@ -1,5 +1,8 @@
 """Which agent takes which slot on the circle: the optimal ordering (the paper's open problem).
 
+Circles only: on another curve the coupling fixes the angles up to discrete choices, and the
+equidistant slots and common offset below do not exist.
+
 The equidistance constraint leaves the final angles φ_i = θ + base_σ(i): n equidistant slots
 base_j (those of :meth:`~ocpar.formation.problem.FormationProblem.initial_phi`, sorted; slot
 width w = 2π/n), a common offset θ (rad) and an assignment σ of agents to slots. The ``keep``
@@ -265,7 +268,9 @@ def optimal_ordering(
     :func:`~ocpar.formation.hierarchical.solve_outer_offset`) and cost tables at the new offset
     until the assignment stops changing or ``max_rounds`` offset searches were run.
     ``progress`` gets one line for the multi-start and one per round. Raises
-    :class:`~ocpar.formation.hierarchical.InnerSolveFailed` if an inner solve fails."""
+    :class:`~ocpar.formation.hierarchical.InnerSolveFailed` if an inner solve fails. Only for
+    a problem on a :class:`~ocpar.formation.Circle` (ValueError otherwise)."""
+    problem.require_circle("ordering 'optimal'")
     if not (np.isfinite(tol) and tol > 0):
         raise ValueError(f"tol must be a positive number, got {tol!r}")
     if isinstance(max_rounds, bool) or not isinstance(max_rounds, int | np.integer) \

@@ -1,5 +1,5 @@
 """Pictures of a formation result: the paper's Fig. 3 (planar: starts, trajectories, final
-circle) and Fig. 5 (3-D: initial grid, trajectories, final circle)."""
+curve) and Fig. 5 (3-D: initial grid, trajectories, final curve)."""
 
 from __future__ import annotations
 
@@ -14,15 +14,13 @@ from ocpar.plotting import pyplot, save
 
 def plot_formation(problem: FormationProblem, result: FormationResult, path: Path) -> Path:
     """Write a PNG to ``path``: for a planar problem two panels (the whole manoeuvre, and a
-    close-up of the circle with the last portions of the trajectories), in 3-D one perspective
+    close-up of the curve with the last portions of the trajectories), in 3-D one perspective
     view as the paper's Fig. 5."""
-    if len(problem.center) == 3:
+    if problem.curve.dim == 3:
         return _plot_3d(problem, result, path)
     plt = pyplot()
     fig, (ax_all, ax_end) = plt.subplots(1, 2, figsize=(12, 5.5))
-    circle = problem.center + problem.radius * np.column_stack(
-        [np.cos(np.linspace(0, 2 * np.pi, 400)), np.sin(np.linspace(0, 2 * np.pi, 400))]
-    )
+    circle = problem.final_positions(np.linspace(0, 2 * np.pi, 400))
     ends = problem.final_positions(result.phi)
     tail = max(2, result.trajectories.shape[1] // 3)
     for ax, paths in ((ax_all, result.trajectories), (ax_end, result.trajectories[:, -tail:])):
@@ -37,9 +35,10 @@ def plot_formation(problem: FormationProblem, result: FormationResult, path: Pat
                 label="start positions")
     ax_all.set_title(f"{result.agents} agents, total cost {result.total_cost:.6e}")
     ax_all.legend(loc="upper left", fontsize=8)
-    margin = 1.5 * problem.radius
-    ax_end.set_xlim(problem.center[0] - margin, problem.center[0] + margin)
-    ax_end.set_ylim(problem.center[1] - margin, problem.center[1] + margin)
+    low, high = circle.min(axis=0), circle.max(axis=0)
+    margin = 0.25 * np.max(high - low)
+    ax_end.set_xlim(low[0] - margin, high[0] + margin)
+    ax_end.set_ylim(low[1] - margin, high[1] + margin)
     ax_end.set_title("final positions and last portions of the trajectories")
     return save(fig, path)
 
@@ -59,9 +58,9 @@ def _plot_3d(problem: FormationProblem, result: FormationResult, path: Path) -> 
             color="k", ms=4, ls="", label="initial positions")
     ax.plot(ends[:, 0], ends[:, 1], ends[:, 2], "x", color="tab:red", ms=6, ls="",
             label="final positions")
-    ax.set_xlabel("$\\delta x_1$ [km]")
-    ax.set_ylabel("$\\delta x_2$ [km]")
-    ax.set_zlabel("$\\delta x_3$ [km]")
-    ax.set_title(f"{result.agents} spacecraft about the halo, total cost {result.total_cost:.6e}")
+    ax.set_xlabel("$x_1$")
+    ax.set_ylabel("$x_2$")
+    ax.set_zlabel("$x_3$")
+    ax.set_title(f"{problem.name}: {result.agents} agents, total cost {result.total_cost:.6e}")
     ax.legend(loc="upper left", fontsize=8)
     return save(fig, path)

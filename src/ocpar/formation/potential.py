@@ -1,66 +1,126 @@
-"""The artificial potential on the circle and the equidistance constraint g(φ) = dG/dφ = 0.
+"""The paper's artificial potential on the formation curve and its coupling g(φ) = dG/dφ = 0.
 
-G(φ) = Σ_{i≠j} 1/|z_i − z_j|² with z_i = r (cos φ_i, sin φ_i), so
-|z_i − z_j|² = 2 r² (1 − cos(φ_i − φ_j)). g = ∇G has rank n−1 (a common rotation changes
-nothing) and entries that grow like n³/r²; the constraint used is the scaled, reduced
-c(φ) = (r²/n³) g(φ)[:n−1]. :func:`coupling_expr` builds it symbolically (for one NLP of the
-whole problem); :func:`coupling` and :func:`coupling_jacobian` evaluate it in closed form
-(for the outer SQP: a symbolic Jacobian would cost O(n²) expression nodes to build).
+G(φ) = Σ_{i≠j} 1/|z(φ_i) − z(φ_j)|² for the curve z (:mod:`ocpar.formation.curve`). With
+D_kj = z(φ_k) − z(φ_j), s_kj = |D_kj|², t_k = z′(φ_k) and a_k = z″(φ_k):
+
+    g_k = ∂G/∂φ_k = −4 Σ_{j≠k} (D_kj · t_k) / s_kj²,
+
+entries that grow like n³/ℓ² (ℓ = :attr:`~ocpar.formation.curve.Curve.length_scale`, the
+radius of a circle). The constraint imposed is the scaled c(φ) = (ℓ²/n³) g(φ), on a circle
+reduced to its first n−1 entries: there a common rotation changes nothing, Σ_k g_k = 0 and
+one equation is redundant (the feasible set is the one-parameter family of equidistant
+angles, and the cost chooses the rotation). On any other curve all n equations are kept and
+their solutions are isolated (the critical points of G): the coupling then fixes the
+formation up to discrete choices (the cyclic order, which critical point), which the initial
+guess selects. :func:`coupling_expr` builds c symbolically (for the monolithic NLP);
+:func:`coupling` and :func:`coupling_jacobian` evaluate it in closed form (for the outer SQP
+and the result's residual: a symbolic Jacobian would cost O(n²) expression nodes to build).
 """
 
 from __future__ import annotations
 
 import casadi as ca
 import numpy as np
+from scipy.optimize import minimize
+
+from ocpar.formation.curve import Curve
+
+#: Rows of the coupling evaluated at once by :func:`coupling`: its temporaries (BLOCK, n)
+#: stay in cache (10,000 agents: ~2 s on this machine, loaded; in one piece 2.4 GB).
+BLOCK = 16
 
 
-def potential_expr(phi: ca.SX | ca.MX, radius: float) -> ca.SX | ca.MX:
+def coupling_rows(curve: Curve, agents: int) -> int:
+    """How many entries of g the constraint keeps: n − 1 on a circle, else n."""
+    return agents - 1 if curve.rotation_invariant else agents
+
+
+def coupling_scale(curve: Curve, agents: int) -> float:
+    """The factor ℓ²/n³ of c(φ) (r²/n³ on a circle of radius r)."""
+    return curve.length_scale**2 / agents**3
+
+
+def potential_expr(phi: ca.SX | ca.MX, curve: Curve) -> ca.SX | ca.MX:
     """G(φ) as a CasADi expression of the angle vector φ (n,)."""
     n = phi.numel()
-    terms = [
-        1.0 / (2 * radius**2 * (1 - ca.cos(phi[i] - phi[j])))
-        for i in range(n)
-        for j in range(i + 1, n)
-    ]
+    z = [curve.point(phi[i]) for i in range(n)]
+    terms = [1.0 / ca.sumsqr(z[i] - z[j]) for i in range(n) for j in range(i + 1, n)]
     return 2 * ca.sum1(ca.vertcat(*terms))
 
 
-def coupling_expr(phi: ca.SX | ca.MX, radius: float) -> ca.SX | ca.MX:
-    """The scaled, reduced constraint c(φ) = (r²/n³) dG/dφ[:n−1], a column of n−1 entries."""
+def coupling_expr(phi: ca.SX | ca.MX, curve: Curve) -> ca.SX | ca.MX:
+    """The constraint c(φ) = (ℓ²/n³) dG/dφ (its first n−1 entries on a circle), a column."""
     n = phi.numel()
-    return (radius**2 / n**3) * ca.gradient(potential_expr(phi, radius), phi)[: n - 1]
+    gradient = ca.gradient(potential_expr(phi, curve), phi)
+    return coupling_scale(curve, n) * gradient[: coupling_rows(curve, n)]
 
 
-def coupling(phi: np.ndarray, radius: float) -> np.ndarray:
-    """c(φ) (n−1,) in closed form, as :func:`coupling_expr`: with h(d) = 1/(2r²(1 − cos d)),
-    g_k = 2 Σ_{j≠k} h′(φ_k − φ_j), h′(d) = −sin d / (2r²(1 − cos d)²). O(n²) numpy."""
+def potential(phi: np.ndarray, curve: Curve) -> float:
+    """The scaled potential (ℓ²/n³) G(φ), closed form (its gradient is c(φ) off a circle)."""
+    phi = np.asarray(phi, float).ravel()
+    z = curve.points(phi)
+    s = np.sum((z[:, None, :] - z[None, :, :]) ** 2, axis=2)
+    np.fill_diagonal(s, np.inf)
+    return coupling_scale(curve, phi.size) * float(np.sum(1.0 / s))
+
+
+def relax(phi: np.ndarray, curve: Curve) -> np.ndarray:
+    """The local minimum of G reached from the angles ``phi`` (rad) by a trust-region Newton
+    method (exact gradient and Hessian, scaled gradient below 1e-12): on a curve that is not a
+    circle, the feasible set of g(φ) = 0 is a set of isolated points, and this picks the stable
+    one (a minimum, not a saddle) that the start leads to. Circles: ``phi`` unchanged."""
+    phi = np.asarray(phi, float)
+    if curve.rotation_invariant:
+        return phi
+    result = minimize(potential, phi, args=(curve,), jac=coupling, hess=coupling_jacobian,
+                      method="trust-exact", options={"gtol": 1e-12})
+    return np.asarray(result.x, float)
+
+
+def coupling(phi: np.ndarray, curve: Curve) -> np.ndarray:
+    """c(φ) as :func:`coupling_expr`, in closed form: O(n²) numpy, in blocks of
+    :data:`BLOCK` rows."""
     phi = np.asarray(phi, float).ravel()
     n = phi.size
-    d = phi[:, None] - phi[None, :]
-    one_minus_cos = 1.0 - np.cos(d)
-    np.fill_diagonal(one_minus_cos, 1.0)  # the i = j terms are excluded (sin 0 = 0 below)
-    h1 = -np.sin(d) / (2 * radius**2 * one_minus_cos**2)
-    return (radius**2 / n**3) * 2 * h1.sum(axis=1)[: n - 1]
+    z, t = curve.points(phi), curve.tangents(phi)
+    g = np.empty(n)
+    for start in range(0, n, BLOCK):
+        rows = slice(start, min(start + BLOCK, n))
+        s = np.zeros((rows.stop - start, n))
+        d_t = np.zeros_like(s)  # D_kj · t_k
+        for axis in range(curve.dim):  # no (BLOCK, n, d) temporaries: cache-sized blocks
+            d = z[rows, axis, None] - z[None, :, axis]
+            s += d * d
+            d_t += d * t[rows, axis, None]
+        k = np.arange(rows.start, rows.stop)
+        s[k - rows.start, k] = 1.0  # the excluded k = j terms (D_kk · t_k = 0)
+        g[rows] = -4.0 * np.sum(d_t / (s * s), axis=1)
+    return coupling_scale(curve, n) * g[: coupling_rows(curve, n)]
 
 
-def coupling_jacobian(phi: np.ndarray, radius: float) -> np.ndarray:
-    """dc/dφ ((n−1) × n) in closed form: off the diagonal −2 h″(φ_k − φ_m), on it
-    2 Σ_{j≠k} h″(φ_k − φ_j), with h″(d) = (2 + cos d)/(2r²(1 − cos d)²). O(n²) numpy."""
+def coupling_jacobian(phi: np.ndarray, curve: Curve) -> np.ndarray:
+    """dc/dφ (rows × n) in closed form: for m ≠ k
+    ∂g_k/∂φ_m = 4 (t_k·t_m)/s² − 16 (D·t_k)(D·t_m)/s³ (D = D_km, s = s_km), and
+    ∂g_k/∂φ_k = −4 Σ_{j≠k} [(|t_k|² + D_kj·a_k)/s² − 4 (D_kj·t_k)²/s³]. O(n²) numpy."""
     phi = np.asarray(phi, float).ravel()
     n = phi.size
-    d = phi[:, None] - phi[None, :]
-    cos = np.cos(d)
-    one_minus_cos = 1.0 - cos
-    np.fill_diagonal(one_minus_cos, 1.0)
-    h2 = (2.0 + cos) / (2 * radius**2 * one_minus_cos**2)
-    np.fill_diagonal(h2, 0.0)
-    hessian = -2.0 * h2
-    np.fill_diagonal(hessian, 2.0 * h2.sum(axis=1))
-    return (radius**2 / n**3) * hessian[: n - 1]
+    z, t, a = curve.points(phi), curve.tangents(phi), curve.curvatures(phi)
+    d = z[:, None, :] - z[None, :, :]  # D_kj (n, n, d)
+    s = np.sum(d * d, axis=2)
+    np.fill_diagonal(s, 1.0)  # the excluded k = j terms (D_kk = 0 makes them vanish)
+    d_tk = np.einsum("kjd,kd->kj", d, t)  # D_kj · t_k
+    d_tj = np.einsum("kjd,jd->kj", d, t)  # D_kj · t_j
+    off = 4.0 * (t @ t.T) / s**2 - 16.0 * d_tk * d_tj / s**3
+    np.fill_diagonal(off, 0.0)
+    diagonal_terms = (np.sum(t * t, axis=1)[:, None] + np.einsum("kjd,kd->kj", d, a)) / s**2 \
+        - 4.0 * d_tk**2 / s**3
+    np.fill_diagonal(diagonal_terms, 0.0)
+    np.fill_diagonal(off, -4.0 * diagonal_terms.sum(axis=1))
+    return coupling_scale(curve, n) * off[: coupling_rows(curve, n)]
 
 
 def equidistance_error(phi: np.ndarray) -> float:
-    """max_i |gap_i − 2π/n| over the n gaps between consecutive angles on the circle (rad)."""
+    """max_i |gap_i − 2π/n| over the n gaps between consecutive angles on a circle (rad)."""
     angles = np.sort(np.mod(np.asarray(phi, float), 2 * np.pi))
     gaps = np.diff(np.append(angles, angles[0] + 2 * np.pi))
     return float(np.max(np.abs(gaps - 2 * np.pi / len(angles))))

@@ -19,7 +19,10 @@ class FormationResult(RunResult):
     ``phi`` (n,) final angles (rad); ``agent_costs`` (n,) inner optimal costs Ĵ_i;
     ``trajectories`` (n, N+1, nq) DMOC node paths; ``cost_parts`` the total cost split by
     control groups where the model names them (e.g. ``translational_cost``,
-    ``rotational_cost``); ``trace`` one record per superstep.
+    ``rotational_cost``); ``trace`` one record per superstep; ``coupling_residual``
+    max_k |c_k(φ)|, the scaled coupling c = (ℓ²/n³) dG/dφ as the outer problem imposes it
+    (:mod:`ocpar.formation.potential`); ``on_circle`` whether the curve is a circle (the
+    equidistance error is NaN otherwise).
     """
 
     problem: str
@@ -40,6 +43,8 @@ class FormationResult(RunResult):
     trace: list[SuperstepTrace] = field(default_factory=list)
     retries: int = 0
     cost_parts: dict[str, float] = field(default_factory=dict)
+    coupling_residual: float = math.nan
+    on_circle: bool = True
 
     @property
     def converged(self) -> bool:
@@ -47,8 +52,8 @@ class FormationResult(RunResult):
 
     @property
     def equidistance_error(self) -> float:
-        """max |gap − 2π/n| between neighbours on the circle (rad)."""
-        return equidistance_error(self.phi)
+        """max |gap − 2π/n| between neighbours on the circle (rad); NaN off a circle."""
+        return equidistance_error(self.phi) if self.on_circle else math.nan
 
     def to_dict(self) -> dict:
         """The ``result.json`` contract (plus per-agent costs, final positions, trajectories)."""
@@ -65,6 +70,7 @@ class FormationResult(RunResult):
             **{name: _finite_or_none(value) for name, value in self.cost_parts.items()},
             "phi": [float(p) for p in self.phi],
             "equidistance_error": _finite_or_none(self.equidistance_error),
+            "coupling_residual": _finite_or_none(self.coupling_residual),
             "outer_iterations": self.outer_iterations,
             "supersteps": self.supersteps,
             "inner_solves": self.inner_solves,
@@ -78,12 +84,14 @@ class FormationResult(RunResult):
 
     def summary(self) -> str:
         """A few lines for people: the headline numbers of the run."""
+        equidistance = (f"equidistance error {self.equidistance_error:.1e} rad   "
+                        if self.on_circle else "")
         parts = "".join(f"{name.replace('_', ' ')} {value:.6e}   "
                         for name, value in self.cost_parts.items())
         return (
             f"status {self.status} ({self.message})\n"
             f"total cost {self.total_cost:.12e}   {parts}"
-            f"equidistance error {self.equidistance_error:.1e} rad\n"
+            f"{equidistance}coupling residual {self.coupling_residual:.1e}\n"
             f"outer iterations {self.outer_iterations}   supersteps {self.supersteps}   "
             f"inner solves {self.inner_solves} (failed {self.failed_solves}, retries "
             f"{self.retries})\n"

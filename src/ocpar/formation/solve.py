@@ -18,6 +18,7 @@ from ocpar.formation.hierarchical import (
 )
 from ocpar.formation.monolithic import solve_monolithic
 from ocpar.formation.ordering import ORDERINGS, optimal_ordering
+from ocpar.formation.potential import coupling
 from ocpar.formation.problem import FormationProblem
 from ocpar.formation.result import FormationResult
 
@@ -37,7 +38,8 @@ class FormationOptions:
     tolerance on the offset θ; ``monolithic_tol`` is IPOPT's ``tol``. ``ordering``: which
     agent goes to which place on the circle, ``keep`` (the initial angles' order, the
     paper's) or ``optimal`` (:func:`ocpar.formation.ordering.optimal_ordering`, run on the
-    backend first; its angles start the chosen mode).
+    backend first; its angles start the chosen mode). ``offset`` and ``optimal`` rely on the
+    circle's symmetry: :func:`solve_formation` refuses them (ValueError) on other curves.
     """
 
     mode: str = "hierarchical"
@@ -70,6 +72,24 @@ def cost_parts(problem: FormationProblem, controls: np.ndarray) -> dict[str, flo
     return {name: float(h * np.sum(controls[..., a:b] ** 2)) for name, (a, b) in groups.items()}
 
 
+def check_applicable(problem: FormationProblem, options: FormationOptions) -> None:
+    """Raise ValueError (one line) if ``options`` ask for a circle's shortcut (``offset``
+    outer solver, ``optimal`` ordering) on a problem whose curve is not a circle; a driver
+    calls it before starting workers (:func:`solve_formation` calls it too)."""
+    if options.ordering == "optimal":
+        problem.require_circle("ordering 'optimal'")
+    if options.mode == "hierarchical" and options.outer == "offset":
+        problem.require_circle("outer 'offset'")
+
+
+def coupling_residual(problem: FormationProblem, phi: np.ndarray) -> float:
+    """max_k |c_k(φ)|: the scaled coupling as the outer problem imposes it
+    (:func:`~ocpar.formation.potential.coupling`), NaN if φ is not finite."""
+    if not np.all(np.isfinite(phi)):
+        return float("nan")
+    return float(np.max(np.abs(coupling(phi, problem.curve))))
+
+
 def solve_formation(
     problem: FormationProblem,
     backend: Backend | None = None,
@@ -84,13 +104,14 @@ def solve_formation(
     """
     options = options or FormationOptions()
     backend = backend or SerialBackend()
+    check_applicable(problem, options)
     phi0 = problem.initial_phi() if phi0 is None else np.asarray(phi0, float)
     if phi0.shape != (problem.agents,):
         raise ValueError(f"phi0 must have shape ({problem.agents},), got {phi0.shape}")
     first_trace = len(backend.traces)
     start = time.perf_counter()
     common = {"problem": problem.name, "agents": problem.agents, "backend": backend.name,
-              "workers": backend.workers, "mode": options.mode}
+              "workers": backend.workers, "mode": options.mode, "on_circle": problem.on_circle}
     ordering_solves = 0
     if options.ordering == "optimal":
         ordered = optimal_ordering(problem, backend, tol=options.outer_tol, progress=progress)
@@ -112,6 +133,7 @@ def solve_formation(
             failed_solves=0,
             wall_time_s=time.perf_counter() - start,
             trace=backend.traces[first_trace:],
+            coupling_residual=coupling_residual(problem, sol.phi),
         )
 
     objective = OuterObjective(problem, backend, progress)
@@ -141,4 +163,5 @@ def solve_formation(
         retries=objective.retries,
         wall_time_s=time.perf_counter() - start,
         trace=backend.traces[first_trace:],
+        coupling_residual=coupling_residual(problem, phi),
     )

@@ -1,4 +1,5 @@
-"""The paper's second example (§II, §VI, Fig. 5): rigid spacecraft near the Sun–Earth L2 halo.
+"""The formation paper's second example (§II, §VI, Fig. 5): rigid spacecraft near the
+Sun–Earth L2 halo.
 
 Relative coordinates about the halo (the paper's Remark 2): positions in km from the halo
 point, time in the normalised unit of the three-body problem (1 year / 2π ≈ 58.1 days), the
@@ -24,10 +25,8 @@ from functools import lru_cache
 
 import numpy as np
 
-from ocpar.formation.problem import FormationProblem
-from ocpar.models.crtbp import HaloOrbit, halo_orbit
-from ocpar.models.rigid_spacecraft import RelativeRigidSpacecraft
-from ocpar.ocp import DmocShape
+from ocpar.formation import Circle, DmocShape, FormationProblem
+from ocpar.models import HaloOrbit, RelativeRigidSpacecraft, halo_orbit
 
 GRID_SPACING_KM = 0.2
 GRID_COLUMNS = 6
@@ -56,7 +55,7 @@ def grid_positions(agents: int, spacing_km: float = GRID_SPACING_KM) -> np.ndarr
     return np.column_stack([x1, x2, np.zeros(agents)])
 
 
-def halo_spacecraft_example(
+def make(
     agents: int = 30,
     radius_km: float = 1.0,
     intervals: int = 10,
@@ -66,7 +65,7 @@ def halo_spacecraft_example(
     """The example above: ``agents`` rigid spacecraft, circle radius ``radius_km``, DMOC with
     ``intervals`` intervals over ``duration`` normalised time units, about ``halo`` (default
     :func:`default_halo`)."""
-    if agents < 2:
+    if agents < 2:  # checked before the halo's integration
         raise ValueError(f"a formation needs at least 2 agents, got {agents}")
     if not (intervals >= 1 and duration > 0):
         raise ValueError("intervals must be ≥ 1 and duration > 0")
@@ -76,12 +75,8 @@ def halo_spacecraft_example(
     starts = np.hstack([grid_positions(agents), np.tile(START_ATTITUDE, (agents, 1))])
     return FormationProblem(
         name="crtbp-rigid",
-        starts=starts,
-        center=np.zeros(3),
-        radius=float(radius_km),
-        start_velocities=np.zeros((agents, 7)),
-        final_velocity=np.zeros(7),
         shape=DmocShape(model, intervals, duration),
-        axes=PLANE_AXES,
+        curve=Circle(radius=radius_km, center=np.zeros(3), axes=PLANE_AXES),
+        starts=starts,
         final_attitude=FINAL_ATTITUDE,
     )

@@ -1,0 +1,286 @@
+"""Closed curves z(φ) in 2-D or 3-D on which a formation ends: φ ↦ z(φ), period 2π in φ.
+
+A curve is defined once, symbolically: :meth:`Curve.point` maps a scalar CasADi symbol φ to
+the column z(φ) (d entries, d = 2 or 3, in the model's length unit). Everything else comes from
+it by CasADi's automatic differentiation: the tangent z′(φ) (for the outer gradient
+dĴ_i/dφ_i = dJ*_i/dq_N · z′(φ_i)) and z″(φ) (for the coupling's Jacobian), evaluated on numpy
+arrays of angles.
+
+* :class:`Circle` and :class:`Ellipse`: the classic shapes, in the plane spanned by two
+  orthonormal rows ``axes`` (2, d) about ``center`` (a tilted plane in 3-D).
+* :class:`PlaneCurve`: any closed profile φ ↦ (x(φ), y(φ)) placed in such a plane.
+* :class:`ParametricCurve`: any closed curve φ ↦ z(φ), as a Python function of a CasADi
+  symbol or a :class:`casadi.Function` of one scalar input.
+
+Each is checked when built (finite data, orthonormal axes, z evaluates to d finite entries,
+z(φ + 2π) = z(φ), nonzero length): one ValueError naming the field.
+"""
+
+from __future__ import annotations
+
+from abc import ABC, abstractmethod
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from functools import cached_property
+
+import casadi as ca
+import numpy as np
+
+#: Angles at which a curve is sampled for its checks, its length and its frame.
+SAMPLES = 1024
+
+#: z(φ + 2π) must equal z(φ) to this fraction of the curve's size.
+CLOSURE_RTOL = 1e-9
+
+Expression = ca.SX | ca.MX
+
+
+class Curve(ABC):
+    """A closed curve z(φ) ∈ R^d, d = 2 or 3, with z(φ + 2π) = z(φ)."""
+
+    @property
+    @abstractmethod
+    def dim(self) -> int:
+        """d, the number of position entries the curve fixes (2 or 3)."""
+
+    @abstractmethod
+    def point(self, phi: Expression) -> Expression:
+        """z(φ) as a CasADi column (d, 1) of the scalar symbol φ (rad)."""
+
+    @cached_property
+    def _derivatives(self) -> ca.Function:
+        """φ ↦ (z, z′, z″), compiled once; called with a row of angles it maps over them."""
+        phi = ca.SX.sym("phi")
+        z = self.point(phi)
+        dz = ca.jacobian(z, phi)
+        return ca.Function("curve", [phi], [z, dz, ca.jacobian(dz, phi)])
+
+    def _evaluate(self, phi: np.ndarray, which: int) -> np.ndarray:
+        phi = np.atleast_1d(np.asarray(phi, float)).ravel()
+        return np.asarray(self._derivatives(phi[None, :])[which]).reshape(self.dim, -1).T
+
+    def points(self, phi: np.ndarray) -> np.ndarray:
+        """z(φ) for angles φ (n,) rad: shape (n, d)."""
+        return self._evaluate(phi, 0)
+
+    def tangents(self, phi: np.ndarray) -> np.ndarray:
+        """z′(φ) = dz/dφ for angles φ (n,): shape (n, d), length unit per rad."""
+        return self._evaluate(phi, 1)
+
+    def curvatures(self, phi: np.ndarray) -> np.ndarray:
+        """z″(φ) = d²z/dφ² for angles φ (n,): shape (n, d), length unit per rad²."""
+        return self._evaluate(phi, 2)
+
+    @property
+    def rotation_invariant(self) -> bool:
+        """True if a common shift of all φ moves the curve onto itself (a circle): then the
+        potential G cannot tell rotated formations apart."""
+        return False
+
+    @cached_property
+    def length_scale(self) -> float:
+        """ℓ/(2π), ℓ the curve's length (the radius of a circle), by the trapezoidal rule on
+        :data:`SAMPLES` angles (spectrally accurate on a smooth closed curve)."""
+        phi = np.arange(SAMPLES) * 2 * np.pi / SAMPLES
+        return float(np.mean(np.linalg.norm(self.tangents(phi), axis=1)))
+
+    def frame(self) -> tuple[np.ndarray, np.ndarray]:
+        """(centre (d,), axes (2, d)): the point the curve surrounds and two orthonormal rows
+        spanning its plane (best fit for a non-planar curve), oriented so that φ runs
+        counter-clockwise. Here: the centroid of :data:`SAMPLES` points equally spaced in φ
+        and their principal directions; planar curves know theirs exactly."""
+        phi = np.arange(SAMPLES) * 2 * np.pi / SAMPLES
+        z = self.points(phi)
+        centre = z.mean(axis=0)
+        axes = np.linalg.svd(z - centre)[2][:2]
+        xy = (z - centre) @ axes.T
+        signed_area = np.sum(xy[:, 0] * np.roll(xy[:, 1], -1) - np.roll(xy[:, 0], -1) * xy[:, 1])
+        if signed_area < 0:
+            axes = axes[::-1]
+        return centre, axes
+
+    def parameter_at(self, angle: float) -> float:
+        """The φ (rad) whose point is seen at the polar ``angle`` (rad) from the frame's centre,
+        in its plane: here the nearest of :data:`SAMPLES` angles equally spaced in φ (an
+        initial guess needs no more)."""
+        centre, axes = self.frame()
+        phi = np.arange(SAMPLES) * 2 * np.pi / SAMPLES
+        xy = (self.points(phi) - centre) @ axes.T
+        off = np.angle(np.exp(1j * (np.arctan2(xy[:, 1], xy[:, 0]) - angle)))
+        return float(phi[np.argmin(np.abs(off))])
+
+    def spread(self, phi_c: float, fractions: np.ndarray) -> np.ndarray:
+        """The angles (rad) of the points ``fractions`` (n,) of the curve's length on from the
+        point at ``phi_c`` (negative: before it): equidistant in arc length, by linear
+        interpolation of the cumulative length on :data:`SAMPLES` angles."""
+        grid = phi_c + np.arange(SAMPLES + 1) * 2 * np.pi / SAMPLES
+        speed = np.linalg.norm(self.tangents(grid), axis=1)
+        length = np.concatenate([[0.0], np.cumsum((speed[1:] + speed[:-1]) / 2)])
+        fractions = np.asarray(fractions, float)
+        turns = np.floor(fractions)
+        return np.interp((fractions - turns) * length[-1], length, grid) + 2 * np.pi * turns
+
+    def check(self) -> None:
+        """Raise ValueError (naming the curve) unless z evaluates to d finite entries, is
+        closed with period 2π and has nonzero length."""
+        if self.dim not in (2, 3):
+            raise ValueError(f"curve: a formation curve lies in 2-D or 3-D, got dim {self.dim}")
+        try:
+            phi = np.arange(SAMPLES) * 2 * np.pi / SAMPLES
+            z, shifted, tangents = self.points(phi), self.points(phi + 2 * np.pi), \
+                self.tangents(phi)
+        except (RuntimeError, TypeError, ValueError, IndexError) as exc:
+            raise ValueError(f"curve: z(φ) does not evaluate: {str(exc).splitlines()[0]}") \
+                from None
+        if not (np.all(np.isfinite(z)) and np.all(np.isfinite(tangents))):
+            raise ValueError("curve: z(φ) or z′(φ) is not finite for some φ in [0, 2π)")
+        size = float(np.max(np.abs(z - z.mean(axis=0))))
+        if size == 0 or not np.any(tangents):
+            raise ValueError("curve: z(φ) is a single point (zero length)")
+        gap = float(np.max(np.abs(shifted - z)))
+        if gap > CLOSURE_RTOL * size:
+            raise ValueError(f"curve: not closed with period 2π: |z(φ + 2π) − z(φ)| up to "
+                             f"{gap:.1e}, size {size:.1e}")
+
+
+def _numbers(name: str, value: object) -> np.ndarray:
+    """``value`` as a float array, or ValueError naming the field."""
+    try:
+        return np.asarray(value, float)
+    except (TypeError, ValueError):
+        raise ValueError(f"{name}: must be numbers, got {value!r}") from None
+
+
+def _plane_axes(center: np.ndarray, axes: np.ndarray | None) -> np.ndarray:
+    """Check ``center`` (d,) and ``axes`` (2, d) orthonormal rows (default the x1–x2 plane)."""
+    d = len(center)
+    if center.ndim != 1 or d not in (2, 3) or not np.all(np.isfinite(center)):
+        raise ValueError(f"center: needs 2 or 3 finite entries, got {center.tolist()}")
+    plane = np.eye(2, d) if axes is None else _numbers("axes", axes)
+    if plane.shape != (2, d) or not np.all(np.isfinite(plane)) \
+            or not np.allclose(plane @ plane.T, np.eye(2), atol=1e-12):
+        raise ValueError(f"axes: must be two orthonormal rows of length {d}")
+    return plane
+
+
+@dataclass(frozen=True, eq=False)
+class PlaneCurve(Curve):
+    """A closed plane curve center + x(φ) axes[0] + y(φ) axes[1].
+
+    ``profile`` maps a scalar CasADi symbol φ to (x(φ), y(φ)) (two expressions, or a column
+    of two, in the model's length unit); ``center`` (d,) with d = 2 or 3; ``axes`` (2, d)
+    orthonormal rows spanning the plane (default: the x1–x2 plane; in 3-D any tilted plane).
+    """
+
+    profile: Callable[[Expression], Expression | tuple[Expression, Expression]]
+    center: np.ndarray
+    axes: np.ndarray | None = None
+    plane: np.ndarray = field(init=False, repr=False)
+
+    def __post_init__(self) -> None:
+        center = np.atleast_1d(_numbers("center", self.center))
+        object.__setattr__(self, "center", center)
+        object.__setattr__(self, "plane", _plane_axes(center, self.axes))
+        self.check()
+
+    @property
+    def dim(self) -> int:
+        return len(self.center)
+
+    def point(self, phi: Expression) -> Expression:
+        xy = self.profile(phi)
+        x, y = (xy[0], xy[1])
+        return ca.DM(self.center) + x * ca.DM(self.plane[0]) + y * ca.DM(self.plane[1])
+
+    def frame(self) -> tuple[np.ndarray, np.ndarray]:
+        """(``center``, the plane's axes): exact."""
+        return self.center, self.plane
+
+
+@dataclass(frozen=True, eq=False, kw_only=True)
+class Circle(PlaneCurve):
+    """The circle of ``radius`` about ``center`` in the plane of ``axes``:
+    z(φ) = center + r (cos φ axes[0] + sin φ axes[1]); φ is the polar angle in the plane."""
+
+    profile: Callable = field(init=False, repr=False)
+    center: np.ndarray = field(default_factory=lambda: np.zeros(2))
+    axes: np.ndarray | None = None
+    radius: float = 1.0
+
+    def __post_init__(self) -> None:
+        radius = _numbers("radius", self.radius)
+        if radius.shape != () or not (np.isfinite(radius) and radius > 0):
+            raise ValueError(f"radius: must be a positive number, got {self.radius}")
+        object.__setattr__(self, "radius", float(radius))
+        object.__setattr__(self, "profile", lambda phi: (self.radius * ca.cos(phi),
+                                                         self.radius * ca.sin(phi)))
+        super().__post_init__()
+
+    @property
+    def rotation_invariant(self) -> bool:
+        return True
+
+    @property
+    def length_scale(self) -> float:
+        """The radius, exactly."""
+        return float(self.radius)
+
+    def parameter_at(self, angle: float) -> float:
+        """The polar angle is the parameter: ``angle`` itself."""
+        return float(angle)
+
+    def spread(self, phi_c: float, fractions: np.ndarray) -> np.ndarray:
+        """Arc length is proportional to φ: φ_c + 2π ``fractions``, exactly."""
+        return phi_c + 2 * np.pi * np.asarray(fractions, float)
+
+
+@dataclass(frozen=True, eq=False, kw_only=True)
+class Ellipse(PlaneCurve):
+    """The ellipse with semi-axes ``semi_axes`` = (a, b) along the rows of ``axes`` about
+    ``center``: z(φ) = center + a cos φ axes[0] + b sin φ axes[1] (φ the eccentric anomaly)."""
+
+    profile: Callable = field(init=False, repr=False)
+    center: np.ndarray = field(default_factory=lambda: np.zeros(2))
+    axes: np.ndarray | None = None
+    semi_axes: tuple[float, float] = (1.0, 1.0)
+
+    def __post_init__(self) -> None:
+        a_b = _numbers("semi_axes", self.semi_axes)
+        if a_b.shape != (2,) or not (np.all(np.isfinite(a_b)) and np.all(a_b > 0)):
+            raise ValueError(f"semi_axes: must be two positive numbers, got {self.semi_axes}")
+        a, b = (float(v) for v in a_b)
+        object.__setattr__(self, "semi_axes", (a, b))
+        object.__setattr__(self, "profile", lambda phi: (a * ca.cos(phi), b * ca.sin(phi)))
+        super().__post_init__()
+
+
+@dataclass(frozen=True, eq=False)
+class ParametricCurve(Curve):
+    """Any closed curve given by ``z``: a Python function of a scalar CasADi symbol φ returning
+    the column z(φ) (d entries, 2 or 3, built from CasADi operations such as ``ca.cos``), or a
+    :class:`casadi.Function` with one scalar input and one (d, 1) output. ``name`` labels it."""
+
+    z: Callable[[Expression], Expression]
+    name: str = "curve"
+    size: int = field(init=False, repr=False)
+
+    def __post_init__(self) -> None:
+        if not callable(self.z):
+            raise ValueError(f"curve: z must be callable (φ ↦ z(φ)), got {type(self.z).__name__}")
+        try:
+            value = ca.vertcat(self.z(ca.SX.sym("phi")))
+        except Exception as exc:  # a user's function: any failure means "does not evaluate"
+            raise ValueError(f"curve: z(φ) does not evaluate on a CasADi symbol: "
+                             f"{type(exc).__name__}: {str(exc).splitlines()[0] if str(exc) else ''}"
+                             ) from None
+        if value.shape[1] != 1:
+            raise ValueError(f"curve: z(φ) must be a column, got shape {value.shape}")
+        object.__setattr__(self, "size", value.shape[0])
+        self.check()
+
+    @property
+    def dim(self) -> int:
+        return self.size
+
+    def point(self, phi: Expression) -> Expression:
+        return ca.vertcat(self.z(phi))
