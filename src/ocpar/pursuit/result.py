@@ -3,10 +3,10 @@
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import ClassVar
 
 import numpy as np
 
-from ocpar.bsp import SuperstepTrace
 from ocpar.results import RunResult
 
 
@@ -18,80 +18,64 @@ class PursuitResult(RunResult):
     ``initial_x`` agent 0's; ``reference_x`` the full-horizon MS solution when computed.
     """
 
-    problem: str
+    scheme: ClassVar[str] = "pursuit"
+
     case: int
     samples: int
     mode: str
     window: int
     update: int
     epsilon_kg: float
-    backend: str
-    workers: int
-    status: str
-    message: str
     final_mass_kg: float
     fuel_kg: float
     agents: int
     subproblem_solves: int
-    failed_solves: int
-    retries: int
     max_agents_in_flight: int
     constraint_violation: float
     rk_final_altitude_error_m: float
     rk_final_radial_velocity_mps: float
     rk_final_position_error_m: float
-    wall_time_s: float
     x: np.ndarray
     u: np.ndarray
     initial_x: np.ndarray
     final_masses_kg: list[float] = field(default_factory=list)
     reference_final_mass_kg: float | None = None
     reference_x: np.ndarray | None = None
-    trace: list[SuperstepTrace] = field(default_factory=list)
+    #: the common count of inner solves is the catch-up (and full-horizon) solves
+    inner_solves: int = field(init=False)
 
-    @property
-    def converged(self) -> bool:
-        return self.status == "converged"
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        self.inner_solves = self.subproblem_solves
 
     @property
     def peak_rss_mb_per_worker(self) -> float:
         """Largest peak resident memory of any worker process during the run (MiB)."""
         return max((m for t in self.trace for m in t.worker_peak_rss_mb), default=0.0)
 
-    def to_dict(self) -> dict:
-        """The ``result.json`` contract, plus trajectories and per-agent final masses."""
+    def scheme_fields(self) -> dict:
+        """Pursuit's fields of ``result.json``, with trajectories and per-agent final masses."""
         return {
-            "scheme": "pursuit",
-            "problem": self.problem,
             "case": self.case,
             "samples": self.samples,
             "mode": self.mode,
             "window": self.window,
             "update": self.update,
             "epsilon_kg": self.epsilon_kg,
-            "backend": self.backend,
-            "workers": self.workers,
-            "status": self.status,
-            "message": self.message,
             "final_mass_kg": self.final_mass_kg,
             "fuel_kg": self.fuel_kg,
             "agents": self.agents,
             "subproblem_solves": self.subproblem_solves,
-            "failed_solves": self.failed_solves,
-            "retries": self.retries,
-            "supersteps": self.supersteps,
             "max_agents_in_flight": self.max_agents_in_flight,
             "constraint_violation": self.constraint_violation,
             "rk_final_altitude_error_m": self.rk_final_altitude_error_m,
             "rk_final_radial_velocity_mps": self.rk_final_radial_velocity_mps,
             "rk_final_position_error_m": self.rk_final_position_error_m,
-            "wall_time_s": self.wall_time_s,
             "peak_rss_mb_per_worker": self.peak_rss_mb_per_worker,
             "reference_ms_final_mass_kg": self.reference_final_mass_kg,
             "final_masses_kg": self.final_masses_kg,
             "states": np.asarray(self.x).tolist(),
             "controls": np.asarray(self.u).tolist(),
-            "trace": [t.to_dict() for t in self.trace],
         }
 
     def summary(self) -> str:

@@ -30,6 +30,7 @@ import numpy as np
 from ocpar.bsp import Backend
 from ocpar.models.orbit_transfer import KG_PER_T
 from ocpar.ocp import MsShape, MsSolution, MsTask, solve_ms_task
+from ocpar.options import option
 from ocpar.pursuit.problem import TARGET_COMPONENTS, OrbitTransferProblem
 
 
@@ -39,10 +40,13 @@ class PursuitSettings:
     applied per update), ``epsilon_kg`` the stopping threshold on the fuel improvement between
     successive agents (kg), ``max_agents`` a bound on the number of pursuing agents."""
 
-    window: int = 60
-    update: int = 32
-    epsilon_kg: float = 1e-5
-    max_agents: int = 100_000
+    window: int = option(60, "samples per catch-up problem N_Δ (Δ = (N_Δ-1)h)", low=2,
+                         metavar="N_DELTA")
+    update: int = option(32, "samples applied per update N_δ (δ = N_δ h)", low=1,
+                         metavar="N_UPDATE")
+    epsilon_kg: float = option(1e-5, "stop when an agent improves on its leader by less (kg)",
+                               name="epsilon", above=0, metavar="KG")
+    max_agents: int = option(100_000, "stop after this many agents", low=2)
 
     def check(self, samples: int) -> None:
         """Raise ValueError unless 1 ≤ N_δ < N_Δ < N."""
