@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import importlib
 import re
+import typing
 from collections.abc import Mapping
 from typing import Any
 
@@ -28,15 +29,16 @@ def is_reference(text: str) -> bool:
     return ":" in text
 
 
-def _type_names(expected: type | tuple[type, ...]) -> str:
-    types = expected if isinstance(expected, tuple) else (expected,)
+def _type_names(expected: Any) -> str:
+    """``A`` or ``A or B`` for a type, a tuple of types or a union."""
+    types = expected if isinstance(expected, tuple) else typing.get_args(expected) or (expected,)
     return " or ".join(t.__name__ for t in types)
 
 
-def load_problem(reference: str, kwargs: Mapping[str, Any],
-                 expected: type | tuple[type, ...]) -> Any:
+def load_problem(reference: str, kwargs: Mapping[str, Any], expected: Any) -> Any:
     """Import ``module`` of ``reference`` = ``module:factory``, call ``factory(**kwargs)`` and
-    check the result is an ``expected`` instance. Raises :class:`ProblemReferenceError`."""
+    check the result is an ``expected`` instance (a type, a tuple of types or a union).
+    Raises :class:`ProblemReferenceError`."""
     where = f"problem {reference!r}"
     if not REFERENCE.match(reference):
         raise ProblemReferenceError(f"{where}: expected package.module:factory (Python names "
@@ -59,8 +61,8 @@ def load_problem(reference: str, kwargs: Mapping[str, Any],
                                         f"{attribute!r}")
         factory = getattr(factory, part)
     if not callable(factory):
-        raise ProblemReferenceError(f"{where}: {attribute} is a {type(factory).__name__}, not "
-                                    "a function")
+        raise ProblemReferenceError(f"{where}: {attribute} is an object of type "
+                                    f"{type(factory).__name__}, not a function")
     try:
         problem = factory(**kwargs)
     except Exception as exc:
@@ -69,7 +71,7 @@ def load_problem(reference: str, kwargs: Mapping[str, Any],
             f"{exc}") from None
     if not isinstance(problem, expected):
         raise ProblemReferenceError(
-            f"{where}: {attribute}() returned a {type(problem).__name__}, not a "
+            f"{where}: {attribute}() returned an object of type {type(problem).__name__}, not "
             f"{_type_names(expected)}")
     return problem
 
