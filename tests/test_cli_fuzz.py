@@ -101,13 +101,13 @@ def not_an_int() -> st.SearchStrategy[str]:
 
 
 def bad_int(positive: bool = True) -> st.SearchStrategy[str]:
-    """Text that ``positive_int`` (or ``non_negative_int``) refuses."""
+    """Text that an integer option with a lower bound (1, or 0 without ``positive``) refuses."""
     negative = st.integers(max_value=-1).map(str)
     return st.one_of(not_an_int(), negative, *([st.sampled_from(ZEROS)] if positive else []))
 
 
 def bad_float() -> st.SearchStrategy[str]:
-    """Text that ``positive_float`` refuses: junk, NaN, ±inf, zero, negatives."""
+    """Text that a positive number option refuses: junk, NaN, ±inf, zero, negatives."""
     return st.one_of(st.sampled_from(FLOAT_JUNK + ZEROS + ["0.0", "-0.0"]),
                      st.text(max_size=12).filter(_fails(float)),
                      st.floats(max_value=0.0, allow_nan=False).map(repr))
