@@ -123,6 +123,20 @@ def test_serial_run_is_the_factorys_problem(serial_result, user_package, monkeyp
     assert serial_result["agents"] == 3 and serial_result["backend"] == "serial"
 
 
+def test_python_api_gives_the_serial_result(serial_result, user_package, tmp_path,
+                                            monkeypatch, capsys):
+    """The options dataclass is the Python face of the same command line."""
+    from ocpar.driver import run_scheme
+    from ocpar.formation.run import FormationRun
+
+    monkeypatch.syspath_prepend(str(user_package))
+    options = FormationRun(problem="mypkg.problems:make", problem_args={"agents": 3,
+                           "radius": 2.0}, output=str(tmp_path), quiet=True)
+    assert run_scheme(options) == 0
+    result = json.loads((tmp_path / "result.json").read_text())
+    assert computed(result) == computed(serial_result)
+
+
 def test_mpirun_gives_the_serial_result(serial_result, user_package, workdir):
     out = workdir / "mpi"
     proc = ocpar(user_package, workdir, "run", "my.toml", "--output", str(out), mpi_ranks=2)
@@ -152,8 +166,10 @@ def test_dask_and_submit_give_the_serial_result(serial_result, user_package, wor
     assert result["backend"] == "dask" and result["workers"] == 2
     assert computed(result) == computed(serial_result)
 
-    # the same configuration as a detached job: the reference travels with it
-    proc = ocpar(user_package, workdir, "submit", "my.toml", "--scheduler", cluster)
+    # the same configuration as a detached job: the reference travels with it; a scheme
+    # option after CONFIG overrides it, as for ocpar run
+    proc = ocpar(user_package, workdir, "submit", "my.toml", "--scheduler", cluster,
+                 "--problem-arg", "agents=3", "--problem-arg", "radius=2.0")
     assert proc.returncode == 0, proc.stderr
     job = proc.stdout.strip()
     deadline = time.monotonic() + 180

@@ -200,3 +200,13 @@ def test_the_scheduler_side_refuses_what_is_not_a_job_id(job_id, tmp_path, monke
         message = str(exc.value)
         assert "\n" not in message
         assert message.startswith("not a job id") == (jobs.JOB_ID.fullmatch(job_id) is None)
+
+
+def test_submit_refuses_service_options_after_the_configuration(capsys):
+    from ocpar.__main__ import main
+
+    with pytest.raises(SystemExit) as exc:
+        main(["submit", "formation-60", "--scheduler", "tcp://127.0.0.1:1", "--output", "x"])
+    err = capsys.readouterr().err
+    assert exc.value.code == 2 and err.splitlines() == [
+        "ocpar submit: error: --output is set by the service for a submitted job; leave it out"]

@@ -69,8 +69,10 @@ def submit(args: argparse.Namespace) -> int:
         fail(prog, str(exc))
     config = replace(config, options={key: value for key, value in config.options.items()
                                       if key not in SERVICE_KEYS})
+    flags = args.scheme_flags  # the scheme's own options, after CONFIG: they override it
+    argv = config.without(config.flag_keys(flags)).argv() + flags
     job = _service_call(args, "submit", lambda security: client.submit(
-        config.scheme, config.argv(), args.scheduler, security=security))
+        config.scheme, argv, args.scheduler, security=security))
     print(job)
     return 0
 
@@ -183,7 +185,8 @@ def build_parser() -> OneLineParser:
         "coordinator runs on the scheduler's host (no worker slot), survives this process, "
         "checkpoints every superstep and writes its results where the scheduler keeps jobs "
         "($OCPAR_JOBS_DIR there, default ~/.ocpar/jobs). Keys about where a run goes "
-        f"({', '.join(SERVICE_KEYS)}) are set by the service and ignored.")
+        f"({', '.join(SERVICE_KEYS)}) are set by the service and ignored. Other options of "
+        "the scheme's command line after CONFIG override its keys.")
     submit_parser.add_argument("config", metavar="CONFIG",
                                help="a TOML file, or an example name (ocpar run --list)")
     _add_scheduler(submit_parser)
@@ -221,7 +224,7 @@ def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args, extra = parser.parse_known_args(argv)
     parser.subcommands[args.command].refuse_repeated(argv[1:])
-    if extra and args.command != "run":
+    if extra and args.command not in ("run", "submit"):
         parser.subcommands[args.command].error(f"unrecognized arguments: {' '.join(extra)}")
     args.scheme_flags = extra
     return args.handler(args)
