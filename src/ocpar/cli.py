@@ -150,20 +150,16 @@ class RuntimeOptions:
 RUNTIME_OPTIONS = frozenset(spec.field for spec in option_specs(RuntimeOptions).values())
 
 
-def add_tls_arguments(parser: argparse.ArgumentParser, scope: str = "") -> None:
-    """``--tls-ca-file``, ``--tls-cert`` and ``--tls-key``: this client's certificate for a
-    ``tls://`` scheduler (checked by :func:`check_tls_arguments`)."""
-    tls = parser.add_argument_group(
-        f"TLS ({scope}all three together)",
-        "certificates for a tls:// scheduler, or to secure the embedded cluster "
-        "(workers/tls.md)")
-    tls.add_argument("--tls-ca-file", default=None, metavar="PATH",
-                     help="CA certificate (PEM) that signed the scheduler's and workers' "
-                          "certificates")
-    tls.add_argument("--tls-cert", default=None, metavar="PATH",
-                     help="this client's certificate (PEM), signed by a CA the cluster trusts")
-    tls.add_argument("--tls-key", default=None, metavar="PATH",
-                     help="the private key (PEM, unencrypted) of --tls-cert")
+def add_tls_arguments(parser: argparse.ArgumentParser) -> None:
+    """``--tls-ca-file``, ``--tls-cert`` and ``--tls-key`` of :class:`RuntimeOptions` for a
+    command that only talks to a scheduler (``ocpar jobs`` etc.; checked by
+    :func:`check_tls_arguments`)."""
+    specs = option_specs(RuntimeOptions)
+    tls = parser.add_argument_group("TLS (all three together): this client's certificate "
+                                    "for a tls:// scheduler (workers/tls.md)")
+    for key in TLS_OPTIONS:
+        tls.add_argument(specs[key].flag, default=None, metavar=specs[key].metavar,
+                         help=specs[key].help)
 
 
 def choose_backend(args: RuntimeOptions, prog: str) -> str:
