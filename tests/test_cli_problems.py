@@ -307,7 +307,7 @@ def references(draw) -> str:
 
 
 @pytest.mark.parametrize("scheme", ["formation", "pursuit", "macs"])
-@settings(max_examples=150, deadline=None, derandomize=True, database=None,
+@settings(max_examples=100, deadline=None, derandomize=True, database=None,
           suppress_health_check=[HealthCheck.function_scoped_fixture])
 @given(text=references())
 def test_fuzzed_references_are_refused(scheme, text, guarded, capsys):
