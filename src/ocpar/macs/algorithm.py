@@ -42,8 +42,8 @@ class MacsSettings:
     max_evaluations: int = option(10_000, "budget of objective evaluations, more than "
                                   "--population", name="max_evals", low=1)
     population: int = option(10, "number of agents pop_size", low=4, high=MAX_POPULATION)
-    archive_size: int = option(20, "archive size max_arch (the paper used 10)", name="archive",
-                               low=2)
+    archive_size: int = option(20, "archive size max_arch, at least 2 (the paper used 10)",
+                               name="archive")
     rho_initial: float = option(1.0, "initial radius ρ_ini, a fraction of each variable's "
                                 "range, in (0, 1]", above=0, high=1)
     de_weight: float = option(0.9, "differential evolution weight F, in (0, 2]", above=0,
