@@ -185,9 +185,10 @@ def crash_after(backend, supersteps: int) -> None:
 def test_pursuit_resumes_to_the_uninterrupted_train(tmp_path):
     """The pursuit scheme through the Python API: the agent train (positions, plans, warm
     starts) is rebuilt by replay, and the final trajectory is identical."""
-    from ocpar.pursuit import OrbitTransferProblem, PursuitSettings, solve_pursuit
+    from ocpar.examples.pursuit_orbit_transfer import make
+    from ocpar.pursuit import PursuitSettings, solve_pursuit
 
-    problem = OrbitTransferProblem(case=1, samples=101)
+    problem = make(case=1, samples=101)
     settings = PursuitSettings(window=32, update=16, max_agents=12)
     expected = solve_pursuit(problem, settings, reference=False)
     backend = SerialBackend()

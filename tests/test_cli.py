@@ -83,6 +83,6 @@ def test_bad_input_gets_one_line_and_status_2(args, needle, tmp_path):
 def test_bad_input_under_mpirun_ends_every_rank(tmp_path):
     proc = run_cli("-m", "ocpar.formation", "--agents", "1", mpi_ranks=2, timeout=120)
     assert proc.returncode == 2
-    assert proc.stderr.count("error: --agents") == 1 and "Traceback" not in proc.stderr
+    assert proc.stderr.count("error: argument --agents") == 1 and "Traceback" not in proc.stderr
 
 

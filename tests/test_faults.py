@@ -19,7 +19,8 @@ from ocpar.bsp.workload import Delayed
 from ocpar.formation import paper_example, solve_formation
 from ocpar.macs import GoddardProblem, MacsSettings, solve_macs
 from ocpar.ocp import solve_dmoc_task
-from ocpar.pursuit import OrbitTransferProblem, PursuitSettings, solve_pursuit
+from ocpar.examples.pursuit_orbit_transfer import make as orbit_transfer
+from ocpar.pursuit import PursuitSettings, solve_pursuit
 
 
 @pytest.fixture
@@ -70,7 +71,7 @@ def test_formation_faults_are_the_same_under_mpirun(tmp_path, inject):
 
 
 def test_pursuit_retries_from_the_leaders_trajectory(inject):
-    problem = OrbitTransferProblem(case=1, samples=101)
+    problem = orbit_transfer(case=1, samples=101)
     settings = PursuitSettings(window=32, update=16, max_agents=12)
     clean = solve_pursuit(problem, settings, reference=False)
     inject("0.3:2")

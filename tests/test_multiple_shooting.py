@@ -9,13 +9,14 @@ from scipy.integrate import solve_ivp
 from ocpar.models import OrbitTransfer
 from ocpar.models.ode import ode_functions
 from ocpar.ocp import MsShape, MsTask, ms_problem, solve_ms_task
-from ocpar.pursuit import OrbitTransferProblem
+from ocpar.examples.pursuit_orbit_transfer import make as orbit_transfer
+from ocpar.pursuit import PursuitProblem
 from ocpar.pursuit.problem import TARGET_COMPONENTS
 
 PAPER_MS_FINAL_MASS_KG = 523.979819  # Table II, N = 301
 
 
-def full_horizon(problem: OrbitTransferProblem, integrator: str):
+def full_horizon(problem: PursuitProblem, integrator: str):
     x0, u0 = problem.feasible_trajectory()
     shape = MsShape(problem.model, problem.samples - 1, problem.step, TARGET_COMPONENTS,
                     integrator)
@@ -24,7 +25,7 @@ def full_horizon(problem: OrbitTransferProblem, integrator: str):
 
 
 def test_euler_ms_reproduces_the_paper_case_1():
-    problem = OrbitTransferProblem(case=1, samples=301)
+    problem = orbit_transfer(case=1, samples=301)
     sol = full_horizon(problem, "euler")
     assert sol.success, sol.status
     assert sol.x[-1, 3] * 1e3 == pytest.approx(PAPER_MS_FINAL_MASS_KG, abs=0.01)
@@ -36,7 +37,7 @@ def test_euler_ms_reproduces_the_paper_case_1():
 def test_rk4_steps_match_an_accurate_integration_and_euler_does_not():
     """Each NLP step must be the integrator's step with u held: RK4 agrees with an adaptive
     integration of its own controls to ~h⁴, Euler only to ~h."""
-    problem = OrbitTransferProblem(case=1, samples=101)
+    problem = orbit_transfer(case=1, samples=101)
     f, _ = ode_functions(problem.model)
     errors = {}
     for integrator in ("euler", "rk4"):

@@ -12,6 +12,8 @@ from types import SimpleNamespace
 
 import pytest
 from conftest import local_cluster, run_cli
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
 
 from ocpar.service import client, jobs
 from ocpar.service.client import ServiceError
@@ -152,3 +154,59 @@ def test_a_tls_scheduler_without_certificate_files_cannot_start_jobs(tmp_path, f
     assert jobs.scheduler_certificate(SimpleNamespace(security=SimpleNamespace(**paths))) == {
         "tls_ca_file": paths["tls_ca_file"], "tls_cert": paths["tls_scheduler_cert"],
         "tls_key": paths["tls_scheduler_key"]}
+
+
+# --- job ids ---------------------------------------------------------------------------------
+
+LONG_ID = "formation-" + "9" * 290
+
+
+@pytest.mark.parametrize("command", [["status", LONG_ID], ["status", LONG_ID, "--json"],
+                                     ["result", LONG_ID, "--output", "out"],
+                                     ["cancel", LONG_ID], ["status", "../../etc/passwd"],
+                                     ["cancel", "formation-20260101-000000-ABCDEF"],
+                                     ["result", "", "--output", "out"]])
+def test_job_ids_are_checked_before_the_scheduler_is_asked(command, capsys):
+    """A malformed id is refused with one line and exit 2 (the scheduler address is not
+    even reachable: the id is checked first)."""
+    from ocpar.__main__ import main
+
+    with pytest.raises(SystemExit) as exc:
+        main([*command, "--scheduler", "tcp://127.0.0.1:1"])
+    out, err = capsys.readouterr()
+    assert exc.value.code == 2 and out == "", err
+    lines = err.splitlines()
+    assert len(lines) == 1 and lines[0].startswith(f"ocpar {command[0]}: error: not a job id")
+    assert len(lines[0]) < 200  # a 300-character id is shortened
+
+
+def test_a_long_job_id_from_a_separate_process():
+    proc = ocpar("status", "x" * 300, "--scheduler", "tcp://127.0.0.1:1")
+    assert proc.returncode == 2 and proc.stdout == "" and "Traceback" not in proc.stderr
+    assert len(proc.stderr.splitlines()) == 1 and "not a job id" in proc.stderr
+
+
+@settings(max_examples=200, deadline=None, derandomize=True, database=None,
+          suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(job_id=st.one_of(st.text(max_size=400), st.text(alphabet="formation-0123456789abcdef",
+                                                       min_size=20, max_size=40)))
+def test_the_scheduler_side_refuses_what_is_not_a_job_id(job_id, tmp_path, monkeypatch):
+    """On the scheduler, every action on an id is either a JobError (one line) or a real
+    job; never an OSError from the file system (File name too long, a path outside)."""
+    monkeypatch.setenv(jobs.JOBS_DIR_ENV, str(tmp_path))
+    for action in (jobs.job_status, jobs.result_files, jobs.cancel):
+        with pytest.raises(jobs.JobError) as exc:
+            action(job_id)
+        message = str(exc.value)
+        assert "\n" not in message
+        assert message.startswith("not a job id") == (jobs.JOB_ID.fullmatch(job_id) is None)
+
+
+def test_submit_refuses_service_options_after_the_configuration(capsys):
+    from ocpar.__main__ import main
+
+    with pytest.raises(SystemExit) as exc:
+        main(["submit", "formation-60", "--scheduler", "tcp://127.0.0.1:1", "--output", "x"])
+    err = capsys.readouterr().err
+    assert exc.value.code == 2 and err.splitlines() == [
+        "ocpar submit: error: --output is set by the service for a submitted job; leave it out"]

@@ -3,11 +3,12 @@
 Commands: ``run`` (a configuration, here), ``submit`` (a configuration as a detached job on a
 Dask cluster), ``jobs``, ``status``, ``result``, ``cancel`` (see :mod:`ocpar.service`).
 
-``ocpar run CONFIG [--set KEY=VALUE ...] [--print-argv]`` runs the configuration file CONFIG
-(:mod:`ocpar.config`), or the packaged example of that name (``ocpar run --list``), through
-its scheme's own command line: ``ocpar run formation-60`` is ``python -m ocpar.formation
---problem point-mass-plane --agents 60 ...``, the same run and the same ``result.json``. Under
-``mpirun -n P`` every rank does the same, as the schemes' command lines do.
+``ocpar run CONFIG [--set KEY=VALUE ...] [--print-argv] [SCHEME OPTIONS ...]`` runs the
+configuration file CONFIG (:mod:`ocpar.config`), or the packaged example of that name (``ocpar
+run --list``), through its scheme's own command line: ``ocpar run formation-60 --output DIR``
+is ``python -m ocpar.formation --problem point-mass-plane --agents 60 ... --output DIR``, the
+same run and the same ``result.json``; a scheme option after CONFIG overrides the file's key.
+Under ``mpirun -n P`` every rank does the same, as the schemes' command lines do.
 
 Each command is a subparser with a ``handler(args) -> int``; bad usage is one line on stderr
 and exit status 2.
@@ -34,8 +35,8 @@ PROG = "ocpar"
 def run(args: argparse.Namespace) -> int:
     prog = f"{PROG} run"
     if args.list:
-        if args.config is not None or args.overrides or args.print_argv:
-            fail(prog, "--list takes no CONFIG, --set or --print-argv")
+        if args.config is not None or args.overrides or args.print_argv or args.scheme_flags:
+            fail(prog, "--list takes no CONFIG, --set, --print-argv or scheme options")
         for name, header in examples().items():
             print(f"{name:34} {header}")
         return 0
@@ -48,10 +49,12 @@ def run(args: argparse.Namespace) -> int:
     except ConfigError as exc:
         fail(prog, str(exc))
     scheme = scheme_module(config.scheme)
-    argv = config.argv()
+    flags = args.scheme_flags  # the scheme's own options, after CONFIG: they override it
+    config = config.without(config.flag_keys(flags))
+    argv = config.argv() + flags
     if args.print_argv:
         scheme.parse_args(argv)  # the scheme's own checks, with its one-line errors
-        print(config.command())
+        print(config.command(flags))
         return 0
     return scheme.main(argv)
 
@@ -66,8 +69,10 @@ def submit(args: argparse.Namespace) -> int:
         fail(prog, str(exc))
     config = replace(config, options={key: value for key, value in config.options.items()
                                       if key not in SERVICE_KEYS})
+    flags = args.scheme_flags  # the scheme's own options, after CONFIG: they override it
+    argv = config.without(config.flag_keys(flags)).argv() + flags
     job = _service_call(args, "submit", lambda security: client.submit(
-        config.scheme, config.argv(), args.scheduler, security=security))
+        config.scheme, argv, args.scheduler, security=security))
     print(job)
     return 0
 
@@ -150,11 +155,16 @@ def build_parser() -> OneLineParser:
         "ocpar.formation|pursuit|macs.",
     )
     commands = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
+    parser.subcommands = commands.choices  # name → subparser
     run_parser = commands.add_parser(
         "run", prog=f"{PROG} run", help="run a configuration file",
+        usage=f"{PROG} run CONFIG [--set KEY=VALUE ...] [--print-argv] [SCHEME OPTIONS ...]",
         description="Run the configuration CONFIG: a TOML file (scheme = \"formation\", "
         "\"pursuit\" or \"macs\", and one key per option of that scheme's command line, "
-        "e.g. max_evals for --max-evals), or the name of a packaged example (--list).")
+        "e.g. max_evals for --max-evals), or the name of a packaged example (--list). Any "
+        "option of the scheme's command line given after CONFIG (--output DIR, --workers 2, "
+        "--problem-arg KEY=VALUE ...) overrides the file's key (--problem-arg replaces its "
+        "whole [problem_args] table).")
     run_parser.add_argument("config", nargs="?", metavar="CONFIG",
                             help="a TOML file, or an example name such as formation-60")
     run_parser.add_argument("--set", nargs="+", default=[], dest="overrides",
@@ -175,7 +185,8 @@ def build_parser() -> OneLineParser:
         "coordinator runs on the scheduler's host (no worker slot), survives this process, "
         "checkpoints every superstep and writes its results where the scheduler keeps jobs "
         "($OCPAR_JOBS_DIR there, default ~/.ocpar/jobs). Keys about where a run goes "
-        f"({', '.join(SERVICE_KEYS)}) are set by the service and ignored.")
+        f"({', '.join(SERVICE_KEYS)}) are set by the service and ignored. Other options of "
+        "the scheme's command line after CONFIG override its keys.")
     submit_parser.add_argument("config", metavar="CONFIG",
                                help="a TOML file, or an example name (ocpar run --list)")
     _add_scheduler(submit_parser)
@@ -209,7 +220,13 @@ def build_parser() -> OneLineParser:
 
 
 def main(argv: list[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
+    argv = sys.argv[1:] if argv is None else list(argv)
+    parser = build_parser()
+    args, extra = parser.parse_known_args(argv)
+    parser.subcommands[args.command].refuse_repeated(argv[1:])
+    if extra and args.command not in ("run", "submit"):
+        parser.subcommands[args.command].error(f"unrecognized arguments: {' '.join(extra)}")
+    args.scheme_flags = extra
     return args.handler(args)
 
 

@@ -7,6 +7,7 @@ import os
 import sys
 import tempfile
 from collections.abc import Callable
+from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any, NoReturn, TypeVar
 
@@ -22,19 +23,21 @@ from ocpar.bsp import (
 )
 from ocpar.bsp.journal import CheckpointError, Journal
 from ocpar.bsp.mpi import SUPERSTEP_TIMEOUT_S
+from ocpar.options import option, option_specs
+from ocpar.results import EXIT_STATUS
 
 EXIT_USAGE = 2
 #: Exit status of a run stopped by its stop file (``--stop-file``, ``ocpar cancel``).
-EXIT_CANCELLED = 4
+EXIT_CANCELLED = EXIT_STATUS["cancelled"]
 #: Most worker processes an embedded Dask cluster may be asked to start.
 MAX_LOCAL_WORKERS = 256
 #: The TLS options (argparse destinations): a client's CA file, certificate and key.
 TLS_OPTIONS = ("tls_ca_file", "tls_cert", "tls_key")
-#: Options that say where and how a run executes, not what it computes: they may differ
-#: between a run and its resumption (everything else must match the checkpoint).
-RUNTIME_OPTIONS = frozenset({
-    "backend", "workers", "scheduler", "balance", "output", "quiet", "checkpoint", "resume",
-    "superstep_timeout", *TLS_OPTIONS, "stop_file", "dispatch", "job_name"})
+BACKEND_GROUP = "parallel backend"
+CHECKPOINT_GROUP = "checkpoints"
+TLS_GROUP = ("TLS (dask backend; all three together): certificates for a tls:// scheduler, or "
+             "to secure the embedded cluster (workers/tls.md)")
+OUTPUT_GROUP = "output"
 R = TypeVar("R")
 Progress = Callable[[str], None]
 
@@ -49,16 +52,23 @@ class OneLineParser(argparse.ArgumentParser):
 
     def parse_args(self, args=None, namespace=None):  # type: ignore[override]
         argv = sys.argv[1:] if args is None else list(args)
+        self.refuse_repeated(argv)
+        return super().parse_args(argv, namespace)
+
+    def refuse_repeated(self, argv: list[str]) -> None:
+        """Exit 2 if one of this parser's options (one not meant to be repeated, such as
+        ``--problem-arg``) appears twice in ``argv``."""
         seen = set()
         for token in argv:
             if token == "--":
                 break
-            if token.startswith("--"):
-                name = token.split("=", 1)[0]
-                if name in seen:
-                    self.error(f"option {name} is given more than once")
-                seen.add(name)
-        return super().parse_args(argv, namespace)
+            name = token.split("=", 1)[0]
+            action = self._option_string_actions.get(name) if token.startswith("--") else None
+            if action is None or isinstance(action, argparse._AppendAction):
+                continue
+            if name in seen:
+                self.error(f"option {name} is given more than once")
+            seen.add(name)
 
     def error(self, message: str) -> NoReturn:
         fail(self.prog, message)
@@ -73,6 +83,7 @@ def fail(prog: str, message: str) -> NoReturn:
 
 
 def positive_int(text: str) -> int:
+    """argparse type: a positive integer."""
     try:
         value = int(text)
     except ValueError:
@@ -82,82 +93,76 @@ def positive_int(text: str) -> int:
     return value
 
 
-def non_negative_int(text: str) -> int:
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected an integer, got {text!r}") from None
-    if value < 0:
-        raise argparse.ArgumentTypeError(f"expected a non-negative integer, got {value}")
-    return value
+@dataclass(frozen=True)
+class RuntimeOptions:
+    """Where and how a run executes, not what it computes: the options every scheme shares.
+    They may differ between a run and its resumption (everything else must match the
+    checkpoint)."""
+
+    backend: str | None = option(
+        None, "serial (default), mpi (implied under mpirun), dask, or dask-mpi (under mpirun "
+        "-n P: a Dask cluster of P - 2 workers)", choices=BACKENDS, group=BACKEND_GROUP)
+    workers: int | None = option(
+        None, "number of workers (dask: local worker processes, or how many of the cluster's "
+        "workers to use; mpi: must equal the rank count)", low=1, group=BACKEND_GROUP)
+    scheduler: str | None = option(
+        None, "address of an existing Dask scheduler, e.g. tcp://HOST:8786 (tls://HOST:8786 "
+        "for one secured with TLS)", metavar="ADDR", group=BACKEND_GROUP)
+    balance: str = option(
+        "blocks", "task assignment: contiguous blocks, or lpt: longest first on the previous "
+        "superstep's times, tasks kept on their worker where that does not hurt the balance",
+        choices=BALANCE_POLICIES, group=BACKEND_GROUP)
+    superstep_timeout: float = option(
+        SUPERSTEP_TIMEOUT_S, "abort a superstep whose results have not all arrived after S "
+        "seconds", above=0, metavar="S", group=BACKEND_GROUP)
+    dispatch: str = option(
+        "direct", "dask: chunks reach workers through Client.run (direct, ~5 ms per "
+        "superstep) or as named Dask tasks (tasks: seen on the dashboard as "
+        "JOB-superstep-K-chunk-W)", choices=("direct", "tasks"), group=BACKEND_GROUP)
+    job_name: str | None = option(
+        None, "dask: the name the run's task keys start with (with --dispatch tasks)",
+        metavar="NAME", group=BACKEND_GROUP)
+    checkpoint: str | None = option(
+        None, "record every superstep in DIR as it completes (atomic writes); a killed run "
+        "continues with --resume DIR", metavar="DIR", group=CHECKPOINT_GROUP)
+    stop_file: str | None = option(
+        None, "stop at the next superstep boundary once PATH exists (exit status "
+        f"{EXIT_CANCELLED}; the checkpoint is intact)", metavar="PATH", group=CHECKPOINT_GROUP)
+    resume: str | None = option(
+        None, "continue the run checkpointed in DIR (same options), recording on into DIR; "
+        "the result is the uninterrupted run's", metavar="DIR", group=CHECKPOINT_GROUP)
+    tls_ca_file: str | None = option(
+        None, "CA certificate (PEM) that signed the scheduler's and workers' certificates",
+        metavar="PATH", group=TLS_GROUP)
+    tls_cert: str | None = option(
+        None, "this client's certificate (PEM), signed by a CA the cluster trusts",
+        metavar="PATH", group=TLS_GROUP)
+    tls_key: str | None = option(
+        None, "the private key (PEM, unencrypted) of --tls-cert", metavar="PATH",
+        group=TLS_GROUP)
+    output: str | None = option(
+        None, "write DIR/result.json and the scheme's plots", metavar="DIR",
+        group=OUTPUT_GROUP)
+    quiet: bool = option(False, "no progress lines", group=OUTPUT_GROUP)
 
 
-def positive_float(text: str) -> float:
-    try:
-        value = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
-    if not (value > 0 and value < float("inf")):
-        raise argparse.ArgumentTypeError(f"expected a positive finite number, got {text}")
-    return value
+#: The runtime options' keys (see :class:`RuntimeOptions`).
+RUNTIME_OPTIONS = frozenset(spec.field for spec in option_specs(RuntimeOptions).values())
 
 
-def add_backend_arguments(parser: argparse.ArgumentParser) -> None:
-    group = parser.add_argument_group("parallel backend")
-    group.add_argument("--backend", choices=BACKENDS, default=None,
-                       help="serial (default), mpi (implied under mpirun), dask, or dask-mpi "
-                            "(under mpirun -n P: a Dask cluster of P - 2 workers)")
-    group.add_argument("--workers", type=positive_int, default=None,
-                       help="number of workers (dask: local worker processes, or how many of "
-                            "the cluster's workers to use; mpi: must equal the rank count)")
-    group.add_argument("--scheduler", default=None, metavar="ADDR",
-                       help="address of an existing Dask scheduler, e.g. tcp://HOST:8786 "
-                            "(tls://HOST:8786 for one secured with TLS)")
-    group.add_argument("--balance", choices=BALANCE_POLICIES, default="blocks",
-                       help="task assignment: contiguous blocks (default), or lpt: longest "
-                            "first on the previous superstep's times, tasks kept on their "
-                            "worker where that does not hurt the balance")
-    group.add_argument("--superstep-timeout", type=positive_float, default=SUPERSTEP_TIMEOUT_S,
-                       metavar="S", help="abort a superstep whose results have not all "
-                       f"arrived after S seconds (default {SUPERSTEP_TIMEOUT_S:g})")
-    group.add_argument("--dispatch", choices=("direct", "tasks"), default="direct",
-                       help="dask: chunks reach workers through Client.run (direct, default, "
-                            "~5 ms per superstep) or as named Dask tasks (tasks: seen on the "
-                            "dashboard as JOB-superstep-K-chunk-W)")
-    group.add_argument("--job-name", default=None, metavar="NAME",
-                       help="dask: the name the run's task keys start with (with --dispatch "
-                            "tasks)")
-    checkpoints = parser.add_argument_group("checkpoints")
-    checkpoints.add_argument("--checkpoint", default=None, metavar="DIR",
-                             help="record every superstep in DIR as it completes (atomic "
-                                  "writes); a killed run continues with --resume DIR")
-    checkpoints.add_argument("--stop-file", default=None, metavar="PATH",
-                             help="stop at the next superstep boundary once PATH exists "
-                                  f"(exit status {EXIT_CANCELLED}; the checkpoint is intact)")
-    checkpoints.add_argument("--resume", default=None, metavar="DIR",
-                             help="continue the run checkpointed in DIR (same options), "
-                                  "recording on into DIR; the result is the uninterrupted "
-                                  "run's")
-    add_tls_arguments(parser, "dask backend; ")
+def add_tls_arguments(parser: argparse.ArgumentParser) -> None:
+    """``--tls-ca-file``, ``--tls-cert`` and ``--tls-key`` of :class:`RuntimeOptions` for a
+    command that only talks to a scheduler (``ocpar jobs`` etc.; checked by
+    :func:`check_tls_arguments`)."""
+    specs = option_specs(RuntimeOptions)
+    tls = parser.add_argument_group("TLS (all three together): this client's certificate "
+                                    "for a tls:// scheduler (workers/tls.md)")
+    for key in TLS_OPTIONS:
+        tls.add_argument(specs[key].flag, default=None, metavar=specs[key].metavar,
+                         help=specs[key].help)
 
 
-def add_tls_arguments(parser: argparse.ArgumentParser, scope: str = "") -> None:
-    """``--tls-ca-file``, ``--tls-cert`` and ``--tls-key``: this client's certificate for a
-    ``tls://`` scheduler (checked by :func:`check_tls_arguments`)."""
-    tls = parser.add_argument_group(
-        f"TLS ({scope}all three together)",
-        "certificates for a tls:// scheduler, or to secure the embedded cluster "
-        "(workers/tls.md)")
-    tls.add_argument("--tls-ca-file", default=None, metavar="PATH",
-                     help="CA certificate (PEM) that signed the scheduler's and workers' "
-                          "certificates")
-    tls.add_argument("--tls-cert", default=None, metavar="PATH",
-                     help="this client's certificate (PEM), signed by a CA the cluster trusts")
-    tls.add_argument("--tls-key", default=None, metavar="PATH",
-                     help="the private key (PEM, unencrypted) of --tls-cert")
-
-
-def choose_backend(args: argparse.Namespace, prog: str) -> str:
+def choose_backend(args: RuntimeOptions, prog: str) -> str:
     """The backend the arguments ask for, checked for consistency (exits 2 if not)."""
     under_mpi = launched_by_mpirun()
     backend = args.backend or ("mpi" if under_mpi else "dask" if args.scheduler else "serial")
@@ -205,14 +210,14 @@ def check_tls_arguments(args: argparse.Namespace, prog: str) -> None:
     if args.scheduler is not None and not args.scheduler.startswith("tls://"):
         fail(prog, "--tls-ca-file, --tls-cert and --tls-key need a tls://HOST:PORT "
                    f"scheduler address, got {args.scheduler!r}")
-    for option, path in tls_files.items():
+    for flag, path in tls_files.items():
         try:
             with open(path, "rb"):
                 pass
         except OSError as exc:
-            fail(prog, f"{option} {path}: {exc.strerror or exc}")
+            fail(prog, f"{flag} {path}: {exc.strerror or exc}")
         if not os.path.isfile(path):
-            fail(prog, f"{option} {path}: not a file")
+            fail(prog, f"{flag} {path}: not a file")
 
 
 def client_security(args: argparse.Namespace, prog: str) -> Any:
@@ -228,7 +233,7 @@ def client_security(args: argparse.Namespace, prog: str) -> Any:
         fail(prog, str(exc))
 
 
-def start_backend(args: argparse.Namespace, backend_name: str, prog: str) -> Backend:
+def start_backend(args: RuntimeOptions, backend_name: str, prog: str) -> Backend:
     """Open the backend or exit 2 with a one-line message (e.g. unreachable scheduler, or one
     that refuses this client's TLS certificate)."""
     security = client_security(args, prog)
@@ -264,7 +269,7 @@ def prepare_output_dir(path: str | None, prog: str) -> Path | None:
 
 
 def run_on_backend(
-    args: argparse.Namespace, prog: str, body: Callable[[Backend, Progress], R]
+    args: RuntimeOptions, prog: str, body: Callable[[Backend, Progress], R]
 ) -> R | None:
     """Start the backend the arguments ask for and run ``body(backend, progress)`` in the
     coordinator; other MPI ranks serve supersteps instead and get None. ``progress`` prints a
@@ -291,13 +296,12 @@ def run_on_backend(
             sys.exit(EXIT_CANCELLED)
 
 
-def run_fingerprint(args: argparse.Namespace, prog: str) -> dict:
+def run_fingerprint(options: Any, prog: str) -> dict:
     """What a checkpoint must match to be resumed by this run: the scheme, ocpar's version
     and every option that changes what is computed (not :data:`RUNTIME_OPTIONS`)."""
-    options = {key: value for key, value in sorted(vars(args).items())
-               if key not in RUNTIME_OPTIONS
-               and (value is None or isinstance(value, bool | int | float | str))}
-    return {"scheme": prog, "ocpar": __version__, "options": options}
+    computed = {key: value for key, value in sorted(asdict(options).items())
+                if key not in RUNTIME_OPTIONS}
+    return {"scheme": prog, "ocpar": __version__, "options": computed}
 
 
 def open_journal(args: argparse.Namespace, prog: str) -> Journal | None:

@@ -18,21 +18,26 @@ is ``max_evals``. There are no tables; comments group the keys::
     output = "runs/formation-60"  # relative to the current directory, as on the command line
     quiet = false
 
-The valid keys are read from the scheme's own argparse parser (every long option, ``--help``
-excepted), so a new command-line option has its key without any change here. Values:
+The valid keys are the fields of the scheme's options dataclass (:mod:`ocpar.options`;
+``ocpar.formation.run.FormationRun`` etc.), from which the scheme's command line is generated
+too, so a new option has its key without any change here. Values:
 
 * an option that takes a value gets a TOML scalar of its type: an integer for integer options
   (``agents = 60``), an integer or float for float options (``radius = 10.0``, ``inf``), a
   string for the others (``backend = "dask"``); it becomes the option's text on the command
   line;
 * a flag (``--quiet``, ``--no-reference``) gets a boolean: true gives the flag, false leaves
-  it out.
+  it out;
+* ``problem = "package.module:factory"`` names a problem factory (:mod:`ocpar.references`),
+  and the table ``[problem_args]`` (after every top-level key, as TOML requires) its keyword
+  arguments, scalars each: ``--problem-arg KEY=VALUE`` on the command line.
 
-Unknown keys (with a suggestion when one is close), values of the wrong type, arrays and tables
-raise :class:`ConfigError`, whose message is one line ``CONFIG: KEY: problem``. Everything else
-(ranges, choices, combinations) is left to the scheme's parser: :meth:`RunConfig.argv` is the
-scheme's command line, run by its ``main(argv)``, so a configuration and the equivalent command
-line are the same run with the same ``result.json``.
+Unknown keys (with a suggestion when one is close), values of the wrong type, arrays and other
+tables raise :class:`ConfigError`, whose message is one line ``CONFIG: KEY: problem``.
+Everything else (ranges, choices, combinations, the problem itself) is left to the scheme's
+command line: :meth:`RunConfig.argv` is the scheme's command line, run by its ``main(argv)``,
+so a configuration and the equivalent command line are the same run with the same
+``result.json``.
 
 Example configurations for the papers' examples are packaged in ``ocpar/configs/``
 (:func:`examples`); :func:`load_config` takes a path or such a name.
@@ -45,7 +50,7 @@ import difflib
 import importlib
 import shlex
 import tomllib
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from functools import cache
 from importlib import resources
@@ -53,18 +58,14 @@ from pathlib import Path
 from types import ModuleType
 from typing import Any
 
-from ocpar.cli import non_negative_int, positive_float, positive_int
+from ocpar.options import option_specs, parse_value, toml_scalar
 
-#: The schemes a configuration can run, and the module of each one's command line.
+#: The schemes a configuration can run, and the module of each one's options dataclass.
 SCHEMES = {
-    "formation": "ocpar.formation.__main__",
-    "pursuit": "ocpar.pursuit.__main__",
-    "macs": "ocpar.macs.__main__",
+    "formation": ("ocpar.formation.run", "FormationRun"),
+    "pursuit": ("ocpar.pursuit.run", "PursuitRun"),
+    "macs": ("ocpar.macs.run", "MacsRun"),
 }
-#: Option types (argparse ``type=``) that take a TOML integer, and a TOML integer or float.
-#: An option with another type takes any scalar and leaves the check to its parser.
-INTEGER_TYPES = (int, positive_int, non_negative_int)
-NUMBER_TYPES = (float, positive_float)
 EXAMPLES_PACKAGE = "ocpar.configs"
 
 
@@ -78,7 +79,7 @@ class Option:
 
     key: str     # max_evals
     flag: str    # --max-evals
-    kind: str    # "flag", "integer", "number", "string" or "scalar"
+    kind: str    # "flag", "integer", "number", "string" or "table"
 
 
 @dataclass(frozen=True)
@@ -98,14 +99,30 @@ class RunConfig:
             if option.kind == "flag":
                 argv += [option.flag] if value else []
                 continue
+            if option.kind == "table":
+                argv += [f"{option.flag}={name}={toml_scalar(item)}"
+                         for name, item in value.items()]
+                continue
             text = repr(value) if isinstance(value, float) else str(value)
             # a value that starts with "-" would read as an option: attach it with "="
             argv += [f"{option.flag}={text}"] if text.startswith("-") else [option.flag, text]
         return argv
 
-    def command(self) -> str:
-        """The equivalent command line, quoted for a POSIX shell."""
-        return shlex.join(["python", "-m", f"ocpar.{self.scheme}", *self.argv()])
+    def without(self, keys: frozenset[str]) -> RunConfig:
+        """This configuration without ``keys`` (set again by flags on the command line)."""
+        return RunConfig(self.scheme, {key: value for key, value in self.options.items()
+                                       if key not in keys}, self.source)
+
+    def flag_keys(self, flags: list[str]) -> frozenset[str]:
+        """The keys that the scheme's command-line options among ``flags`` set."""
+        by_flag = {option.flag: key for key, option in scheme_options(self.scheme).items()}
+        return frozenset(by_flag[name] for token in flags
+                         if (name := token.split("=", 1)[0]) in by_flag)
+
+    def command(self, flags: Sequence[str] = ()) -> str:
+        """The equivalent command line (with the scheme's ``flags`` after the configuration's
+        options), quoted for a POSIX shell."""
+        return shlex.join(["python", "-m", f"ocpar.{self.scheme}", *self.argv(), *flags])
 
     def with_overrides(self, overrides: Mapping[str, Any], where: str = "--set") -> RunConfig:
         """This configuration with some keys set again (``ocpar run --set KEY=VALUE``); a key
@@ -120,7 +137,13 @@ class RunConfig:
 
 def scheme_module(scheme: str) -> ModuleType:
     """The command-line module of ``scheme``: its ``parse_args(argv)`` and ``main(argv)``."""
-    return importlib.import_module(SCHEMES[scheme])
+    return importlib.import_module(f"ocpar.{scheme}.__main__")
+
+
+def scheme_class(scheme: str) -> type:
+    """The options dataclass of ``scheme`` (its fields are the configuration's keys)."""
+    module, name = SCHEMES[scheme]
+    return getattr(importlib.import_module(module), name)
 
 
 @cache
@@ -131,28 +154,9 @@ def scheme_parser(scheme: str) -> argparse.ArgumentParser:
 
 @cache
 def scheme_options(scheme: str) -> dict[str, Option]:
-    """Every option of the scheme's parser by configuration key (``--help`` excepted)."""
-    options = {}
-    for action in scheme_parser(scheme)._actions:
-        if isinstance(action, argparse._HelpAction):
-            continue
-        flag = next((s for s in action.option_strings if s.startswith("--")), None)
-        if flag is None:
-            raise RuntimeError(f"ocpar.{scheme}: {action.dest} has no --long option, so no "
-                               "configuration key")
-        if action.nargs == 0:
-            kind = "flag"
-        elif action.type in INTEGER_TYPES:
-            kind = "integer"
-        elif action.type in NUMBER_TYPES:
-            kind = "number"
-        elif action.type in (None, str):
-            kind = "string"
-        else:
-            kind = "scalar"
-        key = flag[2:].replace("-", "_")
-        options[key] = Option(key, flag, kind)
-    return options
+    """Every option of the scheme by configuration key."""
+    return {key: Option(key, spec.flag, spec.kind)
+            for key, spec in option_specs(scheme_class(scheme)).items()}
 
 
 def _describe(value: Any) -> str:
@@ -176,14 +180,14 @@ EXPECTED = {
     "integer": "an integer",
     "number": "a number",
     "string": "a string",
-    "scalar": "a string or a number",
+    "table": "a table of scalars",
 }
 ACCEPTS = {
     "flag": (bool,),
     "integer": (int,),
     "number": (int, float),
     "string": (str,),
-    "scalar": (str, int, float),
+    "table": (dict,),
 }
 
 
@@ -203,6 +207,14 @@ def check_value(scheme: str, key: str, value: Any, where: str) -> Any:
     ok = isinstance(value, ACCEPTS[kind]) and (kind == "flag" or not isinstance(value, bool))
     if not ok:
         raise ConfigError(f"{where}: {key}: expected {EXPECTED[kind]}, got {_describe(value)}")
+    if kind == "table":
+        for name, item in value.items():
+            if not name.isidentifier():
+                raise ConfigError(f"{where}: {key}: {name!r} is not a Python name (a keyword "
+                                  "argument of the factory)")
+            if not isinstance(item, bool | int | float | str):
+                raise ConfigError(f"{where}: {key}.{name}: expected a scalar, got "
+                                  f"{_describe(item)}")
     return value
 
 
@@ -266,16 +278,13 @@ def load_config(name: str | Path, overrides: Mapping[str, Any] | None = None) ->
 
 def parse_override(text: str) -> tuple[str, Any]:
     """``KEY=VALUE`` → (key, value): VALUE read as a TOML value (``2``, ``1e-5``, ``true``,
-    ``"dask"``), or taken as a string when it is not one (``dask``, ``runs/x``)."""
+    ``"dask"``, ``{ agents = 4 }``), or taken as a string when it is not one (``dask``,
+    ``runs/x``)."""
     key, sep, value = text.partition("=")
     key = key.strip()
     if not sep or not key:
         raise ConfigError(f"--set: {text}: expected KEY=VALUE")
-    try:
-        parsed = tomllib.loads(f"value = {value}")
-    except tomllib.TOMLDecodeError:
-        return key, value
-    return key, parsed["value"] if set(parsed) == {"value"} else value
+    return key, parse_value(value)
 
 
 def parse_overrides(items: list[str]) -> dict[str, Any]:

@@ -1,24 +1,82 @@
-"""What every scheme's result shares: its superstep count and its ``result.json``."""
+"""What every scheme's result shares: the common fields of ``result.json``, one status
+vocabulary, and the exit status of each status.
+
+Statuses (the same words in every scheme):
+
+* ``converged``: the run ended by its scheme's own stopping rule with an answer (formation:
+  the outer optimality test; pursuit: an agent improved on its leader by less than ε, or the
+  full-horizon NLP solved; MACS: the evaluation budget spent with a non-empty archive);
+* ``not_converged``: it stopped at a bound (outer iterations, agents) without meeting it;
+* ``failed``: it has no usable answer (an inner solve failed for good, no feasible point);
+* ``cancelled``: stopped by its stop file at a superstep boundary (``ocpar cancel``); such a
+  run writes no result.json, its checkpoint resumes it.
+"""
 
 from __future__ import annotations
 
 import json
+from dataclasses import dataclass, field
 from pathlib import Path
+from typing import ClassVar
 
 from ocpar.bsp import SuperstepTrace
 
+#: Exit status of a run by its status (2 is bad usage, before anything runs).
+EXIT_STATUS = {"converged": 0, "not_converged": 1, "failed": 3, "cancelled": 4}
+STATUSES = tuple(EXIT_STATUS)
 
+
+@dataclass(kw_only=True)
 class RunResult:
-    """Mixin for a scheme's result dataclass, which provides ``trace`` and ``to_dict()``."""
+    """The fields every scheme's result has. ``inner_solves``: inner problems solved (MACS:
+    objective evaluations, each a DFET solve); ``failed_solves`` those that failed for good;
+    ``retries`` extra attempts made; ``wall_time_s`` the run's wall time (s); ``trace`` one
+    record per superstep. A scheme's result adds its own fields (:meth:`scheme_fields`)."""
 
-    trace: list[SuperstepTrace]
+    scheme: ClassVar[str]
 
-    def to_dict(self) -> dict:  # pragma: no cover - provided by each scheme
-        raise NotImplementedError
+    problem: str
+    backend: str
+    workers: int
+    status: str
+    wall_time_s: float
+    inner_solves: int = 0
+    failed_solves: int = 0
+    retries: int = 0
+    message: str = ""
+    trace: list[SuperstepTrace] = field(default_factory=list)
+
+    def __post_init__(self) -> None:
+        if self.status not in STATUSES:
+            raise ValueError(f"status {self.status!r} is not one of {', '.join(STATUSES)}")
 
     @property
     def supersteps(self) -> int:
         return len(self.trace)
+
+    @property
+    def converged(self) -> bool:
+        return self.status == "converged"
+
+    @property
+    def exit_status(self) -> int:
+        """The command line's exit status for this result (:data:`EXIT_STATUS`)."""
+        return EXIT_STATUS[self.status]
+
+    def scheme_fields(self) -> dict:  # pragma: no cover - provided by each scheme
+        """The scheme's own fields of ``result.json`` (JSON values)."""
+        raise NotImplementedError
+
+    def to_dict(self) -> dict:
+        """The ``result.json`` contract: the common fields, then the scheme's own."""
+        return {
+            "scheme": self.scheme, "problem": self.problem, "backend": self.backend,
+            "workers": self.workers, "status": self.status, "message": self.message,
+            "supersteps": self.supersteps, "inner_solves": self.inner_solves,
+            "failed_solves": self.failed_solves, "retries": self.retries,
+            "wall_time_s": self.wall_time_s, **self.scheme_fields(),
+            "trace": [t.to_dict() for t in self.trace],
+        }
 
     def write_json(self, path: Path) -> Path:
         """Write :meth:`to_dict` as JSON to ``path`` (a file, or a directory → result.json)."""

@@ -62,15 +62,3 @@ def make(case: int = 1, samples: int = 301) -> PursuitProblem:
                 FinalValue("final radial velocity", "mps", lambda x: x[1] * M_PER_MM / 60)),
     )
 
-
-class OrbitTransferProblem(PursuitProblem):
-    """``make(case, samples)`` with ``case`` and the spacecraft's ``initial_mass`` (t) at hand,
-    for the command line's named problems (``ocpar.pursuit --case``)."""
-
-    initial_mass = INITIAL_MASS_T
-
-    def __init__(self, case: int = 1, samples: int = 301) -> None:
-        built = make(case, samples)
-        super().__init__(**{name: getattr(built, name)
-                            for name in PursuitProblem.__dataclass_fields__})
-        object.__setattr__(self, "case", case)

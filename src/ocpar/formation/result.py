@@ -4,10 +4,10 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
+from typing import ClassVar
 
 import numpy as np
 
-from ocpar.bsp import SuperstepTrace
 from ocpar.formation.potential import equidistance_error
 from ocpar.results import RunResult
 
@@ -19,67 +19,44 @@ class FormationResult(RunResult):
     ``phi`` (n,) final angles (rad); ``agent_costs`` (n,) inner optimal costs Ĵ_i;
     ``trajectories`` (n, N+1, nq) DMOC node paths; ``cost_parts`` the total cost split by
     control groups where the model names them (e.g. ``translational_cost``,
-    ``rotational_cost``); ``trace`` one record per superstep; ``coupling_residual``
+    ``rotational_cost``); ``coupling_residual``
     max_k |c_k(φ)|, the scaled coupling c = (ℓ²/n³) dG/dφ as the outer problem imposes it
     (:mod:`ocpar.formation.potential`); ``on_circle`` whether the curve is a circle (the
     equidistance error is NaN otherwise).
+    The common fields are :class:`ocpar.results.RunResult`'s.
     """
 
-    problem: str
+    scheme: ClassVar[str] = "formation"
+
     agents: int
-    backend: str
-    workers: int
     mode: str
-    status: str
-    message: str
     total_cost: float
     phi: np.ndarray
     agent_costs: np.ndarray
     trajectories: np.ndarray
     outer_iterations: int
-    inner_solves: int
-    failed_solves: int
-    wall_time_s: float
-    trace: list[SuperstepTrace] = field(default_factory=list)
-    retries: int = 0
     cost_parts: dict[str, float] = field(default_factory=dict)
     coupling_residual: float = math.nan
     on_circle: bool = True
-
-    @property
-    def converged(self) -> bool:
-        return self.status == "converged"
 
     @property
     def equidistance_error(self) -> float:
         """max |gap − 2π/n| between neighbours on the circle (rad); NaN off a circle."""
         return equidistance_error(self.phi) if self.on_circle else math.nan
 
-    def to_dict(self) -> dict:
-        """The ``result.json`` contract (plus per-agent costs, final positions, trajectories)."""
+    def scheme_fields(self) -> dict:
+        """Formation's fields of ``result.json`` (per-agent costs, final angles, paths)."""
         return {
-            "scheme": "formation",
-            "problem": self.problem,
             "agents": self.agents,
-            "backend": self.backend,
-            "workers": self.workers,
             "mode": self.mode,
-            "status": self.status,
-            "message": self.message,
             "total_cost": _finite_or_none(self.total_cost),
             **{name: _finite_or_none(value) for name, value in self.cost_parts.items()},
             "phi": [float(p) for p in self.phi],
             "equidistance_error": _finite_or_none(self.equidistance_error),
             "coupling_residual": _finite_or_none(self.coupling_residual),
             "outer_iterations": self.outer_iterations,
-            "supersteps": self.supersteps,
-            "inner_solves": self.inner_solves,
-            "failed_solves": self.failed_solves,
-            "retries": self.retries,
-            "wall_time_s": self.wall_time_s,
             "agent_costs": [_finite_or_none(c) for c in self.agent_costs],
             "trajectories": np.asarray(self.trajectories, float).tolist(),
-            "trace": [t.to_dict() for t in self.trace],
         }
 
     def summary(self) -> str:

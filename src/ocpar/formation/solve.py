@@ -21,6 +21,7 @@ from ocpar.formation.ordering import ORDERINGS, optimal_ordering
 from ocpar.formation.potential import coupling
 from ocpar.formation.problem import FormationProblem
 from ocpar.formation.result import FormationResult
+from ocpar.options import option
 
 MODES = ("hierarchical", "monolithic")
 OUTER_SOLVERS = ("sqp", "offset")
@@ -42,12 +43,19 @@ class FormationOptions:
     circle's symmetry: :func:`solve_formation` refuses them (ValueError) on other curves.
     """
 
-    mode: str = "hierarchical"
-    outer: str = "sqp"
-    outer_tol: float = 1e-12
-    max_outer_iterations: int = 200
-    monolithic_tol: float = 1e-12
-    ordering: str = "keep"
+    mode: str = option("hierarchical", "hierarchical, or monolithic (one NLP, for reference)",
+                       choices=MODES)
+    outer: str = option("sqp", "hierarchical outer solver: sqp (SLSQP in all angles) or offset "
+                        "(the common offset of equidistant angles: same optimum, far fewer "
+                        "supersteps for many agents)", choices=OUTER_SOLVERS)
+    outer_tol: float = option(1e-12, "SLSQP's ftol on J/J_0, or offset's relative tolerance",
+                              above=0)
+    max_outer_iterations: int = option(200, "outer iterations at most", low=1)
+    monolithic_tol: float = option(1e-12, "IPOPT's tol in monolithic mode", above=0)
+    ordering: str = option("keep", "which agent goes to which place on the curve: keep (the "
+                           "initial guess's order, the paper's) or optimal (assignment over a "
+                           "table of n^2 inner costs, alternated with the common offset)",
+                           choices=ORDERINGS)
 
     def __post_init__(self) -> None:
         if self.mode not in MODES:
@@ -145,7 +153,7 @@ def solve_formation(
         sols = objective.solutions(phi)
         status = "converged" if success else "not_converged"
     except InnerSolveFailed as exc:
-        phi, iterations, status, message = objective.last_phi, -1, "inner_failure", str(exc)
+        phi, iterations, status, message = objective.last_phi, -1, "failed", str(exc)
         sols = objective.last_solutions
     costs = np.asarray(sols.column("cost"), dtype=float)
     return FormationResult(

@@ -21,6 +21,10 @@ from ocpar.macs.archive import Archive, Member, dominates
 from ocpar.macs.local_search import SearchResult, SearchTask, run_search
 from ocpar.macs.problems import MacsProblem
 from ocpar.ocp import dfet_problem
+from ocpar.options import option
+
+#: Most agents: each runs one local search per superstep (the paper used 10).
+MAX_POPULATION = 10_000
 
 #: Subproblems: 0 and 1 minimise one objective (λ = e_i), 2 the equal-weight direction.
 EQUAL = 2
@@ -35,16 +39,22 @@ class MacsSettings:
     ``max_contractions`` (max_contr_ratio); ``contraction`` is the factor applied to ρ on a
     failed local search, ``seed`` the master seed."""
 
-    max_evaluations: int = 10_000
-    population: int = 10
-    archive_size: int = 10
-    rho_initial: float = 1.0
-    de_weight: float = 0.9
-    crossover: float = 0.9
-    social_fraction: float = 1.0
-    max_contractions: int = 5
-    contraction: float = 0.5
-    seed: int = 0
+    max_evaluations: int = option(10_000, "budget of objective evaluations, more than "
+                                  "--population", name="max_evals", low=1)
+    population: int = option(10, "number of agents pop_size", low=4, high=MAX_POPULATION)
+    archive_size: int = option(20, "archive size max_arch, at least 2 (the paper used 10)",
+                               name="archive")
+    rho_initial: float = option(1.0, "initial radius ρ_ini, a fraction of each variable's "
+                                "range, in (0, 1]", above=0, high=1)
+    de_weight: float = option(0.9, "differential evolution weight F, in (0, 2]", above=0,
+                              high=2)
+    crossover: float = option(0.9, "crossover probability CR, in [0, 1]", low=0, high=1)
+    social_fraction: float = option(1.0, "fraction of agents doing social moves p_social",
+                                    low=0, high=1)
+    max_contractions: int = option(5, "contractions of ρ before an agent restarts", low=0)
+    contraction: float = option(0.5, "factor applied to ρ on a failed local search, in (0, 1)",
+                                above=0, high=1)
+    seed: int = option(0, "master seed of the random draws", low=0)
 
     def __post_init__(self) -> None:
         checks = [

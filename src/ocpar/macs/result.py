@@ -3,10 +3,10 @@
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import ClassVar
 
 import numpy as np
 
-from ocpar.bsp import SuperstepTrace
 from ocpar.results import RunResult
 
 
@@ -20,11 +20,9 @@ class MacsResult(RunResult):
     and nadir); ``decisions`` the members' decision vectors (controls and t_f).
     """
 
-    problem: str
+    scheme: ClassVar[str] = "macs"
+
     seed: int
-    backend: str
-    workers: int
-    status: str
     front: np.ndarray
     front_transcribed: np.ndarray
     decisions: np.ndarray
@@ -34,37 +32,33 @@ class MacsResult(RunResult):
     gd: float
     igd: float
     hv: float
-    wall_time_s: float
     settings: dict
     history: list[dict] = field(default_factory=list)
-    trace: list[SuperstepTrace] = field(default_factory=list)
+    #: the common counts: every evaluation is one DFET solve; a failed search is rejected
+    #: (the paper's penalty), never retried
+    inner_solves: int = field(init=False)
+    failed_solves: int = field(init=False)
 
-    def to_dict(self) -> dict:
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        self.inner_solves = self.evaluations
+        self.failed_solves = self.failed_searches
+
+    def scheme_fields(self) -> dict:
+        """MACS's fields of ``result.json``: the front, its quality, the decisions."""
         return {
-            "scheme": "macs",
-            "problem": self.problem,
             "seed": self.seed,
-            "backend": self.backend,
-            "workers": self.workers,
-            "status": self.status,
             "front": np.asarray(self.front).tolist(),
             "front_transcribed": np.asarray(self.front_transcribed).tolist(),
             "evaluations": self.evaluations,
             "iterations": self.iterations,
-            "supersteps": self.supersteps,
             "failed_searches": self.failed_searches,
-            # the same count under the name the other schemes use; MACS rejects a failed
-            # search (the paper's penalty) and does not retry it
-            "failed_solves": self.failed_searches,
-            "retries": 0,
             "gd": self.gd,
             "igd": self.igd,
             "hv": self.hv,
-            "wall_time_s": self.wall_time_s,
             "settings": self.settings,
             "decisions": np.asarray(self.decisions).tolist(),
             "history": self.history,
-            "trace": [t.to_dict() for t in self.trace],
         }
 
     def summary(self) -> str:

@@ -14,8 +14,6 @@ All agents in flight at one time solve in one superstep. A problem is any fixed-
 523.975
 """
 
-import importlib
-
 from ocpar.pursuit.problem import ControlLaw, FinalValue, PursuitProblem, SampledPlan
 from ocpar.pursuit.result import PursuitResult
 from ocpar.pursuit.slp import PursuitSettings
@@ -24,11 +22,3 @@ from ocpar.pursuit.solve import MODES, solve_pursuit
 __all__ = ["MODES", "ControlLaw", "FinalValue", "PursuitProblem", "PursuitResult",
            "PursuitSettings", "SampledPlan", "solve_pursuit"]
 
-
-def __getattr__(name: str) -> object:
-    """``OrbitTransferProblem``, the command line's named problem, from
-    :mod:`ocpar.examples.pursuit_orbit_transfer` (imported on first use: it imports this
-    package)."""
-    if name == "OrbitTransferProblem":
-        return importlib.import_module("ocpar.examples.pursuit_orbit_transfer").OrbitTransferProblem
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

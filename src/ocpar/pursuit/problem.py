@@ -8,7 +8,6 @@ feasible plan. Everything is checked when the problem is built: one ValueError n
 
 from __future__ import annotations
 
-import importlib
 import math
 import numbers
 import re
@@ -292,15 +291,3 @@ def check_final_value(label: str, value: object, x0: np.ndarray) -> None:
     if not snake_case(f"{value.name} {value.unit}"):
         raise ValueError(f"{label}.name: must name the value")
 
-
-#: Names kept here for the command line (``ocpar.pursuit.__main__``), which predates problems
-#: by reference: the paper's orbit transfer now lives in
-#: :mod:`ocpar.examples.pursuit_orbit_transfer` (imported on first use: it imports this
-#: package).
-_ORBIT_TRANSFER_NAMES = ("CASE_RADIUS", "OrbitTransferProblem", "TARGET_COMPONENTS")
-
-
-def __getattr__(name: str) -> object:
-    if name in _ORBIT_TRANSFER_NAMES:
-        return getattr(importlib.import_module("ocpar.examples.pursuit_orbit_transfer"), name)
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

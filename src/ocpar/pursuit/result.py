@@ -3,10 +3,10 @@
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import ClassVar
 
 import numpy as np
 
-from ocpar.bsp import SuperstepTrace
 from ocpar.results import RunResult
 
 
@@ -23,16 +23,13 @@ class PursuitResult(RunResult):
     Times in s.
     """
 
-    problem: str
+    scheme: ClassVar[str] = "pursuit"
+
     samples: int
     mode: str
     window: int
     update: int
     epsilon: float
-    backend: str
-    workers: int
-    status: str
-    message: str
     headline_key: str
     headline_name: str
     headline_unit: str
@@ -41,48 +38,40 @@ class PursuitResult(RunResult):
     cost: float
     agents: int
     subproblem_solves: int
-    failed_solves: int
-    retries: int
     max_agents_in_flight: int
     constraint_violation: float
     rk_terminal_error: float
     rk_checks: dict[str, float]
-    wall_time_s: float
     x: np.ndarray
     u: np.ndarray
     initial_x: np.ndarray
     headlines: list[float] = field(default_factory=list)
     reference_headline: float | None = None
     reference_x: np.ndarray | None = None
-    trace: list[SuperstepTrace] = field(default_factory=list)
+    #: the common count of inner solves is the catch-up (and full-horizon) solves
+    inner_solves: int = field(init=False)
 
-    @property
-    def converged(self) -> bool:
-        return self.status == "converged"
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        self.inner_solves = self.subproblem_solves
 
     @property
     def peak_rss_mb_per_worker(self) -> float:
         """Largest peak resident memory of any worker process during the run (MiB)."""
         return max((m for t in self.trace for m in t.worker_peak_rss_mb), default=0.0)
 
-    def to_dict(self) -> dict:
-        """The ``result.json`` contract, plus trajectories and per-agent headlines. Keys named
-        by the problem: ``headline`` gives the headline's key (e.g. ``final_mass_kg``), which
-        also prefixes ``reference_ms_`` and suffixes ``_per_agent``; the cost's key (e.g.
+    def scheme_fields(self) -> dict:
+        """Pursuit's fields of ``result.json``, with trajectories and per-agent headlines. Keys
+        named by the problem: ``headline`` gives the headline's key (e.g. ``final_mass_kg``),
+        which also prefixes ``reference_ms_`` and suffixes ``_per_agent``; the cost's key (e.g.
         ``fuel_kg``); ``rk_`` + each check's key."""
         key = self.headline_key
         return {
-            "scheme": "pursuit",
-            "problem": self.problem,
             "samples": self.samples,
             "mode": self.mode,
             "window": self.window,
             "update": self.update,
             "epsilon": self.epsilon,
-            "backend": self.backend,
-            "workers": self.workers,
-            "status": self.status,
-            "message": self.message,
             "headline": key,
             "headline_name": self.headline_name,
             "headline_unit": self.headline_unit,
@@ -90,20 +79,15 @@ class PursuitResult(RunResult):
             self.cost_key: self.cost,
             "agents": self.agents,
             "subproblem_solves": self.subproblem_solves,
-            "failed_solves": self.failed_solves,
-            "retries": self.retries,
-            "supersteps": self.supersteps,
             "max_agents_in_flight": self.max_agents_in_flight,
             "constraint_violation": self.constraint_violation,
             "rk_terminal_error": self.rk_terminal_error,
             **{f"rk_{name}": value for name, value in self.rk_checks.items()},
-            "wall_time_s": self.wall_time_s,
             "peak_rss_mb_per_worker": self.peak_rss_mb_per_worker,
             f"reference_ms_{key}": self.reference_headline,
             f"{key}_per_agent": self.headlines,
             "states": np.asarray(self.x).tolist(),
             "controls": np.asarray(self.u).tolist(),
-            "trace": [t.to_dict() for t in self.trace],
         }
 
     def summary(self) -> str:

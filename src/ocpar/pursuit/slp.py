@@ -30,6 +30,7 @@ import numpy as np
 
 from ocpar.bsp import Backend
 from ocpar.ocp import MsShape, MsSolution, MsTask, solve_ms_task
+from ocpar.options import option
 from ocpar.pursuit.problem import PursuitProblem
 
 
@@ -40,10 +41,14 @@ class PursuitSettings:
     problem's headline between successive agents (in the headline's unit), ``max_agents`` a
     bound on the number of pursuing agents."""
 
-    window: int = 60
-    update: int = 32
-    epsilon: float = 1e-5
-    max_agents: int = 100_000
+    window: int = option(60, "samples per catch-up problem N_Δ (Δ = (N_Δ-1)h)", low=2,
+                         metavar="N_DELTA")
+    update: int = option(32, "samples applied per update N_δ (δ = N_δ h)", low=1,
+                         metavar="N_UPDATE")
+    epsilon: float = option(1e-5, "stop when an agent improves on its leader's headline by "
+                            "less (in the headline's unit, kg for the orbit transfer)",
+                            above=0, metavar="EPS")
+    max_agents: int = option(100_000, "stop after this many agents", low=2)
 
     def check(self, samples: int) -> None:
         """Raise ValueError unless 1 ≤ N_δ < N_Δ < N."""

@@ -47,6 +47,15 @@ def on_scheduler(scheduler: str, function: Callable[..., T], *args: Any,
             raise ServiceError(str(exc)) from None
 
 
+def checked_id(job_id: str) -> str:
+    """``job_id`` if it is one (checked here, before the scheduler is asked); a
+    ServiceError with one line otherwise."""
+    try:
+        return jobs.check_job_id(job_id)
+    except jobs.JobError as exc:
+        raise ServiceError(str(exc)) from None
+
+
 def check_run(scheme: str, argv: list[str]) -> None:
     """Validate the scheme's options as its command line would (raises SystemExit(2) with a
     one-line message on bad input), before anything is sent to the cluster."""
@@ -77,12 +86,14 @@ def list_jobs(scheduler: str, security: Any = None) -> list[dict]:
 
 def status(job_id: str, scheduler: str, security: Any = None) -> dict:
     """One job's state, supersteps done and last progress line."""
+    checked_id(job_id)
     return on_scheduler(scheduler, jobs.job_status, job_id, security=security)
 
 
 def result(job_id: str, scheduler: str, output: str | Path,
            security: Any = None) -> list[Path]:
     """Fetch a finished job's ``result.json`` and plots into ``output``; returns the paths."""
+    checked_id(job_id)
     files = on_scheduler(scheduler, jobs.result_files, job_id, security=security)
     out = Path(output)
     out.mkdir(parents=True, exist_ok=True)
@@ -95,4 +106,5 @@ def result(job_id: str, scheduler: str, output: str | Path,
 
 def cancel(job_id: str, scheduler: str, security: Any = None) -> dict:
     """Ask a job to stop at its next superstep boundary (its checkpoint stays)."""
+    checked_id(job_id)
     return on_scheduler(scheduler, jobs.cancel, job_id, security=security)

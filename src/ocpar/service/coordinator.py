@@ -15,7 +15,11 @@ import sys
 from pathlib import Path
 
 from ocpar.cli import EXIT_CANCELLED
+from ocpar.results import EXIT_STATUS
 from ocpar.service.jobs import write_state
+
+#: Exit statuses of a run that ended with its result.json (converged, not_converged, failed).
+FINISHED = frozenset(code for status, code in EXIT_STATUS.items() if status != "cancelled")
 
 
 def command(path: Path, job: dict) -> list[str]:
@@ -39,7 +43,7 @@ def main(argv: list[str] | None = None) -> int:
     result = path / "output" / "result.json"
     if status == EXIT_CANCELLED:
         write_state(path, "cancelled", exit_status=status)
-    elif result.exists() and status in (0, 1):  # 1: ran to the end, not converged
+    elif result.exists() and status in FINISHED:
         outcome = json.loads(result.read_text()).get("status")
         write_state(path, "finished", exit_status=status, result_status=outcome)
     else:

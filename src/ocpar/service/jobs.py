@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import secrets
 import subprocess
 import sys
@@ -35,6 +36,8 @@ from typing import Any
 from ocpar.bsp.journal import MANIFEST
 
 JOBS_DIR_ENV = "OCPAR_JOBS_DIR"
+#: A job's id: its scheme, the submission time and 6 random hex digits.
+JOB_ID = re.compile(r"(?:formation|pursuit|macs)-[0-9]{8}-[0-9]{6}-[0-9a-f]{6}", re.ASCII)
 #: Files of a finished job that ``ocpar result`` fetches (from ``output/``).
 RESULT_SUFFIXES = (".json", ".png")
 
@@ -50,11 +53,20 @@ def jobs_root() -> Path:
     return root
 
 
+def check_job_id(job_id: str) -> str:
+    """``job_id`` if it has the form of the ids :func:`create_and_start` makes
+    (SCHEME-YYYYMMDD-HHMMSS-XXXXXX); a JobError with one line otherwise."""
+    if not isinstance(job_id, str) or not JOB_ID.fullmatch(job_id):
+        shown = repr(job_id) if len(str(job_id)) <= 60 else f"{str(job_id)[:40]!r}... " \
+            f"({len(job_id)} characters)"
+        raise JobError(f"not a job id: {shown}; expected SCHEME-YYYYMMDD-HHMMSS-XXXXXX as "
+                       "ocpar submit printed it")
+    return job_id
+
+
 def job_dir(job_id: str) -> Path:
     """The directory of ``job_id`` (a JobError if there is none)."""
-    if not job_id or not job_id.replace("-", "").isalnum():
-        raise JobError(f"not a job id: {job_id!r}")
-    path = jobs_root() / job_id
+    path = jobs_root() / check_job_id(job_id)
     if not (path / "job.json").exists():
         raise JobError(f"no job {job_id} on this cluster")
     return path

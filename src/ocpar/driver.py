@@ -1,0 +1,168 @@
+"""The one driver of every scheme's run: options → problem → backend → result.json.
+
+A scheme is a subclass of :class:`SchemeRun`: one frozen dataclass whose fields are all the
+scheme's options (the solver's settings it inherits, the shared :class:`RuntimeOptions`, the
+problem) and whose methods say what differs between schemes (build a built-in example, solve,
+plot). :func:`main` is a scheme's whole command line; :func:`run_scheme` the same from Python::
+
+    from ocpar.driver import run_scheme
+    from ocpar.formation.run import FormationRun
+    run_scheme(FormationRun(problem="mypkg.problems:make", output="runs/mine"))
+
+The driver checks the options (one line, exit 2), chooses and opens the backend, loads the
+problem (a built-in name, or ``package.module:factory`` checked against the scheme's problem
+type before any worker starts), journals and checkpoints the supersteps, writes
+``result.json`` and the plots, and exits with the status's code
+(:data:`ocpar.results.EXIT_STATUS`).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, ClassVar
+
+from ocpar.bsp import Backend
+from ocpar.cli import (
+    OneLineParser,
+    Progress,
+    RuntimeOptions,
+    choose_backend,
+    fail,
+    prepare_output_dir,
+    run_on_backend,
+)
+from ocpar.options import add_options, option, option_specs, options_from_namespace
+from ocpar.references import REFERENCE, ProblemReferenceError, is_reference, load_problem
+from ocpar.results import RunResult
+
+PROBLEM_GROUP = "problem"
+
+
+@dataclass(frozen=True)
+class SchemeRun(RuntimeOptions):
+    """Base of a scheme's options: the runtime options, keyword arguments for a problem
+    factory, and the hooks the driver calls. Each scheme adds its ``problem`` field (a
+    built-in example name or ``package.module:factory``) and its own options."""
+
+    problem_args: dict = option(  # noqa: RUF009 (option() is a dataclass field)
+        default_factory=dict, help="keyword argument of the problem factory of --problem "
+        "package.module:factory; VALUE is a TOML scalar (4, 0.5, true, \"text\") or else a "
+        "string; repeat for more (TOML: a [problem_args] table)", name="problem_args",
+        flag="--problem-arg", group=PROBLEM_GROUP)
+
+    #: the scheme's command-line name and ``--help`` description
+    prog: ClassVar[str]
+    description: ClassVar[str]
+    #: the scheme's public problem type(s): what a factory must return
+    problem_type: ClassVar[type | tuple[type, ...]]
+
+    def validate(self, given: frozenset[str]) -> None:
+        """Cross-checks of the options (``given``: the keys set explicitly); raise ValueError
+        with a one-line message naming the option."""
+        if is_reference(self.problem) and not REFERENCE.match(self.problem):
+            raise ValueError(f"--problem {self.problem!r}: expected a built-in name or "
+                             "package.module:factory (Python names separated by dots, one "
+                             "colon)")
+        if self.problem_args and not is_reference(self.problem):
+            raise ValueError(f"--problem-arg only applies to --problem package.module:factory, "
+                             f"not the built-in {self.problem}")
+
+    def check_problem(self, problem: Any) -> None:
+        """Checks of the options against the loaded problem (ValueError, one line)."""
+
+    def build_example(self) -> Any:  # pragma: no cover - provided by each scheme
+        """The built-in example named by ``problem``."""
+        raise NotImplementedError
+
+    def describe(self, problem: Any) -> str:  # pragma: no cover - provided by each scheme
+        """The first progress line: the problem and the scheme's main options."""
+        raise NotImplementedError
+
+    def solve(self, problem: Any, backend: Backend,
+              progress: Progress) -> RunResult:  # pragma: no cover - provided by each scheme
+        raise NotImplementedError
+
+    def plot(self, problem: Any, result: RunResult,
+             out: Path) -> list[Path]:  # pragma: no cover - provided by each scheme
+        """Write the scheme's plots into ``out``; returns their paths."""
+        raise NotImplementedError
+
+
+def build_parser(scheme: type[SchemeRun]) -> OneLineParser:
+    """The scheme's command line, generated from its options dataclass."""
+    parser = OneLineParser(prog=scheme.prog, description=scheme.description)
+    add_options(parser, scheme)
+    return parser
+
+
+def parse_options(scheme: type[SchemeRun], argv: Sequence[str] | None = None
+                  ) -> tuple[SchemeRun, frozenset[str]]:
+    """The options of command line ``argv`` and the keys it sets (exits 2 on bad input)."""
+    parser = build_parser(scheme)
+    namespace = parser.parse_args(argv)
+    try:
+        options, given = options_from_namespace(scheme, namespace)
+        options.validate(given)
+    except ValueError as exc:
+        parser.error(str(exc))
+    return options, given
+
+
+def explicitly_set(options: SchemeRun) -> frozenset[str]:
+    """The keys of ``options`` whose values differ from their defaults."""
+    specs = option_specs(type(options))
+    return frozenset(key for key, spec in specs.items()
+                     if getattr(options, spec.field) != spec.default)
+
+
+def build_example(options: SchemeRun) -> Any:
+    """The built-in example ``options`` name."""
+    return options.build_example()
+
+
+def resolve_problem(options: SchemeRun) -> Any:
+    """The problem ``options`` name: a built-in example, or the factory's problem checked
+    against the scheme's problem type (ValueError with one line naming the cause)."""
+    if is_reference(options.problem):
+        return load_problem(options.problem, options.problem_args, options.problem_type)
+    return build_example(options)
+
+
+def run_scheme(options: SchemeRun, given: frozenset[str] | None = None) -> int:
+    """Run ``options`` (on MPI, on every rank) and return the exit status; bad input exits 2
+    with one line before any worker starts."""
+    prog = options.prog
+    given = explicitly_set(options) if given is None else given
+    try:
+        options.validate(given)
+    except ValueError as exc:
+        fail(prog, str(exc))
+    choose_backend(options, prog)
+    out = prepare_output_dir(options.output, prog)
+    try:
+        problem = resolve_problem(options)
+        options.check_problem(problem)
+    except (ProblemReferenceError, ValueError) as exc:
+        fail(prog, str(exc))
+
+    def solve(backend: Backend, say: Progress) -> RunResult:
+        say(f"{prog}: {options.describe(problem)}, backend {backend.name} with "
+            f"{backend.workers} worker(s)")
+        return options.solve(problem, backend, say)
+
+    result = run_on_backend(options, prog, solve)
+    if result is None:  # an MPI rank other than the coordinator's
+        return 0
+    print(result.summary(), flush=True)
+    if out is not None:
+        written = [result.write_json(out), *options.plot(problem, result, out)]
+        print("wrote " + ", ".join(str(p) for p in written), flush=True)
+    return result.exit_status
+
+
+def main(scheme: type[SchemeRun], argv: Sequence[str] | None = None) -> int:
+    """A scheme's command line: parse ``argv`` and run."""
+    options, given = parse_options(scheme, argv)
+    return run_scheme(options, given)

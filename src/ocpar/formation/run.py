@@ -1,0 +1,96 @@
+"""A formation run's options: the one schema of ``python -m ocpar.formation``, of a
+configuration's keys and of :func:`ocpar.driver.run_scheme` (see :mod:`ocpar.driver`)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from typing import ClassVar
+
+from ocpar.bsp import Backend
+from ocpar.cli import Progress
+from ocpar.driver import PROBLEM_GROUP, SchemeRun
+from ocpar.formation.examples import EXAMPLES, make_example
+from ocpar.formation.problem import FormationProblem
+from ocpar.formation.result import FormationResult
+from ocpar.formation.solve import FormationOptions, solve_formation
+from ocpar.options import option, project
+from ocpar.references import is_reference
+
+#: The scheme's public problem type: what a ``--problem package.module:factory`` returns.
+PROBLEM_TYPE = FormationProblem
+#: Most agents a built-in example may be given (the paper's examples have 60 and 30).
+MAX_AGENTS = 100_000
+#: Most agents for ``--ordering optimal``, which fills n × n tables of inner solves.
+MAX_OPTIMAL_ORDERING_AGENTS = 1_000
+#: ``--radius`` must lie within this factor of the example's default radius (its length scale).
+RADIUS_RANGE = 1e6
+
+
+@dataclass(frozen=True)
+class FormationRun(SchemeRun, FormationOptions):
+    """Everything one formation run needs: the problem, the solver's
+    :class:`~ocpar.formation.FormationOptions` and where it runs."""
+
+    prog: ClassVar[str] = "ocpar.formation"
+    description: ClassVar[str] = (
+        "Hierarchical formation reconfiguration (the paper's 60 point masses by default): "
+        "outer SQP over the final angles, inner DMOC solves in parallel supersteps.")
+    problem_type: ClassVar[type] = PROBLEM_TYPE
+
+    problem: str = option(
+        "point-mass-plane", "a built-in example, or package.module:factory returning a "
+        "FormationProblem (docs/user-problems.md); " + "; ".join(
+            f"{name}: {e.description} (default {e.agents} agents, radius {e.radius:g})"
+            for name, e in EXAMPLES.items()), group=PROBLEM_GROUP)
+    agents: int | None = option(None, "built-in example: number of agents (default: the "
+                                "example's)", low=2, high=MAX_AGENTS, group=PROBLEM_GROUP)
+    radius: float | None = option(None, "built-in example: radius of the final circle, within "
+                                  f"a factor {RADIUS_RANGE:g} of its default", above=0,
+                                  group=PROBLEM_GROUP)
+
+    def validate(self, given: frozenset[str]) -> None:
+        super().validate(given)
+        if "outer" in given and self.mode != "hierarchical":
+            raise ValueError(f"--outer only applies to --mode hierarchical, not {self.mode}")
+        if is_reference(self.problem):
+            for key in ("agents", "radius"):
+                if getattr(self, key) is not None:
+                    raise ValueError(f"--{key} only applies to the built-in examples; pass "
+                                     f"--problem-arg {key}=... to your factory instead")
+            return
+        if self.problem not in EXAMPLES:
+            raise ValueError(f"--problem: unknown example {self.problem!r}; choose one of "
+                             f"{', '.join(EXAMPLES)}, or give package.module:factory")
+        example = EXAMPLES[self.problem]
+        low, high = example.radius / RADIUS_RANGE, example.radius * RADIUS_RANGE
+        if self.radius is not None and not low <= self.radius <= high:
+            raise ValueError(f"--radius for {self.problem} must be between {low:g} and "
+                             f"{high:g}, got {self.radius:g}")
+        self._check_ordering(example.agents if self.agents is None else self.agents)
+
+    def check_problem(self, problem: FormationProblem) -> None:
+        self._check_ordering(problem.agents)
+
+    def _check_ordering(self, agents: int) -> None:
+        if self.ordering == "optimal" and agents > MAX_OPTIMAL_ORDERING_AGENTS:
+            raise ValueError(f"--ordering optimal solves n^2 inner problems per table: at most "
+                             f"{MAX_OPTIMAL_ORDERING_AGENTS} agents, got {agents}")
+
+    def build_example(self) -> FormationProblem:
+        return make_example(self.problem, self.agents, self.radius)
+
+    def describe(self, problem: FormationProblem) -> str:
+        return (f"{problem.name}, {problem.agents} agents, mode {self.mode}, ordering "
+                f"{self.ordering}")
+
+    def solve(self, problem: FormationProblem, backend: Backend,
+              progress: Progress) -> FormationResult:
+        return solve_formation(problem, backend, project(self, FormationOptions),
+                               progress=progress)
+
+    def plot(self, problem: FormationProblem, result: FormationResult,
+             out: Path) -> list[Path]:
+        from ocpar.formation.plot import plot_formation
+
+        return [plot_formation(problem, result, out / "formation.png")]

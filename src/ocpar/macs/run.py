@@ -1,0 +1,66 @@
+"""A MACS run's options: the one schema of ``python -m ocpar.macs``, of a configuration's
+keys and of :func:`ocpar.driver.run_scheme` (see :mod:`ocpar.driver`)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, ClassVar
+
+from ocpar.bsp import Backend
+from ocpar.cli import Progress
+from ocpar.driver import PROBLEM_GROUP, SchemeRun
+from ocpar.macs.algorithm import MacsSettings
+from ocpar.macs.problems import PROBLEMS, MacsProblem, make_problem
+from ocpar.macs.result import MacsResult
+from ocpar.macs.solve import solve_macs
+from ocpar.options import option, project
+from ocpar.references import is_reference
+
+#: The scheme's public problem type: what a ``--problem package.module:factory`` returns.
+PROBLEM_TYPE = MacsProblem
+
+
+@dataclass(frozen=True)
+class MacsRun(SchemeRun, MacsSettings):
+    """Everything one MACS run needs: the problem, the algorithm's
+    :class:`~ocpar.macs.MacsSettings` and where it runs."""
+
+    prog: ClassVar[str] = "ocpar.macs"
+    description: ClassVar[str] = (
+        "MACSoc: multi-objective optimal control by multi-agent collaborative search on a DFET "
+        "transcription; the agents' local searches run in parallel.")
+    problem_type: ClassVar[Any] = PROBLEM_TYPE
+
+    problem: str = option(
+        "goddard", f"a built-in problem ({', '.join(sorted(PROBLEMS))}), or "
+        "package.module:factory returning the scheme's problem type (docs/user-problems.md)",
+        group=PROBLEM_GROUP)
+
+    def validate(self, given: frozenset[str]) -> None:
+        super().validate(given)
+        if not is_reference(self.problem) and self.problem not in PROBLEMS:
+            raise ValueError(f"--problem: unknown problem {self.problem!r}; choose one of "
+                             f"{', '.join(sorted(PROBLEMS))}, or give package.module:factory")
+        if self.max_evaluations <= self.population:
+            raise ValueError(f"--max-evals {self.max_evaluations} leaves no iteration: "
+                             f"initialising --population {self.population} agents takes "
+                             f"{self.population} evaluations")
+
+    def build_example(self) -> MacsProblem:
+        return make_problem(self.problem)
+
+    def describe(self, problem: MacsProblem) -> str:
+        return (f"{problem.name}, seed {self.seed}, {self.max_evaluations} evaluations, "
+                f"archive {self.archive_size}")
+
+    def solve(self, problem: MacsProblem, backend: Backend, progress: Progress) -> MacsResult:
+        return solve_macs(problem, project(self, MacsSettings), backend, progress=progress)
+
+    def plot(self, problem: MacsProblem, result: MacsResult, out: Path) -> list[Path]:
+        if not len(result.front):
+            return []
+        from ocpar.macs.plot import plot_controls, plot_front
+
+        return [plot_front(result, out / "front.png"),
+                plot_controls(problem, result, out / "controls.png")]

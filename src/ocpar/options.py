@@ -1,0 +1,230 @@
+"""One schema for a scheme's options: a frozen dataclass whose fields are the options.
+
+Each field is declared once with :func:`option` (default, help text, choices, range); the
+command line (:func:`add_options`), the keys of a TOML configuration (:mod:`ocpar.config`)
+and Python (construct the dataclass) are all read from it. The field's type says how an option
+is written: ``bool`` a flag (``--quiet``; TOML ``true``/``false``), ``int`` and ``float`` a
+number, ``str`` a string, ``X | None`` an option that may stay unset, ``dict`` a table of
+keyword arguments (``--problem-arg KEY=VALUE`` repeated; a TOML table).
+
+>>> from dataclasses import dataclass
+>>> @dataclass(frozen=True)
+... class Example:
+...     steps: int = option(10, "number of steps", low=1)
+>>> [spec.flag for spec in option_specs(Example).values()]
+['--steps']
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import tomllib
+import types
+import typing
+from dataclasses import MISSING, dataclass, field, fields
+from functools import cache
+from typing import Any
+
+#: How a field's type is written: a flag, a number, a string or a table of scalars.
+KINDS = {bool: "flag", int: "integer", float: "number", str: "string", dict: "table"}
+
+
+def option(default: Any = MISSING, help: str = "", *, name: str | None = None,
+           flag: str | None = None, choices: typing.Iterable[Any] | None = None,
+           low: float | None = None, high: float | None = None, above: float | None = None,
+           metavar: str | None = None, group: str | None = None,
+           default_factory: Any = MISSING) -> Any:
+    """A dataclass field that is also an option: ``name`` its configuration key (default: the
+    field's name), ``flag`` its command-line flag (default ``--`` + name with dashes),
+    ``choices`` the values allowed, ``low``/``high`` inclusive bounds, ``above`` an exclusive
+    lower bound, ``group`` the heading of ``--help`` it is listed under."""
+    metadata = {"help": help, "name": name, "flag": flag,
+                "choices": tuple(choices) if choices is not None else None,
+                "low": low, "high": high, "above": above, "metavar": metavar, "group": group}
+    if default_factory is not MISSING:
+        return field(default_factory=default_factory, metadata={"option": metadata})
+    return field(default=default, metadata={"option": metadata})
+
+
+@dataclass(frozen=True)
+class OptionSpec:
+    """One option of an options dataclass, as the command line and TOML see it."""
+
+    field: str            # max_evaluations
+    key: str              # max_evals (the TOML key)
+    flag: str             # --max-evals
+    kind: str             # "flag", "integer", "number", "string" or "table"
+    optional: bool        # None allowed (the option may stay unset)
+    default: Any
+    help: str
+    choices: tuple | None
+    low: float | None
+    high: float | None
+    above: float | None
+    metavar: str | None
+    group: str | None
+
+    def check(self, value: Any) -> Any:
+        """``value`` (already of the option's type) if it is in range; else ValueError with a
+        message naming what is expected."""
+        if self.choices is not None and value not in self.choices:
+            raise ValueError(f"invalid choice {value!r} (choose from "
+                             f"{', '.join(map(str, self.choices))})")
+        if self.kind in ("integer", "number"):
+            if self.above is not None and not (math.isfinite(value) and value > self.above):
+                what = "positive" if self.above == 0 else f"above {self.above:g},"
+                raise ValueError(f"expected a {what} finite number, got {value!r}")
+            if not math.isfinite(value):
+                raise ValueError(f"expected a finite number, got {value!r}")
+            if (self.low is not None and value < self.low) or \
+                    (self.high is not None and value > self.high):
+                raise ValueError(f"expected {self._range()}, got {value!r}")
+        return value
+
+    def _range(self) -> str:
+        what = "an integer" if self.kind == "integer" else "a number"
+        if self.low is not None and self.high is not None:
+            return f"{what} between {self.low:g} and {self.high:g}"
+        if self.low is not None:
+            return f"{what} of at least {self.low:g}"
+        return f"{what} of at most {self.high:g}"
+
+    def parse(self, text: str) -> Any:
+        """The option's value from command-line ``text`` (ValueError if it is not one)."""
+        if self.kind == "integer":
+            try:
+                value: Any = int(text)
+            except ValueError:
+                raise ValueError(f"expected an integer, got {text!r}") from None
+        elif self.kind == "number":
+            try:
+                value = float(text)
+            except ValueError:
+                raise ValueError(f"expected a number, got {text!r}") from None
+        else:
+            value = text
+        return self.check(value)
+
+
+def _kind(annotation: Any) -> tuple[str, bool]:
+    args = typing.get_args(annotation)
+    optional = isinstance(annotation, types.UnionType) and type(None) in args
+    base = next(a for a in args if a is not type(None)) if optional else annotation
+    base = typing.get_origin(base) or base
+    if base not in KINDS:
+        raise TypeError(f"an option's type must be one of bool, int, float, str, dict (or "
+                        f"X | None), not {annotation}")
+    return KINDS[base], optional
+
+
+@cache
+def option_specs(cls: type) -> dict[str, OptionSpec]:
+    """Every option of the options dataclass ``cls`` by configuration key, in field order.
+    Every field must be declared with :func:`option`."""
+    hints = typing.get_type_hints(cls)
+    specs = {}
+    for f in fields(cls):
+        meta = f.metadata.get("option")
+        if meta is None:
+            raise TypeError(f"{cls.__name__}.{f.name} is not declared with ocpar.options.option")
+        kind, optional = _kind(hints[f.name])
+        key = meta["name"] or f.name
+        default = f.default if f.default_factory is MISSING else f.default_factory()
+        specs[key] = OptionSpec(
+            field=f.name, key=key, flag=meta["flag"] or "--" + key.replace("_", "-"),
+            kind=kind, optional=optional, default=default, help=meta["help"],
+            choices=meta["choices"], low=meta["low"], high=meta["high"], above=meta["above"],
+            metavar=meta["metavar"], group=meta["group"])
+    return specs
+
+
+def parse_value(text: str) -> Any:
+    """``text`` read as a TOML value (``2``, ``1e-5``, ``true``, ``"a b"``, ``{ n = 4 }``), or
+    ``text`` itself when it is not one (``dask``, ``runs/x``)."""
+    try:
+        parsed = tomllib.loads(f"value = {text}")
+    except tomllib.TOMLDecodeError:
+        return text
+    return parsed["value"] if set(parsed) == {"value"} else text
+
+
+def toml_scalar(value: bool | int | float | str) -> str:
+    """``value`` written as a TOML scalar (read back by :func:`parse_value`)."""
+    if isinstance(value, bool):
+        return str(value).lower()
+    if isinstance(value, float):
+        return repr(value)
+    if isinstance(value, int):
+        return str(value)
+    return json.dumps(value, ensure_ascii=False)
+
+
+def parse_table(items: list[str], flag: str) -> dict[str, Any]:
+    """Repeated ``KEY=VALUE`` items of ``flag`` as a dict (VALUE a TOML scalar, or else a
+    string: :func:`parse_value`)."""
+    table: dict[str, Any] = {}
+    for item in items:
+        key, sep, text = item.partition("=")
+        if not sep or not key.isidentifier():
+            raise ValueError(f"{flag}: expected KEY=VALUE with KEY a Python name, got {item!r}")
+        if key in table:
+            raise ValueError(f"{flag}: {key} is given more than once")
+        value = parse_value(text)
+        if not isinstance(value, bool | int | float | str):
+            raise ValueError(f"{flag}: {key}: expected a scalar, got {text!r}")
+        table[key] = value
+    return table
+
+
+def add_options(parser: argparse.ArgumentParser, cls: type) -> None:
+    """Add one command-line option per field of ``cls``; an option not given stays out of the
+    namespace (so :func:`options_from_namespace` knows what was given)."""
+    groups: dict[str | None, Any] = {None: parser}
+    for spec in option_specs(cls).values():
+        if spec.group not in groups:
+            groups[spec.group] = parser.add_argument_group(spec.group)
+        target = groups[spec.group]
+        shown = "" if spec.default in (None, False, {}) else f" (default {spec.default})"
+        common = {"dest": spec.key, "default": argparse.SUPPRESS, "help": spec.help + shown}
+        if spec.kind == "flag":
+            target.add_argument(spec.flag, action="store_true", **common)
+        elif spec.kind == "table":
+            target.add_argument(spec.flag, action="append", metavar=spec.metavar or "KEY=VALUE",
+                                **common)
+        else:
+            shown_choices = "{" + ",".join(map(str, spec.choices)) + "}" if spec.choices \
+                else None
+            target.add_argument(spec.flag, type=_converter(spec),
+                                metavar=spec.metavar or shown_choices, **common)
+
+
+def _converter(spec: OptionSpec):
+    def convert(text: str) -> Any:
+        try:
+            return spec.parse(text)
+        except ValueError as exc:
+            raise argparse.ArgumentTypeError(str(exc)) from None
+    convert.__name__ = spec.kind
+    return convert
+
+
+def options_from_namespace(cls: type, namespace: argparse.Namespace) -> tuple[Any, frozenset]:
+    """The options dataclass ``cls`` built from a namespace of :func:`add_options`, and the
+    keys given explicitly. Raises ValueError (a table item that is not KEY=VALUE, or the
+    dataclass's own checks)."""
+    given = vars(namespace)
+    values = {}
+    for key, spec in option_specs(cls).items():
+        if key in given:
+            value = given[key]
+            values[spec.field] = parse_table(value, spec.flag) if spec.kind == "table" \
+                else value
+    return cls(**values), frozenset(k for k in given if k in option_specs(cls))
+
+
+def project(options: Any, cls: type) -> Any:
+    """The dataclass ``cls`` with the fields it shares with ``options`` (e.g. a scheme's solver
+    settings out of its run options)."""
+    return cls(**{f.name: getattr(options, f.name) for f in fields(cls)})

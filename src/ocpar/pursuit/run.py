@@ -1,0 +1,92 @@
+"""A pursuit run's options: the one schema of ``python -m ocpar.pursuit``, of a
+configuration's keys and of :func:`ocpar.driver.run_scheme` (see :mod:`ocpar.driver`)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from typing import ClassVar
+
+from ocpar.bsp import Backend
+from ocpar.cli import Progress
+from ocpar.driver import PROBLEM_GROUP, SchemeRun
+from ocpar.options import option, project
+from ocpar.examples import pursuit_orbit_transfer
+from ocpar.pursuit.problem import PursuitProblem
+from ocpar.pursuit.result import PursuitResult
+from ocpar.pursuit.slp import PursuitSettings
+from ocpar.pursuit.solve import MODES, solve_pursuit
+from ocpar.references import is_reference
+
+#: The scheme's public problem type: what a ``--problem package.module:factory`` returns.
+PROBLEM_TYPE = PursuitProblem
+#: The built-in example (the paper's orbit transfer, by ``--case`` and ``--samples``).
+EXAMPLE = "orbit-transfer"
+#: Largest N: PBMS keeps about N/N_Δ agents of N samples each in flight.
+MAX_SAMPLES = 100_001
+
+
+@dataclass(frozen=True)
+class PursuitRun(SchemeRun, PursuitSettings):
+    """Everything one pursuit run needs: the problem, the SLP's
+    :class:`~ocpar.pursuit.PursuitSettings`, the mode and where it runs."""
+
+    prog: ClassVar[str] = "ocpar.pursuit"
+    description: ClassVar[str] = (
+        "Pursuit-based multiple shooting (PBMS) on the paper's orbit transfer: a train of "
+        "agents, each intercepting its predecessor; agents in flight solve in parallel.")
+    problem_type: ClassVar[type] = PROBLEM_TYPE
+
+    problem: str = option(
+        EXAMPLE, f"{EXAMPLE} (the paper's, by --case and --samples), or package.module:factory "
+        "returning the scheme's problem type (docs/user-problems.md)", group=PROBLEM_GROUP)
+    case: int = option(1, f"{EXAMPLE}: 1: R_T = 12.7778 Mm (guess eq. 16); 2: R_T = 23.642 Mm "
+                       "(eq. 20)", choices=sorted(pursuit_orbit_transfer.CASE_RADIUS), group=PROBLEM_GROUP)
+    samples: int = option(301, f"{EXAMPLE}: samples N over T = 300 min (h = T/(N-1))", low=1,
+                          high=MAX_SAMPLES, metavar="N", group=PROBLEM_GROUP)
+    mode: str = option("pbms", "pbms, or ms (one NLP over the whole horizon)", choices=MODES)
+    no_reference: bool = option(False, "with pbms: do not also solve the full-horizon MS for "
+                                "comparison")
+
+    def validate(self, given: frozenset[str]) -> None:
+        super().validate(given)
+        if self.no_reference and self.mode != "pbms":
+            raise ValueError(f"--no-reference only applies to --mode pbms, not {self.mode}")
+        if is_reference(self.problem):
+            for key in ("case", "samples"):
+                if key in given:
+                    raise ValueError(f"--{key} only applies to the built-in {EXAMPLE}; pass "
+                                     f"--problem-arg {key}=... to your factory instead")
+            return
+        if self.problem != EXAMPLE:
+            raise ValueError(f"--problem: unknown example {self.problem!r}; give {EXAMPLE} or "
+                             "package.module:factory")
+        self.check_problem(self.build_example())
+
+    def check_problem(self, problem: PursuitProblem) -> None:
+        self.settings().check(problem.samples)
+
+    def settings(self) -> PursuitSettings:
+        """The SLP's settings alone."""
+        return project(self, PursuitSettings)
+
+    def build_example(self) -> PursuitProblem:
+        return pursuit_orbit_transfer.make(case=self.case, samples=self.samples)
+
+    def describe(self, problem: PursuitProblem) -> str:
+        return (f"{problem.name}, N = {problem.samples}, mode {self.mode}, N_Δ = {self.window}, "
+                f"N_δ = {self.update}")
+
+    def solve(self, problem: PursuitProblem, backend: Backend,
+              progress: Progress) -> PursuitResult:
+        return solve_pursuit(problem, self.settings(), backend, self.mode,
+                             reference=not self.no_reference, progress=progress)
+
+    def plot(self, problem: PursuitProblem, result: PursuitResult,
+             out: Path) -> list[Path]:
+        from ocpar.pursuit.plot import plot_convergence, plot_trajectories
+
+        written = [plot_trajectories(problem, result, out / "pursuit.png")]
+        if self.mode == "pbms":
+            written.append(plot_convergence(result, out / "convergence.png"))
+        return written
