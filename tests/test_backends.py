@@ -14,7 +14,8 @@ from ocpar.bsp import contiguous_blocks, kernel_name, open_backend
 from ocpar.bsp.backend import BackendError
 from ocpar.bsp.columns import Columns, to_columns
 from ocpar.bsp.partition import longest_first
-from ocpar.formation import paper_example, solve_formation
+from ocpar.examples.formation_point_masses import make as paper_example
+from ocpar.formation import solve_formation
 from ocpar.models import PointMass
 from ocpar.ocp import DmocShape, DmocTask
 

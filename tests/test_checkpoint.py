@@ -17,7 +17,8 @@ from conftest import REPO, run_cli
 
 from ocpar.bsp.journal import MANIFEST, CheckpointError, Journal
 from ocpar.bsp.serial import SerialBackend
-from ocpar.formation import paper_example, solve_formation
+from ocpar.examples.formation_point_masses import make as paper_example
+from ocpar.formation import solve_formation
 
 
 def supersteps_recorded(directory: Path) -> int:

@@ -256,8 +256,8 @@ def config(tmp_path: Path, scheme: str, problem: str, args: str = "") -> str:
     ("formation", "mypkg.problems:raises", "", "raises() raised RuntimeError: boom"),
     ("formation", "mypkg.problems:make", 'colour = "red"',
      "make(colour='red') raised TypeError"),
-    ("formation", "mypkg.problems:make", "agents = 1", "make(agents=1) raised ValueError: a "
-                                                       "formation needs at least 2 agents"),
+    ("formation", "mypkg.problems:make", "agents = 1",
+     "make(agents=1) raised ValueError: starts: a formation needs at least 2 agents"),
     ("formation", "mypkg.problems:wrong_type", "", "wrong_type() returned an object of type "
                                                    "dict, not FormationProblem"),
     ("pursuit", "mypkg.problems:make", "", "make() returned an object of type "

@@ -15,7 +15,7 @@ from ocpar.bsp.columns import (
     from_columns,
     to_columns,
 )
-from ocpar.formation import paper_example
+from ocpar.examples.formation_point_masses import make as paper_example
 from ocpar.ocp import DmocTask, solve_dmoc_task
 
 

@@ -16,10 +16,11 @@ from ocpar import faults
 from ocpar.bsp.dask import DaskBackend
 from ocpar.bsp.serial import SerialBackend
 from ocpar.bsp.workload import Delayed
-from ocpar.formation import paper_example, solve_formation
+from ocpar.examples.formation_point_masses import make as paper_example
+from ocpar.examples.pursuit_orbit_transfer import make as orbit_transfer
+from ocpar.formation import solve_formation
 from ocpar.macs import GoddardProblem, MacsSettings, solve_macs
 from ocpar.ocp import solve_dmoc_task
-from ocpar.examples.pursuit_orbit_transfer import make as orbit_transfer
 from ocpar.pursuit import PursuitSettings, solve_pursuit
 
 

@@ -6,19 +6,18 @@ import numpy as np
 import pytest
 from scipy.integrate import solve_ivp
 
+from ocpar.examples.pursuit_orbit_transfer import make as orbit_transfer
 from ocpar.models import OrbitTransfer
 from ocpar.models.ode import ode_functions
 from ocpar.ocp import MsShape, MsTask, ms_problem, solve_ms_task
-from ocpar.examples.pursuit_orbit_transfer import make as orbit_transfer
 from ocpar.pursuit import PursuitProblem
-from ocpar.pursuit.problem import TARGET_COMPONENTS
 
 PAPER_MS_FINAL_MASS_KG = 523.979819  # Table II, N = 301
 
 
 def full_horizon(problem: PursuitProblem, integrator: str):
     x0, u0 = problem.feasible_trajectory()
-    shape = MsShape(problem.model, problem.samples - 1, problem.step, TARGET_COMPONENTS,
+    shape = MsShape(problem.model, problem.samples - 1, problem.step, problem.target_components,
                     integrator)
     guess = np.concatenate([x0[1:].ravel(), u0.ravel()])
     return solve_ms_task(MsTask(shape, problem.initial_state, problem.target, guess))

@@ -26,7 +26,8 @@ from conftest import REPO, free_port, run_cli, stop_processes, tool, wait_for_po
 
 from ocpar.bsp import open_backend
 from ocpar.bsp.backend import BackendError
-from ocpar.formation import paper_example, solve_formation
+from ocpar.examples.formation_point_masses import make as paper_example
+from ocpar.formation import solve_formation
 
 AGENTS = 6
 ROLES = ("scheduler", "worker", "client")

@@ -13,7 +13,7 @@ import logging
 
 import ocpar  # noqa: F401  (sets one BLAS/OpenMP thread per process)
 from ocpar.bsp.malloc import keep_solver_workspaces_on_heap
-from ocpar.formation import paper_example
+from ocpar.examples.formation_point_masses import make as point_masses
 from ocpar.ocp import dmoc_problem
 
 logger = logging.getLogger("ocpar.preload")
@@ -22,6 +22,6 @@ logger = logging.getLogger("ocpar.preload")
 def dask_setup(worker) -> None:
     """Called by ``dask worker --preload`` once the worker starts."""
     keep_solver_workspaces_on_heap()
-    shape = paper_example(agents=2).shape
+    shape = point_masses(agents=2).shape
     dmoc_problem(shape).solver  # noqa: B018  (builds and caches the IPOPT solver)
     logger.info("ocpar preload: DMOC solver for %s built on %s", shape, worker.address)

@@ -37,17 +37,6 @@ __all__ = [
     "FormationResult",
     "ParametricCurve",
     "PlaneCurve",
-    "paper_example",
     "solve_formation",
 ]
 
-
-def __getattr__(name: str) -> object:
-    """``paper_example``: the paper's first example under its earlier name,
-    :func:`ocpar.examples.formation_point_masses.make` (imported on first use: the examples
-    are built on this package)."""
-    if name == "paper_example":
-        from ocpar.examples.formation_point_masses import make
-
-        return make
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

@@ -13,7 +13,7 @@ from ocpar.driver import PROBLEM_GROUP, SchemeRun
 from ocpar.formation.examples import EXAMPLES, make_example
 from ocpar.formation.problem import FormationProblem
 from ocpar.formation.result import FormationResult
-from ocpar.formation.solve import FormationOptions, solve_formation
+from ocpar.formation.solve import FormationOptions, check_applicable, solve_formation
 from ocpar.options import option, project
 from ocpar.references import is_reference
 
@@ -71,6 +71,7 @@ class FormationRun(SchemeRun, FormationOptions):
 
     def check_problem(self, problem: FormationProblem) -> None:
         self._check_ordering(problem.agents)
+        check_applicable(problem, project(self, FormationOptions))
 
     def _check_ordering(self, agents: int) -> None:
         if self.ordering == "optimal" and agents > MAX_OPTIMAL_ORDERING_AGENTS:

@@ -10,8 +10,8 @@ from typing import ClassVar
 from ocpar.bsp import Backend
 from ocpar.cli import Progress
 from ocpar.driver import PROBLEM_GROUP, SchemeRun
-from ocpar.options import option, project
 from ocpar.examples import pursuit_orbit_transfer
+from ocpar.options import option, project
 from ocpar.pursuit.problem import PursuitProblem
 from ocpar.pursuit.result import PursuitResult
 from ocpar.pursuit.slp import PursuitSettings
@@ -41,7 +41,8 @@ class PursuitRun(SchemeRun, PursuitSettings):
         EXAMPLE, f"{EXAMPLE} (the paper's, by --case and --samples), or package.module:factory "
         "returning the scheme's problem type (docs/user-problems.md)", group=PROBLEM_GROUP)
     case: int = option(1, f"{EXAMPLE}: 1: R_T = 12.7778 Mm (guess eq. 16); 2: R_T = 23.642 Mm "
-                       "(eq. 20)", choices=sorted(pursuit_orbit_transfer.CASE_RADIUS), group=PROBLEM_GROUP)
+                       "(eq. 20)", choices=sorted(pursuit_orbit_transfer.CASE_RADIUS),
+                       group=PROBLEM_GROUP)
     samples: int = option(301, f"{EXAMPLE}: samples N over T = 300 min (h = T/(N-1))", low=1,
                           high=MAX_SAMPLES, metavar="N", group=PROBLEM_GROUP)
     mode: str = option("pbms", "pbms, or ms (one NLP over the whole horizon)", choices=MODES)
