@@ -17,7 +17,7 @@ from ocpar.bsp.dask import DaskBackend
 from ocpar.bsp.serial import SerialBackend
 from ocpar.bsp.workload import Delayed
 from ocpar.formation import paper_example, solve_formation
-from ocpar.macs import GoddardProblem, MacsSettings, solve_macs
+from ocpar.macs import MacsSettings, make_problem, solve_macs
 from ocpar.ocp import solve_dmoc_task
 from ocpar.pursuit import OrbitTransferProblem, PursuitSettings, solve_pursuit
 
@@ -82,7 +82,7 @@ def test_pursuit_retries_from_the_leaders_trajectory(inject):
 def test_macs_rejects_failed_searches_and_still_finds_the_front(inject):
     settings = MacsSettings(max_evaluations=1500, archive_size=10, seed=7)
     inject("0.2:4")
-    result = solve_macs(GoddardProblem(), settings)
+    result = solve_macs(make_problem("goddard"), settings)
     assert result.failed_searches > 5
     assert result.to_dict()["failed_solves"] == result.failed_searches
     assert result.gd < 0.05 and result.hv > 0.7

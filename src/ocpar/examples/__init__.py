@@ -1,0 +1,1 @@
+"""Worked examples built with ocpar's public API only: the papers' problems and new ones."""
