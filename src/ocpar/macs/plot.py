@@ -36,7 +36,8 @@ def plot_front(result: MacsResult, path: Path) -> Path:
         ax.grid(alpha=0.3)
     for ax in axes.ravel()[len(pairs):]:
         ax.set_visible(False)
-    fig.suptitle(f"{result.problem}: {result.quality()} ({result.evaluations} evaluations)")
+    fig.suptitle(f"{result.problem}: {result.quality()} ({result.evaluations} evaluations)",
+                 fontsize=10)
     return save(fig, path)
 
 

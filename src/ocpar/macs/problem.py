@@ -68,6 +68,8 @@ class MacsProblem:
     order: int = 4
     control_order: int | None = None
     reference_front: np.ndarray | None = None
+    #: (model, SHA-256 of everything else): what equality and hashing compare
+    _key: tuple = field(init=False, repr=False)
 
     def __post_init__(self) -> None:
         checked = _check(self)
@@ -76,10 +78,10 @@ class MacsProblem:
         object.__setattr__(self, "_key", (self.model, _digest(self)))
 
     def __eq__(self, other: object) -> bool:
-        return isinstance(other, MacsProblem) and self._key == other._key  # type: ignore[attr-defined]
+        return isinstance(other, MacsProblem) and self._key == other._key
 
     def __hash__(self) -> int:
-        return hash(self._key)  # type: ignore[attr-defined]
+        return hash(self._key)
 
     @property
     def n_objectives(self) -> int:
