@@ -35,6 +35,25 @@ def test_archive_keeps_non_dominated_and_spreads():
     assert dominates(np.array([20.0, 0.3]), np.array([20.0 + 1e-8, 0.4]))
 
 
+def test_archive_filter_in_three_objectives_keeps_extremes_and_spreads():
+    """200 points of the simplex J1 + J2 + J3 = 1 (all non-dominated) filtered to 10: the three
+    vertices stay, and the survivors are farther apart than 10 random picks of the same set."""
+    rng = np.random.default_rng(0)
+    points = np.vstack([np.eye(3), rng.dirichlet(np.ones(3), 197)])
+    archive = Archive(size=10, n_objectives=3)
+    archive.add([Member(np.zeros(1), p) for p in points])
+    f = archive.objectives()
+    assert f.shape == (10, 3)
+    assert all(any(np.array_equal(v, row) for row in f) for v in np.eye(3))
+
+    def closest_pair(x):
+        d = np.linalg.norm(x[:, None] - x[None], axis=2)
+        return d[np.triu_indices(len(x), 1)].min()
+
+    random_picks = [closest_pair(points[rng.choice(200, 10, replace=False)]) for _ in range(100)]
+    assert closest_pair(f) > np.max(random_picks)
+
+
 @pytest.mark.parametrize("name", ["goddard", "orbit-raising"])
 def test_scalarised_search_dominates_its_start(name):
     problem = make_problem(name)

@@ -29,7 +29,6 @@ def subproblem_weights(m: int) -> list[np.ndarray]:
     return [*np.eye(m), np.full(m, 1 / np.sqrt(m))]
 
 
-
 @dataclass(frozen=True)
 class MacsSettings:
     """Table I of the paper: ``max_evaluations`` (max_fun_eval), ``population`` (pop_size),
