@@ -263,7 +263,7 @@ def config(tmp_path: Path, scheme: str, problem: str, args: str = "") -> str:
     ("pursuit", "mypkg.problems:make", "", "make() returned an object of type "
                                            "FormationProblem, not PursuitProblem"),
     ("macs", "mypkg.problems:make", "", "make() returned an object of type FormationProblem, "
-                                        "not GoddardProblem or OrbitRaisingProblem"),
+                                        "not MacsProblem"),
     ("formation", "mypkg.problems:", "", "expected a built-in name or package.module:factory"),
     ("formation", ":make", "", "expected a built-in name or package.module:factory"),
     ("formation", "mypkg..problems:make", "", "expected a built-in name or package.module"),

@@ -19,7 +19,7 @@ from ocpar.bsp.workload import Delayed
 from ocpar.examples.formation_point_masses import make as paper_example
 from ocpar.examples.pursuit_orbit_transfer import make as orbit_transfer
 from ocpar.formation import solve_formation
-from ocpar.macs import GoddardProblem, MacsSettings, solve_macs
+from ocpar.macs import MacsSettings, make_problem, solve_macs
 from ocpar.ocp import solve_dmoc_task
 from ocpar.pursuit import PursuitSettings, solve_pursuit
 
@@ -84,7 +84,7 @@ def test_pursuit_retries_from_the_leaders_trajectory(inject):
 def test_macs_rejects_failed_searches_and_still_finds_the_front(inject):
     settings = MacsSettings(max_evaluations=1500, archive_size=10, seed=7)
     inject("0.2:4")
-    result = solve_macs(GoddardProblem(), settings)
+    result = solve_macs(make_problem("goddard"), settings)
     assert result.failed_searches > 5
     assert result.to_dict()["failed_solves"] == result.failed_searches
     assert result.gd < 0.05 and result.hv > 0.7

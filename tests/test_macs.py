@@ -12,7 +12,7 @@ from ocpar.bsp import open_backend
 from ocpar.macs.algorithm import MacsSettings
 from ocpar.macs.archive import Archive, Member, dominates
 from ocpar.macs.local_search import SearchTask, run_search
-from ocpar.macs.problems import GoddardProblem, OrbitRaisingProblem, make_problem
+from ocpar.macs.problems import make_problem
 from ocpar.macs.reference import reference_front
 from ocpar.macs.solve import resimulated_objectives, solve_macs
 from ocpar.ocp import dfet_problem
@@ -23,7 +23,7 @@ def member(j1: float, j2: float) -> Member:
 
 
 def test_archive_keeps_non_dominated_and_spreads():
-    archive = Archive(size=5)
+    archive = Archive(size=5, n_objectives=2)
     archive.add([member(x, 1 - x) for x in np.linspace(0, 1, 41)] + [member(0.5, 0.9)])
     f = archive.objectives()
     assert len(f) == 5
@@ -35,8 +35,28 @@ def test_archive_keeps_non_dominated_and_spreads():
     assert dominates(np.array([20.0, 0.3]), np.array([20.0 + 1e-8, 0.4]))
 
 
-@pytest.mark.parametrize("problem", [GoddardProblem(), OrbitRaisingProblem()])
-def test_scalarised_search_dominates_its_start(problem):
+def test_archive_filter_in_three_objectives_keeps_extremes_and_spreads():
+    """200 points of the simplex J1 + J2 + J3 = 1 (all non-dominated) filtered to 10: the three
+    vertices stay, and the survivors are farther apart than 10 random picks of the same set."""
+    rng = np.random.default_rng(0)
+    points = np.vstack([np.eye(3), rng.dirichlet(np.ones(3), 197)])
+    archive = Archive(size=10, n_objectives=3)
+    archive.add([Member(np.zeros(1), p) for p in points])
+    f = archive.objectives()
+    assert f.shape == (10, 3)
+    assert all(any(np.array_equal(v, row) for row in f) for v in np.eye(3))
+
+    def closest_pair(x):
+        d = np.linalg.norm(x[:, None] - x[None], axis=2)
+        return d[np.triu_indices(len(x), 1)].min()
+
+    random_picks = [closest_pair(points[rng.choice(200, 10, replace=False)]) for _ in range(100)]
+    assert closest_pair(f) > np.max(random_picks)
+
+
+@pytest.mark.parametrize("name", ["goddard", "orbit-raising"])
+def test_scalarised_search_dominates_its_start(name):
+    problem = make_problem(name)
     dfet = dfet_problem(problem.shape)
     rng = np.random.default_rng(3)
     p = dfet.p_lower + (dfet.p_upper - dfet.p_lower) * rng.random(len(dfet.p_lower))
@@ -62,7 +82,7 @@ def test_seam_hops_free_a_periodic_control_from_its_bound(monkeypatch):
     from ocpar.macs import local_search
     from ocpar.macs.metrics import generational_distance
 
-    problem = OrbitRaisingProblem()
+    problem = make_problem("orbit-raising")
     dfet = dfet_problem(problem.shape)
     p = dfet.sample_controls(lambda t: np.array([-2.0 if t < 25 else 1.5]), 50.0)
     task = SearchTask(problem, "scalarised", p0=p, weights=np.array([0.0, 1.0]),
@@ -80,14 +100,14 @@ def test_seam_hops_free_a_periodic_control_from_its_bound(monkeypatch):
     assert np.sum(controls <= -np.pi + local_search.SEAM_TOL) >= 10
     assert distance(hopped) < distance(stuck) / 10
     assert hopped.evaluations > stuck.evaluations  # every re-search is counted
-    assert not GoddardProblem().periodic_controls
+    assert not any(make_problem("goddard").periodic_controls)
 
 
 def test_goddard_single_objective_searches_reach_the_front_extremes():
     """λ = e_1 finds the minimum time (109.109: thrust straight up, then straight down; the
     DFET's polynomial control of order 6 cannot jump, so it gets within 0.1), λ = e_2 the
     largest vx at t_f = 250, both on the analytic reference front."""
-    problem = GoddardProblem()
+    problem = make_problem("goddard")
     dfet = dfet_problem(problem.shape)
     start = run_search(SearchTask(problem, "restore", p0=(dfet.p_lower + dfet.p_upper) / 2))
     reference = reference_front("goddard")
@@ -106,7 +126,7 @@ SHORT = MacsSettings(max_evaluations=1500, archive_size=10, seed=7)
 
 @pytest.fixture(scope="module")
 def short_serial():
-    return solve_macs(GoddardProblem(), SHORT)
+    return solve_macs(make_problem("goddard"), SHORT)
 
 
 def test_short_goddard_run_approaches_the_front(short_serial):
@@ -118,7 +138,7 @@ def test_short_goddard_run_approaches_the_front(short_serial):
 
 def test_same_seed_same_front_on_two_dask_workers(short_serial):
     with open_backend("dask", workers=2) as backend:
-        result = solve_macs(GoddardProblem(), SHORT, backend)
+        result = solve_macs(make_problem("goddard"), SHORT, backend)
     np.testing.assert_array_equal(result.front, short_serial.front)
     assert result.evaluations == short_serial.evaluations
 

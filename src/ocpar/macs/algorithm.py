@@ -19,16 +19,18 @@ from scipy.stats import qmc
 from ocpar.bsp import Backend
 from ocpar.macs.archive import Archive, Member, dominates
 from ocpar.macs.local_search import SearchResult, SearchTask, run_search
-from ocpar.macs.problems import MacsProblem
+from ocpar.macs.problem import MacsProblem
 from ocpar.ocp import dfet_problem
 from ocpar.options import option
 
 #: Most agents: each runs one local search per superstep (the paper used 10).
 MAX_POPULATION = 10_000
 
-#: Subproblems: 0 and 1 minimise one objective (λ = e_i), 2 the equal-weight direction.
-EQUAL = 2
-WEIGHTS = (np.array([1.0, 0.0]), np.array([0.0, 1.0]), np.full(2, 1 / np.sqrt(2)))
+
+def subproblem_weights(m: int) -> list[np.ndarray]:
+    """The paper's Tchebycheff weights λ (§IV-B) for m objectives: subproblem i < m minimises
+    objective i (λ = e_i), subproblem m the equal-weight direction (1, …, 1)/√m."""
+    return [*np.eye(m), np.full(m, 1 / np.sqrt(m))]
 
 
 @dataclass(frozen=True)
@@ -93,13 +95,15 @@ class Agent:
 
 @dataclass
 class MacsOutcome:
-    """Archive, counters and per-iteration history of a MACS run."""
+    """Archive, counters and per-iteration history of a MACS run; ``fronts`` the archive's
+    objectives (k, m) after every iteration."""
 
     archive: Archive
     evaluations: int
     iterations: int
     failed_searches: int
     history: list[dict] = field(default_factory=list)
+    fronts: list[np.ndarray] = field(default_factory=list)
 
 
 class Macs:
@@ -118,14 +122,18 @@ class Macs:
         dfet = dfet_problem(problem.shape)
         self.lower, self.upper = dfet.p_lower, dfet.p_upper
         self.decision_slice = dfet.decision_slice
-        self.archive = Archive(settings.archive_size)
+        self.m = problem.n_objectives
+        self.weights = subproblem_weights(self.m)
+        self.equal = self.m  # the equal-weight subproblem
+        self.archive = Archive(settings.archive_size, self.m)
         self.evaluations = 0
         self.failed = 0
         seeds = np.random.SeedSequence(settings.seed).spawn(settings.population + 1)
         sample = qmc.LatinHypercube(d=len(self.lower), seed=np.random.default_rng(seeds[-1]))
-        starts = qmc.scale(sample.random(settings.population), self.lower, self.upper)
+        # scaled by hand: qmc.scale refuses a fixed t_f (lower == upper)
+        starts = sample.random(settings.population) * (self.upper - self.lower) + self.lower
         self.agents = [
-            Agent(j, np.random.default_rng(seeds[j]), j if j < 2 else EQUAL,
+            Agent(j, np.random.default_rng(seeds[j]), j if j < self.m else self.equal,
                   settings.rho_initial, starts[j])
             for j in range(settings.population)
         ]
@@ -170,7 +178,7 @@ class Macs:
         unpolished = [m for m in self.archive.members if not m.optimised]
         tasks = []
         for agent in self.agents:
-            weights = WEIGHTS[agent.subproblem]
+            weights = self.weights[agent.subproblem]
             if agent.fresh and agent.z is not None:
                 task = SearchTask(self.problem, "scalarised", z0=agent.z, weights=weights,
                                   utopia=utopia)
@@ -178,7 +186,7 @@ class Macs:
                 member = unpolished.pop(0)
                 member.optimised = True  # claimed: polished by this search
                 task = SearchTask(self.problem, "scalarised", z0=member.z,
-                                  weights=WEIGHTS[EQUAL], utopia=utopia)
+                                  weights=self.weights[self.equal], utopia=utopia)
             else:
                 task = SearchTask(self.problem, "scalarised", p0=self._neighbour(agent),
                                   weights=weights, utopia=utopia)
@@ -202,7 +210,7 @@ class Macs:
             return np.inf
         ideal, nadir = self.archive.ideal_and_nadir()
         span = np.maximum(nadir - ideal, 1e-12)
-        return float(np.max(WEIGHTS[agent.subproblem] * np.abs(objectives - ideal) / span))
+        return float(np.max(self.weights[agent.subproblem] * np.abs(objectives - ideal) / span))
 
     def _improves(self, agent: Agent, result: SearchResult) -> bool:
         """The result is better for the agent: it dominates the agent's point or has a lower
@@ -240,12 +248,12 @@ class Macs:
         self._archive(results, optimised=False)
 
     def reallocate(self) -> None:
-        """Line 10: an agent that did not move this iteration switches between its
-        single-objective subproblem and the equal-weight direction."""
+        """Line 10: an agent that did not move this iteration switches between a
+        single-objective subproblem (drawn at random) and the equal-weight direction."""
         for agent in self.agents:
             if not agent.moved:
-                agent.subproblem = (int(agent.rng.integers(2)) if agent.subproblem == EQUAL
-                                    else EQUAL)
+                agent.subproblem = (int(agent.rng.integers(self.m))
+                                    if agent.subproblem == self.equal else self.equal)
             agent.moved = False
 
     def _move(self, agent: Agent, result: SearchResult) -> None:
@@ -259,7 +267,7 @@ class Macs:
     # -- main loop ----------------------------------------------------------------------------
     def run(self) -> MacsOutcome:
         self.initialise()
-        history, iteration = [], 0
+        history, fronts, iteration = [], [], 0
         while self.evaluations < self.settings.max_evaluations:
             if not self.archive.members:  # nothing feasible yet: restart from new points
                 self.initialise()
@@ -268,11 +276,13 @@ class Macs:
                 self.social()
                 self.reallocate()
             iteration += 1
-            figure = (self.indicator(self.archive.objectives())
-                      if self.indicator and self.archive.members else float("nan"))
+            fronts.append(self.archive.objectives())
             history.append({"iteration": iteration, "evaluations": self.evaluations,
-                            "archive": len(self.archive.members), "hv": figure})
+                            "archive": len(self.archive.members)})
             if self.progress:
+                figure = (f"  hypervolume {self.indicator(fronts[-1]):.6f}"
+                          if self.indicator and self.archive.members else "")
                 self.progress(f"iteration {iteration:4d}  evaluations {self.evaluations:6d}  "
-                              f"archive {len(self.archive.members):3d}  hypervolume {figure:.6f}")
-        return MacsOutcome(self.archive, self.evaluations, iteration, self.failed, history)
+                              f"archive {len(self.archive.members):3d}{figure}")
+        return MacsOutcome(self.archive, self.evaluations, iteration, self.failed, history,
+                           fronts)

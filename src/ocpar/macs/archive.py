@@ -19,7 +19,7 @@ TIE_TOL = 1e-7
 
 @dataclass
 class Member:
-    """One archived solution: its NLP vector ``z``, objectives ``objectives`` (2,), and
+    """One archived solution: its NLP vector ``z``, objectives ``objectives`` (m,), and
     whether a scalarised local search produced it (``optimised``) or only restoration."""
 
     z: np.ndarray
@@ -35,14 +35,15 @@ def dominates(a: np.ndarray, b: np.ndarray) -> bool:
 
 @dataclass
 class Archive:
-    """Non-dominated members, at most ``size`` of them."""
+    """Non-dominated members of ``n_objectives`` objectives, at most ``size`` of them."""
 
     size: int
+    n_objectives: int
     members: list[Member] = field(default_factory=list)
 
     def objectives(self) -> np.ndarray:
-        """Objectives of the members, shape (len, 2)."""
-        return np.array([m.objectives for m in self.members]).reshape(-1, 2)
+        """Objectives of the members, shape (len, m)."""
+        return np.array([m.objectives for m in self.members]).reshape(-1, self.n_objectives)
 
     def ideal_and_nadir(self) -> tuple[np.ndarray, np.ndarray]:
         """Componentwise best (utopia z) and worst (nadir z*_A) objectives of the members."""

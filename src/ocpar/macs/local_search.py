@@ -3,7 +3,7 @@ that runs one of them.
 
 * **Pascoletti–Serafini local search** (eq. 11–13, individualistic action): variables
   (z, α), min α + 1e-3 Σ_i ϑ_i s.t. λ_i ϑ_i(z) ≤ α, ϑ_i = (J_i(z) − z̃_i)/(z*_i − z̃_i),
-  the DFET constraints and bounds. Parameters: λ (2), z̃ (2), z* (2).
+  the DFET constraints and bounds. Parameters: λ (m), z̃ (m), z* (m).
 * **Constraint restoration** (eq. 14 inner level, social action): min 1 s.t. the DFET
   constraints and bounds, from a candidate.
 
@@ -22,7 +22,8 @@ import casadi as ca
 import numpy as np
 
 from ocpar import faults
-from ocpar.macs.problems import MacsProblem
+from ocpar.macs.objectives import objective_functions
+from ocpar.macs.problem import MacsProblem
 from ocpar.ocp import DfetTranscription, dfet_problem
 from ocpar.ocp.ipopt import ipopt_options
 
@@ -68,7 +69,7 @@ class SearchTask:
 
 @dataclass
 class SearchResult:
-    """``z`` the NLP vector reached, ``objectives`` J(z) (2,), ``feasible``, ``evaluations``
+    """``z`` the NLP vector reached, ``objectives`` J(z) (m,), ``feasible``, ``evaluations``
     counted as in the module docstring, IPOPT ``status`` and ``iterations``."""
 
     z: np.ndarray
@@ -86,16 +87,17 @@ class InnerSolvers:
     def __init__(self, problem: MacsProblem) -> None:
         self.problem = problem
         self.dfet: DfetTranscription = dfet_problem(problem.shape)
+        self.functions = objective_functions(problem)
         z = self.dfet.z
-        j1, j2 = problem.objectives(self.dfet.final_state(z), self.dfet.final_time(z))
-        objectives = ca.vertcat(j1, j2)
+        objectives = self.functions.symbolic(z)
+        m = problem.n_objectives
         self.objectives = ca.Function("J", [z], [objectives])
         self.residual = ca.Function("g", [z], [self.dfet.constraints])
         g = self.dfet.constraints
         self.ng = g.numel()
 
         alpha = ca.SX.sym("alpha")
-        lam, utopia, start = ca.SX.sym("lam", 2), ca.SX.sym("zt", 2), ca.SX.sym("zs", 2)
+        lam, utopia, start = ca.SX.sym("lam", m), ca.SX.sym("zt", m), ca.SX.sym("zs", m)
         theta = (objectives - utopia) / (start - utopia)
         scalarised = {"x": ca.vertcat(z, alpha), "p": ca.vertcat(lam, utopia, start),
                       "f": alpha + AUGMENTATION * ca.sum1(theta),
@@ -109,10 +111,9 @@ class InnerSolvers:
         """The transcription's objectives agree with an accurate re-simulation of z's
         control law (:data:`CONSISTENCY_TOL`)."""
         try:
-            final = self.dfet.simulate(z, rtol=1e-8)
+            simulated = self.functions.resimulated(z, rtol=1e-8)
         except RuntimeError:
             return False
-        simulated = np.array(self.problem.objectives(final, float(self.dfet.final_time(z))))
         return bool(np.all(np.abs(simulated - objectives) <= CONSISTENCY_TOL
                            * (1 + np.abs(objectives))))
 
@@ -123,14 +124,14 @@ class InnerSolvers:
 
     def run(self, task: SearchTask) -> SearchResult:
         """One inner solve. A scalarised search of a problem with ``periodic_controls`` that
-        ends with control nodes on a bound of their period moves those nodes to the opposite
-        bound (the same thrust direction) and searches again, up to :data:`MAX_SEAM_HOPS`
+        ends with nodes of a periodic control on a bound moves those nodes to the opposite
+        bound (the same angle) and searches again, up to :data:`MAX_SEAM_HOPS`
         times: the bound is where the angle wraps, not a limit, and a node resting on it is a
         spurious local optimum. Evaluations and time of every search are summed."""
         t0 = time.perf_counter()
         result = self._solve(task, self.start_point(task))
         evaluations = result.evaluations
-        hop_seams = task.kind == "scalarised" and self.problem.periodic_controls
+        hop_seams = task.kind == "scalarised" and any(self.problem.periodic_controls)
         for _ in range(MAX_SEAM_HOPS if hop_seams else 0):
             hopped = self._hop_seams(result.z) if result.feasible else None
             if hopped is None:
@@ -145,11 +146,13 @@ class InnerSolvers:
         return result
 
     def _hop_seams(self, z: np.ndarray) -> np.ndarray | None:
-        """z with every control node within :data:`SEAM_TOL` of a bound moved to the opposite
-        bound, or None if no node is on a bound."""
+        """z with every node of a periodic control within :data:`SEAM_TOL` of a bound moved
+        to the opposite bound, or None if no such node is on a bound."""
         controls = slice(self.dfet.decision_slice.start, self.dfet.nz - 1)
         u, lower, upper = z[controls], self.dfet.lbz[controls], self.dfet.ubz[controls]
-        at_lower, at_upper = u <= lower + SEAM_TOL, u >= upper - SEAM_TOL
+        periodic = np.resize(self.problem.periodic_controls, u.size)  # nodes component-fastest
+        at_lower = periodic & (u <= lower + SEAM_TOL)
+        at_upper = periodic & (u >= upper - SEAM_TOL)
         if not np.any(at_lower | at_upper):
             return None
         hopped = z.copy()
@@ -167,7 +170,7 @@ class InnerSolvers:
             out = self.scalarised(
                 x0=np.append(z0, alpha0), p=params,
                 lbx=np.append(self.dfet.lbz, -np.inf), ubx=np.append(self.dfet.ubz, np.inf),
-                lbg=np.concatenate([zeros, [-np.inf, -np.inf]]),
+                lbg=np.concatenate([zeros, np.full(task.weights.size, -np.inf)]),
                 # λ_i = 0 drops objective i (its row would only say α ≥ 0)
                 ubg=np.concatenate([zeros, np.where(task.weights > 0, 0.0, np.inf)]),
             )
@@ -211,6 +214,7 @@ def run_search(task: SearchTask) -> SearchResult:
                    (task.z0, task.p0, task.weights, task.utopia) if v is not None)
     if faults.injected(task.kind.encode() + key):
         start = task.z0 if task.z0 is not None else np.full(0, np.nan)
-        return SearchResult(z=start, objectives=np.full(2, np.nan), feasible=False,
-                            evaluations=1, status=faults.STATUS, iterations=0, solve_time_s=0.0)
+        return SearchResult(z=start, objectives=np.full(task.problem.n_objectives, np.nan),
+                            feasible=False, evaluations=1, status=faults.STATUS, iterations=0,
+                            solve_time_s=0.0)
     return inner_solvers(task.problem).run(task)

@@ -97,14 +97,16 @@ def inverted_generational_distance(front: np.ndarray, reference: np.ndarray) -> 
 
 
 def hypervolume(
-    front: np.ndarray, reference: np.ndarray, ref_point: Sequence[float] = (1.1, 1.1)
+    front: np.ndarray, reference: np.ndarray, ref_point: Sequence[float] | None = None
 ) -> float:
     """Hypervolume of the normalised ``front`` (see :func:`normalise`) bounded by ``ref_point``
-    (in normalised units): the measure of the objective-space region dominated by the front
-    and dominating ``ref_point``. Points that do not strictly dominate ``ref_point`` contribute
-    nothing. Computed by ``moocore.hypervolume`` (minimisation)."""
+    (in normalised units; default 1.1 in every objective): the measure of the objective-space
+    region dominated by the front and dominating ``ref_point``. Points that do not strictly
+    dominate ``ref_point`` contribute nothing. Computed by ``moocore.hypervolume``
+    (minimisation)."""
     points = normalise(front, reference)
-    ref_point = np.asarray(ref_point, dtype=float)
+    ref_point = np.full(points.shape[1], 1.1) if ref_point is None else np.asarray(
+        ref_point, dtype=float)
     if ref_point.shape != (points.shape[1],):
         raise ValueError(f"ref_point must have {points.shape[1]} values, got {ref_point.shape}")
     points = points[np.all(np.isfinite(points), axis=1)]

@@ -1,51 +1,67 @@
-"""Pictures of a MACS result: the archive over the reference front, and the control laws of a
-few archive members."""
+"""Pictures of a MACS result: the archive (over the reference front, when the problem has
+one) and the control laws of a few archive members."""
 
 from __future__ import annotations
 
+from itertools import combinations
 from pathlib import Path
 
 import numpy as np
 
-from ocpar.macs.problems import MacsProblem
-from ocpar.macs.reference import reference_front
+from ocpar.macs.problem import MacsProblem
 from ocpar.macs.result import MacsResult
 from ocpar.ocp import dfet_problem
 from ocpar.plotting import pyplot, save
 
 
 def plot_front(result: MacsResult, path: Path) -> Path:
-    """Archive (re-simulated objectives) over the reference front."""
+    """Archive (re-simulated objectives) over the reference front: the front itself for two
+    objectives, every pairwise projection (J_a, J_b) for more."""
     plt = pyplot()
-    reference = reference_front(result.problem)
-    fig, ax = plt.subplots(figsize=(6.5, 4.8))
-    ax.plot(reference[:, 0], reference[:, 1], "-", color="grey", lw=1, label="reference front")
-    ax.plot(result.front[:, 0], result.front[:, 1], "o", mfc="none", color="tab:blue",
-            label=f"MACS archive ({len(result.front)})")
-    ax.set_xlabel("J1 = t_f")
-    ax.set_ylabel("J2")
-    ax.set_title(f"{result.problem}: GD {result.gd:.2e}, IGD {result.igd:.2e}, "
-                 f"HV {result.hv:.4f} ({result.evaluations} evaluations)")
-    ax.legend()
-    ax.grid(alpha=0.3)
+    names, reference = result.objective_names, result.reference_front
+    pairs = list(combinations(range(len(names)), 2))
+    columns = min(len(pairs), 3)
+    rows = -(-len(pairs) // columns)
+    fig, axes = plt.subplots(rows, columns, figsize=(6.5 * columns, 4.8 * rows), squeeze=False)
+    for ax, (a, b) in zip(axes.ravel(), pairs, strict=False):
+        if reference is not None:
+            style = "-" if len(names) == 2 else "."
+            ax.plot(reference[:, a], reference[:, b], style, color="grey", lw=1, ms=2,
+                    label="reference front")
+        ax.plot(result.front[:, a], result.front[:, b], "o", mfc="none", color="tab:blue",
+                label=f"MACS archive ({len(result.front)})")
+        ax.set_xlabel(names[a])
+        ax.set_ylabel(names[b])
+        ax.legend()
+        ax.grid(alpha=0.3)
+    for ax in axes.ravel()[len(pairs):]:
+        ax.set_visible(False)
+    fig.suptitle(f"{result.problem}: {result.quality()} ({result.evaluations} evaluations)",
+                 fontsize=10)
     return save(fig, path)
 
 
 def plot_controls(problem: MacsProblem, result: MacsResult, path: Path, count: int = 4) -> Path:
-    """Control laws u(t) of ``count`` archive members spread along the front."""
+    """Control laws u(t) of ``count`` archive members spread along the front (every control
+    component: one panel each)."""
     plt = pyplot()
     dfet = dfet_problem(problem.shape)
-    fig, ax = plt.subplots(figsize=(6.5, 4.5))
+    nu = problem.model.nu
+    fig, axes = plt.subplots(nu, 1, figsize=(6.5, 4.5 * nu), squeeze=False)
     picks = np.unique(np.linspace(0, len(result.decisions) - 1, count).round().astype(int))
     for i in picks:
         law = dfet.control_law(result.decisions[i])
         tf = float(result.decisions[i][-1])
         t = np.linspace(0, tf, 400)
-        ax.plot(t, [float(np.ravel(law(s))[0]) for s in t],
-                label=f"t_f = {tf:.2f}, J2 = {result.front[i, 1]:.4f}")
-    ax.set_xlabel("t")
-    ax.set_ylabel("u (rad)")
-    ax.set_title(f"{result.problem}: controls of archive members")
-    ax.legend(fontsize=8)
-    ax.grid(alpha=0.3)
+        u = np.array([np.ravel(law(s)) for s in t])
+        label = ", ".join(f"{n} = {v:.4g}" for n, v in zip(result.objective_names,
+                                                            result.front[i], strict=True))
+        for c in range(nu):
+            axes[c, 0].plot(t, u[:, c], label=label)
+    for c in range(nu):
+        axes[c, 0].set_xlabel("t")
+        axes[c, 0].set_ylabel(f"u[{c}]")
+        axes[c, 0].grid(alpha=0.3)
+    axes[0, 0].set_title(f"{result.problem}: controls of archive members")
+    axes[0, 0].legend(fontsize=8)
     return save(fig, path)

@@ -14,10 +14,13 @@ from ocpar.results import RunResult
 class MacsResult(RunResult):
     """Outcome of :func:`ocpar.macs.solve_macs`.
 
-    ``front`` (k, 2): the archive's objectives recomputed by integrating each member's control
-    law accurately (sorted by J1); ``front_transcribed`` the DFET's own values; ``gd``, ``igd``,
-    ``hv`` of ``front`` against the reference front (both normalised to the reference's ideal
-    and nadir); ``decisions`` the members' decision vectors (controls and t_f).
+    ``front`` (k, m): the archive's objectives recomputed by integrating each member's control
+    law accurately (sorted by J1); ``front_transcribed`` the DFET's own values; ``gd``, ``igd``
+    of ``front`` against the problem's reference front (both normalised to the reference's
+    ideal and nadir; None when the problem has no reference front); ``hv`` the hypervolume
+    normalised by the reference front, or without one by the final front itself (None if that
+    has no extent); ``decisions`` the members' decision vectors (controls and t_f);
+    ``objective_names`` m labels; ``reference_front`` the problem's (not written to JSON).
     """
 
     scheme: ClassVar[str] = "macs"
@@ -29,10 +32,12 @@ class MacsResult(RunResult):
     evaluations: int
     iterations: int
     failed_searches: int
-    gd: float
-    igd: float
-    hv: float
+    gd: float | None
+    igd: float | None
+    hv: float | None
     settings: dict
+    objective_names: list[str]
+    reference_front: np.ndarray | None = None
     history: list[dict] = field(default_factory=list)
     #: the common counts: every evaluation is one DFET solve; a failed search is rejected
     #: (the paper's penalty), never retried
@@ -48,6 +53,7 @@ class MacsResult(RunResult):
         """MACS's fields of ``result.json``: the front, its quality, the decisions."""
         return {
             "seed": self.seed,
+            "objectives": self.objective_names,
             "front": np.asarray(self.front).tolist(),
             "front_transcribed": np.asarray(self.front_transcribed).tolist(),
             "evaluations": self.evaluations,
@@ -66,6 +72,13 @@ class MacsResult(RunResult):
             f"status {self.status}: {len(self.front)} archive members after {self.evaluations} "
             f"evaluations, {self.iterations} iterations, {self.supersteps} supersteps "
             f"({self.failed_searches} infeasible searches rejected)\n"
-            f"GD {self.gd:.3e}   IGD {self.igd:.3e}   HV {self.hv:.6f}\n"
+            f"{self.quality()}\n"
             f"wall time {self.wall_time_s:.2f} s on {self.workers} {self.backend} worker(s)"
         )
+
+    def quality(self) -> str:
+        """GD, IGD (when known) and HV as one line."""
+        figures = [f"{name} {value:{fmt}}" for name, value, fmt in
+                   (("GD", self.gd, ".3e"), ("IGD", self.igd, ".3e"), ("HV", self.hv, ".6f"))
+                   if value is not None]
+        return "   ".join(figures) or "no quality figures (no reference front)"

@@ -11,7 +11,8 @@ from ocpar.bsp import Backend
 from ocpar.cli import Progress
 from ocpar.driver import PROBLEM_GROUP, SchemeRun
 from ocpar.macs.algorithm import MacsSettings
-from ocpar.macs.problems import PROBLEMS, MacsProblem, make_problem
+from ocpar.macs.problem import MacsProblem
+from ocpar.macs.problems import PROBLEMS, make_problem
 from ocpar.macs.result import MacsResult
 from ocpar.macs.solve import solve_macs
 from ocpar.options import option, project

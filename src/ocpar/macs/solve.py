@@ -12,17 +12,24 @@ from ocpar.bsp import Backend
 from ocpar.bsp.serial import SerialBackend
 from ocpar.macs.algorithm import Macs, MacsSettings
 from ocpar.macs.metrics import generational_distance, hypervolume, inverted_generational_distance
-from ocpar.macs.problems import MacsProblem
-from ocpar.macs.reference import reference_front
+from ocpar.macs.objectives import objective_functions
+from ocpar.macs.problem import MacsProblem
 from ocpar.macs.result import MacsResult
 from ocpar.ocp import dfet_problem
 
 
 def resimulated_objectives(problem: MacsProblem, z: np.ndarray) -> np.ndarray:
-    """(J1, J2) of a solution with its control law integrated accurately (not the DFET's own
+    """J (m,) of a solution with its control law integrated accurately (not the DFET's own
     state estimate)."""
-    dfet = dfet_problem(problem.shape)
-    return np.array(problem.objectives(dfet.simulate(z), float(dfet.final_time(z))), float)
+    return objective_functions(problem).resimulated(z)
+
+
+def hypervolume_box(problem: MacsProblem, front: np.ndarray) -> np.ndarray | None:
+    """The points whose ideal and nadir normalise the hypervolume: the problem's reference
+    front, or else the final ``front`` itself (then the figure compares the iterations of one
+    run, not runs); None if they have no extent in some objective."""
+    box = problem.reference_front if problem.reference_front is not None else front
+    return box if len(box) >= 2 and np.all(np.ptp(box, axis=0) > 0) else None
 
 
 def solve_macs(
@@ -33,20 +40,26 @@ def solve_macs(
 ) -> MacsResult:
     """Run MACSoc on ``problem`` until ``settings.max_evaluations`` objective evaluations.
 
-    ``progress`` gets one line per iteration (evaluations, archive size, hypervolume of the
-    archive's transcribed objectives against the reference front).
+    ``progress`` gets one line per iteration (evaluations, archive size and, with a reference
+    front, the hypervolume of the archive's transcribed objectives). GD and IGD are computed
+    only against the problem's reference front (None without one).
     """
     settings = settings or MacsSettings()
     backend = backend or SerialBackend()
-    reference = reference_front(problem.name)
+    reference = problem.reference_front
     first_trace = len(backend.traces)
     start = time.perf_counter()
     macs = Macs(problem, settings, backend, progress,
-                indicator=lambda front: hypervolume(front, reference))
+                indicator=None if reference is None else lambda f: hypervolume(f, reference))
     outcome = macs.run()
     wall = time.perf_counter() - start
-    members = sorted(outcome.archive.members, key=lambda m: m.objectives[0])
-    front = np.array([resimulated_objectives(problem, m.z) for m in members]).reshape(-1, 2)
+    m = problem.n_objectives
+    members = sorted(outcome.archive.members, key=lambda member: member.objectives[0])
+    front = np.array([resimulated_objectives(problem, mb.z) for mb in members]).reshape(-1, m)
+    box = hypervolume_box(problem, front)
+    history = [dict(entry, hv=hypervolume(f, box) if box is not None and len(f) else None)
+               for entry, f in zip(outcome.history, outcome.fronts, strict=True)]
+    known = reference is not None and len(front) > 0
     dfet = dfet_problem(problem.shape)
     return MacsResult(
         problem=problem.name,
@@ -56,16 +69,18 @@ def solve_macs(
         status="converged" if len(front) else "failed",
         message="" if len(front) else "no feasible archive member",
         front=front,
-        front_transcribed=np.array([m.objectives for m in members]).reshape(-1, 2),
-        decisions=np.array([m.z[dfet.decision_slice] for m in members]),
+        front_transcribed=np.array([mb.objectives for mb in members]).reshape(-1, m),
+        decisions=np.array([mb.z[dfet.decision_slice] for mb in members]),
         evaluations=outcome.evaluations,
         iterations=outcome.iterations,
         failed_searches=outcome.failed_searches,
-        gd=generational_distance(front, reference) if len(front) else float("nan"),
-        igd=inverted_generational_distance(front, reference) if len(front) else float("nan"),
-        hv=hypervolume(front, reference) if len(front) else 0.0,
+        gd=generational_distance(front, reference, interpolate=m == 2) if known else None,
+        igd=inverted_generational_distance(front, reference) if known else None,
+        hv=hypervolume(front, box) if box is not None else None,
         wall_time_s=wall,
         settings=asdict(settings),
-        history=outcome.history,
+        objective_names=problem.objective_names,
+        reference_front=reference,
+        history=history,
         trace=backend.traces[first_trace:],
     )

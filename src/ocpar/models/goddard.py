@@ -43,7 +43,3 @@ class GoddardAscent:
 
     def state_bounds(self) -> tuple[np.ndarray, np.ndarray]:
         return np.full(4, -np.inf), np.full(4, np.inf)
-
-    def rhs_numpy(self, x: np.ndarray, u: np.ndarray) -> np.ndarray:
-        """f(x, u) in numpy, for scipy's integrators."""
-        return np.array([x[1], self.a * np.cos(u[0]), x[3], -self.g + self.a * np.sin(u[0])])

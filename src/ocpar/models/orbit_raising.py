@@ -54,13 +54,3 @@ class OrbitRaising:
     def circular_speed(self, radius: float) -> float:
         """Transversal speed of the circular orbit of ``radius``, 1/√r."""
         return float(1 / np.sqrt(radius))
-
-    def rhs_numpy(self, x: np.ndarray, u: np.ndarray) -> np.ndarray:
-        """f(x, u) in numpy, for scipy's integrators."""
-        r, vr, _, vt = x
-        return np.array([
-            vr,
-            vt**2 / r - 1 / r**2 + self.a * np.cos(u[0]),
-            vt / r,
-            -vt * vr / r + self.a * np.sin(u[0]),
-        ])

@@ -255,12 +255,29 @@ class DfetTranscription:
 
         return law
 
+    @cached_property
+    def rhs_function(self) -> ca.Function:
+        """F(x (nx,), u (nu,)) → ẋ (nx,) of the model as a numeric CasADi function, for the
+        accurate integrations below."""
+        xs, us = ca.SX.sym("x", self.nx), ca.SX.sym("u", self.nu)
+        return ca.Function("F", [xs, us], [self.shape.model.rhs(xs, us)])
+
     def _integrate(self, p: np.ndarray, rtol: float, atol: float, hold: bool = False
                    ) -> tuple[np.ndarray, np.ndarray]:
         """Integrate the control law from x_0, element by element (the controls jump between
         elements); states at every element's Gauss–Lobatto nodes (N, l+1, nx) and x(t_f). If
         the integration fails, raise RuntimeError, or with ``hold`` keep the last state."""
-        rhs_numpy = self.shape.model.rhs_numpy  # type: ignore[attr-defined]
+        buffer, evaluate = self.rhs_function.buffer()  # one per call: thread-safe
+        state, control, derivative = np.empty(self.nx), np.empty(self.nu), np.empty(self.nx)
+        for i, array in enumerate((state, control)):
+            buffer.set_arg(i, memoryview(array))
+        buffer.set_res(0, memoryview(derivative))
+
+        def rhs(y: np.ndarray, u: np.ndarray) -> np.ndarray:
+            state[:], control[:] = y, u
+            evaluate()
+            return derivative.copy()
+
         law = self._element_law(p)
         step = p[-1] / self.n
         x = np.array(self.shape.initial_state)
@@ -269,7 +286,7 @@ class DfetTranscription:
             t0 = j * step
             times = t0 + (self.state_nodes + 1) * step / 2
             times[-1] = t0 + step
-            sol = solve_ivp(lambda t, y, j=j: rhs_numpy(y, law(j, t)), (t0, t0 + step), x,
+            sol = solve_ivp(lambda t, y, j=j: rhs(y, law(j, t)), (t0, t0 + step), x,
                             t_eval=times, rtol=rtol, atol=atol, method="DOP853")
             if not sol.success or not np.all(np.isfinite(sol.y)):
                 if not hold:
@@ -283,14 +300,14 @@ class DfetTranscription:
     def guess_from_decision(self, p: np.ndarray) -> np.ndarray:
         """A full z consistent with p (a full z or p): the control law integrated accurately
         (rtol 1e-10, atol 1e-12) fills the state nodes and x_f; should the integration fail,
-        the last state reached fills the rest. Needs the model's ``rhs_numpy``."""
+        the last state reached fills the rest."""
         p = self.decision(p)
         nodes, x_f = self._integrate(p, 1e-10, 1e-12, hold=True)
         return np.concatenate([nodes.ravel(), x_f, p])
 
     def simulate(self, z_or_p: np.ndarray, rtol: float = 1e-10) -> np.ndarray:
         """x(t_f) (nx,) of the control law integrated accurately from x_0 (atol = rtol/100);
-        RuntimeError if the integration fails. Needs the model's ``rhs_numpy``."""
+        RuntimeError if the integration fails."""
         return self._integrate(self.decision(z_or_p), rtol, rtol / 100)[1]
 
     # --- solving the state equations -----------------------------------------------------------
