@@ -33,8 +33,6 @@ MACS = SimpleNamespace(**vars(importlib.import_module("ocpar.macs.run")),
 #: is loaded, and refused with one line, before anything starts), the backend and the solve.
 GUARDED = ("build_example", "run_on_backend")
 
-#: The pursuit spacecraft's initial mass (kg): --epsilon must stay below it.
-
 FUZZ = settings(max_examples=300, deadline=None, derandomize=True, database=None,
                 suppress_health_check=[HealthCheck.function_scoped_fixture])
 
@@ -364,7 +362,6 @@ def test_malformed_command_lines_are_refused(scheme, data, guarded, capsys):
         ("formation", ["--mode", "monolithic", "--outer", "offset"], "--outer"),
         ("formation", ["--ordering", "optimal", "--agents", "5000"], "--ordering"),
         ("pursuit", ["--samples", "99999999999999999999"], "--samples"),
-        ("pursuit", ["--epsilon", "1e300"], "--epsilon"),
         ("pursuit", ["--mode", "ms", "--no-reference"], "--no-reference"),
         ("macs", ["--max-evals", "10"], "--max-evals"),
         ("macs", ["--population", "20", "--max-evals", "15"], "--max-evals"),
