@@ -17,7 +17,7 @@ import numpy as np
 
 from ocpar.bsp.columns import Columns
 from ocpar.models import PointMass
-from ocpar.ocp import DmocShape, DmocTask
+from ocpar.ocp import DmocShape, OcpTask
 
 
 @dataclass(frozen=True)
@@ -90,7 +90,7 @@ class FormationProblem:
     def tasks_for(self, agents: np.ndarray, phi: np.ndarray,
                   warm_starts: np.ndarray | None = None) -> Columns:
         """Task k: agent ``agents[k]`` ending at angle ``phi[k]`` (rad), in columnar form (a
-        :class:`~ocpar.bsp.columns.Columns` of :class:`~ocpar.ocp.DmocTask`: the shared
+        :class:`~ocpar.bsp.columns.Columns` of :class:`~ocpar.ocp.OcpTask`: the shared
         shape, the (len(agents), 4 nq) boundary data, row k =
         :meth:`boundary_params` (agents[k], phi[k]), and optional warm starts, one row per
         task, to retry from if a first attempt fails)."""
@@ -100,7 +100,8 @@ class FormationProblem:
                             self.final_positions(phi),
                             np.broadcast_to(self.final_attitude, (m, len(self.final_attitude))),
                             np.broadcast_to(self.final_velocity, (m, len(self.final_velocity)))])
-        return Columns.of(DmocTask, m, shape=self.shape, params=params, warm_start=warm_starts)
+        return Columns.of(OcpTask, m, shape=self.shape, params=params, warm_start=None,
+                          multipliers=None, fallback=warm_starts)
 
     def tasks(self, phi: np.ndarray, warm_starts: np.ndarray | None = None) -> Columns:
         """One inner DMOC task per agent, agent i ending at φ_i (see :meth:`tasks_for`)."""
