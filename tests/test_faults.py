@@ -81,6 +81,17 @@ def test_formation_faults_are_the_same_under_mpirun(tmp_path, inject):
     assert result["total_cost"] == pytest.approx(serial.total_cost, rel=1e-12)
 
 
+def test_formation_faults_are_the_same_on_dask_workers(inject):
+    """The injector reaches embedded Dask worker processes (environment and PYTHONPATH) and
+    fails the same solves as in a serial run: same retries, same cost bit for bit."""
+    inject("0.3:1")
+    serial = solve_formation(paper_example(12))
+    with DaskBackend(workers=2) as backend:
+        dask = solve_formation(paper_example(12), backend)
+    assert serial.retries > 10 and dask.retries == serial.retries
+    assert dask.failed_solves == 0 and dask.total_cost == serial.total_cost
+
+
 def test_pursuit_retries_from_the_leaders_trajectory(inject):
     problem = OrbitTransferProblem(case=1, samples=101)
     settings = PursuitSettings(window=32, update=16, max_agents=12)

@@ -46,7 +46,7 @@ class InnerSolution:
     solve_time_s: float
 
 
-S = TypeVar("S", bound=InnerSolution, covariant=True)
+S = TypeVar("S", bound=InnerSolution)
 
 
 @runtime_checkable
