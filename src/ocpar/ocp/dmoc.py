@@ -216,8 +216,10 @@ class DmocTranscription:
         zero_g = np.zeros(self.ng)
         start = time.perf_counter()
         try:
-            out = self.solver(x0=x0, p=params, lbg=zero_g, ubg=zero_g,
-                              lam_g0=0 if multipliers is None else multipliers)
+            if multipliers is None:
+                out = self.solver(x0=x0, p=params, lbg=zero_g, ubg=zero_g)
+            else:
+                out = self.solver(x0=x0, p=params, lbg=zero_g, ubg=zero_g, lam_g0=multipliers)
         except RuntimeError as exc:  # CasADi raises on evaluation errors (NaN in the model, ...)
             return self.failure(params, f"error: {exc}".splitlines()[0],
                                 time.perf_counter() - start)
