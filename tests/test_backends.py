@@ -17,14 +17,14 @@ from ocpar.bsp.partition import longest_first
 from ocpar.examples.formation_point_masses import make as paper_example
 from ocpar.formation import solve_formation
 from ocpar.models import PointMass
-from ocpar.ocp import DmocShape, DmocTask
+from ocpar.ocp import DmocShape, OcpTask
 
 SHAPE = DmocShape(PointMass(), 10)
 
 
-def dmoc_tasks(n: int) -> list[DmocTask]:
+def dmoc_tasks(n: int) -> list[OcpTask]:
     rng = np.random.default_rng(1)
-    return [DmocTask(SHAPE, rng.standard_normal(8)) for _ in range(n)]
+    return [OcpTask(SHAPE, rng.standard_normal(8)) for _ in range(n)]
 
 
 def test_contiguous_blocks_cover_tasks_in_order():
@@ -102,8 +102,8 @@ def local_dask():
 def test_dask_results_in_task_order_and_equal_to_serial(local_dask):
     tasks = dmoc_tasks(7)
     with open_backend("serial") as serial:
-        expected = serial.superstep("ocpar.ocp:solve_dmoc_task", tasks)
-    got = local_dask.superstep("ocpar.ocp:solve_dmoc_task", tasks)
+        expected = serial.superstep("ocpar.ocp:solve_task", tasks)
+    got = local_dask.superstep("ocpar.ocp:solve_task", tasks)
     assert [g.cost for g in got] == [e.cost for e in expected]  # bitwise
     trace = local_dask.traces[-1]
     assert trace.worker_tasks == [3, 4] and len(trace.task_cpu_s) == 7
@@ -122,9 +122,9 @@ def test_columnar_superstep_equals_the_list_superstep(local_dask, costs):
     tasks = dmoc_tasks(7)
     columns = to_columns(tasks)
     with open_backend("serial") as serial:
-        expected = _solution_bytes(serial.superstep("ocpar.ocp:solve_dmoc_task", tasks))
-        got_serial = serial.superstep_columns("ocpar.ocp:solve_dmoc_task", columns, costs)
-    got_dask = local_dask.superstep_columns("ocpar.ocp:solve_dmoc_task", columns, costs)
+        expected = _solution_bytes(serial.superstep("ocpar.ocp:solve_task", tasks))
+        got_serial = serial.superstep_columns("ocpar.ocp:solve_task", columns, costs)
+    got_dask = local_dask.superstep_columns("ocpar.ocp:solve_task", columns, costs)
     for got in (got_serial, got_dask):
         assert isinstance(got, Columns) and got.column("q").shape == (7, 11, 2)
         assert _solution_bytes(got.items()) == expected
@@ -140,10 +140,10 @@ def test_dask_task_dispatch_equals_direct_dispatch(local_dask):
     from ocpar.bsp.dask import DaskBackend
 
     tasks = dmoc_tasks(5)
-    direct = local_dask.superstep("ocpar.ocp:solve_dmoc_task", tasks)
+    direct = local_dask.superstep("ocpar.ocp:solve_task", tasks)
     scheduler = local_dask.client.scheduler.address
     with DaskBackend(workers=2, scheduler=scheduler, dispatch="tasks") as backend:
-        via_tasks = backend.superstep("ocpar.ocp:solve_dmoc_task", tasks)
+        via_tasks = backend.superstep("ocpar.ocp:solve_task", tasks)
     assert [t.cost for t in via_tasks] == [d.cost for d in direct]
     with pytest.raises(BackendError, match="unknown dispatch"):
         DaskBackend(workers=1, scheduler=scheduler, dispatch="rpc")
@@ -153,8 +153,8 @@ def test_dask_workers_build_each_solver_once(local_dask):
     """Build once, solve many: after several supersteps each worker process has built the
     DMOC solver of this shape once, and always the same worker gets the same chunk."""
     for _ in range(3):
-        local_dask.superstep("ocpar.ocp:solve_dmoc_task", dmoc_tasks(4))
-    reports = local_dask.superstep("ocpar.ocp.dmoc:cache_report", [None, None])
+        local_dask.superstep("ocpar.ocp:solve_task", dmoc_tasks(4))
+    reports = local_dask.superstep("ocpar.ocp:cache_report", [None, None])
     assert len({r["pid"] for r in reports}) == 2
     assert all(r["builds"] == 1 and r["hits"] >= 6 for r in reports)
 
@@ -209,7 +209,7 @@ def test_external_dask_cluster_matches_serial(serial_reference, dask_cluster, tm
     assert_same_run(data, serial_reference)
     # the workers' preload built the formation's inner solver; the run only reused it
     with open_backend("dask", workers=2, scheduler=dask_cluster) as cluster:
-        reports = cluster.superstep("ocpar.ocp.dmoc:cache_report", [None, None])
+        reports = cluster.superstep("ocpar.ocp:cache_report", [None, None])
     assert [r["builds"] for r in reports] == [1, 1]
     assert sum(r["hits"] for r in reports) == data["inner_solves"]
 

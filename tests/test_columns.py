@@ -16,7 +16,7 @@ from ocpar.bsp.columns import (
     to_columns,
 )
 from ocpar.examples.formation_point_masses import make as paper_example
-from ocpar.ocp import DmocTask, solve_dmoc_task
+from ocpar.ocp import OcpTask, solve_task
 
 
 @dataclass(frozen=True)
@@ -40,10 +40,10 @@ def test_dmoc_tasks_and_solutions_round_trip_bit_for_bit_through_pickle():
     assert isinstance(packed, Columns)
     assert packed.fields["shape"][0] == SHARED and packed.fields["params"][0] == STACKED
     back = from_columns(pickle.loads(pickle.dumps(packed)))
-    assert all(type(b) is DmocTask and b.shape == t.shape and _same(b.params, t.params)
+    assert all(type(b) is OcpTask and b.shape == t.shape and _same(b.params, t.params)
                for b, t in zip(back, tasks, strict=True))
 
-    solutions = [solve_dmoc_task(t) for t in tasks]
+    solutions = [solve_task(t) for t in tasks]
     back = from_columns(pickle.loads(pickle.dumps(to_columns(solutions))))
     for b, s in zip(back, solutions, strict=True):
         assert vars(b).keys() == vars(s).keys()
@@ -78,7 +78,7 @@ def test_unstackable_fields_stay_lists_and_keep_their_values(xs):
 @pytest.mark.parametrize("items", [
     [],
     [1.0, 2.0],                                     # not dataclasses
-    [Frozen(np.zeros(1), "a"), DmocTask(None, np.zeros(1))],  # two classes
+    [Frozen(np.zeros(1), "a"), OcpTask(None, np.zeros(1))],  # two classes
 ])
 def test_other_lists_pass_through_unchanged(items):
     assert to_columns(items) == items
@@ -124,7 +124,7 @@ def test_concat_keeps_columns_that_differ_between_parts_as_lists():
 
 def test_columns_of_stacks_arrays_with_one_row_per_item_and_shares_the_rest():
     params = np.arange(12.0).reshape(3, 4)
-    packed = Columns.of(DmocTask, 3, shape="s", params=params)
+    packed = Columns.of(OcpTask, 3, shape="s", params=params)
     tasks = packed.items()
     assert [t.shape for t in tasks] == ["s"] * 3
     assert np.array_equal(np.stack([t.params for t in tasks]), params)

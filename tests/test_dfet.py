@@ -1,5 +1,7 @@
 """DFET on the MACS paper's Goddard ascent and orbit raising: the weak-form states of a fixed
-control law converge to an accurate integration of that law, and the paper's sizes."""
+control law converge to an accurate integration of that law, and the paper's sizes; the DFET
+optimal control transcription's Mayer term and free final time (the contract's shared suite
+is in test_transcriptions.py)."""
 
 from __future__ import annotations
 
@@ -8,9 +10,10 @@ import math
 import casadi as ca
 import numpy as np
 import pytest
+from test_transcriptions import DoubleIntegrator
 
 from ocpar.models import GoddardAscent, OrbitRaising
-from ocpar.ocp import DfetShape, dfet_problem
+from ocpar.ocp import DfetOcpShape, DfetShape, OcpTask, dfet_ocp_problem, dfet_problem, solve_task
 
 GODDARD_START = (0.0, 0.0, 0.0, 0.0)
 ORBIT_START = (1.1, 0.0, 0.0, 1 / math.sqrt(1.1))
@@ -133,3 +136,30 @@ def test_bad_shapes_are_refused(change, message):
               "initial_state": GODDARD_START}
     with pytest.raises(ValueError, match=message):
         DfetShape(**(fields | change))
+
+
+def final_time(x_f: ca.SX, t_f: ca.SX) -> ca.SX:
+    """Mayer term of the minimum-time problem."""
+    return t_f
+
+
+def test_dfet_ocp_finds_the_bang_bang_minimum_time():
+    """q̈ = u, |u| ≤ 1, from rest to rest over d = 1 in the least time: t_f = 2√d, u = +1
+    then −1 (an even number of elements with constant controls represents it exactly)."""
+    shape = DfetOcpShape(DoubleIntegrator(), 4, 2, 0, ((-1.0, 1.0),), (0.5, 5.0), (0, 1),
+                         terminal_cost=final_time, running_cost=False)
+    sol = solve_task(OcpTask(shape, np.array([0.0, 0.0, 1.0, 0.0])))
+    assert sol.success, sol.status
+    assert sol.final_time == pytest.approx(2.0, abs=1e-7)
+    assert sol.cost == pytest.approx(sol.final_time, rel=1e-12)
+    np.testing.assert_allclose(sol.final_state, [1.0, 0.0], atol=1e-8)
+    controls = sol.z[dfet_ocp_problem(shape).dfet.decision_slice][:-1]
+    np.testing.assert_allclose(controls, [1, 1, -1, -1], atol=1e-6)
+
+
+def test_dfet_ocp_needs_a_cost():
+    with pytest.raises(ValueError, match="needs a cost"):
+        DfetOcpShape(DoubleIntegrator(), 4, 2, 0, ((-1.0, 1.0),), (0.5, 5.0), (0, 1),
+                     running_cost=False)
+    with pytest.raises(ValueError, match="final_components"):
+        DfetOcpShape(DoubleIntegrator(), 4, 2, 0, ((-1.0, 1.0),), (0.5, 5.0), (2,))

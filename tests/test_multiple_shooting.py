@@ -9,7 +9,7 @@ from scipy.integrate import solve_ivp
 from ocpar.examples.pursuit_orbit_transfer import make as orbit_transfer
 from ocpar.models import OrbitTransfer
 from ocpar.models.ode import ode_functions
-from ocpar.ocp import MsShape, MsTask, ms_problem, solve_ms_task
+from ocpar.ocp import MsShape, OcpTask, ms_problem, solve_task
 from ocpar.pursuit import PursuitProblem
 
 PAPER_MS_FINAL_MASS_KG = 523.979819  # Table II, N = 301
@@ -20,7 +20,8 @@ def full_horizon(problem: PursuitProblem, integrator: str):
     shape = MsShape(problem.model, problem.samples - 1, problem.step, problem.target_components,
                     integrator)
     guess = np.concatenate([x0[1:].ravel(), u0.ravel()])
-    return solve_ms_task(MsTask(shape, problem.initial_state, problem.target, guess))
+    params = np.concatenate([problem.initial_state, problem.target])
+    return solve_task(OcpTask(shape, params, guess))
 
 
 def test_euler_ms_reproduces_the_paper_case_1():
@@ -58,7 +59,7 @@ def test_target_set_leaves_mass_free_and_solver_is_cached():
     assert ms_problem(MsShape(model, 20, 1.0, (0, 1, 2))) is problem
     x0 = np.array([9.6, 0.0, model.circular_rate(9.6), 0.525])
     target = np.array([9.65, 0.0, model.circular_rate(9.65)])
-    sol = problem.solve(x0, target)
+    sol = problem.solve(np.concatenate([x0, target]))
     assert sol.success, sol.status
     np.testing.assert_allclose(sol.x[-1, :3], target, atol=1e-10)
     assert sol.x[-1, 3] < x0[3]  # burning fuel is the only way up

@@ -24,7 +24,7 @@ from ocpar.formation.ordering import (
 )
 from ocpar.formation.potential import equidistance_error
 from ocpar.models import PointMass
-from ocpar.ocp import DmocShape, solve_dmoc_task
+from ocpar.ocp import DmocShape, solve_task
 
 #: Seeds of :func:`scattered` whose ``keep`` ordering is far from optimal (and whose inner
 #: solves all succeed, see the report on IPOPT's Search_Direction_Becomes_Too_Small).
@@ -86,8 +86,8 @@ def test_cost_table_entries_equal_individual_solves():
     assert table.shape == (4, 4)
     for i, j in itertools.product(range(4), range(4)):
         single = problem.tasks_for(np.array([i]), np.array([slots[j]]))
-        direct = solve_dmoc_task(single.items()[0]).cost
-        superstep = backend.superstep_columns(solve_dmoc_task, single).column("cost")[0]
+        direct = solve_task(single.items()[0]).cost
+        superstep = backend.superstep_columns(solve_task, single).column("cost")[0]
         assert table[i, j] == direct == superstep  # bitwise
 
 
@@ -141,7 +141,7 @@ def check_result(problem: FormationProblem, result: OrderingResult, backend) -> 
     assert 0 <= result.offset < 2 * np.pi / n
     slots = slot_base(problem)[result.assignment] + result.offset
     np.testing.assert_allclose(np.angle(np.exp(1j * (result.phi - slots))), 0, atol=1e-9)
-    fresh = backend.superstep_columns(solve_dmoc_task, problem.tasks(result.phi))
+    fresh = backend.superstep_columns(solve_task, problem.tasks(result.phi))
     assert result.total_cost == pytest.approx(float(np.sum(fresh.column("cost"))), rel=1e-12)
     assert result.table_supersteps == result.rounds + 1
     assert result.inner_solves >= (result.starts + result.rounds) * n * n
@@ -247,7 +247,7 @@ def test_sixty_point_masses_reach_the_analytic_optimum():
     z = (problem.starts - problem.curve.center) @ np.array([1.0, 1.0j])
     base = slot_base(problem)
     one = problem.tasks_for(np.array([0]), base[:1])
-    c = backend.superstep_columns(solve_dmoc_task, one).column("cost")[0] / abs(
+    c = backend.superstep_columns(solve_task, one).column("cost")[0] / abs(
         r * np.exp(1j * base[0]) - z[0]) ** 2
     orderings = set()
     for offset in np.linspace(0, 2 * np.pi / n, 400, endpoint=False):

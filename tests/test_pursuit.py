@@ -63,7 +63,7 @@ def test_every_finished_agent_ends_on_the_target_set():
     with open_backend("serial") as backend:
         while len(finished) < 5:
             work = train.ready()
-            sols = backend.superstep("ocpar.ocp:solve_ms_task", [task for _, task in work])
+            sols = backend.superstep("ocpar.ocp:solve_task", [task for _, task in work])
             for (agent, _), sol in zip(work, sols, strict=True):
                 train.apply(agent, sol)
                 if agent.done:

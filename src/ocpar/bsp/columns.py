@@ -56,7 +56,7 @@ class Columns:
     @classmethod
     def of(cls, item_type: type, length: int, **columns: Any) -> Columns:
         """Columns built from whole columns: a numpy array with ``length`` rows is stacked,
-        anything else is shared, e.g. ``Columns.of(DmocTask, n, shape=shape, params=P)``
+        anything else is shared, e.g. ``Columns.of(OcpTask, n, shape=shape, params=P)``
         with P of shape (n, 8)."""
         fields = {}
         for name, data in columns.items():

@@ -1,9 +1,17 @@
-"""Kernels: plain importable functions of one task, named ``module:function``, run in chunks."""
+"""Kernels: plain importable functions of one task, named ``module:function``, run in chunks.
+
+Extension hook: if the environment variable :data:`WRAPPER_VARIABLE` names a function
+``module:function`` (importable in every process that solves), each kernel is resolved as
+``wrapper(name, kernel)``, a callable of one task that replaces the kernel in this process
+(for instance to inject faults, trace or count tasks). The coordinator's environment reaches
+MPI ranks and the embedded Dask workers; on a Dask cluster, set it where the workers start.
+"""
 
 from __future__ import annotations
 
 import dataclasses
 import importlib
+import os
 import resource
 import sys
 import time
@@ -15,6 +23,8 @@ from typing import Any
 from ocpar.bsp.columns import Columns, from_columns, to_columns
 
 KernelRef = str | Callable[[Any], Any]
+#: Environment variable naming a kernel wrapper ``module:function`` (module docstring).
+WRAPPER_VARIABLE = "OCPAR_KERNEL_WRAPPER"
 
 
 def kernel_name(kernel: KernelRef) -> str:
@@ -31,11 +41,22 @@ def kernel_name(kernel: KernelRef) -> str:
     return f"{module}:{qualname}"
 
 
-@lru_cache(maxsize=64)
-def resolve_kernel(name: str) -> Callable[[Any], Any]:
-    """Import the kernel ``module:function`` (once per process)."""
+def _import(name: str) -> Callable[..., Any]:
     module, _, function = name.partition(":")
     return getattr(importlib.import_module(module), function)
+
+
+@lru_cache(maxsize=64)
+def resolve_kernel(name: str) -> Callable[[Any], Any]:
+    """Import the kernel ``module:function`` (once per process), wrapped by the function that
+    :data:`WRAPPER_VARIABLE` names, if it names one."""
+    kernel = _import(name)
+    wrapper = os.environ.get(WRAPPER_VARIABLE, "").strip()
+    if not wrapper:
+        return kernel
+    if ":" not in wrapper:
+        raise ValueError(f"{WRAPPER_VARIABLE} must look like 'module:function', got {wrapper!r}")
+    return _import(wrapper)(name, kernel)
 
 
 @dataclass

@@ -58,7 +58,7 @@ def solve_monolithic(
     solver = ca.nlpsol("formation", "ipopt", nlp, ipopt_options(tol, max_iterations))
 
     x0 = np.concatenate(
-        [dmoc.initial_guess(problem.boundary_params(i, phi0[i])) for i in range(n)] + [phi0]
+        [dmoc.default_guess(problem.boundary_params(i, phi0[i])) for i in range(n)] + [phi0]
     )
     start = time.perf_counter()
     out = solver(x0=x0, lbg=0, ubg=0)

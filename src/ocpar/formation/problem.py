@@ -22,7 +22,7 @@ from ocpar.bsp.columns import Columns
 from ocpar.formation.curve import Circle, Curve
 from ocpar.formation.potential import relax
 from ocpar.models import MechanicalSystem
-from ocpar.ocp import DmocShape, DmocTask
+from ocpar.ocp import DmocShape, OcpTask
 
 #: Boundary configurations must satisfy the model's holonomic constraints to this tolerance.
 CONSTRAINT_TOL = 1e-8
@@ -184,12 +184,12 @@ class FormationProblem:
     def tasks_for(self, agents: np.ndarray, phi: np.ndarray,
                   warm_starts: np.ndarray | None = None) -> Columns:
         """Task k: agent ``agents[k]`` ending at angle ``phi[k]`` (rad), in columnar form (a
-        :class:`~ocpar.bsp.columns.Columns` of :class:`~ocpar.ocp.DmocTask`: the shared
+        :class:`~ocpar.bsp.columns.Columns` of :class:`~ocpar.ocp.OcpTask`: the shared
         shape, the (len(agents), 4 nq) boundary data of :meth:`boundary_params_rows`, and
         optional warm starts, one row per task, to retry from if a first attempt fails)."""
         params = self.boundary_params_rows(agents, phi)
-        return Columns.of(DmocTask, len(params), shape=self.shape, params=params,
-                          warm_start=warm_starts)
+        return Columns.of(OcpTask, len(params), shape=self.shape, params=params,
+                          warm_start=None, multipliers=None, fallback=warm_starts)
 
     def tasks(self, phi: np.ndarray, warm_starts: np.ndarray | None = None) -> Columns:
         """One inner DMOC task per agent, agent i ending at φ_i (see :meth:`tasks_for`)."""

@@ -21,7 +21,6 @@ from functools import lru_cache
 import casadi as ca
 import numpy as np
 
-from ocpar import faults
 from ocpar.macs.objectives import objective_functions
 from ocpar.macs.problem import MacsProblem
 from ocpar.ocp import DfetTranscription, dfet_problem
@@ -208,13 +207,5 @@ def inner_solvers(problem: MacsProblem) -> InnerSolvers:
 
 def run_search(task: SearchTask) -> SearchResult:
     """Engine kernel: one local search or restoration with this process's cached solvers. A
-    failed search is infeasible and the algorithm rejects it (the paper's penalty). (Test-only:
-    searches chosen by :mod:`ocpar.faults` fail at once, counted as one evaluation.)"""
-    key = b"".join(np.asarray(v, float).tobytes() for v in
-                   (task.z0, task.p0, task.weights, task.utopia) if v is not None)
-    if faults.injected(task.kind.encode() + key):
-        start = task.z0 if task.z0 is not None else np.full(0, np.nan)
-        return SearchResult(z=start, objectives=np.full(task.problem.n_objectives, np.nan),
-                            feasible=False, evaluations=1, status=faults.STATUS, iterations=0,
-                            solve_time_s=0.0)
+    failed search is infeasible and the algorithm rejects it (the paper's penalty)."""
     return inner_solvers(task.problem).run(task)

@@ -28,14 +28,15 @@ c(q_k) = 0 at the inner nodes (the boundary nodes are data); λ is empty otherwi
 from __future__ import annotations
 
 import time
+from collections.abc import Iterator
 from dataclasses import dataclass
-from functools import cached_property, lru_cache
+from functools import cached_property
 
 import casadi as ca
 import numpy as np
 
-from ocpar import faults
 from ocpar.models.mechanical import MechanicalSystem
+from ocpar.ocp.contract import InnerSolution, check_params, transcription
 from ocpar.ocp.ipopt import ipopt_options
 
 
@@ -67,39 +68,27 @@ class DmocShape:
         """Length of the boundary-data vector p = (q_0, q̇_0, q_N, q̇_N)."""
         return 4 * self.model.nq
 
-
-@dataclass(frozen=True)
-class DmocTask:
-    """One inner solve: a shape, its boundary data p (length 4 nq) and optionally a warm
-    start (inner nodes then controls, length nq (N−1) + nu N: a previous solution of a nearby
-    problem) to retry from if the first attempt fails (:func:`solve_dmoc_task`)."""
-
-    shape: DmocShape
-    params: np.ndarray
-    warm_start: np.ndarray | None = None
+    def build(self) -> DmocTranscription:
+        """The transcription of this shape (see :func:`~ocpar.ocp.transcription`)."""
+        return DmocTranscription(self)
 
 
 @dataclass
-class DmocSolution:
-    """Result of one DMOC solve.
+class DmocSolution(InnerSolution):
+    """Result of one DMOC solve: the common fields, and ``cost_gradient`` dJ*/dp (4 nq,
+    from the NLP multipliers); ``q`` the node path (N+1, nq); ``u`` the interval controls
+    (N, nu)."""
 
-    ``cost`` is J*; ``cost_gradient`` is dJ*/dp (length 4 nq, from the NLP multipliers);
-    ``q`` is the node path, shape (N+1, nq); ``u`` the interval controls, shape (N, nu).
-    """
-
-    cost: float
     cost_gradient: np.ndarray
     q: np.ndarray
     u: np.ndarray
-    status: str
-    success: bool
-    iterations: int
-    solve_time_s: float
-    attempts: int = 1
 
 
 class DmocTranscription:
-    """The DMOC NLP of one shape, as CasADi functions of (w, p), plus its IPOPT solver."""
+    """The DMOC NLP of one shape, as CasADi functions of (w, p), plus its IPOPT solver.
+
+    A guess is w = (q_1..q_{N−1}, u_0..u_{N−1}, λ_0..λ_N) or w without its λ block (then
+    λ = 0), e.g. a previous solution's inner nodes and controls."""
 
     def __init__(self, shape: DmocShape) -> None:
         self.shape = shape
@@ -155,6 +144,7 @@ class DmocTranscription:
 
         w = ca.vertcat(q_inner, u_all, lam)
         self.nw = w.numel()
+        self.n_params = 4 * nq
         self.ng = nq * (n + 1) + nc * (n - 1)
         self.cost = ca.Function("J", [w, p], [h * ca.sumsqr(u_all)], ["w", "p"], ["J"])
         self.constraints = ca.Function("g", [w, p], [ca.vertcat(*eqs)], ["w", "p"], ["g"])
@@ -167,7 +157,7 @@ class DmocTranscription:
         nlp = {"x": w, "p": p, "f": self.cost(w, p), "g": self.constraints(w, p)}
         return ca.nlpsol("dmoc", "ipopt", nlp, ipopt_options(self.shape.tol, self.shape.max_iter))
 
-    def initial_guess(self, params: np.ndarray) -> np.ndarray:
+    def default_guess(self, params: np.ndarray) -> np.ndarray:
         """Cubic Hermite path through the boundary data (projected onto the constraints, if
         any), zero controls and multipliers (the double integrator's minimum-energy path for a
         point mass)."""
@@ -182,21 +172,26 @@ class DmocTranscription:
             path = self.shape.model.project(path)
         return np.concatenate([path.ravel(), np.zeros(self.nu * n + self.nc * (n + 1))])
 
-    def straight_line_guess(self, params: np.ndarray) -> np.ndarray:
-        """Nodes on the straight line from q_0 to q_N (projected onto the constraints, if any),
-        zero controls and multipliers."""
+    def fallback_guesses(self, params: np.ndarray) -> Iterator[np.ndarray]:
+        """The straight line from q_0 to q_N (projected onto the constraints, if any), zero
+        controls and multipliers."""
         q0, _, qn, _ = np.asarray(params, float).reshape(4, self.nq)
         path = q0 + np.arange(1, self.n)[:, None] / self.n * (qn - q0)
         if self.nc:
             path = self.shape.model.project(path)
-        return np.concatenate([path.ravel(), np.zeros(self.nu * self.n + self.nc * (self.n + 1))])
+        yield np.concatenate([path.ravel(), np.zeros(self.nu * self.n + self.nc * (self.n + 1))])
+
+    def warm_start(self, solution: DmocSolution) -> np.ndarray:
+        """The guess (inner nodes, controls; λ = 0) that re-solves from ``solution``."""
+        return np.concatenate([solution.q[1:-1].ravel(), solution.u.ravel()])
 
     def failure(self, params: np.ndarray, status: str, elapsed: float) -> DmocSolution:
         """A failed solve: NaN cost, gradient and path, with ``status``."""
+        params = np.asarray(params, float)
         nan_q, nan_u = self.unpack(np.full(self.nw, np.nan), params)
-        return DmocSolution(cost=float("nan"), cost_gradient=np.full(params.shape, np.nan),
-                            q=nan_q, u=nan_u, status=status, success=False, iterations=0,
-                            solve_time_s=elapsed)
+        return DmocSolution(cost=float("nan"), status=status, success=False, iterations=0,
+                            attempts=1, solve_time_s=elapsed,
+                            cost_gradient=np.full(params.shape, np.nan), q=nan_q, u=nan_u)
 
     def unpack(self, w: np.ndarray, params: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Split w into the node path q (N+1, nq) and the interval controls u (N, nu)."""
@@ -207,16 +202,24 @@ class DmocTranscription:
         u = np.asarray(w[nq * (n - 1) : nq * (n - 1) + self.nu * n], float).reshape(n, self.nu)
         return q, u
 
-    def solve(self, params: np.ndarray, w0: np.ndarray | None = None) -> DmocSolution:
-        """Solve for boundary data ``params``; a failed solve is returned, not raised."""
-        params = np.asarray(params, float)
-        if params.shape != (4 * self.nq,):
-            raise ValueError(f"DMOC params must have length {4 * self.nq}, got {params.shape}")
-        x0 = self.initial_guess(params) if w0 is None else np.asarray(w0, float)
+    def solve(self, params: np.ndarray, guess: np.ndarray | None = None,
+              multipliers: np.ndarray | None = None) -> DmocSolution:
+        """Solve for boundary data ``params`` from ``guess`` (default :meth:`default_guess`)
+        and constraint multipliers (default 0); a failed solve is returned, not raised."""
+        params = check_params(params, self.n_params, "DMOC")
+        if guess is None:
+            x0 = self.default_guess(params)
+        else:
+            x0 = np.asarray(guess, float)
+            if x0.size == self.nw - self.nc * (self.n + 1):
+                x0 = np.concatenate([x0, np.zeros(self.nc * (self.n + 1))])
         zero_g = np.zeros(self.ng)
         start = time.perf_counter()
         try:
-            out = self.solver(x0=x0, p=params, lbg=zero_g, ubg=zero_g)
+            if multipliers is None:
+                out = self.solver(x0=x0, p=params, lbg=zero_g, ubg=zero_g)
+            else:
+                out = self.solver(x0=x0, p=params, lbg=zero_g, ubg=zero_g, lam_g0=multipliers)
         except RuntimeError as exc:  # CasADi raises on evaluation errors (NaN in the model, ...)
             return self.failure(params, f"error: {exc}".splitlines()[0],
                                 time.perf_counter() - start)
@@ -225,51 +228,18 @@ class DmocTranscription:
         q, u = self.unpack(np.asarray(out["x"]).ravel(), params)
         return DmocSolution(
             cost=float(out["f"]),
+            status=str(stats["return_status"]),
+            success=bool(stats["success"]),
+            iterations=int(stats["iter_count"]),
+            attempts=1,
+            solve_time_s=elapsed,
             # CasADi's lam_p is -dJ*/dp (checked against finite differences in the tests).
             cost_gradient=-np.asarray(out["lam_p"]).ravel(),
             q=q,
             u=u,
-            status=str(stats["return_status"]),
-            success=bool(stats["success"]),
-            iterations=int(stats["iter_count"]),
-            solve_time_s=elapsed,
         )
 
 
-@lru_cache(maxsize=32)
 def dmoc_problem(shape: DmocShape) -> DmocTranscription:
-    """The process-wide DMOC transcription of ``shape``: built once, then reused."""
-    return DmocTranscription(shape)
-
-
-def solve_dmoc_task(task: DmocTask) -> DmocSolution:
-    """Engine kernel: solve one DMOC task with this process's cached solver. The failure
-    policy: if the first attempt (from :meth:`DmocTranscription.initial_guess`) fails, retry
-    from the task's warm start (if any), then from the straight line; the solution says how
-    many ``attempts`` it took, and is a failure if all failed. (Test-only: first attempts
-    chosen by :mod:`ocpar.faults` fail without solving.)"""
-    dmoc = dmoc_problem(task.shape)
-    params = np.asarray(task.params, float)
-    guesses: list[np.ndarray | None] = [None]
-    if task.warm_start is not None:
-        lam = np.zeros(dmoc.nc * (dmoc.n + 1))
-        guesses.append(np.concatenate([np.asarray(task.warm_start, float), lam]))
-    guesses.append(dmoc.straight_line_guess(params))
-    for attempt, guess in enumerate(guesses):
-        if attempt == 0 and faults.injected(params.tobytes()):
-            solution = dmoc.failure(params, faults.STATUS, 0.0)
-        else:
-            solution = dmoc.solve(params, guess)
-        solution.attempts = attempt + 1
-        if solution.success:
-            break
-    return solution
-
-
-def cache_report(_task: object = None) -> dict:
-    """Engine kernel for diagnostics: this process's id and its DMOC solver-cache counters
-    (``builds`` = transcriptions built, ``hits`` = reuses)."""
-    import os
-
-    info = dmoc_problem.cache_info()
-    return {"pid": os.getpid(), "builds": info.misses, "hits": info.hits, "cached": info.currsize}
+    """The process-wide DMOC transcription of ``shape`` (:func:`~ocpar.ocp.transcription`)."""
+    return transcription(shape)

@@ -7,19 +7,21 @@ state x_0 and the values of the terminal components x_N[i] (i in ``terminal``; t
 free: a target set Q(x) = x[terminal] − target = 0) are NLP parameters, p = (x_0, target).
 Decision variables w = (x_1..x_N, u_0..u_{N-1}); states and controls are bounded by the
 model's bounds (controls only if the model has ``control_bounds``).
+A guess is a w; the default holds x_0 with zero controls.
 """
 
 from __future__ import annotations
 
 import time
+from collections.abc import Iterator
 from dataclasses import dataclass
-from functools import cached_property, lru_cache
+from functools import cached_property
 
 import casadi as ca
 import numpy as np
 
-from ocpar import faults
 from ocpar.models.ode import OdeModel, control_bounds
+from ocpar.ocp.contract import InnerSolution, check_params, transcription
 from ocpar.ocp.ipopt import ipopt_options
 
 INTEGRATORS = ("euler", "rk4")
@@ -67,40 +69,29 @@ class MsShape:
         if any(not 0 <= i < self.model.nx for i in self.terminal):
             raise ValueError(f"terminal indices {self.terminal} outside 0..{self.model.nx - 1}")
 
+    @property
+    def n_params(self) -> int:
+        """Length of p = (x_0, target)."""
+        return self.model.nx + len(self.terminal)
 
-@dataclass(frozen=True)
-class MsTask:
-    """One MS solve: shape, initial state (nx,), terminal target (len(terminal),) and an
-    optional warm start: w0 (flattened states x_1..x_N then controls) and constraint
-    multipliers λ_g0 (from a neighbouring solve of the same shape); ``fallback`` an optional
-    second guess (like w0, without multipliers) to retry from if the first attempt fails.
-    Numbers travel as float arrays (a tuple of numpy scalars pickles ~30x slower)."""
-
-    shape: MsShape
-    initial_state: np.ndarray
-    target: np.ndarray
-    warm_start: np.ndarray | None = None
-    multipliers: np.ndarray | None = None
-    fallback: np.ndarray | None = None
+    def build(self) -> MsTranscription:
+        """The transcription of this shape (see :func:`~ocpar.ocp.transcription`)."""
+        return MsTranscription(self)
 
 
 @dataclass
-class MsSolution:
-    """Result of one MS solve: ``cost``; states ``x`` (N+1, nx) including x_0; controls ``u``
-    (N, nu); ``constraint_violation`` = max |continuity or terminal residual|; ``w`` and
+class MsSolution(InnerSolution):
+    """Result of one MS solve: the common fields, and states ``x`` (N+1, nx) including x_0;
+    controls ``u`` (N, nu); ``cost_gradient`` dJ*/dp (nx + len(terminal), from the NLP
+    multipliers); ``constraint_violation`` = max |continuity or terminal residual|; ``w`` and
     ``lam_g`` the NLP solution and constraint multipliers (to warm-start a similar solve)."""
 
-    cost: float
     x: np.ndarray
     u: np.ndarray
-    status: str
-    success: bool
-    iterations: int
-    solve_time_s: float
+    cost_gradient: np.ndarray
     constraint_violation: float
     w: np.ndarray
     lam_g: np.ndarray
-    attempts: int = 1
 
 
 def step_function(model: OdeModel, step: float, integrator: str) -> ca.Function:
@@ -139,6 +130,7 @@ class MsTranscription:
 
         self.w = ca.vertcat(ca.vec(x_free), ca.vec(u))
         self.p = p
+        self.n_params = shape.n_params
         self.nw = self.w.numel()
         self.cost = cost
         self.g = ca.vertcat(*gaps, *terminal)
@@ -175,84 +167,73 @@ class MsTranscription:
         x = np.vstack([x0, np.asarray(w[: nx * n]).reshape(n, nx)])
         return x, np.asarray(w[nx * n :]).reshape(n, self.nu)
 
-    def solve(
-        self,
-        x0: np.ndarray,
-        target: np.ndarray,
-        w0: np.ndarray | None = None,
-        lam_g0: np.ndarray | None = None,
-    ) -> MsSolution:
-        """Solve from x0 to the target; w0 defaults to x0 held and zero controls, λ_g0 to
-        zero. With a ``warm_start`` shape and a guess, the SQP :attr:`resolver` runs first and
-        IPOPT only if it fails. A failed solve is returned, not raised."""
-        if self.shape.warm_start and w0 is not None:
-            first = self._solve_with(self.resolver, x0, target, w0, lam_g0)
+    def default_guess(self, params: np.ndarray) -> np.ndarray:
+        """x_0 held at every sample, zero controls."""
+        x0 = np.asarray(params, float)[: self.nx]
+        return self.pack(np.tile(x0, (self.n + 1, 1)), np.zeros((self.n, self.nu)))
+
+    def fallback_guesses(self, params: np.ndarray) -> Iterator[np.ndarray]:
+        """None: a scheme brings its own fallback (e.g. the leader's trajectory)."""
+        return iter(())
+
+    def warm_start(self, solution: MsSolution) -> np.ndarray:
+        """The guess that re-solves from ``solution``: its w."""
+        return solution.w
+
+    def solve(self, params: np.ndarray, guess: np.ndarray | None = None,
+              multipliers: np.ndarray | None = None) -> MsSolution:
+        """Solve for p = (x_0, target) from ``guess`` (default :meth:`default_guess`) and
+        constraint multipliers λ_g0 (default 0). With a ``warm_start`` shape and a guess, the
+        SQP :attr:`resolver` runs first and IPOPT only if it fails. A failed solve is returned,
+        not raised."""
+        params = check_params(params, self.n_params, "multiple shooting")
+        if self.shape.warm_start and guess is not None:
+            first = self._solve_with(self.resolver, params, guess, multipliers)
             if first.success:
                 return first
-        return self._solve_with(self.solver, x0, target, w0, lam_g0)
+        if guess is None:
+            guess = self.default_guess(params)
+        return self._solve_with(self.solver, params, guess, multipliers)
 
-    def _solve_with(
-        self,
-        solver: ca.Function,
-        x0: np.ndarray,
-        target: np.ndarray,
-        w0: np.ndarray | None,
-        lam_g0: np.ndarray | None,
-    ) -> MsSolution:
-        x0, target = np.asarray(x0, float), np.asarray(target, float)
-        if w0 is None:
-            w0 = self.pack(np.tile(x0, (self.n + 1, 1)), np.zeros((self.n, self.nu)))
-        p = np.concatenate([x0, target])
+    def _solve_with(self, solver: ca.Function, params: np.ndarray, guess: np.ndarray,
+                    multipliers: np.ndarray | None) -> MsSolution:
         start = time.perf_counter()
         try:
-            out = solver(x0=w0, p=p, lbg=0, ubg=0, lbx=self.lbw, ubx=self.ubw,
-                         lam_g0=0 if lam_g0 is None else lam_g0)
+            out = solver(x0=guess, p=params, lbg=0, ubg=0, lbx=self.lbw, ubx=self.ubw,
+                         lam_g0=0 if multipliers is None else multipliers)
         except RuntimeError as exc:  # evaluation errors (NaN) in CasADi
-            return self.failure(x0, f"error: {exc}".splitlines()[0],
+            return self.failure(params, f"error: {exc}".splitlines()[0],
                                 time.perf_counter() - start)
         elapsed = time.perf_counter() - start
         stats = solver.stats()
         w = np.asarray(out["x"]).ravel()
-        x, u = self.unpack(w, x0)
+        x, u = self.unpack(w, params[: self.nx])
         return MsSolution(
             cost=float(out["f"]),
-            x=x,
-            u=u,
             status=str(stats["return_status"]),
             success=bool(stats["success"]),
             iterations=int(stats["iter_count"]),
+            attempts=1,
             solve_time_s=elapsed,
+            x=x,
+            u=u,
+            cost_gradient=-np.asarray(out["lam_p"]).ravel(),  # lam_p = -dJ*/dp
             constraint_violation=float(np.max(np.abs(np.asarray(out["g"])))),
             w=w,
             lam_g=np.asarray(out["lam_g"]).ravel(),
         )
 
-
-    def failure(self, x0: np.ndarray, status: str, elapsed: float) -> MsSolution:
-        """A failed solve from ``x0``: NaN cost, path and multipliers, with ``status``."""
+    def failure(self, params: np.ndarray, status: str, elapsed: float) -> MsSolution:
+        """A failed solve for p: NaN cost, path, gradient and multipliers, with ``status``."""
+        params = np.asarray(params, float)
         w = np.full(self.nw, np.nan)
-        x, u = self.unpack(w, np.asarray(x0, float))
-        return MsSolution(float("nan"), x, u, status, False, 0, elapsed, float("inf"), w,
-                          np.full(self.ng, np.nan))
+        x, u = self.unpack(w, params[: self.nx])
+        return MsSolution(cost=float("nan"), status=status, success=False, iterations=0,
+                          attempts=1, solve_time_s=elapsed, x=x, u=u,
+                          cost_gradient=np.full(params.shape, np.nan),
+                          constraint_violation=float("inf"), w=w, lam_g=np.full(self.ng, np.nan))
 
 
-@lru_cache(maxsize=64)
 def ms_problem(shape: MsShape) -> MsTranscription:
-    """The process-wide MS transcription of ``shape``: built once, then reused."""
-    return MsTranscription(shape)
-
-
-def solve_ms_task(task: MsTask) -> MsSolution:
-    """Engine kernel: solve one MS task with this process's cached solver; if that fails and
-    the task has a ``fallback`` guess, retry once from it (``attempts`` says how many were
-    made). (Test-only: first attempts chosen by :mod:`ocpar.faults` fail without solving.)"""
-    ms = ms_problem(task.shape)
-    key = np.concatenate([task.initial_state, task.target]).tobytes()
-    if faults.injected(key):
-        solution = ms.failure(task.initial_state, faults.STATUS, 0.0)
-    else:
-        solution = ms.solve(task.initial_state, task.target, task.warm_start, task.multipliers)
-    if not solution.success and task.fallback is not None:
-        solution = ms.solve(task.initial_state, task.target, task.fallback)
-        solution.attempts = 2
-    return solution
+    """The process-wide MS transcription of ``shape`` (:func:`~ocpar.ocp.transcription`)."""
+    return transcription(shape)

@@ -29,7 +29,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ocpar.bsp import Backend
-from ocpar.ocp import MsShape, MsSolution, MsTask, solve_ms_task
+from ocpar.ocp import MsShape, MsSolution, OcpTask, solve_task
 from ocpar.options import option
 from ocpar.pursuit.problem import PursuitProblem
 
@@ -138,7 +138,7 @@ class PursuitTrain:
         x[0] = self.problem.initial_state
         return Agent(self.launched, x, np.full((n - 1, self.problem.model.nu), np.nan))
 
-    def ready(self) -> list[tuple[Agent, MsTask]]:
+    def ready(self) -> list[tuple[Agent, OcpTask]]:
         """Agents whose next update can be computed now, with their subproblems; launches a
         new agent when the last one has gone far enough for it to start."""
         n, window = self.problem.samples, self.settings.window
@@ -168,8 +168,8 @@ class PursuitTrain:
             else:  # agent 0 has no plans: its trajectory, no multipliers
                 guess, lam = trajectory, None
             # the failure policy: a failed solve is retried from the leader's trajectory
-            task = MsTask(self._shape(end - j), agent.x[j].copy(), np.array(target), guess, lam,
-                          fallback=trajectory)
+            task = OcpTask(self._shape(end - j), np.concatenate([agent.x[j], target]), guess,
+                           lam, fallback=trajectory)
             work.append((agent, task))
         return work
 
@@ -233,7 +233,7 @@ def run_pursuit(
         max_in_flight = max(max_in_flight, len(work))
         # cost estimate: a subproblem's size, its number of intervals (free-running ones are
         # shorter); longest-first keeps the two or three catch-ups of a wave on different workers
-        sols = backend.superstep(solve_ms_task, [task for _, task in work],
+        sols = backend.superstep(solve_task, [task for _, task in work],
                                  costs=[task.shape.intervals for _, task in work])
         for (agent, _), sol in zip(work, sols, strict=True):
             train.apply(agent, sol)

@@ -9,7 +9,7 @@ import numpy as np
 
 from ocpar.bsp import Backend
 from ocpar.bsp.serial import SerialBackend
-from ocpar.ocp import MsShape, MsSolution, MsTask, solve_ms_task
+from ocpar.ocp import MsShape, MsSolution, OcpTask, solve_task
 from ocpar.pursuit.problem import PursuitProblem
 from ocpar.pursuit.result import PursuitResult
 from ocpar.pursuit.slp import PursuitSettings, run_pursuit
@@ -27,8 +27,8 @@ def solve_full_horizon(problem: PursuitProblem, backend: Backend) -> MsSolution:
     shape = MsShape(problem.model, problem.samples - 1, problem.step,
                     problem.target_components, problem.integrator)
     guess = np.concatenate([x0[1:].ravel(), u0.ravel()])
-    task = MsTask(shape, problem.initial_state, problem.target, guess)
-    return backend.superstep(solve_ms_task, [task])[0]
+    task = OcpTask(shape, np.concatenate([problem.initial_state, problem.target]), guess)
+    return backend.superstep(solve_task, [task])[0]
 
 
 def solve_pursuit(

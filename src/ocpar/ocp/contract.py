@@ -1,0 +1,156 @@
+"""The inner-problem contract every transcription implements, and the one engine kernel.
+
+A *shape* is a frozen, hashable dataclass holding everything that fixes an NLP's structure
+(model, grid, solver options); its :meth:`Shape.build` makes the :class:`Transcription`, and
+:func:`transcription` caches that once per shape per process. A task (:class:`OcpTask`)
+is a shape plus numbers only: the parameter vector p (boundary data) and the guesses to try,
+as arrays. :func:`solve_task` is the engine kernel of every transcription: it applies the
+failure policy and returns an :class:`InnerSolution` (a subclass with the transcription's
+payload), never raising on a solver failure.
+
+The failure policy: try the task's ``warm_start`` (with ``multipliers``; the transcription's
+:meth:`Transcription.default_guess` if None), then the task's ``fallback``, then the
+transcription's :meth:`Transcription.fallback_guesses`, until one succeeds; ``attempts``
+counts the tries. A guess with non-finite entries is a failed attempt (status
+:data:`INVALID_GUESS`) without calling the solver; non-finite parameters fail the task at
+once (status :data:`INVALID_PARAMS`, one attempt).
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Hashable, Iterator
+from dataclasses import dataclass
+from functools import lru_cache
+from typing import Any, Protocol, TypeVar, runtime_checkable
+
+import numpy as np
+
+#: Status of an attempt from a guess that is not finite (no solver call).
+INVALID_GUESS = "Invalid_Guess"
+#: Status of a task whose parameters are not finite (no solver call).
+INVALID_PARAMS = "Invalid_Parameters"
+
+
+@dataclass
+class InnerSolution:
+    """Fields every transcription's solution has: optimal ``cost`` J* (NaN on failure), the
+    solver's ``status``, ``success``, solver ``iterations``, ``attempts`` made by the failure
+    policy (1 if the first guess succeeded) and ``solve_time_s`` of the last attempt (s)."""
+
+    cost: float
+    status: str
+    success: bool
+    iterations: int
+    attempts: int
+    solve_time_s: float
+
+
+S = TypeVar("S", bound=InnerSolution)
+
+
+@runtime_checkable
+class Transcription(Protocol[S]):
+    """A parametric NLP of one shape, built once and solved many times.
+
+    ``n_params`` is the length of p; a guess is a vector of the NLP's variables (see each
+    transcription); ``multipliers`` are constraint multipliers λ_g of a neighbouring solve.
+    """
+
+    @property
+    def n_params(self) -> int: ...
+
+    def solve(self, params: np.ndarray, guess: np.ndarray | None = None,
+              multipliers: np.ndarray | None = None) -> S:
+        """Solve for parameters p from ``guess`` (default: :meth:`default_guess`); a failed
+        solve is returned (``success`` False, its status), never raised."""
+        ...
+
+    def failure(self, params: np.ndarray, status: str, elapsed: float) -> S:
+        """A failed solution for p with ``status``: NaN cost and payload."""
+        ...
+
+    def default_guess(self, params: np.ndarray) -> np.ndarray:
+        """The first guess when a task brings none."""
+        ...
+
+    def fallback_guesses(self, params: np.ndarray) -> Iterator[np.ndarray]:
+        """Guesses to try after the task's own (possibly none), made lazily."""
+        ...
+
+    def warm_start(self, solution: S) -> np.ndarray:
+        """The guess that re-solves from ``solution``."""
+        ...
+
+
+class Shape(Hashable, Protocol):
+    """A frozen, hashable dataclass fixing an NLP's structure (the solver-cache key)."""
+
+    def build(self) -> Transcription[Any]:
+        """Build the transcription of this shape (costly: done once per process)."""
+        ...
+
+
+@dataclass(frozen=True)
+class OcpTask:
+    """One inner solve: ``shape`` and numbers only. ``params`` p (n_params,); ``warm_start``
+    the first guess (None: the transcription's default) with optional constraint
+    ``multipliers``; ``fallback`` a second guess if the first attempt fails. Optional arrays,
+    not a tuple of them, so that a batch packs into one stacked array per field
+    (:mod:`ocpar.bsp.columns`)."""
+
+    shape: Shape
+    params: np.ndarray
+    warm_start: np.ndarray | None = None
+    multipliers: np.ndarray | None = None
+    fallback: np.ndarray | None = None
+
+
+@lru_cache(maxsize=128)
+def transcription(shape: Shape) -> Transcription[Any]:
+    """The process-wide transcription of ``shape``: built once, then reused."""
+    return shape.build()
+
+
+def check_params(params: np.ndarray, n_params: int, name: str) -> np.ndarray:
+    """p as a float vector of length ``n_params``; ValueError naming the transcription
+    otherwise."""
+    params = np.asarray(params, float)
+    if params.shape != (n_params,):
+        raise ValueError(f"{name} params must have length {n_params}, got shape {params.shape}")
+    return params
+
+
+def _guesses(nlp: Transcription[Any], task: OcpTask, params: np.ndarray
+             ) -> Iterator[tuple[np.ndarray | None, np.ndarray | None]]:
+    yield task.warm_start, task.multipliers
+    if task.fallback is not None:
+        yield task.fallback, None
+    for guess in nlp.fallback_guesses(params):
+        yield guess, None
+
+
+def solve_task(task: OcpTask) -> InnerSolution:
+    """Engine kernel of every transcription: solve ``task`` with this process's cached
+    transcription of ``task.shape`` under the failure policy (module docstring)."""
+    nlp = transcription(task.shape)
+    params = check_params(task.params, nlp.n_params, type(nlp).__name__)
+    if not np.all(np.isfinite(params)):
+        return nlp.failure(params, INVALID_PARAMS, 0.0)
+    solution = None
+    for attempt, (guess, multipliers) in enumerate(_guesses(nlp, task, params), start=1):
+        if guess is not None and not np.all(np.isfinite(guess)):
+            solution = nlp.failure(params, INVALID_GUESS, 0.0)
+        else:
+            solution = nlp.solve(params, guess, multipliers)
+        solution.attempts = attempt
+        if solution.success:
+            break
+    return solution
+
+
+def cache_report(_task: object = None) -> dict:
+    """Engine kernel for diagnostics: this process's id and its transcription-cache counters
+    (``builds`` = transcriptions built, ``hits`` = reuses)."""
+    info = transcription.cache_info()
+    return {"pid": os.getpid(), "builds": info.misses, "hits": info.hits, "cached": info.currsize}

@@ -1,0 +1,178 @@
+"""The inner-problem contract on every transcription (DMOC, multiple shooting, DFET): one suite
+run on each, as rockit's tests/test_methods.py runs every method on every problem.
+
+The problem is the double integrator's minimum energy, q̈ = u, min ∫ u² dt over a fixed
+horizon T between boundary data (q_0, v_0) and (q_T, v_T); its optimum is, per axis,
+12 a²/T³ − 12 a b/T² + 4 b²/T with a = q_T − q_0 − v_0 T and b = v_T − v_0 (12 d²/T³ from
+rest to rest).
+"""
+
+from __future__ import annotations
+
+import math
+import pickle
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import casadi as ca
+import numpy as np
+import pytest
+
+from ocpar.bsp.columns import SHARED, STACKED, to_columns
+from ocpar.models import PointMass
+from ocpar.ocp import (
+    INVALID_GUESS,
+    INVALID_PARAMS,
+    DfetOcpShape,
+    DmocShape,
+    MsShape,
+    OcpTask,
+    Transcription,
+    solve_task,
+    transcription,
+)
+
+DURATION = 2.0
+
+
+@dataclass(frozen=True)
+class DoubleIntegrator:
+    """ẋ = (v, u) on the line, running cost u²."""
+
+    nx = 2
+    nu = 1
+
+    def rhs(self, x: ca.SX, u: ca.SX) -> ca.SX:
+        return ca.vertcat(x[1], u[0])
+
+    def running_cost(self, x: ca.SX, u: ca.SX) -> ca.SX:
+        return u[0] ** 2
+
+    def state_bounds(self) -> tuple[np.ndarray, np.ndarray]:
+        return np.full(2, -np.inf), np.full(2, np.inf)
+
+
+def minimum_energy(q0, v0, qn, vn, duration: float) -> float:
+    a, b = np.asarray(qn) - q0 - np.asarray(v0) * duration, np.asarray(vn) - v0
+    t = duration
+    return float(np.sum(12 * a**2 / t**3 - 12 * a * b / t**2 + 4 * b**2 / t))
+
+
+@dataclass(frozen=True)
+class Case:
+    """A transcription of the problem: ``shape(n, **options)`` on n intervals/elements,
+    parameters p, the exact optimum, and the order of the cost error it must show."""
+
+    name: str
+    shape: Callable[..., object]
+    params: np.ndarray
+    exact: float
+    order: float
+    grids: tuple[int, int]
+
+
+# the planar point mass of DMOC: p = (q_0, v_0, q_N, v_N), 2-D each
+DMOC_P = np.array([0.0, 0.0, 1.0, 0.5, 3.0, 1.0, 0.0, -1.0])
+# the line: p = (q_0, v_0, q_T, v_T)
+LINE_P = np.array([0.0, 0.5, 1.0, -1.0])
+LINE_EXACT = minimum_energy(0.0, 0.5, 1.0, -1.0, DURATION)
+
+CASES = [
+    # midpoint discrete Lagrangian: O(h²)
+    Case("dmoc", lambda n, **o: DmocShape(PointMass(), n, DURATION, **o), DMOC_P,
+         minimum_energy(*DMOC_P.reshape(4, 2), DURATION), 2.0, (10, 40)),
+    # explicit Euler steps: O(h)
+    Case("ms-euler", lambda n, **o: MsShape(DoubleIntegrator(), n, DURATION / n, (0, 1), **o),
+         LINE_P, LINE_EXACT, 1.0, (20, 80)),
+    # RK4 steps, controls held on each interval: O(h²) from the controls
+    Case("ms-rk4", lambda n, **o: MsShape(DoubleIntegrator(), n, DURATION / n, (0, 1), "rk4",
+                                          **o), LINE_P, LINE_EXACT, 2.0, (10, 40)),
+    # quadratic states, constant controls per element: O(h²) from the controls
+    Case("dfet", lambda n, **o: DfetOcpShape(DoubleIntegrator(), n, 2, 0, ((-50.0, 50.0),),
+                                             (DURATION, DURATION), (0, 1), **o),
+         LINE_P, LINE_EXACT, 2.0, (8, 32)),
+]
+
+
+@pytest.fixture(params=CASES, ids=lambda c: c.name)
+def case(request) -> Case:
+    return request.param
+
+
+def test_transcriptions_implement_the_contract(case):
+    shape = case.shape(case.grids[0])
+    nlp = transcription(shape)
+    assert isinstance(nlp, Transcription)
+    assert transcription(pickle.loads(pickle.dumps(shape))) is nlp  # built once per shape
+    assert nlp.n_params == case.params.size
+
+
+def test_cost_converges_to_the_analytic_optimum_at_the_expected_order(case):
+    coarse, fine = case.grids
+    errors = {}
+    for n in case.grids:
+        sol = solve_task(OcpTask(case.shape(n), case.params))
+        assert sol.success and sol.attempts == 1, sol.status
+        errors[n] = abs(sol.cost - case.exact)
+    assert errors[coarse] / case.exact < 0.1
+    observed = math.log(errors[coarse] / errors[fine]) / math.log(fine / coarse)
+    assert observed == pytest.approx(case.order, abs=0.1)
+
+
+def test_warm_start_gives_the_same_optimum_in_no_more_iterations(case):
+    nlp = transcription(case.shape(case.grids[0]))
+    cold = nlp.solve(case.params)
+    warm = nlp.solve(case.params, nlp.warm_start(cold), getattr(cold, "lam_g", None))
+    assert cold.success and warm.success
+    assert warm.cost == pytest.approx(cold.cost, rel=1e-9)
+    assert warm.iterations <= cold.iterations
+    # the same through the kernel, the warm start carried by the task as data
+    task = OcpTask(case.shape(case.grids[0]), case.params, nlp.warm_start(cold))
+    assert solve_task(task).cost == pytest.approx(cold.cost, rel=1e-9)
+
+
+def test_failures_are_data(case):
+    nlp = transcription(case.shape(case.grids[0]))
+    nan_params = np.full(case.params.size, np.nan)
+    direct = nlp.solve(nan_params)  # the solver meets NaN: a status, no exception
+    assert not direct.success and direct.status
+    kernel = solve_task(OcpTask(case.shape(case.grids[0]), nan_params))
+    assert (kernel.success, kernel.status, kernel.attempts) == (False, INVALID_PARAMS, 1)
+
+    # a solver that cannot finish: every guess is tried (the task's, then the fallbacks)
+    stuck = case.shape(case.grids[0], max_iter=0)
+    sol = solve_task(OcpTask(stuck, case.params))
+    fallbacks = len(list(transcription(stuck).fallback_guesses(case.params)))
+    assert not sol.success and sol.status and sol.attempts == 1 + fallbacks
+
+    # a first guess that is not finite fails without a solve; the task's fallback succeeds
+    guess = nlp.default_guess(case.params)
+    retried = solve_task(OcpTask(case.shape(case.grids[0]), case.params,
+                                 warm_start=np.full_like(guess, np.nan), fallback=guess))
+    assert retried.success and retried.attempts == 2
+    assert retried.cost == pytest.approx(nlp.solve(case.params).cost, rel=1e-9)
+    failed = nlp.failure(case.params, INVALID_GUESS, 0.0)
+    assert not failed.success and math.isnan(failed.cost)
+
+
+def test_cost_gradient_from_multipliers_matches_finite_differences(case):
+    """dJ*/dp from CasADi's lam_p (lam_p = −dJ*/dp) against central differences."""
+    nlp = transcription(case.shape(case.grids[0]))
+    gradient = nlp.solve(case.params).cost_gradient
+    step = 1e-5
+    fd = np.array([(nlp.solve(case.params + step * e).cost
+                    - nlp.solve(case.params - step * e).cost) / (2 * step)
+                   for e in np.eye(case.params.size)])
+    assert np.linalg.norm(gradient) > 1.0
+    np.testing.assert_allclose(gradient, fd, rtol=1e-6, atol=1e-6)
+
+
+def test_tasks_pack_into_one_array_per_field(case):
+    shape, rng = case.shape(case.grids[0]), np.random.default_rng(0)
+    guess = transcription(shape).default_guess(case.params)
+    tasks = [OcpTask(shape, case.params + rng.standard_normal(case.params.size),
+                     fallback=guess + k) for k in range(5)]
+    packed = to_columns(tasks)
+    kinds = {name: kind for name, (kind, _) in packed.fields.items()}
+    assert kinds == {"shape": SHARED, "params": STACKED, "warm_start": SHARED,
+                     "multipliers": SHARED, "fallback": STACKED}
