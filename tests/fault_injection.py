@@ -73,8 +73,9 @@ def _search_task(kernel: Callable[[Any], Any], task: Any) -> Any:
     if not injected(task.kind.encode() + key):
         return kernel(task)
     start = task.z0 if task.z0 is not None else np.full(0, np.nan)
-    return SearchResult(z=start, objectives=np.full(task.problem.n_objectives, np.nan), feasible=False, evaluations=1,
-                        status=STATUS, iterations=0, solve_time_s=0.0)
+    return SearchResult(z=start, objectives=np.full(task.problem.n_objectives, np.nan),
+                        feasible=False, evaluations=1, status=STATUS, iterations=0,
+                        solve_time_s=0.0)
 
 
 def wrap(_name: str, kernel: Callable[[Any], Any]) -> Callable[[Any], Any]:
