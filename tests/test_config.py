@@ -14,13 +14,14 @@ from pathlib import Path
 import pytest
 from conftest import tool
 
+from ocpar import driver
 from ocpar.__main__ import main
 from ocpar.config import (
     ConfigError,
     load_config,
     parse_override,
     parse_overrides,
-    scheme_module,
+    scheme_class,
     scheme_options,
     scheme_parser,
 )
@@ -133,7 +134,7 @@ def test_example_prints_the_scheme_command_line(name, capsys):
     assert words[:3] == ["python", "-m", f"ocpar.{scheme}"] and words[3:] == expected
     config = load_config(name)
     assert config.scheme == scheme and config.argv() == expected
-    args = scheme_module(scheme).parse_args(expected)  # the scheme's parser accepts it
+    args = driver.parse_options(scheme_class(scheme), expected)[0]  # the scheme's parser accepts it
     assert args.output == f"runs/{name}"
 
 
@@ -167,12 +168,12 @@ def test_formation_60_runs_as_its_command_line_does(tmp_path):
 
 
 def test_formation_halo_30_runs_as_its_command_line_does(tmp_path, monkeypatch, capsys):
-    from ocpar.formation.__main__ import main as formation_main
+    from ocpar.formation.run import FormationRun
 
     monkeypatch.chdir(tmp_path)
     assert main(["run", "formation-halo-30", "--set", "quiet=true"]) == 0
     _, argv = EXAMPLES["formation-halo-30"]
-    assert formation_main([*argv[:-1], "cli", "--quiet"]) == 0
+    assert driver.main(FormationRun, [*argv[:-1], "cli", "--quiet"]) == 0
     capsys.readouterr()
     got = json.loads((tmp_path / "runs/formation-halo-30/result.json").read_text())
     want = json.loads((tmp_path / "cli/result.json").read_text())
@@ -228,7 +229,7 @@ def test_values_become_the_options_text(tmp_path):
     assert config.argv() == ["--samples", "101", "--epsilon", "0.001", "--no-reference",
                              "--superstep-timeout", "60", "--output", "my runs/a"]
     assert shlex.split(config.command())[3:] == config.argv()
-    assert scheme_module("pursuit").parse_args(config.argv()).output == "my runs/a"
+    assert driver.parse_options(scheme_class("pursuit"), config.argv())[0].output == "my runs/a"
 
 
 def test_a_negative_value_is_attached_to_its_option(tmp_path):

@@ -22,8 +22,9 @@ import sys
 import time
 from dataclasses import replace
 
+from ocpar import driver
 from ocpar.cli import OneLineParser, add_tls_arguments, check_tls_arguments, client_security, fail
-from ocpar.config import ConfigError, examples, load_config, parse_overrides, scheme_module
+from ocpar.config import ConfigError, examples, load_config, parse_overrides, scheme_class
 from ocpar.service.client import SERVICE_OPTIONS
 
 #: Keys of a configuration that a submitted job sets itself: where it runs and writes.
@@ -48,15 +49,15 @@ def run(args: argparse.Namespace) -> int:
         config = load_config(args.config, parse_overrides(args.overrides))
     except ConfigError as exc:
         fail(prog, str(exc))
-    scheme = scheme_module(config.scheme)
+    scheme = scheme_class(config.scheme)
     flags = args.scheme_flags  # the scheme's own options, after CONFIG: they override it
     config = config.without(config.flag_keys(flags))
     argv = config.argv() + flags
     if args.print_argv:
-        scheme.parse_args(argv)  # the scheme's own checks, with its one-line errors
+        driver.parse_options(scheme, argv)  # the scheme's own checks, one-line errors
         print(config.command(flags))
         return 0
-    return scheme.main(argv)
+    return driver.main(scheme, argv)
 
 
 def submit(args: argparse.Namespace) -> int:

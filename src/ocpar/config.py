@@ -55,7 +55,6 @@ from dataclasses import dataclass, field
 from functools import cache
 from importlib import resources
 from pathlib import Path
-from types import ModuleType
 from typing import Any
 
 from ocpar.options import option_specs, parse_value, toml_scalar
@@ -91,7 +90,7 @@ class RunConfig:
     source: str = "<config>"
 
     def argv(self) -> list[str]:
-        """The scheme's command-line arguments (``main(argv)`` of :func:`scheme_module`)."""
+        """The scheme's command-line arguments (of ``python -m ocpar.<scheme>``)."""
         by_key = scheme_options(self.scheme)
         argv: list[str] = []
         for key, value in self.options.items():
@@ -135,11 +134,6 @@ class RunConfig:
         return RunConfig(self.scheme, options, self.source)
 
 
-def scheme_module(scheme: str) -> ModuleType:
-    """The command-line module of ``scheme``: its ``parse_args(argv)`` and ``main(argv)``."""
-    return importlib.import_module(f"ocpar.{scheme}.__main__")
-
-
 def scheme_class(scheme: str) -> type:
     """The options dataclass of ``scheme`` (its fields are the configuration's keys)."""
     module, name = SCHEMES[scheme]
@@ -148,8 +142,10 @@ def scheme_class(scheme: str) -> type:
 
 @cache
 def scheme_parser(scheme: str) -> argparse.ArgumentParser:
-    """The scheme's own command-line parser (its module's ``build_parser``)."""
-    return scheme_module(scheme).build_parser()
+    """The scheme's own command-line parser (generated from :func:`scheme_class`)."""
+    from ocpar.driver import build_parser
+
+    return build_parser(scheme_class(scheme))
 
 
 @cache

@@ -10,14 +10,14 @@ scheduler, which keeps the jobs (:mod:`ocpar.service.jobs`). Every function take
 
 from __future__ import annotations
 
-import importlib
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any, TypeVar
 
+from ocpar import driver
+from ocpar.config import SCHEMES, scheme_class
 from ocpar.service import jobs
 
-SCHEMES = ("formation", "pursuit", "macs")
 #: Options of a scheme's command line that the service sets for a submitted job.
 SERVICE_OPTIONS = ("--backend", "--scheduler", "--output", "--checkpoint", "--resume",
                    "--stop-file", "--dispatch", "--job-name", "--tls-ca-file", "--tls-cert",
@@ -66,8 +66,8 @@ def check_run(scheme: str, argv: list[str]) -> None:
         if option in given:
             raise ServiceError(f"{option} is set by the service for a submitted job; leave "
                                "it out")
-    module = importlib.import_module(f"ocpar.{scheme}.__main__")
-    module.parse_args([*argv, "--backend", "dask", "--scheduler", "tcp://host:1"])
+    driver.parse_options(scheme_class(scheme),
+                         [*argv, "--backend", "dask", "--scheduler", "tcp://host:1"])
 
 
 def submit(scheme: str, argv: list[str], scheduler: str, security: Any = None) -> str:
