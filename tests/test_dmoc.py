@@ -5,9 +5,9 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+
 from ocpar.examples.formation_halo import FINAL_ATTITUDE, START_ATTITUDE
 from ocpar.examples.formation_halo import make as halo_spacecraft_example
-
 from ocpar.models import PointMass
 from ocpar.ocp import DmocShape, OcpTask, cache_report, dmoc_problem, solve_task
 
