@@ -10,7 +10,7 @@ line checks that the real ``python -m ...`` behaves the same.
 from __future__ import annotations
 
 import importlib
-from types import ModuleType, SimpleNamespace
+from types import SimpleNamespace
 
 import pytest
 from conftest import run_cli
@@ -18,11 +18,11 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from ocpar import driver
+from ocpar.config import scheme_class
 from ocpar.formation.solve import MODES, ORDERINGS, OUTER_SOLVERS
 from ocpar.macs.algorithm import MAX_POPULATION
 
-MODULES = {scheme: importlib.import_module(f"ocpar.{scheme}.__main__")
-           for scheme in ("formation", "pursuit", "macs")}
+SCHEMES = {scheme: scheme_class(scheme) for scheme in ("formation", "pursuit", "macs")}
 #: Each scheme's options module (its limits) beside the names it takes choices from.
 FORMATION = SimpleNamespace(**vars(importlib.import_module("ocpar.formation.run")),
                             MODES=MODES, OUTER_SOLVERS=OUTER_SOLVERS, ORDERINGS=ORDERINGS)
@@ -39,10 +39,11 @@ FUZZ = settings(max_examples=300, deadline=None, derandomize=True, database=None
 
 @pytest.fixture
 def guarded(monkeypatch):
-    """The schemes' modules, with everything after validation replaced by a failing guard."""
+    """The schemes' options classes, with everything after validation replaced by a failing
+    guard."""
     for name in GUARDED:
         monkeypatch.setattr(driver, name, _guard(name))
-    return MODULES
+    return SCHEMES
 
 
 def _guard(name: str):
@@ -51,19 +52,19 @@ def _guard(name: str):
     return called
 
 
-def assert_refused(module: ModuleType, argv: list[str], capsys) -> str:
-    """Run ``module.main(argv)``: exit status 2, nothing on stdout, exactly one non-empty line
-    ``PROG: error: ...`` on stderr and no traceback. Returns that line."""
+def assert_refused(scheme: type, argv: list[str], capsys) -> str:
+    """Run the scheme's command line on ``argv``: exit status 2, nothing on stdout, exactly
+    one non-empty line ``PROG: error: ...`` on stderr and no traceback. Returns that line."""
     capsys.readouterr()
     with pytest.raises(SystemExit) as exc:
-        module.main(argv)
+        driver.main(scheme, argv)
     out, err = capsys.readouterr()
     assert exc.value.code == 2, (argv, exc.value.code, err)
     assert out == "", (argv, out)
     lines = err.splitlines()
     assert len(lines) == 1 and err.endswith("\n"), (argv, err)
-    assert lines[0].startswith(f"{module.PROG}: error: "), (argv, err)
-    assert lines[0].strip() != f"{module.PROG}: error:", (argv, err)
+    assert lines[0].startswith(f"{scheme.prog}: error: "), (argv, err)
+    assert lines[0].strip() != f"{scheme.prog}: error:", (argv, err)
     assert "Traceback" not in err, (argv, err)
     return lines[0]
 
@@ -381,7 +382,7 @@ def test_examples_are_refused(scheme, argv, needle, guarded, capsys):
     assert needle in assert_refused(guarded[scheme], argv, capsys)
 
 
-@pytest.mark.parametrize("scheme", sorted(MODULES))
+@pytest.mark.parametrize("scheme", sorted(SCHEMES))
 def test_output_that_is_a_file_is_refused(scheme, guarded, capsys, tmp_path):
     blocker = tmp_path / "result.json"
     blocker.write_text("a file, not a directory")
@@ -389,11 +390,11 @@ def test_output_that_is_a_file_is_refused(scheme, guarded, capsys, tmp_path):
     assert str(blocker) in line
 
 
-@pytest.mark.parametrize("scheme", sorted(MODULES))
+@pytest.mark.parametrize("scheme", sorted(SCHEMES))
 def test_valid_command_lines_reach_the_solver(scheme, guarded, capsys):
     """The guard itself: a valid command line gets past validation (to the guard)."""
     with pytest.raises(AssertionError, match="passed validation"):
-        guarded[scheme].main(["--quiet"])
+        driver.main(guarded[scheme], ["--quiet"])
 
 
 @pytest.mark.parametrize(
