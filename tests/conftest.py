@@ -10,7 +10,9 @@ import socket
 import subprocess
 import sys
 import time
+import tomllib
 from collections.abc import Callable, Iterator
+from dataclasses import dataclass
 from pathlib import Path
 
 import pytest
@@ -105,6 +107,30 @@ def stop_processes(procs: list[subprocess.Popen]) -> None:
             proc.wait(timeout=20)
         except subprocess.TimeoutExpired:
             proc.kill()
+
+
+@dataclass(frozen=True)
+class Golden:
+    """One figure of tests/golden/paper_examples.toml: ``value`` with its tolerance ``rel`` /
+    ``abs``, or a bound ``at_most``; ``source`` where it comes from."""
+
+    source: str
+    value: float | None = None
+    rel: float | None = None
+    abs: float | None = None
+    at_most: float | None = None
+    paper: float | None = None
+
+    def approx(self):
+        """``pytest.approx`` of the value within the file's tolerance."""
+        return pytest.approx(self.value, rel=self.rel, abs=self.abs)
+
+
+def golden(key: str) -> Golden:
+    """The figure ``EXAMPLE.FIGURE`` (e.g. ``formation-60.total_cost``) of the golden file."""
+    example, figure = key.split(".")
+    with open(REPO / "tests" / "golden" / "paper_examples.toml", "rb") as f:
+        return Golden(**tomllib.load(f)[example][figure])
 
 
 @pytest.fixture(scope="session")
