@@ -1,14 +1,18 @@
-"""Shared fixtures: paths of the tools the tests launch, and small problems."""
+"""Shared fixtures: paths of the tools the tests launch, a user's package of problems for
+every scheme, and small problems."""
 
 from __future__ import annotations
 
 import contextlib
+import json
 import os
 import socket
 import subprocess
 import sys
 import time
+import tomllib
 from collections.abc import Callable, Iterator
+from dataclasses import dataclass
 from pathlib import Path
 
 import pytest
@@ -105,8 +109,156 @@ def stop_processes(procs: list[subprocess.Popen]) -> None:
             proc.kill()
 
 
+@dataclass(frozen=True)
+class Golden:
+    """One figure of tests/golden/paper_examples.toml: ``value`` with its tolerance ``rel`` /
+    ``abs``, or a bound ``at_most``; ``source`` where it comes from."""
+
+    source: str
+    value: float | None = None
+    rel: float | None = None
+    abs: float | None = None
+    at_most: float | None = None
+    paper: float | None = None
+
+    def approx(self):
+        """``pytest.approx`` of the value within the file's tolerance."""
+        return pytest.approx(self.value, rel=self.rel, abs=self.abs)
+
+
+def golden(key: str) -> Golden:
+    """The figure ``EXAMPLE.FIGURE`` (e.g. ``formation-60.total_cost``) of the golden file."""
+    example, figure = key.split(".")
+    with open(REPO / "tests" / "golden" / "paper_examples.toml", "rb") as f:
+        return Golden(**tomllib.load(f)[example][figure])
+
+
 @pytest.fixture(scope="session")
 def dask_cluster():
     """:func:`local_cluster` for the whole session."""
     with local_cluster() as address:
         yield address
+
+
+# --- a user's package: problems for every scheme, not part of ocpar ----------------------------
+
+USER_PROBLEMS_PY = '''
+"""A user's problems for every scheme, built with ocpar's public API only."""
+from dataclasses import dataclass
+
+import casadi as ca
+import numpy as np
+
+from ocpar.formation import Circle, DmocShape, FormationProblem
+from ocpar.macs import MacsProblem, Objective
+from ocpar.models import PointMass
+from ocpar.pursuit import PursuitProblem, SampledPlan
+
+NOT_CALLABLE = 3
+
+
+@dataclass(frozen=True)
+class DoubleIntegrator:
+    """ẋ = v, v̇ = u with |u| ≤ 1 and running cost u²."""
+
+    nx: int = 2
+    nu: int = 1
+
+    def rhs(self, x, u):
+        return ca.vertcat(x[1], u[0])
+
+    def running_cost(self, x, u):
+        return u[0] ** 2
+
+    def state_bounds(self):
+        return np.full(2, -np.inf), np.full(2, np.inf)
+
+    def control_bounds(self):
+        return np.array([-1.0]), np.array([1.0])
+
+
+def make_formation(agents: int = 3, radius: float = 2.0) -> FormationProblem:
+    """``agents`` point masses on a bent line below the origin, onto a circle of ``radius``."""
+    x = np.linspace(-1.0, 1.0, agents)
+    starts = np.column_stack([x, -3.0 + 0.2 * x**2])
+    return FormationProblem(name=f"line-{agents}", starts=starts,
+                            shape=DmocShape(PointMass(dim=2, mass=1.0), 10, 1.0),
+                            curve=Circle(radius=radius, center=np.zeros(2)))
+
+
+def make_pursuit(samples: int = 21, duration: float = 4.0) -> PursuitProblem:
+    """The double integrator from (1, 0) to rest at 0, min ∫u²; agent 0 brakes bang-bang
+    (sampled exactly: the controls are held on each step)."""
+    steps, h = samples - 1, duration / (samples - 1)
+    a = 1.0 / (steps // 2 * h) ** 2
+    u = np.where(np.arange(steps) < steps // 2, -a, a)
+    x = [np.array([1.0, 0.0])]
+    for uj in u:
+        p, v = x[-1]
+        x.append(np.array([p + v * h + uj * h**2 / 2, v + uj * h]))
+    return PursuitProblem(name="braking", model=DoubleIntegrator(), duration=duration,
+                          samples=samples, initial_state=np.array([1.0, 0.0]),
+                          target_components=(0, 1), target=np.zeros(2),
+                          plan=SampledPlan(np.array(x), u[:, None]), integrator="rk4")
+
+
+def make_macs(distance: float = 1.0) -> MacsProblem:
+    """Minimum time against minimum energy, the double integrator rest to rest over
+    ``distance`` (front J2 = 12 d² / J1³)."""
+    t_min = 1.02 * np.sqrt(6 * distance)
+    return MacsProblem(
+        name="rest-to-rest", model=DoubleIntegrator(),
+        objectives=(Objective(mayer=lambda xf, tf: tf, name="t_f"),
+                    Objective(running=lambda x, u: u[0] ** 2, name="energy")),
+        initial_state=(0.0, 0.0), final_time=(t_min, 5.0),
+        control_bounds=((-1.0, 1.0),), final_state={0: distance, 1: 0.0},
+        elements=4, order=3, control_order=1)
+
+
+def raises():
+    raise RuntimeError("boom")
+
+
+def wrong_type():
+    return {"agents": 3}
+'''
+USER_BROKEN_PY = 'raise ImportError("needs a library that is not installed")\n'
+#: Fields of result.json that say where and how long a run ran, not what it computed.
+RUNTIME = {"backend", "workers", "wall_time_s", "trace", "peak_rss_mb_per_worker"}
+
+
+@pytest.fixture(scope="session")
+def user_package(tmp_path_factory) -> Path:
+    """The directory holding the package ``mypkg`` (to put on PYTHONPATH): problems for every
+    scheme in ``mypkg.problems`` (``make_formation``, ``make_pursuit``, ``make_macs``)."""
+    site = tmp_path_factory.mktemp("site")
+    (site / "mypkg").mkdir()
+    (site / "mypkg" / "__init__.py").write_text('"""Not part of ocpar."""\n')
+    (site / "mypkg" / "problems.py").write_text(USER_PROBLEMS_PY)
+    (site / "mypkg" / "broken.py").write_text(USER_BROKEN_PY)
+    return site
+
+
+def user_environment(site: Path) -> dict[str, str]:
+    """This environment with ``site`` (a user's packages) first on PYTHONPATH."""
+    paths = [str(site), *filter(None, [os.environ.get("PYTHONPATH")])]
+    return dict(os.environ, PYTHONPATH=os.pathsep.join(paths), OMP_NUM_THREADS="1")
+
+
+def run_ocpar(site: Path, cwd: Path, *args: str, mpi_ranks: int | None = None,
+              timeout: float = 300) -> subprocess.CompletedProcess:
+    """``python -m ocpar ARGS`` in ``cwd`` with the packages in ``site`` importable."""
+    cmd = [sys.executable, "-m", "ocpar", *args]
+    if mpi_ranks is not None:
+        cmd = [tool("mpirun"), "-n", str(mpi_ranks), *cmd]
+    return subprocess.run(cmd, capture_output=True, text=True, timeout=timeout, cwd=cwd,
+                          env=user_environment(site))
+
+
+def computed(result: dict) -> dict:
+    """result.json without the fields that depend on where and how long it ran."""
+    return {key: value for key, value in result.items() if key not in RUNTIME}
+
+
+def read_result(directory: Path) -> dict:
+    return json.loads((directory / "result.json").read_text())
