@@ -19,6 +19,7 @@ once (status :data:`INVALID_PARAMS`, one attempt).
 from __future__ import annotations
 
 import os
+import time
 from collections.abc import Hashable, Iterator
 from dataclasses import dataclass
 from functools import lru_cache
@@ -47,6 +48,49 @@ class InnerSolution:
 
 
 S = TypeVar("S", bound=InnerSolution)
+
+
+@dataclass
+class NlpCall:
+    """One call of a CasADi ``nlpsol`` solver (:func:`call_nlpsol`): its outputs ``out``
+    (None if CasADi raised, e.g. on NaN in the model), ``status``, ``success``,
+    ``iterations`` and wall time ``solve_time_s`` (s)."""
+
+    out: dict[str, Any] | None
+    status: str
+    success: bool
+    iterations: int
+    solve_time_s: float
+
+    @property
+    def common(self) -> dict[str, Any]:
+        """The :class:`InnerSolution` fields of a solve that returned (one attempt)."""
+        assert self.out is not None
+        return {"cost": float(self.out["f"]), "status": self.status, "success": self.success,
+                "iterations": self.iterations, "attempts": 1,
+                "solve_time_s": self.solve_time_s}
+
+    @property
+    def cost_gradient(self) -> np.ndarray:
+        """dJ*/dp from the parameters' multiplier (CasADi's lam_p is −dJ*/dp; checked against
+        finite differences in the tests)."""
+        assert self.out is not None
+        return -np.asarray(self.out["lam_p"]).ravel()
+
+
+def call_nlpsol(solver: Any, **arguments: Any) -> NlpCall:
+    """Call ``solver(**arguments)`` and time it; an evaluation error becomes a failed call with
+    status ``error: ...`` (first line of CasADi's message), never an exception."""
+    start = time.perf_counter()
+    try:
+        out = solver(**arguments)
+    except RuntimeError as exc:
+        return NlpCall(None, f"error: {exc}".splitlines()[0], False, 0,
+                       time.perf_counter() - start)
+    elapsed = time.perf_counter() - start
+    stats = solver.stats()
+    return NlpCall(out, str(stats["return_status"]), bool(stats["success"]),
+                   int(stats["iter_count"]), elapsed)
 
 
 @runtime_checkable

@@ -13,7 +13,6 @@ p = (x_0 (nx), target (len(final_components))).
 
 from __future__ import annotations
 
-import time
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from functools import cached_property
@@ -23,7 +22,7 @@ import numpy as np
 from numpy.polynomial import legendre
 
 from ocpar.models.ode import OdeModel
-from ocpar.ocp.contract import InnerSolution, check_params, transcription
+from ocpar.ocp.contract import InnerSolution, call_nlpsol, check_params, transcription
 from ocpar.ocp.dfet import QUADRATURE_EXTRA, DfetShape, DfetTranscription, lagrange_basis
 from ocpar.ocp.ipopt import ipopt_options
 
@@ -159,29 +158,14 @@ class DfetOcpTranscription:
         params = check_params(params, self.n_params, "DFET")
         z0 = self.default_guess(params) if guess is None else np.asarray(guess, float)
         dfet = self.dfet
-        start = time.perf_counter()
-        try:
-            out = self.solver(x0=z0, p=params, lbx=dfet.lbz, ubx=dfet.ubz, lbg=0, ubg=0,
-                              lam_g0=0 if multipliers is None else multipliers)
-        except RuntimeError as exc:  # evaluation errors (NaN) in CasADi
-            return self.failure(params, f"error: {exc}".splitlines()[0],
-                                time.perf_counter() - start)
-        elapsed = time.perf_counter() - start
-        stats = self.solver.stats()
-        z = np.asarray(out["x"]).ravel()
+        call = call_nlpsol(self.solver, x0=z0, p=params, lbx=dfet.lbz, ubx=dfet.ubz, lbg=0,
+                           ubg=0, lam_g0=0 if multipliers is None else multipliers)
+        if call.out is None:
+            return self.failure(params, call.status, call.solve_time_s)
+        z = np.asarray(call.out["x"]).ravel()
         return DfetSolution(
-            cost=float(out["f"]),
-            status=str(stats["return_status"]),
-            success=bool(stats["success"]),
-            iterations=int(stats["iter_count"]),
-            attempts=1,
-            solve_time_s=elapsed,
-            z=z,
-            final_state=dfet.final_state(z),
-            final_time=dfet.final_time(z),
-            cost_gradient=-np.asarray(out["lam_p"]).ravel(),  # lam_p = -dJ*/dp
-            lam_g=np.asarray(out["lam_g"]).ravel(),
-        )
+            **call.common, z=z, final_state=dfet.final_state(z), final_time=dfet.final_time(z),
+            cost_gradient=call.cost_gradient, lam_g=np.asarray(call.out["lam_g"]).ravel())
 
     def failure(self, params: np.ndarray, status: str, elapsed: float) -> DfetSolution:
         """A failed solve for p: NaN cost, z, gradient and multipliers, with ``status``."""

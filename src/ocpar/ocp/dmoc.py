@@ -27,7 +27,6 @@ c(q_k) = 0 at the inner nodes (the boundary nodes are data); λ is empty otherwi
 
 from __future__ import annotations
 
-import time
 from collections.abc import Iterator
 from dataclasses import dataclass
 from functools import cached_property
@@ -36,7 +35,7 @@ import casadi as ca
 import numpy as np
 
 from ocpar.models.mechanical import MechanicalSystem
-from ocpar.ocp.contract import InnerSolution, check_params, transcription
+from ocpar.ocp.contract import InnerSolution, call_nlpsol, check_params, transcription
 from ocpar.ocp.ipopt import ipopt_options
 
 
@@ -214,30 +213,12 @@ class DmocTranscription:
             if x0.size == self.nw - self.nc * (self.n + 1):
                 x0 = np.concatenate([x0, np.zeros(self.nc * (self.n + 1))])
         zero_g = np.zeros(self.ng)
-        start = time.perf_counter()
-        try:
-            if multipliers is None:
-                out = self.solver(x0=x0, p=params, lbg=zero_g, ubg=zero_g)
-            else:
-                out = self.solver(x0=x0, p=params, lbg=zero_g, ubg=zero_g, lam_g0=multipliers)
-        except RuntimeError as exc:  # CasADi raises on evaluation errors (NaN in the model, ...)
-            return self.failure(params, f"error: {exc}".splitlines()[0],
-                                time.perf_counter() - start)
-        elapsed = time.perf_counter() - start
-        stats = self.solver.stats()
-        q, u = self.unpack(np.asarray(out["x"]).ravel(), params)
-        return DmocSolution(
-            cost=float(out["f"]),
-            status=str(stats["return_status"]),
-            success=bool(stats["success"]),
-            iterations=int(stats["iter_count"]),
-            attempts=1,
-            solve_time_s=elapsed,
-            # CasADi's lam_p is -dJ*/dp (checked against finite differences in the tests).
-            cost_gradient=-np.asarray(out["lam_p"]).ravel(),
-            q=q,
-            u=u,
-        )
+        extra = {} if multipliers is None else {"lam_g0": multipliers}
+        call = call_nlpsol(self.solver, x0=x0, p=params, lbg=zero_g, ubg=zero_g, **extra)
+        if call.out is None:
+            return self.failure(params, call.status, call.solve_time_s)
+        q, u = self.unpack(np.asarray(call.out["x"]).ravel(), params)
+        return DmocSolution(**call.common, cost_gradient=call.cost_gradient, q=q, u=u)
 
 
 def dmoc_problem(shape: DmocShape) -> DmocTranscription:

@@ -12,7 +12,6 @@ A guess is a w; the default holds x_0 with zero controls.
 
 from __future__ import annotations
 
-import time
 from collections.abc import Iterator
 from dataclasses import dataclass
 from functools import cached_property
@@ -21,7 +20,7 @@ import casadi as ca
 import numpy as np
 
 from ocpar.models.ode import OdeModel, control_bounds
-from ocpar.ocp.contract import InnerSolution, check_params, transcription
+from ocpar.ocp.contract import InnerSolution, call_nlpsol, check_params, transcription
 from ocpar.ocp.ipopt import ipopt_options
 
 INTEGRATORS = ("euler", "rk4")
@@ -197,31 +196,17 @@ class MsTranscription:
 
     def _solve_with(self, solver: ca.Function, params: np.ndarray, guess: np.ndarray,
                     multipliers: np.ndarray | None) -> MsSolution:
-        start = time.perf_counter()
-        try:
-            out = solver(x0=guess, p=params, lbg=0, ubg=0, lbx=self.lbw, ubx=self.ubw,
-                         lam_g0=0 if multipliers is None else multipliers)
-        except RuntimeError as exc:  # evaluation errors (NaN) in CasADi
-            return self.failure(params, f"error: {exc}".splitlines()[0],
-                                time.perf_counter() - start)
-        elapsed = time.perf_counter() - start
-        stats = solver.stats()
+        call = call_nlpsol(solver, x0=guess, p=params, lbg=0, ubg=0, lbx=self.lbw, ubx=self.ubw,
+                           lam_g0=0 if multipliers is None else multipliers)
+        if call.out is None:
+            return self.failure(params, call.status, call.solve_time_s)
+        out = call.out
         w = np.asarray(out["x"]).ravel()
         x, u = self.unpack(w, params[: self.nx])
         return MsSolution(
-            cost=float(out["f"]),
-            status=str(stats["return_status"]),
-            success=bool(stats["success"]),
-            iterations=int(stats["iter_count"]),
-            attempts=1,
-            solve_time_s=elapsed,
-            x=x,
-            u=u,
-            cost_gradient=-np.asarray(out["lam_p"]).ravel(),  # lam_p = -dJ*/dp
+            **call.common, x=x, u=u, cost_gradient=call.cost_gradient,
             constraint_violation=float(np.max(np.abs(np.asarray(out["g"])))),
-            w=w,
-            lam_g=np.asarray(out["lam_g"]).ravel(),
-        )
+            w=w, lam_g=np.asarray(out["lam_g"]).ravel())
 
     def failure(self, params: np.ndarray, status: str, elapsed: float) -> MsSolution:
         """A failed solve for p: NaN cost, path, gradient and multipliers, with ``status``."""
