@@ -14,29 +14,19 @@ import pytest
 from conftest import run_ocpar
 from hypothesis import HealthCheck, assume, given, settings
 from hypothesis import strategies as st
+from test_matrix import CONFIGS
 
 from ocpar import driver
 from ocpar.__main__ import main as ocpar_main
 from ocpar.config import scheme_class
 from ocpar.references import REFERENCE
 
-CONFIG = """\
-scheme = "formation"
-problem = "mypkg.problems:make_formation"
-output = "ignored"
-quiet = true
-
-[problem_args]
-agents = 3
-radius = 2.0
-"""
-
 
 @pytest.fixture(scope="module")
 def workdir(tmp_path_factory) -> Path:
     """The runs' working directory, with the configuration my.toml (and no mypkg)."""
     work = tmp_path_factory.mktemp("work")
-    (work / "my.toml").write_text(CONFIG)
+    (work / "my.toml").write_text(CONFIGS["formation-user"])
     return work
 
 
