@@ -61,6 +61,7 @@ def run_here(tmp_path: Path, name: str, *config: str) -> dict:
     return json.loads((out / "result.json").read_text())
 
 
+@pytest.mark.slow  # each scheme's job against its serial run is in the default run (test_matrix)
 def test_two_jobs_submitted_at_once_finish_and_match_ocpar_run(cluster, tmp_path):
     """The formation (60 agents) and a MACS run are submitted at once on the two-worker
     cluster; the submitting processes exit at once; a later process fetches both results,
