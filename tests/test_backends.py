@@ -200,6 +200,7 @@ def test_dask_mpi_matches_serial(serial_reference, tmp_path):
     assert proc.stderr.strip() == ""
 
 
+@pytest.mark.slow  # test_matrix runs every scheme on a real external scheduler by default
 def test_external_dask_cluster_matches_serial(serial_reference, dask_cluster, tmp_path):
     proc = run_cli("-m", "ocpar.formation", "--backend", "dask", "--scheduler", dask_cluster,
                    "--workers", "2", "--output", str(tmp_path), "--quiet")

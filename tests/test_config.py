@@ -185,6 +185,7 @@ def test_formation_halo_30_runs_as_its_command_line_does(tmp_path, monkeypatch, 
     assert without_timings(got) == without_timings(want)
 
 
+@pytest.mark.slow  # the optimal ordering itself is tested in test_ordering
 def test_formation_60_optimal_ordering_runs(tmp_path, monkeypatch, capsys):
     monkeypatch.chdir(tmp_path)
     assert main(["run", "formation-60-optimal-ordering", "--set", "quiet=true"]) == 0

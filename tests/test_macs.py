@@ -136,6 +136,7 @@ def test_short_goddard_run_approaches_the_front(short_serial):
     assert result.gd < 0.05 and result.hv > 0.7
 
 
+@pytest.mark.slow  # the default run compares a MACS run on Dask with serial in test_matrix
 def test_same_seed_same_front_on_two_dask_workers(short_serial):
     with open_backend("dask", workers=2) as backend:
         result = solve_macs(make_problem("goddard"), SHORT, backend)
@@ -159,6 +160,7 @@ def test_command_line_contract_under_mpirun(short_serial, tmp_path):
     assert_result_contract(tmp_path)
 
 
+@pytest.mark.slow  # refusals are fuzzed in-process and in a real process in test_cli_fuzz
 @pytest.mark.parametrize(
     ("args", "needle"),
     [
