@@ -8,9 +8,10 @@ as a solver failing from a bad start would; the schemes' failure policies then r
 wrapper. Which solves fail depends only on the seed and the task's data, so runs on any backend
 and worker count fail the same solves:
 
-- :func:`ocpar.ocp.solve_task`: the task's first guess is replaced by a non-finite one, which
-  the failure policy counts as a failed attempt (status ``Invalid_Guess``) before it retries
-  from the task's fallback and the transcription's fallbacks;
+- :func:`ocpar.ocp.solve_task` and the batched :func:`ocpar.ocp.solve_tasks`: the task's first
+  guess is replaced by a non-finite one, which the failure policy counts as a failed attempt
+  (status ``Invalid_Guess``) before it retries from the task's fallback and the
+  transcription's fallbacks;
 - :func:`ocpar.macs.local_search.run_search`: the search fails at once (one evaluation).
 """
 
@@ -58,11 +59,18 @@ def injected(data: bytes) -> bool:
     return int.from_bytes(h.digest(), "little") / 2**64 < rate
 
 
+def _inject(task: Any) -> Any:
+    if injected(np.asarray(task.params, float).tobytes()):
+        return dataclasses.replace(task, warm_start=np.full(1, np.nan), multipliers=None)
+    return task
+
+
 def _ocp_task(kernel: Callable[[Any], Any], task: Any) -> Any:
-    params = np.asarray(task.params, float)
-    if injected(params.tobytes()):
-        task = dataclasses.replace(task, warm_start=np.full(1, np.nan), multipliers=None)
-    return kernel(task)
+    return kernel(_inject(task))
+
+
+def _ocp_tasks(kernel: Callable[[Any], Any], tasks: list[Any]) -> Any:
+    return kernel([_inject(task) for task in tasks])
 
 
 def _search_task(kernel: Callable[[Any], Any], task: Any) -> Any:
@@ -83,6 +91,10 @@ def wrap(_name: str, kernel: Callable[[Any], Any]) -> Callable[[Any], Any]:
     ref = f"{getattr(kernel, '__module__', '')}:{getattr(kernel, '__qualname__', '')}"
     if ref == "ocpar.ocp.contract:solve_task":
         return partial(_ocp_task, kernel)
+    if ref == "ocpar.ocp.contract:solve_tasks":
+        batched = partial(_ocp_tasks, kernel)
+        batched.batched = True  # type: ignore[attr-defined]
+        return batched
     if ref == "ocpar.macs.local_search:run_search":
         return partial(_search_task, kernel)
     return kernel

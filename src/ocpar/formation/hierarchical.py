@@ -24,7 +24,7 @@ from ocpar.bsp import Backend
 from ocpar.bsp.columns import Columns
 from ocpar.formation.potential import coupling, coupling_jacobian, equidistance_error
 from ocpar.formation.problem import FormationProblem
-from ocpar.ocp import solve_task
+from ocpar.ocp import solve_tasks
 
 #: Second iterate of the offset search (rad): 1/60 of a slot for the paper's 60 agents.
 OFFSET_FIRST_STEP = 1.7e-3
@@ -65,7 +65,7 @@ class OuterObjective:
         phi = np.asarray(phi, float)
         if self.last_phi is None or not np.array_equal(phi, self.last_phi):
             tasks = self.problem.tasks(phi, self._warm_starts())
-            sols = self.backend.superstep_columns(solve_task, tasks)
+            sols = self.backend.superstep_columns(solve_tasks, tasks)
             self.inner_solves += len(sols)
             self.retries += int(np.sum(np.asarray(sols.column("attempts")) - 1))
             failed = np.flatnonzero(~np.asarray(sols.column("success"), dtype=bool))
@@ -82,7 +82,7 @@ class OuterObjective:
     def _warm_starts(self) -> np.ndarray | None:
         """The last superstep's paths and controls (n, nq (N−1) + nu N): each agent's retry
         start if its next first attempt fails (the failure policy of
-        :func:`~ocpar.ocp.solve_task`: previous solution, then the straight line)."""
+        :func:`~ocpar.ocp.solve_tasks`: previous solution, then the straight line)."""
         if self.last_solutions is None:
             return None
         q, u = (np.asarray(self.last_solutions.column(name)) for name in ("q", "u"))

@@ -54,7 +54,7 @@ from scipy.optimize import linear_sum_assignment, minimize_scalar
 from ocpar.bsp import Backend
 from ocpar.formation.hierarchical import InnerSolveFailed, OuterObjective, solve_outer_offset
 from ocpar.formation.problem import FormationProblem
-from ocpar.ocp import solve_task
+from ocpar.ocp import solve_tasks
 
 ORDERINGS = ("keep", "optimal")
 
@@ -139,7 +139,7 @@ def _tables(problem: FormationProblem, backend: Backend, slots: np.ndarray) -> n
     tables = len(slots)
     agents = np.tile(np.repeat(np.arange(n), n), tables)
     angles = np.repeat(slots, n, axis=0).ravel()  # row (m, i) holds the slots of table m
-    sols = backend.superstep_columns(solve_task, problem.tasks_for(agents, angles))
+    sols = backend.superstep_columns(solve_tasks, problem.tasks_for(agents, angles))
     failed = np.flatnonzero(~np.asarray(sols.column("success"), dtype=bool))
     if len(failed):
         k = int(failed[0])

@@ -5,7 +5,9 @@ A *shape* (frozen, hashable: everything that fixes the NLP's structure) builds i
 transcription once per process (:func:`transcription`); a task (:class:`OcpTask`: the shape,
 the parameters p and the guesses to try, numbers only) is solved by the one engine kernel
 :func:`solve_task`, which applies the failure policy and returns a solution with the common
-fields of :class:`InnerSolution` plus the transcription's payload. Every transcription offers
+fields of :class:`InnerSolution` plus the transcription's payload; :func:`solve_tasks` is its
+batched form (one mapped solver call per chunk where the transcription offers
+``solve_batch``, :mod:`ocpar.ocp.batch`). Every transcription offers
 ``solve(params, guess, multipliers)``, ``failure(params, status, elapsed)``,
 ``default_guess(params)``, ``fallback_guesses(params)`` and ``warm_start(solution)``.
 
@@ -25,8 +27,10 @@ from ocpar.ocp.contract import (
     OcpTask,
     Shape,
     Transcription,
+    BatchTranscription,
     cache_report,
     solve_task,
+    solve_tasks,
     transcription,
 )
 from ocpar.ocp.dfet import DfetShape, DfetTranscription, dfet_problem
@@ -45,6 +49,7 @@ __all__ = [
     "DmocShape",
     "DmocSolution",
     "DmocTranscription",
+    "BatchTranscription",
     "InnerSolution",
     "MsShape",
     "MsSolution",
@@ -58,5 +63,6 @@ __all__ = [
     "dmoc_problem",
     "ms_problem",
     "solve_task",
+    "solve_tasks",
     "transcription",
 ]

@@ -6,21 +6,26 @@ A *shape* is a frozen, hashable dataclass holding everything that fixes an NLP's
 is a shape plus numbers only: the parameter vector p (boundary data) and the guesses to try,
 as arrays. :func:`solve_task` is the engine kernel of every transcription: it applies the
 failure policy and returns an :class:`InnerSolution` (a subclass with the transcription's
-payload), never raising on a solver failure.
+payload), never raising on a solver failure. :func:`solve_tasks` is its batched form, the
+kernel the schemes use: one call of the transcription's :meth:`BatchTranscription.solve_batch`
+for a chunk's first attempts, the policy one task at a time for those that fail.
 
 The failure policy: try the task's ``warm_start`` (with ``multipliers``; the transcription's
 :meth:`Transcription.default_guess` if None), then the task's ``fallback``, then the
 transcription's :meth:`Transcription.fallback_guesses`, until one succeeds; ``attempts``
 counts the tries. A guess with non-finite entries is a failed attempt (status
 :data:`INVALID_GUESS`) without calling the solver; non-finite parameters fail the task at
-once (status :data:`INVALID_PARAMS`, one attempt).
+once (status :data:`INVALID_PARAMS`, one attempt). In :func:`solve_tasks` the batched
+attempt from the task's first guess comes first and counts as an attempt; a task whose
+batched attempt fails goes through the whole policy above (from its first guess again, with
+the transcription's one-task solver, e.g. IPOPT).
 """
 
 from __future__ import annotations
 
 import os
 import time
-from collections.abc import Hashable, Iterator
+from collections.abc import Hashable, Iterator, Sequence
 from dataclasses import dataclass
 from functools import lru_cache
 from typing import Any, Protocol, TypeVar, runtime_checkable
@@ -127,6 +132,18 @@ class Transcription(Protocol[S]):
         ...
 
 
+@runtime_checkable
+class BatchTranscription(Transcription[S], Protocol[S]):
+    """A transcription that can also solve many tasks of its shape in one call."""
+
+    def solve_batch(self, params: np.ndarray, guesses: list[np.ndarray | None],
+                    multipliers: list[np.ndarray | None]) -> list[S] | None:
+        """Solve k tasks at once: ``params`` (k, n_params), one guess and one multiplier
+        vector per task (None: the defaults). Each solution's ``success`` is decided per
+        task; None when this shape solves one task at a time (or the call failed)."""
+        ...
+
+
 class Shape(Hashable, Protocol):
     """A frozen, hashable dataclass fixing an NLP's structure (the solver-cache key)."""
 
@@ -181,8 +198,62 @@ def solve_task(task: OcpTask) -> InnerSolution:
     params = check_params(task.params, nlp.n_params, type(nlp).__name__)
     if not np.all(np.isfinite(params)):
         return nlp.failure(params, INVALID_PARAMS, 0.0)
+    return _apply_policy(nlp, task, params, attempts_before=0)
+
+
+def solve_tasks(tasks: Sequence[OcpTask]) -> list[InnerSolution]:
+    """Batched engine kernel (:mod:`ocpar.bsp.kernel`): the solutions of ``tasks``, in order,
+    as :func:`solve_task` would give them, but each shape's tasks first solved together by
+    :meth:`BatchTranscription.solve_batch` (module docstring). A task's solution does not
+    depend on which other tasks share its chunk."""
+    solutions: list[InnerSolution | None] = [None] * len(tasks)
+    by_shape: dict[Shape, list[int]] = {}
+    for index, task in enumerate(tasks):
+        by_shape.setdefault(task.shape, []).append(index)
+    for shape, indices in by_shape.items():
+        nlp = transcription(shape)
+        batches = isinstance(nlp, BatchTranscription)
+        batch = [i for i in indices if batches and _batchable(nlp, tasks[i])]
+        first = _solve_first_attempts(nlp, [tasks[i] for i in batch]) if batch else None
+        if first is None:
+            batch, first = [], []
+        for i, solution in zip(batch, first, strict=True):
+            solutions[i] = solution
+        for i in indices:
+            solution = solutions[i]
+            if solution is None:
+                solutions[i] = solve_task(tasks[i])
+            elif not solution.success:
+                params = np.asarray(tasks[i].params, float)
+                solutions[i] = _apply_policy(nlp, tasks[i], params, attempts_before=1)
+    return solutions  # type: ignore[return-value]
+
+
+#: Marks :func:`solve_tasks` as a batched kernel: the engine calls it once per chunk.
+solve_tasks.batched = True  # type: ignore[attr-defined]
+
+
+def _batchable(nlp: Transcription[Any], task: OcpTask) -> bool:
+    """Whether ``task``'s first attempt can join a batch: its numbers are finite (otherwise
+    :func:`solve_task` reports it)."""
+    params = check_params(task.params, nlp.n_params, type(nlp).__name__)
+    return bool(np.all(np.isfinite(params))) and (
+        task.warm_start is None or bool(np.all(np.isfinite(task.warm_start))))
+
+
+def _solve_first_attempts(nlp: Transcription[Any], tasks: list[OcpTask]
+                          ) -> list[InnerSolution] | None:
+    params = np.array([np.asarray(t.params, float) for t in tasks])
+    return nlp.solve_batch(params, [t.warm_start for t in tasks],  # type: ignore[attr-defined]
+                           [t.multipliers for t in tasks])
+
+
+def _apply_policy(nlp: Transcription[Any], task: OcpTask, params: np.ndarray,
+                  attempts_before: int) -> InnerSolution:
+    """The failure policy for ``task`` after ``attempts_before`` failed attempts."""
     solution = None
-    for attempt, (guess, multipliers) in enumerate(_guesses(nlp, task, params), start=1):
+    for attempt, (guess, multipliers) in enumerate(_guesses(nlp, task, params),
+                                                   start=attempts_before + 1):
         if guess is not None and not np.all(np.isfinite(guess)):
             solution = nlp.failure(params, INVALID_GUESS, 0.0)
         else:

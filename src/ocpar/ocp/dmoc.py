@@ -35,15 +35,21 @@ import casadi as ca
 import numpy as np
 
 from ocpar.models.mechanical import MechanicalSystem
+from ocpar.ocp.batch import SOLVERS, MappedNlp
 from ocpar.ocp.contract import InnerSolution, call_nlpsol, check_params, transcription
 from ocpar.ocp.ipopt import ipopt_options
+from ocpar.ocp.sensitivity import cost_hessian_function
 
 
 @dataclass(frozen=True)
 class DmocShape:
     """Everything that fixes the structure of a DMOC NLP (the solver-cache key).
 
-    ``duration`` is T in the model's time unit; ``intervals`` is N; ``tol`` is IPOPT's tolerance.
+    ``duration`` is T in the model's time unit; ``intervals`` is N; ``tol`` is the solvers'
+    tolerance. ``solver``: ``sqpmethod`` (the default, by measurement: a chunk of tasks in one
+    mapped ``sqpmethod``/``qrqp`` call, ~0.03 ms per point-mass solve, IPOPT for the tasks
+    whose KKT check fails) or ``ipopt`` (one IPOPT call per task, ~0.5 ms per point-mass
+    solve); see :mod:`ocpar.ocp.batch`. ``kkt_tol`` is the batched solves' acceptance test.
     """
 
     model: MechanicalSystem
@@ -51,12 +57,17 @@ class DmocShape:
     duration: float = 1.0
     tol: float = 1e-12
     max_iter: int = 500
+    solver: str = "sqpmethod"
+    kkt_tol: float = 1e-8
 
     def __post_init__(self) -> None:
         if self.intervals < 1:
             raise ValueError(f"DMOC needs at least 1 interval, got {self.intervals}")
         if not self.duration > 0:
             raise ValueError(f"DMOC duration must be > 0, got {self.duration}")
+        if self.solver not in SOLVERS:
+            raise ValueError(f"unknown DMOC solver {self.solver!r}; choose one of "
+                             f"{', '.join(SOLVERS)}")
         model_intervals = getattr(self.model, "intervals", None)
         if model_intervals is not None and model_intervals != self.intervals:
             raise ValueError(f"the model is tabulated on {model_intervals} intervals, the "
@@ -75,16 +86,19 @@ class DmocShape:
 @dataclass
 class DmocSolution(InnerSolution):
     """Result of one DMOC solve: the common fields, and ``cost_gradient`` dJ*/dp (4 nq,
-    from the NLP multipliers); ``q`` the node path (N+1, nq); ``u`` the interval controls
+    from the NLP multipliers); ``end_hessian`` d²J*/dq_N² (nq, nq, from the KKT system,
+    :mod:`ocpar.ocp.sensitivity`); ``q`` the node path (N+1, nq); ``u`` the interval controls
     (N, nu)."""
 
     cost_gradient: np.ndarray
+    end_hessian: np.ndarray
     q: np.ndarray
     u: np.ndarray
 
 
 class DmocTranscription:
-    """The DMOC NLP of one shape, as CasADi functions of (w, p), plus its IPOPT solver.
+    """The DMOC NLP of one shape, as CasADi functions of (w, p), plus its solvers (IPOPT one
+    task at a time, :class:`~ocpar.ocp.batch.MappedNlp` for batches).
 
     A guess is w = (q_1..q_{N−1}, u_0..u_{N−1}, λ_0..λ_N) or w without its λ block (then
     λ = 0), e.g. a previous solution's inner nodes and controls."""
@@ -148,6 +162,8 @@ class DmocTranscription:
         self.cost = ca.Function("J", [w, p], [h * ca.sumsqr(u_all)], ["w", "p"], ["J"])
         self.constraints = ca.Function("g", [w, p], [ca.vertcat(*eqs)], ["w", "p"], ["g"])
         self._w, self._p = w, p
+        self.end_hessian = cost_hessian_function(
+            "dmoc", w, p, self.cost(w, p), self.constraints(w, p), slice(2 * nq, 3 * nq))
 
     @cached_property
     def solver(self) -> ca.Function:
@@ -155,6 +171,16 @@ class DmocTranscription:
         w, p = self._w, self._p
         nlp = {"x": w, "p": p, "f": self.cost(w, p), "g": self.constraints(w, p)}
         return ca.nlpsol("dmoc", "ipopt", nlp, ipopt_options(self.shape.tol, self.shape.max_iter))
+
+    @cached_property
+    def batch_solver(self) -> MappedNlp | None:
+        """The batched solver of this shape (None when its ``solver`` is ``ipopt``)."""
+        if self.shape.solver != "sqpmethod":
+            return None
+        w, p = self._w, self._p
+        return MappedNlp("dmoc_sqp", w, p, self.cost(w, p), self.constraints(w, p),
+                         self.shape.tol, self.shape.max_iter, self.shape.kkt_tol,
+                         post=self.end_hessian)
 
     def default_guess(self, params: np.ndarray) -> np.ndarray:
         """Cubic Hermite path through the boundary data (projected onto the constraints, if
@@ -190,7 +216,8 @@ class DmocTranscription:
         nan_q, nan_u = self.unpack(np.full(self.nw, np.nan), params)
         return DmocSolution(cost=float("nan"), status=status, success=False, iterations=0,
                             attempts=1, solve_time_s=elapsed,
-                            cost_gradient=np.full(params.shape, np.nan), q=nan_q, u=nan_u)
+                            cost_gradient=np.full(params.shape, np.nan),
+                            end_hessian=np.full((self.nq, self.nq), np.nan), q=nan_q, u=nan_u)
 
     def unpack(self, w: np.ndarray, params: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Split w into the node path q (N+1, nq) and the interval controls u (N, nu)."""
@@ -206,19 +233,54 @@ class DmocTranscription:
         """Solve for boundary data ``params`` from ``guess`` (default :meth:`default_guess`)
         and constraint multipliers (default 0); a failed solve is returned, not raised."""
         params = check_params(params, self.n_params, "DMOC")
-        if guess is None:
-            x0 = self.default_guess(params)
-        else:
-            x0 = np.asarray(guess, float)
-            if x0.size == self.nw - self.nc * (self.n + 1):
-                x0 = np.concatenate([x0, np.zeros(self.nc * (self.n + 1))])
+        x0 = self.default_guess(params) if guess is None else self._full_guess(guess)
         zero_g = np.zeros(self.ng)
         extra = {} if multipliers is None else {"lam_g0": multipliers}
         call = call_nlpsol(self.solver, x0=x0, p=params, lbg=zero_g, ubg=zero_g, **extra)
         if call.out is None:
             return self.failure(params, call.status, call.solve_time_s)
-        q, u = self.unpack(np.asarray(call.out["x"]).ravel(), params)
-        return DmocSolution(**call.common, cost_gradient=call.cost_gradient, q=q, u=u)
+        w, lam_g = (np.asarray(call.out[k]).ravel() for k in ("x", "lam_g"))
+        q, u = self.unpack(w, params)
+        hessian = np.asarray(self.end_hessian(w, lam_g, params))
+        return DmocSolution(**call.common, cost_gradient=call.cost_gradient,
+                            end_hessian=hessian, q=q, u=u)
+
+    def _full_guess(self, guess: np.ndarray) -> np.ndarray:
+        """``guess`` with λ = 0 appended if it has none."""
+        x0 = np.asarray(guess, float)
+        if x0.size == self.nw - self.nc * (self.n + 1):
+            x0 = np.concatenate([x0, np.zeros(self.nc * (self.n + 1))])
+        return x0
+
+    def solve_batch(self, params: np.ndarray, guesses: list[np.ndarray | None],
+                    multipliers: list[np.ndarray | None]) -> list[DmocSolution] | None:
+        """Solve k tasks in one mapped call (:class:`~ocpar.ocp.batch.MappedNlp`): boundary
+        data ``params`` (k, 4 nq), guesses and constraint multipliers per task (None: the
+        default guess, zero multipliers). ``success`` comes from the KKT check; ``iterations``
+        is −1 (a mapped call reports none) and ``solve_time_s`` the call's time shared
+        equally. None if this shape's solver is ``ipopt`` or CasADi raised (the caller then
+        solves one by one)."""
+        if self.batch_solver is None:
+            return None
+        params = np.asarray(params, float)
+        x0 = np.array([self.default_guess(p) if g is None else self._full_guess(g)
+                       for p, g in zip(params, guesses, strict=True)])
+        lam0 = np.array([np.zeros(self.ng) if m is None else m for m in multipliers])
+        zero_g, free = np.zeros(self.ng), np.full(self.nw, np.inf)
+        try:
+            batch = self.batch_solver.solve(x0, params, lam0, zero_g, zero_g, -free, free)
+        except RuntimeError:
+            return None
+        share = batch.solve_time_s / len(params)
+        solutions = []
+        for k, p in enumerate(params):
+            q, u = self.unpack(batch.x[k], p)
+            solutions.append(DmocSolution(
+                cost=float(batch.f[k]), status="Solve_Succeeded" if batch.success[k]
+                else "KKT_Check_Failed", success=bool(batch.success[k]), iterations=-1,
+                attempts=1, solve_time_s=share, cost_gradient=-batch.lam_p[k],
+                end_hessian=batch.extra[k].reshape(self.nq, self.nq, order="F"), q=q, u=u))
+        return solutions
 
 
 def dmoc_problem(shape: DmocShape) -> DmocTranscription:
