@@ -23,11 +23,11 @@ batched form (one mapped solver call per chunk where the transcription offers
 from ocpar.ocp.contract import (
     INVALID_GUESS,
     INVALID_PARAMS,
+    BatchTranscription,
     InnerSolution,
     OcpTask,
     Shape,
     Transcription,
-    BatchTranscription,
     cache_report,
     solve_task,
     solve_tasks,
@@ -41,6 +41,7 @@ from ocpar.ocp.multiple_shooting import MsShape, MsSolution, MsTranscription, ms
 __all__ = [
     "INVALID_GUESS",
     "INVALID_PARAMS",
+    "BatchTranscription",
     "DfetOcpShape",
     "DfetOcpTranscription",
     "DfetShape",
@@ -49,7 +50,6 @@ __all__ = [
     "DmocShape",
     "DmocSolution",
     "DmocTranscription",
-    "BatchTranscription",
     "InnerSolution",
     "MsShape",
     "MsSolution",
