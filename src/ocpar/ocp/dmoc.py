@@ -40,6 +40,9 @@ from ocpar.ocp.contract import InnerSolution, call_nlpsol, check_params, transcr
 from ocpar.ocp.ipopt import ipopt_options
 from ocpar.ocp.sensitivity import cost_hessian_function
 
+#: Status of a batched solve, by the outcome of its KKT check.
+BATCH_STATUS = {True: "Solve_Succeeded", False: "KKT_Check_Failed"}
+
 
 @dataclass(frozen=True)
 class DmocShape:
@@ -186,16 +189,20 @@ class DmocTranscription:
         """Cubic Hermite path through the boundary data (projected onto the constraints, if
         any), zero controls and multipliers (the double integrator's minimum-energy path for a
         point mass)."""
-        nq, n = self.nq, self.n
-        q0, v0, qn, vn = np.asarray(params, float).reshape(4, nq)
-        s = np.arange(1, n)[:, None] / n
+        return self.default_guesses(np.asarray(params, float)[None])[0]
+
+    def default_guesses(self, params: np.ndarray) -> np.ndarray:
+        """:meth:`default_guess` of each row of ``params`` (k, 4 nq): (k, nw)."""
+        nq, n, k = self.nq, self.n, len(params)
+        q0, v0, qn, vn = (params[:, None, i * nq:(i + 1) * nq] for i in range(4))
+        s = np.arange(1, n)[None, :, None] / n
         t = self.shape.duration
         h00, h10 = 2 * s**3 - 3 * s**2 + 1, s**3 - 2 * s**2 + s
         h01, h11 = -2 * s**3 + 3 * s**2, s**3 - s**2
-        path = h00 * q0 + h10 * t * v0 + h01 * qn + h11 * t * vn
+        path = (h00 * q0 + h10 * t * v0 + h01 * qn + h11 * t * vn).reshape(-1, nq)
         if self.nc:
             path = self.shape.model.project(path)
-        return np.concatenate([path.ravel(), np.zeros(self.nu * n + self.nc * (n + 1))])
+        return np.hstack([path.reshape(k, -1), np.zeros((k, self.nu * n + self.nc * (n + 1)))])
 
     def fallback_guesses(self, params: np.ndarray) -> Iterator[np.ndarray]:
         """The straight line from q_0 to q_N (projected onto the constraints, if any), zero
@@ -221,11 +228,17 @@ class DmocTranscription:
 
     def unpack(self, w: np.ndarray, params: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Split w into the node path q (N+1, nq) and the interval controls u (N, nu)."""
-        nq, n = self.nq, self.n
-        q0, _, qn, _ = np.asarray(params, float).reshape(4, nq)
-        inner = np.asarray(w[: nq * (n - 1)], float).reshape(n - 1, nq)
-        q = np.vstack([q0, inner, qn])
-        u = np.asarray(w[nq * (n - 1) : nq * (n - 1) + self.nu * n], float).reshape(n, self.nu)
+        q, u = self.unpack_many(np.asarray(w, float)[None], np.asarray(params, float)[None])
+        return q[0], u[0]
+
+    def unpack_many(self, w: np.ndarray, params: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """:meth:`unpack` of each row of w (k, nw) with ``params`` (k, 4 nq): paths
+        (k, N+1, nq) and controls (k, N, nu)."""
+        nq, n, k = self.nq, self.n, len(w)
+        q = np.empty((k, n + 1, nq))
+        q[:, 0], q[:, -1] = params[:, :nq], params[:, 2 * nq:3 * nq]
+        q[:, 1:-1] = w[:, : nq * (n - 1)].reshape(k, n - 1, nq)
+        u = w[:, nq * (n - 1) : nq * (n - 1) + self.nu * n].reshape(k, n, self.nu)
         return q, u
 
     def solve(self, params: np.ndarray, guess: np.ndarray | None = None,
@@ -263,24 +276,28 @@ class DmocTranscription:
         if self.batch_solver is None:
             return None
         params = np.asarray(params, float)
-        x0 = np.array([self.default_guess(p) if g is None else self._full_guess(g)
-                       for p, g in zip(params, guesses, strict=True)])
-        lam0 = np.array([np.zeros(self.ng) if m is None else m for m in multipliers])
+        x0 = self.default_guesses(params)
+        for k, guess in enumerate(guesses):
+            if guess is not None:
+                x0[k] = self._full_guess(guess)
+        lam0 = np.zeros((len(params), self.ng))
+        for k, lam in enumerate(multipliers):
+            if lam is not None:
+                lam0[k] = lam
         zero_g, free = np.zeros(self.ng), np.full(self.nw, np.inf)
         try:
             batch = self.batch_solver.solve(x0, params, lam0, zero_g, zero_g, -free, free)
         except RuntimeError:
             return None
         share = batch.solve_time_s / len(params)
-        solutions = []
-        for k, p in enumerate(params):
-            q, u = self.unpack(batch.x[k], p)
-            solutions.append(DmocSolution(
-                cost=float(batch.f[k]), status="Solve_Succeeded" if batch.success[k]
-                else "KKT_Check_Failed", success=bool(batch.success[k]), iterations=-1,
-                attempts=1, solve_time_s=share, cost_gradient=-batch.lam_p[k],
-                end_hessian=batch.extra[k].reshape(self.nq, self.nq, order="F"), q=q, u=u))
-        return solutions
+        q, u = self.unpack_many(batch.x, params)
+        gradients = -batch.lam_p
+        hessians = batch.extra.reshape(len(params), self.nq, self.nq).transpose(0, 2, 1)
+        return [DmocSolution(cost=float(cost), status=BATCH_STATUS[ok], success=bool(ok),
+                             iterations=-1, attempts=1, solve_time_s=share,
+                             cost_gradient=gradients[k], end_hessian=hessians[k], q=q[k],
+                             u=u[k])
+                for k, (cost, ok) in enumerate(zip(batch.f, batch.success, strict=True))]
 
 
 def dmoc_problem(shape: DmocShape) -> DmocTranscription:
