@@ -288,11 +288,11 @@ def plot(report: dict, path: Path) -> None:
             ax_e.plot([p], [target], "k^", ms=8)
         ax_e.set_title(f"cost model, {predicted['agents']} agents, from {predicted['from']}"
                        " (▲ targets)", fontsize=9)
+        ax_e.legend(fontsize=8)
     ax_e.set_xscale("log", base=2)
     ax_e.set_ylim(0, 1.05)
     ax_e.set_xlabel("workers P")
     ax_e.set_ylabel("predicted efficiency T(1)/(P·T(P))")
-    ax_e.legend(fontsize=8)
     ax_e.grid(alpha=0.3, which="both")
     save(fig, path)
 
@@ -304,7 +304,8 @@ def fmt(value: float | None, width: int, spec: str) -> str:
 
 def print_report(report: dict) -> None:
     for agents, size in report["sizes"].items():
-        print(f"\n{agents} agents: speedups against {size.get('fastest_serial')}")
+        print(f"\n{agents} agents: speedups against "
+              f"{size.get('fastest_serial', '- (no serial result)')}")
         print(f"{'configuration':22s}{'runs':>5s}{'wall s':>9s}{'speedup':>8s}{'effic':>7s}"
               f"{'steps':>6s}{'solves':>8s}{'solve ms':>9s}{'ovh ms':>8s}{'1st ms':>8s}"
               f"{'coord':>7s}{'MiB/worker':>12s}{'total cost':>20s}")
