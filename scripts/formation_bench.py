@@ -13,7 +13,7 @@ For each number of agents, each option set (``--variant NAME="ARGS"``, repeatabl
 cluster), one run of ``python -m ocpar.formation`` in a fresh process; plus one monolithic
 CasADi/IPOPT run (``--mode monolithic``), killed after ``--monolithic-limit`` seconds and
 recorded as ``timeout`` (every ocpar run likewise after ``--time-limit``). A configuration
-that timed out is not run again, neither in later repetitions nor at larger sizes.
+that timed out is not run again at that size or larger ones, in any later repetition.
 Repetitions are outermost, so a drift of the machine's speed hits every configuration alike.
 
 Per configuration and size, medians over the repetitions of (each from the run's result.json
@@ -390,12 +390,12 @@ def main() -> int:
     if not args.no_monolithic:
         configs.append(Configuration("monolithic", 1, "monolithic", ()))
     runs: dict[int, dict[str, list[dict]]] = {n: {c.name: [] for c in configs} for n in sizes}
-    timed_out: dict[str, int] = {}  # configuration → the size at which it timed out
+    timed_out: dict[str, int] = {}  # configuration → the smallest size at which it timed out
     start = time.perf_counter()
     for rep in range(repeat):  # repetitions outermost
         for agents in sizes:
             for c in configs:
-                if c.name in timed_out:
+                if agents >= timed_out.get(c.name, math.inf):
                     skipped = {"status": "skipped",
                                "message": f"timed out at {timed_out[c.name]} agents"}
                     runs[agents][c.name].append(skipped)
@@ -406,7 +406,7 @@ def main() -> int:
                 row = run_figures(result)
                 runs[agents][c.name].append(row)
                 if row["status"] == "timeout":
-                    timed_out[c.name] = agents
+                    timed_out[c.name] = min(agents, timed_out.get(c.name, math.inf))
                 wall = f"{row['wall_s']:.3f} s" if "wall_s" in row else row["message"]
                 print(f"rep {rep} {agents:6d} agents {c.name:22s} {row['status']:13s} {wall}",
                       flush=True)
