@@ -120,14 +120,16 @@ def parse_variant(text: str) -> tuple[str, tuple[str, ...]]:
 
 def run_once(cmd: list[str], out: Path, limit_s: float) -> dict:
     """Run ``cmd`` in its own process group; kill the group after ``limit_s`` seconds.
-    Returns the result.json's fields (``status`` ``timeout`` or ``error`` if there is none)
-    and ``process_peak_rss_mb``, the peak resident memory of the largest process it ran."""
+    Returns the result.json's fields (``status`` ``timeout`` or ``error`` if there is none),
+    ``process_peak_rss_mb``, the peak resident memory of the largest process it ran, and
+    ``process_s``, its wall time from launch to exit (start-up included)."""
     out.mkdir(parents=True, exist_ok=True)
     (out / "result.json").unlink(missing_ok=True)
     with open(out / "stderr.txt", "w") as err:
         proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=err,
                                 start_new_session=True)
-        deadline = time.monotonic() + limit_s
+        launched = time.monotonic()
+        deadline = launched + limit_s
         timed_out = False
         while True:
             pid, status, usage = os.wait4(proc.pid, os.WNOHANG)
@@ -140,7 +142,8 @@ def run_once(cmd: list[str], out: Path, limit_s: float) -> dict:
                 break
             time.sleep(0.05)
         proc.returncode = os.waitstatus_to_exitcode(status)
-    peak = {"process_peak_rss_mb": usage.ru_maxrss / 1024}  # Linux: KiB
+    peak = {"process_peak_rss_mb": usage.ru_maxrss / 1024,  # Linux: KiB
+            "process_s": time.monotonic() - launched}
     if timed_out:
         return {"status": "timeout", "message": f"killed after {limit_s:g} s", **peak}
     path = out / "result.json"
@@ -153,7 +156,7 @@ def run_once(cmd: list[str], out: Path, limit_s: float) -> dict:
 def run_figures(result: dict) -> dict:
     """The per-run figures of one result.json (times in s, memory in MiB; None where the run
     has no supersteps, as in monolithic mode)."""
-    row = {k: result.get(k) for k in ("status", "message", "process_peak_rss_mb")}
+    row = {k: result.get(k) for k in ("status", "message", "process_peak_rss_mb", "process_s")}
     if "trace" not in result:
         return row
     trace = result["trace"]
@@ -179,7 +182,7 @@ def run_figures(result: dict) -> dict:
 
 MEDIANS = ("wall_s", "supersteps", "inner_solves", "outer_iterations", "total_cost",
            "solve_ms", "overhead_ms", "first_overhead_ms", "coordinator_s",
-           "coordinator_share", "imbalance", "process_peak_rss_mb")
+           "coordinator_share", "imbalance", "process_peak_rss_mb", "process_s")
 
 
 def summarise(runs: list[dict]) -> dict:
