@@ -12,8 +12,11 @@ For each number of agents, each option set (``--variant NAME="ARGS"``, repeatabl
 ``dask`` with each of ``--workers``, MPI through ``mpirun -n P``, Dask on an embedded local
 cluster), one run of ``python -m ocpar.formation`` in a fresh process; plus one monolithic
 CasADi/IPOPT run (``--mode monolithic``), killed after ``--monolithic-limit`` seconds and
-recorded as ``timeout`` (every ocpar run likewise after ``--time-limit``). A configuration
-that timed out is not run again at that size or larger ones, in any later repetition.
+recorded as ``timeout`` (every ocpar run likewise after ``--time-limit``); its address space
+is capped at ``--monolithic-memory`` MiB, so that its dense coupling Jacobian cannot take the
+machine's memory (a run that hits the cap ends as ``error``, or ``timeout`` if it hangs). A
+configuration that timed out is not run again at that size or larger ones, in any later
+repetition.
 Repetitions are outermost, so a drift of the machine's speed hits every configuration alike.
 
 Per configuration and size, medians over the repetitions of (each from the run's result.json
@@ -40,6 +43,7 @@ import argparse
 import json
 import math
 import os
+import resource
 import shlex
 import signal
 import statistics
@@ -118,16 +122,21 @@ def parse_variant(text: str) -> tuple[str, tuple[str, ...]]:
     return name, words
 
 
-def run_once(cmd: list[str], out: Path, limit_s: float) -> dict:
-    """Run ``cmd`` in its own process group; kill the group after ``limit_s`` seconds.
+def run_once(cmd: list[str], out: Path, limit_s: float, memory_mb: float | None = None) -> dict:
+    """Run ``cmd`` in its own process group; kill the group after ``limit_s`` seconds. With
+    ``memory_mb`` its address space is capped at that many MiB (an allocation beyond it
+    fails, and the run ends as ``error``).
     Returns the result.json's fields (``status`` ``timeout`` or ``error`` if there is none),
     ``process_peak_rss_mb``, the peak resident memory of the largest process it ran, and
     ``process_s``, its wall time from launch to exit (start-up included)."""
     out.mkdir(parents=True, exist_ok=True)
     (out / "result.json").unlink(missing_ok=True)
     with open(out / "stderr.txt", "w") as err:
-        proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=err,
-                                start_new_session=True)
+        cap = None if memory_mb is None else int(memory_mb * 2**20)
+        proc = subprocess.Popen(
+            cmd, stdout=subprocess.DEVNULL, stderr=err, start_new_session=True,
+            preexec_fn=None if cap is None else
+            lambda: resource.setrlimit(resource.RLIMIT_AS, (cap, cap)))
         launched = time.monotonic()
         deadline = launched + limit_s
         timed_out = False
@@ -370,6 +379,9 @@ def main() -> int:
     parser.add_argument("--monolithic-limit", type=float, default=None,
                         help="seconds before a monolithic run is killed (default 120; "
                              "--quick 30)")
+    parser.add_argument("--monolithic-memory", type=float, default=8192,
+                        help="address-space cap of a monolithic run (MiB, default 8192): its "
+                             "coupling's Jacobian is dense in the angles (n² entries)")
     parser.add_argument("--cost-rtol", type=float, default=1e-8,
                         help="relative tolerance of the total-cost agreement check")
     parser.add_argument("--output", type=Path, default=Path("runs/formation-bench"))
@@ -379,7 +391,8 @@ def main() -> int:
     limit = args.time_limit or (120.0 if args.quick else 1800.0)
     mono_limit = args.monolithic_limit or (30.0 if args.quick else 120.0)
     variants = args.variant or [parse_variant(v) for v in DEFAULT_VARIANTS]
-    if min(sizes) < 2 or repeat < 1 or min(args.workers) < 1 or min(limit, mono_limit) <= 0:
+    if (min(sizes) < 2 or repeat < 1 or min(args.workers) < 1
+            or min(limit, mono_limit, args.monolithic_memory) <= 0):
         parser.error("--agents ≥ 2, --repeat ≥ 1, --workers ≥ 1 and positive limits")
     if len({name for name, _ in variants}) != len(variants):
         parser.error("--variant names must be distinct")
@@ -404,8 +417,10 @@ def main() -> int:
                     runs[agents][c.name].append(skipped)
                     continue
                 out = args.output / f"{agents}-{c.name.replace('/', '-')}-{rep}"
-                result = run_once(c.command(args.problem, agents, out),
-                                  out, mono_limit if c.backend == "monolithic" else limit)
+                mono = c.backend == "monolithic"
+                result = run_once(c.command(args.problem, agents, out), out,
+                                  mono_limit if mono else limit,
+                                  args.monolithic_memory if mono else None)
                 row = run_figures(result)
                 runs[agents][c.name].append(row)
                 if row["status"] == "timeout":
