@@ -15,8 +15,8 @@ CasADi/IPOPT run (``--mode monolithic``), killed after ``--monolithic-limit`` se
 recorded as ``timeout`` (every ocpar run likewise after ``--time-limit``); its address space
 is capped at ``--monolithic-memory`` MiB, so that its dense coupling Jacobian cannot take the
 machine's memory (a run that hits the cap ends as ``error``, or ``timeout`` if it hangs). A
-configuration that timed out is not run again at that size or larger ones, in any later
-repetition.
+configuration that timed out or ended without result.json (``error``) is not run again at
+that size or larger ones, in any later repetition.
 Repetitions are outermost, so a drift of the machine's speed hits every configuration alike.
 
 Per configuration and size, medians over the repetitions of (each from the run's result.json
@@ -406,14 +406,15 @@ def main() -> int:
     if not args.no_monolithic:
         configs.append(Configuration("monolithic", 1, "monolithic", ()))
     runs: dict[int, dict[str, list[dict]]] = {n: {c.name: [] for c in configs} for n in sizes}
-    timed_out: dict[str, int] = {}  # configuration → the smallest size at which it timed out
+    # configuration → the smallest size at which it timed out or ended without a result
+    timed_out: dict[str, int] = {}
     start = time.perf_counter()
     for rep in range(repeat):  # repetitions outermost
         for agents in sizes:
             for c in configs:
                 if agents >= timed_out.get(c.name, math.inf):
-                    skipped = {"status": "skipped",
-                               "message": f"timed out at {timed_out[c.name]} agents"}
+                    skipped = {"status": "skipped", "message": f"no result at "
+                               f"{timed_out[c.name]} agents (timeout or error)"}
                     runs[agents][c.name].append(skipped)
                     continue
                 out = args.output / f"{agents}-{c.name.replace('/', '-')}-{rep}"
@@ -423,7 +424,7 @@ def main() -> int:
                                   args.monolithic_memory if mono else None)
                 row = run_figures(result)
                 runs[agents][c.name].append(row)
-                if row["status"] == "timeout":
+                if row["status"] in ("timeout", "error"):
                     timed_out[c.name] = min(agents, timed_out.get(c.name, math.inf))
                 wall = f"{row['wall_s']:.3f} s" if "wall_s" in row else row["message"]
                 print(f"rep {rep} {agents:6d} agents {c.name:22s} {row['status']:13s} {wall}",
