@@ -9,18 +9,22 @@
 
 Each (backend, workers, repetition) is one run of ``python -m ocpar.<scheme>`` in its own
 process (``mpirun -n P`` for mpi, ``mpirun -n P+2`` for dask-mpi), writing its result.json;
-repetitions are outermost (every configuration once, then again), so that a drift in the
-machine's speed affects all configurations alike.
+the serial backend is always run too. Repetitions are outermost (every configuration once,
+then again), so that a drift in the machine's speed affects all configurations alike.
 The script gathers their superstep traces and writes
 
 * ``speedup.json``: per backend and worker count the median solve wall time (process and
-  cluster start-up excluded), median superstep time, speedup and efficiency of both against
-  1 worker of the same backend, median per-superstep overhead (wall − busiest worker) and
-  load imbalance (max/mean worker busy time); the cost model's predictions (P = 1 … 64, both
-  partitioning policies) from each backend's 1-worker runs, and its error at the measured
-  2-worker point;
-* ``speedup.png``: measured and predicted speedup vs workers, the ideal line and the paper's
-  table.
+  cluster start-up excluded), speedup and efficiency against the fastest serial
+  configuration of the run (the 1-worker configuration, serial backend or not, with the
+  smallest median wall time: ``baseline``), the same against 1 worker of the same backend
+  (``speedup_same_backend``, ``efficiency_same_backend``), median superstep time and its
+  speedup against 1 worker of the same backend, median per-superstep overhead (wall −
+  busiest worker) and load imbalance (max/mean worker busy time); the cost model's
+  predictions (P = 1 … 64, both partitioning policies) from each backend's 1-worker runs,
+  also rescaled to the fastest serial configuration, and its error at the measured 2-worker
+  point;
+* ``speedup.png``: measured and predicted speedup against the fastest serial configuration
+  vs workers, the ideal line and the paper's table.
 
 The cost model (``ocpar.bsp.cost_model``) schedules a run's measured per-task CPU times on P
 workers and adds the per-superstep synchronisation cost fitted to the measured overheads, and
@@ -41,6 +45,7 @@ from pathlib import Path
 
 from ocpar.bsp.cost_model import (
     POLICIES,
+    Prediction,
     SyncCost,
     median_overhead,
     predict,
@@ -115,14 +120,24 @@ def summarise(runs: list[dict]) -> dict:
     }
 
 
-def model_of(runs: list[dict], sync: SyncCost, workers: list[int]) -> dict:
-    """Predictions from the median-wall-time run of ``runs`` (1 worker) for each policy."""
+def model_of(runs: list[dict], sync: SyncCost, workers: list[int],
+             baseline_s: float | None = None) -> dict:
+    """Predictions from the median-wall-time run of ``runs`` (1 worker) for each policy;
+    with ``baseline_s`` (s, the fastest serial configuration's median wall time) each also
+    gets ``speedup_vs_baseline``: the model's speedup rescaled by baseline_s / that run's
+    median wall time."""
     run = sorted(runs, key=lambda r: r["wall_time_s"])[len(runs) // 2]
     tasks = task_times(run["trace"], use="cpu")
     serial = serial_time(run["wall_time_s"], run["trace"])
+    scale = {} if baseline_s is None else {"factor": baseline_s / run["wall_time_s"]}
+
+    def row(p: Prediction) -> dict:
+        return vars(p) | ({"speedup_vs_baseline": p.speedup * scale["factor"]} if scale
+                          else {})
+
     return {"sync": {"a_s": sync.a_s, "b_s": sync.b_s}, "serial_s": serial,
             "tasks_per_superstep": statistics.median(len(t) for t in tasks),
-            "policies": {policy: [vars(p) for p in predict(tasks, workers, policy, sync, serial)]
+            "policies": {policy: [row(p) for p in predict(tasks, workers, policy, sync, serial)]
                          for policy in POLICIES}}
 
 
@@ -134,7 +149,8 @@ def headline(result: dict) -> float:
     raise KeyError("result.json has no headline figure")
 
 
-def plot(table: dict, models: dict, paper: tuple[str, dict] | None, path: Path) -> None:
+def plot(table: dict, models: dict, paper: tuple[str, dict] | None, baseline: str,
+         path: Path) -> None:
     from ocpar.plotting import pyplot, save
 
     plt = pyplot()
@@ -149,7 +165,8 @@ def plot(table: dict, models: dict, paper: tuple[str, dict] | None, path: Path) 
                           label=f"{backend}, measured")
         if backend in models:
             predicted = models[backend]["policies"]["blocks"]
-            ax.plot([p["workers"] for p in predicted], [p["speedup"] for p in predicted], ":",
+            ax.plot([p["workers"] for p in predicted],
+                    [p["speedup_vs_baseline"] for p in predicted], ":",
                     color=line.get_color(), label=f"{backend}, cost model (blocks)")
     if paper is not None:
         label, speedups = paper
@@ -157,14 +174,16 @@ def plot(table: dict, models: dict, paper: tuple[str, dict] | None, path: Path) 
     ax.set_xscale("log", base=2)
     ax.set_yscale("log", base=2)
     ax.set_xlabel("workers")
-    ax.set_ylabel("speedup (solve wall time vs 1 worker)")
+    ax.set_ylabel(f"speedup (solve wall time vs {baseline})")
     ax.legend(fontsize=8)
     ax.grid(alpha=0.3, which="both")
     save(fig, path)
 
 
-def print_table(table: dict, models: dict) -> None:
-    print(f"\n{'backend':9s}{'P':>3s}{'wall s':>9s}{'speedup':>9s}{'effic.':>8s}"
+def print_table(table: dict, models: dict, baseline: str) -> None:
+    print(f"\nspeedup and efficiency against the fastest serial configuration ({baseline}); "
+          "'same': against 1 worker of the same backend; model: cost model, same backend")
+    print(f"{'backend':9s}{'P':>3s}{'wall s':>9s}{'speedup':>9s}{'effic.':>8s}{'same':>7s}"
           f"{'step ms':>9s}{'step speedup':>14s}{'overhead ms':>13s}{'imbalance':>11s}"
           f"{'model':>8s}")
     for backend, rows in table.items():
@@ -174,7 +193,8 @@ def print_table(table: dict, models: dict) -> None:
             r = rows[p]
             model = predicted.get(int(p))
             print(f"{backend:9s}{p:>3s}{r['wall_time_s']:9.3f}{r['speedup']:9.2f}"
-                  f"{r['efficiency']:8.2f}{r['superstep_s'] * 1e3:9.1f}"
+                  f"{r['efficiency']:8.2f}{r['speedup_same_backend']:7.2f}"
+                  f"{r['superstep_s'] * 1e3:9.1f}"
                   f"{r['superstep_speedup']:14.2f}{r['overhead_s'] * 1e3:13.1f}"
                   f"{r['imbalance']:11.2f}{model['speedup'] if model else float('nan'):8.2f}")
 
@@ -205,7 +225,9 @@ def main() -> int:
                         help="formation: point-mass-plane (default) | crtbp-rigid; "
                              "macs: goddard (default) | orbit-raising")
     parser.add_argument("--max-evals", type=int, default=2000, help="macs: evaluations")
-    parser.add_argument("--backend", nargs="+", choices=BACKENDS, default=["mpi", "dask"])
+    parser.add_argument("--backend", nargs="+", choices=BACKENDS, default=["mpi", "dask"],
+                        help="backends to measure (the serial backend is always run too: "
+                             "the baseline)")
     parser.add_argument("--workers", nargs="+", type=int, default=[1, 2])
     parser.add_argument("--balance", choices=("blocks", "lpt"), default="blocks")
     parser.add_argument("--repeat", type=int, default=3)
@@ -228,7 +250,8 @@ def main() -> int:
     raw: dict[str, dict[int, list[dict]]] = {}
     figures = []
     # repetitions outermost: a drift in the machine's speed hits every configuration alike
-    configurations = [(backend, p) for backend in args.backend
+    backends = ["serial", *(b for b in args.backend if b != "serial")]
+    configurations = [(backend, p) for backend in backends
                       for p in ([1] if backend == "serial" else sorted(set(args.workers)))]
     for rep in range(args.repeat):
         for backend, p in configurations:
@@ -240,26 +263,34 @@ def main() -> int:
                   flush=True)
     for backend, p in configurations:
         table.setdefault(backend, {})[str(p)] = summarise(raw[backend][p])
-    for backend in args.backend:
+    # the baseline: the fastest serial (1-worker) configuration measured in this run
+    baseline = min(table, key=lambda b: table[b]["1"]["wall_time_s"])
+    baseline_s = table[baseline]["1"]["wall_time_s"]
+    for backend in backends:
         base = table[backend]["1"]
-        for row in table[backend].values():
-            row["speedup"] = base["wall_time_s"] / row["wall_time_s"]
-            row["superstep_speedup"] = base["superstep_s"] / row["superstep_s"]
         for p, row in table[backend].items():
+            row["speedup"] = baseline_s / row["wall_time_s"]
             row["efficiency"] = row["speedup"] / int(p)
+            row["speedup_same_backend"] = base["wall_time_s"] / row["wall_time_s"]
+            row["efficiency_same_backend"] = row["speedup_same_backend"] / int(p)
+            row["superstep_speedup"] = base["superstep_s"] / row["superstep_s"]
+    for backend in args.backend:
         sync = SyncCost.fit({p: table[backend][str(p)]["overhead_s"] for p in raw[backend]})
         models[backend] = model_of(raw[backend][1], sync, sorted(set(args.predict_workers)
-                                                                | set(raw[backend])))
+                                                                | set(raw[backend])),
+                                   baseline_s)
         if "2" in table[backend]:
             predicted = next(p for p in models[backend]["policies"][args.balance]
                              if p["workers"] == 2)
-            measured = table[backend]["2"]["speedup"]
+            measured = table[backend]["2"]["speedup_same_backend"]
             models[backend]["check_2_workers"] = {
                 "measured_speedup": measured, "predicted_speedup": predicted["speedup"],
                 "relative_error": predicted["speedup"] / measured - 1}
 
     report = {"scheme": args.scheme, "arguments": extra, "balance": args.balance,
-              "repeat": args.repeat, "backends": table, "models": models,
+              "repeat": args.repeat, "baseline": {"backend": baseline, "workers": 1,
+                                                  "wall_time_s": baseline_s},
+              "backends": table, "models": models,
               "headline_relative_spread": (max(figures) - min(figures))
               / max(abs(min(figures)), 1e-300),
               "paper": paper[1] if paper else {}}
@@ -282,9 +313,9 @@ def main() -> int:
                                       **model_of([result], sync, sorted(set(
                                           args.predict_workers)))}
     (args.output / "speedup.json").write_text(json.dumps(report, indent=1))
-    plot(table, models, paper, args.output / "speedup.png")
+    plot(table, models, paper, f"fastest serial: {baseline}", args.output / "speedup.png")
 
-    print_table(table, models)
+    print_table(table, models, baseline)
     for backend, model in models.items():
         print_predictions(f"{backend}, from its 1-worker runs", model)
         if check := model.get("check_2_workers"):

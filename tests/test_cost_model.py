@@ -12,6 +12,7 @@ import pytest
 from ocpar.bsp.cost_model import (
     Prediction,
     SyncCost,
+    coordinator_share,
     makespan,
     median_overhead,
     predict,
@@ -149,6 +150,15 @@ def test_prediction_parts():
     )
 
 
+def test_coordinator_share_grows_with_workers():
+    # 1 s serial + 8 tasks of 1 s: T(1) = 9 s, T(8) = 2 s (no sync cost)
+    p1, p8 = predict([[1.0] * 8], [1, 8], "blocks", FREE, serial_s=1.0)
+    assert p1.coordinator_share == pytest.approx(1 / 9)
+    assert p8.coordinator_share == pytest.approx(1 / 2)
+    (empty,) = predict([], [4], "lpt", FREE)
+    assert empty.coordinator_share == 0.0
+
+
 def test_predictions_follow_the_workers_order():
     out = predict([[1.0] * 8], [8, 1, 2], "lpt", FREE)
     assert [p.workers for p in out] == [8, 1, 2]
@@ -245,6 +255,9 @@ def test_task_times_from_traces_and_their_dicts():
     inside = sum(t.wall_s for t in traces)
     assert serial_time(inside + 1.5, dicts) == pytest.approx(1.5)
     assert serial_time(inside - 1.0, traces) == 0.0
+    assert coordinator_share(inside + 1.5, dicts) == pytest.approx(1.5 / (inside + 1.5))
+    assert coordinator_share(inside, traces) == pytest.approx(0.0, abs=1e-12)
+    assert coordinator_share(0.0, []) == 0.0
     # end to end: a one-point sync fit and a prediction at the measured worker count
     sync = SyncCost.fit({2: median_overhead(dicts)})
     (p2,) = predict(task_times(dicts, use="wall"), [2], "blocks", sync, serial_s=1.5)
@@ -279,6 +292,8 @@ def test_task_times_from_traces_and_their_dicts():
         (lambda: task_times([{"task_cpu_s": [-1.0]}]), r"task_cpu_s\[0\]"),
         (lambda: task_times([42]), "neither a SuperstepTrace nor a dict"),
         (lambda: median_overhead([]), "no supersteps"),
+        (lambda: coordinator_share(-1.0, []), "run_wall_s must be"),
+        (lambda: coordinator_share(math.nan, []), "run_wall_s must be"),
         (lambda: median_overhead([None]), "neither a SuperstepTrace nor a dict"),
     ],
 )

@@ -131,7 +131,8 @@ class Prediction:
 
     ``wall_s`` = ``serial_s`` + ``compute_s`` + ``sync_s``; ``compute_s`` is the sum over
     supersteps of the makespan, ``sync_s`` the number of supersteps × σ(P). ``speedup`` is the
-    model's T(1)/T(P) (1 if both are 0); ``efficiency`` = ``speedup``/P.
+    model's T(1)/T(P) (1 if both are 0); ``efficiency`` = ``speedup``/P;
+    :attr:`coordinator_share` the part of ``wall_s`` that does not shrink with P.
     """
 
     workers: int
@@ -141,6 +142,12 @@ class Prediction:
     serial_s: float
     speedup: float
     efficiency: float
+
+    @property
+    def coordinator_share(self) -> float:
+        """``serial_s``/``wall_s``: the coordinator's serial share of the predicted wall time
+        (0 if the wall time is 0)."""
+        return self.serial_s / self.wall_s if self.wall_s > 0 else 0.0
 
 
 def _check_supersteps(supersteps: Sequence[Sequence[float]]) -> list[list[float]]:
@@ -237,10 +244,19 @@ def serial_time(run_wall_s: float, traces: Iterable[TraceLike]) -> float:
     return max(float(run_wall_s) - inside, 0.0)
 
 
+def coordinator_share(run_wall_s: float, traces: Iterable[TraceLike]) -> float:
+    """A measured run's coordinator share: :func:`serial_time` / ``run_wall_s`` (0 for a run
+    of no wall time)."""
+    if not math.isfinite(run_wall_s) or run_wall_s < 0:
+        raise ValueError(f"run_wall_s must be a finite time ≥ 0 s, got {run_wall_s!r}")
+    return serial_time(run_wall_s, traces) / run_wall_s if run_wall_s > 0 else 0.0
+
+
 __all__ = [
     "POLICIES",
     "Prediction",
     "SyncCost",
+    "coordinator_share",
     "makespan",
     "median_overhead",
     "predict",

@@ -1,0 +1,469 @@
+#!/usr/bin/env python
+"""Side-by-side formation benchmark: serial, MPI, Dask and monolithic IPOPT at several sizes.
+
+    python scripts/formation_bench.py --output runs/formation-bench          # 60, 1000, 10,000
+    python scripts/formation_bench.py --quick --output runs/formation-quick  # 60, 200; 2 reps
+    python scripts/formation_bench.py --agents 60 1000 --repeat 5 \
+        --variant default="" --variant offset="--outer offset" --monolithic-limit 120
+
+For each number of agents, each option set (``--variant NAME="ARGS"``, repeatable: ARGS are
+``python -m ocpar.formation`` options added to every ocpar run of that variant; default
+``default=""`` and ``offset="--outer offset"``) and each backend (``serial``; ``mpi`` and
+``dask`` with each of ``--workers``, MPI through ``mpirun -n P``, Dask on an embedded local
+cluster), one run of ``python -m ocpar.formation`` in a fresh process; plus one monolithic
+CasADi/IPOPT run (``--mode monolithic``), killed after ``--monolithic-limit`` seconds and
+recorded as ``timeout`` (every ocpar run likewise after ``--time-limit``); its address space
+is capped at ``--monolithic-memory`` MiB, so that its dense coupling Jacobian cannot take the
+machine's memory (a run that hits the cap ends as ``error``, or ``timeout`` if it hangs). A
+configuration that timed out or ended without result.json (``error``) is not run again at
+that size or larger ones, in any later repetition.
+Repetitions are outermost, so a drift of the machine's speed hits every configuration alike.
+
+Per configuration and size, medians over the repetitions of (each from the run's result.json
+and its superstep trace): solve wall time (process and cluster start-up excluded),
+supersteps, inner solves, per-solve time, per-superstep overhead (wall − busiest worker), the
+first superstep's overhead, coordinator share (time outside supersteps / solve wall); peak
+resident memory per worker and of the largest process of the run; the total cost, which
+must agree across all runs of a size to ``--cost-rtol``; speedup and efficiency against the
+fastest serial configuration of the same size (the 1-worker ocpar configuration, whatever its
+backend and variant, with the smallest median solve wall time).
+
+At the largest size the BSP cost model (:mod:`ocpar.bsp.cost_model`) predicts P = 1, 2, 4,
+…, 1024 workers from the fastest serial run (its per-task CPU times and serial part) with
+each parallel backend's synchronisation constants σ(P) = a + b·log2 P fitted to that
+backend's measured overheads at that size and variant.
+
+Writes ``formation_bench.json`` and ``formation_bench.png`` (solve wall vs agents per
+configuration; predicted efficiency vs P) in ``--output``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import resource
+import shlex
+import signal
+import statistics
+import subprocess
+import sys
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+from ocpar.bsp.cost_model import (
+    POLICIES,
+    SyncCost,
+    coordinator_share,
+    median_overhead,
+    predict,
+    serial_time,
+    task_times,
+)
+
+SIZES = (60, 1000, 10_000)
+QUICK_SIZES = (60, 200)
+DEFAULT_VARIANTS = ("default=", "offset=--outer offset")
+MODEL_WORKERS = tuple(2**k for k in range(11))
+#: Worker counts whose predicted efficiency the report prints, with the issue's targets.
+EFFICIENCY_TARGETS = {64: 0.85, 1024: 0.7}
+#: Options the benchmark sets itself; a variant may not give them.
+RESERVED = ("--agents", "--backend", "--workers", "--mode", "--output", "--problem",
+            "--quiet", "--scheduler")
+MPIRUN = str(Path(sys.executable).parent / "mpirun")
+
+
+@dataclass(frozen=True)
+class Configuration:
+    """One way to solve a size: ``backend`` serial | mpi | dask | monolithic, on ``workers``
+    workers, with the ``variant``'s extra options ``args``."""
+
+    backend: str
+    workers: int
+    variant: str
+    args: tuple[str, ...]
+
+    @property
+    def name(self) -> str:
+        if self.backend == "monolithic":
+            return "monolithic"
+        where = "serial" if self.backend == "serial" else f"{self.backend}x{self.workers}"
+        return f"{where}/{self.variant}"
+
+    def command(self, problem: str, agents: int, out: Path) -> list[str]:
+        """The command line of one run."""
+        cmd = [sys.executable, "-m", "ocpar.formation", "--problem", problem, "--agents",
+               str(agents), *self.args, "--quiet", "--output", str(out)]
+        if self.backend == "monolithic":
+            return [*cmd, "--mode", "monolithic"]
+        if self.backend == "mpi":
+            return [MPIRUN, "-n", str(self.workers), *cmd]
+        if self.backend == "dask":
+            return [*cmd, "--backend", "dask", "--workers", str(self.workers)]
+        return [*cmd, "--backend", "serial"]
+
+
+def parse_variant(text: str) -> tuple[str, tuple[str, ...]]:
+    """``NAME=ARGS`` → (NAME, ARGS split like a shell would)."""
+    name, sep, args = text.partition("=")
+    if not sep or not name or "/" in name or name != name.strip():
+        raise argparse.ArgumentTypeError(f"--variant must be NAME=ARGS (NAME without '/' or "
+                                         f"spaces), got {text!r}")
+    try:
+        words = tuple(shlex.split(args))
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(f"--variant {name}: {exc}") from None
+    for word in words:
+        if word.split("=")[0] in RESERVED:
+            raise argparse.ArgumentTypeError(
+                f"--variant {name}: {word.split('=')[0]} is set by the benchmark itself")
+    return name, words
+
+
+def run_once(cmd: list[str], out: Path, limit_s: float, memory_mb: float | None = None) -> dict:
+    """Run ``cmd`` in its own process group; kill the group after ``limit_s`` seconds. With
+    ``memory_mb`` its address space is capped at that many MiB (an allocation beyond it
+    fails, and the run ends as ``error``).
+    Returns the result.json's fields (``status`` ``timeout`` or ``error`` if there is none),
+    ``process_peak_rss_mb``, the peak resident memory of the largest process it ran, and
+    ``process_s``, its wall time from launch to exit (start-up included)."""
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "result.json").unlink(missing_ok=True)
+    with open(out / "stderr.txt", "w") as err:
+        cap = None if memory_mb is None else int(memory_mb * 2**20)
+        proc = subprocess.Popen(
+            cmd, stdout=subprocess.DEVNULL, stderr=err, start_new_session=True,
+            preexec_fn=None if cap is None else
+            lambda: resource.setrlimit(resource.RLIMIT_AS, (cap, cap)))
+        launched = time.monotonic()
+        deadline = launched + limit_s
+        timed_out = False
+        while True:
+            pid, status, usage = os.wait4(proc.pid, os.WNOHANG)
+            if pid:
+                break
+            if time.monotonic() > deadline:
+                os.killpg(proc.pid, signal.SIGKILL)
+                pid, status, usage = os.wait4(proc.pid, 0)
+                timed_out = True
+                break
+            time.sleep(0.05)
+        proc.returncode = os.waitstatus_to_exitcode(status)
+    peak = {"process_peak_rss_mb": usage.ru_maxrss / 1024,  # Linux: KiB
+            "process_s": time.monotonic() - launched}
+    if timed_out:
+        return {"status": "timeout", "message": f"killed after {limit_s:g} s", **peak}
+    path = out / "result.json"
+    if not path.exists():
+        tail = (out / "stderr.txt").read_text().strip().splitlines()[-1:] or [""]
+        return {"status": "error", "message": f"exit {proc.returncode}: {tail[0]}", **peak}
+    return json.loads(path.read_text()) | peak
+
+
+def run_figures(result: dict) -> dict:
+    """The per-run figures of one result.json (times in s, memory in MiB; None where the run
+    has no supersteps, as in monolithic mode)."""
+    row = {k: result.get(k) for k in ("status", "message", "process_peak_rss_mb", "process_s")}
+    if "trace" not in result:
+        return row
+    trace = result["trace"]
+    wall = result["wall_time_s"]
+    tasks = [x for t in trace for x in t["task_wall_s"]]
+    peaks = [max(t["worker_peak_rss_mb"][w] for t in trace)
+             for w in range(max((len(t["worker_peak_rss_mb"]) for t in trace), default=0))]
+    return row | {
+        "wall_s": wall,
+        "supersteps": len(trace),
+        "inner_solves": result["inner_solves"],
+        "outer_iterations": result["outer_iterations"],
+        "total_cost": result["total_cost"],
+        "solve_ms": 1e3 * statistics.median(tasks) if tasks else None,
+        "overhead_ms": 1e3 * median_overhead(trace) if trace else None,
+        "first_overhead_ms": 1e3 * trace[0]["overhead_s"] if trace else None,
+        "coordinator_s": serial_time(wall, trace),
+        "coordinator_share": coordinator_share(wall, trace),
+        "imbalance": statistics.median(t["imbalance"] for t in trace) if trace else None,
+        "peak_rss_mb_per_worker": peaks,
+    }
+
+
+MEDIANS = ("wall_s", "supersteps", "inner_solves", "outer_iterations", "total_cost",
+           "solve_ms", "overhead_ms", "first_overhead_ms", "coordinator_s",
+           "coordinator_share", "imbalance", "process_peak_rss_mb", "process_s")
+
+
+def summarise(runs: list[dict]) -> dict:
+    """Medians over a configuration's runs that gave a result; peak memory: the largest."""
+    done = [r for r in runs if "wall_s" in r]
+    row: dict = {"runs": len(runs), "results": len(done),
+                 "statuses": sorted({r["status"] for r in runs})}
+    if not done:
+        return row
+    for k in MEDIANS:
+        values = [r[k] for r in done if r[k] is not None]
+        row[k] = statistics.median(values) if values else None
+    row["peak_rss_mb_per_worker"] = [max(p) for p in zip(
+        *(r["peak_rss_mb_per_worker"] for r in done), strict=True)]
+    return row
+
+
+def compare_costs(size_runs: dict[str, list[dict]], reference: float, rtol: float) -> list:
+    """Runs whose total cost differs from ``reference`` by more than ``rtol`` relative."""
+    out = []
+    for name, runs in size_runs.items():
+        for rep, r in enumerate(runs):
+            if "total_cost" not in r:
+                continue
+            cost = r["total_cost"]
+            rel = (math.inf if cost is None
+                   else abs(cost - reference) / max(abs(reference), 1e-300))
+            if not rel <= rtol:
+                out.append({"configuration": name, "rep": rep, "total_cost": cost,
+                            "relative_difference": rel})
+    return out
+
+
+def model(output: Path, agents: int, table: dict, configs: list[Configuration],
+          reps: dict) -> dict | None:
+    """Cost-model predictions at ``agents`` from the fastest serial configuration, with each
+    parallel backend's synchronisation constants measured at this size and variant."""
+    base = table.get("fastest_serial")
+    if base is None:
+        return None
+    serial = next(c for c in configs if c.name == base)
+    done = [(rep, r) for rep, r in enumerate(reps[base]) if "wall_s" in r]
+    rep, _ = sorted(done, key=lambda x: x[1]["wall_s"])[len(done) // 2]
+    result = json.loads((output / f"{agents}-{base.replace('/', '-')}-{rep}" / "result.json")
+                        .read_text())
+    tasks = task_times(result["trace"], use="cpu")
+    serial_s = serial_time(result["wall_time_s"], result["trace"])
+    out = {"agents": agents, "from": base, "rep": rep, "serial_s": serial_s,
+           "supersteps": len(tasks), "backends": {}}
+    for backend in ("mpi", "dask"):
+        measured = {c.workers: table["configurations"][c.name]["overhead_ms"] / 1e3
+                    for c in configs if c.backend == backend and c.variant == serial.variant
+                    and table["configurations"][c.name].get("overhead_ms") is not None}
+        if not measured:
+            continue
+        sync = SyncCost.fit(measured)
+        out["backends"][backend] = {
+            "sync": {"a_s": sync.a_s, "b_s": sync.b_s, "fitted_to": measured},
+            "policies": {policy: [vars(p) | {"coordinator_share": p.coordinator_share}
+                                  for p in predict(tasks, MODEL_WORKERS, policy, sync,
+                                                   serial_s)]
+                         for policy in POLICIES}}
+    return out
+
+
+def plot(report: dict, path: Path) -> None:
+    from ocpar.plotting import pyplot, save
+
+    plt = pyplot()
+    fig, (ax_t, ax_e) = plt.subplots(1, 2, figsize=(12, 4.8))
+    names = sorted({n for size in report["sizes"].values() for n in size["configurations"]})
+    # colour: backend and workers; line style: variant
+    wheres = sorted({n.split("/")[0] for n in names})
+    styles = {v: ("-", "--", ":", "-.")[k % 4] for k, v in enumerate(report["variants"])}
+    for name in names:
+        where, _, variant = name.partition("/")
+        style = {"color": f"C{wheres.index(where) % 10}", "ls": styles.get(variant, "-")}
+        xs, ys, xt, yt = [], [], [], []
+        for agents, size in sorted(report["sizes"].items(), key=lambda kv: int(kv[0])):
+            row = size["configurations"].get(name)
+            if row is None:
+                continue
+            if "wall_s" in row:
+                xs.append(int(agents))
+                ys.append(row["wall_s"])
+            elif "timeout" in row["statuses"]:
+                xt.append(int(agents))
+                yt.append(report["limits_s"]["monolithic" if name == "monolithic"
+                                             else "ocpar"])
+        ax_t.plot(xs, ys, marker="o", label=name, **style)
+        if xt:
+            ax_t.plot(xt, yt, "x", ms=9, color=style["color"])
+    ax_t.set_xscale("log")
+    ax_t.set_yscale("log")
+    ax_t.set_xlabel("agents")
+    ax_t.set_ylabel("solve wall time (s), median; x: timed out")
+    ax_t.legend(fontsize=7)
+    ax_t.grid(alpha=0.3, which="both")
+    predicted = report.get("model")
+    if predicted:
+        for backend, m in predicted["backends"].items():
+            points = m["policies"]["blocks"]
+            ax_e.plot([p["workers"] for p in points], [p["efficiency"] for p in points], "o-",
+                      label=f"{backend} sync constants (blocks)")
+        for p, target in EFFICIENCY_TARGETS.items():
+            ax_e.plot([p], [target], "k^", ms=8)
+        ax_e.set_title(f"cost model, {predicted['agents']} agents, from {predicted['from']}"
+                       " (▲ targets)", fontsize=9)
+        ax_e.legend(fontsize=8)
+    ax_e.set_xscale("log", base=2)
+    ax_e.set_ylim(0, 1.05)
+    ax_e.set_xlabel("workers P")
+    ax_e.set_ylabel("predicted efficiency T(1)/(P·T(P))")
+    ax_e.grid(alpha=0.3, which="both")
+    save(fig, path)
+
+
+def fmt(value: float | None, width: int, spec: str) -> str:
+    """``value`` formatted by ``spec`` right-aligned in ``width`` characters; "-" if None."""
+    return f"{'-' if value is None else format(value, spec):>{width}s}"
+
+
+def print_report(report: dict) -> None:
+    for agents, size in report["sizes"].items():
+        print(f"\n{agents} agents: speedups against "
+              f"{size.get('fastest_serial', '- (no serial result)')}")
+        print(f"{'configuration':22s}{'runs':>5s}{'wall s':>9s}{'speedup':>8s}{'effic':>7s}"
+              f"{'steps':>6s}{'solves':>8s}{'solve ms':>9s}{'ovh ms':>8s}{'1st ms':>8s}"
+              f"{'coord':>7s}{'MiB/worker':>12s}{'total cost':>20s}")
+        for name, r in size["configurations"].items():
+            if "wall_s" not in r:
+                print(f"{name:22s}{r['runs']:5d}  {', '.join(r['statuses'])}")
+                continue
+            mem = "/".join(f"{m:.0f}" for m in r["peak_rss_mb_per_worker"]) or \
+                f"{r['process_peak_rss_mb']:.0f}"
+            print(f"{name:22s}{r['results']:5d}{fmt(r['wall_s'], 9, '.3f')}"
+                  f"{fmt(r.get('speedup'), 8, '.2f')}{fmt(r.get('efficiency'), 7, '.2f')}"
+                  f"{fmt(r['supersteps'], 6, '.0f')}{fmt(r['inner_solves'], 8, '.0f')}"
+                  f"{fmt(r['solve_ms'], 9, '.3f')}{fmt(r['overhead_ms'], 8, '.2f')}"
+                  f"{fmt(r['first_overhead_ms'], 8, '.2f')}"
+                  f"{fmt(r['coordinator_share'], 7, '.1%')}{mem:>12s}"
+                  f"{fmt(r['total_cost'], 20, '.12e')}")
+        for flag in size["cost_disagreements"]:
+            print(f"  COST DISAGREES: {flag['configuration']} rep {flag['rep']}: "
+                  f"{flag['total_cost']} (relative difference {flag['relative_difference']:.1e})")
+    predicted = report.get("model")
+    if not predicted:
+        return
+    print(f"\ncost model at {predicted['agents']} agents from {predicted['from']} "
+          f"({predicted['supersteps']} supersteps, serial part {predicted['serial_s']:.3f} s):")
+    for backend, m in predicted["backends"].items():
+        sync = m["sync"]
+        points = {p["workers"]: p for p in m["policies"]["blocks"]}
+        effs = ", ".join(f"{points[p]['efficiency']:.2f} at {p} (target {t})"
+                         for p, t in EFFICIENCY_TARGETS.items())
+        print(f"  {backend}: σ(P) = {sync['a_s'] * 1e3:.3f} ms + {sync['b_s'] * 1e3:.3f} ms·log2 P;"
+              f" efficiency (blocks) {effs}; coordinator share at 1024: "
+              f"{points[1024]['coordinator_share']:.1%}")
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--agents", nargs="+", type=int, default=None,
+                        help=f"sizes (default {' '.join(map(str, SIZES))}; --quick: "
+                             f"{' '.join(map(str, QUICK_SIZES))})")
+    parser.add_argument("--quick", action="store_true",
+                        help="small sizes, 2 repetitions, short limits: for trying the script")
+    parser.add_argument("--problem", default="point-mass-plane",
+                        choices=("point-mass-plane", "crtbp-rigid"), help="built-in example")
+    parser.add_argument("--variant", action="append", type=parse_variant, default=None,
+                        metavar='NAME="ARGS"',
+                        help="an option set of the ocpar runs, repeatable (default: "
+                             + " and ".join(f'{v.split("=")[0]}="{v.split("=", 1)[1]}"'
+                                            for v in DEFAULT_VARIANTS) + ")")
+    parser.add_argument("--backends", nargs="+", choices=("serial", "mpi", "dask"),
+                        default=["serial", "mpi", "dask"])
+    parser.add_argument("--workers", nargs="+", type=int, default=[1, 2],
+                        help="worker counts of mpi and dask (default 1 2: the 1-worker runs "
+                             "give the cost model's synchronisation fit)")
+    parser.add_argument("--no-monolithic", action="store_true", help="skip --mode monolithic")
+    parser.add_argument("--repeat", type=int, default=None, help="repetitions (default 3; "
+                        "--quick: 2)")
+    parser.add_argument("--time-limit", type=float, default=None,
+                        help="seconds before an ocpar run is killed (default 1800; --quick 120)")
+    parser.add_argument("--monolithic-limit", type=float, default=None,
+                        help="seconds before a monolithic run is killed (default 120; "
+                             "--quick 30)")
+    parser.add_argument("--monolithic-memory", type=float, default=8192,
+                        help="address-space cap of a monolithic run (MiB, default 8192): its "
+                             "coupling's Jacobian is dense in the angles (n² entries)")
+    parser.add_argument("--cost-rtol", type=float, default=1e-8,
+                        help="relative tolerance of the total-cost agreement check")
+    parser.add_argument("--output", type=Path, default=Path("runs/formation-bench"))
+    args = parser.parse_args()
+    sizes = sorted(set(args.agents or (QUICK_SIZES if args.quick else SIZES)))
+    repeat = args.repeat or (2 if args.quick else 3)
+    limit = args.time_limit or (120.0 if args.quick else 1800.0)
+    mono_limit = args.monolithic_limit or (30.0 if args.quick else 120.0)
+    variants = args.variant or [parse_variant(v) for v in DEFAULT_VARIANTS]
+    if (min(sizes) < 2 or repeat < 1 or min(args.workers) < 1
+            or min(limit, mono_limit, args.monolithic_memory) <= 0):
+        parser.error("--agents ≥ 2, --repeat ≥ 1, --workers ≥ 1 and positive limits")
+    if len({name for name, _ in variants}) != len(variants):
+        parser.error("--variant names must be distinct")
+    if "serial" not in args.backends:
+        parser.error("--backends must include serial (the speedups' baseline)")
+    if repeat < 3:
+        print(f"note: {repeat} repetitions: the issue asks for medians of at least 3")
+
+    configs = [Configuration(b, p, name, extra) for name, extra in variants
+               for b in args.backends for p in ([1] if b == "serial" else args.workers)]
+    if not args.no_monolithic:
+        configs.append(Configuration("monolithic", 1, "monolithic", ()))
+    runs: dict[int, dict[str, list[dict]]] = {n: {c.name: [] for c in configs} for n in sizes}
+    # configuration → the smallest size at which it timed out or ended without a result
+    timed_out: dict[str, int] = {}
+    start = time.perf_counter()
+    for rep in range(repeat):  # repetitions outermost
+        for agents in sizes:
+            for c in configs:
+                if agents >= timed_out.get(c.name, math.inf):
+                    skipped = {"status": "skipped", "message": f"no result at "
+                               f"{timed_out[c.name]} agents (timeout or error)"}
+                    runs[agents][c.name].append(skipped)
+                    continue
+                out = args.output / f"{agents}-{c.name.replace('/', '-')}-{rep}"
+                mono = c.backend == "monolithic"
+                result = run_once(c.command(args.problem, agents, out), out,
+                                  mono_limit if mono else limit,
+                                  args.monolithic_memory if mono else None)
+                row = run_figures(result)
+                runs[agents][c.name].append(row)
+                if row["status"] in ("timeout", "error"):
+                    timed_out[c.name] = min(agents, timed_out.get(c.name, math.inf))
+                wall = f"{row['wall_s']:.3f} s" if "wall_s" in row else row["message"]
+                print(f"rep {rep} {agents:6d} agents {c.name:22s} {row['status']:13s} {wall}",
+                      flush=True)
+
+    report: dict = {"problem": args.problem, "repeat": repeat,
+                    "variants": {name: list(extra) for name, extra in variants},
+                    "limits_s": {"ocpar": limit, "monolithic": mono_limit},
+                    "cost_rtol": args.cost_rtol, "benchmark_wall_s": 0.0, "sizes": {}}
+    for agents in sizes:
+        rows = {c.name: summarise(runs[agents][c.name]) for c in configs}
+        serial = {c.name: rows[c.name]["wall_s"] for c in configs
+                  if c.workers == 1 and c.backend != "monolithic" and "wall_s" in rows[c.name]}
+        size: dict = {"configurations": rows, "runs": runs[agents], "cost_disagreements": []}
+        if serial:
+            fastest = min(serial, key=serial.get)
+            size["fastest_serial"] = fastest
+            for c in configs:
+                if "wall_s" in rows[c.name]:
+                    rows[c.name]["speedup"] = serial[fastest] / rows[c.name]["wall_s"]
+                    rows[c.name]["efficiency"] = rows[c.name]["speedup"] / c.workers
+            if rows[fastest]["total_cost"] is not None:
+                size["cost_disagreements"] = compare_costs(
+                    runs[agents], rows[fastest]["total_cost"], args.cost_rtol)
+        report["sizes"][str(agents)] = size
+    largest = max((n for n in sizes if "fastest_serial" in report["sizes"][str(n)]),
+                  default=None)
+    if largest is not None:
+        report["model"] = model(args.output, largest, report["sizes"][str(largest)], configs,
+                                runs[largest])
+    report["benchmark_wall_s"] = time.perf_counter() - start
+    args.output.mkdir(parents=True, exist_ok=True)
+    (args.output / "formation_bench.json").write_text(json.dumps(report, indent=1))
+    plot(report, args.output / "formation_bench.png")
+    print_report(report)
+    print(f"\nbenchmark took {report['benchmark_wall_s']:.0f} s; wrote "
+          f"{args.output / 'formation_bench.json'} and {args.output / 'formation_bench.png'}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
