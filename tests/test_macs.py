@@ -10,8 +10,8 @@ from conftest import assert_result_contract, golden, run_cli
 
 from ocpar.bsp import open_backend
 from ocpar.macs.algorithm import MacsSettings
-from ocpar.macs.archive import Archive, Member, dominates
-from ocpar.macs.local_search import SearchTask, run_search
+from ocpar.macs.archive import TIE_TOL, Archive, Member, dominates
+from ocpar.macs.local_search import INTEGRATION_RTOL, SearchTask, run_search
 from ocpar.macs.problems import make_problem
 from ocpar.macs.reference import reference_front
 from ocpar.macs.solve import resimulated_objectives, solve_macs
@@ -52,6 +52,45 @@ def test_archive_filter_in_three_objectives_keeps_extremes_and_spreads():
 
     random_picks = [closest_pair(points[rng.choice(200, 10, replace=False)]) for _ in range(100)]
     assert closest_pair(f) > np.max(random_picks)
+
+
+def test_vectorised_archive_insertion_keeps_what_the_pairwise_definition_keeps():
+    """Random fronts with ties and near-duplicates (2 and 3 objectives): the archive's members
+    after each insertion are exactly the pool's members that no other one dominates and that
+    do not repeat an earlier one, filtered."""
+    rng = np.random.default_rng(0)
+    for m in (2, 3):
+        archive = Archive(size=12, n_objectives=m)
+        for _ in range(30):
+            points = rng.random((int(rng.integers(1, 12)), m)).round(int(rng.integers(1, 4)))
+            points[0] = points[-1] * (1 + 1e-9)  # a repeat within the tie tolerance
+            candidates = [Member(np.zeros(1), p) for p in points]
+            pool = archive.members + candidates
+            expected = [
+                c for i, c in enumerate(pool)
+                if not any(dominates(o.objectives, c.objectives) for o in pool if o is not c)
+                and not any(np.allclose(o.objectives, c.objectives, rtol=TIE_TOL, atol=TIE_TOL)
+                            for o in pool[:i])]
+            archive.add(candidates)
+            assert [id(c) for c in archive.members] == [id(c) for c in
+                                                        archive._filter(expected)]
+
+
+@pytest.mark.parametrize("name", ["goddard", "orbit-raising"])
+def test_fast_integration_meets_its_tolerance_or_falls_back(name):
+    """The DFET's integration of a control law (start points, consistency checks) agrees with
+    a tight adaptive integration to its tolerance, whether the compiled RK4 sweep's error
+    estimate accepted it or the adaptive DOP853 fallback ran."""
+    dfet = dfet_problem(make_problem(name).shape)
+    rng = np.random.default_rng(5)
+    for _ in range(2):
+        p = dfet.p_lower + (dfet.p_upper - dfet.p_lower) * rng.random(len(dfet.p_lower))
+        exact, exact_final = dfet._integrate_adaptive(p, 1e-11, 1e-13, False)
+        for rtol in (INTEGRATION_RTOL, 1e-9):
+            nodes, final = dfet._integrate(p, rtol, rtol / 100)
+            np.testing.assert_allclose(nodes, exact, rtol=10 * rtol, atol=rtol)
+            np.testing.assert_array_equal(final, nodes[-1, -1])
+            np.testing.assert_allclose(final, exact_final, rtol=10 * rtol, atol=rtol)
 
 
 @pytest.mark.parametrize("name", ["goddard", "orbit-raising"])

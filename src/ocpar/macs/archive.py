@@ -54,13 +54,14 @@ class Archive:
         """Insert the non-dominated candidates, drop what they dominate, filter to ``size``.
         Returns how many candidates are in the archive afterwards."""
         pool = self.members + candidates
-        keep = []
-        for i, m in enumerate(pool):
-            dominated = any(dominates(o.objectives, m.objectives) for o in pool if o is not m)
-            duplicate = any(np.allclose(o.objectives, m.objectives, rtol=TIE_TOL, atol=TIE_TOL)
-                            for o in pool[:i])
-            if not dominated and not duplicate:
-                keep.append(m)
+        f = np.array([m.objectives for m in pool], dtype=float).reshape(len(pool), -1)
+        a, b = f[:, None, :], f[None, :, :]  # [i, k]: does pool[i] dominate / repeat pool[k]?
+        tol = TIE_TOL * (1 + np.abs(b))
+        dominated = (np.all(a <= b + tol, axis=2) & np.any(a < b - tol, axis=2)).any(axis=0)
+        # np.allclose(pool[i], pool[k], rtol=atol=TIE_TOL) for an earlier i < k
+        close = np.all(np.abs(a - b) <= TIE_TOL + TIE_TOL * np.abs(b), axis=2)
+        duplicate = np.triu(close, k=1).any(axis=0)
+        keep = [m for m, drop in zip(pool, dominated | duplicate, strict=True) if not drop]
         self.members = self._filter(keep)
         return sum(any(m is c for m in self.members) for c in candidates)
 

@@ -33,6 +33,11 @@ FEASIBILITY_TOL = 1e-6
 #: exploited the transcription's error (seen on orbit raising, 30 elements of order 1, near
 #: t_f = 80) and the point is rejected like an infeasible one.
 CONSISTENCY_TOL = 1e-2
+#: Relative tolerance of the integrations of a local search: the state nodes of a start
+#: point given as a decision vector, and the re-simulation of the consistency check (far
+#: below :data:`CONSISTENCY_TOL`; at this tolerance the compiled RK4 sweep of the DFET
+#: usually suffices, see :meth:`~ocpar.ocp.dfet.DfetTranscription.rk4_sweep`).
+INTEGRATION_RTOL = 1e-5
 #: IPOPT iteration limit of one local search (the paper gave fmincon 100 evaluations).
 MAX_ITER = 100
 KINDS = ("scalarised", "restore")
@@ -110,7 +115,7 @@ class InnerSolvers:
         """The transcription's objectives agree with an accurate re-simulation of z's
         control law (:data:`CONSISTENCY_TOL`)."""
         try:
-            simulated = self.functions.resimulated(z, rtol=1e-8)
+            simulated = self.functions.resimulated(z, rtol=INTEGRATION_RTOL)
         except RuntimeError:
             return False
         return bool(np.all(np.abs(simulated - objectives) <= CONSISTENCY_TOL
@@ -119,7 +124,7 @@ class InnerSolvers:
     def start_point(self, task: SearchTask) -> np.ndarray:
         if task.z0 is not None:
             return np.clip(task.z0, self.dfet.lbz, self.dfet.ubz)
-        return self.dfet.guess_from_decision(task.p0)
+        return self.dfet.guess_from_decision(task.p0, INTEGRATION_RTOL)
 
     def run(self, task: SearchTask) -> SearchResult:
         """One inner solve. A scalarised search of a problem with ``periodic_controls`` that

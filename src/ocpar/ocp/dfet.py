@@ -36,6 +36,12 @@ from ocpar.ocp.ipopt import ipopt_options
 
 #: Gauss–Legendre quadrature points per element = order l + QUADRATURE_EXTRA.
 QUADRATURE_EXTRA = 2
+#: Classical RK4 steps per element of the compiled integration
+#: (:meth:`DfetTranscription.rk4_sweep`), shared among the intervals between state nodes in
+#: proportion to their length, at least :data:`RK4_MIN_STEPS` per interval; its error estimate
+#: comes from a second sweep with twice as many.
+RK4_STEPS = 64
+RK4_MIN_STEPS = 16
 #: IPOPT tolerance and iteration limit of :meth:`DfetTranscription.solve_states`.
 STATE_SOLVE_TOL = 1e-10
 STATE_SOLVE_MAX_ITER = 200
@@ -262,11 +268,67 @@ class DfetTranscription:
         xs, us = ca.SX.sym("x", self.nx), ca.SX.sym("u", self.nu)
         return ca.Function("F", [xs, us], [self.shape.model.rhs(xs, us)])
 
+    @cached_property
+    def rk4_sweep(self) -> ca.Function:
+        """p (decision vector) → (coarse, fine): the control law integrated from x_0 by
+        classical RK4, element by element, with :data:`RK4_STEPS` (coarse, at least
+        :data:`RK4_MIN_STEPS` per interval between state nodes) and twice as many (fine) steps
+        per element; each (nx, N (l+1)), the states at every element's
+        Gauss–Lobatto nodes. One call into compiled code."""
+        n, m1, nx, nu = self.n, self.shape.control_order + 1, self.nx, self.nu
+        # one interval [a, b] of τ on one element: x(a) → x(b), dx/dτ = t_f/(2N) F(x, u(τ)),
+        # u(τ) = C (1, τ, …, τ^m) with C the monomial coefficients of the element's nodes
+        x, a, b = ca.SX.sym("x", nx), ca.SX.sym("a"), ca.SX.sym("b")
+        coefs, half_step = ca.SX.sym("C", nu, m1), ca.SX.sym("h")
+
+        def f(y, tau):
+            return half_step * self.rhs_function(y, coefs @ tau ** ca.DM(np.arange(m1)))
+
+        p = ca.MX.sym("p", n * m1 * nu + 1)
+        to_monomial = np.linalg.inv(np.vander(self.control_nodes, m1, increasing=True)).T
+
+        coarse = np.maximum(RK4_MIN_STEPS, np.round(RK4_STEPS * np.diff(self.state_nodes) / 2))
+        sweeps = []
+        for counts in (coarse.astype(int), 2 * coarse.astype(int)):
+            intervals = {}
+            for steps in set(counts.tolist()):
+                y, h = x, (b - a) / steps
+                for i in range(steps):
+                    t = a + i * h
+                    k1 = f(y, t)
+                    k2 = f(y + h / 2 * k1, t + h / 2)
+                    k3 = f(y + h / 2 * k2, t + h / 2)
+                    y = y + h / 6 * (k1 + 2 * k2 + 2 * k3 + f(y + h * k3, t + h))
+                intervals[steps] = ca.Function(f"rk4_{steps}", [x, a, b, coefs, half_step], [y])
+            # the sweep over all elements and intervals, calling the interval functions
+            y, columns = ca.MX(ca.DM(self.shape.initial_state)), []
+            for j in range(n):
+                element_coefs = ca.reshape(p[j * m1 * nu:(j + 1) * m1 * nu], nu, m1) @ to_monomial
+                columns.append(y)
+                for i, steps in enumerate(counts):
+                    y = intervals[steps](y, self.state_nodes[i], self.state_nodes[i + 1],
+                                         element_coefs, p[-1] / (2 * n))
+                    columns.append(y)
+            sweeps.append(ca.horzcat(*columns))
+        return ca.Function("rk4_sweep", [p], sweeps, ["p"], ["coarse", "fine"])
+
     def _integrate(self, p: np.ndarray, rtol: float, atol: float, hold: bool = False
                    ) -> tuple[np.ndarray, np.ndarray]:
         """Integrate the control law from x_0, element by element (the controls jump between
-        elements); states at every element's Gauss–Lobatto nodes (N, l+1, nx) and x(t_f). If
-        the integration fails, raise RuntimeError, or with ``hold`` keep the last state."""
+        elements); states at every element's Gauss–Lobatto nodes (N, l+1, nx) and x(t_f).
+        First by :meth:`rk4_sweep`, kept if finite and |fine − coarse| (about 15 times the fine
+        sweep's error) is within atol + rtol |x| everywhere; otherwise by scipy's adaptive
+        DOP853. If that fails, raise RuntimeError, or with ``hold`` keep the last state."""
+        coarse, fine = (np.asarray(a) for a in self.rk4_sweep(p))
+        error = np.abs(fine - coarse)
+        if np.all(np.isfinite(fine)) and np.all(error <= atol + rtol * np.abs(fine)):
+            nodes = fine.T.reshape(self.n, self.shape.order + 1, self.nx)
+            return nodes, nodes[-1, -1].copy()
+        return self._integrate_adaptive(p, rtol, atol, hold)
+
+    def _integrate_adaptive(self, p: np.ndarray, rtol: float, atol: float, hold: bool
+                            ) -> tuple[np.ndarray, np.ndarray]:
+        """:meth:`_integrate` by scipy's DOP853, element by element."""
         buffer, evaluate = self.rhs_function.buffer()  # one per call: thread-safe
         state, control, derivative = np.empty(self.nx), np.empty(self.nu), np.empty(self.nx)
         for i, array in enumerate((state, control)):
@@ -297,12 +359,12 @@ class DfetTranscription:
             x = sol.y[:, -1]
         return nodes, x
 
-    def guess_from_decision(self, p: np.ndarray) -> np.ndarray:
+    def guess_from_decision(self, p: np.ndarray, rtol: float = 1e-10) -> np.ndarray:
         """A full z consistent with p (a full z or p): the control law integrated accurately
-        (rtol 1e-10, atol 1e-12) fills the state nodes and x_f; should the integration fail,
-        the last state reached fills the rest."""
+        (``rtol``, atol = rtol/100) fills the state nodes and x_f; should the integration
+        fail, the last state reached fills the rest."""
         p = self.decision(p)
-        nodes, x_f = self._integrate(p, 1e-10, 1e-12, hold=True)
+        nodes, x_f = self._integrate(p, rtol, rtol / 100, hold=True)
         return np.concatenate([nodes.ravel(), x_f, p])
 
     def simulate(self, z_or_p: np.ndarray, rtol: float = 1e-10) -> np.ndarray:
