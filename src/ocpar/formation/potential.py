@@ -119,6 +119,21 @@ def coupling_jacobian(phi: np.ndarray, curve: Curve) -> np.ndarray:
     return coupling_scale(curve, n) * off[: coupling_rows(curve, n)]
 
 
+def respace(phi: np.ndarray) -> np.ndarray:
+    """The nearest equidistant angles (rad) in the same cyclic order: slot k of the sorted
+    angles (mod 2π) at θ + 2πk/n, θ the circular mean of φ_i − 2π rank_i / n, and each angle
+    kept on its own branch (within π of the input). On a circle these are the solutions of
+    c(φ) = 0 (the projection onto the feasible set, O(n log n)); equidistant input comes back
+    unchanged up to rounding."""
+    phi = np.asarray(phi, float)
+    n = phi.size
+    rank = np.empty(n)
+    rank[np.argsort(np.mod(phi, 2 * np.pi), kind="stable")] = np.arange(n)
+    slots = 2 * np.pi * rank / n
+    theta = float(np.angle(np.sum(np.exp(1j * (phi - slots)))))
+    return phi + np.angle(np.exp(1j * (theta + slots - phi)))
+
+
 def equidistance_error(phi: np.ndarray) -> float:
     """max_i |gap_i − 2π/n| over the n gaps between consecutive angles on a circle (rad)."""
     angles = np.sort(np.mod(np.asarray(phi, float), 2 * np.pi))
