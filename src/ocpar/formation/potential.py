@@ -41,10 +41,11 @@ DENSE_RELAX_AGENTS = 200
 #: Neighbours on either side whose pairs form the preconditioner of :func:`relax`.
 RELAX_BAND = 16
 
-#: :func:`relax` for many agents stops at max_k |c_k| ≤ RELAX_TOL (c scaled as :func:`coupling`).
+#: :func:`relax` for many agents stops at max_k |c_k| ≤ RELAX_TOL (c scaled as
+#: :func:`coupling`); trust-exact's ``gtol`` for few.
 RELAX_TOL = 1e-12
 
-#: Newton iterations of :func:`relax` for many agents, at most.
+#: Newton iterations of each of :func:`relax`'s methods, at most.
 RELAX_MAX_ITERATIONS = 50
 
 
@@ -97,23 +98,32 @@ def relax(phi: np.ndarray, curve: Curve) -> np.ndarray:
     circle, the feasible set of c(φ) = 0 is a set of isolated points, and this picks the stable
     one (a minimum, not a saddle) that the start leads to. Circles: ``phi`` unchanged.
 
-    Up to :data:`DENSE_RELAX_AGENTS` agents SciPy's trust-exact on the dense Hessian first
-    (it stops where G's changes reach rounding, max |c_k| ~ 1e-11), then for any n
-    :func:`_relax_newton_pcg` to max |c_k| ≤ :data:`RELAX_TOL` (O(n²) time per iteration,
-    O(n) memory beyond the band). The latter alone finds a critical point of G without
-    telling a minimum from a saddle: on the example ellipse the Hessian's smallest eigenvalue
-    (a quasi-rotation along the curve) falls from 2e-4 at 20 agents to 2e-9 at 60 and below
-    rounding from about 150, so there the critical points along that mode differ in G by less
-    than rounding (and c(φ) fixes the angles along it only as well as that eigenvalue
-    allows: at 60 agents |c| = 1e-12 leaves ~5e-4 rad)."""
+    Up to :data:`DENSE_RELAX_AGENTS` agents SciPy's trust-exact on the dense Hessian (it
+    stops where G's changes reach rounding, max |c_k| ~ 1e-11), then Newton's method on
+    c(φ) = 0 with the dense Jacobian while max |c_k| falls (to ~1e-16): the Hessian can be
+    near-singular along a quasi-rotation of the formation along the curve (on the example
+    ellipse its smallest eigenvalue falls from 2e-4 at 20 agents to 2e-9 at 60), and there a
+    residual r leaves the angles off by r / eigenvalue. Above, :func:`_relax_newton_pcg`
+    (O(n²) time per iteration, O(n) memory beyond the band) to max |c_k| ≤
+    :data:`RELAX_TOL`; it finds a critical point of G without telling a minimum from a
+    saddle, but from about 150 agents that eigenvalue is below rounding and the critical
+    points along that mode differ in G by less than rounding."""
     phi = np.asarray(phi, float)
     if curve.rotation_invariant:
         return phi
-    if phi.size <= DENSE_RELAX_AGENTS:
-        phi = np.asarray(minimize(potential, phi, args=(curve,), jac=coupling,
-                                  hess=coupling_jacobian, method="trust-exact",
-                                  options={"gtol": RELAX_TOL}).x, float)
-    return _relax_newton_pcg(phi, curve)
+    if phi.size > DENSE_RELAX_AGENTS:
+        return _relax_newton_pcg(phi, curve)
+    phi = np.asarray(minimize(potential, phi, args=(curve,), jac=coupling,
+                              hess=coupling_jacobian, method="trust-exact",
+                              options={"gtol": RELAX_TOL}).x, float)
+    c = coupling(phi, curve)
+    for _ in range(RELAX_MAX_ITERATIONS):
+        trial = phi - np.linalg.solve(coupling_jacobian(phi, curve), c)
+        trial_c = coupling(trial, curve)
+        if np.max(np.abs(trial_c)) >= np.max(np.abs(c)):
+            break
+        phi, c = trial, trial_c
+    return phi
 
 
 def _relax_newton_pcg(phi: np.ndarray, curve: Curve) -> np.ndarray:
@@ -121,8 +131,8 @@ def _relax_newton_pcg(phi: np.ndarray, curve: Curve) -> np.ndarray:
     each step solved by conjugate gradients preconditioned by the Hessian of the potential
     truncated to each agent's :data:`RELAX_BAND` neighbours on either side in the cyclic order
     (its sparse LU). A step is halved until G falls (Armijo), or, where G's change is within
-    rounding, until |c| falls. Stops when max_k |c_k| ≤ :data:`RELAX_TOL`, or a step moves no
-    angle by more than 1e-14 rad."""
+    rounding, until |c| falls. Stops when max_k |c_k| ≤ :data:`RELAX_TOL`, or no step of at
+    least 1e-8 of Newton's is accepted."""
     n = phi.size
     c = coupling(phi, curve)
     for _ in range(RELAX_MAX_ITERATIONS):
@@ -130,22 +140,22 @@ def _relax_newton_pcg(phi: np.ndarray, curve: Curve) -> np.ndarray:
             break
         hessian = LinearOperator((n, n), matvec=partial(coupling_hessp, phi, curve))
         band = splu(_band_hessian(phi, curve, min(RELAX_BAND, (n - 1) // 2)))
-        step, _ = cg(hessian, -c, rtol=min(0.1, float(np.linalg.norm(c))), maxiter=50,
-                     M=LinearOperator((n, n), matvec=band.solve))
+        step, _ = cg(hessian, -c, rtol=min(0.1, float(np.sqrt(np.linalg.norm(c)))),
+                     maxiter=50, M=LinearOperator((n, n), matvec=band.solve))
         value, slope, alpha = potential(phi, curve), float(c @ step), 1.0
         if slope >= 0:  # not a descent direction (far from a minimum): the gradient's
             step, slope = -c, -float(c @ c)
-        while True:
+        while alpha >= 1e-8:
             trial = phi + alpha * step
             trial_value, trial_c = potential(trial, curve), coupling(trial, curve)
-            if (trial_value <= value + 1e-4 * alpha * slope or alpha <= 1e-8
-                    or (trial_value <= value + 1e-13 * abs(value)
-                        and np.linalg.norm(trial_c) < np.linalg.norm(c))):
+            if trial_value <= value + 1e-4 * alpha * slope or (
+                    trial_value <= value + 1e-13 * abs(value)
+                    and np.linalg.norm(trial_c) < np.linalg.norm(c)):
                 break
             alpha /= 2
-        phi, c = trial, trial_c
-        if alpha * np.max(np.abs(step)) <= 1e-14:
+        else:
             break
+        phi, c = trial, trial_c
     return phi
 
 
