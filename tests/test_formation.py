@@ -188,6 +188,27 @@ def test_optimum_is_a_rotation_minimum():
             assert objective.value(result.phi + dtheta) > result.total_cost
 
 
+def test_newton_leaves_a_maximum_of_the_rotation():
+    """Started at the optimum rotated by π (with 12 agents the same slots, the assignment
+    shifted by six: there dJ/dθ = 0 and d²J/dθ² < 0), the safeguarded Newton steps do not stop
+    but descend to a minimum over the rotation; started at other rotations, to the optimum."""
+    problem = paper_example(agents=12)
+    best = solve_formation(problem)
+    for rotation in (2.0, -2.5):
+        result = solve_formation(problem, phi0=best.phi + rotation)
+        assert result.converged, result.message
+        assert result.total_cost == pytest.approx(best.total_cost, rel=1e-10)
+        np.testing.assert_allclose(np.cos(result.phi - best.phi), 1.0, atol=1e-10)
+        assert result.supersteps <= 15
+    result = solve_formation(problem, phi0=best.phi + np.pi)
+    assert result.converged and result.supersteps <= 15, result.message
+    with open_backend("serial") as backend:
+        objective = OuterObjective(problem, backend)
+        assert result.total_cost < objective.value(best.phi + np.pi)
+        for dtheta in (-1e-2, 1e-2):
+            assert objective.value(result.phi + dtheta) > result.total_cost
+
+
 def test_bad_problems_are_refused():
     with pytest.raises(ValueError, match="at least 2"):
         paper_example(agents=1)

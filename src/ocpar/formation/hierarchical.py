@@ -39,6 +39,10 @@ from ocpar.ocp import solve_tasks
 #: Second iterate of the offset search (rad): 1/60 of a slot for the paper's 60 agents.
 OFFSET_FIRST_STEP = 1.7e-3
 
+#: Longest step of the common offset θ in :func:`solve_outer_newton` (rad): beyond, a small
+#: positive d²J/dθ² (near an inflection of J(θ)) is no model of J.
+MAX_OFFSET_STEP = np.pi / 4
+
 #: J values this close (relative) count as equal: the offset search starting at the optimum
 #: (e.g. after the optimal ordering) ends where rounding decides.
 ROUNDING_RTOL = 1e-12
@@ -201,12 +205,13 @@ def solve_outer_newton(
 
     * On a circle the tangent space is span(1) (a common rotation θ) and the projection is
       closed form (:func:`~ocpar.formation.potential.respace`: equidistant, same cyclic
-      order, O(n log n)). The reduced Newton step is θ ← θ − Σg_i/Σh_i, safeguarded: where
-      Σh_i ≤ 0 a step of half a slot (π/n) downhill; a step that raises J beyond rounding
-      (:data:`ROUNDING_RTOL`) is rejected and halved; once a minimum is bracketed (dJ/dθ < 0
-      left of dJ/dθ > 0), a step leaving the bracket is replaced by the secant step inside
-      it (bisection after a rejected step). Converged when
-      |Σg_i| ≤ ``tol`` Σ|g_i|, or an accepted step was at most ``tol``·(1 + |θ|).
+      order, O(n log n)). The reduced Newton step is θ ← θ − Σg_i/Σh_i, safeguarded: no step
+      longer than :data:`MAX_OFFSET_STEP`; where Σh_i ≤ 0 a step of half a slot (π/n)
+      downhill (a stationary θ there is a maximum: not converged); a step that raises J
+      beyond rounding (:data:`ROUNDING_RTOL`) is rejected and halved; once a minimum is
+      bracketed (dJ/dθ < 0 left of dJ/dθ > 0), a step leaving the bracket is replaced by the
+      secant step inside it (bisection after a rejected step). Converged when |Σg_i| ≤
+      ``tol`` Σ|g_i| with Σh_i > 0, or an accepted step was at most ``tol``·(1 + |θ|).
     * On any other curve c(φ) = 0 has isolated solutions (dc/dφ, the scaled Hessian of the
       potential, is nonsingular at its minima): the tangent space is {0}, the projection is
       :func:`~ocpar.formation.potential.relax`, and the method ends after that and one
@@ -233,9 +238,10 @@ def solve_outer_newton(
     above = (theta, slope) if slope > 0 else None
     shrink = 1.0  # halved after each rejected step
     for iteration in range(max_iterations):
-        if abs(slope) <= tol * scale:
+        if abs(slope) <= tol * scale and curvature > 0:
             return base + theta, iteration, True, "|sum of dJ/dphi_i| below tolerance"
-        step = shrink * (-slope / curvature if curvature > 0 else -np.sign(slope) * np.pi / n)
+        step = shrink * (np.clip(-slope / curvature, -MAX_OFFSET_STEP, MAX_OFFSET_STEP)
+                         if curvature > 0 else -(np.sign(slope) or 1.0) * np.pi / n)
         if below is not None and above is not None and below[0] < above[0] \
                 and not below[0] < theta + step < above[0]:  # a minimum is bracketed
             (a, g_a), (b, g_b) = below, above
