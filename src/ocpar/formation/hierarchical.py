@@ -213,9 +213,9 @@ def solve_outer_newton(
       secant step inside it (bisection after a rejected step). Converged when |Σg_i| ≤
       ``tol`` Σ|g_i| with Σh_i > 0, or an accepted step was at most ``tol``·(1 + |θ|).
     * On any other curve c(φ) = 0 has isolated solutions (dc/dφ, the scaled Hessian of the
-      potential, is nonsingular at its minima): the tangent space is {0}, the projection is
-      :func:`~ocpar.formation.potential.relax`, and the method ends after that and one
-      evaluation (0 iterations).
+      potential, is nonsingular at its minima, if nearly singular for many agents: see
+      :func:`~ocpar.formation.potential.relax`): the tangent space is {0}, the projection is
+      ``relax``, and the method ends after it and one evaluation (0 iterations).
     """
     problem = objective.problem
     if not problem.curve.rotation_invariant:
