@@ -41,7 +41,7 @@ OFFSET_FIRST_STEP = 1.7e-3
 
 #: Longest step of the common offset θ in :func:`solve_outer_newton` (rad): beyond, a small
 #: positive d²J/dθ² (near an inflection of J(θ)) is no model of J.
-MAX_OFFSET_STEP = np.pi / 4
+MAX_OFFSET_STEP = np.pi / 2
 
 #: J values this close (relative) count as equal: the offset search starting at the optimum
 #: (e.g. after the optimal ordering) ends where rounding decides.
