@@ -22,11 +22,18 @@ from ocpar.formation import (
     FormationProblem,
     ParametricCurve,
     PlaneCurve,
+    potential,
     solve_formation,
 )
 from ocpar.formation.hierarchical import OuterObjective, solve_outer_offset
 from ocpar.formation.ordering import optimal_ordering
-from ocpar.formation.potential import coupling, coupling_expr, coupling_jacobian
+from ocpar.formation.potential import (
+    coupling,
+    coupling_expr,
+    coupling_hessp,
+    coupling_jacobian,
+    relax,
+)
 from ocpar.formation.solve import check_applicable
 from ocpar.models import PointMass
 
@@ -98,6 +105,70 @@ def test_ellipse_outer_gradient_from_sensitivities_matches_finite_differences(el
         fd = np.array([(objective.value(phi + step * e) - objective.value(phi - step * e))
                        / (2 * step) for e in np.eye(10)])
     np.testing.assert_allclose(grad, fd, rtol=1e-6)
+
+
+def test_ellipse_outer_hessian_diagonal_matches_central_differences(ellipse_runs):
+    """d²J/dφ_i² = z′ᵀ H_pos z′ + ∇_pos J* · z″ on the tilted ellipse (z″ ≠ 0 along z′)."""
+    problem, _, _ = ellipse_runs
+    phi = problem.initial_phi() + 0.1 * np.random.default_rng(6).standard_normal(10)
+    step = 1e-5
+    with open_backend("serial") as backend:
+        objective = OuterObjective(problem, backend)
+        hessian = objective.hessian_diagonal(phi)
+        fd = np.array([(objective.gradient(phi + step * e)[i]
+                        - objective.gradient(phi - step * e)[i]) / (2 * step)
+                       for i, e in enumerate(np.eye(10))])
+    np.testing.assert_allclose(hessian, fd, rtol=1e-6)
+
+
+def test_ellipse_newton_projects_by_relaxing_and_matches_sqp(ellipse_runs):
+    """Off a circle c(φ) = 0 has isolated solutions: from the unrelaxed spread guess, the
+    default outer solver's projection (relax) and one superstep reach the point SLSQP
+    reaches in several, the same as from the relaxed initial guess."""
+    problem, hierarchical, _ = ellipse_runs
+    assert hierarchical.supersteps == 1 and hierarchical.outer_iterations == 0
+    spread = problem.curve.spread(1.5 * np.pi, (np.arange(10) - 4.5) / 10)
+    assert np.max(np.abs(coupling(spread, problem.curve))) > 1e-6
+    newton = solve_formation(problem, phi0=spread)
+    sqp = solve_formation(problem, phi0=spread, options=FormationOptions(outer="sqp"))
+    assert newton.converged and sqp.converged, (newton.message, sqp.message)
+    assert newton.supersteps == 1 < sqp.supersteps
+    assert newton.total_cost == pytest.approx(sqp.total_cost, rel=1e-10)
+    assert newton.total_cost == pytest.approx(hierarchical.total_cost, rel=1e-10)
+    np.testing.assert_allclose(newton.phi, sqp.phi, atol=1e-8)
+    assert newton.coupling_residual <= 1e-12
+
+
+def test_hessian_vector_product_of_the_potential_equals_the_dense_jacobian():
+    phi = np.random.default_rng(7).uniform(0, 2 * np.pi, 40)
+    v = np.random.default_rng(8).standard_normal(40)
+    curve = formation_ellipse.make(agents=2, tilt=TILT).curve
+    dense = coupling_jacobian(phi, curve) @ v
+    np.testing.assert_allclose(coupling_hessp(phi, curve, v), dense,
+                               atol=1e-12 * np.max(np.abs(dense)))
+
+
+def test_relax_for_many_agents_reaches_the_dense_methods_potential(monkeypatch):
+    """Newton with preconditioned CG (used above DENSE_RELAX_AGENTS) and trust-exact on the
+    dense Hessian, from the same spread on the ellipse with 160 agents: c = 0 and the same G.
+    (The smallest eigenvalue of dc/dφ, along a quasi-rotation, falls from 2e-4 at 20 agents
+    to 2e-9 at 60 and below rounding at 150: the angles can differ along that mode.)"""
+    n = 160
+    problem = formation_ellipse.make(agents=n, tilt=TILT)
+    spread = problem.curve.spread(1.5 * np.pi, (np.arange(n) - (n - 1) / 2) / n)
+    dense = relax(spread, problem.curve)
+    monkeypatch.setattr(potential, "DENSE_RELAX_AGENTS", 0)
+    banded = relax(spread, problem.curve)
+    assert np.max(np.abs(coupling(banded, problem.curve))) <= 1e-12
+    assert np.all(np.diff(banded) > 0)
+    assert potential.potential(banded, problem.curve) == pytest.approx(
+        potential.potential(dense, problem.curve), rel=1e-12)
+
+
+def test_sixty_agents_on_the_ellipse_in_one_superstep():
+    result = solve_formation(formation_ellipse.make(agents=60, tilt=TILT))
+    assert result.converged and result.supersteps == 1
+    assert result.coupling_residual <= 1e-9
 
 
 def test_ellipse_initial_guess_is_the_nearest_minimum_of_the_potential(ellipse_runs):

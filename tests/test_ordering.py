@@ -264,7 +264,7 @@ def test_sixty_point_masses_reach_the_analytic_optimum():
     assert np.count_nonzero(result.assignment != keep_assignment(problem)) > 0
 
 
-@pytest.mark.parametrize("outer", ["offset", "sqp"])
+@pytest.mark.parametrize("outer", ["newton", "offset", "sqp"])
 def test_solve_formation_with_the_optimal_ordering_converges_below_keep(outer):
     """--ordering optimal: the ordering's angles start the outer solver, which confirms them
     (the optimum is already there) and reports convergence; the result is cheaper than keep

@@ -102,9 +102,12 @@ def test_the_model_checks_its_table():
 def test_hierarchical_equals_monolithic_for_six_spacecraft():
     problem = halo_spacecraft_example(agents=6)
     hierarchical = solve_formation(problem, options=FormationOptions(outer="sqp"))
+    newton = solve_formation(problem)
     monolithic = solve_formation(problem, options=FormationOptions(mode="monolithic"))
-    assert hierarchical.converged and monolithic.converged
+    assert hierarchical.converged and newton.converged and monolithic.converged
     assert hierarchical.total_cost == pytest.approx(monolithic.total_cost, rel=1e-8)
+    assert newton.total_cost == pytest.approx(hierarchical.total_cost, rel=1e-10)
+    assert newton.supersteps < hierarchical.supersteps
     parts = hierarchical.cost_parts
     assert parts["translational_cost"] + parts["rotational_cost"] == pytest.approx(
         hierarchical.total_cost, rel=1e-12)

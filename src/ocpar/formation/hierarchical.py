@@ -4,8 +4,12 @@ DMOC solves per outer evaluation.
 Outer problem: min_φ Σ_i Ĵ_i(φ_i) s.t. c(φ) = 0 (the scaled g = dG/dφ of
 :mod:`ocpar.formation.potential`). The outer gradient comes from the inner sensitivities
 (envelope theorem): dĴ_i/dφ_i = (dJ*_i/dq_N) · dq_N/dφ_i, dq_N/dφ_i = z′(φ_i) in the position
-entries, for any curve z. Two outer solvers:
+entries, for any curve z. Each Ĵ_i depends on φ_i alone, so the Hessian of J is diagonal,
+h_i = z′ᵀ H_pos z′ + ∇_pos J*_i · z″ (H_pos = d²J*_i/dq_N² in the position entries, from the
+inner KKT system). Three outer solvers:
 
+* :func:`solve_outer_newton` (``newton``, the default): projected Newton on the manifold
+  c(φ) = 0 with that diagonal Hessian, any curve; a handful of supersteps at any n;
 * :func:`solve_outer` (``sqp``, the paper's): SLSQP on J/J_0 in all n angles, any curve;
 * :func:`solve_outer_offset` (``offset``, circles only): from equidistant angles, c(φ) = 0
   keeps them equidistant in the same order, so the feasible set is the one-parameter family
@@ -22,12 +26,22 @@ from scipy.optimize import minimize, root_scalar
 
 from ocpar.bsp import Backend
 from ocpar.bsp.columns import Columns
-from ocpar.formation.potential import coupling, coupling_jacobian, equidistance_error
+from ocpar.formation.potential import (
+    coupling,
+    coupling_jacobian,
+    equidistance_error,
+    relax,
+    respace,
+)
 from ocpar.formation.problem import FormationProblem
 from ocpar.ocp import solve_tasks
 
 #: Second iterate of the offset search (rad): 1/60 of a slot for the paper's 60 agents.
 OFFSET_FIRST_STEP = 1.7e-3
+
+#: Longest step of the common offset θ in :func:`solve_outer_newton` (rad): beyond, a small
+#: positive d²J/dθ² (near an inflection of J(θ)) is no model of J.
+MAX_OFFSET_STEP = np.pi / 2
 
 #: J values this close (relative) count as equal: the offset search starting at the optimum
 #: (e.g. after the optimal ordering) ends where rounding decides.
@@ -98,6 +112,20 @@ class OuterObjective:
         d_end = np.asarray(sols.column("cost_gradient"))[:, 2 * nq : 3 * nq]
         return np.sum(d_end * self.problem.final_position_derivatives(phi), axis=1)
 
+    def hessian_diagonal(self, phi: np.ndarray) -> np.ndarray:
+        """d²J/dφ_i² (n,): z′(φ_i)ᵀ H_pos z′(φ_i) + ∇_pos J*_i · z″(φ_i), with H_pos the
+        position block (d × d, d = curve.dim) of each agent's d²J*/dq_N² and ∇_pos J*_i the
+        position entries of dJ*/dq_N. The off-diagonal entries are zero (Ĵ_i depends on φ_i
+        alone)."""
+        sols = self.solutions(phi)
+        nq, d = self.problem.shape.model.nq, self.problem.curve.dim
+        h_pos = np.asarray(sols.column("end_hessian"))[:, :d, :d]
+        d_pos = np.asarray(sols.column("cost_gradient"))[:, 2 * nq : 2 * nq + d]
+        tangent = self.problem.curve.tangents(phi)
+        curvature = self.problem.curve.curvatures(phi)
+        return (np.einsum("id,ide,ie->i", tangent, h_pos, tangent)
+                + np.sum(d_pos * curvature, axis=1))
+
     def _report(self, phi: np.ndarray, sols: Columns) -> None:
         if self.progress is None:
             return
@@ -165,3 +193,70 @@ def solve_outer_offset(
     message = (result.flag if success or not result.converged
                else "the offset found does not lower J")
     return phi0 + theta, int(result.iterations), success, message
+
+
+def solve_outer_newton(
+    objective: OuterObjective, phi0: np.ndarray, tol: float, max_iterations: int
+) -> tuple[np.ndarray, int, bool, str]:
+    """Projected Newton on the feasible manifold c(φ) = 0, with the diagonal Hessian
+    (:meth:`OuterObjective.hessian_diagonal`): each iteration a Newton step in the tangent
+    space of c = 0, then projection back onto c = 0. Returns (φ, iterations, success,
+    message); one superstep per iterate gives J, its gradient g and Hessian diagonal h.
+
+    * On a circle the tangent space is span(1) (a common rotation θ) and the projection is
+      closed form (:func:`~ocpar.formation.potential.respace`: equidistant, same cyclic
+      order, O(n log n)). The reduced Newton step is θ ← θ − Σg_i/Σh_i, safeguarded: no step
+      longer than :data:`MAX_OFFSET_STEP`; where Σh_i ≤ 0 a step of half a slot (π/n)
+      downhill (a stationary θ there is a maximum: not converged); a step that raises J
+      beyond rounding (:data:`ROUNDING_RTOL`) is rejected and halved; once a minimum is
+      bracketed (dJ/dθ < 0 left of dJ/dθ > 0), a step leaving the bracket is replaced by the
+      secant step inside it (bisection after a rejected step). Converged when |Σg_i| ≤
+      ``tol`` Σ|g_i| with Σh_i > 0, or an accepted step was at most ``tol``·(1 + |θ|).
+    * On any other curve c(φ) = 0 has isolated solutions (dc/dφ, the scaled Hessian of the
+      potential, is nonsingular at its minima, if nearly singular for many agents: see
+      :func:`~ocpar.formation.potential.relax`): the tangent space is {0}, the projection is
+      ``relax``, and the method ends after it and one evaluation (0 iterations).
+    """
+    problem = objective.problem
+    if not problem.curve.rotation_invariant:
+        phi = relax(phi0, problem.curve)
+        objective.solutions(phi)
+        return phi, 0, True, "feasible set is isolated points: projected onto c(phi) = 0"
+    base = respace(phi0)
+    n = len(base)
+
+    def evaluate(theta: float) -> tuple[float, float, float, float]:
+        phi = base + theta
+        g = objective.gradient(phi)
+        return (objective.value(phi), float(np.sum(g)), float(np.sum(np.abs(g))),
+                float(np.sum(objective.hessian_diagonal(phi))))
+
+    theta = 0.0
+    value, slope, scale, curvature = evaluate(theta)
+    # the latest (θ, dJ/dθ) with dJ/dθ < 0 and with dJ/dθ > 0
+    below = (theta, slope) if slope < 0 else None
+    above = (theta, slope) if slope > 0 else None
+    shrink = 1.0  # halved after each rejected step
+    for iteration in range(max_iterations):
+        if abs(slope) <= tol * scale and curvature > 0:
+            return base + theta, iteration, True, "|sum of dJ/dphi_i| below tolerance"
+        step = shrink * (np.clip(-slope / curvature, -MAX_OFFSET_STEP, MAX_OFFSET_STEP)
+                         if curvature > 0 else -(np.sign(slope) or 1.0) * np.pi / n)
+        if below is not None and above is not None and below[0] < above[0] \
+                and not below[0] < theta + step < above[0]:  # a minimum is bracketed
+            (a, g_a), (b, g_b) = below, above
+            step = (a - g_a * (b - a) / (g_b - g_a) if shrink == 1 else (a + b) / 2) - theta
+        trial = theta + step
+        t_value, t_slope, t_scale, t_curvature = evaluate(trial)
+        if t_slope < 0:
+            below = (trial, t_slope)
+        elif t_slope > 0:
+            above = (trial, t_slope)
+        if t_value <= value + ROUNDING_RTOL * abs(value):
+            theta, value, slope, scale, curvature = trial, t_value, t_slope, t_scale, t_curvature
+            shrink = 1.0
+            if abs(step) <= tol * (1 + abs(theta)):
+                return base + theta, iteration + 1, True, "step below tolerance"
+        else:
+            shrink /= 2
+    return base + theta, max_iterations, False, "iteration limit reached"

@@ -19,15 +19,34 @@ and the result's residual: a symbolic Jacobian would cost O(n²) expression node
 
 from __future__ import annotations
 
+from functools import partial
+
 import casadi as ca
 import numpy as np
 from scipy.optimize import minimize
+from scipy.sparse import csc_matrix
+from scipy.sparse.linalg import LinearOperator, cg, splu
 
 from ocpar.formation.curve import Curve
 
 #: Rows of the coupling evaluated at once by :func:`coupling`: its temporaries (BLOCK, n)
 #: stay in cache (10,000 agents: ~2 s on this machine, loaded; in one piece 2.4 GB).
 BLOCK = 16
+
+#: Above this many agents :func:`relax` leaves SciPy's trust-exact (a dense n × n Hessian,
+#: O(n³) per iteration: 6 s at 300 agents, 26 s at 1000 on this machine, loaded) for Newton
+#: with preconditioned conjugate gradients.
+DENSE_RELAX_AGENTS = 200
+
+#: Neighbours on either side whose pairs form the preconditioner of :func:`relax`.
+RELAX_BAND = 16
+
+#: :func:`relax` for many agents stops at max_k |c_k| ≤ RELAX_TOL (c scaled as
+#: :func:`coupling`); trust-exact's ``gtol`` for few.
+RELAX_TOL = 1e-12
+
+#: Newton iterations of each of :func:`relax`'s methods, at most.
+RELAX_MAX_ITERATIONS = 50
 
 
 def coupling_rows(curve: Curve, agents: int) -> int:
@@ -56,25 +75,142 @@ def coupling_expr(phi: ca.SX | ca.MX, curve: Curve) -> ca.SX | ca.MX:
 
 
 def potential(phi: np.ndarray, curve: Curve) -> float:
-    """The scaled potential (ℓ²/n³) G(φ), closed form (its gradient is c(φ) off a circle)."""
+    """The scaled potential (ℓ²/n³) G(φ), closed form (its gradient is c(φ) off a circle):
+    O(n²) numpy in blocks of :data:`BLOCK` rows."""
     phi = np.asarray(phi, float).ravel()
+    n = phi.size
     z = curve.points(phi)
-    s = np.sum((z[:, None, :] - z[None, :, :]) ** 2, axis=2)
-    np.fill_diagonal(s, np.inf)
-    return coupling_scale(curve, phi.size) * float(np.sum(1.0 / s))
+    total = 0.0
+    for start in range(0, n, BLOCK):
+        rows = slice(start, min(start + BLOCK, n))
+        s = np.zeros((rows.stop - start, n))
+        for axis in range(curve.dim):
+            d = z[rows, axis, None] - z[None, :, axis]
+            s += d * d
+        k = np.arange(rows.start, rows.stop)
+        s[k - start, k] = np.inf
+        total += float(np.sum(1.0 / s))
+    return coupling_scale(curve, n) * total
 
 
 def relax(phi: np.ndarray, curve: Curve) -> np.ndarray:
-    """The local minimum of G reached from the angles ``phi`` (rad) by a trust-region Newton
-    method (exact gradient and Hessian, scaled gradient below 1e-12): on a curve that is not a
-    circle, the feasible set of g(φ) = 0 is a set of isolated points, and this picks the stable
-    one (a minimum, not a saddle) that the start leads to. Circles: ``phi`` unchanged."""
+    """The local minimum of G reached from the angles ``phi`` (rad): on a curve that is not a
+    circle, the feasible set of c(φ) = 0 is a set of isolated points, and this picks the stable
+    one (a minimum, not a saddle) that the start leads to. Circles: ``phi`` unchanged.
+
+    Up to :data:`DENSE_RELAX_AGENTS` agents SciPy's trust-exact on the dense Hessian (it
+    stops where G's changes reach rounding, max |c_k| ~ 1e-11), then Newton's method on
+    c(φ) = 0 with the dense Jacobian while max |c_k| falls (to ~1e-16): the Hessian can be
+    near-singular along a quasi-rotation of the formation along the curve (on the example
+    ellipse its smallest eigenvalue falls from 2e-4 at 20 agents to 2e-9 at 60), and there a
+    residual r leaves the angles off by r / eigenvalue. Above, :func:`_relax_newton_pcg`
+    (O(n²) time per iteration, O(n) memory beyond the band) to max |c_k| ≤
+    :data:`RELAX_TOL`; it finds a critical point of G without telling a minimum from a
+    saddle, but from about 150 agents that eigenvalue is below rounding and the critical
+    points along that mode differ in G by less than rounding."""
     phi = np.asarray(phi, float)
     if curve.rotation_invariant:
         return phi
-    result = minimize(potential, phi, args=(curve,), jac=coupling, hess=coupling_jacobian,
-                      method="trust-exact", options={"gtol": 1e-12})
-    return np.asarray(result.x, float)
+    if phi.size > DENSE_RELAX_AGENTS:
+        return _relax_newton_pcg(phi, curve)
+    phi = np.asarray(minimize(potential, phi, args=(curve,), jac=coupling,
+                              hess=coupling_jacobian, method="trust-exact",
+                              options={"gtol": RELAX_TOL}).x, float)
+    c = coupling(phi, curve)
+    for _ in range(RELAX_MAX_ITERATIONS):
+        trial = phi - np.linalg.solve(coupling_jacobian(phi, curve), c)
+        trial_c = coupling(trial, curve)
+        if np.max(np.abs(trial_c)) >= np.max(np.abs(c)):
+            break
+        phi, c = trial, trial_c
+    return phi
+
+
+def _relax_newton_pcg(phi: np.ndarray, curve: Curve) -> np.ndarray:
+    """Newton's method on G with exact Hessian-vector products (:func:`coupling_hessp`),
+    each step solved by conjugate gradients preconditioned by the Hessian of the potential
+    truncated to each agent's :data:`RELAX_BAND` neighbours on either side in the cyclic order
+    (its sparse LU). A step is halved until G falls (Armijo), or, where G's change is within
+    rounding, until |c| falls. Stops when max_k |c_k| ≤ :data:`RELAX_TOL`, or no step of at
+    least 1e-8 of Newton's is accepted."""
+    n = phi.size
+    c = coupling(phi, curve)
+    for _ in range(RELAX_MAX_ITERATIONS):
+        if np.max(np.abs(c)) <= RELAX_TOL:
+            break
+        hessian = LinearOperator((n, n), matvec=partial(coupling_hessp, phi, curve))
+        band = splu(_band_hessian(phi, curve, min(RELAX_BAND, (n - 1) // 2)))
+        step, _ = cg(hessian, -c, rtol=min(0.1, float(np.sqrt(np.linalg.norm(c)))),
+                     maxiter=50, M=LinearOperator((n, n), matvec=band.solve))
+        value, slope, alpha = potential(phi, curve), float(c @ step), 1.0
+        if slope >= 0:  # not a descent direction (far from a minimum): the gradient's
+            step, slope = -c, -float(c @ c)
+        while alpha >= 1e-8:
+            trial = phi + alpha * step
+            trial_value, trial_c = potential(trial, curve), coupling(trial, curve)
+            if trial_value <= value + 1e-4 * alpha * slope or (
+                    trial_value <= value + 1e-13 * abs(value)
+                    and np.linalg.norm(trial_c) < np.linalg.norm(c)):
+                break
+            alpha /= 2
+        else:
+            break
+        phi, c = trial, trial_c
+    return phi
+
+
+def _band_hessian(phi: np.ndarray, curve: Curve, width: int) -> csc_matrix:
+    """The Hessian of the scaled potential restricted to pairs at most ``width`` apart in the
+    cyclic order of the angles (n × n, sparse, 2 width + 1 entries a row): ∂c_k/∂φ_m as in
+    :func:`coupling_jacobian`, its diagonal summed over the same pairs."""
+    n = phi.size
+    order = np.argsort(np.mod(phi, 2 * np.pi), kind="stable")
+    place = np.empty(n, dtype=np.intp)
+    place[order] = np.arange(n)
+    shifts = np.concatenate([np.arange(1, width + 1), -np.arange(1, width + 1)])
+    k = np.repeat(np.arange(n), len(shifts))
+    m = order[(place[k] + np.tile(shifts, n)) % n]
+    z, t, a = curve.points(phi), curve.tangents(phi), curve.curvatures(phi)
+    d = z[k] - z[m]
+    s = np.sum(d * d, axis=1)
+    d_tk, d_tm = np.sum(d * t[k], axis=1), np.sum(d * t[m], axis=1)
+    off = 4.0 * np.sum(t[k] * t[m], axis=1) / s**2 - 16.0 * d_tk * d_tm / s**3
+    own = (np.sum(t[k] * t[k], axis=1) + np.sum(d * a[k], axis=1)) / s**2 - 4.0 * d_tk**2 / s**3
+    diagonal = -4.0 * np.bincount(k, weights=own, minlength=n)
+    rows, cols = np.concatenate([k, np.arange(n)]), np.concatenate([m, np.arange(n)])
+    values = coupling_scale(curve, n) * np.concatenate([off, diagonal])
+    return csc_matrix((values, (rows, cols)), shape=(n, n))
+
+
+def coupling_hessp(phi: np.ndarray, curve: Curve, v: np.ndarray) -> np.ndarray:
+    """(dc/dφ) v for all n rows of c (the scaled potential's Hessian times v, (n,)), in
+    closed form as :func:`coupling_jacobian` without forming it: O(n²) time in blocks of
+    :data:`BLOCK` rows."""
+    phi = np.asarray(phi, float).ravel()
+    n = phi.size
+    z, t, a = curve.points(phi), curve.tangents(phi), curve.curvatures(phi)
+    tt = np.sum(t * t, axis=1)
+    out = np.empty(n)
+    for start in range(0, n, BLOCK):
+        rows = slice(start, min(start + BLOCK, n))
+        shape = (rows.stop - start, n)
+        s, d_tk, d_tj, d_a = (np.zeros(shape) for _ in range(4))
+        for axis in range(curve.dim):
+            d = z[rows, axis, None] - z[None, :, axis]
+            s += d * d
+            d_tk += d * t[rows, axis, None]
+            d_tj += d * t[None, :, axis]
+            d_a += d * a[rows, axis, None]
+        k = np.arange(rows.start, rows.stop)
+        s[k - start, k] = 1.0  # the excluded k = j terms: D = 0 there
+        inv2 = 1.0 / (s * s)
+        inv3 = inv2 / s
+        off = 4.0 * (t[rows] @ t.T) * inv2 - 16.0 * d_tk * d_tj * inv3
+        off[k - start, k] = 0.0
+        own = (tt[rows, None] + d_a) * inv2 - 4.0 * d_tk**2 * inv3
+        diagonal = -4.0 * (np.sum(own, axis=1) - tt[rows])  # less the k = j term, |t_k|²
+        out[rows] = off @ v + diagonal * v[rows]
+    return coupling_scale(curve, n) * out
 
 
 def coupling(phi: np.ndarray, curve: Curve) -> np.ndarray:
@@ -117,6 +253,21 @@ def coupling_jacobian(phi: np.ndarray, curve: Curve) -> np.ndarray:
     np.fill_diagonal(diagonal_terms, 0.0)
     np.fill_diagonal(off, -4.0 * diagonal_terms.sum(axis=1))
     return coupling_scale(curve, n) * off[: coupling_rows(curve, n)]
+
+
+def respace(phi: np.ndarray) -> np.ndarray:
+    """The nearest equidistant angles (rad) in the same cyclic order: slot k of the sorted
+    angles (mod 2π) at θ + 2πk/n, θ the circular mean of φ_i − 2π rank_i / n, and each angle
+    kept on its own branch (within π of the input). On a circle these are the solutions of
+    c(φ) = 0 (the projection onto the feasible set, O(n log n)); equidistant input comes back
+    unchanged up to rounding."""
+    phi = np.asarray(phi, float)
+    n = phi.size
+    rank = np.empty(n)
+    rank[np.argsort(np.mod(phi, 2 * np.pi), kind="stable")] = np.arange(n)
+    slots = 2 * np.pi * rank / n
+    theta = float(np.angle(np.sum(np.exp(1j * (phi - slots)))))
+    return phi + np.angle(np.exp(1j * (theta + slots - phi)))
 
 
 def equidistance_error(phi: np.ndarray) -> float:

@@ -35,7 +35,8 @@ class FormationRun(SchemeRun, FormationOptions):
     prog: ClassVar[str] = "ocpar.formation"
     description: ClassVar[str] = (
         "Hierarchical formation reconfiguration (the paper's 60 point masses by default): "
-        "outer SQP over the final angles, inner DMOC solves in parallel supersteps.")
+        "an outer solver over the final angles (projected Newton by default, or the paper's "
+        "SQP), inner DMOC solves in parallel supersteps.")
     problem_type: ClassVar[type] = PROBLEM_TYPE
 
     problem: str = option(

@@ -14,6 +14,7 @@ from ocpar.formation.hierarchical import (
     InnerSolveFailed,
     OuterObjective,
     solve_outer,
+    solve_outer_newton,
     solve_outer_offset,
 )
 from ocpar.formation.monolithic import solve_monolithic
@@ -24,32 +25,41 @@ from ocpar.formation.result import FormationResult
 from ocpar.options import option
 
 MODES = ("hierarchical", "monolithic")
-OUTER_SOLVERS = ("sqp", "offset")
+#: The hierarchical mode's outer solvers by name (see :mod:`ocpar.formation.hierarchical`).
+OUTER = {"newton": solve_outer_newton, "sqp": solve_outer, "offset": solve_outer_offset}
+OUTER_SOLVERS = tuple(OUTER)
 
 
 @dataclass(frozen=True)
 class FormationOptions:
     """How to solve.
 
-    ``mode``: ``hierarchical`` (outer SLSQP, inner DMOC solves in supersteps) or
+    ``mode``: ``hierarchical`` (an outer solver, inner DMOC solves in supersteps) or
     ``monolithic`` (one IPOPT NLP in the coordinator). ``outer``: the hierarchical mode's
-    outer solver, ``sqp`` (SLSQP in all angles, the paper's) or ``offset`` (the common offset
-    of equidistant angles, see :mod:`ocpar.formation.hierarchical`). ``outer_tol`` is SLSQP's
-    ``ftol`` on J/J_0 (keep it above the inner solves' noise), or for ``offset`` the relative
-    tolerance on the offset θ; ``monolithic_tol`` is IPOPT's ``tol``. ``ordering``: which
-    agent goes to which place on the circle, ``keep`` (the initial angles' order, the
-    paper's) or ``optimal`` (:func:`ocpar.formation.ordering.optimal_ordering`, run on the
-    backend first; its angles start the chosen mode). ``offset`` and ``optimal`` rely on the
-    circle's symmetry: :func:`solve_formation` refuses them (ValueError) on other curves.
+    outer solver (see :mod:`ocpar.formation.hierarchical`), ``newton`` (projected Newton on
+    c(φ) = 0 with the diagonal Hessian from the inner sensitivities, any curve: a handful of
+    supersteps at any n), ``sqp`` (SLSQP in all angles, the paper's) or ``offset`` (secant
+    search over the common offset of equidistant angles, circles only). ``outer_tol`` is
+    ``newton``'s relative tolerance on |Σ_i dJ/dφ_i| (against Σ_i |dJ/dφ_i|) or on the
+    offset step, SLSQP's ``ftol`` on J/J_0 (keep it above the inner solves' noise), or for
+    ``offset`` the relative tolerance on the offset θ; ``monolithic_tol`` is IPOPT's
+    ``tol``. ``ordering``: which agent goes to which place on the circle, ``keep`` (the
+    initial angles' order, the paper's) or ``optimal``
+    (:func:`ocpar.formation.ordering.optimal_ordering`, run on the backend first; its angles
+    start the chosen mode). ``offset`` and ``optimal`` rely on the circle's symmetry:
+    :func:`solve_formation` refuses them (ValueError) on other curves.
     """
 
     mode: str = option("hierarchical", "hierarchical, or monolithic (one NLP, for reference)",
                        choices=MODES)
-    outer: str = option("sqp", "hierarchical outer solver: sqp (SLSQP in all angles) or offset "
-                        "(the common offset of equidistant angles: same optimum, far fewer "
-                        "supersteps for many agents)", choices=OUTER_SOLVERS)
-    outer_tol: float = option(1e-12, "SLSQP's ftol on J/J_0, or offset's relative tolerance",
-                              above=0)
+    outer: str = option("newton", "hierarchical outer solver: newton (projected Newton with "
+                        "the diagonal Hessian from the inner sensitivities: a handful of "
+                        "supersteps at any number of agents, any curve), sqp (the paper's "
+                        "SLSQP in all angles) or offset (secant search over the common offset "
+                        "of equidistant angles, circles only)", choices=OUTER_SOLVERS)
+    outer_tol: float = option(1e-12, "newton's relative tolerance on the summed gradient or "
+                              "the offset step, SLSQP's ftol on J/J_0, or offset's relative "
+                              "tolerance", above=0)
     max_outer_iterations: int = option(200, "outer iterations at most", low=1)
     monolithic_tol: float = option(1e-12, "IPOPT's tol in monolithic mode", above=0)
     ordering: str = option("keep", "which agent goes to which place on the curve: keep (the "
@@ -146,8 +156,7 @@ def solve_formation(
 
     objective = OuterObjective(problem, backend, progress)
     try:
-        outer = solve_outer_offset if options.outer == "offset" else solve_outer
-        phi, iterations, success, message = outer(
+        phi, iterations, success, message = OUTER[options.outer](
             objective, phi0, options.outer_tol, options.max_outer_iterations
         )
         sols = objective.solutions(phi)
