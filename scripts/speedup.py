@@ -217,7 +217,7 @@ def main() -> int:
                         default="formation")
     parser.add_argument("--agents", type=int, default=None,
                         help="formation: agents (default: the problem's)")
-    parser.add_argument("--outer", choices=("sqp", "offset"), default="sqp",
+    parser.add_argument("--outer", choices=("newton", "sqp", "offset"), default="newton",
                         help="formation: outer solver")
     parser.add_argument("--case", type=int, default=1, help="pursuit: case 1 or 2")
     parser.add_argument("--samples", type=int, default=301, help="pursuit: samples N")

@@ -19,13 +19,16 @@ def plot_formation(problem: FormationProblem, result: FormationResult, path: Pat
     if problem.curve.dim == 3:
         return _plot_3d(problem, result, path)
     plt = pyplot()
+    from matplotlib.collections import LineCollection
+
     fig, (ax_all, ax_end) = plt.subplots(1, 2, figsize=(12, 5.5))
     circle = problem.final_positions(np.linspace(0, 2 * np.pi, 400))
     ends = problem.final_positions(result.phi)
     tail = max(2, result.trajectories.shape[1] // 3)
     for ax, paths in ((ax_all, result.trajectories), (ax_end, result.trajectories[:, -tail:])):
-        for path_i in paths:
-            ax.plot(path_i[:, 0], path_i[:, 1], "-", color="tab:blue", lw=0.7, alpha=0.7)
+        # one collection, not one line per agent: 10,000 paths in ~1 s instead of ~1 min
+        ax.add_collection(LineCollection(paths[..., :2], colors="tab:blue", lw=0.7, alpha=0.7))
+        ax.autoscale_view()
         ax.plot(circle[:, 0], circle[:, 1], "k--", lw=0.8)
         ax.plot(ends[:, 0], ends[:, 1], "x", color="tab:red", ms=5, label="final positions")
         ax.set_aspect("equal")
@@ -45,14 +48,15 @@ def plot_formation(problem: FormationProblem, result: FormationResult, path: Pat
 
 def _plot_3d(problem: FormationProblem, result: FormationResult, path: Path) -> Path:
     plt = pyplot()
+    from mpl_toolkits.mplot3d.art3d import Line3DCollection
+
     fig = plt.figure(figsize=(8, 7))
     ax = fig.add_subplot(projection="3d")
     angles = np.linspace(0, 2 * np.pi, 200)
     circle = problem.final_positions(angles)
     ends = problem.final_positions(result.phi)
-    for path_i in result.trajectories:
-        ax.plot(path_i[:, 0], path_i[:, 1], path_i[:, 2], "-", color="tab:blue", lw=0.7,
-                alpha=0.8)
+    ax.add_collection(Line3DCollection(result.trajectories[..., :3], colors="tab:blue", lw=0.7,
+                                       alpha=0.8))
     ax.plot(circle[:, 0], circle[:, 1], circle[:, 2], "k--", lw=0.8)
     ax.plot(problem.starts[:, 0], problem.starts[:, 1], problem.starts[:, 2], "o", mfc="none",
             color="k", ms=4, ls="", label="initial positions")
