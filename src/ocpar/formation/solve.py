@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -22,6 +23,7 @@ from ocpar.formation.ordering import ORDERINGS, optimal_ordering
 from ocpar.formation.potential import coupling
 from ocpar.formation.problem import FormationProblem
 from ocpar.formation.result import FormationResult
+from ocpar.ocp.batch import SOLVERS
 from ocpar.options import option
 
 MODES = ("hierarchical", "monolithic")
@@ -47,7 +49,9 @@ class FormationOptions:
     initial angles' order, the paper's) or ``optimal``
     (:func:`ocpar.formation.ordering.optimal_ordering`, run on the backend first; its angles
     start the chosen mode). ``offset`` and ``optimal`` rely on the circle's symmetry:
-    :func:`solve_formation` refuses them (ValueError) on other curves.
+    :func:`solve_formation` refuses them (ValueError) on other curves. ``inner_solver``
+    (``sqpmethod`` or ``ipopt``, see :mod:`ocpar.ocp.batch`) replaces the problem's
+    ``DmocShape.solver`` for this solve; None keeps it.
     """
 
     mode: str = option("hierarchical", "hierarchical, or monolithic (one NLP, for reference)",
@@ -66,6 +70,10 @@ class FormationOptions:
                            "initial guess's order, the paper's) or optimal (assignment over a "
                            "table of n^2 inner costs, alternated with the common offset)",
                            choices=ORDERINGS)
+    inner_solver: str | None = option(
+        None, "inner DMOC solver: sqpmethod (a chunk in one mapped call, IPOPT for the solves "
+        "that fail its KKT check) or ipopt (one IPOPT call per agent); default: the problem's "
+        "DmocShape.solver (sqpmethod unless it says otherwise)", choices=SOLVERS)
 
     def __post_init__(self) -> None:
         if self.mode not in MODES:
@@ -131,6 +139,9 @@ def solve_formation(
     options = options or FormationOptions()
     backend = backend or SerialBackend()
     check_applicable(problem, options)
+    if options.inner_solver is not None and options.inner_solver != problem.shape.solver:
+        problem = dataclasses.replace(
+            problem, shape=dataclasses.replace(problem.shape, solver=options.inner_solver))
     phi0 = problem.initial_phi() if phi0 is None else np.asarray(phi0, float)
     if phi0.shape != (problem.agents,):
         raise ValueError(f"phi0 must have shape ({problem.agents},), got {phi0.shape}")
