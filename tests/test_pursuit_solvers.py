@@ -23,7 +23,7 @@ def neighbour():
     """IPOPT's solution for a target 1 km higher, and IPOPT's re-solve (no local solver) of
     the original target from it: the reference every local solver must reach."""
     ipopt = ms_problem(COLD)
-    moved = ipopt.solve(np.concatenate([X0, TARGET + [1e-3, 0, 0]]))
+    moved = ipopt.solve(np.concatenate([X0, TARGET + np.array([1e-3, 0, 0])]))
     assert moved.success, moved.status
     params = np.concatenate([X0, TARGET])
     reference = ipopt.solve(params, moved.w, moved.lam_g)
@@ -60,3 +60,23 @@ def test_newton_from_far_away_does_not_converge_and_ipopt_takes_over(neighbour):
 def test_unknown_local_solver_is_refused():
     with pytest.raises(ValueError, match="local solver 'qp'"):
         MsShape(MODEL, 10, 1.0, (0,), local_solver="qp")
+
+
+def test_a_batch_gives_each_row_the_one_by_one_solution_bitwise(neighbour):
+    params, moved, _ = neighbour
+    nlp = ms_problem(dataclasses.replace(COLD, warm_start=True))
+    rows = np.array([params + dr * np.eye(7)[4] for dr in (0.0, 2e-4, -3e-4)])
+    guesses = np.array([moved.w, moved.w, nlp.default_guess(params)])  # the last: far away
+    lams = np.array([moved.lam_g, moved.lam_g, np.zeros(nlp.ng)])
+    batch = nlp.solve_batch(rows, guesses, lams)
+    pair = nlp.solve_batch(rows[1::-1], guesses[1::-1], lams[1::-1])  # other batch, order
+    for i, sol in enumerate(batch):
+        alone = nlp.solve(rows[i], guesses[i], lams[i])
+        assert sol.success and sol.status == alone.status
+        np.testing.assert_array_equal(sol.w, alone.w)
+        np.testing.assert_array_equal(sol.lam_g, alone.lam_g)
+        assert sol.cost == alone.cost and sol.iterations == alone.iterations
+    np.testing.assert_array_equal(pair[0].w, batch[1].w)
+    assert batch[0].iterations == NEWTON_STEPS and batch[2].iterations > NEWTON_STEPS
+    with pytest.raises(ValueError, match="guesses"):
+        nlp.solve_batch(rows, guesses[:2])
