@@ -2,12 +2,21 @@
 """PBMS benchmark: wall time versus workers on case 1, and peak memory versus N.
 
     python scripts/pursuit_bench.py --output runs/pursuit-bench            # both parts
-    python scripts/pursuit_bench.py --part time --workers 1 2 --output DIR
+    python scripts/pursuit_bench.py --part time --workers 1 2 --repeats 3 --output DIR
     python scripts/pursuit_bench.py --part memory --samples 501 1001 2001 --output DIR
+    python scripts/pursuit_bench.py --part solvers --output DIR
 
 ``time``: case 1, N = 301, N_Δ = 60, N_δ = 32, ε = 1e-5 kg (the paper's Table II setting),
-one ``mpirun -n P python -m ocpar.pursuit`` per worker count (and the Dask backend if asked):
-solve wall time, agents, final mass, supersteps.
+``--repeats`` runs (default 3) of ``mpirun -n P python -m ocpar.pursuit`` and of the Dask
+backend with P local workers, for each P, interleaved: solve wall time, agents, final mass,
+supersteps and, from the trace, the time in the busiest worker's solves, the per-superstep
+overhead and the coordinator's time between supersteps; the medians per configuration go to
+``time_median``.
+
+``solvers``: the subproblems of case 1's first ``--supersteps`` supersteps (N = 301, N_Δ = 60,
+N_δ = 32), re-solved in this process from the leader's plan by each local solver and by IPOPT
+alone, interleaved, ``--repeats`` times: median CPU time per solve (ms), iterations, failures,
+largest difference from IPOPT's solution (w) and cost.
 
 ``memory``: case 2 with N_Δ = 100, N_δ = 81 (the paper's N = 2001 setting) for each N: PBMS on
 2 MPI ranks (peak resident memory of the largest worker, agents, final mass, wall time) and
@@ -20,6 +29,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import statistics
 import subprocess
 import sys
 from pathlib import Path
@@ -43,15 +53,89 @@ def run(args: list[str], out: Path, backend: str, workers: int) -> dict:
             "status", "message", "final_mass_kg", "agents", "subproblem_solves",
             "failed_solves", "supersteps", "max_agents_in_flight", "wall_time_s",
             "peak_rss_mb_per_worker", "rk_final_altitude_error_m")
-    row = {k: data[k] for k in keep}
+    row = {k: data[k] for k in keep} | trace_summary(data["trace"], data["wall_time_s"])
     print(json.dumps(row), flush=True)
     return row
 
 
-def time_part(workers: list[int], backends: list[str], output: Path) -> list[dict]:
+def trace_summary(trace: list[dict], wall: float) -> dict:
+    """Where a run's wall time went (s): the busiest worker's solves summed over supersteps,
+    superstep wall minus that (communication and barrier), the rest (the coordinator); the
+    median task time (ms) and tasks per superstep."""
+    supersteps = sum(t["wall_s"] for t in trace)
+    busiest = sum(max(t["worker_busy_s"]) for t in trace)
+    tasks = [s for t in trace for s in t["task_wall_s"]]
+    return {"busiest_worker_s": busiest, "superstep_overhead_s": supersteps - busiest,
+            "coordinator_s": wall - supersteps, "median_task_ms": statistics.median(tasks) * 1e3,
+            "tasks_per_superstep": len(tasks) / len(trace)}
+
+
+def time_part(workers: list[int], backends: list[str], repeats: int,
+              output: Path) -> tuple[list[dict], list[dict]]:
+    """Every run, and the median of each (backend, workers) configuration's runs."""
     args = ["--case", "1", "--samples", "301", "--window", "60", "--update", "32",
             "--epsilon", "1e-5"]
-    return [run(args, output / f"time-{b}-{p}", b, p) for b in backends for p in workers]
+    rows = [run(args, output / f"time-{b}-{p}-{k}", b, p)
+            for k in range(repeats) for b in backends for p in workers]
+    medians = []
+    for b in backends:
+        for p in workers:
+            runs = [r for r in rows if r["backend"] == b and r["workers"] == p]
+            numbers = [k for k, v in runs[0].items() if isinstance(v, float)]
+            medians.append({"backend": b, "workers": p, "runs": len(runs)}
+                           | {k: statistics.median(r[k] for r in runs) for k in numbers}
+                           | {"agents": sorted({r["agents"] for r in runs}),
+                              "final_mass_kg": sorted({r["final_mass_kg"] for r in runs})})
+    return rows, medians
+
+
+def solvers_part(supersteps: int, repeats: int) -> list[dict]:
+    """Each local solver and IPOPT on the same recorded pursuit subproblems."""
+    import dataclasses
+    import time
+
+    import numpy as np
+
+    from ocpar.examples.pursuit_orbit_transfer import make
+    from ocpar.ocp import ms_problem, solve_task
+    from ocpar.ocp.multiple_shooting import LOCAL_SOLVERS
+    from ocpar.pursuit import PursuitSettings
+    from ocpar.pursuit.slp import PursuitTrain
+
+    train, tasks = PursuitTrain(make(case=1, samples=301), PursuitSettings()), []
+    for _ in range(supersteps):
+        work = train.ready()
+        for agent, task in work:
+            tasks.append(task)
+            train.apply(agent, solve_task(task))
+        train.retire_finished()
+    variants = {name: dataclasses.replace(tasks[0].shape, local_solver=name)
+                for name in LOCAL_SOLVERS} | {"ipopt": dataclasses.replace(
+                    tasks[0].shape, warm_start=False)}
+    times: dict = {name: [] for name in variants}
+    solutions: dict = {}
+    for _ in range(repeats):
+        for task in tasks:
+            for name, base in variants.items():
+                nlp = ms_problem(dataclasses.replace(base, intervals=task.shape.intervals))
+                start = time.process_time()
+                solutions[name, id(task)] = nlp.solve(task.params, task.warm_start,
+                                                      task.multipliers)
+                times[name].append(time.process_time() - start)
+    rows = []
+    for name in variants:
+        sols = [solutions[name, id(t)] for t in tasks]
+        ref = [solutions["ipopt", id(t)] for t in tasks]
+        rows.append({
+            "solver": name, "solves": len(tasks), "median_cpu_ms": statistics.median(
+                times[name]) * 1e3, "median_iterations": statistics.median(
+                s.iterations for s in sols), "failed": sum(not s.success for s in sols),
+            "max_w_difference": max(float(np.max(np.abs(s.w - r.w))) for s, r in zip(
+                sols, ref, strict=True)),
+            "max_cost_difference": max(abs(s.cost - r.cost) for s, r in zip(
+                sols, ref, strict=True))})
+        print(json.dumps(rows[-1]), flush=True)
+    return rows
 
 
 def memory_part(samples: list[int], epsilon: float, output: Path) -> list[dict]:
@@ -69,17 +153,24 @@ def plot(report: dict, path: Path) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, (ax_t, ax_m) = plt.subplots(1, 2, figsize=(11, 4.5))
-    for backend in sorted({r["backend"] for r in report["time"]}):
-        rows = sorted((r for r in report["time"] if r["backend"] == backend),
-                      key=lambda r: r["workers"])
-        ax_t.plot([r["workers"] for r in rows], [r["wall_time_s"] for r in rows], "o-",
-                  label=backend)
-    ax_t.axhline(60, color="grey", ls=":", label="target 60 s")
-    ax_t.set_xlabel("workers")
-    ax_t.set_ylabel("wall time (s)")
+    fig, (ax_t, ax_s, ax_m) = plt.subplots(1, 3, figsize=(16, 4.5))
+    medians = report["time_median"]
+    labels = [f"{r['backend']} × {r['workers']}" for r in medians]
+    bottom = [0.0] * len(medians)
+    for key, name in (("busiest_worker_s", "busiest worker's solves"),
+                      ("superstep_overhead_s", "superstep overhead"),
+                      ("coordinator_s", "coordinator")):
+        heights = [r[key] for r in medians]
+        ax_t.bar(labels, heights, bottom=bottom, label=name)
+        bottom = [b + h for b, h in zip(bottom, heights, strict=True)]
+    ax_t.axhline(10, color="grey", ls=":", label="target 10 s (2 MPI ranks)")
+    ax_t.set_ylabel("median wall time (s)")
     ax_t.set_title("case 1, N = 301, N_Δ = 60, N_δ = 32")
     ax_t.legend()
+    ax_s.bar([r["solver"] for r in report["solvers"]],
+             [r["median_cpu_ms"] for r in report["solvers"]])
+    ax_s.set_ylabel("median CPU time per subproblem (ms)")
+    ax_s.set_title("re-solve from the leader's plan")
     for mode, style in (("pbms", "o-"), ("ms", "s--")):
         rows = sorted((r for r in report["memory"] if r["mode"] == mode),
                       key=lambda r: r["samples"])
@@ -96,18 +187,24 @@ def plot(report: dict, path: Path) -> None:
 
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--part", choices=("time", "memory", "all"), default="all")
+    parser.add_argument("--part", choices=("time", "memory", "solvers", "all"), default="all")
+    parser.add_argument("--supersteps", type=int, default=200,
+                        help="supersteps recorded by the solvers part")
     parser.add_argument("--workers", nargs="+", type=int, default=[1, 2])
-    parser.add_argument("--backend", nargs="+", choices=("mpi", "dask"), default=["mpi"])
+    parser.add_argument("--backend", nargs="+", choices=("mpi", "dask"), default=["mpi", "dask"])
+    parser.add_argument("--repeats", type=int, default=3, help="runs per configuration")
     parser.add_argument("--samples", nargs="+", type=int, default=[501, 1001, 2001])
     parser.add_argument("--epsilon", type=float, default=1e-3,
                         help="stopping threshold of the memory part (kg), default 1e-3")
     parser.add_argument("--output", type=Path, default=Path("runs/pursuit-bench"))
     args = parser.parse_args()
     args.output.mkdir(parents=True, exist_ok=True)
-    report: dict = {"time": [], "memory": []}
+    report: dict = {"time": [], "time_median": [], "memory": [], "solvers": []}
     if args.part in ("time", "all"):
-        report["time"] = time_part(args.workers, args.backend, args.output)
+        report["time"], report["time_median"] = time_part(args.workers, args.backend,
+                                                          args.repeats, args.output)
+    if args.part in ("solvers", "all"):
+        report["solvers"] = solvers_part(args.supersteps, args.repeats)
     if args.part in ("memory", "all"):
         report["memory"] = memory_part(args.samples, args.epsilon, args.output)
     (args.output / "pursuit_bench.json").write_text(json.dumps(report, indent=1))

@@ -30,6 +30,7 @@ import numpy as np
 
 from ocpar.bsp import Backend
 from ocpar.ocp import MsShape, MsSolution, OcpTask, solve_task
+from ocpar.ocp.multiple_shooting import LOCAL_SOLVERS
 from ocpar.options import option
 from ocpar.pursuit.problem import PursuitProblem
 
@@ -39,7 +40,8 @@ class PursuitSettings:
     """SLP settings: ``window`` N_Δ (samples per catch-up problem), ``update`` N_δ (samples
     applied per update), ``epsilon`` the stopping threshold on the improvement of the
     problem's headline between successive agents (in the headline's unit), ``max_agents`` a
-    bound on the number of pursuing agents."""
+    bound on the number of pursuing agents, ``local_solver`` the subproblems' solver from the
+    leader's plan (IPOPT if it fails; see :class:`~ocpar.ocp.MsShape`)."""
 
     window: int = option(60, "samples per catch-up problem N_Δ (Δ = (N_Δ-1)h)", low=2,
                          metavar="N_DELTA")
@@ -49,6 +51,9 @@ class PursuitSettings:
                             "less (in the headline's unit, kg for the orbit transfer)",
                             above=0, metavar="EPS")
     max_agents: int = option(100_000, "stop after this many agents", low=2)
+    local_solver: str = option("newton", "subproblems' solver from the leader's plan: newton "
+                               "(Newton steps on the KKT system) or sqp (CasADi sqpmethod, "
+                               "qrqp); IPOPT if it fails", choices=LOCAL_SOLVERS)
 
     def check(self, samples: int) -> None:
         """Raise ValueError unless 1 ≤ N_δ < N_Δ < N."""
@@ -61,6 +66,9 @@ class PursuitSettings:
             raise ValueError(f"epsilon must be a positive number, got {self.epsilon}")
         if self.max_agents < 2:
             raise ValueError(f"max_agents must be at least 2, got {self.max_agents}")
+        if self.local_solver not in LOCAL_SOLVERS:
+            raise ValueError(f"local_solver must be one of {LOCAL_SOLVERS}, got "
+                             f"{self.local_solver!r}")
 
 
 @dataclass
@@ -111,7 +119,8 @@ class PursuitTrain:
         n = problem.samples
         x0, u0 = problem.feasible_trajectory()
         self.initial = Agent(0, x0, u0, position=n - 1)
-        self._catch_up = self._new_shape(settings.window - 1)
+        self._shapes: dict[int, MsShape] = {}
+        self._target_index = np.array(problem.target_components)
         self.leaders: dict[int, Agent] = {0: self.initial}
         self.in_flight: list[Agent] = []
         self.headlines = [problem.headline_value(x0, u0)]
@@ -121,15 +130,15 @@ class PursuitTrain:
         self.failures: list[str] = []
         self.launched = 0
 
-    def _new_shape(self, intervals: int) -> MsShape:
-        problem = self.problem
-        return MsShape(problem.model, intervals, problem.step, problem.target_components,
-                       problem.integrator, warm_start=True)
-
     def _shape(self, intervals: int) -> MsShape:
-        if intervals == self.settings.window - 1:
-            return self._catch_up
-        return self._new_shape(intervals)
+        """The subproblem shape with ``intervals`` intervals (made once per train)."""
+        shape = self._shapes.get(intervals)
+        if shape is None:
+            problem = self.problem
+            shape = self._shapes[intervals] = MsShape(
+                problem.model, intervals, problem.step, problem.target_components,
+                problem.integrator, warm_start=True, local_solver=self.settings.local_solver)
+        return shape
 
     def _new_agent(self) -> Agent:
         n, nx = self.problem.samples, self.problem.model.nx
@@ -159,7 +168,7 @@ class PursuitTrain:
                 continue
             end = n - 1 if free_running else j + window - 1
             target = (self.problem.target if free_running
-                      else leader.x[end, list(self.problem.target_components)])
+                      else leader.x[end, self._target_index])
             plan = leader.plans.pop(j, None)
             trajectory = np.concatenate([leader.x[j + 1 : end + 1].ravel(),
                                          leader.u[j:end].ravel()])
