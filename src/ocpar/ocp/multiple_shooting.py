@@ -265,22 +265,33 @@ class MsTranscription:
         params = check_params(params, self.n_params, "multiple shooting")
         return self._solve(params, guess, multipliers)
 
-    def solve_batch(self, params: np.ndarray, guesses: np.ndarray,
-                    multipliers: np.ndarray | None = None) -> list[MsSolution]:
+    def solve_batch(self, params: np.ndarray,
+                    guesses: np.ndarray | list[np.ndarray | None],
+                    multipliers: np.ndarray | list[np.ndarray | None] | None = None
+                    ) -> list[MsSolution]:
         """:meth:`solve` for each row of ``params`` (k, n_params) from the row of ``guesses``
-        (k, nw) and of ``multipliers`` (k, ng; None: zeros), all finite. With a ``warm_start``
-        Newton shape the first Newton call is one call of :meth:`newton_batch` (~5-10 % less
-        CPU per solve than one by one on the pursuit subproblems); a row that has not converged
-        goes on alone. Every solution is bitwise the one-by-one :meth:`solve`'s."""
-        params, guesses = np.atleast_2d(params), np.atleast_2d(guesses)
+        (k, nw; a None row: :meth:`default_guess`) and of ``multipliers`` (k, ng; None or a
+        None row: zeros), all finite (the batched kernel :func:`~ocpar.ocp.solve_tasks`
+        calls it). With a ``warm_start`` Newton shape the first Newton call is one call of
+        :meth:`newton_batch` (~5-10 % less CPU per solve than one by one on the pursuit
+        subproblems); a row that has not converged goes on alone. Every solution is bitwise
+        the one-by-one :meth:`solve`'s."""
+        params = np.atleast_2d(np.asarray(params, float))
         k = len(params)
-        if params.shape != (k, self.n_params) or guesses.shape != (k, self.nw):
+        if len(guesses) == k:
+            guesses = np.atleast_2d(np.array(
+                [self.default_guess(p) if g is None else np.asarray(g, float)
+                 for p, g in zip(params, guesses, strict=True)]))
+        if params.shape != (k, self.n_params) or np.shape(guesses) != (k, self.nw):
             raise ValueError(f"multiple shooting batch: params must be (k, {self.n_params}) and "
                              f"guesses (k, {self.nw}), got {params.shape} and {guesses.shape}")
-        lams = np.zeros((k, self.ng)) if multipliers is None else np.atleast_2d(multipliers)
-        if lams.shape != (k, self.ng):
-            raise ValueError(f"multiple shooting batch: multipliers must be (k, {self.ng}), "
-                             f"got {lams.shape}")
+        lams = np.zeros((k, self.ng))
+        for i, lam in enumerate([] if multipliers is None else multipliers):
+            if lam is not None:
+                if np.shape(lam) != (self.ng,):
+                    raise ValueError(f"multiple shooting batch: multipliers must be "
+                                     f"(k, {self.ng}), got a row of shape {np.shape(lam)}")
+                lams[i] = lam
         if not (self.shape.warm_start and self.shape.local_solver == "newton"):
             return [self.solve(*row) for row in zip(params, guesses, lams, strict=True)]
         start = time.perf_counter()

@@ -29,7 +29,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ocpar.bsp import Backend
-from ocpar.ocp import MsShape, MsSolution, OcpTask, solve_task
+from ocpar.ocp import MsShape, MsSolution, OcpTask, solve_tasks
 from ocpar.ocp.multiple_shooting import LOCAL_SOLVERS
 from ocpar.options import option
 from ocpar.pursuit.problem import PursuitProblem
@@ -242,7 +242,7 @@ def run_pursuit(
         max_in_flight = max(max_in_flight, len(work))
         # cost estimate: a subproblem's size, its number of intervals (free-running ones are
         # shorter); longest-first keeps the two or three catch-ups of a wave on different workers
-        sols = backend.superstep(solve_task, [task for _, task in work],
+        sols = backend.superstep(solve_tasks, [task for _, task in work],
                                  costs=[task.shape.intervals for _, task in work])
         for (agent, _), sol in zip(work, sols, strict=True):
             train.apply(agent, sol)
