@@ -31,8 +31,8 @@ from typing import Any
 
 from ocpar.bsp.backend import Backend, BackendError
 from ocpar.bsp.columns import Columns, to_columns
-from ocpar.bsp.kernel import ChunkResult, run_packed_chunk
-from ocpar.bsp.malloc import keep_solver_workspaces_on_heap
+from ocpar.bsp.dask_worker import CHUNK_OP, ChunkHandler, run_chunk_in_worker
+from ocpar.bsp.kernel import ChunkResult
 from ocpar.bsp.mpi import SUPERSTEP_TIMEOUT_S
 
 #: Environment of worker processes spawned by the embedded cluster: one BLAS/OpenMP thread.
@@ -43,23 +43,6 @@ WORKER_PRELOAD = ("ocpar.ocp",)
 
 #: Worker settings for CPU-bound ~ms kernels: no statistical profiler sampling the solves.
 WORKER_CONFIG = {"distributed.worker.profile.enabled": False}
-
-
-def run_chunk_in_worker(name: str, tasks: Columns | list[Any]) -> ChunkResult:
-    """:func:`~ocpar.bsp.kernel.run_packed_chunk` on a Dask worker, with malloc tuned for
-    IPOPT first (see :mod:`ocpar.bsp.malloc`: Dask's ``MALLOC_TRIM_THRESHOLD_`` costs ~30% per
-    small solve)."""
-    keep_solver_workspaces_on_heap()
-    return run_packed_chunk(name, tasks)
-
-
-async def run_chunk_in_worker_thread(name: str, tasks: Columns | list[Any],
-                                     dask_worker: Any) -> ChunkResult:
-    """For ``Client.run``: :func:`run_chunk_in_worker` in the worker's task thread pool (not in
-    its event loop, which keeps serving the scheduler meanwhile)."""
-    loop = asyncio.get_running_loop()
-    return await loop.run_in_executor(dask_worker.executors["default"], run_chunk_in_worker,
-                                      name, tasks)
 
 
 DISPATCH = ("direct", "tasks")
@@ -219,6 +202,20 @@ class DaskBackend(Backend):
             raise BackendError("Dask cluster has no workers")
         self.addresses = addresses[: workers or len(addresses)]
         super().__init__(workers=len(self.addresses), balance=balance)
+        if dispatch == "direct":
+            self._prepare_direct()
+
+    def _prepare_direct(self) -> None:
+        """Install :class:`~ocpar.bsp.dask_worker.ChunkHandler` on the cluster's workers and
+        open the client's pooled connection to each (a TLS handshake, for instance) now, not
+        in the first superstep."""
+        self.client.register_plugin(ChunkHandler())
+
+        async def connect() -> None:
+            await asyncio.gather(*(self.client.rpc(address).identity()
+                                   for address in self.addresses))
+
+        self.client.sync(connect)
 
     @property
     def dashboard_link(self) -> str | None:
@@ -264,10 +261,8 @@ class DaskBackend(Backend):
         replies: list[ChunkResult | None] = [None] * len(chunks)
         pending = list(range(len(chunks)))
         for _ in range(MAX_CHUNK_RETRIES + 1):
-            runs = asyncio.gather(*(
-                self.client.run(run_chunk_in_worker_thread, name, chunks[w],
-                                workers=[targets[w]], asynchronous=True) for w in pending),
-                return_exceptions=True)
+            runs = asyncio.gather(*(self._call(targets[w], name, chunks[w]) for w in pending),
+                                  return_exceptions=True)
             try:
                 outcomes = await asyncio.wait_for(runs, max(deadline - loop.time(), 0.0))
             except TimeoutError:
@@ -276,7 +271,7 @@ class DaskBackend(Backend):
                       if isinstance(out, BaseException)]
             for w, out in zip(pending, outcomes, strict=True):
                 if not isinstance(out, BaseException):
-                    replies[w] = out[targets[w]]
+                    replies[w] = out
             if not failed:
                 return replies  # type: ignore[return-value]
             live = await self._live_workers(lost={targets[w] for w, _ in failed})
@@ -294,6 +289,19 @@ class DaskBackend(Backend):
                 targets[w] = live[k % len(live)]
         raise BackendError(f"superstep {len(self.traces)}: chunks lost their worker "
                            f"{MAX_CHUNK_RETRIES + 1} times")
+
+    async def _call(self, address: str, name: str, chunk: Columns | list[Any]) -> ChunkResult:
+        """Chunk ``chunk`` of kernel ``name`` on the worker at ``address``, through its
+        :data:`~ocpar.bsp.dask_worker.CHUNK_OP` handler, over a pooled connection of the
+        client (with its TLS settings)."""
+        from distributed.protocol import ToPickle
+
+        rpc = self.client.rpc(address)
+        # None: the worker answered that it has no such handler, as one that has just joined
+        # may, until its plugins are set up
+        while (reply := await getattr(rpc, CHUNK_OP)(name=name, tasks=ToPickle(chunk))) is None:
+            await asyncio.sleep(0.05)
+        return reply
 
     async def _live_workers(self, lost: set[str], wait_s: float = 10.0) -> list[str]:
         """The scheduler's workers once it has noticed that ``lost`` are gone (or after
