@@ -13,6 +13,8 @@ of a trivial kernel (``math:sqrt`` of 60 numbers). Dispatches:
 
 * ``direct``: the default, ``ocpar.bsp.dask_worker.ChunkHandler`` comm handler reached over
   the client's pooled connections;
+* ``inline``: as ``direct``, but the handler runs the chunk in the worker's event loop thread
+  (no thread hop; blocks the loop meanwhile, and is not serialised with Dask tasks);
 * ``run``: the previous ``direct``, ``Client.run`` through the scheduler (kept here only as a
   baseline);
 * ``tasks``: one named Dask task per chunk through the scheduler;
@@ -32,14 +34,17 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from distributed.protocol import ToPickle
 
 from ocpar.bsp.dask import DaskBackend
-from ocpar.bsp.dask_worker import run_chunk_in_worker
+from ocpar.bsp.dask_worker import CHUNK_OP, ChunkHandler, run_chunk_in_worker
 from ocpar.bsp.kernel import ChunkResult
+from ocpar.bsp.malloc import keep_solver_workspaces_on_heap
 from ocpar.examples.formation_point_masses import make as point_masses
 
-DISPATCHES = ("direct", "run", "tasks", "actor")
+DISPATCHES = ("direct", "inline", "run", "tasks", "actor")
 AGENTS = 60
+INLINE_OP = f"{CHUNK_OP}_inline"
 
 
 async def run_in_task_thread(name: str, tasks: Any, dask_worker: Any) -> ChunkResult:
@@ -59,6 +64,31 @@ class ClientRunBackend(DaskBackend):
         out = await self.client.run(run_in_task_thread, name, chunk, workers=[address],
                                     asynchronous=True)
         return out[address]
+
+
+class InlineHandler(ChunkHandler):
+    """:class:`ChunkHandler` running the chunk in the event loop thread, under its own op."""
+
+    name = "ocpar-inline-chunk-handler"
+
+    async def setup(self, worker: Any) -> None:
+        self._worker = worker
+        worker.handlers[INLINE_OP] = self.run_inline
+        keep_solver_workspaces_on_heap()
+
+    def run_inline(self, name: str, tasks: Any) -> ToPickle:
+        return ToPickle(run_chunk_in_worker(name, tasks))
+
+
+class InlineBackend(DaskBackend):
+    """``direct`` with :class:`InlineHandler`."""
+
+    def _prepare_direct(self) -> None:
+        self.client.register_plugin(InlineHandler())
+
+    async def _call(self, address: str, name: str, chunk: Any) -> ChunkResult:
+        return await getattr(self.client.rpc(address), INLINE_OP)(name=name,
+                                                                    tasks=ToPickle(chunk))
 
 
 class ChunkActor:
@@ -85,6 +115,8 @@ def open_dispatch(dispatch: str, workers: int) -> DaskBackend:
         return ClientRunBackend(workers=workers)
     if dispatch == "actor":
         return ActorBackend(workers=workers)
+    if dispatch == "inline":
+        return InlineBackend(workers=workers)
     return DaskBackend(workers=workers, dispatch=dispatch)
 
 

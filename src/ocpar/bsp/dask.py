@@ -12,12 +12,26 @@ workers using the client's certificate unless the ``Security`` names their own. 
 
 Two ways to hand a chunk to its worker (``dispatch``):
 
-* ``direct`` (default): ``Client.run`` sends the chunk to the worker, which runs it in its own
-  task thread (so still one solve at a time per process, queued with any Dask tasks). About
-  5 ms per superstep on this machine's LocalCluster, against ~15–20 ms for tasks; the chunks
-  do not appear as tasks on the dashboard.
+* ``direct`` (default): the coordinator calls each worker itself over Dask's comm layer, on
+  the client's pooled connections (its TLS settings included), kept open for the run: one
+  message to the worker's ``ocpar_run_chunk`` handler, one reply, no scheduler in between.
+  The handler comes from the worker plugin :class:`~ocpar.bsp.dask_worker.ChunkHandler`,
+  registered when the backend starts (and given by the scheduler to workers that join later);
+  it runs the chunk in the worker's task thread, so still one solve at a time per process,
+  queued with any Dask tasks of other jobs. The plugin warms that thread and the malloc
+  settings, and the backend opens its connections, before the first superstep. A chunk
+  whose worker is lost runs again on a live one (:data:`MAX_CHUNK_RETRIES`). The workers
+  must be reachable from the coordinator; the chunks do not appear on the dashboard.
 * ``tasks``: one Dask task per chunk, with a key that names the run, superstep and chunk
-  (visible in the dashboard's task stream), through the scheduler.
+  (visible in the dashboard's task stream), through the scheduler, which reruns a lost
+  worker's chunk elsewhere.
+
+Why this ``direct``: ``scripts/dask_overhead.py`` measures the superstep overhead (wall −
+busiest worker) of each way side by side on fresh 2-worker LocalClusters; see
+``docs/performance.md``. ``Client.run`` (the previous ``direct``) goes client → scheduler →
+worker → scheduler → client and cost ~4–5× more per superstep; a Dask actor per worker is
+reached directly too, but runs in its own thread (concurrently with Dask tasks, so not safe
+for IPOPT) and measured slower; tasks pay the scheduler's bookkeeping on top of two hops.
 """
 
 from __future__ import annotations
@@ -215,7 +229,14 @@ class DaskBackend(Backend):
             await asyncio.gather(*(self.client.rpc(address).identity()
                                    for address in self.addresses))
 
-        self.client.sync(connect)
+        try:
+            self.client.sync(connect)
+        except (OSError, TimeoutError) as exc:
+            self.close()
+            raise BackendError(f"cannot reach the Dask workers {', '.join(self.addresses)} "
+                               f"directly ({' '.join(str(exc).split())}): dispatch 'direct' "
+                               "needs them reachable from here; 'tasks' goes through the "
+                               "scheduler") from exc
 
     @property
     def dashboard_link(self) -> str | None:
