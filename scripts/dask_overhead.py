@@ -5,13 +5,11 @@
     python scripts/dask_overhead.py --steps 200 --reps 3 --workers 2 --output DIR
 
 Overhead = superstep wall − busiest worker's busy time (``SuperstepTrace.overhead_s``): what
-the coordinator waits beyond the work itself. Steady state: one embedded ``LocalCluster`` of
-``--workers`` single-threaded workers, one backend per dispatch on it, their supersteps
-alternating (so that a loaded machine's changing load hits every dispatch alike): ``--steps``
-supersteps each of the 60 point-mass formation's DMOC solves (``ocpar.ocp:solve_task``,
-columnar, the formation's own path), then ``--steps`` each of a trivial kernel (``math:sqrt``
-of 60 numbers). First superstep: ``--reps`` times per dispatch, a fresh cluster runs 6 DMOC
-supersteps; its first one's overhead is compared with the median of the next five. Dispatches:
+the coordinator waits beyond the work itself. For each repetition and each dispatch, a fresh
+embedded ``LocalCluster`` of ``--workers`` single-threaded workers runs ``--steps`` supersteps
+of the 60 point-mass formation's DMOC solves (``ocpar.ocp:solve_task``, columnar, the
+formation's own path; the first of them is the run's first superstep) and then ``--steps``
+of a trivial kernel (``math:sqrt`` of 60 numbers). Dispatches:
 
 * ``direct``: the default, ``ocpar.bsp.dask_worker.ChunkHandler`` comm handler reached over
   the client's pooled connections;
@@ -38,7 +36,7 @@ from typing import Any
 import numpy as np
 from distributed.protocol import ToPickle
 
-from ocpar.bsp.dask import WORKER_CONFIG, WORKER_ENV, WORKER_PRELOAD, DaskBackend
+from ocpar.bsp.dask import DaskBackend
 from ocpar.bsp.dask_worker import CHUNK_OP, ChunkHandler, run_chunk_in_worker
 from ocpar.bsp.kernel import ChunkResult
 from ocpar.bsp.malloc import keep_solver_workspaces_on_heap
@@ -112,71 +110,51 @@ class ActorBackend(DaskBackend):
         return await self._actors[address].run(name, chunk)
 
 
-def open_dispatch(dispatch: str, workers: int, scheduler: str | None = None) -> DaskBackend:
-    """A backend of ``dispatch`` on ``scheduler`` (None: an embedded cluster of its own)."""
-    variants = {"run": ClientRunBackend, "actor": ActorBackend, "inline": InlineBackend}
-    if dispatch in variants:
-        return variants[dispatch](workers=workers, scheduler=scheduler)
-    return DaskBackend(workers=workers, scheduler=scheduler, dispatch=dispatch)
+def open_dispatch(dispatch: str, workers: int) -> DaskBackend:
+    if dispatch == "run":
+        return ClientRunBackend(workers=workers)
+    if dispatch == "actor":
+        return ActorBackend(workers=workers)
+    if dispatch == "inline":
+        return InlineBackend(workers=workers)
+    return DaskBackend(workers=workers, dispatch=dispatch)
 
 
-def formation_tasks() -> Any:
+def measure(dispatch: str, workers: int, steps: int) -> dict:
+    """One fresh cluster: ``steps`` DMOC supersteps then ``steps`` trivial ones; overheads
+    in ms."""
     problem = point_masses(agents=AGENTS)
-    return problem.tasks(problem.initial_phi())
-
-
-def steady(dispatches: list[str], workers: int, steps: int) -> dict[str, dict]:
-    """One cluster, one backend per dispatch, their supersteps alternating (so that the
-    machine's changing load hits all alike): ``steps`` DMOC supersteps each, then ``steps``
-    trivial ones, after one warm-up superstep of each kernel; overheads in ms."""
-    import dask
-    from distributed import LocalCluster
-
-    tasks, numbers = formation_tasks(), [float(i) for i in range(AGENTS)]
-    with dask.config.set(WORKER_CONFIG), LocalCluster(
-            n_workers=workers, threads_per_worker=1, processes=True, dashboard_address=":0",
-            env=WORKER_ENV, preload=list(WORKER_PRELOAD)) as cluster:
-        backends = {d: open_dispatch(d, workers, cluster.scheduler_address) for d in dispatches}
-        try:
-            for _ in range(steps + 1):
-                for backend in backends.values():
-                    backend.superstep_columns("ocpar.ocp:solve_task", tasks)
-            for _ in range(steps + 1):
-                for backend in backends.values():
-                    backend.superstep("math:sqrt", numbers)
-            return {d: {"dmoc_ms": [t.overhead_s * 1e3 for t in b.traces[1:steps + 1]],
-                        "trivial_ms": [t.overhead_s * 1e3 for t in b.traces[steps + 2:]],
-                        "dmoc_busy_ms": [max(t.worker_busy_s) * 1e3
-                                         for t in b.traces[1:steps + 1]]}
-                    for d, b in backends.items()}
-        finally:
-            for backend in backends.values():
-                backend.close()
-
-
-def first(dispatch: str, workers: int, steps: int = 6) -> dict:
-    """A fresh embedded cluster: the overheads (ms) of its first ``steps`` DMOC supersteps,
-    and its start-up time (s)."""
-    tasks = formation_tasks()
+    tasks = problem.tasks(problem.initial_phi())
+    numbers = [float(i) for i in range(AGENTS)]
     start = time.perf_counter()
     with open_dispatch(dispatch, workers) as backend:
         started_s = time.perf_counter() - start
         for _ in range(steps):
             backend.superstep_columns("ocpar.ocp:solve_task", tasks)
-        return {"start_s": started_s, "dmoc_ms": [t.overhead_s * 1e3 for t in backend.traces]}
+        for _ in range(steps):
+            backend.superstep("math:sqrt", numbers)
+        overhead = [t.overhead_s * 1e3 for t in backend.traces]
+        busy = [max(t.worker_busy_s) * 1e3 for t in backend.traces]
+    return {"start_s": started_s, "dmoc_ms": overhead[:steps], "trivial_ms": overhead[steps:],
+            "dmoc_busy_ms": busy[:steps]}
 
 
-def summary(run: dict, fresh: list[dict]) -> dict:
-    """Median and p90 of the alternating run's overheads; median over the fresh clusters of
-    the first superstep's overhead and of its excess over the next supersteps' median."""
-    out: dict[str, Any] = {k: {"median_ms": float(np.median(run[f"{k}_ms"])),
-                               "p90_ms": float(np.percentile(run[f"{k}_ms"], 90))}
-                           for k in ("dmoc", "trivial")}
-    out["dmoc"]["busy_ms"] = float(np.median(run["dmoc_busy_ms"]))
-    out["first_ms"] = float(np.median([f["dmoc_ms"][0] for f in fresh]))
-    out["first_excess_ms"] = float(np.median([f["dmoc_ms"][0] - np.median(f["dmoc_ms"][1:])
-                                              for f in fresh]))
-    out["start_s"] = float(np.median([f["start_s"] for f in fresh]))
+def summary(runs: list[dict]) -> dict:
+    """Medians over repetitions of each run's median and p90 (first superstep excluded), and
+    the first superstep's overhead and its excess over the run's median."""
+    out = {}
+    for kernel in ("dmoc", "trivial"):
+        rest = [np.asarray(r[f"{kernel}_ms"][1:]) for r in runs]
+        out[kernel] = {
+            "median_ms": float(np.median([np.median(x) for x in rest])),
+            "p90_ms": float(np.median([np.percentile(x, 90) for x in rest])),
+        }
+    out["dmoc"]["busy_ms"] = float(np.median([np.median(r["dmoc_busy_ms"][1:]) for r in runs]))
+    firsts = [r["dmoc_ms"][0] for r in runs]
+    out["first_ms"] = float(np.median(firsts))
+    out["first_excess_ms"] = float(np.median(
+        [r["dmoc_ms"][0] - np.median(r["dmoc_ms"][1:]) for r in runs]))
+    out["start_s"] = float(np.median([r["start_s"] for r in runs]))
     return out
 
 
@@ -215,24 +193,24 @@ def plot(result: dict, path: Path) -> None:
 def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--workers", type=int, default=2)
-    parser.add_argument("--steps", type=int, default=200,
-                        help="supersteps per kernel and dispatch, alternating on one cluster")
-    parser.add_argument("--reps", type=int, default=3,
-                        help="fresh clusters per dispatch, for the first superstep")
+    parser.add_argument("--steps", type=int, default=200, help="supersteps per kernel")
+    parser.add_argument("--reps", type=int, default=3, help="fresh clusters per dispatch")
     parser.add_argument("--dispatch", nargs="+", choices=DISPATCHES, default=list(DISPATCHES))
     parser.add_argument("--output", type=Path, required=True)
     args = parser.parse_args(argv)
     args.output.mkdir(parents=True, exist_ok=True)
-    fresh: dict[str, list[dict]] = {d: [] for d in args.dispatch}
-    for _ in range(args.reps):  # interleaved, so that load changes hit every dispatch
+    runs: dict[str, list[dict]] = {d: [] for d in args.dispatch}
+    for rep in range(args.reps):  # interleaved, so that load changes hit every dispatch
         for dispatch in args.dispatch:
-            fresh[dispatch].append(first(dispatch, args.workers))
-            print(f"{dispatch:7s} first supersteps (ms): "
-                  f"{np.round(fresh[dispatch][-1]['dmoc_ms'], 2).tolist()}", flush=True)
-    runs = steady(args.dispatch, args.workers, args.steps)
+            runs[dispatch].append(measure(dispatch, args.workers, args.steps))
+            s = summary(runs[dispatch][-1:])
+            print(f"rep {rep} {dispatch:7s} dmoc median {s['dmoc']['median_ms']:.3f} ms "
+                  f"p90 {s['dmoc']['p90_ms']:.3f} | trivial median "
+                  f"{s['trivial']['median_ms']:.3f} ms | first {s['first_ms']:.2f} ms",
+                  flush=True)
     result = {"workers": args.workers, "steps": args.steps, "reps": args.reps,
-              "agents": AGENTS, "summary": {d: summary(runs[d], fresh[d]) for d in runs},
-              "runs": runs, "first": fresh}
+              "agents": AGENTS, "summary": {d: summary(r) for d, r in runs.items()},
+              "runs": runs}
     (args.output / "dask_overhead.json").write_text(json.dumps(result, indent=1))
     plot(result, args.output / "dask_overhead.png")
     for d, s in result["summary"].items():

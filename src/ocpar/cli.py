@@ -117,7 +117,7 @@ class RuntimeOptions:
         "seconds", above=0, metavar="S", group=BACKEND_GROUP)
     dispatch: str = option(
         "direct", "dask: chunks go straight to the workers over Dask's comm layer (direct, "
-        "~1 ms per superstep; the workers must be reachable from here) or as named Dask "
+        "the fastest; the workers must be reachable from here) or as named Dask "
         "tasks through the scheduler (tasks: seen on the dashboard as "
         "JOB-superstep-K-chunk-W)", choices=("direct", "tasks"), group=BACKEND_GROUP)
     job_name: str | None = option(
