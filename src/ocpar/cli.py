@@ -116,8 +116,9 @@ class RuntimeOptions:
         SUPERSTEP_TIMEOUT_S, "abort a superstep whose results have not all arrived after S "
         "seconds", above=0, metavar="S", group=BACKEND_GROUP)
     dispatch: str = option(
-        "direct", "dask: chunks reach workers through Client.run (direct, ~5 ms per "
-        "superstep) or as named Dask tasks (tasks: seen on the dashboard as "
+        "direct", "dask: chunks go straight to the workers over Dask's comm layer (direct, "
+        "the fastest; the workers must be reachable from here) or as named Dask "
+        "tasks through the scheduler (tasks: seen on the dashboard as "
         "JOB-superstep-K-chunk-W)", choices=("direct", "tasks"), group=BACKEND_GROUP)
     job_name: str | None = option(
         None, "dask: the name the run's task keys start with (with --dispatch tasks)",

@@ -12,12 +12,29 @@ workers using the client's certificate unless the ``Security`` names their own. 
 
 Two ways to hand a chunk to its worker (``dispatch``):
 
-* ``direct`` (default): ``Client.run`` sends the chunk to the worker, which runs it in its own
-  task thread (so still one solve at a time per process, queued with any Dask tasks). About
-  5 ms per superstep on this machine's LocalCluster, against ~15–20 ms for tasks; the chunks
-  do not appear as tasks on the dashboard.
+* ``direct`` (default): the coordinator calls each worker itself over Dask's comm layer, on
+  the client's pooled connections (its TLS settings included), kept open for the run: one
+  message to the worker's ``ocpar_run_chunk`` handler, one reply, no scheduler in between.
+  The handler comes from the worker plugin :class:`~ocpar.bsp.dask_worker.ChunkHandler`,
+  registered when the backend starts (and given by the scheduler to workers that join later);
+  it runs the chunk in the worker's task thread, so still one solve at a time per process,
+  queued with any Dask tasks of other jobs. The plugin warms that thread and the malloc
+  settings, and the backend opens its connections, before the first superstep. A chunk
+  whose worker is lost runs again on a live one (:data:`MAX_CHUNK_RETRIES`). The workers
+  must be reachable from the coordinator; the chunks do not appear on the dashboard.
 * ``tasks``: one Dask task per chunk, with a key that names the run, superstep and chunk
-  (visible in the dashboard's task stream), through the scheduler.
+  (visible in the dashboard's task stream), through the scheduler, which reruns a lost
+  worker's chunk elsewhere.
+
+Why this ``direct``: ``scripts/dask_overhead.py`` measures the superstep overhead (wall −
+busiest worker) of each way side by side on fresh 2-worker LocalClusters; see
+``docs/performance.md``. ``Client.run`` (the previous ``direct``) goes client → scheduler →
+worker → scheduler → client and measured 1.8× (60 DMOC solves) to 5.6× (a trivial kernel)
+more overhead per superstep, and ~30 ms more in the first one; a Dask actor per worker is
+reached directly too, but runs in its own thread (concurrently with Dask tasks, so not safe
+for IPOPT) and measured slower; running the chunk in the worker's event loop (no thread
+hand-off) gained nothing measurable and would block the loop and overlap Dask tasks; tasks
+pay the scheduler's bookkeeping on top of two hops.
 """
 
 from __future__ import annotations
@@ -31,8 +48,8 @@ from typing import Any
 
 from ocpar.bsp.backend import Backend, BackendError
 from ocpar.bsp.columns import Columns, to_columns
-from ocpar.bsp.kernel import ChunkResult, run_packed_chunk
-from ocpar.bsp.malloc import keep_solver_workspaces_on_heap
+from ocpar.bsp.dask_worker import CHUNK_OP, ChunkHandler, run_chunk_in_worker
+from ocpar.bsp.kernel import ChunkResult
 from ocpar.bsp.mpi import SUPERSTEP_TIMEOUT_S
 
 #: Environment of worker processes spawned by the embedded cluster: one BLAS/OpenMP thread.
@@ -43,23 +60,6 @@ WORKER_PRELOAD = ("ocpar.ocp",)
 
 #: Worker settings for CPU-bound ~ms kernels: no statistical profiler sampling the solves.
 WORKER_CONFIG = {"distributed.worker.profile.enabled": False}
-
-
-def run_chunk_in_worker(name: str, tasks: Columns | list[Any]) -> ChunkResult:
-    """:func:`~ocpar.bsp.kernel.run_packed_chunk` on a Dask worker, with malloc tuned for
-    IPOPT first (see :mod:`ocpar.bsp.malloc`: Dask's ``MALLOC_TRIM_THRESHOLD_`` costs ~30% per
-    small solve)."""
-    keep_solver_workspaces_on_heap()
-    return run_packed_chunk(name, tasks)
-
-
-async def run_chunk_in_worker_thread(name: str, tasks: Columns | list[Any],
-                                     dask_worker: Any) -> ChunkResult:
-    """For ``Client.run``: :func:`run_chunk_in_worker` in the worker's task thread pool (not in
-    its event loop, which keeps serving the scheduler meanwhile)."""
-    loop = asyncio.get_running_loop()
-    return await loop.run_in_executor(dask_worker.executors["default"], run_chunk_in_worker,
-                                      name, tasks)
 
 
 DISPATCH = ("direct", "tasks")
@@ -219,6 +219,27 @@ class DaskBackend(Backend):
             raise BackendError("Dask cluster has no workers")
         self.addresses = addresses[: workers or len(addresses)]
         super().__init__(workers=len(self.addresses), balance=balance)
+        if dispatch == "direct":
+            self._prepare_direct()
+
+    def _prepare_direct(self) -> None:
+        """Install :class:`~ocpar.bsp.dask_worker.ChunkHandler` on the cluster's workers and
+        open the client's pooled connection to each (a TLS handshake, for instance) now, not
+        in the first superstep."""
+        self.client.register_plugin(ChunkHandler())
+
+        async def connect() -> None:
+            await asyncio.gather(*(self.client.rpc(address).identity()
+                                   for address in self.addresses))
+
+        try:
+            self.client.sync(connect)
+        except (OSError, TimeoutError) as exc:
+            self.close()
+            raise BackendError(f"cannot reach the Dask workers {', '.join(self.addresses)} "
+                               f"directly ({' '.join(str(exc).split())}): dispatch 'direct' "
+                               "needs them reachable from here; 'tasks' goes through the "
+                               "scheduler") from exc
 
     @property
     def dashboard_link(self) -> str | None:
@@ -264,10 +285,8 @@ class DaskBackend(Backend):
         replies: list[ChunkResult | None] = [None] * len(chunks)
         pending = list(range(len(chunks)))
         for _ in range(MAX_CHUNK_RETRIES + 1):
-            runs = asyncio.gather(*(
-                self.client.run(run_chunk_in_worker_thread, name, chunks[w],
-                                workers=[targets[w]], asynchronous=True) for w in pending),
-                return_exceptions=True)
+            runs = asyncio.gather(*(self._call(targets[w], name, chunks[w]) for w in pending),
+                                  return_exceptions=True)
             try:
                 outcomes = await asyncio.wait_for(runs, max(deadline - loop.time(), 0.0))
             except TimeoutError:
@@ -276,7 +295,7 @@ class DaskBackend(Backend):
                       if isinstance(out, BaseException)]
             for w, out in zip(pending, outcomes, strict=True):
                 if not isinstance(out, BaseException):
-                    replies[w] = out[targets[w]]
+                    replies[w] = out
             if not failed:
                 return replies  # type: ignore[return-value]
             live = await self._live_workers(lost={targets[w] for w, _ in failed})
@@ -294,6 +313,19 @@ class DaskBackend(Backend):
                 targets[w] = live[k % len(live)]
         raise BackendError(f"superstep {len(self.traces)}: chunks lost their worker "
                            f"{MAX_CHUNK_RETRIES + 1} times")
+
+    async def _call(self, address: str, name: str, chunk: Columns | list[Any]) -> ChunkResult:
+        """Chunk ``chunk`` of kernel ``name`` on the worker at ``address``, through its
+        :data:`~ocpar.bsp.dask_worker.CHUNK_OP` handler, over a pooled connection of the
+        client (with its TLS settings)."""
+        from distributed.protocol import ToPickle
+
+        rpc = self.client.rpc(address)
+        # None: the worker answered that it has no such handler, as one that has just joined
+        # may, until its plugins are set up
+        while (reply := await getattr(rpc, CHUNK_OP)(name=name, tasks=ToPickle(chunk))) is None:
+            await asyncio.sleep(0.05)
+        return reply
 
     async def _live_workers(self, lost: set[str], wait_s: float = 10.0) -> list[str]:
         """The scheduler's workers once it has noticed that ``lost`` are gone (or after

@@ -1,0 +1,72 @@
+"""Dask's ``direct`` dispatch (the workers' ``ocpar.bsp.dask_worker.ChunkHandler`` reached over
+the client's connections): kernel errors come back as themselves, jobs sharing a cluster get
+their own results, and a worker that joins later is reached too."""
+
+from __future__ import annotations
+
+import math
+from concurrent.futures import ThreadPoolExecutor
+
+import pytest
+
+from ocpar.bsp.dask import DaskBackend
+from ocpar.bsp.serial import SerialBackend
+from ocpar.examples.formation_point_masses import make as paper_example
+from ocpar.ocp import solve_task
+
+
+@pytest.fixture(scope="module")
+def cluster():
+    from distributed import LocalCluster
+
+    with LocalCluster(n_workers=1, threads_per_worker=1, processes=True,
+                      dashboard_address=":0") as cluster:
+        yield cluster
+
+
+def formation_tasks(agents: int, step: float):
+    problem = paper_example(agents)
+    return problem.tasks(problem.initial_phi() + step)
+
+
+def serial_costs(tasks) -> list[float]:
+    with SerialBackend() as serial:
+        return serial.superstep_columns(solve_task, tasks).column("cost").tolist()
+
+
+def test_a_kernel_error_reaches_the_coordinator_and_the_next_superstep_runs(cluster):
+    with DaskBackend(workers=1, scheduler=cluster.scheduler_address) as backend:
+        with pytest.raises(ValueError, match="math domain error"):
+            backend.superstep("math:sqrt", [4.0, -1.0])
+        assert backend.superstep("math:sqrt", [4.0, 2.0]) == [2.0, math.sqrt(2.0)]
+        assert backend.lost_chunks == 0
+
+
+def test_jobs_sharing_a_cluster_concurrently_get_their_own_results(cluster):
+    """Two coordinators on one worker, superstep after superstep at the same time (their
+    chunks queue on the worker's one task thread): each gets what a serial run gives."""
+    jobs = [[formation_tasks(6, 0.01 * (j + 1) * k) for k in range(8)] for j in range(2)]
+
+    def run(steps):
+        with DaskBackend(workers=1, scheduler=cluster.scheduler_address) as backend:
+            return [backend.superstep_columns(solve_task, t).column("cost").tolist() for t in steps]
+
+    with ThreadPoolExecutor(2) as pool:
+        got = list(pool.map(run, jobs))
+    assert got == [[serial_costs(t) for t in steps] for steps in jobs]
+
+
+@pytest.mark.slow
+def test_a_worker_that_joins_later_runs_chunks_like_the_first(cluster):
+    """The handler is a worker plugin: the scheduler gives it to a worker that joins after it
+    was registered (here the second job's registration finds it there and changes nothing)."""
+    tasks = formation_tasks(6, 0.05)
+    with DaskBackend(workers=1, scheduler=cluster.scheduler_address):
+        cluster.scale(2)
+        cluster.wait_for_workers(2)
+    # a worker without the handler would leave the superstep waiting until its timeout
+    with DaskBackend(workers=2, scheduler=cluster.scheduler_address,
+                     superstep_timeout_s=60) as backend:
+        got = backend.superstep_columns(solve_task, tasks).column("cost").tolist()
+        assert backend.traces[-1].worker_tasks == [3, 3]
+    assert got == serial_costs(tasks)
