@@ -18,9 +18,17 @@ from ocpar.ocp import DmocShape, OcpTask, dmoc_problem, solve_task, solve_tasks
 from ocpar.ocp.batch import MappedNlp
 
 
-def formation_tasks(problem, phi=None) -> list[OcpTask]:
+def formation_tasks(problem, phi=None, solver: str | None = None) -> list[OcpTask]:
+    """The inner tasks of ``problem`` at angles ``phi``, with the DMOC ``solver`` if given."""
     phi = problem.initial_phi() if phi is None else phi
-    return problem.tasks(phi).items()
+    tasks = problem.tasks(phi).items()
+    if solver is None:
+        return tasks
+    shape = dataclasses.replace(problem.shape, solver=solver)
+    return [dataclasses.replace(t, shape=shape) for t in tasks]
+
+
+BATCHED = pytest.mark.parametrize("solver", ["newton", "sqpmethod"])
 
 
 def payload(solution) -> bytes:
@@ -31,22 +39,24 @@ def payload(solution) -> bytes:
                     for v in fields.values())
 
 
+@BATCHED
 @pytest.mark.parametrize("workers", [1, 2, 3])
-def test_results_do_not_depend_on_the_chunking(workers):
+def test_results_do_not_depend_on_the_chunking(workers, solver):
     """A worker solves its chunk in one mapped call: every task's solution is bitwise the
     one it gets alone, for the chunks of 1, 2 and 3 workers."""
-    tasks = formation_tasks(point_masses(12))
+    tasks = formation_tasks(halo_example(agents=5, intervals=10), solver=solver)
     alone = [payload(solve_tasks([task])[0]) for task in tasks]
     chunked = [payload(s) for block in contiguous_blocks(len(tasks), workers)
                for s in solve_tasks([tasks[i] for i in block])]
     assert chunked == alone
 
 
-def test_batched_solves_agree_with_ipopt():
+@BATCHED
+def test_batched_solves_agree_with_ipopt(solver):
     """Point masses (a QP per agent) and rigid halo spacecraft (nonlinear): the batched
-    sqpmethod optimum equals IPOPT's to 1e-10, gradient included."""
+    optimum equals IPOPT's to 1e-10, gradient included."""
     for problem in (point_masses(8), halo_example(agents=4, intervals=10)):
-        tasks = formation_tasks(problem)
+        tasks = formation_tasks(problem, solver=solver)
         batched = solve_tasks(tasks)
         ipopt_shape = dataclasses.replace(problem.shape, solver="ipopt")
         one_by_one = [solve_task(dataclasses.replace(t, shape=ipopt_shape)) for t in tasks]
@@ -58,11 +68,12 @@ def test_batched_solves_agree_with_ipopt():
             np.testing.assert_allclose(b.q, i.q, atol=1e-8)
 
 
-def test_tasks_failing_the_kkt_check_are_solved_one_by_one():
+@BATCHED
+def test_tasks_failing_the_kkt_check_are_solved_one_by_one(solver):
     """With an unattainable KKT tolerance every batched attempt is rejected: each task is
     then solved by the one-task policy (IPOPT), so its solution is solve_task's, bitwise, after
     one more attempt."""
-    strict = dataclasses.replace(point_masses(5).shape, kkt_tol=1e-300)
+    strict = dataclasses.replace(point_masses(5).shape, kkt_tol=1e-300, solver=solver)
     tasks = [dataclasses.replace(t, shape=strict) for t in formation_tasks(point_masses(5))]
     batched = solve_tasks(tasks)
     for task, solution in zip(tasks, batched, strict=True):

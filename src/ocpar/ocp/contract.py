@@ -212,12 +212,11 @@ def solve_tasks(tasks: Sequence[OcpTask]) -> list[InnerSolution]:
         by_shape.setdefault(task.shape, []).append(index)
     for shape, indices in by_shape.items():
         nlp = transcription(shape)
-        batches = isinstance(nlp, BatchTranscription)
-        batch = [i for i in indices if batches and _batchable(nlp, tasks[i])]
-        first = _solve_first_attempts(nlp, [tasks[i] for i in batch]) if batch else None
-        if first is None:
-            batch, first = [], []
-        for i, solution in zip(batch, first, strict=True):
+        batch, params = _batchable(nlp, [tasks[i] for i in indices])
+        batch = [indices[k] for k in batch]
+        first = nlp.solve_batch(params, [tasks[i].warm_start for i in batch],  # type: ignore
+                                [tasks[i].multipliers for i in batch]) if batch else None
+        for i, solution in zip(batch if first is not None else [], first or [], strict=True):
             solutions[i] = solution
         for i in indices:
             solution = solutions[i]
@@ -233,19 +232,20 @@ def solve_tasks(tasks: Sequence[OcpTask]) -> list[InnerSolution]:
 solve_tasks.batched = True  # type: ignore[attr-defined]
 
 
-def _batchable(nlp: Transcription[Any], task: OcpTask) -> bool:
-    """Whether ``task``'s first attempt can join a batch: its numbers are finite (otherwise
-    :func:`solve_task` reports it)."""
-    params = check_params(task.params, nlp.n_params, type(nlp).__name__)
-    return bool(np.all(np.isfinite(params))) and (
-        task.warm_start is None or bool(np.all(np.isfinite(task.warm_start))))
-
-
-def _solve_first_attempts(nlp: Transcription[Any], tasks: list[OcpTask]
-                          ) -> list[InnerSolution] | None:
-    params = np.array([np.asarray(t.params, float) for t in tasks])
-    return nlp.solve_batch(params, [t.warm_start for t in tasks],  # type: ignore[attr-defined]
-                           [t.multipliers for t in tasks])
+def _batchable(nlp: Transcription[Any], tasks: list[OcpTask]) -> tuple[list[int], np.ndarray]:
+    """The positions of the ``tasks`` (one shape) whose first attempt can join a batch, and
+    their parameters (k, n_params): all, if the transcription batches and their numbers are
+    finite; the others are left to :func:`solve_task`, which reports them."""
+    if not isinstance(nlp, BatchTranscription):
+        return [], np.zeros((0, nlp.n_params))
+    params = np.array([np.asarray(t.params, float).ravel() for t in tasks]
+                      if len({np.size(t.params) for t in tasks}) == 1 else [])
+    if params.shape != (len(tasks), nlp.n_params):
+        return [], np.zeros((0, nlp.n_params))
+    finite = np.all(np.isfinite(params), axis=1)
+    finite &= [t.warm_start is None or bool(np.all(np.isfinite(t.warm_start))) for t in tasks]
+    chosen = np.flatnonzero(finite)
+    return chosen.tolist(), params[chosen]
 
 
 def _apply_policy(nlp: Transcription[Any], task: OcpTask, params: np.ndarray,

@@ -27,6 +27,7 @@ import casadi as ca
 import numpy as np
 
 from ocpar.models.ode import OdeModel, control_bounds
+from ocpar.ocp.batch import BufferedFunction, kkt_newton_function
 from ocpar.ocp.contract import InnerSolution, call_nlpsol, check_params, transcription
 from ocpar.ocp.ipopt import ipopt_options
 
@@ -128,28 +129,6 @@ def step_function(model: OdeModel, step: float, integrator: str) -> ca.Function:
     return ca.Function("Phi", [x, u], [nxt])
 
 
-class BufferedFunction:
-    """A CasADi Function called through preallocated numpy buffers: converting numpy arrays to
-    and from CasADi's DM costs ~0.3 µs per element, more than a small solve's arithmetic.
-    Inputs and outputs are dense vectors; one call at a time."""
-
-    def __init__(self, function: ca.Function) -> None:
-        self._buffer, self._evaluate = function.buffer()
-        self._inputs = [np.zeros(function.nnz_in(i)) for i in range(function.n_in())]
-        self._outputs = [np.zeros(function.nnz_out(i)) for i in range(function.n_out())]
-        for i, array in enumerate(self._inputs):
-            self._buffer.set_arg(i, memoryview(array))
-        for i, array in enumerate(self._outputs):
-            self._buffer.set_res(i, memoryview(array))
-
-    def __call__(self, *args: np.ndarray) -> list[np.ndarray]:
-        """The outputs (copies) for inputs ``args``, in the Function's order."""
-        for array, value in zip(self._inputs, args, strict=True):
-            array[:] = value
-        self._evaluate()
-        return [array.copy() for array in self._outputs]
-
-
 class MsTranscription:
     """The MS NLP of one shape and its IPOPT solver."""
 
@@ -214,24 +193,7 @@ class MsTranscription:
 
     @cached_property
     def _newton_function(self) -> ca.Function:
-        lam = ca.SX.sym("lam", self.ng)
-        lagrangian = self.cost + ca.dot(lam, self.g)
-        jac = ca.jacobian(self.g, self.w)
-        grad = ca.gradient(self.cost, self.w)
-        hessian = ca.hessian(lagrangian, self.w)[0]
-        kkt = ca.Function("kkt", [self.w, lam, self.p], [
-            ca.blockcat([[hessian, jac.T], [jac, ca.SX(self.ng, self.ng)]]),
-            -ca.vertcat(grad, self.g)])
-        check = ca.Function("check", [self.w, lam, self.p], [
-            self.cost, self.g, ca.norm_inf(grad + jac.T @ lam), ca.gradient(lagrangian, self.p)])
-        linsol = ca.Linsol("kkt_qr", "qr", kkt.sparsity_out(0))
-        w0, lam0 = ca.MX.sym("w", self.nw), ca.MX.sym("lam", self.ng)
-        p = ca.MX.sym("p", self.n_params)
-        w, lam_k = w0, lam0
-        for _ in range(NEWTON_STEPS):
-            step = linsol.solve(*kkt(w, lam_k, p))
-            w, lam_k = w + step[: self.nw], step[self.nw :]
-        return ca.Function("ms_newton", [w0, lam0, p], [w, lam_k, *check(w, lam_k, p)])
+        return kkt_newton_function("ms", self.w, self.p, self.cost, self.g, NEWTON_STEPS)
 
     def pack(self, x: np.ndarray, u: np.ndarray) -> np.ndarray:
         """w from states x (N+1, nx) (x_0 is dropped) and controls u (N, nu)."""
