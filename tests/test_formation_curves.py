@@ -372,3 +372,16 @@ def test_a_users_own_model_on_a_tilted_ellipse():
     assert max(hierarchical.coupling_residual, monolithic.coupling_residual) <= 1e-9
     np.testing.assert_allclose(hierarchical.trajectories[:, -1],
                                ellipse.points(hierarchical.phi), atol=1e-12)
+
+
+def test_circle_closed_form_matches_the_generic_curve_evaluation():
+    """The circle's numpy z, z′, z″ against the compiled CasADi derivatives every curve has,
+    on a tilted circle in 3-D."""
+    from ocpar.formation.curve import Curve
+
+    circle = Circle(radius=3.0, center=np.array([1.0, 2.0, 0.5]),
+                    axes=np.array([[1.0, 0.0, 0.0], [0.0, 0.6, 0.8]]))
+    phi = np.random.default_rng(0).uniform(-7.0, 7.0, 50)
+    for which in range(3):
+        np.testing.assert_allclose(circle._evaluate(phi, which),
+                                   Curve._evaluate(circle, phi, which), rtol=0, atol=1e-14)

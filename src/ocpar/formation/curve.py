@@ -229,6 +229,14 @@ class Circle(PlaneCurve):
         """The polar angle is the parameter: ``angle`` itself."""
         return float(angle)
 
+    def _evaluate(self, phi: np.ndarray, which: int) -> np.ndarray:
+        """z, z′ or z″ (``which`` 0, 1, 2) in closed form, (n, d): the k-th derivative of
+        (cos φ, sin φ) is (cos, sin)(φ + kπ/2). Numpy: ~0.3 ms at 10,000 angles against ~7 ms
+        through the compiled CasADi function (the outer solver asks every superstep)."""
+        phi = np.atleast_1d(np.asarray(phi, float)).ravel() + which * np.pi / 2
+        xy = self.radius * np.column_stack([np.cos(phi), np.sin(phi)])
+        return (self.center if which == 0 else 0.0) + xy @ self.plane
+
     def spread(self, phi_c: float, fractions: np.ndarray) -> np.ndarray:
         """Arc length is proportional to φ: φ_c + 2π ``fractions``, exactly."""
         return phi_c + 2 * np.pi * np.asarray(fractions, float)
