@@ -134,6 +134,11 @@ class MappedNlp:
         return x, np.asarray(out["f"]).ravel(), lam_g, np.asarray(out["lam_p"]).T, ok, extra
 
 
+def _blocks(rows: np.ndarray) -> list[np.ndarray]:
+    """``rows`` split into consecutive blocks of at most :data:`MAX_COLUMNS`."""
+    return np.array_split(rows, max(1, -(-len(rows) // MAX_COLUMNS)))
+
+
 def _complementarity(lam: np.ndarray, value: np.ndarray, lower: np.ndarray,
                      upper: np.ndarray) -> np.ndarray:
     """max_i |λ_i| · (distance of value_i to the bound λ_i's sign makes active), per row;
@@ -166,12 +171,11 @@ class BufferedFunction:
         return [array.copy() for array in self._outputs]
 
 
-def kkt_newton_function(name: str, x: ca.SX, p: ca.SX, f: ca.SX, g: ca.SX, steps: int,
-                        post: ca.Function | None = None) -> ca.Function:
-    """Function (x, λ_g, p) → (x, λ_g, f, g, ‖∇_x L‖∞, ∇_p L[, post]) after ``steps`` full
-    Newton steps on the KKT system of L = f + λ_gᵀ g (sparse QR; no globalisation, bounds
-    ignored). At a KKT point ∇_p L is dJ*/dp; ``post``, a Function of (x, λ_g, p) with one
-    output, is evaluated at the last iterate."""
+def kkt_newton_function(name: str, x: ca.SX, p: ca.SX, f: ca.SX, g: ca.SX,
+                        steps: int) -> ca.Function:
+    """Function (x, λ_g, p) → (x, λ_g, f, g, ‖∇_x L‖∞, ∇_p L) after ``steps`` full Newton
+    steps on the KKT system of L = f + λ_gᵀ g (sparse QR; no globalisation, bounds ignored).
+    At a KKT point ∇_p L is dJ*/dp."""
     ng, nx = g.numel(), x.numel()
     lam = ca.SX.sym("lam", ng)
     lagrangian = f + ca.dot(lam, g)
@@ -187,27 +191,29 @@ def kkt_newton_function(name: str, x: ca.SX, p: ca.SX, f: ca.SX, g: ca.SX, steps
     for _ in range(steps):
         step = linsol.solve(*kkt(xk, lam_k, ps))
         xk, lam_k = xk + step[:nx], step[nx:]
-    outputs = [xk, lam_k, *check(xk, lam_k, ps)]
-    if post is not None:
-        outputs.append(post(xk, lam_k, ps))
-    return ca.Function(f"{name}_newton", [x0, lam0, ps], outputs)
+    return ca.Function(f"{name}_newton", [x0, lam0, ps], [xk, lam_k, *check(xk, lam_k, ps)])
 
 
 class KktNewton:
     """The equality-constrained NLP min f(x, p) s.t. g(x, p) = 0 (SX expressions of ``x`` and
     ``p``) solved in batches by rounds of ``steps`` Newton steps on its KKT system
     (:func:`kkt_newton_function`), each column accepted if ‖g‖∞ ≤ ``tol``·(1 + ‖p‖∞),
-    ‖∇_x L‖∞ ≤ ``tol``·(1 + ‖∇f‖∞) and lbx ≤ x ≤ ubx. ``post`` as in :class:`MappedNlp`."""
+    ‖∇_x L‖∞ ≤ ``tol``·(1 + ‖∇f‖∞) and lbx ≤ x ≤ ubx. ``post`` as in :class:`MappedNlp`,
+    evaluated once per column, at its last iterate."""
 
     def __init__(self, name: str, x: ca.SX, p: ca.SX, f: ca.SX, g: ca.SX, steps: int,
                  tol: float, post: ca.Function | None = None) -> None:
         self.tol, self.steps = tol, steps
         self.nx, self.ng, self.np = x.numel(), g.numel(), p.numel()
-        self.function = kkt_newton_function(name, x, p, f, g, steps, post)
+        self.function = kkt_newton_function(name, x, p, f, g, steps)
         self.gradient = ca.Function(f"{name}_grad", [x, p], [ca.norm_inf(ca.gradient(f, x))])
-        self._mapped = lru_cache(maxsize=16)(
-            lambda k: (BufferedFunction(self.function.map(k, "serial")),
-                       BufferedFunction(self.gradient.map(k, "serial"))))
+        self.post = post
+        self._mapped = lru_cache(maxsize=16)(self._map)
+
+    def _map(self, k: int) -> tuple[BufferedFunction, BufferedFunction, BufferedFunction | None]:
+        post = None if self.post is None else BufferedFunction(self.post.map(k, "serial"))
+        return (BufferedFunction(self.function.map(k, "serial")),
+                BufferedFunction(self.gradient.map(k, "serial")), post)
 
     def solve(self, x0: np.ndarray, p: np.ndarray, lam_g0: np.ndarray, lbx: np.ndarray,
               ubx: np.ndarray, rounds: int = 1) -> BatchSolve:
@@ -219,28 +225,34 @@ class KktNewton:
         k = len(p)
         x, lam = np.array(x0, float), np.array(lam_g0, float)
         f, ok = np.full(k, np.nan), np.zeros(k, dtype=bool)
-        lam_p, extra, iterations = np.full((k, self.np), np.nan), None, np.zeros(k, int)
+        lam_p, iterations = np.full((k, self.np), np.nan), np.zeros(k, int)
         todo = np.arange(k)
         for _ in range(rounds):
             parts = [self._solve_block(x[rows], p[rows], lam[rows], lbx, ubx)
-                     for rows in np.array_split(todo, -(-len(todo) // MAX_COLUMNS))]
-            xs, fs, lams, lam_ps, oks, extras = (np.concatenate(column)
-                                                 for column in zip(*parts, strict=True))
+                     for rows in _blocks(todo)]
+            xs, fs, lams, lam_ps, oks = (np.concatenate(column)
+                                         for column in zip(*parts, strict=True))
             x[todo], f[todo], lam[todo], lam_p[todo], ok[todo] = xs, fs, lams, lam_ps, oks
-            if extra is None:
-                extra = np.full((k, extras.shape[1]), np.nan)
-            extra[todo] = extras
             iterations[todo] += self.steps
             todo = todo[~oks & np.all(np.isfinite(xs), axis=1)]
             if not len(todo):
                 break
+        extra = np.zeros((k, 0))
+        if self.post is not None:
+            extra = np.concatenate([self._post(x[rows], lam[rows], p[rows])
+                                    for rows in _blocks(np.arange(k))])
         return BatchSolve(x, f, lam, lam_p, ok, extra, time.perf_counter() - start, iterations)
+
+    def _post(self, x: np.ndarray, lam: np.ndarray, p: np.ndarray) -> np.ndarray:
+        """``post`` at each row, (k, m) with each output's entries column-major."""
+        post = self._mapped(len(p))[2]
+        return post(x.ravel(), lam.ravel(), p.ravel())[0].reshape(len(p), -1)
 
     def _solve_block(self, x0: np.ndarray, p: np.ndarray, lam_g0: np.ndarray,
                      lbx: np.ndarray, ubx: np.ndarray) -> tuple[np.ndarray, ...]:
         k = len(p)
-        newton, gradient = self._mapped(k)
-        x, lam, f, g, dual, grad_p, *post = newton(x0.ravel(), lam_g0.ravel(), p.ravel())
+        newton, gradient, _ = self._mapped(k)
+        x, lam, f, g, dual, grad_p = newton(x0.ravel(), lam_g0.ravel(), p.ravel())
         x, lam, g = x.reshape(k, self.nx), lam.reshape(k, self.ng), g.reshape(k, self.ng)
         scale = 1.0 + gradient(x.ravel(), p.ravel())[0]
         with np.errstate(invalid="ignore"):
@@ -248,5 +260,4 @@ class KktNewton:
                    <= self.tol * (1.0 + np.max(np.abs(p), axis=1)))
                   & (dual <= self.tol * scale)
                   & np.all((x >= lbx) & (x <= ubx), axis=1))
-        extra = post[0].reshape(k, -1) if post else np.zeros((k, 0))
-        return x, f, lam, -grad_p.reshape(k, self.np), ok, extra
+        return x, f, lam, -grad_p.reshape(k, self.np), ok
