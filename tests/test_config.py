@@ -30,15 +30,15 @@ from ocpar.config import (
 EXAMPLES = {
     "formation-60": ("formation", [
         "--problem", "point-mass-plane", "--agents", "60", "--radius", "10.0",
-        "--mode", "hierarchical", "--outer", "sqp", "--ordering", "keep",
+        "--mode", "hierarchical", "--outer", "newton", "--ordering", "keep",
         "--output", "runs/formation-60"]),
     "formation-halo-30": ("formation", [
         "--problem", "crtbp-rigid", "--agents", "30", "--radius", "1.0",
-        "--mode", "hierarchical", "--outer", "sqp", "--ordering", "keep",
+        "--mode", "hierarchical", "--outer", "newton", "--ordering", "keep",
         "--output", "runs/formation-halo-30"]),
     "formation-60-optimal-ordering": ("formation", [
         "--problem", "point-mass-plane", "--agents", "60", "--radius", "10.0",
-        "--mode", "hierarchical", "--outer", "sqp", "--ordering", "optimal",
+        "--mode", "hierarchical", "--outer", "newton", "--ordering", "optimal",
         "--output", "runs/formation-60-optimal-ordering"]),
     "pursuit-case1": ("pursuit", [
         "--case", "1", "--samples", "301", "--window", "60", "--update", "32",
@@ -249,7 +249,7 @@ def test_overrides_replace_keys_in_place_and_add_new_ones_at_the_end(capsys):
                  "quiet=true", "--print-argv"]) == 0
     words = shlex.split(capsys.readouterr().out)
     assert words[3:] == ["--problem", "point-mass-plane", "--agents", "8", "--radius", "10.0",
-                         "--mode", "hierarchical", "--outer", "sqp", "--ordering", "keep",
+                         "--mode", "hierarchical", "--outer", "newton", "--ordering", "keep",
                          "--output", "runs/formation-60", "--backend", "dask", "--workers",
                          "2", "--quiet"]
     # CONFIG may also follow the --set items

@@ -41,7 +41,8 @@ from ocpar.ocp.ipopt import ipopt_options
 from ocpar.ocp.sensitivity import cost_hessian_function
 
 #: Newton steps the ``newton`` solver takes on a batch at most (one per call: a QP such as
-#: a point mass's needs one; a rigid spacecraft's from the default guess four).
+#: a point mass's needs one; a rigid spacecraft's from the default guess four), and at most
+#: the shape's ``max_iter``.
 NEWTON_ROUNDS = 8
 
 #: Status of a batched solve, by the outcome of its KKT check.
@@ -299,7 +300,8 @@ class DmocTranscription:
         zero_g, free = np.zeros(self.ng), np.full(self.nw, np.inf)
         try:
             if isinstance(self.batch_solver, KktNewton):
-                batch = self.batch_solver.solve(x0, params, lam0, -free, free, NEWTON_ROUNDS)
+                rounds = min(NEWTON_ROUNDS, self.shape.max_iter)
+                batch = self.batch_solver.solve(x0, params, lam0, -free, free, rounds)
             else:
                 batch = self.batch_solver.solve(x0, params, lam0, zero_g, zero_g, -free, free)
         except RuntimeError:
