@@ -11,12 +11,13 @@ of the 60 point-mass formation's DMOC solves (``ocpar.ocp:solve_task``, columnar
 formation's own path; the first of them is the run's first superstep) and then ``--steps``
 of a trivial kernel (``math:sqrt`` of 60 numbers). Dispatches:
 
-* ``direct``: the default, ``ocpar.bsp.dask_worker.ChunkHandler`` comm handler reached over
-  the client's pooled connections;
-* ``inline``: as ``direct``, but the handler runs the chunk in the worker's event loop thread
-  (no thread hop; blocks the loop meanwhile, and is not serialised with Dask tasks);
-* ``run``: the previous ``direct``, ``Client.run`` through the scheduler (kept here only as a
+* ``direct``: the default, each worker's channel (``ocpar.bsp.channel``, started by the
+  ``ocpar.bsp.dask_worker.ChunkChannel`` plugin) reached over a blocking socket from the
+  coordinator's thread;
+* ``comm``: the previous ``direct``, a comm handler of the worker reached over the client's
+  pooled Dask connections, running the chunk in the worker's task thread (kept here only as a
   baseline);
+* ``run``: the ``direct`` before that, ``Client.run`` through the scheduler (a baseline);
 * ``tasks``: one named Dask task per chunk through the scheduler;
 * ``actor``: a Dask actor per worker, its method called directly by the client.
 
@@ -34,31 +35,46 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from distributed.diagnostics.plugin import WorkerPlugin
 from distributed.protocol import ToPickle
 
 from ocpar.bsp.dask import DaskBackend
-from ocpar.bsp.dask_worker import CHUNK_OP, ChunkHandler, run_chunk_in_worker
+from ocpar.bsp.dask_worker import run_chunk_in_worker
 from ocpar.bsp.kernel import ChunkResult
 from ocpar.bsp.malloc import keep_solver_workspaces_on_heap
 from ocpar.examples.formation_point_masses import make as point_masses
 
-DISPATCHES = ("direct", "inline", "run", "tasks", "actor")
+DISPATCHES = ("direct", "comm", "run", "tasks", "actor")
 AGENTS = 60
-INLINE_OP = f"{CHUNK_OP}_inline"
+COMM_OP = "ocpar_run_chunk_baseline"
 
 
 async def run_in_task_thread(name: str, tasks: Any, dask_worker: Any) -> ChunkResult:
-    """For ``Client.run``: the chunk in the worker's task thread (the previous ``direct``)."""
+    """The chunk in the worker's task thread, from its event loop."""
     loop = asyncio.get_running_loop()
     return await loop.run_in_executor(dask_worker.executors["default"], run_chunk_in_worker,
                                       name, tasks)
 
 
-class ClientRunBackend(DaskBackend):
-    """``direct`` as it was: ``Client.run`` through the scheduler, no plugin, no warm-up."""
+class AsyncCallBackend(DaskBackend):
+    """A baseline: each chunk through ``_call`` on the client's event loop, all at once (no
+    lost-worker recovery)."""
 
     def _prepare_direct(self) -> None:
         pass
+
+    def _run_direct(self, name: str, chunks: list[Any]) -> list[ChunkResult]:
+        async def run_all() -> list[ChunkResult]:
+            return await asyncio.gather(*(self._call(a, name, c)
+                                          for a, c in zip(self.addresses, chunks, strict=True)))
+        return self.client.sync(run_all)
+
+    async def _call(self, address: str, name: str, chunk: Any) -> ChunkResult:
+        raise NotImplementedError
+
+
+class ClientRunBackend(AsyncCallBackend):
+    """``Client.run`` through the scheduler, no plugin, no warm-up."""
 
     async def _call(self, address: str, name: str, chunk: Any) -> ChunkResult:
         out = await self.client.run(run_in_task_thread, name, chunk, workers=[address],
@@ -66,29 +82,34 @@ class ClientRunBackend(DaskBackend):
         return out[address]
 
 
-class InlineHandler(ChunkHandler):
-    """:class:`ChunkHandler` running the chunk in the event loop thread, under its own op."""
+class CommHandler(WorkerPlugin):
+    """A comm handler running the chunk in the worker's task thread, warmed at set-up."""
 
-    name = "ocpar-inline-chunk-handler"
+    name = "ocpar-baseline-comm-handler"
 
     async def setup(self, worker: Any) -> None:
         self._worker = worker
-        worker.handlers[INLINE_OP] = self.run_inline
-        keep_solver_workspaces_on_heap()
+        worker.handlers[COMM_OP] = self.run_chunk
+        await asyncio.get_running_loop().run_in_executor(
+            worker.executors["default"], keep_solver_workspaces_on_heap)
 
-    def run_inline(self, name: str, tasks: Any) -> ToPickle:
-        return ToPickle(run_chunk_in_worker(name, tasks))
+    async def run_chunk(self, name: str, tasks: Any) -> ToPickle:
+        return ToPickle(await run_in_task_thread(name, tasks, self._worker))
 
 
-class InlineBackend(DaskBackend):
-    """``direct`` with :class:`InlineHandler`."""
+class CommBackend(AsyncCallBackend):
+    """:class:`CommHandler` over the client's pooled connections, opened before the run."""
 
     def _prepare_direct(self) -> None:
-        self.client.register_plugin(InlineHandler())
+        self.client.register_plugin(CommHandler())
+
+        async def connect() -> None:
+            await asyncio.gather(*(self.client.rpc(a).identity() for a in self.addresses))
+        self.client.sync(connect)
 
     async def _call(self, address: str, name: str, chunk: Any) -> ChunkResult:
-        return await getattr(self.client.rpc(address), INLINE_OP)(name=name,
-                                                                    tasks=ToPickle(chunk))
+        return await getattr(self.client.rpc(address), COMM_OP)(name=name,
+                                                                  tasks=ToPickle(chunk))
 
 
 class ChunkActor:
@@ -98,7 +119,7 @@ class ChunkActor:
         return run_chunk_in_worker(name, tasks)
 
 
-class ActorBackend(DaskBackend):
+class ActorBackend(AsyncCallBackend):
     """One :class:`ChunkActor` per worker, called directly by the client."""
 
     def _prepare_direct(self) -> None:
@@ -110,13 +131,12 @@ class ActorBackend(DaskBackend):
         return await self._actors[address].run(name, chunk)
 
 
+BASELINES = {"run": ClientRunBackend, "comm": CommBackend, "actor": ActorBackend}
+
+
 def open_dispatch(dispatch: str, workers: int) -> DaskBackend:
-    if dispatch == "run":
-        return ClientRunBackend(workers=workers)
-    if dispatch == "actor":
-        return ActorBackend(workers=workers)
-    if dispatch == "inline":
-        return InlineBackend(workers=workers)
+    if dispatch in BASELINES:
+        return BASELINES[dispatch](workers=workers)
     return DaskBackend(workers=workers, dispatch=dispatch)
 
 

@@ -1,6 +1,6 @@
-"""Dask's ``direct`` dispatch (the workers' ``ocpar.bsp.dask_worker.ChunkHandler`` reached over
-the client's connections): kernel errors come back as themselves, jobs sharing a cluster get
-their own results, and a worker that joins later is reached too."""
+"""Dask's ``direct`` dispatch (each worker's channel, started by the
+``ocpar.bsp.dask_worker.ChunkChannel`` plugin): kernel errors come back as themselves, jobs
+sharing a cluster get their own results, and a worker that joins later is reached too."""
 
 from __future__ import annotations
 

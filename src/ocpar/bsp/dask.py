@@ -12,29 +12,29 @@ workers using the client's certificate unless the ``Security`` names their own. 
 
 Two ways to hand a chunk to its worker (``dispatch``):
 
-* ``direct`` (default): the coordinator calls each worker itself over Dask's comm layer, on
-  the client's pooled connections (its TLS settings included), kept open for the run: one
-  message to the worker's ``ocpar_run_chunk`` handler, one reply, no scheduler in between.
-  The handler comes from the worker plugin :class:`~ocpar.bsp.dask_worker.ChunkHandler`,
-  registered when the backend starts (and given by the scheduler to workers that join later);
-  it runs the chunk in the worker's task thread, so still one solve at a time per process,
-  queued with any Dask tasks of other jobs. The plugin warms that thread and the malloc
-  settings, and the backend opens its connections, before the first superstep. A chunk
-  whose worker is lost runs again on a live one (:data:`MAX_CHUNK_RETRIES`). The workers
-  must be reachable from the coordinator; the chunks do not appear on the dashboard.
+* ``direct`` (default): the coordinator's own thread writes each chunk to a socket of its
+  worker (:mod:`ocpar.bsp.channel`: pickled, NumPy buffers out of band, plain TCP or TLS with
+  the cluster's certificates), kept open for the run, and reads the reply; no scheduler, no
+  event loop in between. The worker end is a channel server that the worker plugin
+  :class:`~ocpar.bsp.dask_worker.ChunkChannel` starts on every worker, present and future,
+  when the backend registers it; the coordinator learns its address from the worker over
+  Dask's comm. Chunks run one at a time per process, under the lock that the ``tasks`` path
+  takes too. A chunk whose worker is lost runs again on a live one
+  (:data:`MAX_CHUNK_RETRIES`). The workers must be reachable from the coordinator (the
+  channel listens on an ephemeral port of the worker's host); the chunks do not appear on the
+  dashboard.
 * ``tasks``: one Dask task per chunk, with a key that names the run, superstep and chunk
   (visible in the dashboard's task stream), through the scheduler, which reruns a lost
   worker's chunk elsewhere.
 
 Why this ``direct``: ``scripts/dask_overhead.py`` measures the superstep overhead (wall −
 busiest worker) of each way side by side on fresh 2-worker LocalClusters; see
-``docs/performance.md``. ``Client.run`` (the previous ``direct``) goes client → scheduler →
-worker → scheduler → client and measured 1.8× (60 DMOC solves) to 5.6× (a trivial kernel)
-more overhead per superstep, and ~30 ms more in the first one; a Dask actor per worker is
-reached directly too, but runs in its own thread (concurrently with Dask tasks, so not safe
-for IPOPT) and measured slower; running the chunk in the worker's event loop (no thread
-hand-off) gained nothing measurable and would block the loop and overlap Dask tasks; tasks
-pay the scheduler's bookkeeping on top of two hops.
+``docs/performance.md``. A Dask comm round trip crosses four threads (the coordinator's, the
+client's event loop, the worker's event loop and its task thread); the channel crosses two.
+On a loaded 2-core machine the previous ``direct`` (a comm handler over the client's pooled
+connections) measured ~12× the channel's overhead per trivial superstep, ``Client.run``
+~20×, and a Dask actor (own thread, reached directly) and ``tasks`` (the scheduler's
+bookkeeping on top of two hops) more still.
 """
 
 from __future__ import annotations
@@ -43,12 +43,19 @@ import asyncio
 import copy
 import gc
 import os
+import time
 import uuid
 from typing import Any
 
 from ocpar.bsp.backend import Backend, BackendError
+from ocpar.bsp.channel import Channel
 from ocpar.bsp.columns import Columns, to_columns
-from ocpar.bsp.dask_worker import CHUNK_OP, ChunkHandler, run_chunk_in_worker
+from ocpar.bsp.dask_worker import (
+    ADDRESS_OP,
+    ChunkChannel,
+    run_chunk_as_task,
+    run_chunk_in_worker,
+)
 from ocpar.bsp.kernel import ChunkResult
 from ocpar.bsp.mpi import SUPERSTEP_TIMEOUT_S
 
@@ -63,6 +70,9 @@ WORKER_CONFIG = {"distributed.worker.profile.enabled": False}
 
 
 DISPATCH = ("direct", "tasks")
+
+#: How long (s) a worker may take to start its channel once it has joined.
+CHANNEL_WAIT_S = 10.0
 
 #: How often one superstep may re-run a chunk whose worker was lost.
 MAX_CHUNK_RETRIES = 3
@@ -171,6 +181,7 @@ class DaskBackend(Backend):
         self.lost_chunks = 0
 
         self._cluster = None
+        self._channels: dict[str, Channel] = {}
         # task keys must be unique on a shared cluster: identical keys from two coordinators
         # would be deduplicated by the scheduler, and one would get the other's results
         self._run_id = (f"{run_name}-{uuid.uuid4().hex[:6]}" if run_name
@@ -223,23 +234,39 @@ class DaskBackend(Backend):
             self._prepare_direct()
 
     def _prepare_direct(self) -> None:
-        """Install :class:`~ocpar.bsp.dask_worker.ChunkHandler` on the cluster's workers and
-        open the client's pooled connection to each (a TLS handshake, for instance) now, not
-        in the first superstep."""
-        self.client.register_plugin(ChunkHandler())
-
-        async def connect() -> None:
-            await asyncio.gather(*(self.client.rpc(address).identity()
-                                   for address in self.addresses))
-
+        """Install :class:`~ocpar.bsp.dask_worker.ChunkChannel` on the cluster's workers and
+        connect to each worker's channel (a TLS handshake, for instance) now, not in the first
+        superstep."""
+        self.client.register_plugin(ChunkChannel())
         try:
-            self.client.sync(connect)
+            for address in self.addresses:
+                self._channel(address)
         except (OSError, TimeoutError) as exc:
             self.close()
             raise BackendError(f"cannot reach the Dask workers {', '.join(self.addresses)} "
                                f"directly ({' '.join(str(exc).split())}): dispatch 'direct' "
                                "needs them reachable from here; 'tasks' goes through the "
                                "scheduler") from exc
+
+    def _channel(self, address: str) -> Channel:
+        """The open channel to the worker at (Dask) ``address``, connected on first use: its
+        address from the worker's :data:`~ocpar.bsp.dask_worker.ADDRESS_OP` handler (None
+        from a worker that has just joined until its plugin is set up: asked again)."""
+        if address not in self._channels:
+            async def channel_address() -> tuple[str, int]:
+                rpc = self.client.rpc(address)
+                end = asyncio.get_running_loop().time() + CHANNEL_WAIT_S
+                while (reply := await getattr(rpc, ADDRESS_OP)()) is None:
+                    if asyncio.get_running_loop().time() > end:
+                        raise TimeoutError(f"worker {address} started no ocpar channel within "
+                                           f"{CHANNEL_WAIT_S:g} s")
+                    await asyncio.sleep(0.05)
+                return tuple(reply)
+
+            context = (self.client.security.get_connection_args("client").get("ssl_context")
+                       if address.startswith("tls://") else None)
+            self._channels[address] = Channel(self.client.sync(channel_address), context)
+        return self._channels[address]
 
     @property
     def dashboard_link(self) -> str | None:
@@ -252,80 +279,78 @@ class DaskBackend(Backend):
     def _run_chunks(self, name: str, chunks: list[list[Any] | Columns]) -> list[ChunkResult]:
         packed = [to_columns(chunk) for chunk in chunks]
         if self.dispatch == "direct":
-            replies = self.client.sync(self._run_direct, name, packed)
-        else:
-            from distributed import wait
+            return self._run_direct(name, packed)
+        from distributed import wait
 
-            step = len(self.traces)
-            futures = [
-                self.client.submit(
-                    run_chunk_in_worker,
-                    name,
-                    chunk,
-                    key=f"ocpar-{self._run_id}-superstep-{step}-chunk-{w}",
-                    # its worker first; if that worker is lost the scheduler runs it elsewhere
-                    workers=[address],
-                    allow_other_workers=True,
-                    pure=False,
-                )
-                for w, (address, chunk) in enumerate(zip(self.addresses, packed, strict=True))
-            ]
-            if wait(futures, timeout=self.superstep_timeout_s).not_done:
-                self._timed_out()
-            replies = self.client.gather(futures)
-        return replies
+        step = len(self.traces)
+        futures = [
+            self.client.submit(
+                run_chunk_as_task,
+                name,
+                chunk,
+                key=f"ocpar-{self._run_id}-superstep-{step}-chunk-{w}",
+                # its worker first; if that worker is lost the scheduler runs it elsewhere
+                workers=[address],
+                allow_other_workers=True,
+                pure=False,
+            )
+            for w, (address, chunk) in enumerate(zip(self.addresses, packed, strict=True))
+        ]
+        if wait(futures, timeout=self.superstep_timeout_s).not_done:
+            self._timed_out()
+        return self.client.gather(futures)
 
-    async def _run_direct(self, name: str, chunks: list[Columns | list[Any]]
-                          ) -> list[ChunkResult]:
-        """Chunk w on worker w; a chunk whose worker is lost meanwhile runs again on a live
-        worker (at most :data:`MAX_CHUNK_RETRIES` times), all within the superstep deadline."""
-        loop = asyncio.get_running_loop()
-        deadline = loop.time() + self.superstep_timeout_s
+    def _run_direct(self, name: str, chunks: list[Columns | list[Any]]) -> list[ChunkResult]:
+        """Chunk w on worker w over its channel: every chunk sent, then every reply received.
+        A chunk whose worker is lost meanwhile runs again on a live worker (at most
+        :data:`MAX_CHUNK_RETRIES` times), all within the superstep deadline."""
+        deadline = time.monotonic() + self.superstep_timeout_s
         targets = list(self.addresses)
         replies: list[ChunkResult | None] = [None] * len(chunks)
         pending = list(range(len(chunks)))
         for _ in range(MAX_CHUNK_RETRIES + 1):
-            runs = asyncio.gather(*(self._call(targets[w], name, chunks[w]) for w in pending),
-                                  return_exceptions=True)
-            try:
-                outcomes = await asyncio.wait_for(runs, max(deadline - loop.time(), 0.0))
-            except TimeoutError:
-                self._timed_out()
-            failed = [(w, out) for w, out in zip(pending, outcomes, strict=True)
-                      if isinstance(out, BaseException)]
-            for w, out in zip(pending, outcomes, strict=True):
-                if not isinstance(out, BaseException):
-                    replies[w] = out
+            failed: dict[int, BaseException] = {}
+            for w in pending:
+                try:
+                    self._channel(targets[w]).send(run_chunk_in_worker, name, chunks[w])
+                except OSError as exc:
+                    failed[w] = exc
+            for w in pending:
+                if w in failed:
+                    continue
+                try:
+                    replies[w] = self._channels[targets[w]].receive(
+                        max(deadline - time.monotonic(), 0.0))
+                except TimeoutError:
+                    for address in list(self._channels):  # replies may still come: out of step
+                        self._drop_channel(address)
+                    self._timed_out()
+                except Exception as exc:  # the worker is lost, or the kernel failed
+                    failed[w] = exc
             if not failed:
                 return replies  # type: ignore[return-value]
-            live = await self._live_workers(lost={targets[w] for w, _ in failed})
-            for w, out in failed:
+            for w in failed:
+                self._drop_channel(targets[w])
+            live = self.client.sync(self._live_workers, {targets[w] for w in failed})
+            for w, exc in failed.items():
                 if targets[w] in live:  # the worker is fine: the kernel itself failed
-                    raise out
+                    raise exc
             self.lost_chunks += len(failed)
             if not live:
                 raise BackendError(f"superstep {len(self.traces)}: every Dask worker is lost")
             # later supersteps: the live workers (fewer, if the lost ones are not replaced)
             self.addresses = live[: len(self.addresses)]
             self.workers = len(self.addresses)
-            pending = [w for w, _ in failed]
+            pending = sorted(failed)
             for k, w in enumerate(pending):
                 targets[w] = live[k % len(live)]
         raise BackendError(f"superstep {len(self.traces)}: chunks lost their worker "
                            f"{MAX_CHUNK_RETRIES + 1} times")
 
-    async def _call(self, address: str, name: str, chunk: Columns | list[Any]) -> ChunkResult:
-        """Chunk ``chunk`` of kernel ``name`` on the worker at ``address``, through its
-        :data:`~ocpar.bsp.dask_worker.CHUNK_OP` handler, over a pooled connection of the
-        client (with its TLS settings)."""
-        from distributed.protocol import ToPickle
-
-        rpc = self.client.rpc(address)
-        # None: the worker answered that it has no such handler, as one that has just joined
-        # may, until its plugins are set up
-        while (reply := await getattr(rpc, CHUNK_OP)(name=name, tasks=ToPickle(chunk))) is None:
-            await asyncio.sleep(0.05)
-        return reply
+    def _drop_channel(self, address: str) -> None:
+        channel = self._channels.pop(address, None)
+        if channel is not None:
+            channel.close()
 
     async def _live_workers(self, lost: set[str], wait_s: float = 10.0) -> list[str]:
         """The scheduler's workers once it has noticed that ``lost`` are gone (or after
@@ -344,6 +369,8 @@ class DaskBackend(Backend):
                            f"{self.superstep_timeout_s:g} s (lost or hung)")
 
     def close(self) -> None:
+        for address in list(getattr(self, "_channels", {})):
+            self._drop_channel(address)
         client, self.client = getattr(self, "client", None), None
         if client is not None:
             client.close()

@@ -1,32 +1,34 @@
-"""What runs inside a Dask worker process: the chunk runner and the plugin that lets the
-coordinator call it directly over Dask's comm layer (``dispatch="direct"``, see
-:mod:`ocpar.bsp.dask`).
+"""What runs inside a Dask worker process: the chunk runner, and the plugin that gives each
+worker a :class:`~ocpar.bsp.channel.ChannelServer` the coordinator calls directly
+(``dispatch="direct"``, see :mod:`ocpar.bsp.dask`).
 
-:class:`ChunkHandler` is a worker plugin: registered once by a client, it is installed on every
+:class:`ChunkChannel` is a worker plugin: registered once by a client, it is installed on every
 worker of the cluster, present and future (a worker that replaces a lost one gets it when it
-registers with the scheduler). It adds the comm handler :data:`CHUNK_OP` to the worker, which
-runs a chunk in the worker's task thread (never in its event loop, which keeps serving the
-scheduler meanwhile; one thread, so still one solve at a time per process, queued with any
-Dask tasks), and it warms that thread and the malloc settings when the worker joins, so that
-the first superstep costs what the others do. The handler adds no reach to the worker: a
-worker already runs any function a peer that passed its TLS handshake sends (its ``run``
-handler).
+registers with the scheduler). It starts the worker's channel server on the worker's own host
+(with the worker's TLS server context on a ``tls://`` cluster, so a peer needs a certificate
+the cluster's CA signed, as for the worker's Dask port) and adds the comm handler
+:data:`ADDRESS_OP`, through which a coordinator learns the channel's address. The channel adds
+no reach to the worker: a worker already runs any function a peer that passed its TLS
+handshake sends (its ``run`` handler).
+
+Chunks run under :data:`~ocpar.bsp.channel.SOLVE_LOCK`, whichever way they arrive (the channel,
+or a Dask task with ``dispatch="tasks"``), so a process makes one solver call at a time even
+when several jobs share the cluster.
 """
 
 from __future__ import annotations
 
-import asyncio
 from typing import Any
 
 from distributed.diagnostics.plugin import WorkerPlugin
-from distributed.protocol import ToPickle
 
+from ocpar.bsp.channel import SOLVE_LOCK, ChannelServer
 from ocpar.bsp.columns import Columns
 from ocpar.bsp.kernel import ChunkResult, run_packed_chunk
 from ocpar.bsp.malloc import keep_solver_workspaces_on_heap
 
-#: Name of the comm handler (the message's ``op``) that runs a chunk.
-CHUNK_OP = "ocpar_run_chunk"
+#: Name of the comm handler (the message's ``op``) that answers the channel's address.
+ADDRESS_OP = "ocpar_channel_address"
 
 
 def run_chunk_in_worker(name: str, tasks: Columns | list[Any]) -> ChunkResult:
@@ -37,26 +39,33 @@ def run_chunk_in_worker(name: str, tasks: Columns | list[Any]) -> ChunkResult:
     return run_packed_chunk(name, tasks)
 
 
-class ChunkHandler(WorkerPlugin):
-    """Worker plugin adding the :data:`CHUNK_OP` handler (module docstring). Idempotent: jobs
+def run_chunk_as_task(name: str, tasks: Columns | list[Any]) -> ChunkResult:
+    """:func:`run_chunk_in_worker` as a Dask task (``dispatch="tasks"``), under
+    :data:`~ocpar.bsp.channel.SOLVE_LOCK` (the channel's requests hold it already)."""
+    with SOLVE_LOCK:
+        return run_chunk_in_worker(name, tasks)
+
+
+class ChunkChannel(WorkerPlugin):
+    """Worker plugin starting the worker's channel server (module docstring). Idempotent: jobs
     sharing a cluster register it under one name, and the workers keep the first."""
 
-    name = "ocpar-chunk-handler"
+    name = "ocpar-chunk-channel"
     idempotent = True
 
-    async def setup(self, worker: Any) -> None:
-        self._worker = worker
-        worker.handlers[CHUNK_OP] = self.run_chunk
-        # start the task thread and tune malloc now, not in the first superstep
-        await asyncio.get_running_loop().run_in_executor(
-            worker.executors["default"], keep_solver_workspaces_on_heap)
+    def setup(self, worker: Any) -> None:
+        protocol, _, location = worker.address.partition("://")
+        host = location.rsplit(":", 1)[0].strip("[]")
+        context = (worker.security.get_listen_args("worker").get("ssl_context")
+                   if protocol == "tls" else None)
+        self._server = ChannelServer(host, context)
+        worker.handlers[ADDRESS_OP] = self.address
+        keep_solver_workspaces_on_heap()  # malloc tuned now, not in the first superstep
 
     def teardown(self, worker: Any) -> None:
-        worker.handlers.pop(CHUNK_OP, None)
+        worker.handlers.pop(ADDRESS_OP, None)
+        self._server.close()
 
-    async def run_chunk(self, name: str, tasks: Columns | list[Any]) -> ToPickle:
-        """The handler: :func:`run_chunk_in_worker` in the worker's task thread; the
-        :class:`~ocpar.bsp.kernel.ChunkResult` goes back pickled (out-of-band buffers)."""
-        result = await asyncio.get_running_loop().run_in_executor(
-            self._worker.executors["default"], run_chunk_in_worker, name, tasks)
-        return ToPickle(result)
+    def address(self) -> tuple[str, int]:
+        """The handler: the channel's (host, port)."""
+        return self._server.address

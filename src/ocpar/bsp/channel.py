@@ -1,0 +1,152 @@
+"""A blocking socket channel between the coordinator and one worker process: pickled messages
+(protocol 5, NumPy buffers out of band) over plain TCP or TLS, answered by a thread of the
+worker that runs each request's function and sends back its value.
+
+Why: a Dask comm round trip crosses four threads (the coordinator's, the client's event loop,
+the worker's event loop and its task thread), each wake-up costing ~0.1–1 ms on a busy
+machine; here the coordinator's thread writes to the socket and the worker's channel thread
+reads it (:mod:`ocpar.bsp.dask`, ``dispatch="direct"``; ``scripts/dask_overhead.py``
+measures both).
+
+A message is a header (``!Q`` count, then one ``!Q`` length per frame) followed by the frames:
+the pickle stream first, then its out-of-band buffers. A request is ``(function, args)``; a
+reply is ``(True, value)`` or ``(False, exception)``. The server runs requests one at a time
+under :data:`SOLVE_LOCK`, which the worker's other ways into the solvers take too, so a
+process still makes one solver call at a time.
+"""
+
+from __future__ import annotations
+
+import pickle
+import socket
+import ssl
+import struct
+import threading
+from collections.abc import Callable
+from typing import Any
+
+#: One solver call at a time per worker process: held while a request runs (and by the Dask
+#: paths that run chunks in the worker's task thread, see :mod:`ocpar.bsp.dask_worker`).
+SOLVE_LOCK = threading.Lock()
+
+_COUNT = struct.Struct("!Q")
+
+
+class ChannelClosed(ConnectionError):
+    """The peer closed the channel (e.g. its process is gone)."""
+
+
+def send_message(sock: socket.socket, obj: Any) -> None:
+    """Send ``obj`` pickled (protocol 5) with its out-of-band buffers as one message."""
+    buffers: list[pickle.PickleBuffer] = []
+    stream = pickle.dumps(obj, protocol=5, buffer_callback=buffers.append)
+    frames = [memoryview(stream), *(b.raw() for b in buffers)]
+    header = struct.pack(f"!{1 + len(frames)}Q", len(frames), *(f.nbytes for f in frames))
+    if isinstance(sock, ssl.SSLSocket):  # no scatter-gather over TLS
+        for part in (header, *frames):
+            sock.sendall(part)
+        return
+    sent = sock.sendmsg([header, *frames])  # one system call for a whole small message
+    total = len(header) + sum(f.nbytes for f in frames)
+    if sent < total:
+        sock.sendall(memoryview(b"".join([header, *frames]))[sent:])
+
+
+def _recv_exact(sock: socket.socket, n: int) -> bytearray:
+    buf = bytearray(n)
+    view, got = memoryview(buf), 0
+    while got < n:
+        k = sock.recv_into(view[got:], n - got)
+        if k == 0:
+            raise ChannelClosed("the channel's peer closed the connection")
+        got += k
+    return buf
+
+
+def receive_message(sock: socket.socket) -> Any:
+    """Receive one message sent by :func:`send_message` and unpickle it."""
+    (count,) = _COUNT.unpack(_recv_exact(sock, _COUNT.size))
+    lengths = struct.unpack(f"!{count}Q", _recv_exact(sock, 8 * count))
+    frames = [_recv_exact(sock, n) for n in lengths]
+    return pickle.loads(frames[0], buffers=frames[1:])
+
+
+class ChannelServer:
+    """Listens on ``host`` (an ephemeral port; every interface if ``host`` is not one of this
+    machine's) in a daemon thread; each connection gets a
+    thread that answers its requests in order (module docstring). ``ssl_context``: a server
+    context (e.g. the Dask worker's, which requires the client's certificate) or None."""
+
+    def __init__(self, host: str, ssl_context: ssl.SSLContext | None = None) -> None:
+        try:
+            self._listener = socket.create_server((host, 0))
+        except OSError:  # e.g. a contact address behind NAT: listen on every interface
+            self._listener = socket.create_server(("", 0))
+        self._ssl_context = ssl_context
+        #: (host, port) to connect to: ``host`` as given, the port the system chose.
+        self.address: tuple[str, int] = (host, self._listener.getsockname()[1])
+        threading.Thread(target=self._accept, name="ocpar-channel", daemon=True).start()
+
+    def _accept(self) -> None:
+        while True:
+            try:
+                sock, _ = self._listener.accept()
+            except OSError:  # closed
+                return
+            threading.Thread(target=self._serve, args=(sock,), name="ocpar-channel-conn",
+                             daemon=True).start()
+
+    def _serve(self, sock: socket.socket) -> None:
+        sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+        try:
+            if self._ssl_context is not None:
+                sock = self._ssl_context.wrap_socket(sock, server_side=True)
+            while True:
+                function, args = receive_message(sock)
+                with SOLVE_LOCK:
+                    try:
+                        reply: tuple[bool, Any] = (True, function(*args))
+                    except Exception as exc:  # the coordinator re-raises it
+                        reply = (False, exc)
+                try:
+                    send_message(sock, reply)
+                except (pickle.PicklingError, TypeError, AttributeError) as exc:
+                    send_message(sock, (False, RuntimeError(f"unpicklable reply: {exc!r}")))
+        except (OSError, EOFError):  # the coordinator went away (ChannelClosed included)
+            pass
+        finally:
+            sock.close()
+
+    def close(self) -> None:
+        """Stop accepting connections (open ones end when their coordinator closes them)."""
+        self._listener.close()
+
+
+class Channel:
+    """The coordinator's end: a connection to one :class:`ChannelServer`. :meth:`send` a
+    request, later :meth:`receive` its reply (so requests to several workers overlap)."""
+
+    def __init__(self, address: tuple[str, int], ssl_context: ssl.SSLContext | None = None,
+                 timeout_s: float = 10.0) -> None:
+        sock = socket.create_connection(address, timeout=timeout_s)
+        sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+        if ssl_context is not None:
+            sock = ssl_context.wrap_socket(sock)
+        self._sock = sock
+
+    def send(self, function: Callable[..., Any], *args: Any) -> None:
+        """Ask the worker to run ``function(*args)`` (``function`` importable there)."""
+        self._sock.settimeout(None)
+        send_message(self._sock, (function, args))
+
+    def receive(self, timeout_s: float | None = None) -> Any:
+        """The value of the last request sent, or its exception raised here; ``socket.timeout``
+        after ``timeout_s``, :class:`ChannelClosed`/``OSError`` if the worker is gone."""
+        self._sock.settimeout(timeout_s)
+        ok, value = receive_message(self._sock)
+        if not ok:
+            raise value
+        return value
+
+    def close(self) -> None:
+        self._sock.close()
