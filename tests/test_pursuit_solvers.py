@@ -68,8 +68,8 @@ def test_a_batch_gives_each_row_the_one_by_one_solution_bitwise(neighbour):
     rows = np.array([params + dr * np.eye(7)[4] for dr in (0.0, 2e-4, -3e-4)])
     guesses = np.array([moved.w, moved.w, nlp.default_guess(params)])  # the last: far away
     lams = np.array([moved.lam_g, moved.lam_g, np.zeros(nlp.ng)])
-    batch = nlp.solve_batch(rows, guesses, lams)
-    pair = nlp.solve_batch(rows[1::-1], guesses[1::-1], lams[1::-1])  # other batch, order
+    batch = nlp.solve_batch(rows, guesses, lams).items()
+    pair = nlp.solve_batch(rows[1::-1], guesses[1::-1], lams[1::-1]).items()  # other order
     for i, sol in enumerate(batch):
         alone = nlp.solve(rows[i], guesses[i], lams[i])
         assert sol.success and sol.status == alone.status

@@ -2,7 +2,10 @@
 
 A *batched* kernel (attribute ``batched = True``, e.g. :func:`ocpar.ocp.solve_tasks`) is a
 function of a list of tasks returning their results in order: a worker calls it once for its
-whole chunk, and each task's time in the trace is the chunk's time shared equally.
+whole chunk, and each task's time in the trace is the chunk's time shared equally. A batched
+kernel that is also *columnar* (``columnar = True``) is given a chunk that arrives as
+:class:`~ocpar.bsp.columns.Columns` as it is, and may return its results as ``Columns``: no
+object per task on either side.
 
 Extension hook: if the environment variable :data:`WRAPPER_VARIABLE` names a function
 ``module:function`` (importable in every process that solves), each kernel is resolved as
@@ -81,20 +84,24 @@ class ChunkResult:
     peak_rss_mb: float
 
 
-def run_chunk(name: str, tasks: Sequence[Any]) -> ChunkResult:
+def run_chunk(name: str, tasks: Sequence[Any] | Columns) -> ChunkResult:
     """Run kernel ``name`` on each task in order, timing each one (wall and CPU); a batched
-    kernel on all tasks at once (module docstring)."""
+    kernel on all tasks at once, a columnar one on the ``Columns`` as they are (module
+    docstring)."""
     kernel = resolve_kernel(name)
     start_wall, start_cpu = time.perf_counter(), time.process_time()
     if getattr(kernel, "batched", False):
-        results = list(kernel(list(tasks))) if len(tasks) else []
+        if isinstance(tasks, Columns) and len(tasks) and getattr(kernel, "columnar", False):
+            results: Any = kernel(tasks)
+        else:
+            results = list(kernel(from_columns(tasks))) if len(tasks) else []
         busy, cpu = time.perf_counter() - start_wall, time.process_time() - start_cpu
         share = max(len(tasks), 1)
         return ChunkResult(results=results, task_wall_s=[busy / share] * len(tasks),
                            task_cpu_s=[cpu / share] * len(tasks), busy_s=busy, cpu_s=cpu,
                            peak_rss_mb=peak_rss_mb())
     results, walls, cpus = [], [], []
-    for task in tasks:
+    for task in from_columns(tasks):
         t_wall, t_cpu = time.perf_counter(), time.process_time()
         results.append(kernel(task))
         walls.append(time.perf_counter() - t_wall)
@@ -115,7 +122,7 @@ def run_packed_chunk(name: str, tasks: Columns | list[Any]) -> ChunkResult:
     :class:`~ocpar.bsp.columns.Columns` where they are instances of one dataclass)."""
     resolve_kernel(name)  # importing it on first use is not the chunk's work
     start_wall, start_cpu = time.perf_counter(), time.process_time()
-    chunk = run_chunk(name, from_columns(tasks))
+    chunk = run_chunk(name, tasks)
     results = to_columns(chunk.results)
     return dataclasses.replace(chunk, results=results,
                                busy_s=time.perf_counter() - start_wall,

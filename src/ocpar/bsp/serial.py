@@ -5,7 +5,7 @@ from __future__ import annotations
 from typing import Any
 
 from ocpar.bsp.backend import Backend
-from ocpar.bsp.columns import Columns, from_columns
+from ocpar.bsp.columns import Columns
 from ocpar.bsp.kernel import ChunkResult, run_chunk
 
 
@@ -18,4 +18,4 @@ class SerialBackend(Backend):
         super().__init__(workers=1, balance=balance)
 
     def _run_chunks(self, name: str, chunks: list[list[Any] | Columns]) -> list[ChunkResult]:
-        return [run_chunk(name, from_columns(chunk)) for chunk in chunks]
+        return [run_chunk(name, chunk) for chunk in chunks]

@@ -32,6 +32,8 @@ from typing import Any, Protocol, TypeVar, runtime_checkable
 
 import numpy as np
 
+from ocpar.bsp.columns import LISTED, SHARED, STACKED, Columns, to_columns
+
 #: Status of an attempt from a guess that is not finite (no solver call).
 INVALID_GUESS = "Invalid_Guess"
 #: Status of a task whose parameters are not finite (no solver call).
@@ -136,11 +138,13 @@ class Transcription(Protocol[S]):
 class BatchTranscription(Transcription[S], Protocol[S]):
     """A transcription that can also solve many tasks of its shape in one call."""
 
-    def solve_batch(self, params: np.ndarray, guesses: list[np.ndarray | None],
-                    multipliers: list[np.ndarray | None]) -> list[S] | None:
+    def solve_batch(self, params: np.ndarray, guesses: np.ndarray | Sequence[np.ndarray | None],
+                    multipliers: np.ndarray | Sequence[np.ndarray | None]) -> Columns | None:
         """Solve k tasks at once: ``params`` (k, n_params), one guess and one multiplier
-        vector per task (None: the defaults). Each solution's ``success`` is decided per
-        task; None when this shape solves one task at a time (or the call failed)."""
+        vector per task (None: the defaults; an array (k, ...) when every task has one). The
+        k solutions come as :class:`~ocpar.bsp.columns.Columns` of the transcription's
+        solution class; each one's ``success`` is decided per task; None when this shape
+        solves one task at a time (or the call failed)."""
         ...
 
 
@@ -201,51 +205,107 @@ def solve_task(task: OcpTask) -> InnerSolution:
     return _apply_policy(nlp, task, params, attempts_before=0)
 
 
-def solve_tasks(tasks: Sequence[OcpTask]) -> list[InnerSolution]:
-    """Batched engine kernel (:mod:`ocpar.bsp.kernel`): the solutions of ``tasks``, in order,
-    as :func:`solve_task` would give them, but each shape's tasks first solved together by
-    :meth:`BatchTranscription.solve_batch` (module docstring). A task's solution does not
-    depend on which other tasks share its chunk."""
-    solutions: list[InnerSolution | None] = [None] * len(tasks)
-    by_shape: dict[Shape, list[int]] = {}
-    for index, task in enumerate(tasks):
-        by_shape.setdefault(task.shape, []).append(index)
-    for shape, indices in by_shape.items():
-        nlp = transcription(shape)
-        batch, params = _batchable(nlp, [tasks[i] for i in indices])
-        batch = [indices[k] for k in batch]
-        first = nlp.solve_batch(params, [tasks[i].warm_start for i in batch],  # type: ignore
-                                [tasks[i].multipliers for i in batch]) if batch else None
-        for i, solution in zip(batch if first is not None else [], first or [], strict=True):
-            solutions[i] = solution
-        for i in indices:
-            solution = solutions[i]
-            if solution is None:
-                solutions[i] = solve_task(tasks[i])
-            elif not solution.success:
-                params = np.asarray(tasks[i].params, float)
-                solutions[i] = _apply_policy(nlp, tasks[i], params, attempts_before=1)
-    return solutions  # type: ignore[return-value]
+def solve_tasks(tasks: Sequence[OcpTask] | Columns) -> list[InnerSolution] | Columns:
+    """Batched, columnar engine kernel (:mod:`ocpar.bsp.kernel`): the solutions of ``tasks``,
+    in order, as :func:`solve_task` would give them, but each shape's tasks first solved
+    together by :meth:`BatchTranscription.solve_batch` (module docstring). Tasks given as
+    :class:`~ocpar.bsp.columns.Columns` give Columns of solutions, a list gives a list. A
+    task's solution does not depend on which other tasks share its chunk."""
+    if isinstance(tasks, Columns):
+        return _solve_columns(tasks)
+    packed = to_columns(list(tasks))
+    return _solve_columns(packed).items() if isinstance(packed, Columns) else []
 
 
-#: Marks :func:`solve_tasks` as a batched kernel: the engine calls it once per chunk.
+#: Marks :func:`solve_tasks` as a batched kernel that takes and gives columns: the engine
+#: calls it once per chunk, with the chunk as it arrived.
 solve_tasks.batched = True  # type: ignore[attr-defined]
+solve_tasks.columnar = True  # type: ignore[attr-defined]
 
 
-def _batchable(nlp: Transcription[Any], tasks: list[OcpTask]) -> tuple[list[int], np.ndarray]:
-    """The positions of the ``tasks`` (one shape) whose first attempt can join a batch, and
-    their parameters (k, n_params): all, if the transcription batches and their numbers are
+def _solve_columns(tasks: Columns) -> Columns:
+    kind, shapes = tasks.fields["shape"]
+    if kind == SHARED:
+        return _solve_shape(transcription(shapes), tasks)
+    groups: dict[Shape, list[int]] = {}
+    for index, shape in enumerate(tasks.column("shape")):
+        groups.setdefault(shape, []).append(index)
+    parts = [_solve_shape(transcription(shape), tasks.take(indices))
+             for shape, indices in groups.items()]
+    return _in_order(parts, [np.asarray(i) for i in groups.values()])
+
+
+def _in_order(parts: list[Columns], positions: list[np.ndarray]) -> Columns:
+    """``parts`` joined, row r of part k going to position ``positions[k][r]``."""
+    if len(parts) == 1:
+        return parts[0]
+    order = np.concatenate(positions)
+    inverse = np.empty_like(order)
+    inverse[order] = np.arange(len(order))
+    return Columns.concat(parts).take(inverse)
+
+
+def _solve_shape(nlp: Transcription[Any], tasks: Columns) -> Columns:
+    """The solutions of ``tasks`` of one shape: the batchable ones in one batched call, the
+    others and the batch's failures through the one-task policy."""
+    chosen, params = _batchable(nlp, tasks)
+    first = nlp.solve_batch(params, _rows(tasks, "warm_start", chosen),  # type: ignore
+                            _rows(tasks, "multipliers", chosen)) if len(chosen) else None
+    if first is None:
+        chosen = good = np.zeros(0, dtype=np.intp)
+    else:
+        succeeded = np.asarray(first.column("success"), bool)
+        good = chosen[succeeded]
+    if len(good) == len(tasks):
+        return first  # type: ignore[return-value]
+    redo = np.setdiff1d(np.arange(len(tasks)), good)
+    batched = set(chosen.tolist())
+    again = [_apply_policy(nlp, task, np.asarray(task.params, float), attempts_before=1)
+             if i in batched else solve_task(task)
+             for i, task in zip(redo.tolist(), tasks.take(redo).items(), strict=True)]
+    parts, positions = [to_columns(again)], [redo]
+    if len(good):
+        parts.insert(0, first.take(np.flatnonzero(succeeded)))  # type: ignore[union-attr]
+        positions.insert(0, good)
+    return _in_order(parts, positions)  # type: ignore[arg-type]
+
+
+def _batchable(nlp: Transcription[Any], tasks: Columns) -> tuple[np.ndarray, np.ndarray]:
+    """The rows of ``tasks`` (one shape) whose first attempt can join a batch, and their
+    parameters (k, n_params): all, if the transcription batches and their numbers are
     finite; the others are left to :func:`solve_task`, which reports them."""
+    none = np.zeros(0, dtype=np.intp), np.zeros((0, nlp.n_params))
+    kind, params = tasks.fields["params"]
     if not isinstance(nlp, BatchTranscription):
-        return [], np.zeros((0, nlp.n_params))
-    params = np.array([np.asarray(t.params, float).ravel() for t in tasks]
-                      if len({np.size(t.params) for t in tasks}) == 1 else [])
-    if params.shape != (len(tasks), nlp.n_params):
-        return [], np.zeros((0, nlp.n_params))
+        return none
+    if kind == SHARED:  # one task, or tasks sharing one array
+        params = np.tile(np.ravel(params), (len(tasks), 1))
+    elif kind == LISTED:  # e.g. taken from a chunk of several shapes
+        if len({np.size(p) for p in params}) != 1:
+            return none
+        params = np.array([np.ravel(p) for p in params])
+    params = np.asarray(params).reshape(len(tasks), -1)
+    if params.shape[1] != nlp.n_params or not np.issubdtype(params.dtype, np.number):
+        return none
+    params = params.astype(float, copy=False)
     finite = np.all(np.isfinite(params), axis=1)
-    finite &= [t.warm_start is None or bool(np.all(np.isfinite(t.warm_start))) for t in tasks]
+    kind, guesses = tasks.fields["warm_start"]
+    if kind == STACKED and np.issubdtype(guesses.dtype, np.number):
+        finite &= np.all(np.isfinite(guesses.reshape(len(tasks), -1)), axis=1)
+    elif kind != SHARED or guesses is not None:
+        finite &= [g is None or bool(np.all(np.isfinite(g))) for g in tasks.column("warm_start")]
     chosen = np.flatnonzero(finite)
-    return chosen.tolist(), params[chosen]
+    return chosen, params[chosen]
+
+
+def _rows(tasks: Columns, name: str, rows: np.ndarray) -> np.ndarray | list[Any]:
+    """Column ``name`` at ``rows``: an array (k, ...) where it is stacked, else a list."""
+    kind, data = tasks.fields[name]
+    if kind == SHARED:
+        return [data] * len(rows)
+    if kind == LISTED:
+        return [data[i] for i in rows.tolist()]
+    return data[rows]
 
 
 def _apply_policy(nlp: Transcription[Any], task: OcpTask, params: np.ndarray,

@@ -34,6 +34,7 @@ from functools import cached_property
 import casadi as ca
 import numpy as np
 
+from ocpar.bsp.columns import LISTED, SHARED, STACKED, VALUES, Columns
 from ocpar.models.mechanical import MechanicalSystem
 from ocpar.ocp.batch import SOLVERS, KktNewton, MappedNlp
 from ocpar.ocp.contract import InnerSolution, call_nlpsol, check_params, transcription
@@ -278,8 +279,8 @@ class DmocTranscription:
             x0 = np.concatenate([x0, np.zeros(self.nc * (self.n + 1))])
         return x0
 
-    def solve_batch(self, params: np.ndarray, guesses: list[np.ndarray | None],
-                    multipliers: list[np.ndarray | None]) -> list[DmocSolution] | None:
+    def solve_batch(self, params: np.ndarray, guesses: np.ndarray | list[np.ndarray | None],
+                    multipliers: np.ndarray | list[np.ndarray | None]) -> Columns | None:
         """Solve k tasks in one mapped call (:class:`~ocpar.ocp.batch.MappedNlp`): boundary
         data ``params`` (k, 4 nq), guesses and constraint multipliers per task (None: the
         default guess, zero multipliers). ``success`` comes from the KKT check; ``iterations``
@@ -289,14 +290,20 @@ class DmocTranscription:
         if self.batch_solver is None:
             return None
         params = np.asarray(params, float)
-        x0 = self.default_guesses(params)
-        for k, guess in enumerate(guesses):
-            if guess is not None:
-                x0[k] = self._full_guess(guess)
-        lam0 = np.zeros((len(params), self.ng))
-        for k, lam in enumerate(multipliers):
-            if lam is not None:
-                lam0[k] = lam
+        if isinstance(guesses, np.ndarray) and guesses.shape == (len(params), self.nw):
+            x0 = guesses.astype(float)
+        else:
+            x0 = self.default_guesses(params)
+            for k, guess in enumerate(guesses):
+                if guess is not None:
+                    x0[k] = self._full_guess(guess)
+        if isinstance(multipliers, np.ndarray) and multipliers.shape == (len(params), self.ng):
+            lam0 = multipliers.astype(float)
+        else:
+            lam0 = np.zeros((len(params), self.ng))
+            for k, lam in enumerate(multipliers):
+                if lam is not None:
+                    lam0[k] = lam
         zero_g, free = np.zeros(self.ng), np.full(self.nw, np.inf)
         try:
             if isinstance(self.batch_solver, KktNewton):
@@ -306,16 +313,25 @@ class DmocTranscription:
                 batch = self.batch_solver.solve(x0, params, lam0, zero_g, zero_g, -free, free)
         except RuntimeError:
             return None
-        share = batch.solve_time_s / len(params)
+        k = len(params)
         q, u = self.unpack_many(batch.x, params)
-        gradients = -batch.lam_p
-        iterations = np.full(len(params), -1) if batch.iterations is None else batch.iterations
-        hessians = batch.extra.reshape(len(params), self.nq, self.nq).transpose(0, 2, 1)
-        return [DmocSolution(cost=float(cost), status=BATCH_STATUS[ok], success=bool(ok),
-                             iterations=int(iterations[k]), attempts=1, solve_time_s=share,
-                             cost_gradient=gradients[k], end_hessian=hessians[k], q=q[k],
-                             u=u[k])
-                for k, (cost, ok) in enumerate(zip(batch.f, batch.success, strict=True))]
+        iterations = np.full(k, -1) if batch.iterations is None else batch.iterations
+        success = np.asarray(batch.success, bool)
+        statuses = [BATCH_STATUS[ok] for ok in success.tolist()]
+        return Columns(cls=DmocSolution, length=k, fields={
+            "cost": (VALUES, np.asarray(batch.f, float)),
+            "status": ((SHARED, statuses[0]) if len(set(statuses)) == 1
+                       else (LISTED, statuses)),
+            "success": (VALUES, success),
+            "iterations": (VALUES, np.asarray(iterations, np.int64)),
+            "attempts": (VALUES, np.ones(k, np.int64)),
+            "solve_time_s": (VALUES, np.full(k, batch.solve_time_s / k)),
+            "cost_gradient": (STACKED, -batch.lam_p),
+            "end_hessian": (STACKED, batch.extra.reshape(k, self.nq, self.nq)
+                            .transpose(0, 2, 1)),
+            "q": (STACKED, q),
+            "u": (STACKED, u),
+        })
 
 
 def dmoc_problem(shape: DmocShape) -> DmocTranscription:

@@ -26,6 +26,7 @@ from functools import cached_property, lru_cache
 import casadi as ca
 import numpy as np
 
+from ocpar.bsp.columns import Columns, to_columns
 from ocpar.models.ode import OdeModel, control_bounds
 from ocpar.ocp.batch import BufferedFunction, kkt_newton_function
 from ocpar.ocp.contract import InnerSolution, call_nlpsol, check_params, transcription
@@ -230,7 +231,7 @@ class MsTranscription:
     def solve_batch(self, params: np.ndarray,
                     guesses: np.ndarray | list[np.ndarray | None],
                     multipliers: np.ndarray | list[np.ndarray | None] | None = None
-                    ) -> list[MsSolution]:
+                    ) -> Columns:
         """:meth:`solve` for each row of ``params`` (k, n_params) from the row of ``guesses``
         (k, nw; a None row: :meth:`default_guess`) and of ``multipliers`` (k, ng; None or a
         None row: zeros), all finite (the batched kernel :func:`~ocpar.ocp.solve_tasks`
@@ -255,13 +256,15 @@ class MsTranscription:
                                      f"(k, {self.ng}), got a row of shape {np.shape(lam)}")
                 lams[i] = lam
         if not (self.shape.warm_start and self.shape.local_solver == "newton"):
-            return [self.solve(*row) for row in zip(params, guesses, lams, strict=True)]
+            return to_columns([self.solve(*row)  # type: ignore[return-value]
+                               for row in zip(params, guesses, lams, strict=True)])
         start = time.perf_counter()
         outputs = self.newton_batch(k)(guesses.ravel(), lams.ravel(), params.ravel())
         share = (time.perf_counter() - start) / k
         columns = [output.reshape(k, -1) for output in outputs]
-        return [self._solve(params[i], guesses[i], lams[i], ([c[i] for c in columns], share))
-                for i in range(k)]
+        return to_columns([  # type: ignore[return-value]
+            self._solve(params[i], guesses[i], lams[i], ([c[i] for c in columns], share))
+            for i in range(k)])
 
     def _solve(self, params: np.ndarray, guess: np.ndarray | None,
                multipliers: np.ndarray | None,
