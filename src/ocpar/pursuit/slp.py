@@ -23,7 +23,7 @@ do not depend on the backend or the worker count.
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -38,17 +38,19 @@ from ocpar.pursuit.problem import PursuitProblem
 @dataclass(frozen=True)
 class PursuitSettings:
     """SLP settings: ``window`` N_Δ (samples per catch-up problem), ``update`` N_δ (samples
-    applied per update), ``epsilon`` the stopping threshold on the improvement of the
-    problem's headline between successive agents (in the headline's unit), ``max_agents`` a
-    bound on the number of pursuing agents, ``local_solver`` the subproblems' solver from the
-    leader's plan (IPOPT if it fails; see :class:`~ocpar.ocp.MsShape`)."""
+    applied per update), ``epsilon`` the stopping threshold on the estimated improvement of
+    the problem's headline still to come (in the headline's unit; see
+    :func:`remaining_improvement`), ``max_agents`` a bound on the number of pursuing agents,
+    ``local_solver`` the subproblems' solver from the leader's plan (IPOPT if it fails; see
+    :class:`~ocpar.ocp.MsShape`)."""
 
     window: int = option(60, "samples per catch-up problem N_Δ (Δ = (N_Δ-1)h)", low=2,
                          metavar="N_DELTA")
     update: int = option(32, "samples applied per update N_δ (δ = N_δ h)", low=1,
                          metavar="N_UPDATE")
-    epsilon: float = option(1e-5, "stop when an agent improves on its leader's headline by "
-                            "less (in the headline's unit, kg for the orbit transfer)",
+    epsilon: float = option(1e-3, "stop when the improvement of the headline still to come, "
+                            "estimated from the agents' recent rate, is below EPS (in the "
+                            "headline's unit, kg for the orbit transfer)",
                             above=0, metavar="EPS")
     max_agents: int = option(100_000, "stop after this many agents", low=2)
     local_solver: str = option("newton", "subproblems' solver from the leader's plan: newton "
@@ -69,6 +71,38 @@ class PursuitSettings:
         if self.local_solver not in LOCAL_SOLVERS:
             raise ValueError(f"local_solver must be one of {LOCAL_SOLVERS}, got "
                              f"{self.local_solver!r}")
+
+
+#: Fewest agent-to-agent improvements :func:`remaining_improvement` estimates from.
+MIN_GAINS = 8
+#: Why a run stopped (``result.json``'s ``stop_reason``).
+STOP_REASONS = ("remaining_below_epsilon", "max_agents")
+
+
+def remaining_improvement(progress: Sequence[float]) -> float:
+    """The improvement still to come, estimated from the recent rate. ``progress[i]`` is how
+    much agent i + 1 improves on agent 1 (0 first; non-decreasing by Theorem 1), so its k
+    increments are the successive agents' gains. The gains of the last quarter of the agents,
+    S = progress[k] − progress[k − w] (w = k // 4), and of the quarter before, S', are
+    continued as a geometric series: S ρ/(1 − ρ) with ρ = S/S'.
+
+    Exact when the gains decay geometrically; an underestimate when they decay more slowly
+    (the diffusion-like descent of a long horizon: compare the headline with a reference
+    before trusting it there); ``inf`` while the gains do not shrink (ρ ≥ 1) or with fewer
+    than :data:`MIN_GAINS` gains; 0 when the last quarter brought no improvement.
+    """
+    k = len(progress) - 1
+    if k < MIN_GAINS:
+        return float("inf")
+    w = k // 4
+    recent = progress[k] - progress[k - w]
+    before = progress[k - w] - progress[k - 2 * w]
+    if recent <= 0:
+        return 0.0
+    if recent >= before:
+        return float("inf")
+    ratio = recent / before
+    return recent * ratio / (1 - ratio)
 
 
 @dataclass
@@ -92,7 +126,9 @@ class Agent:
 @dataclass
 class PursuitOutcome:
     """What the pursuit loop returns: the last finished agent (the result), every finished
-    agent's headline (agent 0 first), counters and status."""
+    agent's headline (agent 0 first), counters and status: why it stopped (one of
+    :data:`STOP_REASONS`) and the estimated improvement still to come (``remaining``, in the
+    headline's unit; :func:`remaining_improvement`)."""
 
     best: Agent
     initial: Agent
@@ -103,6 +139,8 @@ class PursuitOutcome:
     max_in_flight: int
     converged: bool
     message: str
+    stop_reason: str
+    remaining: float
     failures: list[str] = field(default_factory=list)
 
 
@@ -129,6 +167,10 @@ class PursuitTrain:
         self.failed = 0
         self.failures: list[str] = []
         self.launched = 0
+        #: how much each finished agent improves on agent 1 (agent 1 first)
+        self.progress: list[float] = []
+        #: the estimated improvement still to come (:func:`remaining_improvement`)
+        self.remaining = float("inf")
 
     def _shape(self, intervals: int) -> MsShape:
         """The subproblem shape with ``intervals`` intervals (made once per train)."""
@@ -206,23 +248,30 @@ class PursuitTrain:
             agent.u[j : j + steps] = leader.u[j : j + steps]
         agent.position = j + steps
 
-    def retire_finished(self) -> tuple[bool, str] | None:
-        """Take finished agents off the train in order; return (converged, message) when the
-        stopping test fires or the agent budget is spent, else None."""
+    def retire_finished(self) -> tuple[bool, str, str] | None:
+        """Take finished agents off the train in order; return (converged, stop reason,
+        message) when the estimated improvement still to come (:attr:`remaining`) falls below
+        ε or the agent budget is spent, else None."""
         while self.in_flight and self.in_flight[0].done:
             agent = self.in_flight.pop(0)
             self.headlines.append(self.problem.headline_value(agent.x, agent.u))
             self.leaders.pop(agent.index, None)
             self.best = agent
-            if agent.index >= 2:
-                improvement = self.problem.improvement(*self.headlines[-2:])
-                if improvement < self.settings.epsilon:
-                    unit = f" {self.problem.headline_unit}".rstrip()
-                    return True, (f"{self.problem.headline_name} improvement "
-                                  f"{improvement:.2e}{unit} < epsilon {self.settings.epsilon:g}"
-                                  f"{unit} after agent {agent.index}")
+            if agent.index >= 1:  # agent 0 does not end on S_Q: progress from agent 1 on
+                self.progress.append(self.problem.improvement(self.headlines[1],
+                                                              self.headlines[-1]))
+                self.remaining = remaining_improvement(self.progress)
+            unit = f" {self.problem.headline_unit}".rstrip()
+            if self.remaining < self.settings.epsilon:
+                return True, STOP_REASONS[0], (
+                    f"estimated {self.problem.headline_name} improvement still to come "
+                    f"{self.remaining:.2e}{unit} < epsilon {self.settings.epsilon:g}{unit} "
+                    f"after agent {agent.index}")
             if agent.index >= self.settings.max_agents:
-                return False, f"max_agents {self.settings.max_agents} reached"
+                return False, STOP_REASONS[1], (
+                    f"max_agents {self.settings.max_agents} reached; estimated "
+                    f"{self.problem.headline_name} improvement still to come "
+                    f"{self.remaining:.2e}{unit}")
         return None
 
 
@@ -256,7 +305,7 @@ def run_pursuit(
                 f"wall {trace.wall_s * 1e3:6.1f} ms"
             )
         if verdict is not None:
-            converged, message = verdict
+            converged, stop_reason, message = verdict
             return PursuitOutcome(
                 best=train.best,
                 initial=train.initial,
@@ -267,5 +316,7 @@ def run_pursuit(
                 max_in_flight=max_in_flight,
                 converged=converged,
                 message=message,
+                stop_reason=stop_reason,
+                remaining=train.remaining,
                 failures=train.failures[:20],
             )

@@ -62,6 +62,7 @@ def solve_pursuit(
         message, agents, solves = sol.status, 0, 1
         failed, in_flight, headlines = int(not sol.success), 1, []
         retries = sol.attempts - 1
+        stop_reason, remaining = None, None
     else:
         outcome = run_pursuit(problem, settings, backend, progress)
         x, u = outcome.best.x, outcome.best.u
@@ -70,6 +71,7 @@ def solve_pursuit(
         failed, in_flight, headlines = (outcome.failed_solves, outcome.max_in_flight,
                                         outcome.headlines)
         retries = outcome.retries
+        stop_reason, remaining = outcome.stop_reason, outcome.remaining
     trace = backend.traces[first_trace:]
     wall = time.perf_counter() - start
     if mode == "pbms" and reference and problem.samples <= REFERENCE_MAX_SAMPLES:
@@ -90,4 +92,5 @@ def solve_pursuit(
         rk_terminal_error=check.terminal_error, rk_checks=check.values,
         wall_time_s=wall, x=x, u=u, initial_x=initial_x, headlines=headlines,
         reference_headline=reference_headline, reference_x=reference_x, trace=trace,
+        stop_reason=stop_reason, estimated_remaining=remaining,
     )
