@@ -14,7 +14,7 @@ from ocpar.bsp import open_backend
 from ocpar.examples import pursuit_van_der_pol as van_der_pol
 from ocpar.examples.pursuit_orbit_transfer import make
 from ocpar.pursuit import ControlLaw, FinalValue, PursuitSettings, SampledPlan, solve_pursuit
-from ocpar.pursuit.slp import PursuitTrain, remaining_improvement
+from ocpar.pursuit.slp import PursuitTrain, coarsen, refine, remaining_improvement
 
 
 def test_feasible_trajectory_matches_the_papers_guess():
@@ -66,6 +66,29 @@ def test_case_2_stops_when_the_estimated_improvement_to_come_is_below_epsilon():
     assert np.all(np.diff(masses) >= MONOTONE_KG), "Theorem 1: cost decreases monotonically"
     assert result.failed_solves == 0 and result.converged
     assert result.stop_reason == "remaining_below_epsilon" and result.estimated_remaining < epsilon
+
+
+def test_refine_and_coarsen_are_inverse_on_samples():
+    x = np.column_stack([np.linspace(0.0, 1.0, 5), np.linspace(2.0, 0.0, 5)])
+    u = np.arange(8.0).reshape(4, 2)
+    fine_x, fine_u = refine(x, u)
+    np.testing.assert_allclose(fine_x, np.column_stack([np.linspace(0.0, 1.0, 9),
+                                                        np.linspace(2.0, 0.0, 9)]))
+    np.testing.assert_array_equal(fine_u[::2], u)
+    np.testing.assert_array_equal(fine_u[1::2], u)
+    problem = van_der_pol.make()  # N = 41
+    states, controls = problem.feasible_trajectory()
+    sampled = dataclasses.replace(problem, plan=SampledPlan(states, controls))
+    coarse = coarsen(sampled, 21)
+    np.testing.assert_array_equal(coarse.feasible_trajectory()[0], states[::2])
+    np.testing.assert_array_equal(coarse.feasible_trajectory()[1], controls[::2])
+    assert coarse.samples == 21 and coarse.duration == problem.duration
+
+
+@pytest.mark.parametrize(("levels", "match"), [(0, "at least 1"), (3, "coarsest")])
+def test_bad_levels_are_refused(levels, match):
+    with pytest.raises(ValueError, match=match):  # N = 101, 3 levels: 26 samples < N_Δ = 32
+        PursuitSettings(window=32, update=16, levels=levels).check(101)
 
 
 def test_remaining_improvement_is_exact_for_geometric_gains():
@@ -248,6 +271,24 @@ def test_van_der_pol_pbms_reaches_the_full_horizon_optimum(vdp_result):
     np.testing.assert_allclose(result.x[-1], 0.0, atol=1e-9)
     assert np.max(np.abs(result.u)) <= model.u_max + 1e-8
     assert np.max(np.abs(result.u)) > model.u_max - 1e-3  # the control bound is active
+
+
+def test_coarse_to_fine_levels_reach_the_full_horizon_optimum():
+    """Two levels on the van der Pol example with N = 81 (41 samples, then 81 from that
+    result; one level has not converged after 400 agents): the same optimum as the
+    independent solve, each agent of the fine level at least as good as its leader; agents
+    count both levels."""
+    problem = van_der_pol.make(samples=81)
+    model = problem.model
+    reference = vdp_reference_cost(problem.samples, problem.duration, model.mu, model.u_max)
+    settings = PursuitSettings(window=21, update=10, epsilon=1e-7, levels=2, max_agents=400)
+    result = solve_pursuit(problem, settings, reference=False)
+    assert result.converged and result.failed_solves == 0, result.message
+    assert result.headline == pytest.approx(reference, rel=1e-5)
+    assert len(result.agents_per_level) == 2 and result.agents == sum(result.agents_per_level)
+    assert len(result.headlines) == result.agents_per_level[-1] + 1  # the fine level's train
+    assert np.all(np.diff(result.headlines[1:]) <= 1e-9)  # the cost decreases
+    np.testing.assert_allclose(result.x[-1], 0.0, atol=1e-9)
 
 
 def test_agent_0_given_as_samples_runs_the_same_train(vdp_result):

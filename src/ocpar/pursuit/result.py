@@ -23,7 +23,9 @@ class PursuitResult(RunResult):
     improvement still to come, estimated from the agents' recent rate (``inf`` while the
     gains do not shrink; :func:`~ocpar.pursuit.slp.remaining_improvement`). ``x`` (N, nx)
     and ``u`` (N−1, nu) are the result trajectory, ``initial_x`` agent 0's, ``reference_x``
-    the full-horizon MS solution's.
+    the full-horizon MS solution's. ``agents`` counts every level's agents,
+    ``agents_per_level`` coarsest first (:func:`~ocpar.pursuit.slp.run_levels`); ``headlines``
+    are the finest level's.
     Times in s.
     """
 
@@ -34,6 +36,7 @@ class PursuitResult(RunResult):
     window: int
     update: int
     epsilon: float
+    levels: int
     headline_key: str
     headline_name: str
     headline_unit: str
@@ -54,6 +57,7 @@ class PursuitResult(RunResult):
     reference_x: np.ndarray | None = None
     stop_reason: str | None = None
     estimated_remaining: float | None = None
+    agents_per_level: list[int] = field(default_factory=list)
     #: the common count of inner solves is the catch-up (and full-horizon) solves
     inner_solves: int = field(init=False)
 
@@ -78,12 +82,14 @@ class PursuitResult(RunResult):
             "window": self.window,
             "update": self.update,
             "epsilon": self.epsilon,
+            "levels": self.levels,
             "headline": key,
             "headline_name": self.headline_name,
             "headline_unit": self.headline_unit,
             key: self.headline,
             self.cost_key: self.cost,
             "agents": self.agents,
+            "agents_per_level": self.agents_per_level,
             "subproblem_solves": self.subproblem_solves,
             "max_agents_in_flight": self.max_agents_in_flight,
             "constraint_violation": self.constraint_violation,

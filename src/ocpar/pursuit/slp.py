@@ -23,16 +23,18 @@ do not depend on the backend or the worker count.
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
 
 from ocpar.bsp import Backend
+from ocpar.models.ode import control_bounds
 from ocpar.ocp import MsShape, MsSolution, OcpTask, solve_tasks
 from ocpar.ocp.multiple_shooting import LOCAL_SOLVERS
 from ocpar.options import option
-from ocpar.pursuit.problem import PursuitProblem
+from ocpar.pursuit.problem import PursuitProblem, SampledPlan
 
 
 @dataclass(frozen=True)
@@ -40,8 +42,9 @@ class PursuitSettings:
     """SLP settings: ``window`` N_Δ (samples per catch-up problem), ``update`` N_δ (samples
     applied per update), ``epsilon`` the stopping threshold on the estimated improvement of
     the problem's headline still to come (in the headline's unit; see
-    :func:`remaining_improvement`), ``max_agents`` a bound on the number of pursuing agents,
-    ``local_solver`` the subproblems' solver from the leader's plan (IPOPT if it fails; see
+    :func:`remaining_improvement`), ``max_agents`` a bound on the number of pursuing agents
+    (per level), ``levels`` the coarse-to-fine levels (:func:`run_levels`; 1: the paper's
+    scheme), ``local_solver`` the subproblems' solver from the leader's plan (IPOPT if it fails; see
     :class:`~ocpar.ocp.MsShape`)."""
 
     window: int = option(60, "samples per catch-up problem N_Δ (Δ = (N_Δ-1)h)", low=2,
@@ -53,6 +56,9 @@ class PursuitSettings:
                             "headline's unit, kg for the orbit transfer)",
                             above=0, metavar="EPS")
     max_agents: int = option(100_000, "stop after this many agents", low=2)
+    levels: int = option(1, "coarse-to-fine levels L: PBMS first on (N-1)/2^(L-1)+1 samples, "
+                         "then on grids twice as fine, each starting from the coarser result "
+                         "(agent 0); 1: the paper's scheme", low=1)
     local_solver: str = option("newton", "subproblems' solver from the leader's plan: newton "
                                "(Newton steps on the KKT system) or sqp (CasADi sqpmethod, "
                                "qrqp); IPOPT if it fails", choices=LOCAL_SOLVERS)
@@ -68,6 +74,13 @@ class PursuitSettings:
             raise ValueError(f"epsilon must be a positive number, got {self.epsilon}")
         if self.max_agents < 2:
             raise ValueError(f"max_agents must be at least 2, got {self.max_agents}")
+        if self.levels < 1:
+            raise ValueError(f"levels must be at least 1, got {self.levels}")
+        factor = 2 ** (self.levels - 1)
+        if (samples - 1) % factor or (samples - 1) // factor + 1 <= self.window:
+            raise ValueError(f"levels {self.levels}: N - 1 = {samples - 1} must be divisible by "
+                             f"{factor} and the coarsest grid, (N-1)/{factor}+1 samples, finer "
+                             f"than N_Δ = {self.window}")
         if self.local_solver not in LOCAL_SOLVERS:
             raise ValueError(f"local_solver must be one of {LOCAL_SOLVERS}, got "
                              f"{self.local_solver!r}")
@@ -142,6 +155,8 @@ class PursuitOutcome:
     stop_reason: str
     remaining: float
     failures: list[str] = field(default_factory=list)
+    #: agents of each level, coarsest first (:func:`run_levels`)
+    agents_per_level: list[int] = field(default_factory=list)
 
 
 class PursuitTrain:
@@ -319,4 +334,61 @@ def run_pursuit(
                 stop_reason=stop_reason,
                 remaining=train.remaining,
                 failures=train.failures[:20],
+                agents_per_level=[train.best.index],
             )
+
+
+def run_levels(
+    problem: PursuitProblem,
+    settings: PursuitSettings,
+    backend: Backend,
+    progress: Callable[[str], None] | None = None,
+) -> PursuitOutcome:
+    """PBMS coarse to fine (``settings.levels`` L > 1): :func:`run_pursuit` on
+    (N−1)/2^(L−1)+1 samples from the problem's agent 0, then on each grid twice as fine with
+    the same N_Δ, N_δ (so a coarse level's windows span more time, and its train converges in
+    fewer agents) and the coarser level's result as agent 0 (:func:`refine`). The outcome is
+    the finest level's (its headlines, stop reason), with the solves and agents of all
+    levels. L = 1 is :func:`run_pursuit`."""
+    levels: list[PursuitOutcome] = []
+    one_level = dataclasses.replace(settings, levels=1)
+    for level in range(settings.levels - 1, -1, -1):
+        samples = (problem.samples - 1) // 2**level + 1
+        if not levels:
+            grid = coarsen(problem, samples)
+        else:
+            # within the bounds, which a subproblem's solution may overstep by its tolerance
+            x, u = refine(levels[-1].best.x, levels[-1].best.u)
+            x = np.clip(x, *problem.model.state_bounds())
+            grid = dataclasses.replace(problem, samples=samples, plan=SampledPlan(
+                x, np.clip(u, *control_bounds(problem.model))))
+        levels.append(run_pursuit(grid, one_level, backend, progress))
+    last = levels[-1]
+    return dataclasses.replace(
+        last, subproblem_solves=sum(o.subproblem_solves for o in levels),
+        failed_solves=sum(o.failed_solves for o in levels),
+        retries=sum(o.retries for o in levels),
+        max_in_flight=max(o.max_in_flight for o in levels),
+        failures=[f for o in levels for f in o.failures][:20],
+        agents_per_level=[o.best.index for o in levels])
+
+
+def coarsen(problem: PursuitProblem, samples: int) -> PursuitProblem:
+    """``problem`` on ``samples`` samples, (N−1)/(samples−1) an integer: a control law is
+    integrated on the coarse grid, a sampled plan subsampled (each coarse interval holds the
+    control of its first fine interval)."""
+    if samples == problem.samples:
+        return problem
+    step = (problem.samples - 1) // (samples - 1)
+    plan = problem.plan
+    if isinstance(plan, SampledPlan):
+        plan = SampledPlan(plan.states[::step], plan.controls[::step])
+    return dataclasses.replace(problem, samples=samples, plan=plan)
+
+
+def refine(x: np.ndarray, u: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """A trajectory on a grid twice as fine: states (N, nx) -> (2N−1, nx), the new samples
+    midway between their neighbours; controls (N−1, nu) -> (2N−2, nu), each held twice."""
+    fine = np.empty((2 * len(x) - 1, x.shape[1]))
+    fine[::2], fine[1::2] = x, (x[:-1] + x[1:]) / 2
+    return fine, np.repeat(u, 2, axis=0)
