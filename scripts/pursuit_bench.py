@@ -5,7 +5,7 @@
     python scripts/pursuit_bench.py --part time --workers 1 2 --repeats 3 --output DIR
     python scripts/pursuit_bench.py --part memory --samples 501 1001 2001 --output DIR
     python scripts/pursuit_bench.py --part solvers --output DIR
-    python scripts/pursuit_bench.py --part convergence --convergence-samples 501 --output DIR
+    python scripts/pursuit_bench.py --part convergence --convergence-samples 501 --levels 1 3
 
 ``time``: case 1, N = 301, N_Δ = 60, N_δ = 32, the default ε (the paper's Table II setting),
 ``--repeats`` runs (default 3) of ``mpirun -n P python -m ocpar.pursuit`` and of the Dask
@@ -28,8 +28,9 @@ N_Δ = 60, N_δ = 32; case 2, N = 2001, N_Δ = 100, N_δ = 81), each N of ``--co
 PBMS on 2 MPI ranks with the default ε and at most 1.5 × the paper's agent count, and the
 full-horizon MS of the same discretisation on one rank: agents, final mass and its distance to
 MS, the first agent within 0.05 kg of MS, why the run stopped and the estimated improvement
-still to come, wall time and peak memory per worker; the plot shows each agent's distance to MS
-against its index, with the paper's agent counts.
+still to come, wall time and peak memory per worker, for each of ``--levels`` (coarse-to-fine
+levels; 1, the paper's scheme, by default); the plot shows each agent's distance to MS against
+its index (the last level's agents), with the paper's agent counts.
 
 Writes ``pursuit_bench.json`` and ``pursuit_bench.png``. Times exclude process start-up.
 """
@@ -163,23 +164,25 @@ def memory_part(samples: list[int], agents: int, output: Path) -> list[dict]:
     return rows
 
 
-def convergence_part(samples: list[int], output: Path) -> list[dict]:
-    """PBMS with the paper's settings against the full-horizon MS, for each N."""
+def convergence_part(samples: list[int], levels: list[int], output: Path) -> list[dict]:
+    """PBMS with the paper's settings (and each number of coarse-to-fine ``levels``) against
+    the full-horizon MS, for each N."""
     import numpy as np
 
     rows = []
-    for n in samples:
+    for n, level in ((n, level) for n in samples for level in levels):
         case, window, update, paper_agents = PAPER_RUNS[n]
         args = ["--case", str(case), "--samples", str(n), "--window", str(window),
                 "--update", str(update)]
         ms = run([*args, "--mode", "ms"], output / f"convergence-ms-{n}", "mpi", 1)
-        out = output / f"convergence-pbms-{n}"
-        row = run([*args, "--max-agents", str(int(1.5 * paper_agents))], out, "mpi", 2)
-        masses = np.array(json.loads((out / "result.json").read_text())[
-            "final_mass_kg_per_agent"])
-        gap = ms["final_mass_kg"] - masses
-        close = np.flatnonzero(gap[1:] <= CLOSE_KG)
-        row |= {"case": case, "paper_agents": paper_agents,
+        out = output / f"convergence-pbms-{n}-levels-{level}"
+        row = run([*args, "--max-agents", str(int(1.5 * paper_agents)), "--levels", str(level)],
+                  out, "mpi", 2)
+        data = json.loads((out / "result.json").read_text())
+        gap = ms["final_mass_kg"] - np.array(data["final_mass_kg_per_agent"])  # last level's
+        close = np.flatnonzero(gap[1:] <= CLOSE_KG) + sum(data["agents_per_level"][:-1])
+        row |= {"case": case, "levels": level, "paper_agents": paper_agents,
+                "agents_per_level": data["agents_per_level"],
                 "ms_final_mass_kg": ms["final_mass_kg"], "gap_to_ms_kg": float(gap[-1]),
                 "first_agent_within_0_05_kg": int(close[0]) + 1 if len(close) else None,
                 "gap_to_ms_kg_per_agent": gap.tolist()}
@@ -201,7 +204,8 @@ def plot_convergence(rows: list[dict], path: Path) -> None:
         gap = row["gap_to_ms_kg_per_agent"]
         line, = ax.semilogy(range(1, len(gap)), [max(g, 1e-6) for g in gap[1:]],
                             label=f"case {row['case']}, N = {row['samples']}, "
-                                  f"N_Δ = {row['window']}, N_δ = {row['update']}")
+                                  f"N_Δ = {row['window']}, N_δ = {row['update']}, "
+                                  f"levels {row['levels']} (last level)")
         ax.axvline(row["paper_agents"], color=line.get_color(), ls=":")
     ax.axhline(CLOSE_KG, color="grey", ls="--", label=f"{CLOSE_KG} kg")
     ax.set_xlabel("agent (dotted: the paper's agent count)")
@@ -256,6 +260,8 @@ def main() -> int:
                         default="all")
     parser.add_argument("--convergence-samples", nargs="+", type=int, choices=sorted(PAPER_RUNS),
                         default=[301, 501], help="the convergence part's runs, by N")
+    parser.add_argument("--levels", nargs="+", type=int, default=[1],
+                        help="the convergence part's coarse-to-fine levels (1: the paper's)")
     parser.add_argument("--supersteps", type=int, default=200,
                         help="supersteps recorded by the solvers part")
     parser.add_argument("--workers", nargs="+", type=int, default=[1, 2])
@@ -277,7 +283,8 @@ def main() -> int:
     if args.part in ("memory", "all"):
         report["memory"] = memory_part(args.samples, args.memory_agents, args.output)
     if args.part in ("convergence", "all"):
-        report["convergence"] = convergence_part(args.convergence_samples, args.output)
+        report["convergence"] = convergence_part(args.convergence_samples, args.levels,
+                                                 args.output)
         plot_convergence(report["convergence"], args.output / "pursuit_convergence.png")
     (args.output / "pursuit_bench.json").write_text(json.dumps(report, indent=1))
     if args.part != "convergence":
