@@ -201,14 +201,14 @@ def plot_convergence(rows: list[dict], path: Path) -> None:
 
     fig, ax = plt.subplots(figsize=(8, 5))
     for row in rows:
-        gap = row["gap_to_ms_kg_per_agent"]
-        line, = ax.semilogy(range(1, len(gap)), [max(g, 1e-6) for g in gap[1:]],
+        gap, before = row["gap_to_ms_kg_per_agent"], sum(row["agents_per_level"][:-1])
+        line, = ax.semilogy(range(before + 1, before + len(gap)), [max(g, 1e-6) for g in gap[1:]],
                             label=f"case {row['case']}, N = {row['samples']}, "
                                   f"N_Δ = {row['window']}, N_δ = {row['update']}, "
                                   f"levels {row['levels']} (last level)")
         ax.axvline(row["paper_agents"], color=line.get_color(), ls=":")
     ax.axhline(CLOSE_KG, color="grey", ls="--", label=f"{CLOSE_KG} kg")
-    ax.set_xlabel("agent (dotted: the paper's agent count)")
+    ax.set_xlabel("agent, counting earlier levels' (dotted: the paper's agent count)")
     ax.set_ylabel("MS final mass − agent's final mass (kg)")
     ax.legend()
     fig.tight_layout()
