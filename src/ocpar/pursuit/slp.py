@@ -15,6 +15,11 @@ of ~4 from the leader's trajectory. With Δ = (N_Δ−1)h, δ = N_δ h, the catc
 N_Δ samples; in local sample indices, agent k's update at index j needs its leader's states up
 to index j + N_Δ − 1 (the leader is Δ ahead in time).
 
+The train stops when the headline's improvement still to come, estimated from the agents'
+recent gains (:func:`remaining_improvement`), is below ε, or after ``max_agents`` agents.
+With ``levels`` L > 1 the train runs first on a grid 2^(L−1) times coarser, then on grids
+twice as fine, each from the coarser result (:func:`run_levels`).
+
 All agents whose next update has what it needs (from earlier supersteps) solve in one
 superstep, so about (N−1)/(N_Δ−1) agents run in parallel. The computation is the SLP of the
 paper whatever the schedule: each update depends only on data fixed by the rules, so results
