@@ -5,8 +5,9 @@
     python scripts/pursuit_bench.py --part time --workers 1 2 --repeats 3 --output DIR
     python scripts/pursuit_bench.py --part memory --samples 501 1001 2001 --output DIR
     python scripts/pursuit_bench.py --part solvers --output DIR
+    python scripts/pursuit_bench.py --part convergence --convergence-samples 501 --levels 1 3
 
-``time``: case 1, N = 301, N_Δ = 60, N_δ = 32, ε = 1e-5 kg (the paper's Table II setting),
+``time``: case 1, N = 301, N_Δ = 60, N_δ = 32, the default ε (the paper's Table II setting),
 ``--repeats`` runs (default 3) of ``mpirun -n P python -m ocpar.pursuit`` and of the Dask
 backend with P local workers, for each P, interleaved: solve wall time, agents, final mass,
 supersteps and, from the trace, the time in the busiest worker's solves, the per-superstep
@@ -19,8 +20,17 @@ alone, interleaved, ``--repeats`` times: median CPU time per solve (ms), iterati
 largest difference from IPOPT's solution (w) and cost.
 
 ``memory``: case 2 with N_Δ = 100, N_δ = 81 (the paper's N = 2001 setting) for each N: PBMS on
-2 MPI ranks (peak resident memory of the largest worker, agents, final mass, wall time) and
-full-horizon MS on one rank (its peak memory grows with N; PBMS's must not).
+2 MPI ranks, ``--memory-agents`` agents (peak resident memory of the largest worker, final mass,
+wall time) and full-horizon MS on one rank (its peak memory grows with N; PBMS's must not).
+
+``convergence``: the paper's settings (case 1, N = 301, N_Δ = 60, N_δ = 32; case 2, N = 501,
+N_Δ = 60, N_δ = 32; case 2, N = 2001, N_Δ = 100, N_δ = 81), each N of ``--convergence-samples``:
+PBMS on 2 MPI ranks with the default ε and at most 1.5 × the paper's agent count, and the
+full-horizon MS of the same discretisation on one rank: agents, final mass and its distance to
+MS, the first agent within 0.05 kg of MS, why the run stopped and the estimated improvement
+still to come, wall time and peak memory per worker, for each of ``--levels`` (coarse-to-fine
+levels; 1, the paper's scheme, by default); the plot shows each agent's distance to MS against
+its index (the last level's agents), with the paper's agent counts.
 
 Writes ``pursuit_bench.json`` and ``pursuit_bench.png``. Times exclude process start-up.
 """
@@ -35,11 +45,16 @@ import sys
 from pathlib import Path
 
 MPIRUN = str(Path(sys.executable).parent / "mpirun")
+#: The paper's PBMS runs by N: (case, N_Δ, N_δ, the paper's agents), §VI-B.1-3.
+PAPER_RUNS = {301: (1, 60, 32, 3344), 501: (2, 60, 32, 2892), 2001: (2, 100, 81, 12402)}
+#: How close to the full-horizon MS optimum the issue asks PBMS to come (kg).
+CLOSE_KG = 0.05
 
 
 def run(args: list[str], out: Path, backend: str, workers: int) -> dict:
     """One ``python -m ocpar.pursuit`` run; returns its result.json (without bulky fields)."""
-    cmd = [sys.executable, "-m", "ocpar.pursuit", *args, "--quiet", "--no-reference",
+    reference = [] if "ms" in args else ["--no-reference"]  # --mode ms has none to skip
+    cmd = [sys.executable, "-m", "ocpar.pursuit", *args, "--quiet", *reference,
            "--output", str(out)]
     if backend == "mpi":
         cmd = [MPIRUN, "-n", str(workers), *cmd]
@@ -54,6 +69,8 @@ def run(args: list[str], out: Path, backend: str, workers: int) -> dict:
             "failed_solves", "supersteps", "max_agents_in_flight", "wall_time_s",
             "peak_rss_mb_per_worker", "rk_final_altitude_error_m")
     row = {k: data[k] for k in keep} | trace_summary(data["trace"], data["wall_time_s"])
+    if data["mode"] == "pbms":
+        row |= {k: data[k] for k in ("stop_reason", "estimated_remaining_final_mass_kg")}
     print(json.dumps(row), flush=True)
     return row
 
@@ -73,8 +90,7 @@ def trace_summary(trace: list[dict], wall: float) -> dict:
 def time_part(workers: list[int], backends: list[str], repeats: int,
               output: Path) -> tuple[list[dict], list[dict]]:
     """Every run, and the median of each (backend, workers) configuration's runs."""
-    args = ["--case", "1", "--samples", "301", "--window", "60", "--update", "32",
-            "--epsilon", "1e-5"]
+    args = ["--case", "1", "--samples", "301", "--window", "60", "--update", "32"]
     rows = [run(args, output / f"time-{b}-{p}-{k}", b, p)
             for k in range(repeats) for b in backends for p in workers]
     medians = []
@@ -138,13 +154,66 @@ def solvers_part(supersteps: int, repeats: int) -> list[dict]:
     return rows
 
 
-def memory_part(samples: list[int], epsilon: float, output: Path) -> list[dict]:
+def memory_part(samples: list[int], agents: int, output: Path) -> list[dict]:
     rows = []
     for n in samples:
         args = ["--case", "2", "--samples", str(n), "--window", "100", "--update", "81"]
-        rows.append(run([*args, "--epsilon", str(epsilon)], output / f"memory-pbms-{n}", "mpi", 2))
+        rows.append(run([*args, "--max-agents", str(agents)], output / f"memory-pbms-{n}",
+                        "mpi", 2))
         rows.append(run([*args, "--mode", "ms"], output / f"memory-ms-{n}", "mpi", 1))
     return rows
+
+
+def convergence_part(samples: list[int], levels: list[int], output: Path) -> list[dict]:
+    """PBMS with the paper's settings (and each number of coarse-to-fine ``levels``) against
+    the full-horizon MS, for each N."""
+    import numpy as np
+
+    rows = []
+    for n, level in ((n, level) for n in samples for level in levels):
+        case, window, update, paper_agents = PAPER_RUNS[n]
+        args = ["--case", str(case), "--samples", str(n), "--window", str(window),
+                "--update", str(update)]
+        ms = run([*args, "--mode", "ms"], output / f"convergence-ms-{n}", "mpi", 1)
+        out = output / f"convergence-pbms-{n}-levels-{level}"
+        row = run([*args, "--max-agents", str(int(1.5 * paper_agents)), "--levels", str(level)],
+                  out, "mpi", 2)
+        data = json.loads((out / "result.json").read_text())
+        gap = ms["final_mass_kg"] - np.array(data["final_mass_kg_per_agent"])  # last level's
+        close = np.flatnonzero(gap[1:] <= CLOSE_KG) + sum(data["agents_per_level"][:-1])
+        row |= {"case": case, "levels": level, "paper_agents": paper_agents,
+                "agents_per_level": data["agents_per_level"],
+                "ms_final_mass_kg": ms["final_mass_kg"], "gap_to_ms_kg": float(gap[-1]),
+                "first_agent_within_0_05_kg": int(close[0]) + 1 if len(close) else None,
+                "gap_to_ms_kg_per_agent": gap.tolist()}
+        print(json.dumps({k: v for k, v in row.items() if k != "gap_to_ms_kg_per_agent"}),
+              flush=True)
+        rows.append(row)
+    return rows
+
+
+def plot_convergence(rows: list[dict], path: Path) -> None:
+    """Each agent's distance to the MS optimum against its index (log), one line per run."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(8, 5))
+    for row in rows:
+        gap, before = row["gap_to_ms_kg_per_agent"], sum(row["agents_per_level"][:-1])
+        line, = ax.semilogy(range(before + 1, before + len(gap)), [max(g, 1e-6) for g in gap[1:]],
+                            label=f"case {row['case']}, N = {row['samples']}, "
+                                  f"N_Δ = {row['window']}, N_δ = {row['update']}, "
+                                  f"levels {row['levels']} (last level)")
+        ax.axvline(row["paper_agents"], color=line.get_color(), ls=":")
+    ax.axhline(CLOSE_KG, color="grey", ls="--", label=f"{CLOSE_KG} kg")
+    ax.set_xlabel("agent, counting earlier levels' (dotted: the paper's agent count)")
+    ax.set_ylabel("MS final mass − agent's final mass (kg)")
+    ax.legend()
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
 
 
 def plot(report: dict, path: Path) -> None:
@@ -187,29 +256,40 @@ def plot(report: dict, path: Path) -> None:
 
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--part", choices=("time", "memory", "solvers", "all"), default="all")
+    parser.add_argument("--part", choices=("time", "memory", "solvers", "convergence", "all"),
+                        default="all")
+    parser.add_argument("--convergence-samples", nargs="+", type=int, choices=sorted(PAPER_RUNS),
+                        default=[301, 501], help="the convergence part's runs, by N")
+    parser.add_argument("--levels", nargs="+", type=int, default=[1],
+                        help="the convergence part's coarse-to-fine levels (1: the paper's)")
     parser.add_argument("--supersteps", type=int, default=200,
                         help="supersteps recorded by the solvers part")
     parser.add_argument("--workers", nargs="+", type=int, default=[1, 2])
     parser.add_argument("--backend", nargs="+", choices=("mpi", "dask"), default=["mpi", "dask"])
     parser.add_argument("--repeats", type=int, default=3, help="runs per configuration")
     parser.add_argument("--samples", nargs="+", type=int, default=[501, 1001, 2001])
-    parser.add_argument("--epsilon", type=float, default=1e-3,
-                        help="stopping threshold of the memory part (kg), default 1e-3")
+    parser.add_argument("--memory-agents", type=int, default=2000,
+                        help="agents per PBMS run of the memory part, default 2000")
     parser.add_argument("--output", type=Path, default=Path("runs/pursuit-bench"))
     args = parser.parse_args()
     args.output.mkdir(parents=True, exist_ok=True)
-    report: dict = {"time": [], "time_median": [], "memory": [], "solvers": []}
+    report: dict = {"time": [], "time_median": [], "memory": [], "solvers": [],
+                    "convergence": []}
     if args.part in ("time", "all"):
         report["time"], report["time_median"] = time_part(args.workers, args.backend,
                                                           args.repeats, args.output)
     if args.part in ("solvers", "all"):
         report["solvers"] = solvers_part(args.supersteps, args.repeats)
     if args.part in ("memory", "all"):
-        report["memory"] = memory_part(args.samples, args.epsilon, args.output)
+        report["memory"] = memory_part(args.samples, args.memory_agents, args.output)
+    if args.part in ("convergence", "all"):
+        report["convergence"] = convergence_part(args.convergence_samples, args.levels,
+                                                 args.output)
+        plot_convergence(report["convergence"], args.output / "pursuit_convergence.png")
     (args.output / "pursuit_bench.json").write_text(json.dumps(report, indent=1))
-    plot(report, args.output / "pursuit_bench.png")
-    print(f"wrote {args.output / 'pursuit_bench.json'} and {args.output / 'pursuit_bench.png'}")
+    if args.part != "convergence":
+        plot(report, args.output / "pursuit_bench.png")
+    print(f"wrote {args.output / 'pursuit_bench.json'} and the plots")
     return 0
 
 

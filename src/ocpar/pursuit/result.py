@@ -18,8 +18,14 @@ class PursuitResult(RunResult):
     ``result.json`` under ``headline_key``, e.g. the final mass in kg) of the result, of every
     finished agent (``headlines``, agent 0 first) and of the full-horizon MS solution when
     computed; ``cost`` Σ h g (under ``cost_key``); ``rk_checks`` the problem's checks of the
-    re-simulated final state by key. ``x`` (N, nx) and ``u`` (N−1, nu) are the result
-    trajectory, ``initial_x`` agent 0's, ``reference_x`` the full-horizon MS solution's.
+    re-simulated final state by key; with PBMS, ``stop_reason`` (one of
+    :data:`~ocpar.pursuit.slp.STOP_REASONS`) and ``estimated_remaining`` the headline's
+    improvement still to come, estimated from the agents' recent rate (``inf`` while the
+    gains do not shrink; :func:`~ocpar.pursuit.slp.remaining_improvement`). ``x`` (N, nx)
+    and ``u`` (N−1, nu) are the result trajectory, ``initial_x`` agent 0's, ``reference_x``
+    the full-horizon MS solution's. ``agents`` counts every level's agents,
+    ``agents_per_level`` coarsest first (:func:`~ocpar.pursuit.slp.run_levels`); ``headlines``
+    are the finest level's.
     Times in s.
     """
 
@@ -30,6 +36,7 @@ class PursuitResult(RunResult):
     window: int
     update: int
     epsilon: float
+    levels: int
     headline_key: str
     headline_name: str
     headline_unit: str
@@ -48,6 +55,9 @@ class PursuitResult(RunResult):
     headlines: list[float] = field(default_factory=list)
     reference_headline: float | None = None
     reference_x: np.ndarray | None = None
+    stop_reason: str | None = None
+    estimated_remaining: float | None = None
+    agents_per_level: list[int] = field(default_factory=list)
     #: the common count of inner solves is the catch-up (and full-horizon) solves
     inner_solves: int = field(init=False)
 
@@ -72,12 +82,14 @@ class PursuitResult(RunResult):
             "window": self.window,
             "update": self.update,
             "epsilon": self.epsilon,
+            "levels": self.levels,
             "headline": key,
             "headline_name": self.headline_name,
             "headline_unit": self.headline_unit,
             key: self.headline,
             self.cost_key: self.cost,
             "agents": self.agents,
+            "agents_per_level": self.agents_per_level,
             "subproblem_solves": self.subproblem_solves,
             "max_agents_in_flight": self.max_agents_in_flight,
             "constraint_violation": self.constraint_violation,
@@ -85,6 +97,11 @@ class PursuitResult(RunResult):
             **{f"rk_{name}": value for name, value in self.rk_checks.items()},
             "peak_rss_mb_per_worker": self.peak_rss_mb_per_worker,
             f"reference_ms_{key}": self.reference_headline,
+            "stop_reason": self.stop_reason,
+            # JSON has no infinity: null while the gains do not shrink
+            f"estimated_remaining_{key}": (None if self.estimated_remaining is None
+                                           or np.isinf(self.estimated_remaining)
+                                           else self.estimated_remaining),
             f"{key}_per_agent": self.headlines,
             "states": np.asarray(self.x).tolist(),
             "controls": np.asarray(self.u).tolist(),

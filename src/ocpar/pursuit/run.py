@@ -75,8 +75,9 @@ class PursuitRun(SchemeRun, PursuitSettings):
         return pursuit_orbit_transfer.make(case=self.case, samples=self.samples)
 
     def describe(self, problem: PursuitProblem) -> str:
+        levels = f", {self.levels} levels" if self.levels > 1 else ""
         return (f"{problem.name}, N = {problem.samples}, mode {self.mode}, N_Δ = {self.window}, "
-                f"N_δ = {self.update}")
+                f"N_δ = {self.update}{levels}")
 
     def solve(self, problem: PursuitProblem, backend: Backend,
               progress: Progress) -> PursuitResult:

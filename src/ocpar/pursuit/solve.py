@@ -12,7 +12,7 @@ from ocpar.bsp.serial import SerialBackend
 from ocpar.ocp import MsShape, MsSolution, OcpTask, solve_task
 from ocpar.pursuit.problem import PursuitProblem
 from ocpar.pursuit.result import PursuitResult
-from ocpar.pursuit.slp import PursuitSettings, run_pursuit
+from ocpar.pursuit.slp import PursuitSettings, run_levels
 from ocpar.pursuit.validate import discrete_residual, rk_check
 
 MODES = ("pbms", "ms")
@@ -62,14 +62,18 @@ def solve_pursuit(
         message, agents, solves = sol.status, 0, 1
         failed, in_flight, headlines = int(not sol.success), 1, []
         retries = sol.attempts - 1
+        stop_reason, remaining, agents_per_level = None, None, []
     else:
-        outcome = run_pursuit(problem, settings, backend, progress)
+        outcome = run_levels(problem, settings, backend, progress)
         x, u = outcome.best.x, outcome.best.u
         status = "converged" if outcome.converged else "not_converged"
-        message, agents, solves = outcome.message, outcome.best.index, outcome.subproblem_solves
+        message, agents = outcome.message, sum(outcome.agents_per_level)
+        solves = outcome.subproblem_solves
         failed, in_flight, headlines = (outcome.failed_solves, outcome.max_in_flight,
                                         outcome.headlines)
         retries = outcome.retries
+        stop_reason, remaining = outcome.stop_reason, outcome.remaining
+        agents_per_level = outcome.agents_per_level
     trace = backend.traces[first_trace:]
     wall = time.perf_counter() - start
     if mode == "pbms" and reference and problem.samples <= REFERENCE_MAX_SAMPLES:
@@ -80,6 +84,7 @@ def solve_pursuit(
     return PursuitResult(
         problem=problem.name, samples=problem.samples, mode=mode,
         window=settings.window, update=settings.update, epsilon=settings.epsilon,
+        levels=settings.levels,
         backend=backend.name, workers=backend.workers, status=status, message=message,
         headline_key=problem.headline_key, headline_name=problem.headline_name,
         headline_unit=problem.headline_unit, headline=problem.headline_value(x, u),
@@ -90,4 +95,6 @@ def solve_pursuit(
         rk_terminal_error=check.terminal_error, rk_checks=check.values,
         wall_time_s=wall, x=x, u=u, initial_x=initial_x, headlines=headlines,
         reference_headline=reference_headline, reference_x=reference_x, trace=trace,
+        stop_reason=stop_reason, estimated_remaining=remaining,
+        agents_per_level=agents_per_level,
     )
