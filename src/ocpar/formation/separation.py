@@ -201,6 +201,17 @@ def closest_approach(positions: np.ndarray, duration: float) -> ClosestApproach:
                            float(when[best]) * duration / (nodes - 1))
 
 
+def positions_at(positions: np.ndarray, time: float, duration: float) -> np.ndarray:
+    """Every agent's position (n, dim) at ``time`` (0 … ``duration``) on the piecewise-linear
+    paths through ``positions`` (n, N+1, dim)."""
+    positions = _check_positions(positions)
+    intervals = positions.shape[1] - 1
+    where = min(max(time / duration, 0.0), 1.0) * intervals
+    k = min(int(where), intervals - 1)
+    s = where - k
+    return (1.0 - s) * positions[:, k] + s * positions[:, k + 1]
+
+
 def check_separation_feasible(start: np.ndarray, final: np.ndarray, distance: float) -> None:
     """Raise ValueError (one line naming the two agents and their distance) if two agents'
     ``start`` (n, dim) or two ``final`` (n, dim) positions are closer than ``distance``
