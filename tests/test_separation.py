@@ -94,6 +94,23 @@ def test_close_pairs_are_exactly_the_pairs_within_the_radius(seed):
     assert exact.agents == tuple(pairs[np.argmin(minima)])
 
 
+def test_crossing_bundles_match_all_pairs():
+    """Two dense bundles (spacing 0.1) pass through each other in opposite directions, offset
+    by 0.05: crowded grid cells that only time slices in each bundle's own frame resolve."""
+    rng = np.random.default_rng(7)
+    grid = 0.1 * np.stack(np.meshgrid(np.arange(20), np.arange(15)), -1).reshape(-1, 2)
+    t = np.linspace(-1, 1, 5)[:, None]
+    bundle = grid[:, None, :] + 1e-3 * rng.standard_normal((len(grid), 5, 2))
+    velocity, offset = np.array([50.0, 0.0]), np.array([0.03, 0.05])
+    positions = np.concatenate([bundle + t * velocity, bundle + offset - t * velocity])
+    pairs = np.array(list(itertools.combinations(range(len(positions)), 2)))
+    minima = interval_closest(positions, pairs)[0].min(axis=1)
+    for radius in (0.06, 0.12):
+        np.testing.assert_array_equal(close_pairs(positions, radius), pairs[minima <= radius])
+    found = closest_approach(positions, 1.0)
+    assert found.distance == minima.min() and found.agents == tuple(pairs[np.argmin(minima)])
+
+
 def test_ten_thousand_agents_with_a_known_closest_pair():
     """Agents on a grid of spacing 10 wander by less than 1 in each coordinate (every pair stays
     ≥ 8 apart) except two that cross a cell's centre line at t = 0.35 T, 0.01 apart (≥ 4 from
