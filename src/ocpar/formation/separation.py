@@ -297,8 +297,6 @@ def check_separation_feasible(start: np.ndarray, final: np.ndarray, distance: fl
             raise ValueError(f"{name} positions must have shape (n, dim), got {points.shape}")
         still = np.repeat(points[:, None, :], 2, axis=1)
         pairs = close_pairs(still, distance)
-        if not len(pairs):
-            continue
         gaps = np.linalg.norm(points[pairs[:, 0]] - points[pairs[:, 1]], axis=1)
         short = np.flatnonzero(gaps < distance)
         if len(short):
