@@ -13,6 +13,7 @@ its configuration equal to ``final_attitude`` and its velocity ``final_velocity`
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import casadi as ca
@@ -21,6 +22,7 @@ import numpy as np
 from ocpar.bsp.columns import Columns
 from ocpar.formation.curve import Circle, Curve
 from ocpar.formation.potential import relax
+from ocpar.formation.separation import ClosestApproach, closest_approach
 from ocpar.models import MechanicalSystem
 from ocpar.ocp import DmocShape, OcpTask
 
@@ -100,6 +102,11 @@ class FormationProblem:
                                  f"{d} position entries)")
             object.__setattr__(self, name, _array(name, value, shape))
         self._check_holonomic_constraints()
+        indices = self.position_indices
+        if not indices or len(set(indices)) != len(indices) or not all(
+                isinstance(i, (int, np.integer)) and 0 <= i < nq for i in indices):
+            raise ValueError(f"shape: the model's position_indices must be distinct entries "
+                             f"of its {nq} configuration entries, got {indices}")
 
     def _check_model(self) -> None:
         """The model's L(q, q̇) must be a scalar and F(q, u) a column (nq,) of CasADi
@@ -133,6 +140,26 @@ class FormationProblem:
             if not residual <= CONSTRAINT_TOL:
                 raise ValueError(f"{name}: violates the model's holonomic constraints by "
                                  f"{residual:.1e}")
+
+    @property
+    def position_indices(self) -> tuple[int, ...]:
+        """The configuration entries that are an agent's position in space: the model's
+        ``position_indices`` if it has them, else the first ``curve.dim`` entries."""
+        indices = getattr(self.shape.model, "position_indices", None)
+        return tuple(range(self.curve.dim)) if indices is None else tuple(indices)
+
+    def positions(self, trajectories: np.ndarray) -> np.ndarray:
+        """The position part (n, N+1, p) of node paths ``trajectories`` (n, N+1, nq)."""
+        return np.asarray(trajectories)[..., list(self.position_indices)]
+
+    def closest_approach(self, trajectories: np.ndarray) -> ClosestApproach:
+        """The closest approach of any two agents on node paths ``trajectories`` (n, N+1, nq),
+        on their piecewise-linear positions over [0, T] (:mod:`ocpar.formation.separation`);
+        distance and time NaN, pair (−1, −1) if a path is not finite (a failed run)."""
+        positions = self.positions(trajectories)
+        if not np.all(np.isfinite(positions)):
+            return ClosestApproach(math.nan, (-1, -1), math.nan)
+        return closest_approach(positions, self.shape.duration)
 
     @property
     def agents(self) -> int:

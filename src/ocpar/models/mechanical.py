@@ -33,7 +33,9 @@ class MechanicalSystem(Protocol):
     must satisfy them) and ``project(q)`` (numpy rows (m, nq) to the nearest configurations
     that satisfy them, for initial guesses; required with constraints); ``cost_parts``
     ({name: (first, last) control entries}: the cost ∫|u|² dt split into named groups in
-    results).
+    results); ``position_indices`` (the configuration entries that are the agent's position
+    in space, what separation between agents measures; default: the first d entries, d the
+    formation curve's dimension).
     """
 
     @property

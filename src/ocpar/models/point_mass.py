@@ -28,6 +28,11 @@ class PointMass:
     def nu(self) -> int:
         return self.dim
 
+    @property
+    def position_indices(self) -> tuple[int, ...]:
+        """All of q is the position."""
+        return tuple(range(self.dim))
+
     def lagrangian(self, q: ca.SX, qdot: ca.SX, interval: int = 0) -> ca.SX:
         return 0.5 * self.mass * ca.dot(qdot, qdot)
 

@@ -50,6 +50,8 @@ class RelativeRigidSpacecraft:
 
     time_dependent: ClassVar[bool] = True
     n_constraints: ClassVar[int] = 1
+    #: δx is the position; the quaternion is not.
+    position_indices: ClassVar[tuple[int, ...]] = (0, 1, 2)
     #: The cost's parts by control entries: |F|² (translation) and |τ|² (rotation).
     cost_parts: ClassVar[dict[str, tuple[int, int]]] = {
         "translational_cost": (0, 3), "rotational_cost": (3, 6)}
