@@ -19,16 +19,20 @@ and the cost is J_d = h Σ_k |u_k|². Boundary data p = (q_0, q̇_0, q_N, q̇_N)
 parameters; the decision variables are w = (q_1..q_{N-1}, u_0..u_{N-1}, λ_0..λ_N).
 
 Keep-out half-spaces (optional, ``DmocShape.keep_out_slots`` K > 0): K slots per interval k,
-each a normal n_{k,s} ∈ R^d and an offset b_{k,s} on the position r(q) (the d configuration
-entries ``keep_out_positions``, e.g. the model's ``position_indices``), appended to p after
-the boundary data in the order (n_{0,0}, b_{0,0}, n_{0,1}, b_{0,1}, …, n_{N−1,K−1},
-b_{N−1,K−1}). They add the
-inequalities n_{k,s}·r(q_k) ≥ b_{k,s} and n_{k,s}·r(q_{k+1}) ≥ b_{k,s} at the interval's free
-nodes (the boundary nodes are data: whoever builds a half-space on the first or last interval
-must make it hold there). Both ends of an interval in a half-space put the whole segment
-between them in it (convexity), and the continuous path DMOC represents is linear between
-nodes, so the path keeps out on the whole interval. An unused slot is n = 0, b = −1
-(:data:`UNUSED_OFFSET`): 0 ≥ −1, never active. Slots are parameters, not structure, so one
+each a normal n ∈ R^d and offsets b⁰, b¹ at the interval's two nodes on the position r(q)
+(the d configuration entries ``keep_out_positions``, e.g. the model's ``position_indices``),
+appended to p after the boundary data, slot by slot, interval by interval:
+(n_{0,0}, b⁰_{0,0}, b¹_{0,0}, n_{0,1}, …, b¹_{N−1,K−1}). The half-space moves linearly in time
+over the interval, n·r(t) ≥ b(t) with b linear from b⁰ at t_k to b¹ at t_{k+1}; the rows are
+n·r(q_k) ≥ b⁰ and n·r(q_{k+1}) ≥ b¹ at the interval's free nodes (the boundary nodes are
+data: whoever builds a half-space on the first or last interval must make it hold there).
+The continuous path DMOC represents is linear between nodes, so n·r(t) − b(t) is linear in
+t on the interval: both ends ≥ 0 put the whole interval in the moving half-space. An unused
+slot is n = 0, b⁰ = b¹ = −1 (:data:`UNUSED_OFFSET`): 0 ≥ −1, never active. The keep-outs are elastic, so that the NLP is
+feasible whatever the half-spaces: each slot has a slack σ_{k,s} ≥ 0 (appended to w),
+n·r − b + σ ≥ 0, and the cost gains ρ Σ σ with the penalty ρ the last entry of p (an exact
+penalty: σ = 0 whenever the half-spaces can be met and ρ exceeds their multipliers; the
+returned ``cost`` and ``u`` still measure h Σ |u_k|² alone). Slots are parameters, not structure, so one
 compiled solver serves every agent whatever its constraints; inequalities need the
 ``sqpmethod`` or ``ipopt`` solver (``newton`` takes equalities only).
 
@@ -122,8 +126,10 @@ class DmocShape:
 
     @property
     def n_keep_out(self) -> int:
-        """Length of the keep-out block of p: N K (d + 1) (module docstring)."""
-        return self.intervals * self.keep_out_slots * (len(self.keep_out_positions) + 1)
+        """Length of the keep-out block of p: N K (d + 2), then ρ (module docstring)."""
+        if not self.keep_out_slots:
+            return 0
+        return self.intervals * self.keep_out_slots * (len(self.keep_out_positions) + 2) + 1
 
     @property
     def n_params(self) -> int:
@@ -206,9 +212,12 @@ class DmocTranscription:
         eqs.append(-end_momentum(qn, vn) + d2[n - 1](qs[n - 1], qs[n]) + f_half[n - 1] + react[n])
         if nc:
             eqs += [c(qs[k]) for k in range(1, n)]
-        keep_out = self._keep_out_rows(p[4 * nq:], qs)
+        slack = ca.SX.sym("slack", n * shape.keep_out_slots)
+        keep_out = self._keep_out_rows(p[4 * nq:], qs, slack)
+        control_cost = h * ca.sumsqr(u_all)
+        penalty = p[-1] * ca.sum1(slack) if shape.keep_out_slots else 0
 
-        w = ca.vertcat(q_inner, u_all, lam)
+        w = ca.vertcat(q_inner, u_all, lam, slack)
         self.nw = w.numel()
         self.n_params = shape.n_params
         self.ng = nq * (n + 1) + nc * (n - 1) + len(keep_out)
@@ -216,7 +225,11 @@ class DmocTranscription:
         self.lbg = np.zeros(self.ng)
         self.ubg = np.concatenate([np.zeros(self.ng - len(keep_out)),
                                    np.full(len(keep_out), np.inf)])
-        self.cost = ca.Function("J", [w, p], [h * ca.sumsqr(u_all)], ["w", "p"], ["J"])
+        #: Variable bounds: the slacks ≥ 0, everything else free.
+        self.lbx = np.concatenate([np.full(self.nw - slack.numel(), -np.inf),
+                                   np.zeros(slack.numel())])
+        self.ubx = np.full(self.nw, np.inf)
+        self.cost = ca.Function("J", [w, p], [control_cost + penalty], ["w", "p"], ["J"])
         self.constraints = ca.Function("g", [w, p], [ca.vertcat(*eqs, *keep_out)], ["w", "p"],
                                        ["g"])
         self._w, self._p = w, p
@@ -224,19 +237,21 @@ class DmocTranscription:
         self.end_hessian = None if shape.keep_out_slots else cost_hessian_function(
             "dmoc", w, p, self.cost(w, p), self.constraints(w, p), slice(2 * nq, 3 * nq))
 
-    def _keep_out_rows(self, data: ca.SX, qs: list[ca.SX]) -> list[ca.SX]:
-        """n_{k,s}·r(q) − b_{k,s} at the free nodes q of each interval k, slot s, from the
-        keep-out block ``data`` of p (module docstring)."""
+    def _keep_out_rows(self, data: ca.SX, qs: list[ca.SX], slack: ca.SX) -> list[ca.SX]:
+        """n·r(q) − b + σ at the free nodes q of each interval k, slot s (b the slot's offset
+        at that node), from the keep-out block ``data`` of p and the slacks (module
+        docstring)."""
         slots, n = self.shape.keep_out_slots, self.n
         positions = list(self.shape.keep_out_positions)
         dim = len(positions)
         rows = []
         for k in range(n):
             for s in range(slots):
-                start = (k * slots + s) * (dim + 1)
-                normal, offset = data[start:start + dim], data[start + dim]
-                rows += [ca.dot(normal, qs[node][positions]) - offset
-                         for node in (k, k + 1) if 0 < node < n]
+                start = (k * slots + s) * (dim + 2)
+                normal = data[start:start + dim]
+                rows += [ca.dot(normal, qs[node][positions]) - data[start + dim + end]
+                         + slack[k * slots + s]
+                         for end, node in enumerate((k, k + 1)) if 0 < node < n]
         return rows
 
     @cached_property
@@ -279,7 +294,7 @@ class DmocTranscription:
         path = (h00 * q0 + h10 * t * v0 + h01 * qn + h11 * t * vn).reshape(-1, nq)
         if self.nc:
             path = self.shape.model.project(path)
-        return np.hstack([path.reshape(k, -1), np.zeros((k, self.nu * n + self.nc * (n + 1)))])
+        return np.hstack([path.reshape(k, -1), np.zeros((k, self.nw - path.size // k))])
 
     def fallback_guesses(self, params: np.ndarray) -> Iterator[np.ndarray]:
         """The straight line from q_0 to q_N (projected onto the constraints, if any), zero
@@ -288,7 +303,7 @@ class DmocTranscription:
         path = q0 + np.arange(1, self.n)[:, None] / self.n * (qn - q0)
         if self.nc:
             path = self.shape.model.project(path)
-        yield np.concatenate([path.ravel(), np.zeros(self.nu * self.n + self.nc * (self.n + 1))])
+        yield np.concatenate([path.ravel(), np.zeros(self.nw - path.size)])
 
     def warm_start(self, solution: DmocSolution) -> np.ndarray:
         """The guess (inner nodes, controls; λ = 0) that re-solves from ``solution``."""
@@ -329,21 +344,26 @@ class DmocTranscription:
         params = check_params(params, self.n_params, "DMOC")
         x0 = self.default_guess(params) if guess is None else self._full_guess(guess)
         extra = {} if multipliers is None else {"lam_g0": multipliers}
-        call = call_nlpsol(self.solver, x0=x0, p=params, lbg=self.lbg, ubg=self.ubg, **extra)
+        bounds = {"lbx": self.lbx} if self.shape.keep_out_slots else {}
+        call = call_nlpsol(self.solver, x0=x0, p=params, lbg=self.lbg, ubg=self.ubg, **bounds,
+                           **extra)
         if call.out is None:
             return self.failure(params, call.status, call.solve_time_s)
         w, lam_g = (np.asarray(call.out[k]).ravel() for k in ("x", "lam_g"))
         q, u = self.unpack(w, params)
-        hessian = (self._no_hessian() if self.end_hessian is None
-                   else np.asarray(self.end_hessian(w, lam_g, params)))
+        if self.end_hessian is None:  # keep-outs: the control cost without the penalty
+            common = {**call.common, "cost": self.h * float(np.sum(u**2))}
+            return DmocSolution(**common, cost_gradient=call.cost_gradient,
+                                end_hessian=self._no_hessian(), q=q, u=u)
+        hessian = np.asarray(self.end_hessian(w, lam_g, params))
         return DmocSolution(**call.common, cost_gradient=call.cost_gradient,
                             end_hessian=hessian, q=q, u=u)
 
     def _full_guess(self, guess: np.ndarray) -> np.ndarray:
-        """``guess`` with λ = 0 appended if it has none."""
+        """``guess`` with λ = 0 (and slacks σ = 0) appended if it has none."""
         x0 = np.asarray(guess, float)
-        if x0.size == self.nw - self.nc * (self.n + 1):
-            x0 = np.concatenate([x0, np.zeros(self.nc * (self.n + 1))])
+        if x0.size == self.nq * (self.n - 1) + self.nu * self.n:
+            x0 = np.concatenate([x0, np.zeros(self.nw - x0.size)])
         return x0
 
     def solve_batch(self, params: np.ndarray, guesses: list[np.ndarray | None],
@@ -365,28 +385,30 @@ class DmocTranscription:
         for k, lam in enumerate(multipliers):
             if lam is not None:
                 lam0[k] = lam
-        free = np.full(self.nw, np.inf)
         try:
             if isinstance(self.batch_solver, KktNewton):
                 rounds = min(NEWTON_ROUNDS, self.shape.max_iter)
-                batch = self.batch_solver.solve(x0, params, lam0, -free, free, rounds)
+                batch = self.batch_solver.solve(x0, params, lam0, self.lbx, self.ubx, rounds)
             else:
-                batch = self.batch_solver.solve(x0, params, lam0, self.lbg, self.ubg, -free,
-                                                free)
+                batch = self.batch_solver.solve(x0, params, lam0, self.lbg, self.ubg, self.lbx,
+                                                self.ubx)
         except RuntimeError:
             return None
         share = batch.solve_time_s / len(params)
         q, u = self.unpack_many(batch.x, params)
         gradients = -batch.lam_p
         iterations = np.full(len(params), -1) if batch.iterations is None else batch.iterations
-        hessians = (np.full((len(params), self.nq, self.nq), np.nan)
-                    if self.end_hessian is None
-                    else batch.extra.reshape(len(params), self.nq, self.nq).transpose(0, 2, 1))
+        if self.end_hessian is None:  # keep-outs: the control cost without the penalty
+            costs = self.h * np.sum(u**2, axis=(1, 2))
+            hessians = np.full((len(params), self.nq, self.nq), np.nan)
+        else:
+            costs = batch.f
+            hessians = batch.extra.reshape(len(params), self.nq, self.nq).transpose(0, 2, 1)
         return [DmocSolution(cost=float(cost), status=BATCH_STATUS[ok], success=bool(ok),
                              iterations=int(iterations[k]), attempts=1, solve_time_s=share,
                              cost_gradient=gradients[k], end_hessian=hessians[k], q=q[k],
                              u=u[k])
-                for k, (cost, ok) in enumerate(zip(batch.f, batch.success, strict=True))]
+                for k, (cost, ok) in enumerate(zip(costs, batch.success, strict=True))]
 
 
 def dmoc_problem(shape: DmocShape) -> DmocTranscription:
