@@ -9,6 +9,7 @@ import numpy as np
 
 from ocpar.formation.problem import FormationProblem
 from ocpar.formation.result import FormationResult
+from ocpar.formation.separation import positions_at
 from ocpar.plotting import pyplot, save
 
 
@@ -36,6 +37,7 @@ def plot_formation(problem: FormationProblem, result: FormationResult, path: Pat
         ax.set_ylabel("$x_2$")
     ax_all.plot(problem.starts[:, 0], problem.starts[:, 1], "o", mfc="none", color="k", ms=3,
                 label="start positions")
+    _mark_closest(ax_all, problem, result)
     ax_all.set_title(f"{result.agents} agents, total cost {result.total_cost:.6e}")
     ax_all.legend(loc="upper left", fontsize=8)
     low, high = circle.min(axis=0), circle.max(axis=0)
@@ -65,6 +67,22 @@ def _plot_3d(problem: FormationProblem, result: FormationResult, path: Path) -> 
     ax.set_xlabel("$x_1$")
     ax.set_ylabel("$x_2$")
     ax.set_zlabel("$x_3$")
+    _mark_closest(ax, problem, result)
     ax.set_title(f"{problem.name}: {result.agents} agents, total cost {result.total_cost:.6e}")
     ax.legend(loc="upper left", fontsize=8)
     return save(fig, path)
+
+
+def _mark_closest(ax, problem: FormationProblem, result: FormationResult) -> None:
+    """Mark the closest pair at the time of their closest approach: their two positions, the
+    segment between them and a legend entry with the agents, distance and time."""
+    closest = result.separation
+    if not np.isfinite(closest.distance):
+        return
+    where = positions_at(problem.positions(result.trajectories), closest.time,
+                         problem.shape.duration)[list(closest.agents)]
+    coords = where.T[:3] if ax.name == "3d" else where.T[:2]
+    i, j = closest.agents
+    ax.plot(*coords, "-s", color="tab:orange", ms=6, lw=1.5, zorder=5,
+            label=f"closest: agents {i}, {j}, {closest.distance:.3g} apart at "
+                  f"t = {closest.time:.3g}")

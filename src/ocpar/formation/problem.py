@@ -13,6 +13,7 @@ its configuration equal to ``final_attitude`` and its velocity ``final_velocity`
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import casadi as ca
@@ -21,6 +22,7 @@ import numpy as np
 from ocpar.bsp.columns import Columns
 from ocpar.formation.curve import Circle, Curve
 from ocpar.formation.potential import relax
+from ocpar.formation.separation import ClosestApproach, closest_approach
 from ocpar.models import MechanicalSystem
 from ocpar.ocp import DmocShape, OcpTask
 
@@ -149,6 +151,15 @@ class FormationProblem:
     def positions(self, trajectories: np.ndarray) -> np.ndarray:
         """The position part (n, N+1, p) of node paths ``trajectories`` (n, N+1, nq)."""
         return np.asarray(trajectories)[..., list(self.position_indices)]
+
+    def closest_approach(self, trajectories: np.ndarray) -> ClosestApproach:
+        """The closest approach of any two agents on node paths ``trajectories`` (n, N+1, nq),
+        on their piecewise-linear positions over [0, T] (:mod:`ocpar.formation.separation`);
+        distance and time NaN, pair (−1, −1) if a path is not finite (a failed run)."""
+        positions = self.positions(trajectories)
+        if not np.all(np.isfinite(positions)):
+            return ClosestApproach(math.nan, (-1, -1), math.nan)
+        return closest_approach(positions, self.shape.duration)
 
     @property
     def agents(self) -> int:

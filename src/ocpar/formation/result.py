@@ -9,6 +9,7 @@ from typing import ClassVar
 import numpy as np
 
 from ocpar.formation.potential import equidistance_error
+from ocpar.formation.separation import ClosestApproach
 from ocpar.results import RunResult
 
 
@@ -22,7 +23,9 @@ class FormationResult(RunResult):
     ``rotational_cost``); ``coupling_residual``
     max_k |c_k(φ)|, the scaled coupling c = (ℓ²/n³) dG/dφ as the outer problem imposes it
     (:mod:`ocpar.formation.potential`); ``on_circle`` whether the curve is a circle (the
-    equidistance error is NaN otherwise).
+    equidistance error is NaN otherwise); ``separation`` the closest approach of any two
+    agents on the continuous paths (:meth:`FormationProblem.closest_approach
+    <ocpar.formation.FormationProblem.closest_approach>`).
     The common fields are :class:`ocpar.results.RunResult`'s.
     """
 
@@ -35,6 +38,7 @@ class FormationResult(RunResult):
     agent_costs: np.ndarray
     trajectories: np.ndarray
     outer_iterations: int
+    separation: ClosestApproach
     cost_parts: dict[str, float] = field(default_factory=dict)
     coupling_residual: float = math.nan
     on_circle: bool = True
@@ -55,6 +59,10 @@ class FormationResult(RunResult):
             "equidistance_error": _finite_or_none(self.equidistance_error),
             "coupling_residual": _finite_or_none(self.coupling_residual),
             "outer_iterations": self.outer_iterations,
+            "min_separation": _finite_or_none(self.separation.distance),
+            "closest_pair": (list(self.separation.agents)
+                             if math.isfinite(self.separation.distance) else None),
+            "closest_time": _finite_or_none(self.separation.time),
             "agent_costs": [_finite_or_none(c) for c in self.agent_costs],
             "trajectories": np.asarray(self.trajectories, float).tolist(),
         }
@@ -69,6 +77,9 @@ class FormationResult(RunResult):
             f"status {self.status} ({self.message})\n"
             f"total cost {self.total_cost:.12e}   {parts}"
             f"{equidistance}coupling residual {self.coupling_residual:.1e}\n"
+            f"min separation {self.separation.distance:.6g} (agents "
+            f"{self.separation.agents[0]} and {self.separation.agents[1]} at t = "
+            f"{self.separation.time:.6g})\n"
             f"outer iterations {self.outer_iterations}   supersteps {self.supersteps}   "
             f"inner solves {self.inner_solves} (failed {self.failed_solves}, retries "
             f"{self.retries})\n"

@@ -8,14 +8,17 @@ relative position of two agents, r(s) = d_k + s (d_k+1 − d_k) with s = (t − 
 linear in t, so the minimum of |r| on the interval is exact: the clamped minimiser of a
 quadratic, s* = clip(−d_k·e / e·e, 0, 1) with e = d_k+1 − d_k (:func:`interval_closest`).
 
-Which pairs to test: a uniform grid (spatial hash) over the boxes swept by each agent on each
-(sub-)interval, grown by the radius, gives candidate pairs; the exact test then keeps those
-that come within the radius (:func:`close_pairs`). Intervals along which agents travel far
-compared with their spacing are cut into equal sub-intervals first (the path stays linear on
-each, so nothing changes but the boxes' size). The cost grows about linearly with the number
-of agents n. :func:`closest_approach` bounds the minimum by an actual pair distance found in
-one sort per node and keeps the pairs within that bound: its result equals the all-pairs
-minimum.
+Which pairs to test, without testing all pairs (:func:`close_pairs`): each interval, seen in
+the frame of the agents' median velocity, is a task; the boxes each agent sweeps over it,
+grown by half the radius, go into a uniform grid (a spatial hash); pairs whose boxes overlap
+in a cell shared by few agents get the exact test. A crowded cell (agents travelling far
+compared with their spacing, or a bundle of paths) becomes two tasks: the two halves of the
+time slice, in the frame of the mean velocity of its agents, whose boxes are then smaller
+(frames and slices change no distance, so no pair is missed). The cost grows about linearly
+with the number of agents n for spread-out paths; a bundle that converges (many paths passing
+near one point at about the same time) costs more. :func:`closest_approach` bounds the
+minimum by an actual pair distance (neighbours in order along the first coordinate, at every
+node) and tests the pairs within that bound: its result equals the all-pairs minimum.
 
 Positions are the agents' translational coordinates, shape (n, N+1, dim), in the model's
 length unit (for a formation: :meth:`ocpar.formation.FormationProblem.positions`).
@@ -28,8 +31,14 @@ from dataclasses import dataclass
 
 import numpy as np
 
-#: Sub-intervals per DMOC interval at most, when agents travel far compared with their spacing.
-MAX_REFINE = 64
+#: Grid cells are this many times a task's mean box (or a quarter of its largest box) wide.
+CELL = 2.0
+#: A grid cell shared by more agents than this is split in time (see :func:`_within`)...
+CROWD = 16
+#: ... at most this many times, and while the agents of the split cells number at most
+#: BUDGET or 4 n N (then all pairs of a crowded cell are tested).
+MAX_DEPTH = 16
+BUDGET = 2_000_000
 #: Pairs per chunk of the exact test (bounds its temporary arrays to a few hundred MB).
 CHUNK = 200_000
 
@@ -58,6 +67,19 @@ def _check_positions(positions: np.ndarray) -> np.ndarray:
     return array
 
 
+def _segment_closest(start: np.ndarray, end: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Minimum of |(1 − s) d0 + s d1| over s ∈ [0, 1] for relative positions ``start`` d0
+    and ``end`` d1 (..., dim): the distance (...) and the first s (...) where it occurs."""
+    step = end - start
+    step_sq = np.einsum("...d,...d->...", step, step)
+    toward = -np.einsum("...d,...d->...", start, step)
+    s = np.divide(toward, step_sq, out=np.zeros_like(toward), where=step_sq > 0)
+    np.clip(s, 0.0, 1.0, out=s)
+    # (1 − s) d0 + s d1: exactly the node values at s = 0 and s = 1
+    point = (1.0 - s)[..., None] * start + s[..., None] * end
+    return np.linalg.norm(point, axis=-1), s
+
+
 def interval_closest(positions: np.ndarray, pairs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Exact closest approach of each pair on each interval.
 
@@ -73,82 +95,126 @@ def interval_closest(positions: np.ndarray, pairs: np.ndarray) -> tuple[np.ndarr
     for lo in range(0, len(pairs), CHUNK):
         chunk = pairs[lo:lo + CHUNK]
         rel = positions[chunk[:, 0]] - positions[chunk[:, 1]]   # (m, N+1, dim)
-        start, step = rel[:, :-1], np.diff(rel, axis=1)
-        step_sq = np.einsum("mkd,mkd->mk", step, step)
-        toward = -np.einsum("mkd,mkd->mk", start, step)
-        s = np.divide(toward, step_sq, out=np.zeros_like(toward), where=step_sq > 0)
-        np.clip(s, 0.0, 1.0, out=s)
-        # (1 − s) d_k + s d_k+1: exactly the node values at s = 0 and s = 1
-        point = (1.0 - s)[..., None] * start + s[..., None] * rel[:, 1:]
-        distance[lo:lo + CHUNK] = np.linalg.norm(point, axis=-1)
-        fraction[lo:lo + CHUNK] = s
+        distance[lo:lo + CHUNK], fraction[lo:lo + CHUNK] = _segment_closest(rel[:, :-1],
+                                                                            rel[:, 1:])
     return distance, fraction
 
 
-def _refined(positions: np.ndarray, radius: float) -> np.ndarray:
-    """The same paths with each interval cut into m equal sub-intervals (nodes added on the
-    linear segments), m chosen so that a typical sub-segment is about as long as the agents'
-    typical spacing or the radius, whichever is larger."""
-    n, _, dim = positions.shape
-    travel = float(np.median(np.abs(np.diff(positions, axis=1)).max(axis=-1)))
-    spans = np.ptp(positions[:, [0, -1]], axis=0)                     # (2, dim)
-    volume = np.prod(np.maximum(spans, spans.max(axis=1, keepdims=True) / n), axis=1)
-    spacing = float(np.max((volume / n) ** (1.0 / dim)))
-    scale = max(spacing, radius)
-    refine = 1 if scale <= 0 else int(min(MAX_REFINE, max(1, math.ceil(travel / scale))))
-    if refine == 1:
-        return positions
-    s = np.arange(refine) / refine
-    start, step = positions[:, :-1], np.diff(positions, axis=1)
-    fine = start[:, :, None, :] + s[None, None, :, None] * step[:, :, None, :]
-    return np.concatenate([fine.reshape(n, -1, dim), positions[:, -1:]], axis=1)
+def _run_entries(runs: np.ndarray, sizes: np.ndarray) -> np.ndarray:
+    """Indices of the entries of runs of sorted entries starting at ``runs`` with ``sizes``
+    entries each, run after run."""
+    return np.repeat(runs, sizes) + np.arange(sizes.sum()) - np.repeat(np.cumsum(sizes) - sizes,
+                                                                       sizes)
 
 
-def _candidates(positions: np.ndarray, radius: float) -> np.ndarray:
-    """Pairs (m, 2), i < j, sorted, whose boxes swept on some interval come within
-    ``radius`` of each other in every coordinate: a superset of the pairs whose paths do."""
+def _pairs_in_runs(runs: np.ndarray, sizes: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """All pairs (left, right), left < right, of entries within each run (see
+    :func:`_run_entries`)."""
+    index = _run_entries(runs, sizes)
+    partners = np.repeat(runs + sizes, sizes) - index - 1
+    left = np.repeat(index, partners)
+    return left, left + 1 + _run_entries(np.zeros_like(partners), partners)
+
+
+def _within(positions: np.ndarray, radius: float) -> np.ndarray:
+    """Pairs (m, 2), i < j, sorted, that come within ``radius`` on some interval by the exact
+    test on that interval, with a slack of 1e-9 radius (a superset of :func:`close_pairs`
+    that rounding cannot shrink), found without testing all pairs.
+
+    A task is a time slice [s0, s1] of one interval seen in a frame moving with velocity u,
+    and the agents that take part; its agents' boxes swept over the slice (grown by half the
+    radius) go into a uniform grid. Pairs that share a cell with few others and whose boxes
+    overlap get the exact test; a crowded cell becomes two tasks, the two halves of its slice
+    in the frame of its agents' mean velocity (agents moving together then sweep small
+    boxes). Frames and slices do not change which pairs come close, so nothing is missed.
+    """
     n, nodes, dim = positions.shape
-    if n < 2:
-        return np.empty((0, 2), dtype=np.intp)
-    grow = 0.5 * radius * (1 + 1e-9) + 1e-12 * (1.0 + np.abs(positions).max())
-    lo = np.minimum(positions[:, :-1], positions[:, 1:]) - grow       # (n, N, dim)
-    hi = np.maximum(positions[:, :-1], positions[:, 1:]) + grow
-    extent = (hi - lo).max(axis=-1)
-    cell = float(np.quantile(extent, 0.9))
-    origin = lo.min(axis=(0, 1))
-    while True:
-        first = np.floor((lo - origin) / cell).astype(np.int64)
-        counts = np.floor((hi - origin) / cell).astype(np.int64) - first + 1
-        span = int(first.max() + counts.max()) + 1
-        cells_per_box = counts.prod(axis=-1)
-        if (span ** dim * (nodes - 1) < 2 ** 62
-                and cells_per_box.sum() <= 4 * 2 ** dim * cells_per_box.size):
+    intervals = nodes - 1
+    start, step = positions[:, :-1], np.diff(positions, axis=1)     # (n, N, dim)
+    scale = 1e-12 * (1.0 + np.abs(positions).max())
+    grow = 0.5 * radius * (1 + 1e-9) + scale
+    # tasks: one per interval, all agents, the frame of the median velocity
+    task_k = np.arange(intervals)
+    task_s = np.zeros((intervals, 2))
+    task_s[:, 1] = 1.0
+    task_u = np.median(step, axis=0)
+    member_task = np.repeat(np.arange(intervals), n)
+    member = np.tile(np.arange(n), intervals)
+    found = [np.empty(0, np.int64)]
+    budget = max(BUDGET, 4 * len(member))
+    for depth in range(MAX_DEPTH + 1):
+        k = task_k[member_task]
+        a, v = start[member, k], step[member, k] - task_u[member_task]
+        lo = a + task_s[member_task, :1] * v
+        hi = a + task_s[member_task, 1:] * v
+        lo, hi = np.minimum(lo, hi) - grow, np.maximum(lo, hi) + grow
+        extent = (hi - lo).max(axis=1)
+        bounds = np.r_[0, np.flatnonzero(np.diff(member_task)) + 1]   # members are by task
+        count = np.diff(np.r_[bounds, len(member)])
+        cell = np.maximum(CELL * np.add.reduceat(extent, bounds) / count,
+                          0.25 * np.maximum.reduceat(extent, bounds))
+        origin = np.repeat(np.minimum.reduceat(lo, bounds), count, axis=0)
+        while True:   # cells so coarse that (task, cell) fits one int64 key
+            scaled_lo, scaled_hi = ((x - origin) / np.repeat(cell, count)[:, None]
+                                    for x in (lo, hi))
+            if len(cell) * (float(scaled_hi.max()) + 2) ** dim < 2.0 ** 62:
+                break
+            cell = 2 * cell
+        first = np.floor(scaled_lo).astype(np.int64)
+        cells = np.floor(scaled_hi).astype(np.int64) - first + 1
+        # one entry per (member, cell its box touches), keyed by (task, cell)
+        per_member = cells.prod(axis=1)
+        entry = np.repeat(np.arange(len(member)), per_member)
+        local = _run_entries(np.zeros_like(per_member), per_member)
+        span = int((first + cells).max()) + 1
+        key = member_task[entry].astype(np.int64)
+        coord = np.empty((entry.size, dim), np.int64)
+        for d in range(dim):
+            c = cells[entry, d]
+            coord[:, d] = first[entry, d] + local % c
+            key = key * span + coord[:, d]
+            local //= c
+        order = np.argsort(key, kind="stable")
+        key, entry, coord = key[order], entry[order], coord[order]
+        runs = np.flatnonzero(np.r_[True, key[1:] != key[:-1]])
+        sizes = np.diff(np.r_[runs, key.size])
+        # split a crowded cell while its boxes are mostly motion (halving the slice shrinks
+        # them), the depth allows and the next level stays within the budget
+        motion = np.add.reduceat(extent[entry] - 2 * grow, runs) / sizes
+        split = (sizes > CROWD) & (motion > 2 * grow) & (depth < MAX_DEPTH)
+        if 2 * sizes[split].sum() > budget:
+            split[:] = False
+        final = (sizes > 1) & ~split
+        left, right = _pairs_in_runs(runs[final], sizes[final])
+        ma, mb = entry[left], entry[right]
+        # boxes that overlap, counted once: in the cell of their overlap's lower corner
+        keep = np.all((lo[ma] <= hi[mb]) & (lo[mb] <= hi[ma]), axis=1)
+        keep &= np.all(np.floor(np.maximum(scaled_lo[ma], scaled_lo[mb])) == coord[left],
+                       axis=1)
+        ma, mb = ma[keep], mb[keep]
+        i, j, k = np.minimum(member[ma], member[mb]), np.maximum(member[ma], member[mb]), k[ma]
+        distance, _ = _segment_closest(positions[i, k] - positions[j, k],
+                                       positions[i, k + 1] - positions[j, k + 1])
+        close = distance <= radius * (1 + 1e-9) + scale
+        found.append(i[close].astype(np.int64) * n + j[close])
+        if not split.any():
             break
-        cell *= 2.0
-    # one entry per (agent, interval, cell touched by its box)
-    total = cells_per_box.ravel()
-    box = np.repeat(np.arange(total.size), total)
-    local = np.arange(box.size) - np.repeat(np.cumsum(total) - total, total)
-    agent, interval = np.divmod(box, nodes - 1)
-    key = interval.astype(np.int64)
-    flat_first, flat_counts = first.reshape(-1, dim), counts.reshape(-1, dim)
-    for d in range(dim):
-        c = flat_counts[box, d]
-        key = key * span + flat_first[box, d] + local % c
-        local //= c
-    order = np.argsort(key, kind="stable")
-    key, agent = key[order], agent[order]
-    # all pairs within each run of equal keys
-    starts = np.flatnonzero(np.r_[True, key[1:] != key[:-1]])
-    ends = np.repeat(np.r_[starts[1:], key.size], np.diff(np.r_[starts, key.size]))
-    partners = ends - np.arange(key.size) - 1
-    left = np.repeat(np.arange(key.size), partners)
-    right = left + 1 + np.arange(left.size) - np.repeat(np.cumsum(partners) - partners,
-                                                        partners)
-    a, b = agent[left], agent[right]
-    codes = np.unique(np.minimum(a, b).astype(np.int64) * n + np.maximum(a, b))
-    codes = codes[codes // n != codes % n]
-    return np.column_stack(np.divmod(codes, n)).astype(np.intp)
+        # each split cell: two tasks (halves of its slice), frame of its members' mean velocity
+        runs, sizes = runs[split], sizes[split]
+        parent = member_task[entry[runs]]
+        in_run = _run_entries(runs, sizes)
+        group = np.repeat(np.arange(len(runs)), sizes)
+        velocity = step[member[entry[in_run]], task_k[parent][group]]
+        mean_u = np.stack([np.bincount(group, velocity[:, d]) for d in range(dim)], 1) \
+            / sizes[:, None]
+        middle = task_s[parent].mean(axis=1)
+        task_k = np.r_[task_k[parent], task_k[parent]]
+        task_s = np.r_[np.column_stack([task_s[parent, 0], middle]),
+                       np.column_stack([middle, task_s[parent, 1]])]
+        task_u = np.r_[mean_u, mean_u]
+        member_task = np.r_[group, group + len(runs)]
+        member = np.r_[member[entry[in_run]], member[entry[in_run]]]
+    return np.column_stack(np.divmod(np.unique(np.concatenate(found)), n)).astype(np.intp)
 
 
 def _pair_minima(positions: np.ndarray, pairs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -166,9 +232,7 @@ def close_pairs(positions: np.ndarray, radius: float) -> np.ndarray:
     positions = _check_positions(positions)
     if not radius >= 0 or not math.isfinite(radius):
         raise ValueError(f"radius must be finite and >= 0, got {radius}")
-    pairs = _candidates(_refined(positions, radius), radius)
-    if not len(pairs):
-        return pairs
+    pairs = _within(positions, radius)
     minima, _ = _pair_minima(positions, pairs)
     return pairs[minima <= radius]
 
@@ -192,13 +256,23 @@ def closest_approach(positions: np.ndarray, duration: float) -> ClosestApproach:
     n, nodes, _ = positions.shape
     if n < 2:
         return ClosestApproach(math.inf, (-1, -1), math.nan)
-    bound = _upper_bound(positions)
-    pairs = _candidates(_refined(positions, bound), bound)   # holds every pair within bound
+    pairs = _within(positions, _upper_bound(positions))   # holds the closest pair
     minima, when = _pair_minima(positions, pairs)
     best = int(np.argmin(minima))
     i, j = (int(x) for x in pairs[best])
     return ClosestApproach(float(minima[best]), (i, j),
                            float(when[best]) * duration / (nodes - 1))
+
+
+def positions_at(positions: np.ndarray, time: float, duration: float) -> np.ndarray:
+    """Every agent's position (n, dim) at ``time`` (0 … ``duration``) on the piecewise-linear
+    paths through ``positions`` (n, N+1, dim)."""
+    positions = _check_positions(positions)
+    intervals = positions.shape[1] - 1
+    where = min(max(time / duration, 0.0), 1.0) * intervals
+    k = min(int(where), intervals - 1)
+    s = where - k
+    return (1.0 - s) * positions[:, k] + s * positions[:, k + 1]
 
 
 def check_separation_feasible(start: np.ndarray, final: np.ndarray, distance: float) -> None:

@@ -166,6 +166,7 @@ def solve_formation(
             trajectories=sol.trajectories,
             cost_parts=cost_parts(problem, sol.controls),
             outer_iterations=sol.iterations,
+            separation=problem.closest_approach(sol.trajectories),
             inner_solves=ordering_solves,
             failed_solves=0,
             wall_time_s=time.perf_counter() - start,
@@ -184,6 +185,7 @@ def solve_formation(
         phi, iterations, status, message = objective.last_phi, -1, "failed", str(exc)
         sols = objective.last_solutions
     costs = np.asarray(sols.column("cost"), dtype=float)
+    trajectories = np.asarray(sols.column("q"))
     return FormationResult(
         **common,
         status=status,
@@ -191,9 +193,10 @@ def solve_formation(
         total_cost=float(np.sum(costs)),
         phi=phi,
         agent_costs=costs,
-        trajectories=np.asarray(sols.column("q")),
+        trajectories=trajectories,
         cost_parts=cost_parts(problem, np.asarray(sols.column("u"))),
         outer_iterations=iterations,
+        separation=problem.closest_approach(trajectories),
         inner_solves=ordering_solves + objective.inner_solves,
         failed_solves=objective.failed_solves,
         retries=objective.retries,
