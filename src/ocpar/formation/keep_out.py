@@ -3,35 +3,42 @@
 After the unconstrained hierarchical solve (outer angles φ, inner DMOC paths), each round
 reads the latest continuous paths (piecewise linear between nodes,
 :mod:`ocpar.formation.separation`) and gives every agent that comes near another one
-keep-out half-spaces (:mod:`ocpar.ocp.dmoc`, ``keep_out_slots``):
+keep-out half-spaces (:mod:`ocpar.ocp.dmoc`, ``keep_out_slots``), moving linearly in time
+over each interval:
 
 * for each pair (i, j) whose paths come within (1 + :data:`NEIGHBOUR_MARGIN`) D, and each
-  interval k on which they do, the pair's positions a, b at the interval's closest time
-  (:func:`~ocpar.formation.separation.interval_closest`; on the first and last interval the
-  fixed boundary node instead, so that the node the NLP cannot move satisfies its
-  half-space: start and final positions are ≥ D apart) give the normal n = (a − b)/|a − b|
-  and the midpoint m = (a + b)/2; agent i keeps n·r ≥ n·m + D/2 and agent j
-  −n·r ≥ −n·m + D/2 at both nodes of the interval. Both ends of a linear segment in a
-  half-space put the segment in it, so two agents that satisfy theirs are ≥ D apart at every
-  time of the interval (n·(r_i − r_j) ≥ D);
+  interval k on which they do: the normal n is the direction of r_i − r_j at the interval's
+  closest time (:func:`~ocpar.formation.separation.interval_closest`; where they meet,
+  perpendicular to their relative velocity), and the plane follows the pair's centre
+  c(t) = (r_i + r_j)/2, linear in t on the interval: agent i keeps n·r ≥ n·c(t) + D/2 and
+  agent j −n·r ≥ −n·c(t) + D/2 (rows at the interval's two nodes, with c at those nodes).
+  n·r(t) − n·c(t) is linear in t on the interval, so holding at both nodes it holds
+  throughout, and two agents that satisfy theirs are ≥ D apart at every time of the
+  interval (n·(r_i − r_j) ≥ D). On the first and last interval the fixed boundary node must
+  satisfy its side too: there n is blended towards that node's direction
+  (:data:`BOUNDARY_BLENDS`) until it does (start and final positions are ≥ D apart);
+* the planes are linearisations about the latest paths (sequential convex programming,
+  split per agent like buffered Voronoi cells): a pair that passes close keeps its side and
+  moves apart by what it lacks; the common motion of the pair does not enter (a static
+  plane per interval would ask agents travelling along n to stay behind one another);
 * an agent keeps at most K = :data:`KEEP_OUT_SLOTS` half-spaces per interval, those of its
   closest partners (ties by partner index): a dropped one is caught by the next round's
-  check.
+  check. The keep-outs are elastic (exact penalty :data:`PENALTY`), so that a crowded agent
+  whose half-spaces cannot all be met moves as far as it can instead of failing.
 
-Every agent with half-spaces then re-solves its own DMOC problem (the same boundary data, its
-half-spaces as parameters, warm-started from its latest path) in one superstep; the others
-keep their unconstrained optimum. The pairwise constraint is split into independent per-agent
-constraints (as buffered Voronoi cells split it), so each superstep is still a set of
-independent inner problems. Rounds repeat until the exact closest approach
+Every agent with half-spaces then re-solves its own DMOC problem (the same boundary data,
+its half-spaces as parameters, warm-started from its latest path) in one superstep; the
+others keep their unconstrained optimum. Each superstep is still a set of independent inner
+problems. Rounds repeat until the exact closest approach
 (:func:`~ocpar.formation.separation.closest_approach`) is at least D (to a relative
 :data:`SEPARATION_RTOL`) and no node moved by more than :data:`CHANGE_RTOL` · D in the last
-round, or the round limit. The returned paths' separation is checked, not assumed: a run that
-misses D says by how much.
+round, or the round limit. The returned paths' separation is computed, not assumed: a run
+that misses D says by how much.
 
 The final angles φ stay those of the unconstrained outer solve (the keep-outs move the paths,
 not the formation); the cost increase over the unconstrained optimum is reported. With
-``ordering optimal`` the ordering comes first (fewer crossings to undo), then the outer solve,
-then the rounds.
+``ordering optimal`` the ordering comes first (fewer close passes to undo), then the outer
+solve, then the rounds.
 """
 
 from __future__ import annotations
@@ -130,8 +137,9 @@ def half_spaces(positions: np.ndarray, distance: float, slots: int
         rows = np.flatnonzero(fixed)
         normal[rows] = _boundary_normal(normal[rows], rel[rows], distance)
     # the plane follows the pair's centre c(t), linear on the interval: n·r ≥ n·c(t) + D/2
-    centre = (positions[i, k] + positions[j, k]) / 2, (positions[i, k + 1] + positions[j, k + 1]) / 2
-    offsets = np.column_stack([np.einsum("md,md->m", normal, c) for c in centre])
+    offsets = np.column_stack([
+        np.einsum("md,md->m", normal, (positions[i, node] + positions[j, node]) / 2)
+        for node in (k, k + 1)])
     # one entry per (agent, interval): agent i on +normal's side, agent j on −normal's
     agent = np.concatenate([i, j])
     partner = np.concatenate([j, i])
@@ -193,7 +201,7 @@ def separate(problem: FormationProblem, backend: Backend, phi: np.ndarray, base:
     shape = keep_out_shape(problem)
     n = problem.agents
     free_q, free_u, free_cost = (np.asarray(base.column(name)) for name in ("q", "u", "cost"))
-    q, u, costs = free_q.copy(), free_u.copy(), np.asarray(free_cost, float).copy()
+    q, u, costs = free_q.copy(), free_u.copy(), np.array(free_cost, float)
     boundary = problem.boundary_params_rows(np.arange(n), phi)
     outcome = Separation(q, u, costs, closest_approach(problem.positions(q), shape.duration),
                          False, 0, 0.0)
@@ -203,8 +211,8 @@ def separate(problem: FormationProblem, backend: Backend, phi: np.ndarray, base:
         data, dropped = half_spaces(problem.positions(q), distance, KEEP_OUT_SLOTS)
         active = np.any(data[..., -1] != UNUSED_OFFSET, axis=(1, 2))
         agents = np.flatnonzero(active)
-        new_q, new_u, new_costs = free_q.copy(), free_u.copy(), np.asarray(free_cost, float)
-        new_costs = new_costs.copy()
+        new_q, new_u = free_q.copy(), free_u.copy()
+        new_costs = np.array(free_cost, float)
         if len(agents):
             warm = np.hstack([q[agents, 1:-1].reshape(len(agents), -1),
                               u[agents].reshape(len(agents), -1)])
@@ -236,7 +244,8 @@ def separate(problem: FormationProblem, backend: Backend, phi: np.ndarray, base:
             progress(f"separation round {outcome.rounds:3d}  agents {len(agents):6d}  "
                      f"closest {outcome.closest.distance:.6e} (agents "
                      f"{outcome.closest.agents[0]}, {outcome.closest.agents[1]})  "
-                     f"moved {outcome.change:.1e}  cost {float(np.sum(costs)):.12e}")
+                     f"moved {outcome.change:.1e}  cost {float(np.sum(costs)):.12e}  "
+                     f"dropped {dropped}")
     return outcome
 
 

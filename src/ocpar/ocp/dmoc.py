@@ -28,12 +28,13 @@ n·r(q_k) ≥ b⁰ and n·r(q_{k+1}) ≥ b¹ at the interval's free nodes (the b
 data: whoever builds a half-space on the first or last interval must make it hold there).
 The continuous path DMOC represents is linear between nodes, so n·r(t) − b(t) is linear in
 t on the interval: both ends ≥ 0 put the whole interval in the moving half-space. An unused
-slot is n = 0, b⁰ = b¹ = −1 (:data:`UNUSED_OFFSET`): 0 ≥ −1, never active. The keep-outs are elastic, so that the NLP is
-feasible whatever the half-spaces: each slot has a slack σ_{k,s} ≥ 0 (appended to w),
-n·r − b + σ ≥ 0, and the cost gains ρ Σ σ with the penalty ρ the last entry of p (an exact
-penalty: σ = 0 whenever the half-spaces can be met and ρ exceeds their multipliers; the
-returned ``cost`` and ``u`` still measure h Σ |u_k|² alone). Slots are parameters, not structure, so one
-compiled solver serves every agent whatever its constraints; inequalities need the
+slot is n = 0, b⁰ = b¹ = −1 (:data:`UNUSED_OFFSET`): 0 ≥ −1, never active. The keep-outs
+are elastic, so that the NLP is feasible whatever the half-spaces: each slot has a slack
+σ_{k,s} ≥ 0 (appended to w), n·r − b + σ ≥ 0, and the cost gains ρ Σ σ with the penalty ρ
+the last entry of p (an exact penalty: σ = 0 whenever the half-spaces can be met and ρ
+exceeds their multipliers; the returned ``cost`` is h Σ |u_k|² alone). Slots are
+parameters, not structure, so one compiled solver serves every agent whatever its
+constraints; inequalities need the
 ``sqpmethod`` or ``ipopt`` solver (``newton`` takes equalities only).
 
 A time-dependent Lagrangian gives each interval its own L_d (see
