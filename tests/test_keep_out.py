@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 from conftest import run_cli
 
+from ocpar.__main__ import main
 from ocpar.bsp import open_backend
 from ocpar.examples import formation_halo
 from ocpar.examples.formation_point_masses import make as point_masses
@@ -127,6 +128,19 @@ def test_infeasible_separation_exits_2_with_one_line():
     lines = proc.stderr.strip().splitlines()
     assert len(lines) == 1 and "min separation 100 cannot be met: agents" in lines[0]
     assert "start positions" in lines[0] and proc.stdout == ""
+
+
+def test_configuration_key_refused_like_the_flag(tmp_path, capsys):
+    config = tmp_path / "run.toml"
+    out = tmp_path / "out"
+    config.write_text(f'scheme = "formation"\nagents = 12\nmin_separation = 5.3\n'
+                      f'output = "{out}"\n')
+    with pytest.raises(SystemExit) as exit_info:
+        main(["run", str(config)])
+    assert exit_info.value.code == 2
+    line = capsys.readouterr().err.strip()
+    assert line.startswith("ocpar.formation: error: min separation 5.3 cannot be met")
+    assert not (out / "result.json").exists()
 
 
 @pytest.mark.slow
