@@ -239,7 +239,8 @@ def solve_formation(
             message = (f"separation {distance:g} not met after {rounds.rounds} round(s): "
                        f"agents {rounds.closest.agents[0]} and {rounds.closest.agents[1]} "
                        f"come within {rounds.closest.distance:.6g} (short by "
-                       f"{distance - rounds.closest.distance:.3g})")
+                       f"{distance - rounds.closest.distance:.3g}; {rounds.dropped} "
+                       f"half-space(s) dropped for want of slots over the rounds)")
     return FormationResult(
         **common,
         status=status,
