@@ -34,8 +34,8 @@ are elastic, so that the NLP is feasible whatever the half-spaces: each slot has
 the last entry of p (an exact penalty: σ = 0 whenever the half-spaces can be met and ρ
 exceeds their multipliers; the returned ``cost`` is h Σ |u_k|² alone). Slots are
 parameters, not structure, so one compiled solver serves every agent whatever its
-constraints; inequalities need the
-``sqpmethod`` or ``ipopt`` solver (``newton`` takes equalities only).
+constraints; inequalities need the ``sqpmethod`` or ``ipopt`` solver (``newton`` takes
+equalities only).
 
 A time-dependent Lagrangian gives each interval its own L_d (see
 :class:`~ocpar.models.MechanicalSystem`). Holonomic constraints c(q) = 0 (e.g. a unit
