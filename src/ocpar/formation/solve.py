@@ -231,7 +231,9 @@ def solve_formation(
         inner_solves += rounds.inner_solves
         failed_solves += rounds.failed_solves
         retries += rounds.retries
-        if rounds.met:
+        if rounds.met and not rounds.rounds:
+            message += f"; separation {distance:g} met by the unconstrained paths"
+        elif rounds.met:
             message += (f"; separation {distance:g} met after {rounds.rounds} round(s) (last "
                         f"move {rounds.change:.1e})")
         else:
