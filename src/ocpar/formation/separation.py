@@ -35,9 +35,9 @@ import numpy as np
 CELL = 2.0
 #: A grid cell shared by more agents than this is split in time (see :func:`_within`)...
 CROWD = 16
-#: ... at most this many times, and while the agents of the split cells number at most
-#: BUDGET or 4 n N (then all pairs of a crowded cell are tested).
+#: ... at most this many times (then all pairs of a crowded cell are tested).
 MAX_DEPTH = 16
+#: Most agents in one batch of tasks, and most pairs in one batch of exact tests.
 BUDGET = 2_000_000
 #: Pairs per chunk of the exact test (bounds its temporary arrays to a few hundred MB).
 CHUNK = 200_000
@@ -116,6 +116,19 @@ def _pairs_in_runs(runs: np.ndarray, sizes: np.ndarray) -> tuple[np.ndarray, np.
     return left, left + 1 + _run_entries(np.zeros_like(partners), partners)
 
 
+def _batches(weights: np.ndarray, limit: int) -> list[np.ndarray]:
+    """Consecutive index ranges of ``weights`` (≥ 0) whose sums stay within ``limit`` (a
+    single heavier item makes a batch of its own)."""
+    batches, first = [], 0
+    total = np.cumsum(weights)
+    while first < len(weights):
+        base = total[first - 1] if first else 0
+        last = max(first + 1, int(np.searchsorted(total, base + limit, side="right")))
+        batches.append(np.arange(first, last))
+        first = last
+    return batches
+
+
 def _within(positions: np.ndarray, radius: float) -> np.ndarray:
     """Pairs (m, 2), i < j, sorted, that come within ``radius`` on some interval by the exact
     test on that interval, with a slack of 1e-9 radius (a superset of :func:`close_pairs`
@@ -127,22 +140,20 @@ def _within(positions: np.ndarray, radius: float) -> np.ndarray:
     overlap get the exact test; a crowded cell becomes two tasks, the two halves of its slice
     in the frame of its agents' mean velocity (agents moving together then sweep small
     boxes). Frames and slices do not change which pairs come close, so nothing is missed.
+    Tasks wait in a queue in batches of at most BUDGET agents; pairs are tested in batches of
+    at most BUDGET.
     """
     n, nodes, dim = positions.shape
     intervals = nodes - 1
     start, step = positions[:, :-1], np.diff(positions, axis=1)     # (n, N, dim)
     scale = 1e-12 * (1.0 + np.abs(positions).max())
     grow = 0.5 * radius * (1 + 1e-9) + scale
-    # tasks: one per interval, all agents, the frame of the median velocity
-    task_k = np.arange(intervals)
-    task_s = np.zeros((intervals, 2))
-    task_s[:, 1] = 1.0
-    task_u = np.median(step, axis=0)
-    member_task = np.repeat(np.arange(intervals), n)
-    member = np.tile(np.arange(n), intervals)
     found = [np.empty(0, np.int64)]
-    budget = max(BUDGET, 4 * len(member))
-    for depth in range(MAX_DEPTH + 1):
+    # first tasks: each interval, all agents, the frame of the median velocity
+    queue = [(np.array([k]), np.array([[0.0, 1.0]]), np.median(step[:, k], axis=0)[None],
+              np.zeros(n, np.intp), np.arange(n), 0) for k in range(intervals)]
+    while queue:
+        task_k, task_s, task_u, member_task, member, depth = queue.pop()
         k = task_k[member_task]
         a, v = start[member, k], step[member, k] - task_u[member_task]
         lo = a + task_s[member_task, :1] * v
@@ -179,41 +190,40 @@ def _within(positions: np.ndarray, radius: float) -> np.ndarray:
         runs = np.flatnonzero(np.r_[True, key[1:] != key[:-1]])
         sizes = np.diff(np.r_[runs, key.size])
         # split a crowded cell while its boxes are mostly motion (halving the slice shrinks
-        # them), the depth allows and the next level stays within the budget
+        # them) and the depth allows
         motion = np.add.reduceat(extent[entry] - 2 * grow, runs) / sizes
         split = (sizes > CROWD) & (motion > 2 * grow) & (depth < MAX_DEPTH)
-        if 2 * sizes[split].sum() > budget:
-            split[:] = False
-        final = (sizes > 1) & ~split
-        left, right = _pairs_in_runs(runs[final], sizes[final])
-        ma, mb = entry[left], entry[right]
-        # boxes that overlap, counted once: in the cell of their overlap's lower corner
-        keep = np.all((lo[ma] <= hi[mb]) & (lo[mb] <= hi[ma]), axis=1)
-        keep &= np.all(np.floor(np.maximum(scaled_lo[ma], scaled_lo[mb])) == coord[left],
-                       axis=1)
-        ma, mb = ma[keep], mb[keep]
-        i, j, k = np.minimum(member[ma], member[mb]), np.maximum(member[ma], member[mb]), k[ma]
-        distance, _ = _segment_closest(positions[i, k] - positions[j, k],
-                                       positions[i, k + 1] - positions[j, k + 1])
-        close = distance <= radius * (1 + 1e-9) + scale
-        found.append(i[close].astype(np.int64) * n + j[close])
-        if not split.any():
-            break
+        final = np.flatnonzero((sizes > 1) & ~split)
+        for batch in _batches(sizes[final] * (sizes[final] - 1) // 2, BUDGET):
+            left, right = _pairs_in_runs(runs[final[batch]], sizes[final[batch]])
+            ma, mb = entry[left], entry[right]
+            # boxes that overlap, counted once: in the cell of their overlap's lower corner
+            keep = np.all((lo[ma] <= hi[mb]) & (lo[mb] <= hi[ma]), axis=1)
+            keep &= np.all(np.floor(np.maximum(scaled_lo[ma], scaled_lo[mb])) == coord[left],
+                           axis=1)
+            ma, mb = ma[keep], mb[keep]
+            i, j = np.minimum(member[ma], member[mb]), np.maximum(member[ma], member[mb])
+            at = k[ma]
+            distance, _ = _segment_closest(positions[i, at] - positions[j, at],
+                                           positions[i, at + 1] - positions[j, at + 1])
+            close = distance <= radius * (1 + 1e-9) + scale
+            found.append(i[close].astype(np.int64) * n + j[close])
         # each split cell: two tasks (halves of its slice), frame of its members' mean velocity
-        runs, sizes = runs[split], sizes[split]
-        parent = member_task[entry[runs]]
-        in_run = _run_entries(runs, sizes)
-        group = np.repeat(np.arange(len(runs)), sizes)
-        velocity = step[member[entry[in_run]], task_k[parent][group]]
-        mean_u = np.stack([np.bincount(group, velocity[:, d]) for d in range(dim)], 1) \
-            / sizes[:, None]
-        middle = task_s[parent].mean(axis=1)
-        task_k = np.r_[task_k[parent], task_k[parent]]
-        task_s = np.r_[np.column_stack([task_s[parent, 0], middle]),
-                       np.column_stack([middle, task_s[parent, 1]])]
-        task_u = np.r_[mean_u, mean_u]
-        member_task = np.r_[group, group + len(runs)]
-        member = np.r_[member[entry[in_run]], member[entry[in_run]]]
+        split = np.flatnonzero(split)
+        for batch in _batches(2 * sizes[split], BUDGET):
+            runs_b, sizes_b = runs[split[batch]], sizes[split[batch]]
+            parent = member_task[entry[runs_b]]
+            agents = member[entry[_run_entries(runs_b, sizes_b)]]
+            group = np.repeat(np.arange(len(runs_b)), sizes_b)
+            velocity = step[agents, task_k[parent][group]]
+            mean_u = np.stack([np.bincount(group, velocity[:, d]) for d in range(dim)], 1) \
+                / sizes_b[:, None]
+            middle = task_s[parent].mean(axis=1)
+            queue.append((np.r_[task_k[parent], task_k[parent]],
+                          np.r_[np.column_stack([task_s[parent, 0], middle]),
+                                np.column_stack([middle, task_s[parent, 1]])],
+                          np.r_[mean_u, mean_u], np.r_[group, group + len(runs_b)],
+                          np.r_[agents, agents], depth + 1))
     return np.column_stack(np.divmod(np.unique(np.concatenate(found)), n)).astype(np.intp)
 
 
@@ -287,8 +297,6 @@ def check_separation_feasible(start: np.ndarray, final: np.ndarray, distance: fl
             raise ValueError(f"{name} positions must have shape (n, dim), got {points.shape}")
         still = np.repeat(points[:, None, :], 2, axis=1)
         pairs = close_pairs(still, distance)
-        if not len(pairs):
-            continue
         gaps = np.linalg.norm(points[pairs[:, 0]] - points[pairs[:, 1]], axis=1)
         short = np.flatnonzero(gaps < distance)
         if len(short):
