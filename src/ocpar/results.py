@@ -8,6 +8,9 @@ Statuses (the same words in every scheme):
   full-horizon NLP solved; MACS: the evaluation budget spent with a non-empty archive);
 * ``not_converged``: it stopped at a bound (outer iterations, agents) without meeting it;
 * ``failed``: it has no usable answer (an inner solve failed for good, no feasible point);
+* ``separation_not_met``: a formation run with a required minimum separation whose rounds
+  ended (round limit) with two agents closer than required; its paths are returned, with
+  by how much they miss;
 * ``cancelled``: stopped by its stop file at a superstep boundary (``ocpar cancel``); such a
   run writes no result.json, its checkpoint resumes it.
 """
@@ -22,7 +25,8 @@ from typing import ClassVar
 from ocpar.bsp import SuperstepTrace
 
 #: Exit status of a run by its status (2 is bad usage, before anything runs).
-EXIT_STATUS = {"converged": 0, "not_converged": 1, "failed": 3, "cancelled": 4}
+EXIT_STATUS = {"converged": 0, "not_converged": 1, "failed": 3, "cancelled": 4,
+               "separation_not_met": 5}
 STATUSES = tuple(EXIT_STATUS)
 
 

@@ -25,7 +25,10 @@ class FormationResult(RunResult):
     (:mod:`ocpar.formation.potential`); ``on_circle`` whether the curve is a circle (the
     equidistance error is NaN otherwise); ``separation`` the closest approach of any two
     agents on the continuous paths (:meth:`FormationProblem.closest_approach
-    <ocpar.formation.FormationProblem.closest_approach>`).
+    <ocpar.formation.FormationProblem.closest_approach>`); with a required minimum
+    separation (:mod:`ocpar.formation.keep_out`): ``required_separation`` D,
+    ``separation_rounds`` the keep-out rounds run and ``unconstrained_cost`` the total cost
+    before them (NaN/None/0 without).
     The common fields are :class:`ocpar.results.RunResult`'s.
     """
 
@@ -42,6 +45,9 @@ class FormationResult(RunResult):
     cost_parts: dict[str, float] = field(default_factory=dict)
     coupling_residual: float = math.nan
     on_circle: bool = True
+    required_separation: float | None = None
+    separation_rounds: int = 0
+    unconstrained_cost: float = math.nan
 
     @property
     def equidistance_error(self) -> float:
@@ -63,9 +69,20 @@ class FormationResult(RunResult):
             "closest_pair": (list(self.separation.agents)
                              if math.isfinite(self.separation.distance) else None),
             "closest_time": _finite_or_none(self.separation.time),
+            "required_separation": self.required_separation,
+            "separation_rounds": self.separation_rounds,
+            "unconstrained_cost": _finite_or_none(self.unconstrained_cost),
             "agent_costs": [_finite_or_none(c) for c in self.agent_costs],
             "trajectories": np.asarray(self.trajectories, float).tolist(),
         }
+
+    def _required_summary(self) -> str:
+        """The summary's words on a required separation ('' without one)."""
+        if self.required_separation is None:
+            return ""
+        increase = self.total_cost / self.unconstrained_cost - 1
+        return (f"   required {self.required_separation:g}: {self.separation_rounds} round(s), "
+                f"cost +{increase:.3%} over the unconstrained {self.unconstrained_cost:.6e}")
 
     def summary(self) -> str:
         """A few lines for people: the headline numbers of the run."""
@@ -79,7 +96,8 @@ class FormationResult(RunResult):
             f"{equidistance}coupling residual {self.coupling_residual:.1e}\n"
             f"min separation {self.separation.distance:.6g} (agents "
             f"{self.separation.agents[0]} and {self.separation.agents[1]} at t = "
-            f"{self.separation.time:.6g})\n"
+            f"{self.separation.time:.6g})"
+            f"{self._required_summary()}\n"
             f"outer iterations {self.outer_iterations}   supersteps {self.supersteps}   "
             f"inner solves {self.inner_solves} (failed {self.failed_solves}, retries "
             f"{self.retries})\n"

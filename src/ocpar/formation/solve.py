@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import math
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -18,11 +19,13 @@ from ocpar.formation.hierarchical import (
     solve_outer_newton,
     solve_outer_offset,
 )
+from ocpar.formation.keep_out import separate
 from ocpar.formation.monolithic import solve_monolithic
 from ocpar.formation.ordering import ORDERINGS, optimal_ordering
 from ocpar.formation.potential import coupling
 from ocpar.formation.problem import FormationProblem
 from ocpar.formation.result import FormationResult
+from ocpar.formation.separation import check_separation_feasible
 from ocpar.ocp.batch import SOLVERS
 from ocpar.options import option
 
@@ -51,7 +54,11 @@ class FormationOptions:
     start the chosen mode). ``offset`` and ``optimal`` rely on the circle's symmetry:
     :func:`solve_formation` refuses them (ValueError) on other curves. ``inner_solver``
     (``sqpmethod`` or ``ipopt``, see :mod:`ocpar.ocp.batch`) replaces the problem's
-    ``DmocShape.solver`` for this solve; None keeps it.
+    ``DmocShape.solver`` for this solve; None keeps it. ``min_separation`` D (length unit,
+    hierarchical mode only): after the outer solve, separation rounds of keep-out DMOC
+    solves (:mod:`ocpar.formation.keep_out`, at most ``separation_rounds`` supersteps) keep
+    every pair ≥ D apart on the continuous paths, or the result's status is
+    ``separation_not_met``; None: no constraint (the paths may cross).
     """
 
     mode: str = option("hierarchical", "hierarchical, or monolithic (one NLP, for reference)",
@@ -74,6 +81,13 @@ class FormationOptions:
         None, "inner DMOC solver: sqpmethod (a chunk in one mapped call, IPOPT for the solves "
         "that fail its KKT check) or ipopt (one IPOPT call per agent); default: the problem's "
         "DmocShape.solver (sqpmethod unless it says otherwise)", choices=SOLVERS)
+    min_separation: float | None = option(
+        None, "keep every pair of agents at least this far apart at all times of the "
+        "continuous paths (the model's length unit): separation rounds of keep-out DMOC "
+        "solves after the outer solve; start or final positions closer than this are "
+        "refused", above=0, metavar="D")
+    separation_rounds: int = option(30, "separation rounds (supersteps of keep-out solves) "
+                                    "at most, with --min-separation", low=1)
 
     def __post_init__(self) -> None:
         if self.mode not in MODES:
@@ -88,6 +102,11 @@ class FormationOptions:
             raise ValueError("tolerances must be positive")
         if self.max_outer_iterations < 1:
             raise ValueError("max_outer_iterations must be at least 1")
+        if self.min_separation is not None and not (0 < self.min_separation < math.inf):
+            raise ValueError(f"min_separation must be a positive finite length, got "
+                             f"{self.min_separation}")
+        if self.separation_rounds < 1:
+            raise ValueError("separation_rounds must be at least 1")
 
 
 def cost_parts(problem: FormationProblem, controls: np.ndarray) -> dict[str, float]:
@@ -100,12 +119,23 @@ def cost_parts(problem: FormationProblem, controls: np.ndarray) -> dict[str, flo
 
 def check_applicable(problem: FormationProblem, options: FormationOptions) -> None:
     """Raise ValueError (one line) if ``options`` ask for a circle's shortcut (``offset``
-    outer solver, ``optimal`` ordering) on a problem whose curve is not a circle; a driver
+    outer solver, ``optimal`` ordering) on a problem whose curve is not a circle, or for a
+    ``min_separation`` that the monolithic mode does not offer or that two start or final
+    positions already violate (the final positions of the initial angles: on a circle every
+    formation has the same spacings, elsewhere the formation is the initial one); a driver
     calls it before starting workers (:func:`solve_formation` calls it too)."""
     if options.ordering == "optimal":
         problem.require_circle("ordering 'optimal'")
     if options.mode == "hierarchical" and options.outer == "offset":
         problem.require_circle("outer 'offset'")
+    if options.min_separation is not None:
+        if options.mode != "hierarchical":
+            raise ValueError("min_separation applies to the hierarchical mode only")
+        nq = problem.shape.model.nq
+        final = problem.boundary_params_rows(np.arange(problem.agents),
+                                             problem.initial_phi())[:, 2 * nq:3 * nq]
+        check_separation_feasible(problem.positions(problem.starts), problem.positions(final),
+                                  options.min_separation)
 
 
 #: Above this many agents on a circle the result's coupling residual is not evaluated (it
@@ -185,7 +215,34 @@ def solve_formation(
         phi, iterations, status, message = objective.last_phi, -1, "failed", str(exc)
         sols = objective.last_solutions
     costs = np.asarray(sols.column("cost"), dtype=float)
-    trajectories = np.asarray(sols.column("q"))
+    trajectories, controls = np.asarray(sols.column("q")), np.asarray(sols.column("u"))
+    separation = problem.closest_approach(trajectories)
+    inner_solves = ordering_solves + objective.inner_solves
+    failed_solves, retries = objective.failed_solves, objective.retries
+    extra = {}
+    distance = options.min_separation
+    if distance is not None and status != "failed":
+        rounds = separate(problem, backend, phi, sols, distance, options.separation_rounds,
+                          progress)
+        extra = {"required_separation": distance, "separation_rounds": rounds.rounds,
+                 "unconstrained_cost": float(np.sum(costs))}
+        costs, trajectories, controls = rounds.costs, rounds.q, rounds.u
+        separation = rounds.closest
+        inner_solves += rounds.inner_solves
+        failed_solves += rounds.failed_solves
+        retries += rounds.retries
+        if rounds.met and not rounds.rounds:
+            message += f"; separation {distance:g} met by the unconstrained paths"
+        elif rounds.met:
+            message += (f"; separation {distance:g} met after {rounds.rounds} round(s) (last "
+                        f"move {rounds.change:.1e})")
+        else:
+            status = "separation_not_met"
+            message = (f"separation {distance:g} not met after {rounds.rounds} round(s): "
+                       f"agents {rounds.closest.agents[0]} and {rounds.closest.agents[1]} "
+                       f"come within {rounds.closest.distance:.6g} (short by "
+                       f"{distance - rounds.closest.distance:.3g}; {rounds.dropped} "
+                       f"half-space(s) dropped for want of slots over the rounds)")
     return FormationResult(
         **common,
         status=status,
@@ -194,13 +251,14 @@ def solve_formation(
         phi=phi,
         agent_costs=costs,
         trajectories=trajectories,
-        cost_parts=cost_parts(problem, np.asarray(sols.column("u"))),
+        cost_parts=cost_parts(problem, controls),
         outer_iterations=iterations,
-        separation=problem.closest_approach(trajectories),
-        inner_solves=ordering_solves + objective.inner_solves,
-        failed_solves=objective.failed_solves,
-        retries=objective.retries,
+        separation=separation,
+        inner_solves=inner_solves,
+        failed_solves=failed_solves,
+        retries=retries,
         wall_time_s=time.perf_counter() - start,
         trace=backend.traces[first_trace:],
         coupling_residual=coupling_residual(problem, phi),
+        **extra,
     )

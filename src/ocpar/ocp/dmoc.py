@@ -18,6 +18,25 @@ constraints are the discrete Euler–Lagrange equations with the boundary moment
 and the cost is J_d = h Σ_k |u_k|². Boundary data p = (q_0, q̇_0, q_N, q̇_N) ∈ R^{4 nq} are NLP
 parameters; the decision variables are w = (q_1..q_{N-1}, u_0..u_{N-1}, λ_0..λ_N).
 
+Keep-out half-spaces (optional, ``DmocShape.keep_out_slots`` K > 0): K slots per interval k,
+each a normal n ∈ R^d and offsets b⁰, b¹ at the interval's two nodes on the position r(q)
+(the d configuration entries ``keep_out_positions``, e.g. the model's ``position_indices``),
+appended to p after the boundary data, slot by slot, interval by interval:
+(n_{0,0}, b⁰_{0,0}, b¹_{0,0}, n_{0,1}, …, b¹_{N−1,K−1}). The half-space moves linearly in time
+over the interval, n·r(t) ≥ b(t) with b linear from b⁰ at t_k to b¹ at t_{k+1}; the rows are
+n·r(q_k) ≥ b⁰ and n·r(q_{k+1}) ≥ b¹ at the interval's free nodes (the boundary nodes are
+data: whoever builds a half-space on the first or last interval must make it hold there).
+The continuous path DMOC represents is linear between nodes, so n·r(t) − b(t) is linear in
+t on the interval: both ends ≥ 0 put the whole interval in the moving half-space. An unused
+slot is n = 0, b⁰ = b¹ = −1 (:data:`UNUSED_OFFSET`): 0 ≥ −1, never active. The keep-outs
+are elastic, so that the NLP is feasible whatever the half-spaces: each slot has a slack
+σ_{k,s} ≥ 0 (appended to w), n·r − b + σ ≥ 0, and the cost gains ρ Σ σ with the penalty ρ
+the last entry of p (an exact penalty: σ = 0 whenever the half-spaces can be met and ρ
+exceeds their multipliers; the returned ``cost`` is h Σ |u_k|² alone). Slots are
+parameters, not structure, so one compiled solver serves every agent whatever its
+constraints; inequalities need the ``sqpmethod`` or ``ipopt`` solver (``newton`` takes
+equalities only).
+
 A time-dependent Lagrangian gives each interval its own L_d (see
 :class:`~ocpar.models.MechanicalSystem`). Holonomic constraints c(q) = 0 (e.g. a unit
 quaternion) add the reaction ∇c(q_k)ᵀ λ_k to the equation of every node k = 0..N (boundary
@@ -46,6 +65,9 @@ from ocpar.ocp.sensitivity import cost_hessian_function
 #: the shape's ``max_iter``.
 NEWTON_ROUNDS = 8
 
+#: Offset b of an unused keep-out slot (with normal 0: the row 0 ≥ b is never active).
+UNUSED_OFFSET = -1.0
+
 #: Status of a batched solve, by the outcome of its KKT check.
 BATCH_STATUS = {True: "Solve_Succeeded", False: "KKT_Check_Failed"}
 
@@ -63,7 +85,9 @@ class DmocShape:
     tolerance on the (unscaled) primal and dual residuals and their acceptance test;
     ``tol`` is IPOPT's (scaled). With 1e-10 a point-mass QP takes one sqpmethod iteration
     instead of two (at 1e-12 the second only meets rounding), and its cost agrees with
-    IPOPT's to ~1e-13.
+    IPOPT's to ~1e-13. ``keep_out_slots`` K and ``keep_out_positions`` (d configuration
+    entries): K keep-out half-spaces per interval on those entries (module docstring; K = 0:
+    none, the NLP of old).
     """
 
     model: MechanicalSystem
@@ -73,6 +97,8 @@ class DmocShape:
     max_iter: int = 500
     solver: str = "newton"
     kkt_tol: float = 1e-10
+    keep_out_slots: int = 0
+    keep_out_positions: tuple[int, ...] = ()
 
     def __post_init__(self) -> None:
         if self.intervals < 1:
@@ -82,15 +108,35 @@ class DmocShape:
         if self.solver not in SOLVERS:
             raise ValueError(f"unknown DMOC solver {self.solver!r}; choose one of "
                              f"{', '.join(SOLVERS)}")
+        if self.keep_out_slots < 0:
+            raise ValueError(f"keep_out_slots must be ≥ 0, got {self.keep_out_slots}")
+        positions = self.keep_out_positions
+        if self.keep_out_slots and not (
+                positions and len(set(positions)) == len(positions)
+                and all(0 <= i < self.model.nq for i in positions)):
+            raise ValueError(f"keep_out_positions must be distinct entries of the "
+                             f"{self.model.nq} configuration entries, got {positions}")
+        if not self.keep_out_slots and positions:
+            raise ValueError("keep_out_positions needs keep_out_slots > 0")
+        if self.keep_out_slots and self.solver == "newton":
+            raise ValueError("keep-out half-spaces are inequalities: the newton solver takes "
+                             "equalities only; choose sqpmethod or ipopt")
         model_intervals = getattr(self.model, "intervals", None)
         if model_intervals is not None and model_intervals != self.intervals:
             raise ValueError(f"the model is tabulated on {model_intervals} intervals, the "
                              f"DMOC shape has {self.intervals}")
 
     @property
+    def n_keep_out(self) -> int:
+        """Length of the keep-out block of p: N K (d + 2), then ρ (module docstring)."""
+        if not self.keep_out_slots:
+            return 0
+        return self.intervals * self.keep_out_slots * (len(self.keep_out_positions) + 2) + 1
+
+    @property
     def n_params(self) -> int:
-        """Length of the boundary-data vector p = (q_0, q̇_0, q_N, q̇_N)."""
-        return 4 * self.model.nq
+        """Length of p: the boundary data (q_0, q̇_0, q_N, q̇_N), then the keep-out block."""
+        return 4 * self.model.nq + self.n_keep_out
 
     def build(self) -> DmocTranscription:
         """The transcription of this shape (see :func:`~ocpar.ocp.transcription`)."""
@@ -99,10 +145,10 @@ class DmocShape:
 
 @dataclass
 class DmocSolution(InnerSolution):
-    """Result of one DMOC solve: the common fields, and ``cost_gradient`` dJ*/dp (4 nq,
+    """Result of one DMOC solve: the common fields, and ``cost_gradient`` dJ*/dp (n_params,
     from the NLP multipliers); ``end_hessian`` d²J*/dq_N² (nq, nq, from the KKT system,
-    :mod:`ocpar.ocp.sensitivity`); ``q`` the node path (N+1, nq); ``u`` the interval controls
-    (N, nu)."""
+    :mod:`ocpar.ocp.sensitivity`; NaN for a shape with keep-out slots); ``q`` the node path
+    (N+1, nq); ``u`` the interval controls (N, nu)."""
 
     cost_gradient: np.ndarray
     end_hessian: np.ndarray
@@ -144,7 +190,7 @@ class DmocTranscription:
         nc = getattr(model, "n_constraints", 0)
         self.nc = nc
 
-        p = ca.SX.sym("p", 4 * nq)
+        p = ca.SX.sym("p", shape.n_params)
         q0, v0, qn, vn = (p[i * nq : (i + 1) * nq] for i in range(4))
         q_inner = ca.SX.sym("q_inner", nq * (n - 1))
         u_all = ca.SX.sym("u", nu * n)
@@ -168,29 +214,63 @@ class DmocTranscription:
         eqs.append(-end_momentum(qn, vn) + d2[n - 1](qs[n - 1], qs[n]) + f_half[n - 1] + react[n])
         if nc:
             eqs += [c(qs[k]) for k in range(1, n)]
+        slack = ca.SX.sym("slack", n * shape.keep_out_slots)
+        keep_out = self._keep_out_rows(p[4 * nq:], qs, slack)
+        control_cost = h * ca.sumsqr(u_all)
+        penalty = p[-1] * ca.sum1(slack) if shape.keep_out_slots else 0
 
-        w = ca.vertcat(q_inner, u_all, lam)
+        w = ca.vertcat(q_inner, u_all, lam, slack)
         self.nw = w.numel()
-        self.n_params = 4 * nq
-        self.ng = nq * (n + 1) + nc * (n - 1)
-        self.cost = ca.Function("J", [w, p], [h * ca.sumsqr(u_all)], ["w", "p"], ["J"])
-        self.constraints = ca.Function("g", [w, p], [ca.vertcat(*eqs)], ["w", "p"], ["g"])
+        self.n_params = shape.n_params
+        self.ng = nq * (n + 1) + nc * (n - 1) + len(keep_out)
+        #: Constraint bounds: the equations = 0, the keep-out rows ≥ 0.
+        self.lbg = np.zeros(self.ng)
+        self.ubg = np.concatenate([np.zeros(self.ng - len(keep_out)),
+                                   np.full(len(keep_out), np.inf)])
+        #: Variable bounds: the slacks ≥ 0, everything else free.
+        self.lbx = np.concatenate([np.full(self.nw - slack.numel(), -np.inf),
+                                   np.zeros(slack.numel())])
+        self.ubx = np.full(self.nw, np.inf)
+        self.cost = ca.Function("J", [w, p], [control_cost + penalty], ["w", "p"], ["J"])
+        self.constraints = ca.Function("g", [w, p], [ca.vertcat(*eqs, *keep_out)], ["w", "p"],
+                                       ["g"])
         self._w, self._p = w, p
-        self.end_hessian = cost_hessian_function(
+        # d²J*/dq_N² from the KKT system holds for equalities only: none with keep-outs
+        self.end_hessian = None if shape.keep_out_slots else cost_hessian_function(
             "dmoc", w, p, self.cost(w, p), self.constraints(w, p), slice(2 * nq, 3 * nq))
+
+    def _keep_out_rows(self, data: ca.SX, qs: list[ca.SX], slack: ca.SX) -> list[ca.SX]:
+        """n·r(q) − b + σ at the free nodes q of each interval k, slot s (b the slot's offset
+        at that node), from the keep-out block ``data`` of p and the slacks (module
+        docstring)."""
+        slots, n = self.shape.keep_out_slots, self.n
+        positions = list(self.shape.keep_out_positions)
+        dim = len(positions)
+        rows = []
+        for k in range(n):
+            for s in range(slots):
+                start = (k * slots + s) * (dim + 2)
+                normal = data[start:start + dim]
+                rows += [ca.dot(normal, qs[node][positions]) - data[start + dim + end]
+                         + slack[k * slots + s]
+                         for end, node in enumerate((k, k + 1)) if 0 < node < n]
+        return rows
 
     @cached_property
     def solver(self) -> ca.Function:
         """IPOPT solver of this shape, built on first use and then reused."""
         w, p = self._w, self._p
         nlp = {"x": w, "p": p, "f": self.cost(w, p), "g": self.constraints(w, p)}
-        return ca.nlpsol("dmoc", "ipopt", nlp, ipopt_options(self.shape.tol, self.shape.max_iter))
+        # IPOPT relaxes inequalities by 1e-8 (relative) unless told not to: a keep-out is exact
+        exact = {"bound_relax_factor": 0.0} if self.shape.keep_out_slots else {}
+        return ca.nlpsol("dmoc", "ipopt", nlp,
+                         ipopt_options(self.shape.tol, self.shape.max_iter, **exact))
 
     @cached_property
     def batch_solver(self) -> KktNewton | MappedNlp | None:
         """The batched solver of this shape (None when its ``solver`` is ``ipopt``)."""
         w, p = self._w, self._p
-        if self.shape.solver == "newton":
+        if self.shape.solver == "newton":  # DmocShape refuses it with keep-out slots
             return KktNewton("dmoc", w, p, self.cost(w, p), self.constraints(w, p), 1,
                              self.shape.kkt_tol, post=self.end_hessian)
         if self.shape.solver != "sqpmethod":
@@ -216,16 +296,16 @@ class DmocTranscription:
         path = (h00 * q0 + h10 * t * v0 + h01 * qn + h11 * t * vn).reshape(-1, nq)
         if self.nc:
             path = self.shape.model.project(path)
-        return np.hstack([path.reshape(k, -1), np.zeros((k, self.nu * n + self.nc * (n + 1)))])
+        return np.hstack([path.reshape(k, -1), np.zeros((k, self.nw - path.size // k))])
 
     def fallback_guesses(self, params: np.ndarray) -> Iterator[np.ndarray]:
         """The straight line from q_0 to q_N (projected onto the constraints, if any), zero
         controls and multipliers."""
-        q0, _, qn, _ = np.asarray(params, float).reshape(4, self.nq)
+        q0, _, qn, _ = np.asarray(params, float)[:4 * self.nq].reshape(4, self.nq)
         path = q0 + np.arange(1, self.n)[:, None] / self.n * (qn - q0)
         if self.nc:
             path = self.shape.model.project(path)
-        yield np.concatenate([path.ravel(), np.zeros(self.nu * self.n + self.nc * (self.n + 1))])
+        yield np.concatenate([path.ravel(), np.zeros(self.nw - path.size)])
 
     def warm_start(self, solution: DmocSolution) -> np.ndarray:
         """The guess (inner nodes, controls; λ = 0) that re-solves from ``solution``."""
@@ -238,7 +318,11 @@ class DmocTranscription:
         return DmocSolution(cost=float("nan"), status=status, success=False, iterations=0,
                             attempts=1, solve_time_s=elapsed,
                             cost_gradient=np.full(params.shape, np.nan),
-                            end_hessian=np.full((self.nq, self.nq), np.nan), q=nan_q, u=nan_u)
+                            end_hessian=self._no_hessian(), q=nan_q, u=nan_u)
+
+    def _no_hessian(self) -> np.ndarray:
+        """The (nq, nq) NaN ``end_hessian`` of a failed solve or of a shape with keep-outs."""
+        return np.full((self.nq, self.nq), np.nan)
 
     def unpack(self, w: np.ndarray, params: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Split w into the node path q (N+1, nq) and the interval controls u (N, nu)."""
@@ -261,22 +345,27 @@ class DmocTranscription:
         and constraint multipliers (default 0); a failed solve is returned, not raised."""
         params = check_params(params, self.n_params, "DMOC")
         x0 = self.default_guess(params) if guess is None else self._full_guess(guess)
-        zero_g = np.zeros(self.ng)
         extra = {} if multipliers is None else {"lam_g0": multipliers}
-        call = call_nlpsol(self.solver, x0=x0, p=params, lbg=zero_g, ubg=zero_g, **extra)
+        bounds = {"lbx": self.lbx} if self.shape.keep_out_slots else {}
+        call = call_nlpsol(self.solver, x0=x0, p=params, lbg=self.lbg, ubg=self.ubg, **bounds,
+                           **extra)
         if call.out is None:
             return self.failure(params, call.status, call.solve_time_s)
         w, lam_g = (np.asarray(call.out[k]).ravel() for k in ("x", "lam_g"))
         q, u = self.unpack(w, params)
+        if self.end_hessian is None:  # keep-outs: the control cost without the penalty
+            common = {**call.common, "cost": self.h * float(np.sum(u**2))}
+            return DmocSolution(**common, cost_gradient=call.cost_gradient,
+                                end_hessian=self._no_hessian(), q=q, u=u)
         hessian = np.asarray(self.end_hessian(w, lam_g, params))
         return DmocSolution(**call.common, cost_gradient=call.cost_gradient,
                             end_hessian=hessian, q=q, u=u)
 
     def _full_guess(self, guess: np.ndarray) -> np.ndarray:
-        """``guess`` with λ = 0 appended if it has none."""
+        """``guess`` with λ = 0 (and slacks σ = 0) appended if it has none."""
         x0 = np.asarray(guess, float)
-        if x0.size == self.nw - self.nc * (self.n + 1):
-            x0 = np.concatenate([x0, np.zeros(self.nc * (self.n + 1))])
+        if x0.size == self.nq * (self.n - 1) + self.nu * self.n:
+            x0 = np.concatenate([x0, np.zeros(self.nw - x0.size)])
         return x0
 
     def solve_batch(self, params: np.ndarray, guesses: np.ndarray | list[np.ndarray | None],
@@ -304,22 +393,28 @@ class DmocTranscription:
             for k, lam in enumerate(multipliers):
                 if lam is not None:
                     lam0[k] = lam
-        zero_g, free = np.zeros(self.ng), np.full(self.nw, np.inf)
         try:
             if isinstance(self.batch_solver, KktNewton):
                 rounds = min(NEWTON_ROUNDS, self.shape.max_iter)
-                batch = self.batch_solver.solve(x0, params, lam0, -free, free, rounds)
+                batch = self.batch_solver.solve(x0, params, lam0, self.lbx, self.ubx, rounds)
             else:
-                batch = self.batch_solver.solve(x0, params, lam0, zero_g, zero_g, -free, free)
+                batch = self.batch_solver.solve(x0, params, lam0, self.lbg, self.ubg, self.lbx,
+                                                self.ubx)
         except RuntimeError:
             return None
         k = len(params)
         q, u = self.unpack_many(batch.x, params)
         iterations = np.full(k, -1) if batch.iterations is None else batch.iterations
+        if self.end_hessian is None:  # keep-outs: the control cost without the penalty
+            costs = self.h * np.sum(u**2, axis=(1, 2))
+            hessians = np.full((k, self.nq, self.nq), np.nan)
+        else:
+            costs = batch.f
+            hessians = batch.extra.reshape(k, self.nq, self.nq).transpose(0, 2, 1)
         success = np.asarray(batch.success, bool)
         statuses = [BATCH_STATUS[ok] for ok in success.tolist()]
         return Columns(cls=DmocSolution, length=k, fields={
-            "cost": (VALUES, np.asarray(batch.f, float)),
+            "cost": (VALUES, np.asarray(costs, float)),
             "status": ((SHARED, statuses[0]) if len(set(statuses)) == 1
                        else (LISTED, statuses)),
             "success": (VALUES, success),
@@ -327,8 +422,7 @@ class DmocTranscription:
             "attempts": (VALUES, np.ones(k, np.int64)),
             "solve_time_s": (VALUES, np.full(k, batch.solve_time_s / k)),
             "cost_gradient": (STACKED, -batch.lam_p),
-            "end_hessian": (STACKED, batch.extra.reshape(k, self.nq, self.nq)
-                            .transpose(0, 2, 1)),
+            "end_hessian": (STACKED, hessians),
             "q": (STACKED, q),
             "u": (STACKED, u),
         })

@@ -1,0 +1,165 @@
+"""Keep-out half-spaces in DMOC and the formation's separation rounds (--min-separation)."""
+
+from __future__ import annotations
+
+import dataclasses
+import itertools
+
+import numpy as np
+import pytest
+from conftest import run_cli
+
+from ocpar.__main__ import main
+from ocpar.bsp import open_backend
+from ocpar.examples import formation_halo
+from ocpar.examples.formation_point_masses import make as point_masses
+from ocpar.formation import FormationOptions, solve_formation
+from ocpar.models import PointMass
+from ocpar.ocp import DmocShape, transcription
+from ocpar.ocp.dmoc import UNUSED_OFFSET
+
+
+def sampled_min_distance(positions: np.ndarray, samples: int = 100) -> float:
+    """All pairs, ``samples`` sub-steps per interval of the linear interpolant: an
+    independent, brute-force minimum distance (positions (n, N+1, d))."""
+    s = np.linspace(0.0, 1.0, samples + 1)[:-1, None, None, None]
+    start, end = positions[:, :-1], positions[:, 1:]
+    fine = ((1 - s) * start[None] + s * end[None])           # (samples, n, N, d)
+    fine = fine.transpose(1, 2, 0, 3).reshape(len(positions), -1, positions.shape[-1])
+    fine = np.concatenate([fine, positions[:, -1:]], axis=1)  # (n, samples N + 1, d)
+    return min(float(np.min(np.linalg.norm(fine[i] - fine[j], axis=-1)))
+               for i, j in itertools.combinations(range(len(positions)), 2))
+
+
+def point_mass_shape(slots: int) -> DmocShape:
+    return DmocShape(PointMass(dim=2, mass=1.0), intervals=10, duration=1.0,
+                     solver="ipopt" if slots else "newton", keep_out_slots=slots,
+                     keep_out_positions=(0, 1) if slots else ())
+
+
+BOUNDARY = np.array([0.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0])  # rest to rest, (0,0) → (1,0)
+
+
+def keep_out_params(slots: int, half_spaces: dict[int, tuple[list[float], float, float]],
+                    penalty: float = 1e3) -> np.ndarray:
+    """Boundary data, then slot 0 of interval k = (normal, b at its start, b at its end)."""
+    data = np.zeros((10, slots, 4))
+    data[..., 2:] = UNUSED_OFFSET
+    for k, (normal, b0, b1) in half_spaces.items():
+        data[k, 0] = [*normal, b0, b1]
+    return np.concatenate([BOUNDARY, data.ravel(), [penalty]])
+
+
+def test_unused_slots_leave_the_dmoc_optimum_unchanged():
+    free = transcription(point_mass_shape(0)).solve(BOUNDARY)
+    kept = transcription(point_mass_shape(3)).solve(keep_out_params(3, {}))
+    assert kept.success and kept.cost == pytest.approx(free.cost, rel=1e-10)
+    np.testing.assert_allclose(kept.q, free.q, atol=1e-10)
+    assert np.all(np.isnan(kept.end_hessian))
+
+
+def test_moving_half_space_holds_at_the_nodes_and_costs_more():
+    """y ≥ 0.1 + 0.1 (t − t_k)/h on intervals 3..6 (moving up by 0.1 over each): the nodes
+    meet the offsets at both ends, so the linear path meets the moving plane throughout; the
+    unconstrained path (y = 0) does not, so the cost rises."""
+    planes = {k: ([0.0, 1.0], 0.1 + 0.1 * (k - 3), 0.2 + 0.1 * (k - 3)) for k in range(3, 7)}
+    solution = transcription(point_mass_shape(2)).solve(keep_out_params(2, planes))
+    assert solution.success
+    for k, (_, b0, b1) in planes.items():
+        assert solution.q[k, 1] >= b0 - 1e-9 and solution.q[k + 1, 1] >= b1 - 1e-9
+    assert solution.cost > transcription(point_mass_shape(0)).solve(BOUNDARY).cost + 1.0
+
+
+def test_newton_refuses_keep_outs():
+    with pytest.raises(ValueError, match="equalities only"):
+        DmocShape(PointMass(dim=2), keep_out_slots=2, keep_out_positions=(0, 1))
+
+
+@pytest.fixture(scope="module")
+def twelve():
+    """12 point masses, whose unconstrained optimum brings two within 1.37 of each other."""
+    problem = point_masses(agents=12)
+    return problem, solve_formation(problem), solve_formation(
+        problem, options=FormationOptions(min_separation=2.0))
+
+
+def test_twelve_agents_are_separated_at_all_times(twelve):
+    problem, free, kept = twelve
+    assert free.separation.distance < 1.5
+    assert kept.status == "converged" and kept.separation_rounds > 0
+    positions = problem.positions(kept.trajectories)
+    assert sampled_min_distance(positions) >= 2.0 - 1e-9
+    assert kept.unconstrained_cost == free.total_cost
+    assert kept.total_cost >= free.total_cost
+    np.testing.assert_array_equal(kept.phi, free.phi)
+    assert kept.required_separation == 2.0
+
+
+def test_round_limit_ends_with_its_own_status(twelve):
+    problem, _, _ = twelve
+    result = solve_formation(problem, options=FormationOptions(min_separation=4.0,
+                                                                separation_rounds=1))
+    assert result.status == "separation_not_met" and result.exit_status == 5
+    assert result.separation.distance < 4.0
+    assert f"short by {4.0 - result.separation.distance:.3g}" in result.message
+
+
+@pytest.mark.slow
+def test_rounds_are_identical_on_two_dask_workers(twelve):
+    problem, _, serial = twelve
+    with open_backend("dask", workers=2) as backend:
+        parallel = solve_formation(problem, backend, FormationOptions(min_separation=2.0))
+    assert parallel.workers == 2
+    np.testing.assert_array_equal(parallel.trajectories, serial.trajectories)
+    np.testing.assert_array_equal(parallel.agent_costs, serial.agent_costs)
+    assert parallel.separation_rounds == serial.separation_rounds
+
+
+def test_infeasible_separation_is_refused_before_any_solve():
+    problem = point_masses(agents=12)
+    with pytest.raises(ValueError, match=r"agents \d+ and \d+ are 5.1\d* apart at their "
+                                         r"final positions"):
+        solve_formation(problem, options=FormationOptions(min_separation=5.3))
+
+
+def test_infeasible_separation_exits_2_with_one_line():
+    proc = run_cli("-m", "ocpar.formation", "--min-separation", "100")
+    assert proc.returncode == 2
+    lines = proc.stderr.strip().splitlines()
+    assert len(lines) == 1 and "min separation 100 cannot be met: agents" in lines[0]
+    assert "start positions" in lines[0] and proc.stdout == ""
+
+
+def test_configuration_key_refused_like_the_flag(tmp_path, capsys):
+    config = tmp_path / "run.toml"
+    out = tmp_path / "out"
+    config.write_text(f'scheme = "formation"\nagents = 12\nmin_separation = 5.3\n'
+                      f'output = "{out}"\n')
+    with pytest.raises(SystemExit) as exit_info:
+        main(["run", str(config)])
+    assert exit_info.value.code == 2
+    line = capsys.readouterr().err.strip()
+    assert line.startswith("ocpar.formation: error: min separation 5.3 cannot be met")
+    assert not (out / "result.json").exists()
+
+
+@pytest.mark.slow
+def test_sixty_agents_half_unit_apart():
+    """The paper's 60 masses (unconstrained optimum: 0.054 at the closest)."""
+    problem = point_masses()
+    result = solve_formation(problem, options=FormationOptions(min_separation=0.5))
+    assert result.status == "converged"
+    assert sampled_min_distance(problem.positions(result.trajectories)) >= 0.5 - 1e-9
+    assert result.total_cost >= result.unconstrained_cost
+    assert result.unconstrained_cost == solve_formation(problem).total_cost
+
+
+@pytest.mark.slow
+def test_thirty_halo_spacecraft_fifty_metres_apart():
+    """Positions in km: 50 m is 0.05; attitudes stay free."""
+    problem = formation_halo.make(agents=30)
+    result = solve_formation(problem, options=FormationOptions(min_separation=0.05))
+    assert result.status == "converged" and result.separation_rounds > 0
+    assert sampled_min_distance(problem.positions(result.trajectories)) >= 0.05 - 1e-9
+    assert result.total_cost >= result.unconstrained_cost
+    assert dataclasses.asdict(result.separation)["distance"] >= 0.05 * (1 - 1e-9)
