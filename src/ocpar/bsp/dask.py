@@ -31,10 +31,10 @@ Why this ``direct``: ``scripts/dask_overhead.py`` measures the superstep overhea
 busiest worker) of each way side by side on fresh 2-worker LocalClusters; see
 ``docs/performance.md``. A Dask comm round trip crosses four threads (the coordinator's, the
 client's event loop, the worker's event loop and its task thread); the channel crosses two.
-On a loaded 2-core machine the previous ``direct`` (a comm handler over the client's pooled
-connections) measured ~12× the channel's overhead per trivial superstep, ``Client.run``
-~20×, and a Dask actor (own thread, reached directly) and ``tasks`` (the scheduler's
-bookkeeping on top of two hops) more still.
+On a 2-core machine the previous ``direct`` (a comm handler over the client's pooled
+connections) measured 6–12× the channel's overhead per trivial superstep (0.5 ms for the
+channel), ``Client.run`` 15–20×, and a Dask actor (own thread, reached directly) and
+``tasks`` (the scheduler's bookkeeping on top of two hops) more still.
 """
 
 from __future__ import annotations
@@ -315,6 +315,7 @@ class DaskBackend(Backend):
                     self._channel(targets[w]).send(run_chunk_in_worker, name, chunks[w])
                 except OSError as exc:
                     failed[w] = exc
+            kernel_error: Exception | None = None
             for w in pending:
                 if w in failed:
                     continue
@@ -325,8 +326,12 @@ class DaskBackend(Backend):
                     for address in list(self._channels):  # replies may still come: out of step
                         self._drop_channel(address)
                     self._timed_out()
-                except Exception as exc:  # the worker is lost, or the kernel failed
-                    failed[w] = exc
+                except (OSError, EOFError) as exc:  # the worker is lost (or, rarely, the
+                    failed[w] = exc                  # kernel raised OSError: checked below)
+                except Exception as exc:  # the kernel failed; the other replies still read
+                    kernel_error = kernel_error or exc
+            if kernel_error is not None:
+                raise kernel_error
             if not failed:
                 return replies  # type: ignore[return-value]
             for w in failed:

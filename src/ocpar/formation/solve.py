@@ -196,10 +196,10 @@ def solve_formation(
             trajectories=sol.trajectories,
             cost_parts=cost_parts(problem, sol.controls),
             outer_iterations=sol.iterations,
-            separation=problem.closest_approach(sol.trajectories),
             inner_solves=ordering_solves,
             failed_solves=0,
-            wall_time_s=time.perf_counter() - start,
+            wall_time_s=time.perf_counter() - start,  # before the checks below (reporting)
+            separation=problem.closest_approach(sol.trajectories),
             trace=backend.traces[first_trace:],
             coupling_residual=coupling_residual(problem, sol.phi),
         )
@@ -216,7 +216,7 @@ def solve_formation(
         sols = objective.last_solutions
     costs = np.asarray(sols.column("cost"), dtype=float)
     trajectories, controls = np.asarray(sols.column("q")), np.asarray(sols.column("u"))
-    separation = problem.closest_approach(trajectories)
+    separation = None  # the unconstrained paths' closest approach, once the solve is timed
     inner_solves = ordering_solves + objective.inner_solves
     failed_solves, retries = objective.failed_solves, objective.retries
     extra = {}
@@ -243,6 +243,7 @@ def solve_formation(
                        f"come within {rounds.closest.distance:.6g} (short by "
                        f"{distance - rounds.closest.distance:.3g}; {rounds.dropped} "
                        f"half-space(s) dropped for want of slots over the rounds)")
+    wall_time_s = time.perf_counter() - start
     return FormationResult(
         **common,
         status=status,
@@ -253,11 +254,12 @@ def solve_formation(
         trajectories=trajectories,
         cost_parts=cost_parts(problem, controls),
         outer_iterations=iterations,
-        separation=separation,
+        separation=(separation if separation is not None
+                    else problem.closest_approach(trajectories)),
         inner_solves=inner_solves,
         failed_solves=failed_solves,
         retries=retries,
-        wall_time_s=time.perf_counter() - start,
+        wall_time_s=wall_time_s,
         trace=backend.traces[first_trace:],
         coupling_residual=coupling_residual(problem, phi),
         **extra,
