@@ -116,8 +116,8 @@ class RuntimeOptions:
         SUPERSTEP_TIMEOUT_S, "abort a superstep whose results have not all arrived after S "
         "seconds", above=0, metavar="S", group=BACKEND_GROUP)
     dispatch: str = option(
-        "direct", "dask: chunks go straight to the workers over Dask's comm layer (direct, "
-        "the fastest; the workers must be reachable from here) or as named Dask "
+        "direct", "dask: chunks go straight to a socket of each worker (direct, the "
+        "fastest; the workers' hosts must be reachable from here) or as named Dask "
         "tasks through the scheduler (tasks: seen on the dashboard as "
         "JOB-superstep-K-chunk-W)", choices=("direct", "tasks"), group=BACKEND_GROUP)
     job_name: str | None = option(
