@@ -112,6 +112,20 @@ def test_take_and_concat_select_and_join_items_in_order():
     assert joined.fields["x"][0] == STACKED
 
 
+def test_taking_a_range_gives_views_of_the_same_items_as_taking_its_indices():
+    items = [Frozen(np.full(2, float(i)), f"t{i}", {"i": i} if i % 2 else {}) for i in range(6)]
+    packed = to_columns(items)
+    assert packed.fields["extra"][0] == LISTED
+    for block in (range(1, 4), range(4, 6), range(3, 3)):
+        part = packed.take(block)
+        listed = packed.take(list(block))
+        assert len(part) == len(block)
+        pairs = zip(part.items(), listed.items(), strict=True)
+        assert all(_same(vars(b)[k], vars(c)[k]) for b, c in pairs for k in vars(c))
+        assert np.shares_memory(part.column("x"), packed.column("x")) or not len(block)
+    assert packed.take(range(6)) is packed
+
+
 def test_concat_keeps_columns_that_differ_between_parts_as_lists():
     a = to_columns([Frozen(np.zeros(2), "a", {}) for _ in range(2)])   # extra shared
     b = to_columns([Frozen(np.zeros(3), "b", {}) for _ in range(2)])   # other row shape

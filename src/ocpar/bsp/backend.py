@@ -112,18 +112,21 @@ class Backend(ABC):
         order = np.fromiter(itertools.chain.from_iterable(groups), dtype=np.intp, count=n)
         position = np.empty(n, dtype=np.intp)
         position[order] = np.arange(n)
+        in_order = bool(np.all(order[1:] > order[:-1]))  # contiguous blocks: nothing to reorder
         if columns:
             packed = [to_columns(c.results) for c in chunks if len(c.results)]
             if not all(isinstance(p, Columns) for p in packed):
                 raise TypeError(f"superstep_columns: the results of {name} are not instances "
                                 "of one dataclass")
-            results: Any = Columns.concat(packed).take(position)
+            results: Any = Columns.concat(packed)
+            if not in_order:
+                results = results.take(position)
         else:
             flat = [r for c in chunks for r in from_columns(c.results)]
-            results = [flat[i] for i in position.tolist()]
+            results = flat if in_order else [flat[i] for i in position.tolist()]
 
         def per_task(values: list[float]) -> list[float]:
-            return np.asarray(values, dtype=float)[position].tolist()
+            return values if in_order else np.asarray(values, dtype=float)[position].tolist()
 
         walls = per_task([t for c in chunks for t in c.task_wall_s])
         cpus = per_task([t for c in chunks for t in c.task_cpu_s])
@@ -149,7 +152,8 @@ class Backend(ABC):
                                 self.traces[-1])
         return results
 
-    def _assign(self, name: str, n: int, costs: Sequence[float] | None) -> list[list[int]]:
+    def _assign(self, name: str, n: int, costs: Sequence[float] | None
+                ) -> list[list[int]] | list[range]:
         """Task indices per worker, by the estimated ``costs`` or the :attr:`balance` policy."""
         if costs is not None:
             if len(costs) != n:
@@ -159,7 +163,7 @@ class Backend(ABC):
             last = self.traces[-1]
             return sticky_longest_first(last.task_wall_s, self.workers, last.task_worker,
                                         AFFINITY_TOLERANCE)
-        return [list(b) for b in contiguous_blocks(n, self.workers)]
+        return contiguous_blocks(n, self.workers)
 
     def _repeats_last_superstep(self, name: str, n_tasks: int) -> bool:
         return (self._last_kernel == name and bool(self.traces)

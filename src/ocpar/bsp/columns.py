@@ -76,17 +76,24 @@ class Columns:
         return data
 
     def take(self, indices: Sequence[int] | np.ndarray) -> Columns:
-        """The items at ``indices``, in that order."""
-        index = np.asarray(indices, dtype=np.intp)
+        """The items at ``indices``, in that order (a ``range`` of step 1: views of the
+        columns, no copy; all items: these columns)."""
+        if isinstance(indices, range) and indices.step == 1:
+            if indices.start == 0 and indices.stop == self.length:
+                return self
+            index: slice | np.ndarray = slice(indices.start, indices.stop)  # views, no copy
+        else:
+            index = np.asarray(indices, dtype=np.intp)
         fields = {}
         for name, (kind, data) in self.fields.items():
             if kind in (STACKED, VALUES):
                 fields[name] = (kind, data[index])
             elif kind == LISTED:
-                fields[name] = (kind, [data[i] for i in index.tolist()])
+                fields[name] = (kind, data[index] if isinstance(index, slice)
+                                else [data[i] for i in index.tolist()])
             else:
                 fields[name] = (kind, data)
-        return Columns(cls=self.cls, length=len(index), fields=fields)
+        return Columns(cls=self.cls, length=len(indices), fields=fields)
 
     @staticmethod
     def concat(parts: Sequence[Columns]) -> Columns:
