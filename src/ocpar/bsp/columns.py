@@ -103,6 +103,8 @@ class Columns:
         if not parts:
             raise ValueError("nothing to concatenate")
         first = parts[0]
+        if len(parts) == 1:
+            return first
         if any(p.cls is not first.cls or p.fields.keys() != first.fields.keys() for p in parts):
             raise ValueError("columns of different classes or attributes cannot be joined")
         fields = {}
