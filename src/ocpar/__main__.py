@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 import time
 from dataclasses import replace
@@ -228,7 +229,13 @@ def main(argv: list[str] | None = None) -> int:
     if extra and args.command not in ("run", "submit"):
         parser.subcommands[args.command].error(f"unrecognized arguments: {' '.join(extra)}")
     args.scheme_flags = extra
-    return args.handler(args)
+    try:
+        status = args.handler(args)
+        sys.stdout.flush()
+    except BrokenPipeError:  # the reader left early (`ocpar status --json | grep -q ...`)
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())  # no error at exit
+        return 1
+    return status
 
 
 if __name__ == "__main__":

@@ -18,7 +18,7 @@ from ocpar.cli import EXIT_CANCELLED
 from ocpar.results import EXIT_STATUS
 from ocpar.service.jobs import write_state
 
-#: Exit statuses of a run that ended with its result.json (converged, not_converged, failed).
+#: Exit statuses of a run that ended with its result.json (every status but cancelled).
 FINISHED = frozenset(code for status, code in EXIT_STATUS.items() if status != "cancelled")
 
 
