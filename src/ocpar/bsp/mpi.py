@@ -47,13 +47,10 @@ class MpiBackend(Backend):
     def __init__(self, comm: Any = None, balance: str = "blocks",
                  timeout_s: float = SUPERSTEP_TIMEOUT_S) -> None:
         from mpi4py import MPI
-        from mpi4py.util import pkl5
 
         if not timeout_s > 0:
             raise ValueError(f"the superstep timeout must be > 0 s, got {timeout_s}")
-        # pickle protocol 5: the columns' arrays travel as their own buffers, not copied
-        # into (and out of) one pickle
-        self.comm = pkl5.Intracomm(comm if comm is not None else MPI.COMM_WORLD)
+        self.comm = comm if comm is not None else MPI.COMM_WORLD
         self.rank = self.comm.Get_rank()
         self.timeout_s = timeout_s
         self._closed = False
