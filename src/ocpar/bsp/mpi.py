@@ -24,6 +24,11 @@ from ocpar.bsp.kernel import ChunkResult, run_packed_chunk
 
 _MPI_ENV_SIZE = ("PMI_SIZE", "OMPI_COMM_WORLD_SIZE", "MPI_LOCALNRANKS", "PMIX_SIZE")
 TASKS, RESULTS = 11, 12
+#: After its own chunk, rank 0 polls for the other ranks' results without pausing for this
+#: long (s), then with 0.1 ms pauses: a pause costs a small superstep ~0.35 ms (median of
+#: 2000 trivial supersteps on 2 ranks: 0.48 ms polling with pauses, 0.12 ms without), and the
+#: rank's core has nothing else to do meanwhile (as in MPI's own blocking receive).
+SPIN_S = 0.01
 #: Default superstep deadline (s).
 SUPERSTEP_TIMEOUT_S = 3600.0
 #: Exit status of a job aborted on a superstep deadline.
@@ -67,15 +72,18 @@ class MpiBackend(Backend):
         results: list[ChunkResult | None] = [run_packed_chunk(name, to_columns(chunks[0]))]
         results += [None] * (len(chunks) - 1)
         waiting = set(range(1, len(chunks)))
+        finished = time.monotonic()  # rank 0's own chunk
         while waiting:
             for rank in sorted(waiting):
                 if self.comm.Iprobe(source=rank, tag=RESULTS):
                     results[rank] = self.comm.recv(source=rank, tag=RESULTS)
                     waiting.discard(rank)
             if waiting:
-                if time.monotonic() > deadline:
+                now = time.monotonic()
+                if now > deadline:
                     self._abort(waiting)
-                time.sleep(1e-4)
+                if now - finished > SPIN_S:
+                    time.sleep(1e-4)
         for request in sends:
             request.wait()
         return results  # type: ignore[return-value]
