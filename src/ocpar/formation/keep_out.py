@@ -54,6 +54,7 @@ from ocpar.bsp.columns import Columns
 from ocpar.formation.problem import FormationProblem
 from ocpar.formation.separation import (
     ClosestApproach,
+    _segment_closest,
     close_pairs,
     closest_approach,
     interval_closest,
@@ -73,6 +74,12 @@ CHANGE_RTOL = 1e-2
 #: The keep-outs' penalty ρ per unit of slack (:mod:`ocpar.ocp.dmoc`), in units of the
 #: largest unconstrained agent cost per D: large enough to be exact, small enough for the QP.
 PENALTY = 10.0
+#: The coordinator's spreading aims at D (1 + this) ...
+SPREAD_MARGIN = 1e-3
+#: ... in at most this many iterations ...
+SPREAD_ITERATIONS = 2000
+#: ... finding the pairs within reach anew every this many.
+SPREAD_REFRESH = 10
 #: Below this distance (relative to D) a pair's direction is taken from the first axis.
 DEGENERATE_RTOL = 1e-12
 
@@ -112,51 +119,97 @@ def keep_out_shape(problem: FormationProblem) -> DmocShape:
 BOUNDARY_BLENDS = (0.0, 0.25, 0.5, 0.75, 1.0)
 
 
-def half_spaces(positions: np.ndarray, distance: float, slots: int
+def conflicts(positions: np.ndarray, distance: float) -> np.ndarray:
+    """Entries (m, 3) (i, j, k), i < j, sorted: pairs whose paths (positions (n, N+1, d))
+    come within (1 + :data:`NEIGHBOUR_MARGIN`) D on interval k."""
+    pairs = close_pairs(positions, distance * (1 + NEIGHBOUR_MARGIN))
+    gap, _ = interval_closest(positions, pairs)
+    row, k = np.nonzero(gap <= distance * (1 + NEIGHBOUR_MARGIN))
+    return np.column_stack([pairs[row], k])
+
+
+def half_spaces(positions: np.ndarray, entries: np.ndarray, distance: float, slots: int
                 ) -> tuple[np.ndarray, int]:
     """Keep-out data (n, N, slots, d + 2) per agent, interval and slot: normal (d) and the
     offsets at the interval's two nodes (unused slots: 0 and
-    :data:`~ocpar.ocp.dmoc.UNUSED_OFFSET`), built from the node positions (n, N+1, d) as the
-    module docstring says; and the number of half-spaces dropped for want of slots."""
+    :data:`~ocpar.ocp.dmoc.UNUSED_OFFSET`), built from the node positions (n, N+1, d) for
+    each entry (agent a, partner b, interval k) of ``entries`` (m, 3): agent a keeps
+    n·r ≥ n·r_b(t) + D on interval k, as the module docstring says; and the number of
+    half-spaces dropped for want of slots (the farthest partners' on an interval)."""
     n, nodes, dim = positions.shape
     intervals = nodes - 1
     data = np.zeros((n, intervals, slots, dim + 2))
     data[..., dim:] = UNUSED_OFFSET
-    reach = distance * (1 + NEIGHBOUR_MARGIN)
-    pairs = close_pairs(positions, reach)
-    if not len(pairs):
+    if not len(entries):
         return data, 0
-    gap, s = interval_closest(positions, pairs)                   # (m, N)
-    pair, k = np.nonzero(gap <= reach)
-    i, j = pairs[pair, 0], pairs[pair, 1]
-    start, end = positions[i, k] - positions[j, k], positions[i, k + 1] - positions[j, k + 1]
-    frac = s[pair, k][:, None]
-    normal = _direction((1 - frac) * start + frac * end, end - start, distance)
+    a, b, k = entries.T
+    start, end = positions[a, k] - positions[b, k], positions[a, k + 1] - positions[b, k + 1]
+    gap, s = _segment_closest(start, end)
+    normal = _direction((1 - s[:, None]) * start + s[:, None] * end, end - start, distance)
     # an interval with a fixed node: blend towards that node's direction until it holds there
     for fixed, rel in ((k == 0, start), (k == intervals - 1, end)):
         rows = np.flatnonzero(fixed)
         normal[rows] = _boundary_normal(normal[rows], rel[rows], distance)
-    # the plane follows the pair's centre c(t), linear on the interval: n·r ≥ n·c(t) + D/2
+    # the plane follows the partner's path r_b(t), linear on the interval: n·r ≥ n·r_b(t) + D
     offsets = np.column_stack([
-        np.einsum("md,md->m", normal, (positions[i, node] + positions[j, node]) / 2)
-        for node in (k, k + 1)])
-    # one entry per (agent, interval): agent i on +normal's side, agent j on −normal's
-    agent = np.concatenate([i, j])
-    partner = np.concatenate([j, i])
-    interval = np.concatenate([k, k])
-    normals = np.concatenate([normal, -normal])
-    offsets = np.concatenate([offsets, -offsets]) + distance / 2
-    closeness = np.concatenate([gap[pair, k], gap[pair, k]])
-    order = np.lexsort((partner, closeness, interval, agent))
-    agent, interval = agent[order], interval[order]
-    group = agent * intervals + interval
+        np.einsum("md,md->m", normal, (positions[a, node] + positions[b, node]) / 2)
+        for node in (k, k + 1)]) + distance / 2
+    order = np.lexsort((b, gap, k, a))
+    a, k = a[order], k[order]
+    group = a * intervals + k
     first = np.flatnonzero(np.r_[True, group[1:] != group[:-1]])
     rank = np.arange(len(group)) - np.repeat(first, np.diff(np.r_[first, len(group)]))
     keep = rank < slots
     chosen = order[keep]
-    data[agent[keep], interval[keep], rank[keep], :dim] = normals[chosen]
-    data[agent[keep], interval[keep], rank[keep], dim:] = offsets[chosen]
+    data[a[keep], k[keep], rank[keep], :dim] = normal[chosen]
+    data[a[keep], k[keep], rank[keep], dim:] = offsets[chosen]
     return data, int(np.sum(~keep))
+
+
+def spread(positions: np.ndarray, distance: float) -> tuple[np.ndarray, int]:
+    """Target paths (n, N+1, d): the node positions (n, N+1, d) pushed apart until every pair
+    is ≥ D (1 + :data:`SPREAD_MARGIN` / 2) apart on every interval of the piecewise-linear paths,
+    the first and last nodes fixed; and the iterations taken (at most
+    :data:`SPREAD_ITERATIONS`).
+
+    Jacobi projection (position-based dynamics): each iteration, every pair-interval that is
+    short by δ at its closest point s ∈ [0, 1] asks both agents to move apart along their
+    difference by δ/2 there, spread over the interval's two nodes in proportion (1 − s, s);
+    each node moves by the mean of what it is asked. Many cheap iterations carry a push
+    through a crowd, which one round of per-agent solves cannot (a squeezed band must widen
+    as a whole)."""
+    target = positions.copy()
+    n, nodes, _ = target.shape
+    goal = distance * (1 + SPREAD_MARGIN)
+    for iteration in range(SPREAD_ITERATIONS):
+        if iteration % SPREAD_REFRESH == 0:
+            entries = conflicts(target, distance)
+        i, j, k = entries.T
+        start, end = target[i, k] - target[j, k], target[i, k + 1] - target[j, k + 1]
+        gap, s = _segment_closest(start, end)
+        short = gap < distance * (1 + SPREAD_MARGIN / 2)   # pushed to goal, done halfway
+        if not np.any(short):
+            if iteration % SPREAD_REFRESH == 0:
+                return target, iteration
+            entries = conflicts(target, distance)   # refresh now: perhaps done
+            continue
+        i, j, k, s = i[short], j[short], k[short], s[short]
+        rel = (1 - s[:, None]) * start[short] + s[:, None] * end[short]
+        direction = _direction(rel, end[short] - start[short], distance)
+        # moving node k by a (1 − s) and node k+1 by a s moves the point at s by
+        # a ((1 − s)² + s²): a makes it δ/2
+        amount = (goal - gap[short]) / 2 / ((1 - s) ** 2 + s ** 2)
+        push = np.zeros_like(target)
+        count = np.zeros((n, nodes))
+        for node, weight in ((k, amount * (1 - s)), (k + 1, amount * s)):
+            step = weight[:, None] * direction
+            np.add.at(push, (i, node), step)
+            np.add.at(push, (j, node), -step)
+            np.add.at(count, (i, node), 1)
+            np.add.at(count, (j, node), 1)
+        push[:, [0, -1]] = 0
+        target += push / np.maximum(count, 1)[..., None]
+    return target, SPREAD_ITERATIONS
 
 
 def _direction(relative: np.ndarray, velocity: np.ndarray, distance: float) -> np.ndarray:
@@ -197,53 +250,49 @@ def separate(problem: FormationProblem, backend: Backend, phi: np.ndarray, base:
     """Separation rounds (module docstring) from the unconstrained inner solutions ``base``
     (a :class:`~ocpar.bsp.columns.Columns` of :class:`~ocpar.ocp.DmocSolution`, one per
     agent, at angles ``phi`` (n,) rad) to a minimum separation ``distance`` D (length unit),
-    at most ``max_rounds`` supersteps."""
+    at most ``max_rounds`` rounds."""
     shape = keep_out_shape(problem)
     n = problem.agents
-    free_q, free_u, free_cost = (np.asarray(base.column(name)) for name in ("q", "u", "cost"))
-    q, u, costs = free_q.copy(), free_u.copy(), np.array(free_cost, float)
+    free_cost = np.asarray(base.column("cost"), float)
+    q, u = np.array(base.column("q"), float), np.array(base.column("u"), float)
+    costs = free_cost.copy()
     boundary = problem.boundary_params_rows(np.arange(n), phi)
+    penalty = PENALTY * max(float(np.max(free_cost)), 1e-300) / distance
     outcome = Separation(q, u, costs, closest_approach(problem.positions(q), shape.duration),
                          False, 0, 0.0)
     outcome.met = _met(outcome.closest, distance)
     while not (outcome.met and (outcome.rounds == 0 or outcome.change <= CHANGE_RTOL * distance)
                ) and outcome.rounds < max_rounds:
-        data, dropped = half_spaces(problem.positions(q), distance, KEEP_OUT_SLOTS)
-        active = np.any(data[..., -1] != UNUSED_OFFSET, axis=(1, 2))
-        agents = np.flatnonzero(active)
-        new_q, new_u = free_q.copy(), free_u.copy()
-        new_costs = np.array(free_cost, float)
-        if len(agents):
-            warm = np.hstack([q[agents, 1:-1].reshape(len(agents), -1),
-                              u[agents].reshape(len(agents), -1)])
-            penalty = np.full((len(agents), 1), PENALTY * max(float(np.max(free_cost)), 1e-300)
-                              / distance)
-            params = np.hstack([boundary[agents], data[agents].reshape(len(agents), -1),
-                                penalty])
-            tasks = Columns.of(OcpTask, len(agents), shape=shape, params=params,
-                               warm_start=warm, multipliers=None, fallback=None)
-            sols = backend.superstep_columns(solve_tasks, tasks)
-            ok = np.asarray(sols.column("success"), dtype=bool)
-            solved, failed = agents[ok], agents[~ok]
-            new_q[solved] = np.asarray(sols.column("q"))[ok]
-            new_u[solved] = np.asarray(sols.column("u"))[ok]
-            new_costs[solved] = np.asarray(sols.column("cost"), float)[ok]
-            new_q[failed], new_u[failed], new_costs[failed] = q[failed], u[failed], costs[failed]
-            outcome.inner_solves += len(agents)
-            outcome.failed_solves += len(failed)
-            outcome.retries += int(np.sum(np.asarray(sols.column("attempts")) - 1))
-        moved = np.abs(problem.positions(new_q) - problem.positions(q)).max()
-        q, u, costs = new_q, new_u, new_costs
-        outcome.q, outcome.u, outcome.costs = q, u, costs
+        before = problem.positions(q)
+        target, iterations = spread(before, distance)
+        entries = conflicts(target, distance)
+        entries = np.concatenate([entries, entries[:, [1, 0, 2]]])   # both agents of a pair
+        data, dropped = half_spaces(target, entries, distance, KEEP_OUT_SLOTS)
+        agents = np.unique(entries[:, 0])
+        warm = np.hstack([q[agents, 1:-1].reshape(len(agents), -1),
+                          u[agents].reshape(len(agents), -1)])
+        params = np.hstack([boundary[agents], data[agents].reshape(len(agents), -1),
+                            np.full((len(agents), 1), penalty)])
+        tasks = Columns.of(OcpTask, len(agents), shape=shape, params=params,
+                           warm_start=warm, multipliers=None, fallback=None)
+        sols = backend.superstep_columns(solve_tasks, tasks)
+        ok = np.asarray(sols.column("success"), dtype=bool)
+        solved = agents[ok]   # a failed solve keeps its agent's latest path
+        q[solved] = np.asarray(sols.column("q"))[ok]
+        u[solved] = np.asarray(sols.column("u"))[ok]
+        costs[solved] = np.asarray(sols.column("cost"), float)[ok]
+        outcome.inner_solves += len(agents)
+        outcome.failed_solves += int(np.sum(~ok))
+        outcome.retries += int(np.sum(np.asarray(sols.column("attempts")) - 1))
         outcome.rounds += 1
-        outcome.change = float(moved)
+        outcome.change = float(np.abs(problem.positions(q) - before).max())
         outcome.dropped += dropped
         outcome.closest = closest_approach(problem.positions(q), shape.duration)
         outcome.met = _met(outcome.closest, distance)
         if progress is not None:
-            progress(f"separation round {outcome.rounds:3d}  agents {len(agents):6d}  "
-                     f"closest {outcome.closest.distance:.6e} (agents "
-                     f"{outcome.closest.agents[0]}, {outcome.closest.agents[1]})  "
+            progress(f"separation round {outcome.rounds:3d}  spread {iterations:5d} it  "
+                     f"agents {len(agents):6d}  closest {outcome.closest.distance:.6e} "
+                     f"(agents {outcome.closest.agents[0]}, {outcome.closest.agents[1]})  "
                      f"moved {outcome.change:.1e}  cost {float(np.sum(costs)):.12e}  "
                      f"dropped {dropped}")
     return outcome
