@@ -2,14 +2,28 @@
 
 After the unconstrained hierarchical solve (outer angles φ, inner DMOC paths), each round
 reads the latest continuous paths (piecewise linear between nodes,
-:mod:`ocpar.formation.separation`) and gives every agent that comes near another one
-keep-out half-spaces (:mod:`ocpar.ocp.dmoc`, ``keep_out_slots``), moving linearly in time
-over each interval:
+:mod:`ocpar.formation.separation`) and does two things:
 
-* for each pair (i, j) whose paths come within (1 + :data:`NEIGHBOUR_MARGIN`) D, and each
-  interval k on which they do: the normal n is the direction of r_i − r_j at the interval's
-  closest time (:func:`~ocpar.formation.separation.interval_closest`; where they meet,
-  perpendicular to their relative velocity), and the plane follows the pair's centre
+1. **Spread** (:func:`spread`, on the coordinator, numpy only): the node positions are pushed
+   apart until every pair is ≥ D apart on every interval, the first and last nodes fixed —
+   target paths that are separated but need not obey the dynamics. Many cheap projection
+   iterations move a crowd as a whole: a band of agents squeezed far below D must widen from
+   its middle outwards, which per-agent half-spaces about the squeezed paths cannot ask for
+   (an agent between two close partners gets contradictory half-spaces, and the elastic
+   penalty leaves it where it is).
+2. **Keep-out solves** (one superstep of independent inner problems): every agent that comes
+   near another on the targets gets keep-out half-spaces (:mod:`ocpar.ocp.dmoc`,
+   ``keep_out_slots``) and re-solves its own DMOC problem (the same boundary data, its
+   half-spaces as parameters, warm-started from its latest path). The others keep their
+   latest path (not their unconstrained optimum: going back re-creates the conflicts).
+
+The half-spaces, moving linearly in time over each interval:
+
+* for each pair (i, j) whose target paths come within (1 + :data:`NEIGHBOUR_MARGIN`) D, and
+  each interval k on which they do (:func:`conflicts`): the normal n is the direction of
+  r_i − r_j on the targets at the interval's closest time
+  (:func:`~ocpar.formation.separation.interval_closest`; where they meet, perpendicular to
+  their relative velocity), and the plane follows the targets' centre
   c(t) = (r_i + r_j)/2, linear in t on the interval: agent i keeps n·r ≥ n·c(t) + D/2 and
   agent j −n·r ≥ −n·c(t) + D/2 (rows at the interval's two nodes, with c at those nodes).
   n·r(t) − n·c(t) is linear in t on the interval, so holding at both nodes it holds
@@ -17,23 +31,24 @@ over each interval:
   interval (n·(r_i − r_j) ≥ D). On the first and last interval the fixed boundary node must
   satisfy its side too: there n is blended towards that node's direction
   (:data:`BOUNDARY_BLENDS`) until it does (start and final positions are ≥ D apart);
-* the planes are linearisations about the latest paths (sequential convex programming,
-  split per agent like buffered Voronoi cells): a pair that passes close keeps its side and
-  moves apart by what it lacks; the common motion of the pair does not enter (a static
-  plane per interval would ask agents travelling along n to stay behind one another);
+* the targets satisfy all their half-spaces (n·(r_i − r_j) on an interval is smallest at
+  the closest time, where it is |r_i − r_j| ≥ D), so the agents' problems are feasible
+  together and no two ask contradictory things: the targets say who gives way where;
+* the planes are linearisations (sequential convex programming, split per agent like
+  buffered Voronoi cells, about the spread targets instead of the latest paths); the common
+  motion of a pair does not enter (a static plane per interval would ask agents travelling
+  along n to stay behind one another);
 * an agent keeps at most K = :data:`KEEP_OUT_SLOTS` half-spaces per interval, those of its
   closest partners (ties by partner index): a dropped one is caught by the next round's
-  check. The keep-outs are elastic (exact penalty :data:`PENALTY`), so that a crowded agent
-  whose half-spaces cannot all be met moves as far as it can instead of failing.
+  check. The keep-outs are elastic (exact penalty :data:`PENALTY`), so that an agent whose
+  half-spaces cannot all be met (its dynamics cannot follow the targets) moves as far as it
+  can instead of failing.
 
-Every agent with half-spaces then re-solves its own DMOC problem (the same boundary data,
-its half-spaces as parameters, warm-started from its latest path) in one superstep; the
-others keep their unconstrained optimum. Each superstep is still a set of independent inner
-problems. Rounds repeat until the exact closest approach
-(:func:`~ocpar.formation.separation.closest_approach`) is at least D (to a relative
-:data:`SEPARATION_RTOL`) and no node moved by more than :data:`CHANGE_RTOL` · D in the last
-round, or the round limit. The returned paths' separation is computed, not assumed: a run
-that misses D says by how much.
+Each round is one superstep of independent inner problems. Rounds repeat until the exact
+closest approach (:func:`~ocpar.formation.separation.closest_approach`) is at least D (to a
+relative :data:`SEPARATION_RTOL`) and no node moved by more than :data:`CHANGE_RTOL` · D in
+the last round, or the round limit. The returned paths' separation is computed, not
+assumed: a run that misses D says by how much.
 
 The final angles φ stay those of the unconstrained outer solve (the keep-outs move the paths,
 not the formation); the cost increase over the unconstrained optimum is reported. With
@@ -74,7 +89,7 @@ CHANGE_RTOL = 1e-2
 #: The keep-outs' penalty ρ per unit of slack (:mod:`ocpar.ocp.dmoc`), in units of the
 #: largest unconstrained agent cost per D: large enough to be exact, small enough for the QP.
 PENALTY = 10.0
-#: The coordinator's spreading aims at D (1 + this) ...
+#: The coordinator's spreading pushes pairs closer than D to D (1 + this) ...
 SPREAD_MARGIN = 1e-3
 #: ... in at most this many iterations ...
 SPREAD_ITERATIONS = 2000
@@ -88,7 +103,8 @@ DEGENERATE_RTOL = 1e-12
 class Separation:
     """Outcome of :func:`separate`: ``q`` (n, N+1, nq) paths, ``u`` (n, N, nu) controls,
     ``costs`` (n,); ``closest`` the exact closest approach of ``q``; ``met`` whether it is
-    ≥ D (1 − :data:`SEPARATION_RTOL`); ``rounds`` supersteps of keep-out solves;
+    ≥ D (1 − :data:`SEPARATION_RTOL`); ``rounds`` rounds (one superstep of keep-out solves
+    each);
     ``change`` the largest node move of the last round (length unit); ``inner_solves``,
     ``failed_solves`` (kept their previous path), ``retries``; ``dropped`` half-spaces left
     out for want of slots over all rounds."""
@@ -168,30 +184,32 @@ def half_spaces(positions: np.ndarray, entries: np.ndarray, distance: float, slo
 
 def spread(positions: np.ndarray, distance: float) -> tuple[np.ndarray, int]:
     """Target paths (n, N+1, d): the node positions (n, N+1, d) pushed apart until every pair
-    is ≥ D (1 + :data:`SPREAD_MARGIN` / 2) apart on every interval of the piecewise-linear paths,
-    the first and last nodes fixed; and the iterations taken (at most
-    :data:`SPREAD_ITERATIONS`).
+    is ≥ D apart on every interval of the piecewise-linear paths, the first and last nodes
+    fixed; and the iterations taken (at most :data:`SPREAD_ITERATIONS`).
 
-    Jacobi projection (position-based dynamics): each iteration, every pair-interval that is
-    short by δ at its closest point s ∈ [0, 1] asks both agents to move apart along their
-    difference by δ/2 there, spread over the interval's two nodes in proportion (1 − s, s);
-    each node moves by the mean of what it is asked. Many cheap iterations carry a push
-    through a crowd, which one round of per-agent solves cannot (a squeezed band must widen
-    as a whole)."""
+    Jacobi projection (position-based dynamics): each iteration, every pair-interval closer
+    than D at its closest point s ∈ [0, 1] asks both agents to move apart along their
+    difference there by δ/2, δ what it lacks of D (1 + :data:`SPREAD_MARGIN`), spread over
+    the interval's two nodes in proportion (1 − s, s); each node moves by the mean of what it
+    is asked (the pairs within reach are found anew every :data:`SPREAD_REFRESH`). Many cheap
+    iterations carry a push through a crowd, which one round of per-agent solves cannot (a
+    squeezed band must widen as a whole)."""
     target = positions.copy()
     n, nodes, _ = target.shape
     goal = distance * (1 + SPREAD_MARGIN)
+    entries = None
     for iteration in range(SPREAD_ITERATIONS):
-        if iteration % SPREAD_REFRESH == 0:
+        fresh = entries is None or iteration % SPREAD_REFRESH == 0
+        if fresh:
             entries = conflicts(target, distance)
         i, j, k = entries.T
         start, end = target[i, k] - target[j, k], target[i, k + 1] - target[j, k + 1]
         gap, s = _segment_closest(start, end)
-        short = gap < distance * (1 + SPREAD_MARGIN / 2)   # pushed to goal, done halfway
+        short = gap < distance
         if not np.any(short):
-            if iteration % SPREAD_REFRESH == 0:
+            if fresh:
                 return target, iteration
-            entries = conflicts(target, distance)   # refresh now: perhaps done
+            entries = None   # find the pairs anew: done if none of them is short
             continue
         i, j, k, s = i[short], j[short], k[short], s[short]
         rel = (1 - s[:, None]) * start[short] + s[:, None] * end[short]
