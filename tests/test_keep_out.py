@@ -104,6 +104,27 @@ def test_spread_targets_meet_every_half_space():
         assert np.all(reach[used] >= offsets[..., node][used] - 1e-9)
 
 
+@pytest.mark.parametrize("dim", [2, 3])
+def test_trust_region_is_the_box_that_keeps_far_pairs_apart(dim):
+    """A node may move h = 0.5 D / (2 √d) along each axis from its target, no more: at most
+    0.25 D in all, so pairs 1.5 D apart on the targets stay ≥ D apart."""
+    rng = np.random.default_rng(dim)
+    target = rng.normal(size=(3, 5, dim))
+    data = keep_out.trust_region(target, 2.0)
+    assert data.shape == (3, 4, 2 * dim, dim + 2)
+    h = 0.5 * 2.0 / (2 * np.sqrt(dim))
+
+    def holds(nodes):
+        lhs = np.einsum("nksd,nkd->nks", data[..., :dim], nodes[:, :-1])
+        rhs = np.einsum("nksd,nkd->nks", data[..., :dim], nodes[:, 1:])
+        return np.all(lhs >= data[..., dim] - 1e-12) and np.all(rhs >= data[..., dim + 1] - 1e-12)
+
+    corner = np.sign(rng.normal(size=(3, 5, dim)))
+    assert holds(target) and holds(target + h * corner)
+    assert np.linalg.norm(h * corner, axis=-1).max() == pytest.approx(0.25 * 2.0)
+    assert not holds(target + 1.01 * h * corner)
+
+
 def test_newton_refuses_keep_outs():
     with pytest.raises(ValueError, match="equalities only"):
         DmocShape(PointMass(dim=2), keep_out_slots=2, keep_out_positions=(0, 1))

@@ -32,8 +32,16 @@ The half-spaces, moving linearly in time over each interval:
   satisfy its side too: there n is blended towards that node's direction
   (:data:`BOUNDARY_BLENDS`) until it does (start and final positions are ≥ D apart);
 * the targets satisfy all their half-spaces (n·(r_i − r_j) on an interval is smallest at
-  the closest time, where it is |r_i − r_j| ≥ D), so the agents' problems are feasible
-  together and no two ask contradictory things: the targets say who gives way where;
+  the closest time, where it is |r_i − r_j| ≥ D) and the trust region below, so the agents'
+  problems are feasible together and no two ask contradictory things: the targets say who
+  gives way where;
+* a trust region about the targets (:func:`trust_region`: 2 d more moving half-spaces, a
+  box of half-width :data:`NEIGHBOUR_MARGIN` D / (2 √d) about each node's target) keeps
+  every node within NEIGHBOUR_MARGIN D / 2 of it, so that a pair farther than
+  (1 + NEIGHBOUR_MARGIN) D apart on the targets, which gets no half-spaces, cannot meet
+  either: paths that meet D stay separated in every later round (without it, agents moving
+  back towards their optimum met partners they had no half-space for, and the 1000 masses
+  lost the separation of their first round for five rounds);
 * the planes are linearisations (sequential convex programming, split per agent like
   buffered Voronoi cells, about the spread targets instead of the latest paths); the common
   motion of a pair does not enter (a static plane per interval would ask agents travelling
@@ -78,7 +86,7 @@ from ocpar.ocp import DmocShape, OcpTask, solve_tasks
 from ocpar.ocp.dmoc import UNUSED_OFFSET
 
 #: Keep-out half-spaces per agent and interval (the DMOC shape's slots).
-KEEP_OUT_SLOTS = 6
+KEEP_OUT_SLOTS = 8
 #: Pairs whose paths come within (1 + this) D get half-spaces: the constrained pairs at
 #: distance D stay in, and neighbours about to come close join before they do.
 NEIGHBOUR_MARGIN = 0.5
@@ -123,11 +131,12 @@ class Separation:
 
 
 def keep_out_shape(problem: FormationProblem) -> DmocShape:
-    """The problem's DMOC shape with :data:`KEEP_OUT_SLOTS` slots on its positions, solved by
+    """The problem's DMOC shape with :data:`KEEP_OUT_SLOTS` + 2 d slots on its d positions
+    (partners' half-spaces, then the trust region's, :func:`trust_region`), solved by
     IPOPT (measured on the 60 point masses' first round: 18 ms per solve, all solved;
     ``sqpmethod``/``qrqp`` 110 ms per solve, 14 of 32 failing its KKT check)."""
     return dataclasses.replace(
-        problem.shape, keep_out_slots=KEEP_OUT_SLOTS,
+        problem.shape, keep_out_slots=KEEP_OUT_SLOTS + 2 * len(problem.position_indices),
         keep_out_positions=problem.position_indices, solver="ipopt")
 
 
@@ -180,6 +189,24 @@ def half_spaces(positions: np.ndarray, entries: np.ndarray, distance: float, slo
     data[a[keep], k[keep], rank[keep], :dim] = normal[chosen]
     data[a[keep], k[keep], rank[keep], dim:] = offsets[chosen]
     return data, int(np.sum(~keep))
+
+
+def trust_region(target: np.ndarray, distance: float) -> np.ndarray:
+    """Keep-out data (n, N, 2d, d + 2) holding each agent within the box
+    |r − r*(t)|_∞ ≤ h about its target path r* (n, N+1, d), as 2 d moving half-spaces per
+    interval, ±e_c·r ≥ ±e_c·r*(t) − h, with h = :data:`NEIGHBOUR_MARGIN` D / (2 √d): a node
+    then moves at most NEIGHBOUR_MARGIN D / 2 from its target, so a pair more than
+    (1 + NEIGHBOUR_MARGIN) D apart on the targets (no half-spaces between them) stays ≥ D
+    apart at every time."""
+    n, nodes, dim = target.shape
+    normals = np.concatenate([np.eye(dim), -np.eye(dim)])                 # (2d, d)
+    offsets = np.einsum("cd,nkd->nkc", normals, target) \
+        - NEIGHBOUR_MARGIN * distance / (2 * np.sqrt(dim))                 # (n, N+1, 2d)
+    data = np.empty((n, nodes - 1, 2 * dim, dim + 2))
+    data[..., :dim] = normals
+    data[..., dim] = offsets[:, :-1]
+    data[..., dim + 1] = offsets[:, 1:]
+    return data
 
 
 def spread(positions: np.ndarray, distance: float) -> tuple[np.ndarray, int]:
@@ -286,6 +313,7 @@ def separate(problem: FormationProblem, backend: Backend, phi: np.ndarray, base:
         entries = conflicts(target, distance)
         entries = np.concatenate([entries, entries[:, [1, 0, 2]]])   # both agents of a pair
         data, dropped = half_spaces(target, entries, distance, KEEP_OUT_SLOTS)
+        data = np.concatenate([data, trust_region(target, distance)], axis=2)
         agents = np.unique(entries[:, 0])
         warm = np.hstack([q[agents, 1:-1].reshape(len(agents), -1),
                           u[agents].reshape(len(agents), -1)])
