@@ -99,10 +99,8 @@ CHANGE_RTOL = 1e-2
 PENALTY = 10.0
 #: The coordinator's spreading pushes pairs closer than D to D (1 + this) ...
 SPREAD_MARGIN = 1e-3
-#: ... in at most this many iterations ...
+#: ... in at most this many iterations.
 SPREAD_ITERATIONS = 2000
-#: ... finding the pairs within reach anew every this many.
-SPREAD_REFRESH = 10
 #: Below this distance (relative to D) a pair's direction is taken from the first axis.
 DEGENERATE_RTOL = 1e-12
 
@@ -218,26 +216,25 @@ def spread(positions: np.ndarray, distance: float) -> tuple[np.ndarray, int]:
     than D at its closest point s ∈ [0, 1] asks both agents to move apart along their
     difference there by δ/2, δ what it lacks of D (1 + :data:`SPREAD_MARGIN`), spread over
     the interval's two nodes in proportion (1 − s, s); each node moves by the mean of what it
-    is asked (the pairs within reach are found anew every :data:`SPREAD_REFRESH`). Many cheap
-    iterations carry a push through a crowd, which one round of per-agent solves cannot (a
-    squeezed band must widen as a whole)."""
+    is asked (the pairs within reach are found anew once a node has moved
+    :data:`NEIGHBOUR_MARGIN` D / 2 since they were last). Many cheap iterations carry a push
+    through a crowd, which one round of per-agent solves cannot (a squeezed band must widen
+    as a whole)."""
     target = positions.copy()
     n, nodes, _ = target.shape
     goal = distance * (1 + SPREAD_MARGIN)
-    entries = None
+    # pairs farther than (1 + NEIGHBOUR_MARGIN) D apart when listed cannot come closer than D
+    # before some node has moved NEIGHBOUR_MARGIN D / 2: list them anew only then
+    entries, listed = conflicts(target, distance), target.copy()
     for iteration in range(SPREAD_ITERATIONS):
-        fresh = entries is None or iteration % SPREAD_REFRESH == 0
-        if fresh:
-            entries = conflicts(target, distance)
+        if np.linalg.norm(target - listed, axis=-1).max() >= NEIGHBOUR_MARGIN * distance / 2:
+            entries, listed = conflicts(target, distance), target.copy()
         i, j, k = entries.T
         start, end = target[i, k] - target[j, k], target[i, k + 1] - target[j, k + 1]
         gap, s = _segment_closest(start, end)
         short = gap < distance
         if not np.any(short):
-            if fresh:
-                return target, iteration
-            entries = None   # find the pairs anew: done if none of them is short
-            continue
+            return target, iteration
         i, j, k, s = i[short], j[short], k[short], s[short]
         rel = (1 - s[:, None]) * start[short] + s[:, None] * end[short]
         direction = _direction(rel, end[short] - start[short], distance)
