@@ -77,15 +77,16 @@ from ocpar.bsp.columns import Columns
 from ocpar.formation.problem import FormationProblem
 from ocpar.formation.separation import (
     ClosestApproach,
-    _segment_closest,
     close_pairs,
     closest_approach,
     interval_closest,
+    segment_closest,
 )
 from ocpar.ocp import DmocShape, OcpTask, solve_tasks
 from ocpar.ocp.dmoc import UNUSED_OFFSET
 
-#: Keep-out half-spaces per agent and interval (the DMOC shape's slots).
+#: Partners' keep-out half-spaces per agent and interval (the DMOC shape has 2 d slots more:
+#: the trust region's).
 KEEP_OUT_SLOTS = 8
 #: Pairs whose paths come within (1 + this) D get half-spaces: the constrained pairs at
 #: distance D stay in, and neighbours about to come close join before they do.
@@ -167,7 +168,7 @@ def half_spaces(positions: np.ndarray, entries: np.ndarray, distance: float, slo
         return data, 0
     a, b, k = entries.T
     start, end = positions[a, k] - positions[b, k], positions[a, k + 1] - positions[b, k + 1]
-    gap, s = _segment_closest(start, end)
+    gap, s = segment_closest(start, end)
     normal = _direction((1 - s[:, None]) * start + s[:, None] * end, end - start, distance)
     # an interval with a fixed node: blend towards that node's direction until it holds there
     for fixed, rel in ((k == 0, start), (k == intervals - 1, end)):
@@ -231,7 +232,7 @@ def spread(positions: np.ndarray, distance: float) -> tuple[np.ndarray, int]:
             entries, listed = conflicts(target, distance), target.copy()
         i, j, k = entries.T
         start, end = target[i, k] - target[j, k], target[i, k + 1] - target[j, k + 1]
-        gap, s = _segment_closest(start, end)
+        gap, s = segment_closest(start, end)
         short = gap < distance
         if not np.any(short):
             return target, iteration
