@@ -313,6 +313,9 @@ def separate(problem: FormationProblem, backend: Backend, phi: np.ndarray, base:
         data, dropped = half_spaces(target, entries, distance, KEEP_OUT_SLOTS)
         data = np.concatenate([data, trust_region(target, distance)], axis=2)
         agents = np.unique(entries[:, 0])
+        if not len(agents):   # met, and no pair within reach: no agent would move
+            outcome.change = 0.0
+            break
         warm = np.hstack([q[agents, 1:-1].reshape(len(agents), -1),
                           u[agents].reshape(len(agents), -1)])
         params = np.hstack([boundary[agents], data[agents].reshape(len(agents), -1),
