@@ -13,7 +13,7 @@ from ocpar.__main__ import main
 from ocpar.bsp import open_backend
 from ocpar.examples import formation_halo
 from ocpar.examples.formation_point_masses import make as point_masses
-from ocpar.formation import FormationOptions, solve_formation
+from ocpar.formation import FormationOptions, keep_out, solve_formation
 from ocpar.models import PointMass
 from ocpar.ocp import DmocShape, transcription
 from ocpar.ocp.dmoc import UNUSED_OFFSET
@@ -70,6 +70,61 @@ def test_moving_half_space_holds_at_the_nodes_and_costs_more():
     assert solution.cost > transcription(point_mass_shape(0)).solve(BOUNDARY).cost + 1.0
 
 
+def focus(agents: int, spacing: float) -> np.ndarray:
+    """Node positions (agents, 11, 2) of straight paths from a line y = 0 to the same line
+    reversed at y = 10: all of them pass through (0, 5) at t = T/2, a squeezed band."""
+    offsets = spacing * (np.arange(agents) - (agents - 1) / 2)
+    s = np.linspace(0.0, 1.0, 11)[None, :]
+    return np.stack([offsets[:, None] * (1 - 2 * s), np.broadcast_to(10 * s, (agents, 11))],
+                    axis=-1)
+
+
+def test_spread_widens_a_squeezed_band_and_keeps_the_ends():
+    positions = focus(9, 1.0)
+    assert sampled_min_distance(positions) < 1e-9
+    target, iterations = keep_out.spread(positions, 0.5)
+    assert iterations < keep_out.SPREAD_ITERATIONS
+    assert sampled_min_distance(target) >= 0.5 - 1e-9
+    np.testing.assert_array_equal(target[:, [0, -1]], positions[:, [0, -1]])
+
+
+def test_spread_targets_meet_every_half_space():
+    """The half-spaces built about the spread targets hold at the targets' nodes: the agents'
+    keep-out problems are feasible together (the targets are a witness)."""
+    target, _ = keep_out.spread(focus(9, 1.0), 0.5)
+    pairs = keep_out.conflicts(target, 0.5)
+    entries = np.concatenate([pairs, pairs[:, [1, 0, 2]]])
+    data, dropped = keep_out.half_spaces(target, entries, 0.5, 8)
+    assert dropped == 0 and len(pairs) > 8
+    normal, offsets = data[..., :2], data[..., 2:]
+    used = offsets[..., 0] != UNUSED_OFFSET
+    assert used.sum() == len(entries)
+    for node in (0, 1):
+        reach = np.einsum("nksd,nkd->nks", normal, target[:, node:node + 10])
+        assert np.all(reach[used] >= offsets[..., node][used] - 1e-9)
+
+
+@pytest.mark.parametrize("dim", [2, 3])
+def test_trust_region_is_the_box_that_keeps_far_pairs_apart(dim):
+    """A node may move h = 0.5 D / (2 √d) along each axis from its target, no more: at most
+    0.25 D in all, so pairs 1.5 D apart on the targets stay ≥ D apart."""
+    rng = np.random.default_rng(dim)
+    target = rng.normal(size=(3, 5, dim))
+    data = keep_out.trust_region(target, 2.0)
+    assert data.shape == (3, 4, 2 * dim, dim + 2)
+    h = 0.5 * 2.0 / (2 * np.sqrt(dim))
+
+    def holds(nodes):
+        lhs = np.einsum("nksd,nkd->nks", data[..., :dim], nodes[:, :-1])
+        rhs = np.einsum("nksd,nkd->nks", data[..., :dim], nodes[:, 1:])
+        return np.all(lhs >= data[..., dim] - 1e-12) and np.all(rhs >= data[..., dim + 1] - 1e-12)
+
+    corner = np.sign(rng.normal(size=(3, 5, dim)))
+    assert holds(target) and holds(target + h * corner)
+    assert np.linalg.norm(h * corner, axis=-1).max() == pytest.approx(0.25 * 2.0)
+    assert not holds(target + 1.01 * h * corner)
+
+
 def test_newton_refuses_keep_outs():
     with pytest.raises(ValueError, match="equalities only"):
         DmocShape(PointMass(dim=2), keep_out_slots=2, keep_out_positions=(0, 1))
@@ -95,8 +150,11 @@ def test_twelve_agents_are_separated_at_all_times(twelve):
     assert kept.required_separation == 2.0
 
 
-def test_round_limit_ends_with_its_own_status(twelve):
+def test_round_limit_ends_with_its_own_status(twelve, monkeypatch):
+    """One round meets D = 4 (the spread targets are separated); with the coordinator's
+    spreading cut to one iteration its targets are not, and one round falls short."""
     problem, _, _ = twelve
+    monkeypatch.setattr(keep_out, "SPREAD_ITERATIONS", 1)
     result = solve_formation(problem, options=FormationOptions(min_separation=4.0,
                                                                 separation_rounds=1))
     assert result.status == "separation_not_met" and result.exit_status == 5
@@ -152,6 +210,17 @@ def test_sixty_agents_half_unit_apart():
     assert sampled_min_distance(problem.positions(result.trajectories)) >= 0.5 - 1e-9
     assert result.total_cost >= result.unconstrained_cost
     assert result.unconstrained_cost == solve_formation(problem).total_cost
+
+
+@pytest.mark.slow
+def test_thirty_masses_at_half_their_spacing():
+    """D = half the final spacing 2π 10/30: the rounds without the coordinator's spreading
+    (before it) ended 30 rounds at 0.64."""
+    problem = point_masses(agents=30)
+    result = solve_formation(problem, options=FormationOptions(min_separation=1.0345))
+    assert result.status == "converged"
+    assert sampled_min_distance(problem.positions(result.trajectories)) >= 1.0345 - 1e-9
+    assert result.total_cost >= result.unconstrained_cost
 
 
 @pytest.mark.slow

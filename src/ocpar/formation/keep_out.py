@@ -2,14 +2,28 @@
 
 After the unconstrained hierarchical solve (outer angles φ, inner DMOC paths), each round
 reads the latest continuous paths (piecewise linear between nodes,
-:mod:`ocpar.formation.separation`) and gives every agent that comes near another one
-keep-out half-spaces (:mod:`ocpar.ocp.dmoc`, ``keep_out_slots``), moving linearly in time
-over each interval:
+:mod:`ocpar.formation.separation`) and does two things:
 
-* for each pair (i, j) whose paths come within (1 + :data:`NEIGHBOUR_MARGIN`) D, and each
-  interval k on which they do: the normal n is the direction of r_i − r_j at the interval's
-  closest time (:func:`~ocpar.formation.separation.interval_closest`; where they meet,
-  perpendicular to their relative velocity), and the plane follows the pair's centre
+1. **Spread** (:func:`spread`, on the coordinator, numpy only): the node positions are pushed
+   apart until every pair is ≥ D apart on every interval, the first and last nodes fixed —
+   target paths that are separated but need not obey the dynamics. Many cheap projection
+   iterations move a crowd as a whole: a band of agents squeezed far below D must widen from
+   its middle outwards, which per-agent half-spaces about the squeezed paths cannot ask for
+   (an agent between two close partners gets contradictory half-spaces, and the elastic
+   penalty leaves it where it is).
+2. **Keep-out solves** (one superstep of independent inner problems): every agent that comes
+   near another on the targets gets keep-out half-spaces (:mod:`ocpar.ocp.dmoc`,
+   ``keep_out_slots``) and re-solves its own DMOC problem (the same boundary data, its
+   half-spaces as parameters, warm-started from its latest path). The others keep their
+   latest path (not their unconstrained optimum: going back re-creates the conflicts).
+
+The half-spaces, moving linearly in time over each interval:
+
+* for each pair (i, j) whose target paths come within (1 + :data:`NEIGHBOUR_MARGIN`) D, and
+  each interval k on which they do (:func:`conflicts`): the normal n is the direction of
+  r_i − r_j on the targets at the interval's closest time
+  (:func:`~ocpar.formation.separation.interval_closest`; where they meet, perpendicular to
+  their relative velocity), and the plane follows the targets' centre
   c(t) = (r_i + r_j)/2, linear in t on the interval: agent i keeps n·r ≥ n·c(t) + D/2 and
   agent j −n·r ≥ −n·c(t) + D/2 (rows at the interval's two nodes, with c at those nodes).
   n·r(t) − n·c(t) is linear in t on the interval, so holding at both nodes it holds
@@ -17,23 +31,32 @@ over each interval:
   interval (n·(r_i − r_j) ≥ D). On the first and last interval the fixed boundary node must
   satisfy its side too: there n is blended towards that node's direction
   (:data:`BOUNDARY_BLENDS`) until it does (start and final positions are ≥ D apart);
-* the planes are linearisations about the latest paths (sequential convex programming,
-  split per agent like buffered Voronoi cells): a pair that passes close keeps its side and
-  moves apart by what it lacks; the common motion of the pair does not enter (a static
-  plane per interval would ask agents travelling along n to stay behind one another);
+* the targets satisfy all their half-spaces (n·(r_i − r_j) on an interval is smallest at
+  the closest time, where it is |r_i − r_j| ≥ D) and the trust region below, so the agents'
+  problems are feasible together and no two ask contradictory things: the targets say who
+  gives way where;
+* a trust region about the targets (:func:`trust_region`: 2 d more moving half-spaces, a
+  box of half-width :data:`NEIGHBOUR_MARGIN` D / (2 √d) about each node's target) keeps
+  every node within NEIGHBOUR_MARGIN D / 2 of it, so that a pair farther than
+  (1 + NEIGHBOUR_MARGIN) D apart on the targets, which gets no half-spaces, cannot meet
+  either: paths that meet D stay separated in every later round (without it, agents moving
+  back towards their optimum met partners they had no half-space for, and the 1000 masses
+  lost the separation of their first round for five rounds);
+* the planes are linearisations (sequential convex programming, split per agent like
+  buffered Voronoi cells, about the spread targets instead of the latest paths); the common
+  motion of a pair does not enter (a static plane per interval would ask agents travelling
+  along n to stay behind one another);
 * an agent keeps at most K = :data:`KEEP_OUT_SLOTS` half-spaces per interval, those of its
   closest partners (ties by partner index): a dropped one is caught by the next round's
-  check. The keep-outs are elastic (exact penalty :data:`PENALTY`), so that a crowded agent
-  whose half-spaces cannot all be met moves as far as it can instead of failing.
+  check. The keep-outs are elastic (exact penalty :data:`PENALTY`), so that an agent whose
+  half-spaces cannot all be met (its dynamics cannot follow the targets) moves as far as it
+  can instead of failing.
 
-Every agent with half-spaces then re-solves its own DMOC problem (the same boundary data,
-its half-spaces as parameters, warm-started from its latest path) in one superstep; the
-others keep their unconstrained optimum. Each superstep is still a set of independent inner
-problems. Rounds repeat until the exact closest approach
-(:func:`~ocpar.formation.separation.closest_approach`) is at least D (to a relative
-:data:`SEPARATION_RTOL`) and no node moved by more than :data:`CHANGE_RTOL` · D in the last
-round, or the round limit. The returned paths' separation is computed, not assumed: a run
-that misses D says by how much.
+Each round is one superstep of independent inner problems. Rounds repeat until the exact
+closest approach (:func:`~ocpar.formation.separation.closest_approach`) is at least D (to a
+relative :data:`SEPARATION_RTOL`) and no node moved by more than :data:`CHANGE_RTOL` · D in
+the last round, or the round limit. The returned paths' separation is computed, not
+assumed: a run that misses D says by how much.
 
 The final angles φ stay those of the unconstrained outer solve (the keep-outs move the paths,
 not the formation); the cost increase over the unconstrained optimum is reported. With
@@ -57,12 +80,14 @@ from ocpar.formation.separation import (
     close_pairs,
     closest_approach,
     interval_closest,
+    segment_closest,
 )
 from ocpar.ocp import DmocShape, OcpTask, solve_tasks
 from ocpar.ocp.dmoc import UNUSED_OFFSET
 
-#: Keep-out half-spaces per agent and interval (the DMOC shape's slots).
-KEEP_OUT_SLOTS = 6
+#: Partners' keep-out half-spaces per agent and interval (the DMOC shape has 2 d slots more:
+#: the trust region's).
+KEEP_OUT_SLOTS = 8
 #: Pairs whose paths come within (1 + this) D get half-spaces: the constrained pairs at
 #: distance D stay in, and neighbours about to come close join before they do.
 NEIGHBOUR_MARGIN = 0.5
@@ -73,6 +98,10 @@ CHANGE_RTOL = 1e-2
 #: The keep-outs' penalty ρ per unit of slack (:mod:`ocpar.ocp.dmoc`), in units of the
 #: largest unconstrained agent cost per D: large enough to be exact, small enough for the QP.
 PENALTY = 10.0
+#: The coordinator's spreading pushes pairs closer than D to D (1 + this) ...
+SPREAD_MARGIN = 1e-3
+#: ... in at most this many iterations.
+SPREAD_ITERATIONS = 2000
 #: Below this distance (relative to D) a pair's direction is taken from the first axis.
 DEGENERATE_RTOL = 1e-12
 
@@ -81,7 +110,8 @@ DEGENERATE_RTOL = 1e-12
 class Separation:
     """Outcome of :func:`separate`: ``q`` (n, N+1, nq) paths, ``u`` (n, N, nu) controls,
     ``costs`` (n,); ``closest`` the exact closest approach of ``q``; ``met`` whether it is
-    ≥ D (1 − :data:`SEPARATION_RTOL`); ``rounds`` supersteps of keep-out solves;
+    ≥ D (1 − :data:`SEPARATION_RTOL`); ``rounds`` rounds (one superstep of keep-out solves
+    each);
     ``change`` the largest node move of the last round (length unit); ``inner_solves``,
     ``failed_solves`` (kept their previous path), ``retries``; ``dropped`` half-spaces left
     out for want of slots over all rounds."""
@@ -100,11 +130,12 @@ class Separation:
 
 
 def keep_out_shape(problem: FormationProblem) -> DmocShape:
-    """The problem's DMOC shape with :data:`KEEP_OUT_SLOTS` slots on its positions, solved by
+    """The problem's DMOC shape with :data:`KEEP_OUT_SLOTS` + 2 d slots on its d positions
+    (partners' half-spaces, then the trust region's, :func:`trust_region`), solved by
     IPOPT (measured on the 60 point masses' first round: 18 ms per solve, all solved;
     ``sqpmethod``/``qrqp`` 110 ms per solve, 14 of 32 failing its KKT check)."""
     return dataclasses.replace(
-        problem.shape, keep_out_slots=KEEP_OUT_SLOTS,
+        problem.shape, keep_out_slots=KEEP_OUT_SLOTS + 2 * len(problem.position_indices),
         keep_out_positions=problem.position_indices, solver="ipopt")
 
 
@@ -112,51 +143,116 @@ def keep_out_shape(problem: FormationProblem) -> DmocShape:
 BOUNDARY_BLENDS = (0.0, 0.25, 0.5, 0.75, 1.0)
 
 
-def half_spaces(positions: np.ndarray, distance: float, slots: int
+def conflicts(positions: np.ndarray, distance: float) -> np.ndarray:
+    """Entries (m, 3) (i, j, k), i < j, sorted: pairs whose paths (positions (n, N+1, d))
+    come within (1 + :data:`NEIGHBOUR_MARGIN`) D on interval k."""
+    pairs = close_pairs(positions, distance * (1 + NEIGHBOUR_MARGIN))
+    gap, _ = interval_closest(positions, pairs)
+    row, k = np.nonzero(gap <= distance * (1 + NEIGHBOUR_MARGIN))
+    return np.column_stack([pairs[row], k])
+
+
+def half_spaces(positions: np.ndarray, entries: np.ndarray, distance: float, slots: int
                 ) -> tuple[np.ndarray, int]:
     """Keep-out data (n, N, slots, d + 2) per agent, interval and slot: normal (d) and the
     offsets at the interval's two nodes (unused slots: 0 and
-    :data:`~ocpar.ocp.dmoc.UNUSED_OFFSET`), built from the node positions (n, N+1, d) as the
-    module docstring says; and the number of half-spaces dropped for want of slots."""
+    :data:`~ocpar.ocp.dmoc.UNUSED_OFFSET`), built from the node positions (n, N+1, d) for
+    each entry (agent a, partner b, interval k) of ``entries`` (m, 3): agent a keeps
+    n·r ≥ n·r_b(t) + D on interval k, as the module docstring says; and the number of
+    half-spaces dropped for want of slots (the farthest partners' on an interval)."""
     n, nodes, dim = positions.shape
     intervals = nodes - 1
     data = np.zeros((n, intervals, slots, dim + 2))
     data[..., dim:] = UNUSED_OFFSET
-    reach = distance * (1 + NEIGHBOUR_MARGIN)
-    pairs = close_pairs(positions, reach)
-    if not len(pairs):
+    if not len(entries):
         return data, 0
-    gap, s = interval_closest(positions, pairs)                   # (m, N)
-    pair, k = np.nonzero(gap <= reach)
-    i, j = pairs[pair, 0], pairs[pair, 1]
-    start, end = positions[i, k] - positions[j, k], positions[i, k + 1] - positions[j, k + 1]
-    frac = s[pair, k][:, None]
-    normal = _direction((1 - frac) * start + frac * end, end - start, distance)
+    a, b, k = entries.T
+    start, end = positions[a, k] - positions[b, k], positions[a, k + 1] - positions[b, k + 1]
+    gap, s = segment_closest(start, end)
+    normal = _direction((1 - s[:, None]) * start + s[:, None] * end, end - start, distance)
     # an interval with a fixed node: blend towards that node's direction until it holds there
     for fixed, rel in ((k == 0, start), (k == intervals - 1, end)):
         rows = np.flatnonzero(fixed)
         normal[rows] = _boundary_normal(normal[rows], rel[rows], distance)
-    # the plane follows the pair's centre c(t), linear on the interval: n·r ≥ n·c(t) + D/2
+    # the plane follows the partner's path r_b(t), linear on the interval: n·r ≥ n·r_b(t) + D
     offsets = np.column_stack([
-        np.einsum("md,md->m", normal, (positions[i, node] + positions[j, node]) / 2)
-        for node in (k, k + 1)])
-    # one entry per (agent, interval): agent i on +normal's side, agent j on −normal's
-    agent = np.concatenate([i, j])
-    partner = np.concatenate([j, i])
-    interval = np.concatenate([k, k])
-    normals = np.concatenate([normal, -normal])
-    offsets = np.concatenate([offsets, -offsets]) + distance / 2
-    closeness = np.concatenate([gap[pair, k], gap[pair, k]])
-    order = np.lexsort((partner, closeness, interval, agent))
-    agent, interval = agent[order], interval[order]
-    group = agent * intervals + interval
+        np.einsum("md,md->m", normal, (positions[a, node] + positions[b, node]) / 2)
+        for node in (k, k + 1)]) + distance / 2
+    order = np.lexsort((b, gap, k, a))
+    a, k = a[order], k[order]
+    group = a * intervals + k
     first = np.flatnonzero(np.r_[True, group[1:] != group[:-1]])
     rank = np.arange(len(group)) - np.repeat(first, np.diff(np.r_[first, len(group)]))
     keep = rank < slots
     chosen = order[keep]
-    data[agent[keep], interval[keep], rank[keep], :dim] = normals[chosen]
-    data[agent[keep], interval[keep], rank[keep], dim:] = offsets[chosen]
+    data[a[keep], k[keep], rank[keep], :dim] = normal[chosen]
+    data[a[keep], k[keep], rank[keep], dim:] = offsets[chosen]
     return data, int(np.sum(~keep))
+
+
+def trust_region(target: np.ndarray, distance: float) -> np.ndarray:
+    """Keep-out data (n, N, 2d, d + 2) holding each agent within the box
+    |r − r*(t)|_∞ ≤ h about its target path r* (n, N+1, d), as 2 d moving half-spaces per
+    interval, ±e_c·r ≥ ±e_c·r*(t) − h, with h = :data:`NEIGHBOUR_MARGIN` D / (2 √d): a node
+    then moves at most NEIGHBOUR_MARGIN D / 2 from its target, so a pair more than
+    (1 + NEIGHBOUR_MARGIN) D apart on the targets (no half-spaces between them) stays ≥ D
+    apart at every time."""
+    n, nodes, dim = target.shape
+    normals = np.concatenate([np.eye(dim), -np.eye(dim)])                 # (2d, d)
+    offsets = np.einsum("cd,nkd->nkc", normals, target) \
+        - NEIGHBOUR_MARGIN * distance / (2 * np.sqrt(dim))                 # (n, N+1, 2d)
+    data = np.empty((n, nodes - 1, 2 * dim, dim + 2))
+    data[..., :dim] = normals
+    data[..., dim] = offsets[:, :-1]
+    data[..., dim + 1] = offsets[:, 1:]
+    return data
+
+
+def spread(positions: np.ndarray, distance: float) -> tuple[np.ndarray, int]:
+    """Target paths (n, N+1, d): the node positions (n, N+1, d) pushed apart until every pair
+    is ≥ D apart on every interval of the piecewise-linear paths, the first and last nodes
+    fixed; and the iterations taken (at most :data:`SPREAD_ITERATIONS`).
+
+    Jacobi projection (position-based dynamics): each iteration, every pair-interval closer
+    than D at its closest point s ∈ [0, 1] asks both agents to move apart along their
+    difference there by δ/2, δ what it lacks of D (1 + :data:`SPREAD_MARGIN`), spread over
+    the interval's two nodes in proportion (1 − s, s); each node moves by the mean of what it
+    is asked (the pairs within reach are found anew once a node has moved
+    :data:`NEIGHBOUR_MARGIN` D / 2 since they were last). Many cheap iterations carry a push
+    through a crowd, which one round of per-agent solves cannot (a squeezed band must widen
+    as a whole)."""
+    target = positions.copy()
+    n, nodes, _ = target.shape
+    goal = distance * (1 + SPREAD_MARGIN)
+    # pairs farther than (1 + NEIGHBOUR_MARGIN) D apart when listed cannot come closer than D
+    # before some node has moved NEIGHBOUR_MARGIN D / 2: list them anew only then
+    entries, listed = conflicts(target, distance), target.copy()
+    for iteration in range(SPREAD_ITERATIONS):
+        if np.linalg.norm(target - listed, axis=-1).max() >= NEIGHBOUR_MARGIN * distance / 2:
+            entries, listed = conflicts(target, distance), target.copy()
+        i, j, k = entries.T
+        start, end = target[i, k] - target[j, k], target[i, k + 1] - target[j, k + 1]
+        gap, s = segment_closest(start, end)
+        short = gap < distance
+        if not np.any(short):
+            return target, iteration
+        i, j, k, s = i[short], j[short], k[short], s[short]
+        rel = (1 - s[:, None]) * start[short] + s[:, None] * end[short]
+        direction = _direction(rel, end[short] - start[short], distance)
+        # moving node k by a (1 − s) and node k+1 by a s moves the point at s by
+        # a ((1 − s)² + s²): a makes it δ/2
+        amount = (goal - gap[short]) / 2 / ((1 - s) ** 2 + s ** 2)
+        push = np.zeros_like(target)
+        count = np.zeros((n, nodes))
+        for node, weight in ((k, amount * (1 - s)), (k + 1, amount * s)):
+            step = weight[:, None] * direction
+            np.add.at(push, (i, node), step)
+            np.add.at(push, (j, node), -step)
+            np.add.at(count, (i, node), 1)
+            np.add.at(count, (j, node), 1)
+        push[:, [0, -1]] = 0
+        target += push / np.maximum(count, 1)[..., None]
+    return target, SPREAD_ITERATIONS
 
 
 def _direction(relative: np.ndarray, velocity: np.ndarray, distance: float) -> np.ndarray:
@@ -197,53 +293,53 @@ def separate(problem: FormationProblem, backend: Backend, phi: np.ndarray, base:
     """Separation rounds (module docstring) from the unconstrained inner solutions ``base``
     (a :class:`~ocpar.bsp.columns.Columns` of :class:`~ocpar.ocp.DmocSolution`, one per
     agent, at angles ``phi`` (n,) rad) to a minimum separation ``distance`` D (length unit),
-    at most ``max_rounds`` supersteps."""
+    at most ``max_rounds`` rounds."""
     shape = keep_out_shape(problem)
     n = problem.agents
-    free_q, free_u, free_cost = (np.asarray(base.column(name)) for name in ("q", "u", "cost"))
-    q, u, costs = free_q.copy(), free_u.copy(), np.array(free_cost, float)
+    free_cost = np.asarray(base.column("cost"), float)
+    q, u = np.array(base.column("q"), float), np.array(base.column("u"), float)
+    costs = free_cost.copy()
     boundary = problem.boundary_params_rows(np.arange(n), phi)
+    penalty = PENALTY * max(float(np.max(free_cost)), 1e-300) / distance
     outcome = Separation(q, u, costs, closest_approach(problem.positions(q), shape.duration),
                          False, 0, 0.0)
     outcome.met = _met(outcome.closest, distance)
     while not (outcome.met and (outcome.rounds == 0 or outcome.change <= CHANGE_RTOL * distance)
                ) and outcome.rounds < max_rounds:
-        data, dropped = half_spaces(problem.positions(q), distance, KEEP_OUT_SLOTS)
-        active = np.any(data[..., -1] != UNUSED_OFFSET, axis=(1, 2))
-        agents = np.flatnonzero(active)
-        new_q, new_u = free_q.copy(), free_u.copy()
-        new_costs = np.array(free_cost, float)
-        if len(agents):
-            warm = np.hstack([q[agents, 1:-1].reshape(len(agents), -1),
-                              u[agents].reshape(len(agents), -1)])
-            penalty = np.full((len(agents), 1), PENALTY * max(float(np.max(free_cost)), 1e-300)
-                              / distance)
-            params = np.hstack([boundary[agents], data[agents].reshape(len(agents), -1),
-                                penalty])
-            tasks = Columns.of(OcpTask, len(agents), shape=shape, params=params,
-                               warm_start=warm, multipliers=None, fallback=None)
-            sols = backend.superstep_columns(solve_tasks, tasks)
-            ok = np.asarray(sols.column("success"), dtype=bool)
-            solved, failed = agents[ok], agents[~ok]
-            new_q[solved] = np.asarray(sols.column("q"))[ok]
-            new_u[solved] = np.asarray(sols.column("u"))[ok]
-            new_costs[solved] = np.asarray(sols.column("cost"), float)[ok]
-            new_q[failed], new_u[failed], new_costs[failed] = q[failed], u[failed], costs[failed]
-            outcome.inner_solves += len(agents)
-            outcome.failed_solves += len(failed)
-            outcome.retries += int(np.sum(np.asarray(sols.column("attempts")) - 1))
-        moved = np.abs(problem.positions(new_q) - problem.positions(q)).max()
-        q, u, costs = new_q, new_u, new_costs
-        outcome.q, outcome.u, outcome.costs = q, u, costs
+        before = problem.positions(q)
+        target, iterations = spread(before, distance)
+        entries = conflicts(target, distance)
+        entries = np.concatenate([entries, entries[:, [1, 0, 2]]])   # both agents of a pair
+        data, dropped = half_spaces(target, entries, distance, KEEP_OUT_SLOTS)
+        data = np.concatenate([data, trust_region(target, distance)], axis=2)
+        agents = np.unique(entries[:, 0])
+        if not len(agents):   # met, and no pair within reach: no agent would move
+            outcome.change = 0.0
+            break
+        warm = np.hstack([q[agents, 1:-1].reshape(len(agents), -1),
+                          u[agents].reshape(len(agents), -1)])
+        params = np.hstack([boundary[agents], data[agents].reshape(len(agents), -1),
+                            np.full((len(agents), 1), penalty)])
+        tasks = Columns.of(OcpTask, len(agents), shape=shape, params=params,
+                           warm_start=warm, multipliers=None, fallback=None)
+        sols = backend.superstep_columns(solve_tasks, tasks)
+        ok = np.asarray(sols.column("success"), dtype=bool)
+        solved = agents[ok]   # a failed solve keeps its agent's latest path
+        q[solved] = np.asarray(sols.column("q"))[ok]
+        u[solved] = np.asarray(sols.column("u"))[ok]
+        costs[solved] = np.asarray(sols.column("cost"), float)[ok]
+        outcome.inner_solves += len(agents)
+        outcome.failed_solves += int(np.sum(~ok))
+        outcome.retries += int(np.sum(np.asarray(sols.column("attempts")) - 1))
         outcome.rounds += 1
-        outcome.change = float(moved)
+        outcome.change = float(np.abs(problem.positions(q) - before).max())
         outcome.dropped += dropped
         outcome.closest = closest_approach(problem.positions(q), shape.duration)
         outcome.met = _met(outcome.closest, distance)
         if progress is not None:
-            progress(f"separation round {outcome.rounds:3d}  agents {len(agents):6d}  "
-                     f"closest {outcome.closest.distance:.6e} (agents "
-                     f"{outcome.closest.agents[0]}, {outcome.closest.agents[1]})  "
+            progress(f"separation round {outcome.rounds:3d}  spread {iterations:5d} it  "
+                     f"agents {len(agents):6d}  closest {outcome.closest.distance:.6e} "
+                     f"(agents {outcome.closest.agents[0]}, {outcome.closest.agents[1]})  "
                      f"moved {outcome.change:.1e}  cost {float(np.sum(costs)):.12e}  "
                      f"dropped {dropped}")
     return outcome

@@ -67,7 +67,7 @@ def _check_positions(positions: np.ndarray) -> np.ndarray:
     return array
 
 
-def _segment_closest(start: np.ndarray, end: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def segment_closest(start: np.ndarray, end: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Minimum of |(1 − s) d0 + s d1| over s ∈ [0, 1] for relative positions ``start`` d0
     and ``end`` d1 (..., dim): the distance (...) and the first s (...) where it occurs."""
     step = end - start
@@ -95,7 +95,7 @@ def interval_closest(positions: np.ndarray, pairs: np.ndarray) -> tuple[np.ndarr
     for lo in range(0, len(pairs), CHUNK):
         chunk = pairs[lo:lo + CHUNK]
         rel = positions[chunk[:, 0]] - positions[chunk[:, 1]]   # (m, N+1, dim)
-        distance[lo:lo + CHUNK], fraction[lo:lo + CHUNK] = _segment_closest(rel[:, :-1],
+        distance[lo:lo + CHUNK], fraction[lo:lo + CHUNK] = segment_closest(rel[:, :-1],
                                                                             rel[:, 1:])
     return distance, fraction
 
@@ -204,7 +204,7 @@ def _within(positions: np.ndarray, radius: float) -> np.ndarray:
             ma, mb = ma[keep], mb[keep]
             i, j = np.minimum(member[ma], member[mb]), np.maximum(member[ma], member[mb])
             at = k[ma]
-            distance, _ = _segment_closest(positions[i, at] - positions[j, at],
+            distance, _ = segment_closest(positions[i, at] - positions[j, at],
                                            positions[i, at + 1] - positions[j, at + 1])
             close = distance <= radius * (1 + 1e-9) + scale
             found.append(i[close].astype(np.int64) * n + j[close])
