@@ -4,6 +4,7 @@
     python scripts/macs_bench.py --output runs/macs-bench
     python scripts/macs_bench.py --part quality --seeds 10 --archives 20 10 --output DIR
     python scripts/macs_bench.py --part time --workers 1 2 --repeats 3 --output DIR
+    python scripts/macs_bench.py --part time --workers 2 --baseline OTHER/src --output DIR
 
 ``quality``: for each problem, archive size and seed, one ``--evaluations`` run (serial
 backend, two runs at a time in separate processes): GD, IGD, HV of the re-simulated archive
@@ -12,7 +13,10 @@ Table III reports mean GD/IGD over 30 runs with a 10-member archive).
 ``time``: ``mpirun -n P python -m ocpar.macs --problem goddard`` (``--evaluations``) per
 worker count, ``--repeats`` times: the median (and every run's) solve wall time, the CPU
 seconds of all workers' tasks, and the coordinator's share (wall minus the supersteps' walls);
-on a shared machine the CPU seconds are the steadier figure.
+on a shared machine the CPU seconds are the steadier figure. With ``--baseline SRC`` (the
+``src`` directory of another checkout, e.g. ``git archive main src | tar -x -C /tmp/base``)
+every timed run is followed by the same run of that code, so before and after share the
+machine's load: the medians per code and their ratio are reported.
 
 Writes ``macs_bench.json`` and ``macs_bench.png``.
 """
@@ -21,6 +25,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import subprocess
 import sys
 from concurrent.futures import ProcessPoolExecutor
@@ -28,36 +33,50 @@ from pathlib import Path
 
 import numpy as np
 
+from ocpar.macs.local_search import RESTORATIONS
+
 PAPER_TABLE_III = {"goddard": {"gd": 2.833e-2, "igd": 2.9449e-2},
                    "orbit-raising": {"gd": 5.9444e-2, "igd": 4.387e-2}}
 
 
-def quality_run(job: tuple[str, int, int, int]) -> dict:
+def quality_run(job: tuple[str, int, int, int, str]) -> dict:
     """One serial MACS run in this (worker) process."""
     from ocpar.macs import MacsSettings, make_problem, solve_macs
 
-    problem, archive, seed, evaluations = job
+    problem, archive, seed, evaluations, restoration = job
     result = solve_macs(make_problem(problem),
-                        MacsSettings(max_evaluations=evaluations, archive_size=archive, seed=seed))
-    row = {"problem": problem, "archive": archive, "seed": seed, "gd": result.gd,
+                        MacsSettings(max_evaluations=evaluations, archive_size=archive, seed=seed,
+                                     restoration=restoration))
+    row = {"problem": problem, "archive": archive, "seed": seed, "restoration": restoration,
+           "gd": result.gd,
            "igd": result.igd, "hv": result.hv, "evaluations": result.evaluations,
            "wall_time_s": result.wall_time_s}
     print(json.dumps(row), flush=True)
     return row
 
 
-def time_run(workers: int, repeat: int, evaluations: int, output: Path) -> dict:
-    """One ``mpirun -n workers`` Goddard run: wall, task CPU and coordinator time."""
-    out = output / f"time-goddard-mpi-{workers}-{repeat}"
+def time_run(workers: int, repeat: int, evaluations: int, output: Path, restoration: str,
+             source: Path | None = None) -> dict:
+    """One ``mpirun -n workers`` Goddard run: wall, task CPU and coordinator time; the
+    ``ocpar`` package imported from ``source`` (a ``src`` directory, run with its default
+    restoration) if given."""
+    code = "this" if source is None else "baseline"
+    out = output / f"time-goddard-mpi-{workers}-{code}-{repeat}"
     cmd = [str(Path(sys.executable).parent / "mpirun"), "-n", str(workers), sys.executable,
            "-m", "ocpar.macs", "--problem", "goddard", "--archive", "20", "--max-evals",
-           str(evaluations), "--quiet", "--output", str(out)]
-    proc = subprocess.run(cmd, capture_output=True, text=True)
+           str(evaluations), "--quiet", "--output", str(out),
+           *(["--restoration", restoration] if source is None else [])]
+    env = dict(os.environ)
+    if source is not None:
+        env["PYTHONPATH"] = os.pathsep.join([str(source.resolve()),
+                                             *filter(None, [env.get("PYTHONPATH")])])
+    proc = subprocess.run(cmd, capture_output=True, text=True, env=env)
     if proc.returncode != 0:
         raise SystemExit(f"failed: {' '.join(cmd)}\n{proc.stderr[-2000:]}")
     data = json.loads((out / "result.json").read_text())
     trace = data["trace"]
-    row = {"workers": workers, "repeat": repeat, "wall_time_s": data["wall_time_s"],
+    row = {"code": code, "workers": workers, "repeat": repeat,
+           "wall_time_s": data["wall_time_s"],
            "task_cpu_s": sum(sum(step["worker_cpu_s"]) for step in trace),
            "coordinator_s": data["wall_time_s"] - sum(step["wall_s"] for step in trace),
            "gd": data["gd"], "igd": data["igd"], "evaluations": data["evaluations"],
@@ -67,12 +86,19 @@ def time_run(workers: int, repeat: int, evaluations: int, output: Path) -> dict:
 
 
 def time_medians(rows: list[dict]) -> list[dict]:
-    """Per worker count: the median of each timing over the repeats."""
-    return [{"workers": p, "runs": len(g),
-             **{f"median_{k}": float(np.median([r[k] for r in g]))
-                for k in ("wall_time_s", "task_cpu_s", "coordinator_s")}}
-            for p in sorted({r["workers"] for r in rows})
-            for g in [[r for r in rows if r["workers"] == p]]]
+    """Per code and worker count: the median of each timing over the repeats (and, for this
+    code, its ratio to the baseline's median where there is one)."""
+    timings = ("wall_time_s", "task_cpu_s", "coordinator_s")
+    medians = [{"code": c, "workers": p, "runs": len(g),
+                **{f"median_{k}": float(np.median([r[k] for r in g])) for k in timings}}
+               for c in ("this", "baseline") for p in sorted({r["workers"] for r in rows})
+               for g in [[r for r in rows if r["workers"] == p and r["code"] == c]] if g]
+    baseline = {m["workers"]: m for m in medians if m["code"] == "baseline"}
+    for m in medians:
+        if m["code"] == "this" and m["workers"] in baseline:
+            m.update({f"ratio_{k}": m[f"median_{k}"] / baseline[m["workers"]][f"median_{k}"]
+                      for k in timings})
+    return medians
 
 
 def summarise(rows: list[dict]) -> list[dict]:
@@ -110,10 +136,11 @@ def plot(report: dict, path: Path) -> None:
     x = np.arange(len(rows))
     axes[2].bar(x - 0.2, [r["median_wall_time_s"] for r in rows], 0.4, label="wall")
     axes[2].bar(x + 0.2, [r["median_task_cpu_s"] for r in rows], 0.4, label="task CPU")
-    axes[2].set_xticks(x, [str(r["workers"]) for r in rows])
-    position = {r["workers"]: i for i, r in enumerate(rows)}
+    axes[2].set_xticks(x, [f"{r['workers']}" + ("" if r["code"] == "this" else "\nbaseline")
+                           for r in rows])
+    position = {(r["code"], r["workers"]): i for i, r in enumerate(rows)}
     for r in report["time"]:
-        axes[2].plot(position[r["workers"]] - 0.2, r["wall_time_s"], "k.")
+        axes[2].plot(position[r["code"], r["workers"]] - 0.2, r["wall_time_s"], "k.")
     axes[2].axhline(15, color="tab:red", ls=":", label="target 15 s on 2 workers")
     axes[2].set_xlabel("MPI ranks")
     axes[2].set_ylabel("seconds (median; dots: each run)")
@@ -133,23 +160,31 @@ def main() -> int:
     parser.add_argument("--evaluations", type=int, default=10_000)
     parser.add_argument("--workers", nargs="+", type=int, default=[1, 2])
     parser.add_argument("--repeats", type=int, default=3, help="timed runs per worker count")
+    parser.add_argument("--restoration", choices=RESTORATIONS, default="centred",
+                        help="MacsSettings.restoration of this code's runs")
+    parser.add_argument("--baseline", type=Path, default=None,
+                        help="a src directory of other code to time alternately with this one")
     parser.add_argument("--processes", type=int, default=2,
                         help="quality runs in parallel (one serial run per process)")
     parser.add_argument("--output", type=Path, default=Path("runs/macs-bench"))
     args = parser.parse_args()
     args.output.mkdir(parents=True, exist_ok=True)
-    report: dict = {"evaluations": args.evaluations, "quality": [], "summary": [], "time": [],
+    report: dict = {"evaluations": args.evaluations, "restoration": args.restoration,
+                    "quality": [], "summary": [], "time": [],
                     "time_medians": [],
                     "paper_table_III": PAPER_TABLE_III}
     if args.part in ("time", "all"):
-        report["time"] = [time_run(p, i, args.evaluations, args.output) for i in range(args.repeats)
-                          for p in args.workers]
+        sources = [None] if args.baseline is None else [None, args.baseline]
+        report["time"] = [time_run(p, i, args.evaluations, args.output, args.restoration,
+                                   source)
+                          for i in range(args.repeats) for p in args.workers
+                          for source in sources]
         report["time_medians"] = time_medians(report["time"])
         for row in report["time_medians"]:
             print(json.dumps(row))
     if args.part in ("quality", "all"):
-        jobs = [(p, a, s, args.evaluations) for p in args.problems for a in args.archives
-                for s in range(args.seeds)]
+        jobs = [(p, a, s, args.evaluations, args.restoration) for p in args.problems
+                for a in args.archives for s in range(args.seeds)]
         with ProcessPoolExecutor(args.processes) as pool:
             report["quality"] = list(pool.map(quality_run, jobs))
         report["summary"] = summarise(report["quality"])

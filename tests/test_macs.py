@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 
+import casadi
 import numpy as np
 import pytest
 from conftest import assert_result_contract, golden, run_cli
@@ -11,7 +12,7 @@ from conftest import assert_result_contract, golden, run_cli
 from ocpar.bsp import open_backend
 from ocpar.macs.algorithm import MacsSettings
 from ocpar.macs.archive import TIE_TOL, Archive, Member, dominates
-from ocpar.macs.local_search import INTEGRATION_RTOL, SearchTask, run_search
+from ocpar.macs.local_search import INTEGRATION_RTOL, RESTORATIONS, SearchTask, run_search
 from ocpar.macs.problems import make_problem
 from ocpar.macs.reference import reference_front
 from ocpar.macs.solve import resimulated_objectives, solve_macs
@@ -91,6 +92,31 @@ def test_fast_integration_meets_its_tolerance_or_falls_back(name):
             np.testing.assert_allclose(nodes, exact, rtol=10 * rtol, atol=rtol)
             np.testing.assert_array_equal(final, nodes[-1, -1])
             np.testing.assert_allclose(final, exact_final, rtol=10 * rtol, atol=rtol)
+
+
+def test_both_restorations_reach_the_constraints_and_feasible_stops_sooner():
+    """Restorations of random Goddard candidates: each result satisfies the DFET constraints
+    (checked on the transcription's own residual), and stopping at the first feasible point
+    takes fewer IPOPT iterations in all than centring; an unknown mode is refused."""
+    problem = make_problem("goddard")
+    dfet = dfet_problem(problem.shape)
+    rng = np.random.default_rng(5)
+    residual = casadi.Function("g", [dfet.z], [dfet.constraints])
+    iterations = {}
+    for mode in RESTORATIONS:
+        iterations[mode] = 0
+        for _ in range(4):
+            p = dfet.p_lower + (dfet.p_upper - dfet.p_lower) * rng.random(len(dfet.p_lower))
+            result = run_search(SearchTask(problem, "restore", p0=p, restoration=mode))
+            assert result.feasible, (mode, result.status)
+            assert np.max(np.abs(np.asarray(residual(result.z)))) <= 1e-6
+            assert np.all((dfet.lbz <= result.z) & (result.z <= dfet.ubz))
+            iterations[mode] += result.iterations
+    assert iterations["feasible"] < iterations["centred"], iterations
+    with pytest.raises(ValueError, match="unknown restoration"):
+        run_search(SearchTask(problem, "restore", p0=p, restoration="nearest"))
+    with pytest.raises(ValueError, match="restoration must be one of"):
+        MacsSettings(restoration="nearest")
 
 
 @pytest.mark.parametrize("name", ["goddard", "orbit-raising"])

@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass
-from functools import lru_cache
+from functools import cached_property, lru_cache
 
 import casadi as ca
 import numpy as np
@@ -54,6 +54,15 @@ MAX_SEAM_HOPS = 3
 #: pushing it into the interior of the control box (on orbit raising ~35 instead of ~57
 #: evaluations per search for the same results).
 SEARCH_MU_INIT = 1e-3
+#: How a restoration (min 0 s.t. the DFET constraints) stops: ``centred``, IPOPT to tol 1e-8,
+#: which goes on after the point is feasible until the complementarity is 1e-8 too, moving it
+#: along the central path between its bounds; or ``feasible``, at the first point feasible to
+#: 1e-8, with the adaptive barrier parameter (:data:`FEASIBLE_RESTORATION_OPTIONS`).
+RESTORATIONS = ("centred", "feasible")
+#: IPOPT options of a ``feasible`` restoration. On Goddard's restorations: 4.2 instead of
+#: 12.3 iterations, ~0.5x the CPU time; the point stays nearer the candidate.
+FEASIBLE_RESTORATION_OPTIONS = {"constr_viol_tol": 1e-8, "dual_inf_tol": 1.0,
+                                "compl_inf_tol": 1.0, "mu_strategy": "adaptive"}
 
 
 @dataclass(frozen=True)
@@ -69,6 +78,7 @@ class SearchTask:
     p0: np.ndarray | None = None
     weights: np.ndarray | None = None
     utopia: np.ndarray | None = None
+    restoration: str = "centred"
 
 
 @dataclass
@@ -110,6 +120,13 @@ class InnerSolvers:
         self.scalarised = ca.nlpsol("ps", "ipopt", scalarised,
                                     ipopt_options(1e-8, MAX_ITER, mu_init=SEARCH_MU_INIT))
         self.restore = ca.nlpsol("restore", "ipopt", {"x": z, "f": 0, "g": g}, opts)
+
+    @cached_property
+    def restore_feasible(self) -> ca.Function:
+        """The restoration that stops at the first feasible point, built on first use."""
+        return ca.nlpsol("restore_feasible", "ipopt", {"x": self.dfet.z, "f": 0,
+                                                       "g": self.dfet.constraints},
+                         ipopt_options(1.0, MAX_ITER, **FEASIBLE_RESTORATION_OPTIONS))
 
     def consistent(self, z: np.ndarray, objectives: np.ndarray) -> bool:
         """The transcription's objectives agree with an accurate re-simulation of z's
@@ -182,8 +199,12 @@ class InnerSolvers:
             z = np.clip(np.asarray(out["x"]).ravel()[:-1], self.dfet.lbz, self.dfet.ubz)
             evaluations = int(stats.get("n_call_nlp_g", 0)) + 1
         elif task.kind == "restore":
-            out = self.restore(x0=z0, lbx=self.dfet.lbz, ubx=self.dfet.ubz, lbg=zeros, ubg=zeros)
-            stats = self.restore.stats()
+            if task.restoration not in RESTORATIONS:
+                raise ValueError(f"unknown restoration {task.restoration!r}; choose one of "
+                                 f"{RESTORATIONS}")
+            solver = self.restore if task.restoration == "centred" else self.restore_feasible
+            out = solver(x0=z0, lbx=self.dfet.lbz, ubx=self.dfet.ubz, lbg=zeros, ubg=zeros)
+            stats = solver.stats()
             z = np.clip(np.asarray(out["x"]).ravel(), self.dfet.lbz, self.dfet.ubz)
             evaluations = 1
         else:
