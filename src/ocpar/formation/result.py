@@ -82,7 +82,7 @@ class FormationResult(RunResult):
             return ""
         increase = self.total_cost / self.unconstrained_cost - 1
         return (f"   required {self.required_separation:g}: {self.separation_rounds} round(s), "
-                f"cost +{increase:.3%} over the unconstrained {self.unconstrained_cost:.6e}")
+                f"cost {increase * 100:+.3g}% over the unconstrained {self.unconstrained_cost:.6e}")
 
     def summary(self) -> str:
         """A few lines for people: the headline numbers of the run."""
