@@ -21,6 +21,7 @@ from numpy.typing import ArrayLike
 from scipy.integrate import solve_ivp
 
 from ocpar.models.ode import OdeModel, check_ode_model, control_bounds, ode_functions
+from ocpar.ocp.batch import BufferedFunction
 from ocpar.ocp.multiple_shooting import INTEGRATORS
 
 #: Accuracy of the integration of a control law for agent 0 (scipy's RK45).
@@ -223,9 +224,9 @@ class PursuitProblem:
         """The control law integrated accurately, sampled on the grid; its controls at the
         grid points. Raises ValueError naming ``plan`` if the integration fails or leaves the
         bounds."""
-        f, law, nu = self._functions[0], self.plan.law, self.model.nu
+        rhs, law, nu = BufferedFunction(self._functions[0]), self.plan.law, self.model.nu
         sol = solve_ivp(
-            lambda t, x: np.asarray(f(x, evaluate_law(law, t, nu))).ravel(),
+            lambda t, x: rhs(x, evaluate_law(law, t, nu))[0],
             (0.0, self.duration), self.initial_state, t_eval=self.grid, rtol=LAW_RTOL,
             atol=LAW_ATOL, max_step=self.duration * LAW_MAX_STEP_FRACTION,
         )

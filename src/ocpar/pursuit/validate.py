@@ -9,6 +9,7 @@ import numpy as np
 from scipy.integrate import solve_ivp
 
 from ocpar.models.ode import ode_functions
+from ocpar.ocp.batch import BufferedFunction
 from ocpar.ocp.multiple_shooting import step_function
 from ocpar.pursuit.problem import PursuitProblem
 
@@ -38,10 +39,10 @@ class RkCheck:
 
 def rk_check(problem: PursuitProblem, u: np.ndarray) -> RkCheck:
     """Re-simulate the piecewise-constant controls ``u`` (N−1, nu) from x_I."""
-    f, _ = ode_functions(problem.model)
+    rhs = BufferedFunction(ode_functions(problem.model)[0])
     y = problem.initial_state.copy()
     for uj in u:
-        y = solve_ivp(lambda _t, s, uj=uj: np.asarray(f(s, uj)).ravel(), (0.0, problem.step),
+        y = solve_ivp(lambda _t, s, uj=uj: rhs(s, uj)[0], (0.0, problem.step),
                       y, rtol=RESIM_RTOL, atol=RESIM_ATOL).y[:, -1]
     error = np.abs(y[list(problem.target_components)] - problem.target)
     return RkCheck(final_state=y, terminal_error=float(np.max(error)),
