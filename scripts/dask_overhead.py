@@ -7,7 +7,7 @@
 Overhead = superstep wall − busiest worker's busy time (``SuperstepTrace.overhead_s``): what
 the coordinator waits beyond the work itself. For each repetition and each dispatch, a fresh
 embedded ``LocalCluster`` of ``--workers`` single-threaded workers runs ``--steps`` supersteps
-of the 60 point-mass formation's DMOC solves (``ocpar.ocp:solve_task``, columnar, the
+of the 60 point-mass formation's DMOC solves (``ocpar.ocp:solve_tasks``, batched and columnar, the
 formation's own path; the first of them is the run's first superstep) and then ``--steps``
 of a trivial kernel (``math:sqrt`` of 60 numbers). Dispatches:
 
@@ -150,7 +150,7 @@ def measure(dispatch: str, workers: int, steps: int) -> dict:
     with open_dispatch(dispatch, workers) as backend:
         started_s = time.perf_counter() - start
         for _ in range(steps):
-            backend.superstep_columns("ocpar.ocp:solve_task", tasks)
+            backend.superstep_columns("ocpar.ocp:solve_tasks", tasks)
         for _ in range(steps):
             backend.superstep("math:sqrt", numbers)
         overhead = [t.overhead_s * 1e3 for t in backend.traces]

@@ -17,6 +17,7 @@ process still makes one solver call at a time.
 
 from __future__ import annotations
 
+import itertools
 import pickle
 import socket
 import ssl
@@ -67,7 +68,9 @@ def receive_message(sock: socket.socket) -> Any:
     """Receive one message sent by :func:`send_message` and unpickle it."""
     (count,) = _COUNT.unpack(_recv_exact(sock, _COUNT.size))
     lengths = struct.unpack(f"!{count}Q", _recv_exact(sock, 8 * count))
-    frames = [_recv_exact(sock, n) for n in lengths]
+    payload = memoryview(_recv_exact(sock, sum(lengths)))  # every frame in one read
+    ends = list(itertools.accumulate(lengths))
+    frames = [payload[end - n:end] for n, end in zip(lengths, ends, strict=True)]
     return pickle.loads(frames[0], buffers=frames[1:])
 
 
