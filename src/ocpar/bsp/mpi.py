@@ -70,14 +70,8 @@ class MpiBackend(Backend):
         self.timeout_s = timeout_s
         self._closed = False
         super().__init__(workers=self.comm.Get_size(), balance=balance)
-        # the shared task queue of :meth:`_run_queue`: a counter on rank 0, incremented by
-        # every rank; a passive-target epoch open for the backend's life
-        self._window = MPI.Win.Allocate(8 if self.rank == 0 else 0, 8, comm=self.comm)
-        self._window.Lock_all()
-        if self.rank == 0:
-            self._window.Accumulate(np.zeros(1, dtype=np.int64), 0, op=MPI.REPLACE)
-            self._window.Flush(0)
-        self._fetched = 0
+        self._window: Any = None  # the queue's counter, made by the first queued superstep
+        self._fetched = 0  # the counter's value when the next queued superstep starts
 
     @property
     def is_coordinator(self) -> bool:
@@ -112,11 +106,12 @@ class MpiBackend(Backend):
 
         items, taken = from_columns(tasks), []
         one, fetched = np.ones(1, dtype=np.int64), np.empty(1, dtype=np.int64)
+        window = self._counter()
 
         def pull() -> Iterator[Any]:
             while True:
-                self._window.Fetch_and_op(one, fetched, 0, 0, MPI.SUM)
-                self._window.Flush(0)
+                window.Fetch_and_op(one, fetched, 0, 0, MPI.SUM)
+                window.Flush(0)
                 k = int(fetched[0]) - base
                 if k >= len(items):
                     return
@@ -124,6 +119,21 @@ class MpiBackend(Backend):
                 yield items[k]
 
         return taken, run_packed_chunk(name, pull())
+
+    def _counter(self) -> Any:
+        """The queue's counter, an MPI window of one int64 on rank 0, set to 0 and in a
+        passive-target epoch open until :meth:`close`; made by all ranks together in the
+        first queued superstep."""
+        from mpi4py import MPI
+
+        if self._window is None:
+            self._window = MPI.Win.Allocate(8 if self.rank == 0 else 0, 8, comm=self.comm)
+            self._window.Lock_all()
+            if self.rank == 0:
+                self._window.Accumulate(np.zeros(1, dtype=np.int64), 0, op=MPI.REPLACE)
+                self._window.Flush(0)
+            self.comm.Barrier()  # no rank counts before the counter is 0
+        return self._window
 
     def _gather(self, own: Any, sends: list[Any], deadline: float) -> list[Any]:
         """Rank 0's own result followed by every other rank's, received by ``deadline``
@@ -169,5 +179,7 @@ class MpiBackend(Backend):
             self._free_window()
 
     def _free_window(self) -> None:
-        self._window.Unlock_all()
-        self._window.Free()
+        if self._window is not None:
+            self._window.Unlock_all()
+            self._window.Free()
+            self._window = None
