@@ -230,9 +230,10 @@ class Macs:
                                   weights=weights, utopia=utopia)
             tasks.append(task)
         results = self._superstep(tasks)
+        scale = self._scale()
         for agent, result in zip(self.agents, results, strict=True):
             agent.fresh = False
-            moved = result.feasible and self._improves(agent, result)
+            moved = result.feasible and self._improves(agent, result, scale)
             if moved:
                 self._move(agent, result)
             elif agent.contractions >= self.settings.max_contractions:
@@ -242,21 +243,26 @@ class Macs:
                 agent.contractions += 1
         self._archive(results, optimised=True)
 
-    def _tchebycheff(self, agent: Agent, objectives: np.ndarray | None) -> float:
-        """max_i λ_i |J_i − z_i| / (z*_A,i − z_i): the agent's scalar figure of merit."""
-        if objectives is None:
-            return np.inf
+    def _scale(self) -> tuple[np.ndarray, np.ndarray]:
+        """(z, z*_A − z) of the (non-empty) archive: the Tchebycheff value's origin and scale,
+        computed once for all agents of a superstep (the archive changes only after them)."""
         ideal, nadir = self.archive.ideal_and_nadir()
-        span = np.maximum(nadir - ideal, 1e-12)
+        return ideal, np.maximum(nadir - ideal, 1e-12)
+
+    def _tchebycheff(self, agent: Agent, objectives: np.ndarray,
+                     scale: tuple[np.ndarray, np.ndarray]) -> float:
+        """max_i λ_i |J_i − z_i| / (z*_A,i − z_i): the agent's scalar figure of merit."""
+        ideal, span = scale
         return float(np.max(self.weights[agent.subproblem] * np.abs(objectives - ideal) / span))
 
-    def _improves(self, agent: Agent, result: SearchResult) -> bool:
+    def _improves(self, agent: Agent, result: SearchResult,
+                  scale: tuple[np.ndarray, np.ndarray]) -> bool:
         """The result is better for the agent: it dominates the agent's point or has a lower
-        Tchebycheff value."""
+        Tchebycheff value (on the archive's ``scale``, :meth:`_scale`)."""
         if agent.objectives is None or dominates(result.objectives, agent.objectives):
             return True
-        return self._tchebycheff(agent, result.objectives) < self._tchebycheff(
-            agent, agent.objectives)
+        return self._tchebycheff(agent, result.objectives, scale) < self._tchebycheff(
+            agent, agent.objectives, scale)
 
     def social(self) -> None:
         """Algorithms 3–4: a DE/rand/1/bin candidate from agents of the same subproblem and
@@ -281,8 +287,9 @@ class Macs:
             tasks.append(SearchTask(self.problem, "restore", p0=candidate,
                                     restoration=self.settings.restoration))
         results = self._superstep(tasks)
+        scale = self._scale()
         for agent, result in zip(social, results, strict=True):
-            if result.feasible and self._improves(agent, result):
+            if result.feasible and self._improves(agent, result, scale):
                 self._move(agent, result)
         self._archive(results, optimised=False)
 
