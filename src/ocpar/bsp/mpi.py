@@ -7,9 +7,10 @@ and receives the chunk results; tasks and results travel as columns
 A superstep given cost estimates (of a kernel that is not batched) is a shared queue instead:
 every rank gets all the tasks, sorted longest first, and takes the next one whenever it is
 free by an atomic fetch-and-add on a counter in rank 0's memory (MPI one-sided, in a passive
-epoch open for the backend's life, so rank 0 need not break off its own solve to hand out
-work). On MACS's 10 searches of unequal length per superstep the busier of 2 ranks is ~5 %
-above the mean instead of ~12 % with blocks (docs/schemes/macs.md).
+epoch open from the first queued superstep until :meth:`MpiBackend.close`, so rank 0 need not
+break off its own solve to hand out work). On MACS's 10 searches of unequal length per
+superstep the busier of 2 ranks is ~5 % above the mean instead of ~12 % with blocks
+(docs/schemes/macs.md).
 
 A superstep has a deadline (``timeout_s``): if a rank's results have not arrived by then (a
 rank hung, or lost where the launcher did not end the job), rank 0 says which ranks are
