@@ -188,10 +188,11 @@ from ocpar.bsp.mpi import MpiBackend
 backend = MpiBackend()
 if backend.is_coordinator:
     out = []
-    for seconds, costs in (([0.04, 0.001, 0.03, 0.002, 0.02, 0.003, 0.01], True),
-                           ([0.001, 0.002, 0.003], False), ([0.02, 0.001, 0.01], True)):
-        got = backend.superstep("ocpar.bsp.workload:spin", seconds,
-                                costs=seconds if costs else None)
+    for seconds, costs in (([0.04, 0.001, 0.03, 0.002, 0.02, 0.003, 0.01], "true"),
+                           ([0.001, 0.002, 0.003], None), ([0.02, 0.001, 0.01], "true"),
+                           ([0.5, 0.001, 0.002, 0.003], "equal")):
+        estimates = {None: None, "true": seconds, "equal": [1.0] * len(seconds)}[costs]
+        got = backend.superstep("ocpar.bsp.workload:spin", seconds, costs=estimates)
         trace = backend.traces[-1]
         out.append({"sent": seconds, "got": got, "task_worker": trace.task_worker,
                     "worker_tasks": trace.worker_tasks})
@@ -205,15 +206,19 @@ else:
 def test_mpi_ranks_take_costed_tasks_from_a_shared_queue(tmp_path):
     """Given costs, MPI ranks take tasks longest-first from a shared counter: every task runs
     once, results come back in task order, superstep after superstep (with and without
-    costs in between)."""
+    costs in between). With equal estimates for a 0.5 s task and three of 1-3 ms, the rank
+    that runs the long one runs nothing else (assigned in advance, it would get two of the
+    four)."""
     script = tmp_path / "queue.py"
     script.write_text(MPI_QUEUE)
     proc = run_cli(str(script), mpi_ranks=2, timeout=120)
     assert proc.returncode == 0, proc.stderr
-    for step in json.loads(proc.stdout.strip().splitlines()[-1]):
+    steps = json.loads(proc.stdout.strip().splitlines()[-1])
+    for step in steps:
         assert step["got"] == step["sent"]
         assert sum(step["worker_tasks"]) == len(step["sent"])
         assert [step["task_worker"].count(w) for w in (0, 1)] == step["worker_tasks"]
+    assert sorted(steps[-1]["worker_tasks"]) == [1, 3]
 
 
 def test_embedded_dask_matches_serial(serial_reference, local_dask):
