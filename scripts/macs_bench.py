@@ -12,7 +12,8 @@ against the reference front; mean and variance per problem and archive size (the
 Table III reports mean GD/IGD over 30 runs with a 10-member archive).
 ``time``: ``mpirun -n P python -m ocpar.macs --problem goddard`` (``--evaluations``) per
 worker count, ``--repeats`` times: the median (and every run's) solve wall time, the CPU
-seconds of all workers' tasks, and the coordinator's share (wall minus the supersteps' walls);
+seconds of all workers' tasks, the coordinator's share (wall minus the supersteps' walls) and
+the imbalance (busiest worker's busy time over the mean worker's, summed over supersteps);
 on a shared machine the CPU seconds are the steadier figure. With ``--baseline SRC`` (the
 ``src`` directory of another checkout, e.g. ``git archive main src | tar -x -C /tmp/base``)
 every timed run is followed by the same run of that code, so before and after share the
@@ -79,6 +80,8 @@ def time_run(workers: int, repeat: int, evaluations: int, output: Path, restorat
            "wall_time_s": data["wall_time_s"],
            "task_cpu_s": sum(sum(step["worker_cpu_s"]) for step in trace),
            "coordinator_s": data["wall_time_s"] - sum(step["wall_s"] for step in trace),
+           "imbalance": (sum(max(step["worker_busy_s"]) for step in trace)
+                         / sum(np.mean(step["worker_busy_s"]) for step in trace)),
            "gd": data["gd"], "igd": data["igd"], "evaluations": data["evaluations"],
            "supersteps": data["supersteps"]}
     print(json.dumps(row), flush=True)
@@ -88,7 +91,7 @@ def time_run(workers: int, repeat: int, evaluations: int, output: Path, restorat
 def time_medians(rows: list[dict]) -> list[dict]:
     """Per code and worker count: the median of each timing over the repeats (and, for this
     code, its ratio to the baseline's median where there is one)."""
-    timings = ("wall_time_s", "task_cpu_s", "coordinator_s")
+    timings = ("wall_time_s", "task_cpu_s", "coordinator_s", "imbalance")
     medians = [{"code": c, "workers": p, "runs": len(g),
                 **{f"median_{k}": float(np.median([r[k] for r in g])) for k in timings}}
                for c in ("this", "baseline") for p in sorted({r["workers"] for r in rows})

@@ -182,6 +182,45 @@ def test_mpirun_two_ranks_matches_serial(serial_reference, tmp_path):
     assert proc.stdout.count("superstep ") == data["supersteps"]
 
 
+MPI_QUEUE = """
+import json
+from ocpar.bsp.mpi import MpiBackend
+backend = MpiBackend()
+if backend.is_coordinator:
+    out = []
+    for seconds, costs in (([0.04, 0.001, 0.03, 0.002, 0.02, 0.003, 0.01], "true"),
+                           ([0.001, 0.002, 0.003], None), ([0.02, 0.001, 0.01], "true"),
+                           ([0.5, 0.001, 0.002, 0.003], "equal")):
+        estimates = {None: None, "true": seconds, "equal": [1.0] * len(seconds)}[costs]
+        got = backend.superstep("ocpar.bsp.workload:spin", seconds, costs=estimates)
+        trace = backend.traces[-1]
+        out.append({"sent": seconds, "got": got, "task_worker": trace.task_worker,
+                    "worker_tasks": trace.worker_tasks})
+    backend.close()
+    print(json.dumps(out))
+else:
+    backend.serve()
+"""
+
+
+def test_mpi_ranks_take_costed_tasks_from_a_shared_queue(tmp_path):
+    """Given costs, MPI ranks take tasks longest-first from a shared counter: every task runs
+    once, results come back in task order, superstep after superstep (with and without
+    costs in between). With equal estimates for a 0.5 s task and three of 1-3 ms, the rank
+    that runs the long one runs nothing else (assigned in advance, it would get two of the
+    four)."""
+    script = tmp_path / "queue.py"
+    script.write_text(MPI_QUEUE)
+    proc = run_cli(str(script), mpi_ranks=2, timeout=120)
+    assert proc.returncode == 0, proc.stderr
+    steps = json.loads(proc.stdout.strip().splitlines()[-1])
+    for step in steps:
+        assert step["got"] == step["sent"]
+        assert sum(step["worker_tasks"]) == len(step["sent"])
+        assert [step["task_worker"].count(w) for w in (0, 1)] == step["worker_tasks"]
+    assert sorted(steps[-1]["worker_tasks"]) == [1, 3]
+
+
 def test_embedded_dask_matches_serial(serial_reference, local_dask):
     result = solve_formation(paper_example(agents=60), local_dask)
     assert_same_run({"status": result.status, "total_cost": result.total_cost,

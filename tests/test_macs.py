@@ -10,7 +10,7 @@ import pytest
 from conftest import assert_result_contract, golden, run_cli
 
 from ocpar.bsp import open_backend
-from ocpar.macs.algorithm import MacsSettings
+from ocpar.macs.algorithm import MacsSettings, TaskCosts, task_kind
 from ocpar.macs.archive import TIE_TOL, Archive, Member, dominates
 from ocpar.macs.local_search import INTEGRATION_RTOL, RESTORATIONS, SearchTask, run_search
 from ocpar.macs.problems import make_problem
@@ -75,6 +75,21 @@ def test_vectorised_archive_insertion_keeps_what_the_pairwise_definition_keeps()
             archive.add(candidates)
             assert [id(c) for c in archive.members] == [id(c) for c in
                                                         archive._filter(expected)]
+
+
+def test_task_costs_are_running_means_per_kind_of_search():
+    problem = make_problem("goddard")
+    kinds = [task_kind(SearchTask(problem, "restore", p0=np.zeros(3))),
+             task_kind(SearchTask(problem, "scalarised", z0=np.zeros(3))),
+             task_kind(SearchTask(problem, "scalarised", p0=np.zeros(3)))]
+    assert kinds == ["restore", "scalarised-z", "scalarised-p"]
+    costs = TaskCosts()
+    assert costs.estimate(kinds) == [1.0, 1.0, 1.0]  # nothing measured: all equal
+    costs.update(["restore", "scalarised-z", "restore"], [0.02, 0.01, 0.04])
+    # a kind not measured yet gets the mean of all tasks so far
+    assert costs.estimate(kinds) == pytest.approx([0.03, 0.01, 0.07 / 3])
+    costs.update(["scalarised-p"], [0.05])
+    assert costs.estimate(kinds[::-1]) == pytest.approx([0.05, 0.01, 0.03])
 
 
 @pytest.mark.parametrize("name", ["goddard", "orbit-raising"])

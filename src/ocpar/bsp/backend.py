@@ -72,7 +72,10 @@ class Backend(ABC):
     ) -> list[Any]:
         """Run ``kernel`` on every task, one chunk per worker; wait for all (the barrier) and
         return the results in task order. Given estimated ``costs`` (one per task, any unit)
-        tasks are assigned longest-first; otherwise by the backend's :attr:`balance` policy
+        tasks go out longest-first: where the backend has a shared queue (MPI, a kernel that
+        is not batched) each worker takes the next task when it is free, elsewhere they are
+        assigned in advance (:func:`~ocpar.bsp.partition.longest_first`); otherwise by the
+        backend's :attr:`balance` policy
         (see :data:`BALANCE_POLICIES`; ``lpt`` needs a previous superstep of the same kernel
         with the same number of tasks, task i being the same piece of work, and uses
         contiguous blocks until then). The assignment never changes the results. The
@@ -106,9 +109,16 @@ class Backend(ABC):
                 self.traces.append(recorded.trace)
                 self._last_kernel = name
                 return recorded.results if columns else from_columns(recorded.results)
+        if costs is not None and len(costs) != n:
+            raise ValueError(f"{len(costs)} costs for {n} tasks")
         start = time.perf_counter()
-        groups = self._assign(name, n, costs)
-        chunks = self._run_chunks(name, [select(group) for group in groups])
+        if costs is not None and self._queues(name):
+            queue = sorted(range(n), key=lambda i: (-costs[i], i))
+            taken, chunks = self._run_queue(name, select(queue))
+            groups: list[list[int]] | list[range] = [[queue[k] for k in ks] for ks in taken]
+        else:
+            groups = self._assign(name, n, costs)
+            chunks = self._run_chunks(name, [select(group) for group in groups])
         order = np.fromiter(itertools.chain.from_iterable(groups), dtype=np.intp, count=n)
         position = np.empty(n, dtype=np.intp)
         position[order] = np.arange(n)
@@ -156,8 +166,6 @@ class Backend(ABC):
                 ) -> list[list[int]] | list[range]:
         """Task indices per worker, by the estimated ``costs`` or the :attr:`balance` policy."""
         if costs is not None:
-            if len(costs) != n:
-                raise ValueError(f"{len(costs)} costs for {n} tasks")
             return longest_first(list(costs), self.workers)
         if self.balance == "lpt" and self._repeats_last_superstep(name, n):
             last = self.traces[-1]
@@ -168,6 +176,18 @@ class Backend(ABC):
     def _repeats_last_superstep(self, name: str, n_tasks: int) -> bool:
         return (self._last_kernel == name and bool(self.traces)
                 and self.traces[-1].tasks == n_tasks and self.traces[-1].workers == self.workers)
+
+    def _queues(self, name: str) -> bool:
+        """True if this backend runs a superstep of kernel ``name`` from a shared queue
+        (:meth:`_run_queue`) when given costs."""
+        return False
+
+    def _run_queue(self, name: str, tasks: list[Any] | Columns
+                   ) -> tuple[list[list[int]], list[ChunkResult]]:
+        """Run the tasks, each worker taking the next one from a shared queue when it is free;
+        return the positions each worker took (in the order it ran them) and the chunk results
+        in worker order."""
+        raise NotImplementedError
 
     @abstractmethod
     def _run_chunks(self, name: str, chunks: list[list[Any] | Columns]) -> list[ChunkResult]:

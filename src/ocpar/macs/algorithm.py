@@ -84,6 +84,32 @@ class MacsSettings:
                 raise ValueError(message)
 
 
+def task_kind(task: SearchTask) -> str:
+    """What a task's time depends on most: its kind, and for a search whether it starts from
+    a full NLP vector or integrates its states from a decision vector first."""
+    return task.kind if task.kind == "restore" else f"{task.kind}-{'z' if task.p0 is None else 'p'}"
+
+
+@dataclass
+class TaskCosts:
+    """Running mean of the measured time (s) of each kind of task (:func:`task_kind`): the
+    cost estimates by which a superstep's searches go to workers longest-first. A kind not
+    yet measured gets the mean of all tasks measured so far (all tasks equal at first)."""
+
+    total: dict[str, float] = field(default_factory=dict)
+    count: dict[str, int] = field(default_factory=dict)
+
+    def estimate(self, kinds: list[str]) -> list[float]:
+        n = sum(self.count.values())
+        default = sum(self.total.values()) / n if n else 1.0
+        return [self.total[k] / self.count[k] if k in self.count else default for k in kinds]
+
+    def update(self, kinds: list[str], seconds: list[float]) -> None:
+        for kind, s in zip(kinds, seconds, strict=True):
+            self.total[kind] = self.total.get(kind, 0.0) + s
+            self.count[kind] = self.count.get(kind, 0) + 1
+
+
 @dataclass
 class Agent:
     """One MACS agent: its point (``z``, ``objectives``; None before its first feasible
@@ -136,6 +162,7 @@ class Macs:
         self.archive = Archive(settings.archive_size, self.m)
         self.evaluations = 0
         self.failed = 0
+        self.costs = TaskCosts()
         seeds = np.random.SeedSequence(settings.seed).spawn(settings.population + 1)
         sample = qmc.LatinHypercube(d=len(self.lower), seed=np.random.default_rng(seeds[-1]))
         # scaled by hand: qmc.scale refuses a fixed t_f (lower == upper)
@@ -148,7 +175,9 @@ class Macs:
 
     # -- supersteps -------------------------------------------------------------------------
     def _superstep(self, tasks: list[SearchTask]) -> list[SearchResult]:
-        results = self.backend.superstep(run_search, tasks)
+        kinds = [task_kind(task) for task in tasks]
+        results = self.backend.superstep(run_search, tasks, costs=self.costs.estimate(kinds))
+        self.costs.update(kinds, self.backend.traces[-1].task_wall_s)
         self.evaluations += sum(r.evaluations for r in results)
         self.failed += sum(not r.feasible for r in results)
         return results
@@ -201,9 +230,10 @@ class Macs:
                                   weights=weights, utopia=utopia)
             tasks.append(task)
         results = self._superstep(tasks)
+        scale = self._scale()
         for agent, result in zip(self.agents, results, strict=True):
             agent.fresh = False
-            moved = result.feasible and self._improves(agent, result)
+            moved = result.feasible and self._improves(agent, result, scale)
             if moved:
                 self._move(agent, result)
             elif agent.contractions >= self.settings.max_contractions:
@@ -213,21 +243,26 @@ class Macs:
                 agent.contractions += 1
         self._archive(results, optimised=True)
 
-    def _tchebycheff(self, agent: Agent, objectives: np.ndarray | None) -> float:
-        """max_i λ_i |J_i − z_i| / (z*_A,i − z_i): the agent's scalar figure of merit."""
-        if objectives is None:
-            return np.inf
+    def _scale(self) -> tuple[np.ndarray, np.ndarray]:
+        """(z, z*_A − z) of the (non-empty) archive: the Tchebycheff value's origin and scale,
+        computed once for all agents of a superstep (the archive changes only after them)."""
         ideal, nadir = self.archive.ideal_and_nadir()
-        span = np.maximum(nadir - ideal, 1e-12)
+        return ideal, np.maximum(nadir - ideal, 1e-12)
+
+    def _tchebycheff(self, agent: Agent, objectives: np.ndarray,
+                     scale: tuple[np.ndarray, np.ndarray]) -> float:
+        """max_i λ_i |J_i − z_i| / (z*_A,i − z_i): the agent's scalar figure of merit."""
+        ideal, span = scale
         return float(np.max(self.weights[agent.subproblem] * np.abs(objectives - ideal) / span))
 
-    def _improves(self, agent: Agent, result: SearchResult) -> bool:
+    def _improves(self, agent: Agent, result: SearchResult,
+                  scale: tuple[np.ndarray, np.ndarray]) -> bool:
         """The result is better for the agent: it dominates the agent's point or has a lower
-        Tchebycheff value."""
+        Tchebycheff value (on the archive's ``scale``, :meth:`_scale`)."""
         if agent.objectives is None or dominates(result.objectives, agent.objectives):
             return True
-        return self._tchebycheff(agent, result.objectives) < self._tchebycheff(
-            agent, agent.objectives)
+        return self._tchebycheff(agent, result.objectives, scale) < self._tchebycheff(
+            agent, agent.objectives, scale)
 
     def social(self) -> None:
         """Algorithms 3–4: a DE/rand/1/bin candidate from agents of the same subproblem and
@@ -252,8 +287,9 @@ class Macs:
             tasks.append(SearchTask(self.problem, "restore", p0=candidate,
                                     restoration=self.settings.restoration))
         results = self._superstep(tasks)
+        scale = self._scale()
         for agent, result in zip(social, results, strict=True):
-            if result.feasible and self._improves(agent, result):
+            if result.feasible and self._improves(agent, result, scale):
                 self._move(agent, result)
         self._archive(results, optimised=False)
 
