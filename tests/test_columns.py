@@ -142,3 +142,15 @@ def test_columns_of_stacks_arrays_with_one_row_per_item_and_shares_the_rest():
     tasks = packed.items()
     assert [t.shape for t in tasks] == ["s"] * 3
     assert np.array_equal(np.stack([t.params for t in tasks]), params)
+
+
+def test_concat_of_parts_unpickled_apart_keeps_an_equal_string_shared():
+    # each worker's reply is unpickled on its own: equal statuses, distinct objects
+    a, b = (pickle.loads(pickle.dumps(to_columns([Frozen(np.zeros(2), "Solve_Succeeded")
+                                                  for _ in range(2)])))
+            for _ in range(2))
+    assert a.fields["label"][1] is not b.fields["label"][1]
+    joined = Columns.concat([a, b])
+    assert joined.fields["label"] == (SHARED, "Solve_Succeeded")
+    assert joined.fields["extra"][0] == LISTED  # equal dicts, distinct objects: not shared
+    assert [item.label for item in joined.items()] == ["Solve_Succeeded"] * 4

@@ -99,7 +99,8 @@ class Columns:
     def concat(parts: Sequence[Columns]) -> Columns:
         """The items of ``parts`` one after the other (all of one class, with the same
         attributes). A column stays stacked/valued where every part has it so with one dtype
-        and row shape, shared where every part shares the same object."""
+        and row shape, shared where every part shares the same object or an equal string
+        (parts unpickled from different workers hold equal, not identical, strings)."""
         if not parts:
             raise ValueError("nothing to concatenate")
         first = parts[0]
@@ -110,7 +111,7 @@ class Columns:
         fields = {}
         for name, (kind, data) in first.fields.items():
             columns = [p.fields[name] for p in parts]
-            if all(k == SHARED and d is data for k, d in columns):
+            if all(k == SHARED and _same(d, data) for k, d in columns):
                 fields[name] = (SHARED, data)
             elif kind in (STACKED, VALUES) and all(
                     k == kind and d.dtype == data.dtype and d.shape[1:] == data.shape[1:]
@@ -147,12 +148,16 @@ class Columns:
         return out
 
 
+def _same(value: Any, first: Any) -> bool:
+    """``value`` can share one column entry with ``first``: the same object, or an equal string
+    (immutable, so kept once)."""
+    return value is first or (type(value) is str and type(first) is str and value == first)
+
+
 def _column(values: list[Any]) -> tuple[str, Any]:
     first = values[0]
-    if all(v is first for v in values):
+    if all(_same(v, first) for v in values):  # e.g. one shape, or a solver status
         return SHARED, first
-    if type(first) is str and all(type(v) is str and v == first for v in values):
-        return SHARED, first  # equal strings (e.g. a solver status): immutable, kept once
     kind = type(first)
     if kind in _SCALARS and all(type(v) is kind for v in values):
         try:
