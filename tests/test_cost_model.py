@@ -19,7 +19,7 @@ from ocpar.bsp.cost_model import (
     serial_time,
     task_times,
 )
-from ocpar.bsp.partition import longest_first
+from ocpar.bsp.partition import contiguous_blocks, longest_first
 from ocpar.bsp.trace import SuperstepTrace
 
 FREE = SyncCost(a_s=0.0, b_s=0.0)
@@ -221,18 +221,20 @@ def test_lpt_predicts_better_than_blocks_on_a_skewed_workload():
 
 
 def make_trace(index: int, cpu: list[float], wall: list[float], overhead: float):
-    busy = [sum(wall[: len(wall) // 2]), sum(wall[len(wall) // 2 :])]
+    """A 2-worker trace of tasks split as the engine's contiguous blocks split them."""
+    blocks = contiguous_blocks(len(cpu), 2)
+    busy = [sum(wall[b.start:b.stop]) for b in blocks]
     return SuperstepTrace(
         index=index,
         tasks=len(cpu),
         wall_s=max(busy) + overhead,
         worker_busy_s=busy,
-        worker_cpu_s=[sum(cpu[: len(cpu) // 2]), sum(cpu[len(cpu) // 2 :])],
-        worker_tasks=[len(cpu) // 2, len(cpu) - len(cpu) // 2],
+        worker_cpu_s=[sum(cpu[b.start:b.stop]) for b in blocks],
+        worker_tasks=[len(b) for b in blocks],
         worker_peak_rss_mb=[100.0, 100.0],
         task_wall_s=wall,
         task_cpu_s=cpu,
-        task_worker=[0] * (len(cpu) // 2) + [1] * (len(cpu) - len(cpu) // 2),
+        task_worker=[w for w, b in enumerate(blocks) for _ in b],
     )
 
 

@@ -38,9 +38,9 @@ def assert_partition(groups, n_tasks, n_workers):
 
 
 def test_existing_policies_are_partitions():
-    assert [list(b) for b in contiguous_blocks(10, 4)] == [[0, 1], [2, 3], [4, 5, 6], [7, 8, 9]]
-    # longest first, ties to the highest-numbered worker: 5→w1, 4→w0, 3→w0 (4<5), 2→w1
-    assert longest_first([5, 4, 3, 2], 2) == [[1, 2], [0, 3]]
+    assert [list(b) for b in contiguous_blocks(10, 4)] == [[0, 1, 2], [3, 4, 5], [6, 7], [8, 9]]
+    # longest first, ties to the lowest-numbered worker: 5→w0, 4→w1, 3→w1 (4<5), 2→w0
+    assert longest_first([5, 4, 3, 2], 2) == [[0, 3], [1, 2]]
 
 
 @pytest.mark.parametrize("seed", range(25))
@@ -81,9 +81,9 @@ def test_previous_none_is_longest_first(seed):
 
 
 def test_ties_like_longest_first():
-    # equal costs: longest_first deals tasks 0,1,2,3 to workers 3,2,1,0, then again
-    assert sticky_longest_first([1.0] * 8, 4) == [[3, 7], [2, 6], [1, 5], [0, 4]]
-    assert sticky_longest_first([1.0] * 8, 4, [None] * 8) == [[3, 7], [2, 6], [1, 5], [0, 4]]
+    # equal costs: longest_first deals tasks 0,1,2,3 to workers 0,1,2,3, then again
+    assert sticky_longest_first([1.0] * 8, 4) == [[0, 4], [1, 5], [2, 6], [3, 7]]
+    assert sticky_longest_first([1.0] * 8, 4, [None] * 8) == [[0, 4], [1, 5], [2, 6], [3, 7]]
 
 
 def test_keeps_a_balanced_previous_assignment():
