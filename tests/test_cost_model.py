@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import itertools
 import json
 import math
@@ -236,6 +237,16 @@ def make_trace(index: int, cpu: list[float], wall: list[float], overhead: float)
         task_cpu_s=cpu,
         task_worker=[w for w, b in enumerate(blocks) for _ in b],
     )
+
+
+def test_trace_dict_has_every_field_and_its_own_lists():
+    trace = make_trace(0, [0.1, 0.2, 0.3], [0.15, 0.25, 0.35], overhead=0.01)
+    d = trace.to_dict()
+    assert d == dataclasses.asdict(trace) | {"overhead_s": trace.overhead_s,
+                                             "imbalance": trace.imbalance}
+    assert d["overhead_s"] == pytest.approx(0.01)
+    d["task_wall_s"].append(9.0)  # the dict's lists are copies
+    assert trace.task_wall_s == [0.15, 0.25, 0.35]
 
 
 def test_task_times_from_traces_and_their_dicts():

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass
+from dataclasses import dataclass, fields
 
 
 @dataclass
@@ -43,4 +43,8 @@ class SuperstepTrace:
         return max(busy) / mean if mean > 0 else 1.0
 
     def to_dict(self) -> dict:
-        return asdict(self) | {"overhead_s": self.overhead_s, "imbalance": self.imbalance}
+        """The fields (lists copied, not deep-copied item by item as ``dataclasses.asdict`` does:
+        ~1 s per run at 10,000 agents), with ``overhead_s`` and ``imbalance``."""
+        out = {f.name: getattr(self, f.name) for f in fields(self)}
+        out = {k: list(v) if isinstance(v, list) else v for k, v in out.items()}
+        return out | {"overhead_s": self.overhead_s, "imbalance": self.imbalance}
