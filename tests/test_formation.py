@@ -229,3 +229,13 @@ def test_hierarchical_equals_monolithic_many_agents(agents):
     assert hierarchical.converged and monolithic.converged
     assert hierarchical.total_cost == pytest.approx(monolithic.total_cost, rel=1e-8)
     assert max(hierarchical.equidistance_error, monolithic.equidistance_error) <= 1e-9
+
+
+@pytest.mark.parametrize("agents", [1, 60, 10_000, 10_001, 99_999, 100_000, 250_001])
+def test_the_picture_draws_every_path_up_to_its_limit_and_at_most_that_many_above(agents):
+    from ocpar.formation.plot import MAX_PATHS_DRAWN, path_step
+
+    step = path_step(agents)
+    drawn = len(range(0, agents, step))
+    assert drawn <= MAX_PATHS_DRAWN
+    assert step == 1 if agents <= MAX_PATHS_DRAWN else drawn > MAX_PATHS_DRAWN // 2

@@ -12,6 +12,21 @@ from ocpar.formation.result import FormationResult
 from ocpar.formation.separation import positions_at
 from ocpar.plotting import pyplot, save
 
+#: Most trajectories a picture draws: above it every k-th (100,000 paths took ~15 s to draw and
+#: show no more than 10,000).
+MAX_PATHS_DRAWN = 10_000
+
+
+def path_step(agents: int) -> int:
+    """Draw every ``path_step``-th trajectory: 1 up to :data:`MAX_PATHS_DRAWN` agents, else the
+    smallest step that draws at most that many."""
+    return max(1, -(-agents // MAX_PATHS_DRAWN))
+
+
+def _drawn_note(agents: int) -> str:
+    step = path_step(agents)
+    return "" if step == 1 else f" (every {step}th path drawn)"
+
 
 def plot_formation(problem: FormationProblem, result: FormationResult, path: Path) -> Path:
     """Write a PNG to ``path``: for a planar problem two panels (the whole manoeuvre, and a
@@ -26,7 +41,8 @@ def plot_formation(problem: FormationProblem, result: FormationResult, path: Pat
     circle = problem.final_positions(np.linspace(0, 2 * np.pi, 400))
     ends = problem.final_positions(result.phi)
     tail = max(2, result.trajectories.shape[1] // 3)
-    for ax, paths in ((ax_all, result.trajectories), (ax_end, result.trajectories[:, -tail:])):
+    drawn = result.trajectories[:: path_step(len(result.trajectories))]
+    for ax, paths in ((ax_all, drawn), (ax_end, drawn[:, -tail:])):
         # one collection, not one line per agent: 10,000 paths in ~1 s instead of ~1 min
         ax.add_collection(LineCollection(paths[..., :2], colors="tab:blue", lw=0.7, alpha=0.7))
         ax.autoscale_view()
@@ -38,7 +54,8 @@ def plot_formation(problem: FormationProblem, result: FormationResult, path: Pat
     ax_all.plot(problem.starts[:, 0], problem.starts[:, 1], "o", mfc="none", color="k", ms=3,
                 label="start positions")
     _mark_closest(ax_all, problem, result)
-    ax_all.set_title(f"{result.agents} agents, total cost {result.total_cost:.6e}")
+    ax_all.set_title(f"{result.agents} agents, total cost {result.total_cost:.6e}"
+                     f"{_drawn_note(result.agents)}")
     ax_all.legend(loc="upper left", fontsize=8)
     low, high = circle.min(axis=0), circle.max(axis=0)
     margin = 0.25 * np.max(high - low)
@@ -57,8 +74,8 @@ def _plot_3d(problem: FormationProblem, result: FormationResult, path: Path) -> 
     angles = np.linspace(0, 2 * np.pi, 200)
     circle = problem.final_positions(angles)
     ends = problem.final_positions(result.phi)
-    ax.add_collection(Line3DCollection(result.trajectories[..., :3], colors="tab:blue", lw=0.7,
-                                       alpha=0.8))
+    drawn = result.trajectories[:: path_step(len(result.trajectories)), :, :3]
+    ax.add_collection(Line3DCollection(drawn, colors="tab:blue", lw=0.7, alpha=0.8))
     ax.plot(circle[:, 0], circle[:, 1], circle[:, 2], "k--", lw=0.8)
     ax.plot(problem.starts[:, 0], problem.starts[:, 1], problem.starts[:, 2], "o", mfc="none",
             color="k", ms=4, ls="", label="initial positions")
@@ -68,7 +85,8 @@ def _plot_3d(problem: FormationProblem, result: FormationResult, path: Path) -> 
     ax.set_ylabel("$x_2$")
     ax.set_zlabel("$x_3$")
     _mark_closest(ax, problem, result)
-    ax.set_title(f"{problem.name}: {result.agents} agents, total cost {result.total_cost:.6e}")
+    ax.set_title(f"{problem.name}: {result.agents} agents, total cost {result.total_cost:.6e}"
+                 f"{_drawn_note(result.agents)}")
     ax.legend(loc="upper left", fontsize=8)
     return save(fig, path)
 
