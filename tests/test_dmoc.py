@@ -66,3 +66,56 @@ def test_bad_boundary_data_is_refused():
         DmocShape(PointMass(), 0)
     with pytest.raises(ValueError):
         PointMass(mass=-1.0)
+
+
+def bounded_rest_to_rest(distance: float, duration: float, bound: float) -> float:
+    """Closed-form min ∫u² for q̈ = u, rest to rest over ``distance`` in ``duration`` with
+    |u| ≤ ``bound`` below the unconstrained peak 6 d/T²: u = ±bound on [0, τ] and
+    [T − τ, T], linear in between (PMP: u is the saturated linear costate); τ from the
+    displacement a (T τ − τ²) + (2a/3)(T/2 − τ)² = d."""
+    from scipy.optimize import brentq
+
+    half = duration / 2
+    tau = brentq(lambda t: bound * (duration * t - t * t) + 2 * bound / 3 * (half - t) ** 2
+                 - distance, 0.0, half)
+    return 2 * bound**2 * (tau + (half - tau) / 3)
+
+
+@pytest.mark.parametrize("solver", ["newton", "sqpmethod", "ipopt"])
+def test_control_bounds_reach_the_closed_form_bounded_optimum_at_second_order(solver):
+    from ocpar.ocp import solve_tasks
+
+    distance, duration, bound = 1.0, 2.0, 1.2  # unconstrained peak 1.5: the bound is active
+    exact = bounded_rest_to_rest(distance, duration, bound)
+    errors = []
+    for n in (20, 40, 80):
+        shape = DmocShape(PointMass(dim=1), n, duration, solver=solver,
+                          control_bounds=((-bound, bound),))
+        solution = solve_tasks([OcpTask(shape, np.array([0.0, 0.0, distance, 0.0]))])[0]
+        assert solution.success, solution.status
+        assert np.max(np.abs(solution.u)) <= bound * (1 + 1e-12)
+        assert np.isclose(np.max(np.abs(solution.u)), bound, rtol=1e-9)
+        assert np.all(np.isnan(solution.end_hessian))  # active bound: no equality Hessian
+        errors.append(solution.cost - exact)
+    orders = np.log2(np.array(errors[:-1]) / np.array(errors[1:]))
+    assert np.all(np.array(errors) > 0) and np.all(np.abs(orders - 2) < 0.05), (errors, orders)
+
+
+def test_inactive_control_bounds_leave_the_solution_and_its_hessian_unchanged():
+    params = np.array([0.0, 0.0, 1.0, 0.5, 3.0, 1.0, 0.0, -1.0])
+    free = dmoc_problem(DmocShape(PointMass(dim=2), 10, 2.0)).solve(params)
+    loose = dmoc_problem(DmocShape(PointMass(dim=2), 10, 2.0,
+                                   control_bounds=((-50.0, 50.0), (-50.0, 50.0)))).solve(params)
+    assert loose.success and abs(loose.cost - free.cost) <= 1e-12 * free.cost
+    np.testing.assert_allclose(loose.end_hessian, free.end_hessian, rtol=1e-9)
+
+
+@pytest.mark.parametrize("bounds, message", [
+    (((-1.0, 1.0),), "must be 2 pairs"),
+    (((1.0, -1.0), (-1.0, 1.0)), "entry 0 needs lo <= hi"),
+    (((float("nan"), 1.0), (-1.0, 1.0)), "entry 0 needs lo <= hi"),
+    ("abc", "must be 2 pairs"),
+])
+def test_bad_control_bounds_are_refused_naming_the_field(bounds, message):
+    with pytest.raises(ValueError, match=f"control_bounds: .*{message}"):
+        DmocShape(PointMass(dim=2), 10, 1.0, control_bounds=bounds)

@@ -37,6 +37,14 @@ parameters, not structure, so one compiled solver serves every agent whatever it
 constraints; inequalities need the ``sqpmethod`` or ``ipopt`` solver (``newton`` takes
 equalities only).
 
+Control bounds (optional, ``DmocShape.control_bounds``): lo_j ≤ u_k[j] ≤ hi_j on every
+interval's control, as bounds on w. u_k is constant on its interval, so the bound holds at
+all times of the continuous control. The ``newton`` solver ignores bounds and only checks
+them: a task whose unconstrained optimum leaves them goes on to IPOPT, which imposes them
+exactly (no bound relaxation); ``sqpmethod`` imposes them in its batch. ``end_hessian``
+comes from the equality-constrained KKT system, so it is NaN for a solution with a control
+at a bound (to within ``kkt_tol``): there the active bound changes the sensitivity.
+
 A time-dependent Lagrangian gives each interval its own L_d (see
 :class:`~ocpar.models.MechanicalSystem`). Holonomic constraints c(q) = 0 (e.g. a unit
 quaternion) add the reaction ∇c(q_k)ᵀ λ_k to the equation of every node k = 0..N (boundary
@@ -87,7 +95,8 @@ class DmocShape:
     instead of two (at 1e-12 the second only meets rounding), and its cost agrees with
     IPOPT's to ~1e-13. ``keep_out_slots`` K and ``keep_out_positions`` (d configuration
     entries): K keep-out half-spaces per interval on those entries (module docstring; K = 0:
-    none, the NLP of old).
+    none, the NLP of old). ``control_bounds``: one (lo, hi) per control entry, the model's
+    force unit (module docstring; None: unbounded, the NLP of old).
     """
 
     model: MechanicalSystem
@@ -99,8 +108,12 @@ class DmocShape:
     kkt_tol: float = 1e-10
     keep_out_slots: int = 0
     keep_out_positions: tuple[int, ...] = ()
+    control_bounds: tuple[tuple[float, float], ...] | None = None
 
     def __post_init__(self) -> None:
+        if self.control_bounds is not None:
+            object.__setattr__(self, "control_bounds",
+                               _check_control_bounds(self.control_bounds, self.model.nu))
         if self.intervals < 1:
             raise ValueError(f"DMOC needs at least 1 interval, got {self.intervals}")
         if not self.duration > 0:
@@ -141,6 +154,23 @@ class DmocShape:
     def build(self) -> DmocTranscription:
         """The transcription of this shape (see :func:`~ocpar.ocp.transcription`)."""
         return DmocTranscription(self)
+
+
+def _check_control_bounds(bounds: object, nu: int) -> tuple[tuple[float, float], ...]:
+    """``bounds`` as ``nu`` pairs (lo, hi) of floats with lo ≤ hi, lo < ∞, hi > −∞, or
+    ValueError naming the field."""
+    try:
+        pairs = tuple((float(lo), float(hi)) for lo, hi in bounds)  # type: ignore[attr-defined]
+    except (TypeError, ValueError):
+        raise ValueError(f"control_bounds: must be {nu} pairs (lo, hi) of numbers") from None
+    if len(pairs) != nu:
+        raise ValueError(f"control_bounds: must be {nu} pairs (lo, hi), one per control entry, "
+                         f"got {len(pairs)}")
+    for j, (lo, hi) in enumerate(pairs):
+        if not (lo <= hi and lo < np.inf and hi > -np.inf):
+            raise ValueError(f"control_bounds: entry {j} needs lo <= hi (finite on one side at "
+                             f"least, no NaN), got ({lo}, {hi})")
+    return pairs
 
 
 @dataclass
@@ -227,10 +257,15 @@ class DmocTranscription:
         self.lbg = np.zeros(self.ng)
         self.ubg = np.concatenate([np.zeros(self.ng - len(keep_out)),
                                    np.full(len(keep_out), np.inf)])
-        #: Variable bounds: the slacks ≥ 0, everything else free.
-        self.lbx = np.concatenate([np.full(self.nw - slack.numel(), -np.inf),
-                                   np.zeros(slack.numel())])
-        self.ubx = np.full(self.nw, np.inf)
+        #: Variable bounds: the controls within ``control_bounds``, the slacks ≥ 0, the rest
+        #: free.
+        self.u_lower, self.u_upper = (np.array(bound) for bound in zip(
+            *(shape.control_bounds or [(-np.inf, np.inf)] * nu), strict=True))
+        n_path = q_inner.numel()
+        self.lbx = np.concatenate([np.full(n_path, -np.inf), np.tile(self.u_lower, n),
+                                   np.full(lam.numel(), -np.inf), np.zeros(slack.numel())])
+        self.ubx = np.concatenate([np.full(n_path, np.inf), np.tile(self.u_upper, n),
+                                   np.full(lam.numel() + slack.numel(), np.inf)])
         self.cost = ca.Function("J", [w, p], [control_cost + penalty], ["w", "p"], ["J"])
         self.constraints = ca.Function("g", [w, p], [ca.vertcat(*eqs, *keep_out)], ["w", "p"],
                                        ["g"])
@@ -261,10 +296,27 @@ class DmocTranscription:
         """IPOPT solver of this shape, built on first use and then reused."""
         w, p = self._w, self._p
         nlp = {"x": w, "p": p, "f": self.cost(w, p), "g": self.constraints(w, p)}
-        # IPOPT relaxes inequalities by 1e-8 (relative) unless told not to: a keep-out is exact
-        exact = {"bound_relax_factor": 0.0} if self.shape.keep_out_slots else {}
+        # IPOPT relaxes inequalities by 1e-8 (relative) unless told not to: a keep-out and a
+        # control bound are exact
+        exact = {"bound_relax_factor": 0.0} if self._inequalities else {}
         return ca.nlpsol("dmoc", "ipopt", nlp,
                          ipopt_options(self.shape.tol, self.shape.max_iter, **exact))
+
+    @property
+    def _inequalities(self) -> bool:
+        """Whether the NLP has inequalities (keep-out rows, control bounds)."""
+        return bool(self.shape.keep_out_slots) or self.shape.control_bounds is not None
+
+    def _at_bound(self, u: np.ndarray) -> np.ndarray:
+        """Per solution, whether any control of ``u`` (k, N, nu) lies at its bound (to within
+        ``kkt_tol`` relative): there ``end_hessian`` does not hold (module docstring)."""
+        if self.shape.control_bounds is None:
+            return np.zeros(len(u), dtype=bool)
+        tol = self.shape.kkt_tol
+        with np.errstate(invalid="ignore"):
+            near = ((u - self.u_lower <= tol * (1 + np.abs(self.u_lower)))
+                    | (self.u_upper - u <= tol * (1 + np.abs(self.u_upper))))
+        return np.any(near, axis=(1, 2))
 
     @cached_property
     def batch_solver(self) -> KktNewton | MappedNlp | None:
@@ -346,7 +398,7 @@ class DmocTranscription:
         params = check_params(params, self.n_params, "DMOC")
         x0 = self.default_guess(params) if guess is None else self._full_guess(guess)
         extra = {} if multipliers is None else {"lam_g0": multipliers}
-        bounds = {"lbx": self.lbx} if self.shape.keep_out_slots else {}
+        bounds = {"lbx": self.lbx, "ubx": self.ubx} if self._inequalities else {}
         call = call_nlpsol(self.solver, x0=x0, p=params, lbg=self.lbg, ubg=self.ubg, **bounds,
                            **extra)
         if call.out is None:
@@ -357,7 +409,8 @@ class DmocTranscription:
             common = {**call.common, "cost": self.h * float(np.sum(u**2))}
             return DmocSolution(**common, cost_gradient=call.cost_gradient,
                                 end_hessian=self._no_hessian(), q=q, u=u)
-        hessian = np.asarray(self.end_hessian(w, lam_g, params))
+        hessian = (self._no_hessian() if self._at_bound(u[None])[0]
+                   else np.asarray(self.end_hessian(w, lam_g, params)))
         return DmocSolution(**call.common, cost_gradient=call.cost_gradient,
                             end_hessian=hessian, q=q, u=u)
 
@@ -411,6 +464,7 @@ class DmocTranscription:
         else:
             costs = batch.f
             hessians = batch.extra.reshape(k, self.nq, self.nq).transpose(0, 2, 1)
+            hessians[self._at_bound(u)] = np.nan
         success = np.asarray(batch.success, bool)
         statuses = [BATCH_STATUS[ok] for ok in success.tolist()]
         return Columns(cls=DmocSolution, length=k, fields={
