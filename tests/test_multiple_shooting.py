@@ -1,7 +1,11 @@
-"""Multiple shooting on the orbit transfer: the paper's MS optimum and the integrators."""
+"""Multiple shooting on the orbit transfer: the paper's MS optimum and the integrators; the
+cost quadrature's order on smooth problems."""
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
+import casadi as ca
 import numpy as np
 import pytest
 from conftest import golden
@@ -11,6 +15,7 @@ from ocpar.examples.pursuit_orbit_transfer import make as orbit_transfer
 from ocpar.models import OrbitTransfer
 from ocpar.models.ode import ode_functions
 from ocpar.ocp import MsShape, OcpTask, ms_problem, solve_task
+from ocpar.ocp.multiple_shooting import step_function
 from ocpar.pursuit import PursuitProblem
 
 
@@ -50,6 +55,84 @@ def test_rk4_steps_match_an_accurate_integration_and_euler_does_not():
         errors[integrator] = abs(x[0] - sol.x[-1, 0])  # final radius, Mm
     assert errors["rk4"] < 1e-5
     assert errors["euler"] > 1e3 * errors["rk4"]
+
+
+@dataclass(frozen=True)
+class Pendulum:
+    """θ̈ = −sin θ + u, running cost θ² + u² (a cost that depends on the state nonlinearly)."""
+
+    nx = 2
+    nu = 1
+
+    def rhs(self, x, u):
+        return ca.vertcat(x[1], -ca.sin(x[0]) + u[0])
+
+    def running_cost(self, x, u):
+        return x[0] ** 2 + u[0] ** 2
+
+    def state_bounds(self):
+        return np.full(2, -np.inf), np.full(2, np.inf)
+
+
+@dataclass(frozen=True)
+class Integrator:
+    """ẋ = u, running cost x² + u²: from x(0) = 1 to x(T) = 0 the optimum is coth T
+    (x = sinh(T − t)/sinh T, J = −x ẋ at t = 0)."""
+
+    nx = 1
+    nu = 1
+
+    def rhs(self, x, u):
+        return u
+
+    def running_cost(self, x, u):
+        return x[0] ** 2 + u[0] ** 2
+
+    def state_bounds(self):
+        return np.full(1, -np.inf), np.full(1, np.inf)
+
+
+def observed_order(errors: dict[int, float]) -> float:
+    (coarse, e_coarse), (fine, e_fine) = sorted(errors.items())
+    return float(np.log(e_coarse / e_fine) / np.log(fine / coarse))
+
+
+@pytest.mark.parametrize(("integrator", "order"), [("euler", 1.0), ("rk4", 4.0)])
+def test_the_cost_of_a_fixed_control_converges_at_the_integrators_order(integrator, order):
+    """The cost of u = 1 on [0, 2] from θ = 0.5 at rest against its integral by an adaptive
+    integration of the augmented system (cost as a state): the cost is integrated by the same
+    rule as the path, RK4's to O(h⁴), Euler's left rectangle to O(h)."""
+    model, duration, x0 = Pendulum(), 2.0, np.array([0.5, 0.0])
+    f, g = ode_functions(model)
+    errors = {}
+    for n in (40, 80):
+        h = duration / n
+        u = np.ones((n, 1))
+        y = np.concatenate([x0, [0.0]])
+        for uj in u:
+            y = solve_ivp(lambda _t, s, uj=uj: np.concatenate(
+                [np.asarray(f(s[:2], uj)).ravel(), np.asarray(g(s[:2], uj)).ravel()]),
+                (0, h), y, rtol=1e-13, atol=1e-14).y[:, -1]
+        phi = step_function(model, h, integrator)
+        x, cost = x0, 0.0
+        for uj in u:
+            nxt, rate = phi(x, uj)
+            x, cost = np.asarray(nxt).ravel(), cost + h * float(rate)
+        errors[n] = abs(cost - y[2])
+    assert observed_order(errors) == pytest.approx(order, abs=0.15)
+
+
+@pytest.mark.parametrize(("integrator", "order"), [("euler", 1.0), ("rk4", 2.0)])
+def test_the_optimal_cost_converges_to_the_continuous_optimum(integrator, order):
+    """ẋ = u, min ∫ (x² + u²) dt from 1 to 0 over T = 1 (exact coth 1): with RK4 and its cost
+    quadrature the error is the O(h²) of piecewise-constant controls, with Euler O(h)."""
+    errors = {}
+    for n in (20, 80):
+        shape = MsShape(Integrator(), n, 1.0 / n, (0,), integrator)
+        sol = solve_task(OcpTask(shape, np.array([1.0, 0.0])))
+        assert sol.success, sol.status
+        errors[n] = abs(sol.cost - 1 / np.tanh(1.0))
+    assert observed_order(errors) == pytest.approx(order, abs=0.1)
 
 
 def test_target_set_leaves_mass_free_and_solver_is_cached():

@@ -2,7 +2,12 @@
 
 N+1 state samples x_0..x_N at spacing h and N piecewise-constant controls u_0..u_{N-1}; the
 continuity constraints x_{j+1} = Φ_h(x_j, u_j) use explicit Euler, Φ_h = x + h f(x, u) (the
-local-pursuit paper's eq. 13/17), or classical RK4. The cost is Σ_j h g(x_j, u_j). The initial
+local-pursuit paper's eq. 13/17), or classical RK4. The cost Σ_j c_h(x_j, u_j) integrates the
+running cost g by the same step: with Euler the left rectangle c_h = h g(x_j, u_j) (first
+order, as in the paper), with RK4 the cost as an augmented state ċ = g(x, u) integrated by the
+same four stages (c_h = h/6 (g₁ + 2g₂ + 2g₃ + g₄) at the stage states): a fixed control's cost
+is then fourth-order accurate like its path, and the optimal cost converges at the O(h²) that
+piecewise-constant controls allow, where the left rectangle would hold it at O(h). The initial
 state x_0 and the values of the terminal components x_N[i] (i in ``terminal``; the others are
 free: a target set Q(x) = x[terminal] − target = 0) are NLP parameters, p = (x_0, target).
 Decision variables w = (x_1..x_N, u_0..u_{N-1}); states and controls are bounded by the
@@ -117,17 +122,25 @@ class MsSolution(InnerSolution):
 
 
 def step_function(model: OdeModel, step: float, integrator: str) -> ca.Function:
-    """Φ_h(x, u): one step of the chosen integrator with u held constant."""
+    """(x, u) -> (Φ_h(x, u), c_h(x, u)/h): one step of the chosen integrator with u held
+    constant, and the step's mean running cost, its integral by the same rule over h (module
+    docstring; the cost is h Σ_j of it, Euler's exactly the paper's h Σ_j g(x_j, u_j))."""
     x, u = ca.SX.sym("x", model.nx), ca.SX.sym("u", model.nu)
     if integrator == "euler":
         nxt = x + step * model.rhs(x, u)
+        rate = model.running_cost(x, u)
     else:
         k1 = model.rhs(x, u)
-        k2 = model.rhs(x + step / 2 * k1, u)
-        k3 = model.rhs(x + step / 2 * k2, u)
-        k4 = model.rhs(x + step * k3, u)
+        x2 = x + step / 2 * k1
+        k2 = model.rhs(x2, u)
+        x3 = x + step / 2 * k2
+        k3 = model.rhs(x3, u)
+        x4 = x + step * k3
+        k4 = model.rhs(x4, u)
         nxt = x + step / 6 * (k1 + 2 * k2 + 2 * k3 + k4)
-    return ca.Function("Phi", [x, u], [nxt])
+        g = [model.running_cost(stage, u) for stage in (x, x2, x3, x4)]
+        rate = (g[0] + 2 * g[1] + 2 * g[2] + g[3]) / 6
+    return ca.Function("Phi", [x, u], [nxt, rate], ["x", "u"], ["next", "mean_rate"])
 
 
 class MsTranscription:
@@ -139,16 +152,15 @@ class MsTranscription:
         nx, nu = model.nx, model.nu
         self.nx, self.nu, self.n = nx, nu, n
         phi = step_function(model, shape.step, shape.integrator)
-        cost_rate = ca.Function("g", [xs := ca.SX.sym("x", nx), us := ca.SX.sym("u", nu)],
-                                [model.running_cost(xs, us)])
 
         p = ca.SX.sym("p", nx + len(shape.terminal))
         x_free = ca.SX.sym("x", nx, n)
         u = ca.SX.sym("u", nu, n)
         x = ca.horzcat(p[:nx], x_free)
-        gaps = [x[:, j + 1] - phi(x[:, j], u[:, j]) for j in range(n)]
+        steps = [phi(x[:, j], u[:, j]) for j in range(n)]
+        gaps = [x[:, j + 1] - nxt for j, (nxt, _) in enumerate(steps)]
         terminal = [x[i, n] - p[nx + k] for k, i in enumerate(shape.terminal)]
-        cost = shape.step * ca.sum1(ca.vertcat(*[cost_rate(x[:, j], u[:, j]) for j in range(n)]))
+        cost = shape.step * ca.sum1(ca.vertcat(*[rate for _, rate in steps]))
 
         self.w = ca.vertcat(ca.vec(x_free), ca.vec(u))
         self.p = p

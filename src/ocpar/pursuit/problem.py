@@ -22,7 +22,7 @@ from scipy.integrate import solve_ivp
 
 from ocpar.models.ode import OdeModel, check_ode_model, control_bounds, ode_functions
 from ocpar.ocp.batch import BufferedFunction
-from ocpar.ocp.multiple_shooting import INTEGRATORS
+from ocpar.ocp.multiple_shooting import INTEGRATORS, step_function
 
 #: Accuracy of the integration of a control law for agent 0 (scipy's RK45).
 LAW_RTOL, LAW_ATOL = 1e-11, 1e-13
@@ -194,9 +194,12 @@ class PursuitProblem:
         return snake_case(f"{self.cost_name} {self.cost_unit}")
 
     def cost(self, x: np.ndarray, u: np.ndarray) -> float:
-        """Σ_j h g(x_j, u_j) of states x (N, nx) and controls u (N−1, nu)."""
-        g = self._functions[1].map(len(u))
-        return float(self.step * np.sum(np.asarray(g(np.asarray(x)[:-1].T, np.asarray(u).T))))
+        """The cost of states x (N, nx) and controls u (N−1, nu) as multiple shooting
+        integrates it: h Σ_j g(x_j, u_j) with Euler, each step's RK4 quadrature with RK4
+        (:func:`~ocpar.ocp.multiple_shooting.step_function`)."""
+        phi = step_function(self.model, self.step, self.integrator).map(len(u))
+        rates = phi(np.asarray(x)[:-1].T, np.asarray(u).T)[1]
+        return float(self.step * np.sum(np.asarray(rates)))
 
     def headline_value(self, x: np.ndarray, u: np.ndarray) -> float:
         """The headline of a trajectory: its final value, or its cost."""
