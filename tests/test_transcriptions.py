@@ -9,6 +9,7 @@ rest to rest).
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import pickle
 from collections.abc import Callable
@@ -31,6 +32,7 @@ from ocpar.ocp import (
     solve_task,
     transcription,
 )
+from ocpar.ocp.constraints import PathConstraint
 
 DURATION = 2.0
 
@@ -176,3 +178,86 @@ def test_tasks_pack_into_one_array_per_field(case):
     kinds = {name: kind for name, (kind, _) in packed.fields.items()}
     assert kinds == {"shape": SHARED, "params": STACKED, "warm_start": SHARED,
                      "multipliers": SHARED, "fallback": STACKED}
+
+
+# -- constrained cases: one path constraint vocabulary on every transcription ------------------
+
+U_MAX, V_MAX = 1.2, 0.6
+#: Rest to rest over d = 1 in T = 2 with |u| ≤ 1.2 (the free peak 6d/T² = 1.5): u = ±1.2 near
+#: both ends, linear in between (closed form, as in tests/test_dmoc.py).
+THRUST_EXACT = 1.5223549801
+#: The same with |v| ≤ 0.6 (the free peak 1.5 d/T = 0.75): v rises as a parabola to 0.6 at
+#: t₁ = 3(T − d/v_max)/2 = 0.5 with u = 0 there, coasts, and falls back; J = 8 v_max²/(3 t₁).
+SPEED_EXACT = 8 * V_MAX**2 / (3 * 0.5)
+DIAGONAL = np.sqrt(0.5)
+# the planar point mass from rest at the origin to rest at distance 1 along the diagonal
+DMOC_REST = np.array([0.0, 0.0, 0.0, 0.0, DIAGONAL, DIAGONAL, 0.0, 0.0])
+LINE_REST = np.array([0.0, 0.0, 1.0, 0.0])
+
+
+def constrained_shape(name: str, limit: str, n: int):
+    """Shape and parameters of transcription ``name`` on n intervals with a thrust limit
+    (DMOC: the norm |u| ≤ 1.2 in the plane; else the box on the line) or a speed limit."""
+    if name == "dmoc":
+        constraint = (PathConstraint(lambda u: ca.sumsqr(u), upper=U_MAX**2, name="thrust")
+                      if limit == "thrust" else
+                      PathConstraint(lambda v: ca.sumsqr(v), upper=V_MAX**2, name="speed"))
+        return DmocShape(PointMass(dim=2), n, DURATION, solver="sqpmethod",
+                         path_constraints=(constraint,)), DMOC_REST
+    constraint = (PathConstraint(lambda u: u, lower=-U_MAX, upper=U_MAX, name="thrust")
+                  if limit == "thrust" else PathConstraint(lambda x: x[1], upper=V_MAX))
+    shapes = {
+        "ms-euler": lambda: MsShape(DoubleIntegrator(), n, DURATION / n, (0, 1),
+                                    path_constraints=(constraint,)),
+        "ms-rk4": lambda: MsShape(DoubleIntegrator(), n, DURATION / n, (0, 1), "rk4",
+                                  path_constraints=(constraint,)),
+        "dfet": lambda: DfetOcpShape(DoubleIntegrator(), n, 2, 0, ((-50.0, 50.0),),
+                                     (DURATION, DURATION), (0, 1),
+                                     path_constraints=(constraint,)),
+    }
+    return shapes[name](), LINE_REST
+
+
+@pytest.mark.parametrize("limit", ["thrust", "speed"])
+def test_an_active_path_constraint_reaches_the_closed_form_at_second_order(case, limit):
+    """Thrust limit (control) and speed limit (state) on every transcription: the cost
+    converges to the closed-form constrained optimum at O(h²) (measured: 3.38e-3, 8.42e-4,
+    2.11e-4 at N = 20, 40, 80 for the thrust limit, 2.00e-2, 4.85e-3, 1.20e-3 for the speed
+    limit, on all four), well above the free optimum 1.5."""
+    exact = THRUST_EXACT if limit == "thrust" else SPEED_EXACT
+    errors = {}
+    for n in (20, 80):
+        shape, params = constrained_shape(case.name, limit, n)
+        sol = solve_task(OcpTask(shape, params))
+        assert sol.success, sol.status
+        errors[n] = sol.cost - exact
+    assert errors[20] > 0 and errors[80] > 0
+    assert math.log(errors[20] / errors[80]) / math.log(4) == pytest.approx(2.0, abs=0.1)
+
+
+def test_path_constraints_keep_shapes_hashable_and_picklable(case):
+    """A lambda compiles to text: the shape pickles (to MPI ranks, Dask workers) and equal
+    shapes share one transcription."""
+    shape, _ = constrained_shape(case.name, "thrust", 10)
+    again, _ = constrained_shape(case.name, "thrust", 10)
+    assert again == shape and transcription(pickle.loads(pickle.dumps(shape))) is \
+        transcription(shape)
+
+
+@pytest.mark.parametrize(("constraint", "message"), [
+    (PathConstraint(lambda y: y), "function takes 'y'; it may take"),
+    (PathConstraint(lambda u: u.nope), "does not evaluate on CasADi symbols"),
+    (PathConstraint(lambda u: ca.SX.sym("z")), "depends on symbols other than its arguments"),
+    (PathConstraint(lambda u: ca.vertcat(u, u), lower=(1.0, 2.0, 3.0)), "lower: must be"),
+    (PathConstraint(lambda u: u, lower=1.0, upper=0.0), "needs lower <= upper"),
+    (PathConstraint(lambda u: u, upper=float("nan")), "upper: NaN"),
+    (PathConstraint(lambda u: ca.SX(2, 2)), "must return a number or a column"),
+    (PathConstraint(lambda u: u, name=""), "name must be a non-empty string"),
+    (PathConstraint("u <= 1"), "function must be callable"),
+    (lambda u: u, "must be a PathConstraint"),
+])
+def test_a_malformed_path_constraint_is_one_error_naming_the_field(case, constraint, message):
+    shape = case.shape(4)
+    with pytest.raises(ValueError, match="path_constraints\\[0\\]") as error:
+        dataclasses.replace(shape, path_constraints=(constraint,))
+    assert message in str(error.value) and "\n" not in str(error.value)

@@ -9,6 +9,12 @@ with z = (state nodes, x_f, control nodes, t_f) as in :class:`~ocpar.ocp.dfet.Df
 Φ the optional Mayer term ``terminal_cost``, g the model's running cost (if
 ``running_cost``) integrated by each element's Gauss–Legendre rule, Δt = t_f/N. Parameters
 p = (x_0 (nx), target (len(final_components))).
+
+Path constraints (optional, ``DfetOcpShape.path_constraints``, :mod:`ocpar.ocp.constraints`):
+functions of ``x`` and ``u``, imposed at each element's quadrature points (the points where
+the weak form and the cost evaluate the dynamics and g), where X_j and U_j are the
+element's polynomials. Between those points the polynomials are not constrained: the
+guarantee is that of a collocation method, O(Δt^{order}) violations in between.
 """
 
 from __future__ import annotations
@@ -22,6 +28,12 @@ import numpy as np
 from numpy.polynomial import legendre
 
 from ocpar.models.ode import OdeModel
+from ocpar.ocp.constraints import (
+    CompiledConstraint,
+    ConstraintRows,
+    PathConstraint,
+    compile_constraints,
+)
 from ocpar.ocp.contract import InnerSolution, call_nlpsol, check_params, transcription
 from ocpar.ocp.dfet import QUADRATURE_EXTRA, DfetShape, DfetTranscription, lagrange_basis
 from ocpar.ocp.ipopt import ipopt_options
@@ -35,7 +47,9 @@ class DfetOcpShape:
     :class:`~ocpar.ocp.dfet.DfetShape`; ``final_components`` the state indices fixed at t_f
     (their values are parameters); ``terminal_cost`` an optional Mayer term Φ(x_f, t_f) of
     CasADi symbols (a module-level function, so that the shape pickles); ``running_cost``
-    whether the model's g(x, u) is integrated; ``tol``/``max_iter`` IPOPT's settings."""
+    whether the model's g(x, u) is integrated; ``tol``/``max_iter`` IPOPT's settings;
+    ``path_constraints`` :class:`~ocpar.ocp.constraints.PathConstraint` objects of ``x`` and
+    ``u`` (module docstring), compiled when the shape is built."""
 
     model: OdeModel
     elements: int
@@ -48,8 +62,11 @@ class DfetOcpShape:
     running_cost: bool = True
     tol: float = 1e-10
     max_iter: int = 500
+    path_constraints: tuple[PathConstraint | CompiledConstraint, ...] = ()
 
     def __post_init__(self) -> None:
+        object.__setattr__(self, "path_constraints", compile_constraints(
+            self.path_constraints, {"x": self.model.nx, "u": self.model.nu}))
         self.dynamics_shape()  # checks the grid, the bounds and the final components
         if self.terminal_cost is None and not self.running_cost:
             raise ValueError("a DFET OCP needs a cost: a terminal_cost, a running_cost or both")
@@ -97,35 +114,45 @@ class DfetOcpTranscription:
         # the first nx equations carry +x_0; the final conditions (shape's values 0) −target
         shift = ca.vertcat(p[:nx], ca.SX.zeros(dfet.ng - nx - len(shape.final_components)),
                            -p[nx:])
-        self.g = dfet.constraints + shift
-
         x_f, t_f = dfet.final_state(z), dfet.final_time(z)
         cost = ca.SX(0) if shape.terminal_cost is None else shape.terminal_cost(x_f, t_f)
+        tau, sigma = legendre.leggauss(shape.order + QUADRATURE_EXTRA)
+        f_q = lagrange_basis(dfet.state_nodes, tau)
+        g_q = lagrange_basis(dfet.control_nodes, tau)
+        k, m1 = shape.order + 1, shape.control_order + 1
+        x = ca.reshape(z[: dfet.shape.n_states], nx, n * k)
+        u = ca.reshape(z[dfet.decision_slice][:-1], model.nu, n * m1)
+        # (nx, q) states and (nu, q) controls at each element's quadrature points
+        xq = [x[:, j * k : (j + 1) * k] @ f_q.T for j in range(n)]
+        uq = [u[:, j * m1 : (j + 1) * m1] @ g_q.T for j in range(n)]
         if shape.running_cost:
-            tau, sigma = legendre.leggauss(shape.order + QUADRATURE_EXTRA)
-            f_q = lagrange_basis(dfet.state_nodes, tau)
-            g_q = lagrange_basis(dfet.control_nodes, tau)
-            k, m1 = shape.order + 1, shape.control_order + 1
-            x = ca.reshape(z[: dfet.shape.n_states], nx, n * k)
-            u = ca.reshape(z[dfet.decision_slice][:-1], model.nu, n * m1)
             xs, us = ca.SX.sym("x", nx), ca.SX.sym("u", model.nu)
             rate = ca.Function("g", [xs, us], [model.running_cost(xs, us)]).map(tau.size)
             weights = ca.DM(sigma).T
             total = ca.SX(0)
             for j in range(n):
-                xq = x[:, j * k : (j + 1) * k] @ f_q.T  # (nx, q) states at quadrature points
-                uq = u[:, j * m1 : (j + 1) * m1] @ g_q.T
-                total += ca.mtimes(weights, rate(xq, uq).T)
+                total += ca.mtimes(weights, rate(xq[j], uq[j]).T)
             cost += t_f / (2 * n) * total
+        path = ConstraintRows()
+        for constraint in shape.path_constraints:
+            path.add(constraint, [{"x": xq[j][:, i], "u": uq[j][:, i]}
+                                  for j in range(n) for i in range(tau.size)])
+        self.g = ca.vertcat(dfet.constraints + shift, path.expr)
+        #: Constraint bounds: the weak form and final conditions = 0, then the path rows'.
+        self.lbg = np.concatenate([np.zeros(dfet.ng), path.lower])
+        self.ubg = np.concatenate([np.zeros(dfet.ng), path.upper])
+        self.n_path = path.count
         self.cost, self.p, self.z = cost, p, z
-        self.nz, self.ng = dfet.nz, dfet.ng
+        self.nz, self.ng = dfet.nz, dfet.ng + path.count
 
     @cached_property
     def solver(self) -> ca.Function:
         """IPOPT solver of this shape, built on first use and then reused."""
         nlp = {"x": self.z, "p": self.p, "f": self.cost, "g": self.g}
+        # IPOPT relaxes inequalities by 1e-8 (relative) unless told not to
+        exact = {"bound_relax_factor": 0.0} if self.n_path else {}
         return ca.nlpsol("dfet_ocp", "ipopt", nlp,
-                         ipopt_options(self.shape.tol, self.shape.max_iter))
+                         ipopt_options(self.shape.tol, self.shape.max_iter, **exact))
 
     def default_guess(self, params: np.ndarray) -> np.ndarray:
         """States on the straight line in time from x_0 to the target (free components held
@@ -158,8 +185,9 @@ class DfetOcpTranscription:
         params = check_params(params, self.n_params, "DFET")
         z0 = self.default_guess(params) if guess is None else np.asarray(guess, float)
         dfet = self.dfet
-        call = call_nlpsol(self.solver, x0=z0, p=params, lbx=dfet.lbz, ubx=dfet.ubz, lbg=0,
-                           ubg=0, lam_g0=0 if multipliers is None else multipliers)
+        call = call_nlpsol(self.solver, x0=z0, p=params, lbx=dfet.lbz, ubx=dfet.ubz,
+                           lbg=self.lbg, ubg=self.ubg,
+                           lam_g0=0 if multipliers is None else multipliers)
         if call.out is None:
             return self.failure(params, call.status, call.solve_time_s)
         z = np.asarray(call.out["x"]).ravel()

@@ -45,6 +45,20 @@ exactly (no bound relaxation); ``sqpmethod`` imposes them in its batch. ``end_he
 comes from the equality-constrained KKT system, so it is NaN for a solution with a control
 at a bound (to within ``kkt_tol``): there the active bound changes the sensitivity.
 
+Path constraints (optional, ``DmocShape.path_constraints``, :mod:`ocpar.ocp.constraints`):
+functions of ``q``, ``v`` and ``u``. One of ``q`` alone is imposed at the free nodes
+q_1..q_{N−1} (the boundary nodes are data); one that names ``v`` or ``u`` on each interval
+at the arguments of its discrete Lagrangian and force, (q_{k+½}, (q_{k+1} − q_k)/h, u_k).
+The continuous path DMOC represents is linear between nodes with constant velocity and
+control on each interval, so a constraint of ``v`` and ``u`` alone (a thrust limit |u| ≤
+u_max, a speed limit) holds at all times, and one convex in ``q`` (a half-space, a ball or
+an ellipsoid to stay *inside*, a corridor) holds on the whole path when it holds at the
+nodes; a non-convex one (staying *outside* an obstacle) can be broken between nodes, which
+only a check of the segments can rule out (the formation's obstacle rounds). They are
+inequalities: the ``newton`` solver takes equalities only, so a shape with path constraints
+needs ``sqpmethod`` or ``ipopt``; ``end_hessian`` holds while no path row is active (it is
+NaN otherwise, as at an active control bound).
+
 A time-dependent Lagrangian gives each interval its own L_d (see
 :class:`~ocpar.models.MechanicalSystem`). Holonomic constraints c(q) = 0 (e.g. a unit
 quaternion) add the reaction ∇c(q_k)ᵀ λ_k to the equation of every node k = 0..N (boundary
@@ -64,6 +78,12 @@ import numpy as np
 from ocpar.bsp.columns import LISTED, SHARED, STACKED, VALUES, Columns
 from ocpar.models.mechanical import MechanicalSystem
 from ocpar.ocp.batch import SOLVERS, KktNewton, MappedNlp
+from ocpar.ocp.constraints import (
+    CompiledConstraint,
+    ConstraintRows,
+    PathConstraint,
+    compile_constraints,
+)
 from ocpar.ocp.contract import InnerSolution, call_nlpsol, check_params, transcription
 from ocpar.ocp.ipopt import ipopt_options
 from ocpar.ocp.sensitivity import cost_hessian_function
@@ -96,7 +116,9 @@ class DmocShape:
     IPOPT's to ~1e-13. ``keep_out_slots`` K and ``keep_out_positions`` (d configuration
     entries): K keep-out half-spaces per interval on those entries (module docstring; K = 0:
     none, the NLP of old). ``control_bounds``: one (lo, hi) per control entry, the model's
-    force unit (module docstring; None: unbounded, the NLP of old).
+    force unit (module docstring; None: unbounded, the NLP of old). ``path_constraints``:
+    :class:`~ocpar.ocp.constraints.PathConstraint` objects of ``q``, ``v`` and ``u`` (module
+    docstring), compiled when the shape is built.
     """
 
     model: MechanicalSystem
@@ -109,8 +131,12 @@ class DmocShape:
     keep_out_slots: int = 0
     keep_out_positions: tuple[int, ...] = ()
     control_bounds: tuple[tuple[float, float], ...] | None = None
+    path_constraints: tuple[PathConstraint | CompiledConstraint, ...] = ()
 
     def __post_init__(self) -> None:
+        nq, nu = self.model.nq, self.model.nu
+        object.__setattr__(self, "path_constraints", compile_constraints(
+            self.path_constraints, {"q": nq, "v": nq, "u": nu}))
         if self.control_bounds is not None:
             object.__setattr__(self, "control_bounds",
                                _check_control_bounds(self.control_bounds, self.model.nu))
@@ -134,6 +160,9 @@ class DmocShape:
         if self.keep_out_slots and self.solver == "newton":
             raise ValueError("keep-out half-spaces are inequalities: the newton solver takes "
                              "equalities only; choose sqpmethod or ipopt")
+        if self.path_constraints and self.solver == "newton":
+            raise ValueError("solver: path constraints are inequalities and the newton solver "
+                             "takes equalities only; choose sqpmethod or ipopt")
         model_intervals = getattr(self.model, "intervals", None)
         if model_intervals is not None and model_intervals != self.intervals:
             raise ValueError(f"the model is tabulated on {model_intervals} intervals, the "
@@ -246,17 +275,23 @@ class DmocTranscription:
             eqs += [c(qs[k]) for k in range(1, n)]
         slack = ca.SX.sym("slack", n * shape.keep_out_slots)
         keep_out = self._keep_out_rows(p[4 * nq:], qs, slack)
+        path = ConstraintRows()
+        for constraint in shape.path_constraints:
+            path.add(constraint, [{"q": (qs[k] + qs[k + 1]) / 2, "v": (qs[k + 1] - qs[k]) / h,
+                                   "u": us[k]} for k in range(n)]
+                     if constraint.depends_on("v", "u") else [{"q": qs[k]} for k in range(1, n)])
         control_cost = h * ca.sumsqr(u_all)
         penalty = p[-1] * ca.sum1(slack) if shape.keep_out_slots else 0
 
         w = ca.vertcat(q_inner, u_all, lam, slack)
         self.nw = w.numel()
         self.n_params = shape.n_params
-        self.ng = nq * (n + 1) + nc * (n - 1) + len(keep_out)
-        #: Constraint bounds: the equations = 0, the keep-out rows ≥ 0.
-        self.lbg = np.zeros(self.ng)
-        self.ubg = np.concatenate([np.zeros(self.ng - len(keep_out)),
-                                   np.full(len(keep_out), np.inf)])
+        n_eq = nq * (n + 1) + nc * (n - 1)
+        self.n_path = path.count
+        self.ng = n_eq + len(keep_out) + path.count
+        #: Constraint bounds: the equations = 0, the keep-out rows ≥ 0, then the path rows'.
+        self.lbg = np.concatenate([np.zeros(n_eq + len(keep_out)), path.lower])
+        self.ubg = np.concatenate([np.zeros(n_eq), np.full(len(keep_out), np.inf), path.upper])
         #: Variable bounds: the controls within ``control_bounds``, the slacks ≥ 0, the rest
         #: free.
         self.u_lower, self.u_upper = (np.array(bound) for bound in zip(
@@ -267,12 +302,14 @@ class DmocTranscription:
         self.ubx = np.concatenate([np.full(n_path, np.inf), np.tile(self.u_upper, n),
                                    np.full(lam.numel() + slack.numel(), np.inf)])
         self.cost = ca.Function("J", [w, p], [control_cost + penalty], ["w", "p"], ["J"])
-        self.constraints = ca.Function("g", [w, p], [ca.vertcat(*eqs, *keep_out)], ["w", "p"],
-                                       ["g"])
+        self.constraints = ca.Function("g", [w, p], [ca.vertcat(*eqs, *keep_out, path.expr)],
+                                       ["w", "p"], ["g"])
         self._w, self._p = w, p
-        # d²J*/dq_N² from the KKT system holds for equalities only: none with keep-outs
-        self.end_hessian = None if shape.keep_out_slots else cost_hessian_function(
-            "dmoc", w, p, self.cost(w, p), self.constraints(w, p), slice(2 * nq, 3 * nq))
+        # d²J*/dq_N² from the KKT system holds for equalities only: none with keep-outs; with
+        # path constraints that of the equations, valid while no path row is active
+        self.end_hessian = None if shape.keep_out_slots else _on_equations(cost_hessian_function(
+            "dmoc", w, p, self.cost(w, p), ca.vertcat(*eqs), slice(2 * nq, 3 * nq)), self.ng)
+        self.path_rows = ca.Function("path", [w, p], [path.expr], ["w", "p"], ["c"])
 
     def _keep_out_rows(self, data: ca.SX, qs: list[ca.SX], slack: ca.SX) -> list[ca.SX]:
         """n·r(q) − b + σ at the free nodes q of each interval k, slot s (b the slot's offset
@@ -304,19 +341,23 @@ class DmocTranscription:
 
     @property
     def _inequalities(self) -> bool:
-        """Whether the NLP has inequalities (keep-out rows, control bounds)."""
-        return bool(self.shape.keep_out_slots) or self.shape.control_bounds is not None
+        """Whether the NLP has inequalities (keep-out rows, control bounds, path rows)."""
+        return (bool(self.shape.keep_out_slots) or self.shape.control_bounds is not None
+                or bool(self.n_path))
 
-    def _at_bound(self, u: np.ndarray) -> np.ndarray:
-        """Per solution, whether any control of ``u`` (k, N, nu) lies at its bound (to within
+    def _at_bound(self, u: np.ndarray, w: np.ndarray, params: np.ndarray) -> np.ndarray:
+        """Per solution, whether any control of ``u`` (k, N, nu) lies at its bound or any path
+        row at solutions ``w`` (k, nw) with ``params`` (k, n_params) at its own (to within
         ``kkt_tol`` relative): there ``end_hessian`` does not hold (module docstring)."""
-        if self.shape.control_bounds is None:
-            return np.zeros(len(u), dtype=bool)
-        tol = self.shape.kkt_tol
-        with np.errstate(invalid="ignore"):
-            near = ((u - self.u_lower <= tol * (1 + np.abs(self.u_lower)))
-                    | (self.u_upper - u <= tol * (1 + np.abs(self.u_upper))))
-        return np.any(near, axis=(1, 2))
+        near = np.zeros(len(u), dtype=bool)
+        if self.shape.control_bounds is not None:
+            near |= np.any(_near(u, self.u_lower, self.u_upper, self.shape.kkt_tol), axis=(1, 2))
+        if self.n_path:
+            rows = np.asarray(self.path_rows.map(len(w))(w.T, params.T)).T
+            n_eq = self.ng - self.n_path
+            near |= np.any(_near(rows, self.lbg[n_eq:], self.ubg[n_eq:], self.shape.kkt_tol),
+                           axis=1)
+        return near
 
     @cached_property
     def batch_solver(self) -> KktNewton | MappedNlp | None:
@@ -409,7 +450,7 @@ class DmocTranscription:
             common = {**call.common, "cost": self.h * float(np.sum(u**2))}
             return DmocSolution(**common, cost_gradient=call.cost_gradient,
                                 end_hessian=self._no_hessian(), q=q, u=u)
-        hessian = (self._no_hessian() if self._at_bound(u[None])[0]
+        hessian = (self._no_hessian() if self._at_bound(u[None], w[None], params[None])[0]
                    else np.asarray(self.end_hessian(w, lam_g, params)))
         return DmocSolution(**call.common, cost_gradient=call.cost_gradient,
                             end_hessian=hessian, q=q, u=u)
@@ -464,7 +505,7 @@ class DmocTranscription:
         else:
             costs = batch.f
             hessians = batch.extra.reshape(k, self.nq, self.nq).transpose(0, 2, 1)
-            hessians[self._at_bound(u)] = np.nan
+            hessians[self._at_bound(u, batch.x, params)] = np.nan
         success = np.asarray(batch.success, bool)
         statuses = [BATCH_STATUS[ok] for ok in success.tolist()]
         return Columns(cls=DmocSolution, length=k, fields={
@@ -480,6 +521,24 @@ class DmocTranscription:
             "q": (STACKED, q),
             "u": (STACKED, u),
         })
+
+
+def _near(values: np.ndarray, lower: np.ndarray, upper: np.ndarray, tol: float) -> np.ndarray:
+    """Where ``values`` lie within ``tol`` (relative) of a finite ``lower`` or ``upper``
+    (broadcast along the last axis)."""
+    with np.errstate(invalid="ignore"):
+        return ((values - lower <= tol * (1 + np.abs(lower)))
+                | (upper - values <= tol * (1 + np.abs(upper))))
+
+
+def _on_equations(hessian: ca.Function, ng: int) -> ca.Function:
+    """``hessian`` (w, λ_eq, p) of the equations (the first rows of g) as a function of the
+    multipliers of all ``ng`` rows (w, λ_g, p); the same function when there are no others."""
+    if hessian.nnz_in(1) == ng:
+        return hessian
+    w, lam, p = (ca.MX.sym(name, hessian.nnz_in(i) if i != 1 else ng)
+                 for i, name in enumerate(("w", "lam_g", "p")))
+    return ca.Function(hessian.name(), [w, lam, p], [hessian(w, lam[:hessian.nnz_in(1)], p)])
 
 
 def dmoc_problem(shape: DmocShape) -> DmocTranscription:

@@ -14,6 +14,16 @@ Decision variables w = (x_1..x_N, u_0..u_{N-1}); states and controls are bounded
 model's bounds (controls only if the model has ``control_bounds``).
 A guess is a w; the default holds x_0 with zero controls.
 
+Path constraints (optional, ``MsShape.path_constraints``, :mod:`ocpar.ocp.constraints`):
+functions of ``x`` and ``u``. One that names ``u`` is imposed at (x_j, u_j), j = 0..N−1, the
+sample where each control starts (x_0 is data); one of ``x`` alone at the free samples
+x_1..x_N. Between samples they are not imposed: the continuous path of an RK4 step is not a
+segment, so a constraint met at the samples can be broken in between by O(h²) (a state
+constraint of an Euler path, linear between samples, holds on the whole path when it is
+convex in x). They are inequalities: the Newton local solver takes equalities only, so a
+shape with path constraints re-solves from a guess with ``sqpmethod`` (then IPOPT), and
+IPOPT imposes them exactly (no bound relaxation).
+
 Re-solves from a nearby solution (a ``warm_start`` shape with a guess) first run a local
 solver, IPOPT only if it fails: ``local_solver="newton"`` (default) takes full Newton steps on
 the KKT system of the equality-constrained NLP (bounds only checked at the end), one compiled
@@ -34,6 +44,12 @@ import numpy as np
 from ocpar.bsp.columns import Columns, to_columns
 from ocpar.models.ode import OdeModel, control_bounds
 from ocpar.ocp.batch import BufferedFunction, kkt_newton_function
+from ocpar.ocp.constraints import (
+    CompiledConstraint,
+    ConstraintRows,
+    PathConstraint,
+    compile_constraints,
+)
 from ocpar.ocp.contract import InnerSolution, call_nlpsol, check_params, transcription
 from ocpar.ocp.ipopt import ipopt_options
 
@@ -71,6 +87,8 @@ class MsShape:
     indices of the state components fixed at the end. ``warm_start``: a solve from a guess
     first runs ``local_solver`` (one of :data:`LOCAL_SOLVERS`), then IPOPT tuned for guesses
     close to the solution of a well-scaled problem (:data:`WARM_START_OPTIONS`).
+    ``path_constraints``: :class:`~ocpar.ocp.constraints.PathConstraint` objects of ``x``
+    and ``u`` (module docstring), compiled when the shape is built.
     """
 
     model: OdeModel
@@ -82,8 +100,11 @@ class MsShape:
     max_iter: int = 1000
     warm_start: bool = False
     local_solver: str = "newton"
+    path_constraints: tuple[PathConstraint | CompiledConstraint, ...] = ()
 
     def __post_init__(self) -> None:
+        object.__setattr__(self, "path_constraints", compile_constraints(
+            self.path_constraints, {"x": self.model.nx, "u": self.model.nu}))
         if self.intervals < 1:
             raise ValueError(f"multiple shooting needs at least 1 interval, got {self.intervals}")
         if not self.step > 0:
@@ -110,7 +131,8 @@ class MsShape:
 class MsSolution(InnerSolution):
     """Result of one MS solve: the common fields, and states ``x`` (N+1, nx) including x_0;
     controls ``u`` (N, nu); ``cost_gradient`` dJ*/dp (nx + len(terminal), from the NLP
-    multipliers); ``constraint_violation`` = max |continuity or terminal residual|; ``w`` and
+    multipliers); ``constraint_violation`` = max |continuity or terminal residual| and the
+    path rows' excess over their bounds; ``w`` and
     ``lam_g`` the NLP solution and constraint multipliers (to warm-start a similar solve)."""
 
     x: np.ndarray
@@ -167,8 +189,16 @@ class MsTranscription:
         self.n_params = shape.n_params
         self.nw = self.w.numel()
         self.cost = cost
-        self.g = ca.vertcat(*gaps, *terminal)
+        path = ConstraintRows()
+        for constraint in shape.path_constraints:
+            path.add(constraint, [{"x": x[:, j], "u": u[:, j]} for j in range(n)]
+                     if constraint.depends_on("u") else [{"x": x[:, j]} for j in range(1, n + 1)])
+        self.n_path = path.count
+        self.g = ca.vertcat(*gaps, *terminal, path.expr)
         self.ng = self.g.numel()
+        #: Constraint bounds: continuity and terminal rows = 0, then the path rows'.
+        self.lbg = np.concatenate([np.zeros(self.ng - path.count), path.lower])
+        self.ubg = np.concatenate([np.zeros(self.ng - path.count), path.upper])
         lower, upper = model.state_bounds()
         u_lower, u_upper = control_bounds(model)
         self.lbw = np.concatenate([np.tile(lower, n), np.tile(u_lower, n)])
@@ -179,6 +209,8 @@ class MsTranscription:
         """IPOPT solver of this shape, built on first use and then reused."""
         nlp = {"x": self.w, "p": self.p, "f": self.cost, "g": self.g}
         extra = WARM_START_OPTIONS if self.shape.warm_start else {}
+        if self.n_path:  # IPOPT relaxes inequalities by 1e-8 (relative) unless told not to
+            extra = extra | {"bound_relax_factor": 0.0}
         return ca.nlpsol("ms", "ipopt", nlp,
                          ipopt_options(self.shape.tol, self.shape.max_iter, **extra))
 
@@ -267,7 +299,7 @@ class MsTranscription:
                     raise ValueError(f"multiple shooting batch: multipliers must be "
                                      f"(k, {self.ng}), got a row of shape {np.shape(lam)}")
                 lams[i] = lam
-        if not (self.shape.warm_start and self.shape.local_solver == "newton"):
+        if not self._newton_first:
             return to_columns([self.solve(*row)  # type: ignore[return-value]
                                for row in zip(params, guesses, lams, strict=True)])
         start = time.perf_counter()
@@ -282,7 +314,7 @@ class MsTranscription:
                multipliers: np.ndarray | None,
                first_round: tuple[list[np.ndarray], float] | None = None) -> MsSolution:
         if self.shape.warm_start and guess is not None:
-            if self.shape.local_solver == "newton":
+            if self._newton_first:
                 first = self._solve_newton(params, guess, multipliers, first_round)
             else:
                 first = self._solve_with(self.resolver, params, guess, multipliers)
@@ -291,6 +323,13 @@ class MsTranscription:
         if guess is None:
             guess = self.default_guess(params)
         return self._solve_with(self.solver, params, guess, multipliers)
+
+    @property
+    def _newton_first(self) -> bool:
+        """Whether a re-solve from a guess starts with Newton steps (a ``warm_start`` shape
+        whose local solver is ``newton``, without path constraints: Newton takes equalities
+        only)."""
+        return self.shape.warm_start and self.shape.local_solver == "newton" and not self.n_path
 
     def _solve_newton(self, params: np.ndarray, guess: np.ndarray,
                       multipliers: np.ndarray | None,
@@ -326,17 +365,26 @@ class MsTranscription:
 
     def _solve_with(self, solver: ca.Function, params: np.ndarray, guess: np.ndarray,
                     multipliers: np.ndarray | None) -> MsSolution:
-        call = call_nlpsol(solver, x0=guess, p=params, lbg=0, ubg=0, lbx=self.lbw, ubx=self.ubw,
-                           lam_g0=0 if multipliers is None else multipliers)
+        call = call_nlpsol(solver, x0=guess, p=params, lbg=self.lbg, ubg=self.ubg, lbx=self.lbw,
+                           ubx=self.ubw, lam_g0=0 if multipliers is None else multipliers)
         if call.out is None:
             return self.failure(params, call.status, call.solve_time_s)
         out = call.out
         w = np.asarray(out["x"]).ravel()
         x, u = self.unpack(w, params[: self.nx])
+        g = np.asarray(out["g"]).ravel()
         return MsSolution(
             **call.common, x=x, u=u, cost_gradient=call.cost_gradient,
-            constraint_violation=float(np.max(np.abs(np.asarray(out["g"])))),
+            constraint_violation=self._violation(g),
             w=w, lam_g=np.asarray(out["lam_g"]).ravel())
+
+    def _violation(self, g: np.ndarray) -> float:
+        """max |continuity or terminal residual| and the path rows' excess over their
+        bounds, of constraint values ``g`` (ng,)."""
+        n_eq = self.ng - self.n_path
+        path = g[n_eq:]
+        excess = np.max(np.maximum(self.lbg[n_eq:] - path, path - self.ubg[n_eq:]), initial=0.0)
+        return float(max(np.max(np.abs(g[:n_eq])), excess))
 
     def failure(self, params: np.ndarray, status: str, elapsed: float) -> MsSolution:
         """A failed solve for p: NaN cost, path, gradient and multipliers, with ``status``."""
