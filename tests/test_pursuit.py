@@ -227,11 +227,12 @@ def test_paper_case_1_n301():
 
 # -- the van der Pol worked example against an independent CasADi solve -----------------------
 
-def vdp_reference_cost(samples: int, duration: float, mu: float, u_max: float) -> float:
+def vdp_reference_cost(samples: int, duration: float, mu: float, u_max: float,
+                       min_velocity: float = -np.inf) -> float:
     """The full-horizon optimum of the example's discretisation, written here with
     casadi.Opti: RK4 steps, u piecewise constant in [−u_max, u_max], x(0) = (1, 0),
     x(T) = 0, cost ∫ (x1² + x2² + u²) dt integrated by the same RK4 stages as the states
-    (an augmented cost state)."""
+    (an augmented cost state); x2 ≥ ``min_velocity`` at every sample."""
     opti, n = ca.Opti(), samples - 1
     h = duration / n
     x, u = opti.variable(2, n + 1), opti.variable(1, n)
@@ -258,6 +259,8 @@ def vdp_reference_cost(samples: int, duration: float, mu: float, u_max: float) -
     opti.subject_to(x[:, 0] == ca.DM([1, 0]))
     opti.subject_to(x[:, n] == 0)
     opti.subject_to(opti.bounded(-u_max, u, u_max))
+    if np.isfinite(min_velocity):
+        opti.subject_to(x[1, :] >= min_velocity)
     opti.set_initial(x[0, :], np.linspace(1, 0, n + 1))
     opti.minimize(cost)
     opti.solver("ipopt", {"print_time": False}, {"print_level": 0, "tol": 1e-12})
@@ -282,6 +285,31 @@ def test_van_der_pol_pbms_reaches_the_full_horizon_optimum(vdp_result):
     np.testing.assert_allclose(result.x[-1], 0.0, atol=1e-9)
     assert np.max(np.abs(result.u)) <= model.u_max + 1e-8
     assert np.max(np.abs(result.u)) > model.u_max - 1e-3  # the control bound is active
+
+
+def test_a_state_constraint_holds_on_every_agent_and_pbms_reaches_its_optimum():
+    """The worked example x2(t) ≥ −0.4 (active: the free optimum swings to −0.51): the train
+    ends at the independent solve's optimum, every sample meets the floor, and the cost is
+    above the free optimum."""
+    problem = van_der_pol.make_speed_limited()
+    model = problem.model
+    reference = vdp_reference_cost(problem.samples, problem.duration, model.mu, model.u_max,
+                                   min_velocity=-0.4)
+    free = vdp_reference_cost(problem.samples, problem.duration, model.mu, model.u_max)
+    result = solve_pursuit(problem, VDP_SETTINGS, reference=False)
+    assert result.converged and result.failed_solves == 0, result.message
+    assert result.headline == pytest.approx(reference, rel=1e-4)
+    assert reference > free * (1 + 1e-3)
+    assert np.min(result.x[:, 1]) >= -0.4 - 1e-9
+    assert np.min(result.x[:, 1]) < -0.4 + 1e-6  # active
+    assert result.constraint_violation < 1e-9
+
+
+def test_an_agent_0_plan_that_breaks_a_path_constraint_is_refused():
+    with pytest.raises(ValueError, match=r"plan.*path_constraints\[0\] \(velocity floor\)"):
+        van_der_pol.make_speed_limited(min_velocity=-0.3).feasible_trajectory()
+    with pytest.raises(ValueError, match=r"initial_state: breaks path_constraints\[0\]"):
+        van_der_pol.make_speed_limited(min_velocity=0.1).feasible_trajectory()
 
 
 def test_coarse_to_fine_levels_reach_the_full_horizon_optimum():

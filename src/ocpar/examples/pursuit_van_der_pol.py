@@ -6,16 +6,22 @@
 Agent 0 flies a control law of t found from the flat output x1: along the cubic
 x1(t) = 1 − 3s² + 2s³ (s = t/T), which leaves (1, 0) and stops at the origin, the control is
 u = ẍ1 − μ (1 − x1²) ẋ1 + x1. The headline is the cost Σ h g (the default).
+
+:func:`make_speed_limited` adds the state constraint x2(t) ≥ v_min (a path constraint, met at
+every sample): the free optimum swings back at x2 ≈ −0.51, agent 0's plan at −0.375, so
+v_min = −0.4 is active on the optimum and met by the plan.
 """
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 from functools import partial
 
 import casadi as ca
 import numpy as np
 
+from ocpar.ocp.constraints import PathConstraint
 from ocpar.pursuit import ControlLaw, PursuitProblem
 
 
@@ -62,3 +68,12 @@ def make(samples: int = 41, duration: float = 4.0, integrator: str = "rk4") -> P
         initial_state=np.array([1.0, 0.0]), target_components=(0, 1), target=np.zeros(2),
         plan=ControlLaw(partial(flat_law, model, duration)), integrator=integrator,
     )
+
+
+def make_speed_limited(samples: int = 41, duration: float = 4.0, integrator: str = "rk4",
+                       min_velocity: float = -0.4) -> PursuitProblem:
+    """:func:`make` with x2(t) ≥ ``min_velocity`` at every sample."""
+    floor = PathConstraint(lambda x: x[1], lower=min_velocity, upper=np.inf,
+                           name="velocity floor")
+    return dataclasses.replace(make(samples, duration, integrator), name="van-der-pol-floor",
+                               path_constraints=(floor,))

@@ -22,12 +22,15 @@ from scipy.integrate import solve_ivp
 
 from ocpar.models.ode import OdeModel, check_ode_model, control_bounds, ode_functions
 from ocpar.ocp.batch import BufferedFunction
+from ocpar.ocp.constraints import CompiledConstraint, PathConstraint, compile_constraints
 from ocpar.ocp.multiple_shooting import INTEGRATORS, step_function
 
 #: Accuracy of the integration of a control law for agent 0 (scipy's RK45).
 LAW_RTOL, LAW_ATOL = 1e-11, 1e-13
 #: The integration's largest step, as a fraction of the horizon.
 LAW_MAX_STEP_FRACTION = 1 / 600
+#: How far agent 0's plan may break a path constraint (in the constraint's unit).
+PATH_TOLERANCE = 1e-9
 
 
 @dataclass(frozen=True)
@@ -75,7 +78,10 @@ class PursuitProblem:
     ``target`` their values (len(S),); ``plan`` agent 0's feasible plan; ``headline`` what a run
     reports first and stops on (None: the cost, smaller is better); ``cost_name`` and
     ``cost_unit`` name Σ h g; ``checks`` final-state values also reported for the result's
-    controls re-simulated accurately; ``integrator`` Φ_h, ``"euler"`` or ``"rk4"``.
+    controls re-simulated accurately; ``integrator`` Φ_h, ``"euler"`` or ``"rk4"``;
+    ``path_constraints`` :class:`~ocpar.ocp.constraints.PathConstraint` objects of ``x`` and
+    ``u`` that every agent's trajectory meets (at the samples, as
+    :class:`~ocpar.ocp.MsShape` imposes them; agent 0's plan must meet them too).
     """
 
     model: OdeModel
@@ -91,10 +97,13 @@ class PursuitProblem:
     cost_unit: str = ""
     checks: tuple[FinalValue, ...] = field(default=())
     integrator: str = "euler"
+    path_constraints: tuple[PathConstraint | CompiledConstraint, ...] = ()
 
     def __post_init__(self) -> None:
         check_ode_model(self.model)
         nx = self.model.nx
+        object.__setattr__(self, "path_constraints", compile_constraints(
+            self.path_constraints, {"x": nx, "u": self.model.nu}))
         if not isinstance(self.name, str) or not self.name:
             raise ValueError(f"name: must be a non-empty string, got {self.name!r}")
         if not (isinstance(self.duration, numbers.Real) and math.isfinite(self.duration)
@@ -149,6 +158,7 @@ class PursuitProblem:
         lower, upper = self.model.state_bounds()
         require_within("plan.states", states, np.asarray(lower, float), np.asarray(upper, float))
         require_within("plan.controls", controls, u_lower, u_upper)
+        self.check_path_constraints("plan", states, controls)
         object.__setattr__(self, "plan", SampledPlan(states, controls))
         return controls[0]
 
@@ -241,7 +251,35 @@ class PursuitProblem:
         require_within("plan (integrated states)", x, np.asarray(lower, float),
                        np.asarray(upper, float))
         require_within("plan.law", u, *control_bounds(self.model))
+        self.check_path_constraints("plan (integrated states)", x, u)
         return x, u
+
+    def path_violation(self, x: np.ndarray, u: np.ndarray) -> float:
+        """The largest excess of the path constraints over their bounds along states x
+        (N, nx) and controls u (N−1, nu), where :class:`~ocpar.ocp.MsShape` imposes them
+        (0.0 without constraints; NaN where a row is not finite)."""
+        excess = [0.0]
+        for constraint in self.path_constraints:
+            points = ({"x": x[:-1], "u": u} if constraint.depends_on("u") else {"x": x[1:]})
+            excess.append(float(np.max(constraint.violation(points))))
+        return max(excess) if not np.isnan(excess).any() else float("nan")
+
+    def check_path_constraints(self, label: str, x: np.ndarray, u: np.ndarray) -> None:
+        """ValueError naming ``label`` and the constraint unless the trajectory x (N, nx),
+        u (N−1, nu) meets every path constraint (to 1e-9) and the initial state those of x
+        alone."""
+        for i, constraint in enumerate(self.path_constraints):
+            if not constraint.depends_on("u"):
+                at_start = constraint.violation({"x": x[:1]})[0]
+                if not at_start <= PATH_TOLERANCE:
+                    raise ValueError(f"initial_state: breaks path_constraints[{i}] "
+                                     f"({constraint.name}) by {at_start:.3g}")
+            points = ({"x": x[:-1], "u": u} if constraint.depends_on("u") else {"x": x[1:]})
+            excess = constraint.violation(points)
+            if not np.all(excess <= PATH_TOLERANCE):
+                j = int(np.argmax(np.nan_to_num(excess, nan=np.inf)))
+                raise ValueError(f"{label}: breaks path_constraints[{i}] ({constraint.name}) "
+                                 f"at sample {j} by {excess[j]:.3g}")
 
 
 def snake_case(text: str) -> str:

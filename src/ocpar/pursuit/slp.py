@@ -199,7 +199,8 @@ class PursuitTrain:
             problem = self.problem
             shape = self._shapes[intervals] = MsShape(
                 problem.model, intervals, problem.step, problem.target_components,
-                problem.integrator, warm_start=True, local_solver=self.settings.local_solver)
+                problem.integrator, warm_start=True, local_solver=self.settings.local_solver,
+                path_constraints=problem.path_constraints)
         return shape
 
     def _new_agent(self) -> Agent:

@@ -25,7 +25,8 @@ def solve_full_horizon(problem: PursuitProblem, backend: Backend) -> MsSolution:
     task on the backend."""
     x0, u0 = problem.feasible_trajectory()
     shape = MsShape(problem.model, problem.samples - 1, problem.step,
-                    problem.target_components, problem.integrator)
+                    problem.target_components, problem.integrator,
+                    path_constraints=problem.path_constraints)
     guess = np.concatenate([x0[1:].ravel(), u0.ravel()])
     task = OcpTask(shape, np.concatenate([problem.initial_state, problem.target]), guess)
     return backend.superstep(solve_task, [task])[0]

@@ -18,12 +18,13 @@ RESIM_RTOL, RESIM_ATOL = 1e-11, 1e-13
 
 
 def discrete_residual(problem: PursuitProblem, x: np.ndarray, u: np.ndarray) -> float:
-    """max |x_{j+1} − Φ_h(x_j, u_j)| and |x_N[S] − target| over the trajectory x (N, nx),
-    u (N−1, nu) (each component in its own unit)."""
+    """max |x_{j+1} − Φ_h(x_j, u_j)|, |x_N[S] − target| and the path constraints' excess over
+    their bounds along the trajectory x (N, nx), u (N−1, nu) (each in its own unit)."""
     phi = step_function(problem.model, problem.step, problem.integrator).map(len(u))
     gaps = x[1:] - np.asarray(phi(x[:-1].T, u.T)[0]).T
     terminal = x[-1, list(problem.target_components)] - problem.target
-    return float(max(np.max(np.abs(gaps)), np.max(np.abs(terminal))))
+    return float(max(np.max(np.abs(gaps)), np.max(np.abs(terminal)),
+                     problem.path_violation(x, u)))
 
 
 @dataclass
