@@ -3,6 +3,7 @@ test_transcriptions.py): the path against the analytic minimum-energy double int
 
 from __future__ import annotations
 
+import casadi as ca
 import numpy as np
 import pytest
 
@@ -119,3 +120,52 @@ def test_inactive_control_bounds_leave_the_solution_and_its_hessian_unchanged():
 def test_bad_control_bounds_are_refused_naming_the_field(bounds, message):
     with pytest.raises(ValueError, match=f"control_bounds: .*{message}"):
         DmocShape(PointMass(dim=2), 10, 1.0, control_bounds=bounds)
+
+
+def weighted_velocity_optimum(distance: float, duration: float, weight: float) -> float:
+    """min ∫ (u² + c² v²) dt for q̈ = u, rest to rest over ``distance`` in ``duration``
+    (c = ``weight``): with y = v, ÿ = c² (y − B), y = A cosh(c(t − T/2)) + B, y(0) = 0 and
+    ∫ y = d give J* = c² d² x cosh x / (T (x cosh x − sinh x)), x = cT/2 (12 d²/T³ as c → 0)."""
+    x = weight * duration / 2
+    return (weight**2 * distance**2 * x * np.cosh(x)
+            / (duration * (x * np.cosh(x) - np.sinh(x))))
+
+
+@pytest.mark.parametrize("solver", ["newton", "sqpmethod", "ipopt"])
+def test_a_running_cost_of_velocity_and_control_reaches_its_closed_form_at_second_order(solver):
+    """C(q, v, u) = |u|² + |v|² on the midpoint rule: rest to rest over 1 in T = 2 (exact
+    e cosh(1)/2 = 2.0973...), errors at O(h²) on every solver; the gradient in the boundary
+    data still comes from the multipliers and the Hessian from the KKT system."""
+    exact = weighted_velocity_optimum(1.0, 2.0, 1.0)
+    params = np.array([0.0, 0.0, 1.0, 0.0])
+    errors = {}
+    for n in (20, 80):
+        shape = DmocShape(PointMass(dim=1), n, 2.0, solver=solver,
+                          running_cost=lambda v, u: ca.sumsqr(u) + ca.sumsqr(v))
+        sol = solve_task(OcpTask(shape, params))
+        assert sol.success, sol.status
+        errors[n] = abs(sol.cost - exact)
+    assert np.log(errors[20] / errors[80]) / np.log(4) == pytest.approx(2.0, abs=0.05)
+    nlp = dmoc_problem(shape)
+    sol, step = nlp.solve(params), 1e-4
+    costs = [nlp.solve(params + s * np.eye(4)[2]).cost for s in (-step, 0.0, step)]
+    assert sol.cost_gradient[2] == pytest.approx((costs[2] - costs[0]) / (2 * step), rel=1e-6)
+    second = (costs[2] - 2 * costs[1] + costs[0]) / step**2
+    assert sol.end_hessian[0, 0] == pytest.approx(second, rel=1e-4)
+
+
+def test_without_a_running_cost_the_nlp_is_the_control_energy_bit_for_bit():
+    default = dmoc_problem(DmocShape(PointMass(), 12)).solve(PARAMS)
+    explicit = dmoc_problem(DmocShape(PointMass(), 12, running_cost=lambda u: ca.sumsqr(u)))
+    assert explicit.solve(PARAMS).cost == pytest.approx(default.cost, rel=1e-13)
+
+
+@pytest.mark.parametrize(("cost", "message"), [
+    (lambda w: w, "running_cost: function takes 'w'; it may take q"),
+    (lambda u: u, "running_cost: must return a scalar"),
+    (lambda u: u[5], "running_cost: does not evaluate"),
+    ("u**2", "running_cost: function must be callable"),
+])
+def test_a_bad_running_cost_is_one_error_naming_the_field(cost, message):
+    with pytest.raises(ValueError, match=message):
+        DmocShape(PointMass(), 12, running_cost=cost)

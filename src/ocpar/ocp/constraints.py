@@ -55,22 +55,15 @@ class PathConstraint:
 
 
 @dataclass(frozen=True)
-class CompiledConstraint:
-    """A :class:`PathConstraint` compiled for given argument sizes: ``arguments`` the names
-    it depends on (in the transcription's order) and their ``sizes``; ``lower``/``upper``
-    one per row; ``serialized`` the CasADi function (arguments → (rows, 1)) as text."""
+class CompiledFunction:
+    """A user's function of named arguments compiled for given sizes: ``arguments`` the
+    names it takes (in the transcription's order) and their ``sizes``; ``serialized`` the
+    CasADi function (arguments → (rows, 1)) as text, so that it hashes and pickles."""
 
     name: str
     arguments: tuple[str, ...]
     sizes: tuple[int, ...]
-    lower: tuple[float, ...]
-    upper: tuple[float, ...]
     serialized: str
-
-    @property
-    def rows(self) -> int:
-        """Number of rows r."""
-        return len(self.lower)
 
     @property
     def function(self) -> ca.Function:
@@ -85,6 +78,20 @@ class CompiledConstraint:
         """The rows at ``values`` (a symbol or number per argument name; extra names are
         ignored)."""
         return self.function(*(values[name] for name in self.arguments))
+
+
+@dataclass(frozen=True)
+class CompiledConstraint(CompiledFunction):
+    """A :class:`PathConstraint` compiled (:class:`CompiledFunction`), with ``lower`` and
+    ``upper`` one per row."""
+
+    lower: tuple[float, ...] = ()
+    upper: tuple[float, ...] = ()
+
+    @property
+    def rows(self) -> int:
+        """Number of rows r."""
+        return len(self.lower)
 
     def violation(self, values: Mapping[str, np.ndarray]) -> np.ndarray:
         """How far each of k points breaks the rows: values per argument name (k, size);
@@ -119,11 +126,7 @@ def compile_constraints(constraints: Sequence[PathConstraint | CompiledConstrain
 
 def _compile(constraint: object, sizes: Mapping[str, int], label: str) -> CompiledConstraint:
     if isinstance(constraint, CompiledConstraint):
-        if any(sizes.get(a) != n for a, n in zip(constraint.arguments, constraint.sizes,
-                                                 strict=True)):
-            raise ValueError(f"{label} ({constraint.name}): compiled for "
-                             f"{dict(zip(constraint.arguments, constraint.sizes, strict=True))}"
-                             f", this transcription has {dict(sizes)}")
+        _check_sizes(constraint, sizes, label)
         return constraint
     if not isinstance(constraint, PathConstraint):
         raise ValueError(f"{label}: must be a PathConstraint, got {type(constraint).__name__}")
@@ -131,14 +134,42 @@ def _compile(constraint: object, sizes: Mapping[str, int], label: str) -> Compil
     if not isinstance(name, str) or not name:
         raise ValueError(f"{label}: name must be a non-empty string")
     label = f"{label} ({name})"
-    arguments = _arguments(constraint.function, sizes, label)
+    compiled = compile_function(constraint.function, sizes, label, name)
+    rows = compiled.function.nnz_out(0)
+    lower = _bound(constraint.lower, rows, f"{label}: lower")
+    upper = _bound(constraint.upper, rows, f"{label}: upper")
+    if any(lo > hi for lo, hi in zip(lower, upper, strict=True)):
+        raise ValueError(f"{label}: needs lower <= upper in every row, got {lower} and {upper}")
+    return CompiledConstraint(name, compiled.arguments, compiled.sizes, compiled.serialized,
+                              lower, upper)
+
+
+def _check_sizes(compiled: CompiledFunction, sizes: Mapping[str, int], label: str) -> None:
+    """ValueError unless ``compiled`` was compiled for argument sizes within ``sizes``."""
+    have = dict(zip(compiled.arguments, compiled.sizes, strict=True))
+    if any(sizes.get(a) != n for a, n in have.items()):
+        raise ValueError(f"{label} ({compiled.name}): compiled for {have}, this transcription "
+                         f"has {dict(sizes)}")
+
+
+def compile_function(function: object, sizes: Mapping[str, int], label: str,
+                     name: str = "f", scalar: bool = False) -> CompiledFunction:
+    """``function`` (its parameter names among ``sizes``) compiled to a
+    :class:`CompiledFunction` returning a column (one row if ``scalar``); compiled ones are
+    checked against ``sizes`` and kept. One ValueError naming ``label`` otherwise."""
+    if isinstance(function, CompiledFunction):
+        _check_sizes(function, sizes, label)
+        return function
+    arguments = _arguments(function, sizes, label)
     symbols = {a: ca.SX.sym(a, sizes[a]) for a in arguments}
     try:
-        expr = ca.SX(constraint.function(**symbols))
+        expr = ca.SX(function(**symbols))  # type: ignore[operator]
     except Exception as exc:
         raise ValueError(f"{label}: does not evaluate on CasADi symbols "
                          f"{', '.join(f'{a} ({sizes[a]},)' for a in arguments)}: "
                          f"{type(exc).__name__}: {exc}".splitlines()[0]) from None
+    if scalar and expr.shape != (1, 1):
+        raise ValueError(f"{label}: must return a scalar, got shape {expr.shape}")
     if expr.is_empty() or min(expr.shape) != 1:
         raise ValueError(f"{label}: must return a number or a column, got shape {expr.shape}")
     expr = ca.vec(expr)
@@ -147,13 +178,8 @@ def _compile(constraint: object, sizes: Mapping[str, int], label: str) -> Compil
     if strays:
         raise ValueError(f"{label}: depends on symbols other than its arguments: "
                          f"{', '.join(sorted(strays))}")
-    lower = _bound(constraint.lower, expr.numel(), f"{label}: lower")
-    upper = _bound(constraint.upper, expr.numel(), f"{label}: upper")
-    if any(lo > hi for lo, hi in zip(lower, upper, strict=True)):
-        raise ValueError(f"{label}: needs lower <= upper in every row, got {lower} and {upper}")
-    function = ca.Function("c", inputs, [expr], list(arguments), ["c"])
-    return CompiledConstraint(name, arguments, tuple(sizes[a] for a in arguments), lower,
-                              upper, function.serialize())
+    serialized = ca.Function("c", inputs, [expr], list(arguments), ["c"]).serialize()
+    return CompiledFunction(name, arguments, tuple(sizes[a] for a in arguments), serialized)
 
 
 def _arguments(function: object, sizes: Mapping[str, int], label: str) -> tuple[str, ...]:

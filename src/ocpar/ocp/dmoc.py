@@ -15,8 +15,10 @@ constraints are the discrete Euler–Lagrange equations with the boundary moment
     D2L_d(q_{k-1}, q_k) + D1L_d(q_k, q_{k+1}) + f⁺_{k-1} + f⁻_k = 0,   k = 1..N-1
     -D2L(q_N, q̇_N) + D2L_d(q_{N-1}, q_N) + f⁺_{N-1} = 0
 
-and the cost is J_d = h Σ_k |u_k|². Boundary data p = (q_0, q̇_0, q_N, q̇_N) ∈ R^{4 nq} are NLP
-parameters; the decision variables are w = (q_1..q_{N-1}, u_0..u_{N-1}, λ_0..λ_N).
+and the cost is J_d = h Σ_k |u_k|², or with a general running cost C(q, q̇, u)
+(``DmocShape.running_cost``) J_d = h Σ_k C(q_{k+½}, (q_{k+1} − q_k)/h, u_k), the same midpoint
+rule as L_d (second order, like the dynamics). Boundary data p = (q_0, q̇_0, q_N, q̇_N) ∈
+R^{4 nq} are NLP parameters; the decision variables are w = (q_1..q_{N-1}, u_0..u_{N-1}, λ_0..λ_N).
 
 Keep-out half-spaces (optional, ``DmocShape.keep_out_slots`` K > 0): K slots per interval k,
 each a normal n ∈ R^d and offsets b⁰, b¹ at the interval's two nodes on the position r(q)
@@ -68,9 +70,10 @@ c(q_k) = 0 at the inner nodes (the boundary nodes are data); λ is empty otherwi
 
 from __future__ import annotations
 
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from functools import cached_property
+from typing import Any
 
 import casadi as ca
 import numpy as np
@@ -80,9 +83,11 @@ from ocpar.models.mechanical import MechanicalSystem
 from ocpar.ocp.batch import SOLVERS, KktNewton, MappedNlp
 from ocpar.ocp.constraints import (
     CompiledConstraint,
+    CompiledFunction,
     ConstraintRows,
     PathConstraint,
     compile_constraints,
+    compile_function,
 )
 from ocpar.ocp.contract import InnerSolution, call_nlpsol, check_params, transcription
 from ocpar.ocp.ipopt import ipopt_options
@@ -118,7 +123,9 @@ class DmocShape:
     none, the NLP of old). ``control_bounds``: one (lo, hi) per control entry, the model's
     force unit (module docstring; None: unbounded, the NLP of old). ``path_constraints``:
     :class:`~ocpar.ocp.constraints.PathConstraint` objects of ``q``, ``v`` and ``u`` (module
-    docstring), compiled when the shape is built.
+    docstring), compiled when the shape is built. ``running_cost``: C(q, v, u) ≥ 0, a scalar
+    function whose parameter names (among ``q``, ``v``, ``u``) pick its arguments (module
+    docstring; None: |u|², the NLP of old).
     """
 
     model: MechanicalSystem
@@ -132,11 +139,16 @@ class DmocShape:
     keep_out_positions: tuple[int, ...] = ()
     control_bounds: tuple[tuple[float, float], ...] | None = None
     path_constraints: tuple[PathConstraint | CompiledConstraint, ...] = ()
+    running_cost: Callable[..., Any] | CompiledFunction | None = None
 
     def __post_init__(self) -> None:
         nq, nu = self.model.nq, self.model.nu
+        sizes = {"q": nq, "v": nq, "u": nu}
         object.__setattr__(self, "path_constraints", compile_constraints(
-            self.path_constraints, {"q": nq, "v": nq, "u": nu}))
+            self.path_constraints, sizes))
+        if self.running_cost is not None:
+            object.__setattr__(self, "running_cost", compile_function(
+                self.running_cost, sizes, "running_cost", "running_cost", scalar=True))
         if self.control_bounds is not None:
             object.__setattr__(self, "control_bounds",
                                _check_control_bounds(self.control_bounds, self.model.nu))
@@ -275,12 +287,17 @@ class DmocTranscription:
             eqs += [c(qs[k]) for k in range(1, n)]
         slack = ca.SX.sym("slack", n * shape.keep_out_slots)
         keep_out = self._keep_out_rows(p[4 * nq:], qs, slack)
+        # each interval's midpoint configuration, discrete velocity and control
+        midpoints = [{"q": (qs[k] + qs[k + 1]) / 2, "v": (qs[k + 1] - qs[k]) / h, "u": us[k]}
+                     for k in range(n)]
         path = ConstraintRows()
         for constraint in shape.path_constraints:
-            path.add(constraint, [{"q": (qs[k] + qs[k + 1]) / 2, "v": (qs[k + 1] - qs[k]) / h,
-                                   "u": us[k]} for k in range(n)]
-                     if constraint.depends_on("v", "u") else [{"q": qs[k]} for k in range(1, n)])
-        control_cost = h * ca.sumsqr(u_all)
+            path.add(constraint, midpoints if constraint.depends_on("v", "u")
+                     else [{"q": qs[k]} for k in range(1, n)])
+        control_cost = (h * ca.sumsqr(u_all) if shape.running_cost is None else
+                        h * ca.sum1(ca.vertcat(*[shape.running_cost(m) for m in midpoints])))
+        #: J_d without the keep-out penalty, of the path and controls (q_1..q_{N−1}, u) and p
+        self.control_cost = ca.Function("Jd", [ca.vertcat(q_inner, u_all), p], [control_cost])
         penalty = p[-1] * ca.sum1(slack) if shape.keep_out_slots else 0
 
         w = ca.vertcat(q_inner, u_all, lam, slack)
@@ -327,6 +344,14 @@ class DmocTranscription:
                          + slack[k * slots + s]
                          for end, node in enumerate((k, k + 1)) if 0 < node < n]
         return rows
+
+    def _costs(self, w: np.ndarray, params: np.ndarray, u: np.ndarray) -> np.ndarray:
+        """J_d without the keep-out penalty of each solution w (k, nw) with ``params``
+        (k, n_params) and its controls u (k, N, nu): (k,)."""
+        if self.shape.running_cost is None:
+            return self.h * np.sum(u**2, axis=(1, 2))
+        n_free = self.nq * (self.n - 1) + self.nu * self.n
+        return np.asarray(self.control_cost.map(len(w))(w[:, :n_free].T, params.T)).ravel()
 
     @cached_property
     def solver(self) -> ca.Function:
@@ -447,7 +472,7 @@ class DmocTranscription:
         w, lam_g = (np.asarray(call.out[k]).ravel() for k in ("x", "lam_g"))
         q, u = self.unpack(w, params)
         if self.end_hessian is None:  # keep-outs: the control cost without the penalty
-            common = {**call.common, "cost": self.h * float(np.sum(u**2))}
+            common = {**call.common, "cost": float(self._costs(w[None], params[None], u[None])[0])}
             return DmocSolution(**common, cost_gradient=call.cost_gradient,
                                 end_hessian=self._no_hessian(), q=q, u=u)
         hessian = (self._no_hessian() if self._at_bound(u[None], w[None], params[None])[0]
@@ -500,7 +525,7 @@ class DmocTranscription:
         q, u = self.unpack_many(batch.x, params)
         iterations = np.full(k, -1) if batch.iterations is None else batch.iterations
         if self.end_hessian is None:  # keep-outs: the control cost without the penalty
-            costs = self.h * np.sum(u**2, axis=(1, 2))
+            costs = self._costs(batch.x, params, u)
             hessians = np.full((k, self.nq, self.nq), np.nan)
         else:
             costs = batch.f
