@@ -11,6 +11,7 @@ from ocpar.examples.formation_halo import FINAL_ATTITUDE, START_ATTITUDE
 from ocpar.examples.formation_halo import make as halo_spacecraft_example
 from ocpar.models import PointMass
 from ocpar.ocp import DmocShape, OcpTask, cache_report, dmoc_problem, solve_task
+from ocpar.ocp.constraints import PathConstraint
 
 # boundary data p = (q0, v0, qN, vN) in the plane
 PARAMS = np.array([0.0, 0.0, 1.0, 0.5, 3.0, 1.0, 0.0, -1.0])
@@ -96,10 +97,44 @@ def test_control_bounds_reach_the_closed_form_bounded_optimum_at_second_order(so
         assert solution.success, solution.status
         assert np.max(np.abs(solution.u)) <= bound * (1 + 1e-12)
         assert np.isclose(np.max(np.abs(solution.u)), bound, rtol=1e-9)
-        assert np.all(np.isnan(solution.end_hessian))  # active bound: no equality Hessian
         errors.append(solution.cost - exact)
     orders = np.log2(np.array(errors[:-1]) / np.array(errors[1:]))
     assert np.all(np.array(errors) > 0) and np.all(np.abs(orders - 2) < 0.05), (errors, orders)
+
+
+@pytest.mark.parametrize(("solver", "limit"), [
+    ("newton", "box"), ("sqpmethod", "box"), ("ipopt", "box"), ("sqpmethod", "norm"),
+    ("ipopt", "norm")])
+def test_the_end_hessian_at_an_active_thrust_limit_is_that_of_the_active_set(solver, limit):
+    """With thrust limits active on some intervals, d²J*/dq_N² from the active set's KKT
+    system against second differences of the optimal cost (the active set does not change
+    under the small steps), a box bound and a norm limit |u| ≤ 1.2 in the plane (a path
+    constraint): the outer Newton step of the formation gets its curvature."""
+    extra = ({"control_bounds": ((-1.2, 1.2),) * 2} if limit == "box" else
+             {"path_constraints": (PathConstraint(lambda u: ca.sumsqr(u), upper=1.44),)})
+    shape = DmocShape(PointMass(dim=2), 40, 2.0, solver=solver, **extra)
+    params = np.array([0.0, 0.0, 0.0, 0.0, 1.0, 0.6, 0.0, 0.0])  # free peak 1.5 |Δq|: active
+    from ocpar.ocp import solve_tasks
+
+    def solve(p):
+        solution = solve_tasks([OcpTask(shape, p)])[0]
+        assert solution.success, solution.status
+        return solution
+
+    centre, step = solve(params), 1e-4
+    size = np.abs(centre.u[:, 0]) if limit == "box" else np.hypot(*centre.u.T)
+    assert np.max(size) == pytest.approx(1.2, rel=1e-6)  # the limit binds
+    fd = np.empty((2, 2))
+    for i in range(2):
+        for j in range(2):
+            e_i, e_j = step * np.eye(8)[4 + i], step * np.eye(8)[4 + j]
+            fd[i, j] = (solve(params + e_i + e_j).cost - solve(params + e_i - e_j).cost
+                        - solve(params - e_i + e_j).cost + solve(params - e_i - e_j).cost
+                        ) / (4 * step**2)
+    np.testing.assert_allclose(centre.end_hessian, fd, rtol=1e-4, atol=1e-4)
+    gradient = [(solve(params + step * np.eye(8)[4 + i]).cost
+                 - solve(params - step * np.eye(8)[4 + i]).cost) / (2 * step) for i in range(2)]
+    np.testing.assert_allclose(centre.cost_gradient[4:6], gradient, rtol=1e-6)
 
 
 def test_inactive_control_bounds_leave_the_solution_and_its_hessian_unchanged():

@@ -44,8 +44,9 @@ interval's control, as bounds on w. u_k is constant on its interval, so the boun
 all times of the continuous control. The ``newton`` solver ignores bounds and only checks
 them: a task whose unconstrained optimum leaves them goes on to IPOPT, which imposes them
 exactly (no bound relaxation); ``sqpmethod`` imposes them in its batch. ``end_hessian``
-comes from the equality-constrained KKT system, so it is NaN for a solution with a control
-at a bound (to within ``kkt_tol``): there the active bound changes the sensitivity.
+comes from the KKT system of the equations where no bound is active, and from that of the
+active set where one is (a control within ``kkt_tol`` of its bound, as a path row below;
+strict complementarity assumed, :mod:`ocpar.ocp.sensitivity` says what happens otherwise).
 
 Path constraints (optional, ``DmocShape.path_constraints``, :mod:`ocpar.ocp.constraints`):
 functions of ``q``, ``v`` and ``u``. One of ``q`` alone is imposed at the free nodes
@@ -58,8 +59,8 @@ an ellipsoid to stay *inside*, a corridor) holds on the whole path when it holds
 nodes; a non-convex one (staying *outside* an obstacle) can be broken between nodes, which
 only a check of the segments can rule out (the formation's obstacle rounds). They are
 inequalities: the ``newton`` solver takes equalities only, so a shape with path constraints
-needs ``sqpmethod`` or ``ipopt``; ``end_hessian`` holds while no path row is active (it is
-NaN otherwise, as at an active control bound).
+needs ``sqpmethod`` or ``ipopt``; ``end_hessian`` comes from the active set where a row is
+active (as at a control bound).
 
 A time-dependent Lagrangian gives each interval its own L_d (see
 :class:`~ocpar.models.MechanicalSystem`). Holonomic constraints c(q) = 0 (e.g. a unit
@@ -326,6 +327,10 @@ class DmocTranscription:
         # path constraints that of the equations, valid while no path row is active
         self.end_hessian = None if shape.keep_out_slots else _on_equations(cost_hessian_function(
             "dmoc", w, p, self.cost(w, p), ca.vertcat(*eqs), slice(2 * nq, 3 * nq)), self.ng)
+        # with control bounds or path rows, that of the active set where one is active
+        self.active_hessian = None if shape.keep_out_slots or not self._inequalities else \
+            cost_hessian_function("dmoc", w, p, self.cost(w, p), self.constraints(w, p),
+                                  slice(2 * nq, 3 * nq), active_set=True)
         self.path_rows = ca.Function("path", [w, p], [path.expr], ["w", "p"], ["c"])
 
     def _keep_out_rows(self, data: ca.SX, qs: list[ca.SX], slack: ca.SX) -> list[ca.SX]:
@@ -370,19 +375,35 @@ class DmocTranscription:
         return (bool(self.shape.keep_out_slots) or self.shape.control_bounds is not None
                 or bool(self.n_path))
 
-    def _at_bound(self, u: np.ndarray, w: np.ndarray, params: np.ndarray) -> np.ndarray:
-        """Per solution, whether any control of ``u`` (k, N, nu) lies at its bound or any path
-        row at solutions ``w`` (k, nw) with ``params`` (k, n_params) at its own (to within
-        ``kkt_tol`` relative): there ``end_hessian`` does not hold (module docstring)."""
-        near = np.zeros(len(u), dtype=bool)
-        if self.shape.control_bounds is not None:
-            near |= np.any(_near(u, self.u_lower, self.u_upper, self.shape.kkt_tol), axis=(1, 2))
+    def _activity(self, w: np.ndarray, params: np.ndarray) -> np.ndarray:
+        """The activity mask (k, ng + nw) of solutions w (k, nw) with ``params``
+        (k, n_params): 1 for the equations, for path rows and controls at a bound (to within
+        ``kkt_tol`` relative), 0 elsewhere (:mod:`ocpar.ocp.sensitivity`)."""
+        k, n_eq, tol = len(w), self.ng - self.n_path, self.shape.kkt_tol
+        mask = np.zeros((k, self.ng + self.nw))
+        mask[:, :n_eq] = 1.0
         if self.n_path:
-            rows = np.asarray(self.path_rows.map(len(w))(w.T, params.T)).T
-            n_eq = self.ng - self.n_path
-            near |= np.any(_near(rows, self.lbg[n_eq:], self.ubg[n_eq:], self.shape.kkt_tol),
-                           axis=1)
-        return near
+            rows = np.asarray(self.path_rows.map(k)(w.T, params.T)).reshape(self.n_path, k).T
+            mask[:, n_eq:self.ng] = _near(rows, self.lbg[n_eq:], self.ubg[n_eq:], tol)
+        if self.shape.control_bounds is not None:
+            mask[:, self.ng:] = _near(w, self.lbx, self.ubx, tol)
+        return mask
+
+    def _hessians(self, w: np.ndarray, lam_g: np.ndarray, params: np.ndarray,
+                  equality: np.ndarray) -> np.ndarray:
+        """``end_hessian`` of solutions w (k, nw) with multipliers ``lam_g`` (k, ng): that of
+        the equations, ``equality`` (k, nq, nq), where no inequality is active, else that
+        of the active set (:mod:`ocpar.ocp.sensitivity`)."""
+        if self.active_hessian is None:
+            return equality
+        mask = self._activity(w, params)
+        active = np.flatnonzero(mask[:, self.ng - self.n_path:].any(axis=1))
+        hessians = equality.copy()
+        if len(active):
+            value = np.asarray(self.active_hessian.map(len(active))(
+                w[active].T, lam_g[active].T, params[active].T, mask[active].T))
+            hessians[active] = value.reshape(self.nq, len(active), self.nq).transpose(1, 0, 2)
+        return hessians
 
     @cached_property
     def batch_solver(self) -> KktNewton | MappedNlp | None:
@@ -475,8 +496,8 @@ class DmocTranscription:
             common = {**call.common, "cost": float(self._costs(w[None], params[None], u[None])[0])}
             return DmocSolution(**common, cost_gradient=call.cost_gradient,
                                 end_hessian=self._no_hessian(), q=q, u=u)
-        hessian = (self._no_hessian() if self._at_bound(u[None], w[None], params[None])[0]
-                   else np.asarray(self.end_hessian(w, lam_g, params)))
+        hessian = self._hessians(w[None], lam_g[None], params[None],
+                                 np.asarray(self.end_hessian(w, lam_g, params))[None])[0]
         return DmocSolution(**call.common, cost_gradient=call.cost_gradient,
                             end_hessian=hessian, q=q, u=u)
 
@@ -530,7 +551,7 @@ class DmocTranscription:
         else:
             costs = batch.f
             hessians = batch.extra.reshape(k, self.nq, self.nq).transpose(0, 2, 1)
-            hessians[self._at_bound(u, batch.x, params)] = np.nan
+            hessians = self._hessians(batch.x, batch.lam_g, params, hessians)
         success = np.asarray(batch.success, bool)
         statuses = [BATCH_STATUS[ok] for ok in success.tolist()]
         return Columns(cls=DmocSolution, length=k, fields={
@@ -552,8 +573,8 @@ def _near(values: np.ndarray, lower: np.ndarray, upper: np.ndarray, tol: float) 
     """Where ``values`` lie within ``tol`` (relative) of a finite ``lower`` or ``upper``
     (broadcast along the last axis)."""
     with np.errstate(invalid="ignore"):
-        return ((values - lower <= tol * (1 + np.abs(lower)))
-                | (upper - values <= tol * (1 + np.abs(upper))))
+        return ((np.isfinite(lower) & (values - lower <= tol * (1 + np.abs(lower))))
+                | (np.isfinite(upper) & (upper - values <= tol * (1 + np.abs(upper)))))
 
 
 def _on_equations(hessian: ca.Function, ng: int) -> ca.Function:

@@ -7,7 +7,18 @@ optimal cost J*(p) has gradient ∇_p L at the solution (x*, λ*) and Hessian
 
 (differentiate the KKT conditions in p). K is the matrix an SQP or interior-point solver
 factorises at its last iterate; here it is factorised once more by CasADi's sparse QR.
-Valid where no inequality is active (the DMOC inner problems have equalities only).
+Valid where no inequality is active.
+
+With inequalities (lbg ≤ g ≤ ubg, lbx ≤ x ≤ ubx) the same holds on the active set under strict
+complementarity: the active rows (the equalities, and the inequalities and bounds at a bound)
+are equalities of the differentiated system, the inactive ones keep λ = 0. With an activity
+mask a ∈ {0, 1} over the rows of G = (g, x), the system is
+
+    [∇²_xx L, ∇_x Gᵀ diag(a); diag(a) ∇_x G, diag(1 − a)] [dx; dλ] = −[∇²_xp L; diag(a) ∇_p G] dp
+
+(a bound row's multiplier enters L linearly, so ∇²L needs only λ_g). At a degenerate point (a
+row at its bound with λ = 0) J* has one-sided second derivatives only; counting the row as
+active gives the one of the directions that keep it at its bound.
 """
 
 from __future__ import annotations
@@ -16,9 +27,13 @@ import casadi as ca
 
 
 def cost_hessian_function(name: str, x: ca.SX, p: ca.SX, f: ca.SX, g: ca.SX,
-                          block: slice) -> ca.Function:
+                          block: slice, active_set: bool = False) -> ca.Function:
     """Function (x*, λ*, p) → ∇²J* restricted to the parameters ``block`` (rows and columns),
-    a (m, m) matrix with m = len(range(p.numel())[block])."""
+    a (m, m) matrix with m = len(range(p.numel())[block]). With ``active_set`` the function
+    takes a fourth input, the activity mask a (ng + nx: the rows of g, then the bounds of x;
+    module docstring)."""
+    if active_set:
+        return _active_set_hessian_function(name, x, p, f, g, block)
     lam = ca.SX.sym("lam_g", g.numel())
     lagrangian = f + ca.dot(lam, g)
     grad_x = ca.gradient(lagrangian, x)
@@ -33,3 +48,28 @@ def cost_hessian_function(name: str, x: ca.SX, p: ca.SX, f: ca.SX, g: ca.SX,
     xs, lams, ps = (ca.MX.sym(s, v.numel()) for s, v in (("x", x), ("lam_g", lam), ("p", p)))
     k, r, c, h = parts(xs, lams, ps)
     return ca.Function(f"{name}_cost_hessian", [xs, lams, ps], [h - c @ ca.solve(k, r, "qr")])
+
+
+def _active_set_hessian_function(name: str, x: ca.SX, p: ca.SX, f: ca.SX, g: ca.SX,
+                                 block: slice) -> ca.Function:
+    """:func:`cost_hessian_function` on the active set given by a mask (module docstring)."""
+    ng, nx = g.numel(), x.numel()
+    lam = ca.SX.sym("lam_g", ng)
+    active = ca.SX.sym("active", ng + nx)
+    lagrangian = f + ca.dot(lam, g)
+    grad_x = ca.gradient(lagrangian, x)
+    grad_p = ca.gradient(lagrangian, p)[block]
+    pb = p[block]
+    rows = ca.vertcat(g, x)  # G = (g, x)
+    jac_rows = ca.diag(active) @ ca.jacobian(rows, x)
+    kkt = ca.blockcat([[ca.hessian(lagrangian, x)[0], jac_rows.T],
+                       [jac_rows, ca.diag(1 - active)]])
+    rhs = ca.vertcat(ca.jacobian(grad_x, pb), ca.diag(active) @ ca.jacobian(rows, pb))
+    cross = ca.horzcat(ca.jacobian(grad_p, x), ca.jacobian(grad_p, lam), ca.SX(pb.numel(), nx))
+    parts = ca.Function(f"{name}_active_kkt_parts", [x, lam, p, active],
+                        [kkt, rhs, cross, ca.jacobian(grad_p, pb)])
+    xs, lams, ps, acts = (ca.MX.sym(s, v.numel()) for s, v in
+                          (("x", x), ("lam_g", lam), ("p", p), ("active", active)))
+    k, r, c, h = parts(xs, lams, ps, acts)
+    return ca.Function(f"{name}_active_cost_hessian", [xs, lams, ps, acts],
+                       [h - c @ ca.solve(k, r, "qr")])
