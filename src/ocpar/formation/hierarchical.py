@@ -108,7 +108,7 @@ class OuterObjective:
     def gradient(self, phi: np.ndarray) -> np.ndarray:
         """dJ/dφ (n,) from each agent's dJ*/dq_N (entries 2nq..3nq of dJ*/dp)."""
         sols = self.solutions(phi)
-        nq = self.problem.shape.model.nq
+        nq = self.problem.common_shape.model.nq
         d_end = np.asarray(sols.column("cost_gradient"))[:, 2 * nq : 3 * nq]
         return np.sum(d_end * self.problem.final_position_derivatives(phi), axis=1)
 
@@ -118,7 +118,7 @@ class OuterObjective:
         position entries of dJ*/dq_N. The off-diagonal entries are zero (Ĵ_i depends on φ_i
         alone)."""
         sols = self.solutions(phi)
-        nq, d = self.problem.shape.model.nq, self.problem.curve.dim
+        nq, d = self.problem.common_shape.model.nq, self.problem.curve.dim
         h_pos = np.asarray(sols.column("end_hessian"))[:, :d, :d]
         d_pos = np.asarray(sols.column("cost_gradient"))[:, 2 * nq : 2 * nq + d]
         tangent = self.problem.curve.tangents(phi)

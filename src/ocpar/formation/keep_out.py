@@ -82,7 +82,7 @@ from ocpar.formation.separation import (
     interval_closest,
     segment_closest,
 )
-from ocpar.ocp import DmocShape, OcpTask, solve_tasks
+from ocpar.ocp import solve_tasks
 from ocpar.ocp.dmoc import UNUSED_OFFSET
 
 #: Partners' keep-out half-spaces per agent and interval (the DMOC shape has 2 d slots more:
@@ -129,14 +129,14 @@ class Separation:
     dropped: int = 0
 
 
-def keep_out_shape(problem: FormationProblem) -> DmocShape:
-    """The problem's DMOC shape with :data:`KEEP_OUT_SLOTS` + 2 d slots on its d positions
-    (partners' half-spaces, then the trust region's, :func:`trust_region`), solved by
-    IPOPT (measured on the 60 point masses' first round: 18 ms per solve, all solved;
-    ``sqpmethod``/``qrqp`` 110 ms per solve, 14 of 32 failing its KKT check)."""
-    return dataclasses.replace(
-        problem.shape, keep_out_slots=KEEP_OUT_SLOTS + 2 * len(problem.position_indices),
-        keep_out_positions=problem.position_indices, solver="ipopt")
+def keep_out_problem(problem: FormationProblem) -> FormationProblem:
+    """The problem with every agent's DMOC shape given :data:`KEEP_OUT_SLOTS` + 2 d slots on
+    its d positions (partners' half-spaces, then the trust region's, :func:`trust_region`),
+    solved by IPOPT (measured on the 60 point masses' first round: 18 ms per solve, all
+    solved; ``sqpmethod``/``qrqp`` 110 ms per solve, 14 of 32 failing its KKT check)."""
+    return problem.with_shapes(lambda shape: dataclasses.replace(
+        shape, keep_out_slots=KEEP_OUT_SLOTS + 2 * len(problem.position_indices),
+        keep_out_positions=problem.position_indices, solver="ipopt"))
 
 
 #: Blends of a boundary interval's normal towards the fixed node's direction, tried in order.
@@ -294,14 +294,15 @@ def separate(problem: FormationProblem, backend: Backend, phi: np.ndarray, base:
     (a :class:`~ocpar.bsp.columns.Columns` of :class:`~ocpar.ocp.DmocSolution`, one per
     agent, at angles ``phi`` (n,) rad) to a minimum separation ``distance`` D (length unit),
     at most ``max_rounds`` rounds."""
-    shape = keep_out_shape(problem)
+    slotted = keep_out_problem(problem)
+    duration = problem.common_shape.duration
     n = problem.agents
     free_cost = np.asarray(base.column("cost"), float)
     q, u = np.array(base.column("q"), float), np.array(base.column("u"), float)
     costs = free_cost.copy()
     boundary = problem.boundary_params_rows(np.arange(n), phi)
     penalty = PENALTY * max(float(np.max(free_cost)), 1e-300) / distance
-    outcome = Separation(q, u, costs, closest_approach(problem.positions(q), shape.duration),
+    outcome = Separation(q, u, costs, closest_approach(problem.positions(q), duration),
                          False, 0, 0.0)
     outcome.met = _met(outcome.closest, distance)
     while not (outcome.met and (outcome.rounds == 0 or outcome.change <= CHANGE_RTOL * distance)
@@ -320,8 +321,7 @@ def separate(problem: FormationProblem, backend: Backend, phi: np.ndarray, base:
                           u[agents].reshape(len(agents), -1)])
         params = np.hstack([boundary[agents], data[agents].reshape(len(agents), -1),
                             np.full((len(agents), 1), penalty)])
-        tasks = Columns.of(OcpTask, len(agents), shape=shape, params=params,
-                           warm_start=warm, multipliers=None, fallback=None)
+        tasks = slotted.task_columns(agents, params, warm_start=warm)
         sols = backend.superstep_columns(solve_tasks, tasks)
         ok = np.asarray(sols.column("success"), dtype=bool)
         solved = agents[ok]   # a failed solve keeps its agent's latest path
@@ -334,7 +334,7 @@ def separate(problem: FormationProblem, backend: Backend, phi: np.ndarray, base:
         outcome.rounds += 1
         outcome.change = float(np.abs(problem.positions(q) - before).max())
         outcome.dropped += dropped
-        outcome.closest = closest_approach(problem.positions(q), shape.duration)
+        outcome.closest = closest_approach(problem.positions(q), duration)
         outcome.met = _met(outcome.closest, distance)
         if progress is not None:
             progress(f"separation round {outcome.rounds:3d}  spread {iterations:5d} it  "

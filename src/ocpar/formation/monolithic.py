@@ -16,7 +16,7 @@ import numpy as np
 
 from ocpar.formation.potential import coupling_expr
 from ocpar.formation.problem import FormationProblem
-from ocpar.ocp import dmoc_problem
+from ocpar.ocp import DmocTranscription, dmoc_problem
 from ocpar.ocp.ipopt import ipopt_options
 
 
@@ -38,37 +38,43 @@ class MonolithicSolution:
 def solve_monolithic(
     problem: FormationProblem, phi0: np.ndarray, tol: float, max_iterations: int
 ) -> MonolithicSolution:
-    """Solve the whole formation as one NLP from the initial angles ``phi0``."""
-    dmoc = dmoc_problem(problem.shape)
-    n, nw = problem.agents, dmoc.nw
+    """Solve the whole formation as one NLP from the initial angles ``phi0``: each agent's
+    DMOC NLP on its own shape (a mixed fleet), with its bounds and inequalities, the angles
+    free, the coupling = 0."""
+    dmocs = [dmoc_problem(shape) for shape in problem.shapes]
+    n = problem.agents
+    offsets = np.concatenate([[0], np.cumsum([dmoc.nw for dmoc in dmocs])])
     phi = ca.SX.sym("phi", n)
-    w = ca.SX.sym("w", n * nw)
+    w = ca.SX.sym("w", int(offsets[-1]))
     end_velocities = problem.final_velocities(np.arange(n))
     params = [
         ca.vertcat(problem.starts[i], problem.start_velocities[i], problem.curve.point(phi[i]),
                    problem.final_attitude, end_velocities[i])
         for i in range(n)
     ]
-    w_i = [w[i * nw : (i + 1) * nw] for i in range(n)]
-    costs = ca.vertcat(*[dmoc.cost(w_i[i], params[i]) for i in range(n)])
-    g = ca.vertcat(*[dmoc.constraints(w_i[i], params[i]) for i in range(n)],
-                   coupling_expr(phi, problem.curve))
+    w_i = [w[offsets[i] : offsets[i + 1]] for i in range(n)]
+    costs = ca.vertcat(*[dmocs[i].cost(w_i[i], params[i]) for i in range(n)])
+    coupling_rows = coupling_expr(phi, problem.curve)
+    g = ca.vertcat(*[dmocs[i].constraints(w_i[i], params[i]) for i in range(n)], coupling_rows)
     x = ca.vertcat(w, phi)
     nlp = {"x": x, "f": ca.sum1(costs), "g": g}
-    solver = ca.nlpsol("formation", "ipopt", nlp, ipopt_options(tol, max_iterations))
+    bounds = _bounds(dmocs, coupling_rows.numel(), n)
+    # IPOPT relaxes inequalities by 1e-8 (relative) unless told not to
+    exact = ({"bound_relax_factor": 0.0} if any(d.has_inequalities for d in dmocs) else {})
+    solver = ca.nlpsol("formation", "ipopt", nlp, ipopt_options(tol, max_iterations, **exact))
 
     x0 = np.concatenate(
-        [dmoc.default_guess(problem.boundary_params(i, phi0[i])) for i in range(n)] + [phi0]
+        [dmocs[i].default_guess(problem.boundary_params(i, phi0[i])) for i in range(n)] + [phi0]
     )
     start = time.perf_counter()
-    out = solver(x0=x0, lbg=0, ubg=0)
+    out = solver(x0=x0, **bounds)
     elapsed = time.perf_counter() - start
     stats = solver.stats()
     x_opt = np.asarray(out["x"]).ravel()
-    phi_opt = x_opt[n * nw :]
+    phi_opt = x_opt[offsets[-1]:]
     agent_costs = np.asarray(ca.Function("costs", [x], [costs])(x_opt)).ravel()
-    paths = [dmoc.unpack(x_opt[i * nw : (i + 1) * nw], problem.boundary_params(i, phi_opt[i]))
-             for i in range(n)]
+    paths = [dmocs[i].unpack(x_opt[offsets[i] : offsets[i + 1]],
+                             problem.boundary_params(i, phi_opt[i])) for i in range(n)]
     return MonolithicSolution(
         phi=phi_opt,
         agent_costs=agent_costs,
@@ -79,3 +85,16 @@ def solve_monolithic(
         iterations=int(stats["iter_count"]),
         solve_time_s=elapsed,
     )
+
+
+def _bounds(dmocs: list[DmocTranscription], n_coupling: int, n_angles: int
+            ) -> dict[str, np.ndarray | float]:
+    """IPOPT's bounds for the stacked agents' NLPs, the coupling rows (= 0) and the free
+    angles: none where no agent has inequalities (the NLP of old)."""
+    if not any(dmoc.has_inequalities for dmoc in dmocs):
+        return {"lbg": 0, "ubg": 0}
+    free = np.full(n_angles, np.inf)
+    return {"lbg": np.concatenate([d.lbg for d in dmocs] + [np.zeros(n_coupling)]),
+            "ubg": np.concatenate([d.ubg for d in dmocs] + [np.zeros(n_coupling)]),
+            "lbx": np.concatenate([d.lbx for d in dmocs] + [-free]),
+            "ubx": np.concatenate([d.ubx for d in dmocs] + [free])}

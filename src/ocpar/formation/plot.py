@@ -98,7 +98,7 @@ def _mark_closest(ax, problem: FormationProblem, result: FormationResult) -> Non
     if not np.isfinite(closest.distance):
         return
     where = positions_at(problem.positions(result.trajectories), closest.time,
-                         problem.shape.duration)[list(closest.agents)]
+                         problem.common_shape.duration)[list(closest.agents)]
     coords = where.T[:3] if ax.name == "3d" else where.T[:2]
     i, j = closest.agents
     ax.plot(*coords, "-s", color="tab:orange", ms=6, lw=1.5, zorder=5,

@@ -2,8 +2,10 @@
 
 Agent i is any Lagrangian mechanical system (:class:`~ocpar.models.MechanicalSystem`: L(q, q̇),
 optionally time-dependent per DMOC interval, generalised force F(q, u), optional holonomic
-constraints c(q) = 0), the same model for all agents, transcribed by DMOC with the problem's
-``shape`` (N intervals over the horizon T). It starts in configuration ``starts[i]`` with
+constraints c(q) = 0), transcribed by DMOC with the problem's ``shape`` (N intervals over
+the horizon T): one shape for all agents, or one per agent (a mixed fleet: each agent its own
+model, mass, thrust limits, cost or path constraints, on a common N, T and configuration
+and control sizes). It starts in configuration ``starts[i]`` with
 velocity ``start_velocities[i]`` and must end, after T, with its position (the first
 d = ``curve.dim`` entries of its configuration) at z(φ_i) on the closed curve z, the rest of
 its configuration equal to ``final_attitude`` and its velocity ``final_velocity``, minimising
@@ -13,13 +15,15 @@ its configuration equal to ``final_attitude`` and its velocity ``final_velocity`
 
 from __future__ import annotations
 
+import dataclasses
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import casadi as ca
 import numpy as np
 
-from ocpar.bsp.columns import Columns
+from ocpar.bsp.columns import LISTED, Columns
 from ocpar.formation.curve import Circle, Curve
 from ocpar.formation.potential import relax
 from ocpar.formation.separation import ClosestApproach, closest_approach
@@ -47,7 +51,9 @@ def _array(name: str, value: object, shape: tuple[int, ...]) -> np.ndarray:
 class FormationProblem:
     """A formation problem; checked when built (one ValueError naming the field).
 
-    ``name`` labels results; ``shape`` the DMOC shape (model, N, horizon T); ``curve`` the
+    ``name`` labels results; ``shape`` the DMOC shape (model, N, horizon T), or a sequence of
+    one per agent (a mixed fleet; same N, T, configuration and control sizes and position
+    entries; agents with equal shapes share one compiled solver per process); ``curve`` the
     final formation's curve (:class:`~ocpar.formation.Circle`,
     :class:`~ocpar.formation.Ellipse`, :class:`~ocpar.formation.PlaneCurve`,
     :class:`~ocpar.formation.ParametricCurve`, or a user's :class:`~ocpar.formation.Curve`).
@@ -59,7 +65,7 @@ class FormationProblem:
     """
 
     name: str
-    shape: DmocShape
+    shape: DmocShape | tuple[DmocShape, ...]
     curve: Curve
     starts: np.ndarray
     start_velocities: np.ndarray | None = None
@@ -67,17 +73,12 @@ class FormationProblem:
     final_attitude: np.ndarray | None = None
 
     def __post_init__(self) -> None:
-        if not isinstance(self.shape, DmocShape):
-            raise ValueError(f"shape: must be a DmocShape, got {type(self.shape).__name__}")
-        if not isinstance(self.shape.model, MechanicalSystem):
-            raise ValueError("shape: its model is not a MechanicalSystem (needs nq, nu, "
-                             "lagrangian, generalized_force)")
+        self._check_shapes()
         if not isinstance(self.curve, Curve):
             raise ValueError(f"curve: must be a Curve (Circle, Ellipse, PlaneCurve, "
                              f"ParametricCurve), got {type(self.curve).__name__}")
-        self._check_model()
         self.curve.check()  # built-in curves checked themselves; a user's subclass may not
-        nq, d = self.shape.model.nq, self.curve.dim
+        nq, d = self.common_shape.model.nq, self.curve.dim
         if d > nq:
             raise ValueError(f"curve: lies in {d}-D but the model's configuration has {nq} "
                              "entries")
@@ -101,6 +102,9 @@ class FormationProblem:
                 raise ValueError(f"{name}: required ({nq - d} configuration entries after the "
                                  f"{d} position entries)")
             object.__setattr__(self, name, _array(name, value, shape))
+        if not isinstance(self.shape, DmocShape) and len(self.shape) != n:
+            raise ValueError(f"shape: a mixed fleet needs one DmocShape per agent: "
+                             f"{len(self.shape)} shapes for {n} agents")
         self._check_holonomic_constraints()
         indices = self.position_indices
         if not indices or len(set(indices)) != len(indices) or not all(
@@ -108,10 +112,61 @@ class FormationProblem:
             raise ValueError(f"shape: the model's position_indices must be distinct entries "
                              f"of its {nq} configuration entries, got {indices}")
 
-    def _check_model(self) -> None:
+    def _check_shapes(self) -> None:
+        """``shape`` must be a DmocShape of a MechanicalSystem or a non-empty sequence of
+        them agreeing on N, T, nq, nu and the position entries (then stored as a tuple)."""
+        shapes = (self.shape,) if isinstance(self.shape, DmocShape) else self.shape
+        if isinstance(shapes, str) or not isinstance(shapes, tuple | list) or not shapes:
+            raise ValueError(f"shape: must be a DmocShape or one per agent, got "
+                             f"{type(self.shape).__name__}")
+        checked: set[DmocShape] = set()
+        for i, shape in enumerate(shapes):
+            label = "shape" if isinstance(self.shape, DmocShape) else f"shape[{i}]"
+            if isinstance(shape, DmocShape) and shape in checked:
+                continue
+            if not isinstance(shape, DmocShape):
+                raise ValueError(f"{label}: must be a DmocShape, got {type(shape).__name__}")
+            if not isinstance(shape.model, MechanicalSystem):
+                raise ValueError(f"{label}: its model is not a MechanicalSystem (needs nq, nu, "
+                                 "lagrangian, generalized_force)")
+            first = shapes[0]
+            for what, value in (("intervals", lambda s: s.intervals),
+                                ("duration", lambda s: s.duration),
+                                ("model.nq", lambda s: s.model.nq),
+                                ("model.nu", lambda s: s.model.nu),
+                                ("model.position_indices",
+                                 lambda s: getattr(s.model, "position_indices", None))):
+                if value(shape) != value(first):
+                    raise ValueError(f"{label}: {what} {value(shape)} differs from shape[0]'s "
+                                     f"{value(first)}; a fleet shares N, T, nq, nu and the "
+                                     f"position entries")
+            self._check_model(shape.model, label)
+            checked.add(shape)
+        if not isinstance(self.shape, DmocShape):
+            object.__setattr__(self, "shape", tuple(shapes))
+
+    @property
+    def shapes(self) -> tuple[DmocShape, ...]:
+        """Each agent's DMOC shape (n,)."""
+        if isinstance(self.shape, DmocShape):
+            return (self.shape,) * self.agents
+        return self.shape
+
+    @property
+    def common_shape(self) -> DmocShape:
+        """The first agent's shape: its N, T, nq, nu and position entries are every agent's."""
+        return self.shape if isinstance(self.shape, DmocShape) else self.shape[0]
+
+    def with_shapes(self, change: Callable[[DmocShape], DmocShape]) -> FormationProblem:
+        """This problem with ``change`` applied to every agent's shape (e.g. another solver,
+        keep-out slots)."""
+        shape = (change(self.shape) if isinstance(self.shape, DmocShape)
+                 else tuple(change(s) for s in self.shape))
+        return dataclasses.replace(self, shape=shape)
+
+    def _check_model(self, model: MechanicalSystem, label: str) -> None:
         """The model's L(q, q̇) must be a scalar and F(q, u) a column (nq,) of CasADi
         expressions (checked on the first interval's Lagrangian)."""
-        model = self.shape.model
         q, qdot, u = (ca.SX.sym(name, size) for name, size in
                       (("q", model.nq), ("qdot", model.nq), ("u", model.nu)))
         try:
@@ -119,33 +174,35 @@ class FormationProblem:
             force = ca.SX(model.generalized_force(q, u))
         except Exception as exc:  # a user's model: any failure means "does not evaluate"
             first = str(exc).splitlines()[0] if str(exc) else ""
-            raise ValueError(f"shape: the model's lagrangian or generalized_force does not "
+            raise ValueError(f"{label}: the model's lagrangian or generalized_force does not "
                              f"evaluate on CasADi symbols: {type(exc).__name__}: {first}"
                              ) from None
         if lagrangian.shape != (1, 1) or force.shape != (model.nq, 1):
-            raise ValueError(f"shape: the model's lagrangian must be a scalar and its "
+            raise ValueError(f"{label}: the model's lagrangian must be a scalar and its "
                              f"generalized_force a column of {model.nq}, got shapes "
                              f"{lagrangian.shape} and {force.shape}")
 
     def _check_holonomic_constraints(self) -> None:
-        """Starts and final configurations (at a point of the curve) must satisfy c(q) = 0."""
-        model = self.shape.model
-        if not getattr(model, "n_constraints", 0):
-            return
-        q = ca.SX.sym("q", model.nq)
-        c = ca.Function("c", [q], [model.constraints(q)])
+        """Starts and final configurations (at a point of the curve) must satisfy each
+        agent's model's c(q) = 0."""
         end = np.concatenate([self.curve.points(np.zeros(1))[0], self.final_attitude])
-        for name, rows in (("starts", self.starts), ("final_attitude", end[None, :])):
-            residual = np.abs(np.asarray(c(rows.T))).max()
-            if not residual <= CONSTRAINT_TOL:
-                raise ValueError(f"{name}: violates the model's holonomic constraints by "
-                                 f"{residual:.1e}")
+        for i, shape in enumerate(self.shapes):
+            model = shape.model
+            if not getattr(model, "n_constraints", 0):
+                continue
+            q = ca.SX.sym("q", model.nq)
+            c = ca.Function("c", [q], [model.constraints(q)])
+            for name, rows in (("starts", self.starts[i:i + 1]), ("final_attitude", end[None])):
+                residual = np.abs(np.asarray(c(rows.T))).max()
+                if not residual <= CONSTRAINT_TOL:
+                    raise ValueError(f"{name}: violates the model's holonomic constraints by "
+                                     f"{residual:.1e}")
 
     @property
     def position_indices(self) -> tuple[int, ...]:
         """The configuration entries that are an agent's position in space: the model's
         ``position_indices`` if it has them, else the first ``curve.dim`` entries."""
-        indices = getattr(self.shape.model, "position_indices", None)
+        indices = getattr(self.common_shape.model, "position_indices", None)
         return tuple(range(self.curve.dim)) if indices is None else tuple(indices)
 
     def positions(self, trajectories: np.ndarray) -> np.ndarray:
@@ -159,7 +216,7 @@ class FormationProblem:
         positions = self.positions(trajectories)
         if not np.all(np.isfinite(positions)):
             return ClosestApproach(math.nan, (-1, -1), math.nan)
-        return closest_approach(positions, self.shape.duration)
+        return closest_approach(positions, self.common_shape.duration)
 
     @property
     def agents(self) -> int:
@@ -215,8 +272,21 @@ class FormationProblem:
         shape, the (len(agents), 4 nq) boundary data of :meth:`boundary_params_rows`, and
         optional warm starts, one row per task, to retry from if a first attempt fails)."""
         params = self.boundary_params_rows(agents, phi)
-        return Columns.of(OcpTask, len(params), shape=self.shape, params=params,
-                          warm_start=None, multipliers=None, fallback=warm_starts)
+        return self.task_columns(agents, params, fallback=warm_starts)
+
+    def task_columns(self, agents: np.ndarray, params: np.ndarray,
+                     warm_start: np.ndarray | None = None,
+                     fallback: np.ndarray | None = None) -> Columns:
+        """Columnar :class:`~ocpar.ocp.OcpTask` rows for ``agents`` with parameters
+        ``params`` (len(agents), n_params) and optional warm starts and fallbacks (one row
+        per task), each on its agent's shape (one shared column unless the fleet is
+        mixed)."""
+        columns = Columns.of(OcpTask, len(params), shape=self.common_shape, params=params,
+                             warm_start=warm_start, multipliers=None, fallback=fallback)
+        if not isinstance(self.shape, DmocShape):
+            shapes = self.shape
+            columns.fields["shape"] = (LISTED, [shapes[i] for i in np.asarray(agents).tolist()])
+        return columns
 
     def tasks(self, phi: np.ndarray, warm_starts: np.ndarray | None = None) -> Columns:
         """One inner DMOC task per agent, agent i ending at φ_i (see :meth:`tasks_for`)."""

@@ -18,7 +18,9 @@ class FormationResult(RunResult):
     """Outcome of :func:`ocpar.formation.solve_formation`.
 
     ``phi`` (n,) final angles (rad); ``agent_costs`` (n,) inner optimal costs Ĵ_i;
-    ``trajectories`` (n, N+1, nq) DMOC node paths; ``cost_parts`` the total cost split by
+    ``trajectories`` (n, N+1, nq) DMOC node paths; ``controls`` (n, N, nu) their interval
+    controls (``result.json`` carries each agent's ``peak_thrust`` max_k |u_k|, force
+    unit); ``cost_parts`` the total cost split by
     control groups where the model names them (e.g. ``translational_cost``,
     ``rotational_cost``); ``coupling_residual``
     max_k |c_k(φ)|, the scaled coupling c = (ℓ²/n³) dG/dφ as the outer problem imposes it
@@ -48,6 +50,14 @@ class FormationResult(RunResult):
     required_separation: float | None = None
     separation_rounds: int = 0
     unconstrained_cost: float = math.nan
+    controls: np.ndarray | None = None
+
+    @property
+    def peak_thrust(self) -> np.ndarray:
+        """max_k |u_k| per agent (n,), force unit (NaN without controls)."""
+        if self.controls is None:
+            return np.full(self.agents, np.nan)
+        return np.max(np.linalg.norm(np.asarray(self.controls, float), axis=2), axis=1)
 
     @property
     def equidistance_error(self) -> float:
@@ -73,6 +83,7 @@ class FormationResult(RunResult):
             "separation_rounds": self.separation_rounds,
             "unconstrained_cost": _finite_or_none(self.unconstrained_cost),
             "agent_costs": [_finite_or_none(c) for c in self.agent_costs],
+            "peak_thrust": [_finite_or_none(t) for t in self.peak_thrust],
             "trajectories": np.asarray(self.trajectories, float).tolist(),
         }
 

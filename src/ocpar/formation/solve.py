@@ -111,9 +111,12 @@ class FormationOptions:
 
 def cost_parts(problem: FormationProblem, controls: np.ndarray) -> dict[str, float]:
     """The total cost h Σ |u|² split into the model's named control groups (e.g. force and
-    torque), from the controls (n, N, nu); empty if the model names none."""
-    h = problem.shape.duration / problem.shape.intervals
-    groups = getattr(problem.shape.model, "cost_parts", {})
+    torque), from the controls (n, N, nu); empty if the model names none or an agent has a
+    running cost of its own."""
+    if any(shape.running_cost is not None for shape in set(problem.shapes)):
+        return {}
+    h = problem.common_shape.duration / problem.common_shape.intervals
+    groups = getattr(problem.common_shape.model, "cost_parts", {})
     return {name: float(h * np.sum(controls[..., a:b] ** 2)) for name, (a, b) in groups.items()}
 
 
@@ -131,7 +134,7 @@ def check_applicable(problem: FormationProblem, options: FormationOptions) -> No
     if options.min_separation is not None:
         if options.mode != "hierarchical":
             raise ValueError("min_separation applies to the hierarchical mode only")
-        nq = problem.shape.model.nq
+        nq = problem.common_shape.model.nq
         final = problem.boundary_params_rows(np.arange(problem.agents),
                                              problem.initial_phi())[:, 2 * nq:3 * nq]
         check_separation_feasible(problem.positions(problem.starts), problem.positions(final),
@@ -169,9 +172,10 @@ def solve_formation(
     options = options or FormationOptions()
     backend = backend or SerialBackend()
     check_applicable(problem, options)
-    if options.inner_solver is not None and options.inner_solver != problem.shape.solver:
-        problem = dataclasses.replace(
-            problem, shape=dataclasses.replace(problem.shape, solver=options.inner_solver))
+    if options.inner_solver is not None and any(
+            shape.solver != options.inner_solver for shape in problem.shapes):
+        problem = problem.with_shapes(
+            lambda shape: dataclasses.replace(shape, solver=options.inner_solver))
     phi0 = problem.initial_phi() if phi0 is None else np.asarray(phi0, float)
     if phi0.shape != (problem.agents,):
         raise ValueError(f"phi0 must have shape ({problem.agents},), got {phi0.shape}")
@@ -202,6 +206,7 @@ def solve_formation(
             separation=problem.closest_approach(sol.trajectories),
             trace=backend.traces[first_trace:],
             coupling_residual=coupling_residual(problem, sol.phi),
+            controls=sol.controls,
         )
 
     objective = OuterObjective(problem, backend, progress)
@@ -262,5 +267,6 @@ def solve_formation(
         wall_time_s=wall_time_s,
         trace=backend.traces[first_trace:],
         coupling_residual=coupling_residual(problem, phi),
+        controls=controls,
         **extra,
     )

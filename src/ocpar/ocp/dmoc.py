@@ -328,7 +328,7 @@ class DmocTranscription:
         self.end_hessian = None if shape.keep_out_slots else _on_equations(cost_hessian_function(
             "dmoc", w, p, self.cost(w, p), ca.vertcat(*eqs), slice(2 * nq, 3 * nq)), self.ng)
         # with control bounds or path rows, that of the active set where one is active
-        self.active_hessian = None if shape.keep_out_slots or not self._inequalities else \
+        self.active_hessian = None if shape.keep_out_slots or not self.has_inequalities else \
             cost_hessian_function("dmoc", w, p, self.cost(w, p), self.constraints(w, p),
                                   slice(2 * nq, 3 * nq), active_set=True)
         self.path_rows = ca.Function("path", [w, p], [path.expr], ["w", "p"], ["c"])
@@ -365,12 +365,12 @@ class DmocTranscription:
         nlp = {"x": w, "p": p, "f": self.cost(w, p), "g": self.constraints(w, p)}
         # IPOPT relaxes inequalities by 1e-8 (relative) unless told not to: a keep-out and a
         # control bound are exact
-        exact = {"bound_relax_factor": 0.0} if self._inequalities else {}
+        exact = {"bound_relax_factor": 0.0} if self.has_inequalities else {}
         return ca.nlpsol("dmoc", "ipopt", nlp,
                          ipopt_options(self.shape.tol, self.shape.max_iter, **exact))
 
     @property
-    def _inequalities(self) -> bool:
+    def has_inequalities(self) -> bool:
         """Whether the NLP has inequalities (keep-out rows, control bounds, path rows)."""
         return (bool(self.shape.keep_out_slots) or self.shape.control_bounds is not None
                 or bool(self.n_path))
@@ -397,12 +397,15 @@ class DmocTranscription:
         if self.active_hessian is None:
             return equality
         mask = self._activity(w, params)
-        active = np.flatnonzero(mask[:, self.ng - self.n_path:].any(axis=1))
+        finite = np.all(np.isfinite(w), axis=1) & np.all(np.isfinite(lam_g), axis=1)
+        active = np.flatnonzero(mask[:, self.ng - self.n_path:].any(axis=1) & finite)
         hessians = equality.copy()
-        if len(active):
-            value = np.asarray(self.active_hessian.map(len(active))(
-                w[active].T, lam_g[active].T, params[active].T, mask[active].T))
-            hessians[active] = value.reshape(self.nq, len(active), self.nq).transpose(1, 0, 2)
+        hessians[~finite] = np.nan
+        for k in active:  # one call each: a singular active set fails alone (NaN)
+            try:
+                hessians[k] = np.asarray(self.active_hessian(w[k], lam_g[k], params[k], mask[k]))
+            except RuntimeError:
+                hessians[k] = np.nan
         return hessians
 
     @cached_property
@@ -485,7 +488,7 @@ class DmocTranscription:
         params = check_params(params, self.n_params, "DMOC")
         x0 = self.default_guess(params) if guess is None else self._full_guess(guess)
         extra = {} if multipliers is None else {"lam_g0": multipliers}
-        bounds = {"lbx": self.lbx, "ubx": self.ubx} if self._inequalities else {}
+        bounds = {"lbx": self.lbx, "ubx": self.ubx} if self.has_inequalities else {}
         call = call_nlpsol(self.solver, x0=x0, p=params, lbg=self.lbg, ubg=self.ubg, **bounds,
                            **extra)
         if call.out is None:
