@@ -11,6 +11,8 @@ Statuses (the same words in every scheme):
 * ``separation_not_met``: a formation run with a required minimum separation whose rounds
   ended (round limit) with two agents closer than required; its paths are returned, with
   by how much they miss;
+* ``obstacles_not_cleared``: a formation run with obstacles whose rounds ended (round limit)
+  with a path inside an obstacle; its paths are returned, with by how much;
 * ``cancelled``: stopped by its stop file at a superstep boundary (``ocpar cancel``); such a
   run writes no result.json, its checkpoint resumes it.
 """
@@ -26,7 +28,7 @@ from ocpar.bsp import SuperstepTrace
 
 #: Exit status of a run by its status (2 is bad usage, before anything runs).
 EXIT_STATUS = {"converged": 0, "not_converged": 1, "failed": 3, "cancelled": 4,
-               "separation_not_met": 5}
+               "separation_not_met": 5, "obstacles_not_cleared": 6}
 STATUSES = tuple(EXIT_STATUS)
 
 

@@ -6,13 +6,15 @@ paper's potential. Each agent's thrust is limited, by a box |u_j| ≤ u_max on e
 (``limit="box"``, DMOC control bounds) or by the norm |u| ≤ u_max (``limit="norm"``, a path
 constraint), or not at all (``limit=None``); with the default u_max = 2.7 (force unit) the
 limits of the heaviest agents bind at the optimum, which the free optimum breaks (peak
-3.23): the total cost rises from 63.0311 to 63.2814 (box) and 63.2996 (norm).
+3.23): the total cost rises from 63.0311 to 63.2814 (box) and 63.2996 (norm). With
+``obstacle`` = R a ball of radius R about (0, 5), which the optimal paths cross, is kept
+clear on the continuous paths (:mod:`ocpar.formation.obstacle_rounds`).
 """
 
 import casadi as ca
 import numpy as np
 
-from ocpar.formation import Circle, DmocShape, FormationProblem
+from ocpar.formation import Circle, DmocShape, FormationProblem, Sphere
 from ocpar.models import PointMass
 from ocpar.ocp.constraints import PathConstraint
 
@@ -33,9 +35,11 @@ def thrust_shape(mass: float, limit: str | None, u_max: float) -> DmocShape:
     raise ValueError(f"limit: {limit!r} is not one of {LIMITS} or None")
 
 
-def make(agents: int = 12, limit: str | None = "box", u_max: float = 2.7) -> FormationProblem:
+def make(agents: int = 12, limit: str | None = "box", u_max: float = 2.7,
+         obstacle: float | None = None) -> FormationProblem:
     """``agents`` point masses of masses 0.5, 1, 1.5 in turn, thrust limit ``limit`` at ``u_max``
-    (force unit)."""
+    (force unit), and a ball of radius ``obstacle`` about (0, 5) to keep clear of (None:
+    none)."""
     masses = 0.5 + 0.5 * (np.arange(agents) % 3)
     starts = np.zeros((agents, 2))
     starts[:, 0] = np.linspace(-3.0, 3.0, agents)
@@ -44,4 +48,5 @@ def make(agents: int = 12, limit: str | None = "box", u_max: float = 2.7) -> For
         shape=tuple(thrust_shape(float(m), limit, u_max) for m in masses),
         curve=Circle(radius=4.0, center=np.array([0.0, 6.0])),
         starts=starts,
+        obstacles=() if obstacle is None else (Sphere((0.0, 5.0), obstacle, "ball"),),
     )

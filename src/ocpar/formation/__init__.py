@@ -21,6 +21,7 @@ The paper's examples are built the same way in :mod:`ocpar.examples`
 """
 
 from ocpar.formation.curve import Circle, Curve, Ellipse, ParametricCurve, PlaneCurve
+from ocpar.formation.obstacles import Ellipsoid, HalfSpace, Sphere
 from ocpar.formation.problem import FormationProblem
 from ocpar.formation.result import FormationResult
 from ocpar.formation.solve import MODES, FormationOptions, solve_formation
@@ -32,11 +33,14 @@ __all__ = [
     "Curve",
     "DmocShape",
     "Ellipse",
+    "Ellipsoid",
     "FormationOptions",
     "FormationProblem",
     "FormationResult",
+    "HalfSpace",
     "ParametricCurve",
     "PlaneCurve",
+    "Sphere",
     "solve_formation",
 ]
 

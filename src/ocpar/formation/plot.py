@@ -7,6 +7,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ocpar.formation.obstacles import Ellipsoid
 from ocpar.formation.problem import FormationProblem
 from ocpar.formation.result import FormationResult
 from ocpar.formation.separation import positions_at
@@ -53,6 +54,8 @@ def plot_formation(problem: FormationProblem, result: FormationResult, path: Pat
         ax.set_ylabel("$x_2$")
     ax_all.plot(problem.starts[:, 0], problem.starts[:, 1], "o", mfc="none", color="k", ms=3,
                 label="start positions")
+    for ax in (ax_all, ax_end):
+        _draw_obstacles(ax, problem)
     _mark_closest(ax_all, problem, result)
     ax_all.set_title(f"{result.agents} agents, total cost {result.total_cost:.6e}"
                      f"{_drawn_note(result.agents)}")
@@ -89,6 +92,26 @@ def _plot_3d(problem: FormationProblem, result: FormationResult, path: Path) -> 
                  f"{_drawn_note(result.agents)}")
     ax.legend(loc="upper left", fontsize=8)
     return save(fig, path)
+
+
+def _draw_obstacles(ax, problem: FormationProblem) -> None:
+    """The planar problem's obstacles, shaded: ellipses (ellipsoids' outlines) and half-
+    spaces' boundary lines (the forbidden side hatched by a short normal)."""
+    from matplotlib.patches import Ellipse as EllipsePatch
+
+    for k, obstacle in enumerate(problem.obstacles):
+        label = "obstacles" if k == 0 else None
+        if isinstance(obstacle, Ellipsoid):
+            axis = np.asarray(obstacle.axes)[0]
+            ax.add_patch(EllipsePatch(obstacle.center, 2 * obstacle.semi_axes[0],
+                                      2 * obstacle.semi_axes[1],
+                                      angle=np.degrees(np.arctan2(axis[1], axis[0])),
+                                      color="tab:gray", alpha=0.4, label=label))
+        else:
+            normal = np.asarray(obstacle.normal)
+            foot = normal * obstacle.offset
+            along = np.array([-normal[1], normal[0]]) * 1e3
+            ax.axline(foot, foot + along, color="tab:gray", lw=2, label=label)
 
 
 def _mark_closest(ax, problem: FormationProblem, result: FormationResult) -> None:

@@ -25,6 +25,7 @@ import numpy as np
 
 from ocpar.bsp.columns import LISTED, Columns
 from ocpar.formation.curve import Circle, Curve
+from ocpar.formation.obstacles import Obstacle, check_obstacles
 from ocpar.formation.potential import relax
 from ocpar.formation.separation import ClosestApproach, closest_approach
 from ocpar.models import MechanicalSystem
@@ -62,6 +63,10 @@ class FormationProblem:
     ``final_velocity`` (nq,) common to all or (n, nq) per agent, default at rest;
     ``final_attitude`` (nq − d,) the configuration entries after the position (none for
     point masses, e.g. a unit quaternion for rigid bodies). Units are the model's.
+    ``obstacles``: static :class:`~ocpar.formation.obstacles.Ellipsoid` (or ``Sphere``) and
+    :class:`~ocpar.formation.obstacles.HalfSpace` obstacles in position space that every
+    path keeps clear of at all times (:mod:`ocpar.formation.obstacles`); the starts must be
+    clear of them.
     """
 
     name: str
@@ -71,6 +76,7 @@ class FormationProblem:
     start_velocities: np.ndarray | None = None
     final_velocity: np.ndarray | None = None
     final_attitude: np.ndarray | None = None
+    obstacles: tuple[Obstacle, ...] = ()
 
     def __post_init__(self) -> None:
         self._check_shapes()
@@ -111,6 +117,19 @@ class FormationProblem:
                 isinstance(i, (int, np.integer)) and 0 <= i < nq for i in indices):
             raise ValueError(f"shape: the model's position_indices must be distinct entries "
                              f"of its {nq} configuration entries, got {indices}")
+        object.__setattr__(self, "obstacles", check_obstacles(self.obstacles, len(indices)))
+        self.check_clear("starts", self.starts)
+
+    def check_clear(self, name: str, configurations: np.ndarray) -> None:
+        """ValueError naming ``name`` if a position of ``configurations`` (m, nq) lies in an
+        obstacle."""
+        points = self.positions(configurations)
+        for o, obstacle in enumerate(self.obstacles):
+            gap, _ = obstacle.clearance(points, points)
+            if np.any(gap < 0):
+                i = int(np.argmin(gap))
+                raise ValueError(f"{name}: agent {i} lies inside obstacles[{o}] "
+                                 f"({obstacle.name}) by {-gap[i]:.3g}")
 
     def _check_shapes(self) -> None:
         """``shape`` must be a DmocShape of a MechanicalSystem or a non-empty sequence of

@@ -8,6 +8,7 @@ from typing import ClassVar
 
 import numpy as np
 
+from ocpar.formation.obstacles import Clearance
 from ocpar.formation.potential import equidistance_error
 from ocpar.formation.separation import ClosestApproach
 from ocpar.results import RunResult
@@ -30,7 +31,10 @@ class FormationResult(RunResult):
     <ocpar.formation.FormationProblem.closest_approach>`); with a required minimum
     separation (:mod:`ocpar.formation.keep_out`): ``required_separation`` D,
     ``separation_rounds`` the keep-out rounds run and ``unconstrained_cost`` the total cost
-    before them (NaN/None/0 without).
+    before them (NaN/None/0 without); with obstacles (:mod:`ocpar.formation.obstacles`):
+    ``obstacle_clearance`` the smallest clearance of any agent from any obstacle on the
+    continuous paths (which agent, obstacle, when), ``obstacle_rounds`` the rounds run, and
+    ``unconstrained_cost`` the cost before them.
     The common fields are :class:`ocpar.results.RunResult`'s.
     """
 
@@ -51,6 +55,8 @@ class FormationResult(RunResult):
     separation_rounds: int = 0
     unconstrained_cost: float = math.nan
     controls: np.ndarray | None = None
+    obstacle_clearance: Clearance | None = None
+    obstacle_rounds: int = 0
 
     @property
     def peak_thrust(self) -> np.ndarray:
@@ -84,8 +90,21 @@ class FormationResult(RunResult):
             "unconstrained_cost": _finite_or_none(self.unconstrained_cost),
             "agent_costs": [_finite_or_none(c) for c in self.agent_costs],
             "peak_thrust": [_finite_or_none(t) for t in self.peak_thrust],
+            **self._obstacle_fields(),
             "trajectories": np.asarray(self.trajectories, float).tolist(),
         }
+
+    def _obstacle_fields(self) -> dict:
+        """``min_obstacle_clearance`` and where it occurs, ``obstacle_rounds`` (none without
+        obstacles)."""
+        c = self.obstacle_clearance
+        if c is None:
+            return {}
+        return {"min_obstacle_clearance": _finite_or_none(c.distance),
+                "obstacle_agent": c.agent if c.agent >= 0 else None,
+                "obstacle_index": c.obstacle if c.obstacle >= 0 else None,
+                "obstacle_time": _finite_or_none(c.time),
+                "obstacle_rounds": self.obstacle_rounds}
 
     def _required_summary(self) -> str:
         """The summary's words on a required separation ('' without one)."""
@@ -94,6 +113,16 @@ class FormationResult(RunResult):
         increase = self.total_cost / self.unconstrained_cost - 1
         return (f"   required {self.required_separation:g}: {self.separation_rounds} round(s), "
                 f"cost {increase * 100:+.3g}% over the unconstrained {self.unconstrained_cost:.6e}")
+
+    def _obstacle_summary(self) -> str:
+        """The summary's line on obstacles ('' without any)."""
+        c = self.obstacle_clearance
+        if c is None:
+            return ""
+        increase = self.total_cost / self.unconstrained_cost - 1
+        return (f"min obstacle clearance {c.distance:.6g} (agent {c.agent}, obstacle "
+                f"{c.obstacle} at t = {c.time:.6g})   {self.obstacle_rounds} round(s), cost "
+                f"{increase * 100:+.3g}% over the obstacle-free {self.unconstrained_cost:.6e}\n")
 
     def summary(self) -> str:
         """A few lines for people: the headline numbers of the run."""
@@ -109,6 +138,7 @@ class FormationResult(RunResult):
             f"{self.separation.agents[0]} and {self.separation.agents[1]} at t = "
             f"{self.separation.time:.6g})"
             f"{self._required_summary()}\n"
+            f"{self._obstacle_summary()}"
             f"outer iterations {self.outer_iterations}   supersteps {self.supersteps}   "
             f"inner solves {self.inner_solves} (failed {self.failed_solves}, retries "
             f"{self.retries})\n"

@@ -21,6 +21,7 @@ from ocpar.formation.hierarchical import (
 )
 from ocpar.formation.keep_out import separate
 from ocpar.formation.monolithic import solve_monolithic
+from ocpar.formation.obstacle_rounds import avoid_obstacles
 from ocpar.formation.ordering import ORDERINGS, optimal_ordering
 from ocpar.formation.potential import coupling
 from ocpar.formation.problem import FormationProblem
@@ -88,6 +89,8 @@ class FormationOptions:
         "refused", above=0, metavar="D")
     separation_rounds: int = option(30, "separation rounds (supersteps of keep-out solves) "
                                     "at most, with --min-separation", low=1)
+    obstacle_rounds: int = option(30, "obstacle rounds (supersteps of keep-out solves) at "
+                                  "most, for a problem with obstacles", low=1)
 
     def __post_init__(self) -> None:
         if self.mode not in MODES:
@@ -107,6 +110,8 @@ class FormationOptions:
                              f"{self.min_separation}")
         if self.separation_rounds < 1:
             raise ValueError("separation_rounds must be at least 1")
+        if self.obstacle_rounds < 1:
+            raise ValueError("obstacle_rounds must be at least 1")
 
 
 def cost_parts(problem: FormationProblem, controls: np.ndarray) -> dict[str, float]:
@@ -126,7 +131,18 @@ def check_applicable(problem: FormationProblem, options: FormationOptions) -> No
     ``min_separation`` that the monolithic mode does not offer or that two start or final
     positions already violate (the final positions of the initial angles: on a circle every
     formation has the same spacings, elsewhere the formation is the initial one); a driver
-    calls it before starting workers (:func:`solve_formation` calls it too)."""
+    calls it before starting workers (:func:`solve_formation` calls it too). Obstacles need
+    the hierarchical mode, final positions (of the initial angles) clear of them, and do not
+    combine with ``min_separation`` yet."""
+    if problem.obstacles:
+        if options.mode != "hierarchical":
+            raise ValueError("obstacles apply to the hierarchical mode only")
+        if options.min_separation is not None:
+            raise ValueError("obstacles and min_separation do not combine yet: choose one")
+        nq = problem.common_shape.model.nq
+        problem.check_clear("final positions (at the initial angles)",
+                            problem.boundary_params_rows(np.arange(problem.agents),
+                                                         problem.initial_phi())[:, 2 * nq:3 * nq])
     if options.ordering == "optimal":
         problem.require_circle("ordering 'optimal'")
     if options.mode == "hierarchical" and options.outer == "offset":
@@ -248,6 +264,24 @@ def solve_formation(
                        f"come within {rounds.closest.distance:.6g} (short by "
                        f"{distance - rounds.closest.distance:.3g}; {rounds.dropped} "
                        f"half-space(s) dropped for want of slots over the rounds)")
+    if problem.obstacles and status != "failed":
+        avoided = avoid_obstacles(problem, backend, phi, sols, options.obstacle_rounds,
+                                  progress)
+        extra = {"obstacle_rounds": avoided.rounds, "obstacle_clearance": avoided.closest,
+                 "unconstrained_cost": float(np.sum(costs))}
+        costs, trajectories, controls = avoided.costs, avoided.q, avoided.u
+        inner_solves += avoided.inner_solves
+        failed_solves += avoided.failed_solves
+        retries += avoided.retries
+        closest = avoided.closest
+        if avoided.met:
+            message += (f"; obstacles cleared after {avoided.rounds} round(s) (clearance "
+                        f"{closest.distance:.3g})")
+        else:
+            status = "obstacles_not_cleared"
+            message = (f"obstacles not cleared after {avoided.rounds} round(s): agent "
+                       f"{closest.agent} comes {-closest.distance:.3g} inside obstacle "
+                       f"{closest.obstacle} at t = {closest.time:.6g}")
     wall_time_s = time.perf_counter() - start
     return FormationResult(
         **common,
