@@ -10,6 +10,7 @@ import dataclasses
 import json
 import re
 
+import casadi as ca
 import numpy as np
 import pytest
 from conftest import run_cli
@@ -25,6 +26,7 @@ from ocpar.formation import (
     Sphere,
     solve_formation,
 )
+from ocpar.ocp.constraints import PathConstraint
 
 U_MAX = 2.7
 
@@ -152,3 +154,17 @@ def test_mixed_fleet_on_mpi_and_dask_is_bitwise_the_serial_result(tmp_path):
     assert mpi["trajectories"] == serial.trajectories.tolist()
     assert mpi["peak_thrust"] == pytest.approx(serial.peak_thrust.tolist(), rel=1e-15)
     assert mpi["min_obstacle_clearance"] == serial.obstacle_clearance.distance
+
+
+def test_a_path_constraint_the_starts_break_or_that_is_not_finite_is_refused():
+    problem = make(limit=None)
+    above = PathConstraint(lambda q: q[1], lower=0.5, upper=np.inf, name="above")
+    with pytest.raises(ValueError, match=r"starts: agent 0 breaks shape\[0\].path_constraints"
+                                         r"\[0\] \(above\) by 0.5"):
+        problem.with_shapes(lambda s: dataclasses.replace(s, solver="sqpmethod",
+                                                          path_constraints=(above,)))
+    singular = PathConstraint(lambda v, u: ca.sumsqr(u) / ca.sumsqr(v), upper=1.0,
+                              name="ratio")
+    with pytest.raises(ValueError, match=r"path_constraints\[0\] \(ratio\): not finite"):
+        problem.with_shapes(lambda s: dataclasses.replace(s, solver="sqpmethod",
+                                                          path_constraints=(singular,)))

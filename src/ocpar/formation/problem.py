@@ -119,6 +119,23 @@ class FormationProblem:
                              f"of its {nq} configuration entries, got {indices}")
         object.__setattr__(self, "obstacles", check_obstacles(self.obstacles, len(indices)))
         self.check_clear("starts", self.starts)
+        self._check_path_constraints()
+
+    def _check_path_constraints(self) -> None:
+        """Each agent's path constraints must be finite at its start (q_0, q̇_0, u = 0) and
+        those of q alone met there (the nodes next to the start must meet them)."""
+        for i, shape in enumerate(self.shapes):
+            for j, constraint in enumerate(shape.path_constraints):
+                point = {"q": self.starts[i:i + 1], "v": self.start_velocities[i:i + 1],
+                         "u": np.zeros((1, shape.model.nu))}
+                excess = constraint.violation(point)[0]
+                label = f"shape{'' if isinstance(self.shape, DmocShape) else f'[{i}]'}"
+                if np.isnan(excess):
+                    raise ValueError(f"{label}.path_constraints[{j}] ({constraint.name}): not "
+                                     f"finite at agent {i}'s start")
+                if not constraint.depends_on("v", "u") and excess > CONSTRAINT_TOL:
+                    raise ValueError(f"starts: agent {i} breaks {label}.path_constraints[{j}] "
+                                     f"({constraint.name}) by {excess:.3g}")
 
     def check_clear(self, name: str, configurations: np.ndarray) -> None:
         """ValueError naming ``name`` if a position of ``configurations`` (m, nq) lies in an
