@@ -287,6 +287,28 @@ def _boundary_normal(normal: np.ndarray, rel: np.ndarray, distance: float) -> np
     return chosen
 
 
+def resolve_with_keep_outs(slotted: FormationProblem, backend: Backend, agents: np.ndarray,
+                           boundary: np.ndarray, data: np.ndarray, penalty: float,
+                           q: np.ndarray, u: np.ndarray, costs: np.ndarray) -> tuple[int, int]:
+    """One superstep of keep-out solves: ``agents`` re-solve on their keep-out shapes
+    (``slotted``) with boundary data ``boundary`` (n, 4 nq), keep-out data ``data``
+    (n, N, slots, d + 2) and the penalty ρ, warm-started from their latest paths q (n, N+1,
+    nq) and controls u (n, N, nu), which are updated in place with ``costs`` (n,) (a failed
+    solve keeps its agent's latest path). Returns (failed solves, retries)."""
+    warm = np.hstack([q[agents, 1:-1].reshape(len(agents), -1),
+                      u[agents].reshape(len(agents), -1)])
+    params = np.hstack([boundary[agents], data[agents].reshape(len(agents), -1),
+                        np.full((len(agents), 1), penalty)])
+    sols = backend.superstep_columns(solve_tasks,
+                                     slotted.task_columns(agents, params, warm_start=warm))
+    ok = np.asarray(sols.column("success"), dtype=bool)
+    solved = agents[ok]
+    q[solved] = np.asarray(sols.column("q"))[ok]
+    u[solved] = np.asarray(sols.column("u"))[ok]
+    costs[solved] = np.asarray(sols.column("cost"), float)[ok]
+    return int(np.sum(~ok)), int(np.sum(np.asarray(sols.column("attempts")) - 1))
+
+
 def separate(problem: FormationProblem, backend: Backend, phi: np.ndarray, base: Columns,
              distance: float, max_rounds: int,
              progress: Callable[[str], None] | None = None) -> Separation:
@@ -317,20 +339,11 @@ def separate(problem: FormationProblem, backend: Backend, phi: np.ndarray, base:
         if not len(agents):   # met, and no pair within reach: no agent would move
             outcome.change = 0.0
             break
-        warm = np.hstack([q[agents, 1:-1].reshape(len(agents), -1),
-                          u[agents].reshape(len(agents), -1)])
-        params = np.hstack([boundary[agents], data[agents].reshape(len(agents), -1),
-                            np.full((len(agents), 1), penalty)])
-        tasks = slotted.task_columns(agents, params, warm_start=warm)
-        sols = backend.superstep_columns(solve_tasks, tasks)
-        ok = np.asarray(sols.column("success"), dtype=bool)
-        solved = agents[ok]   # a failed solve keeps its agent's latest path
-        q[solved] = np.asarray(sols.column("q"))[ok]
-        u[solved] = np.asarray(sols.column("u"))[ok]
-        costs[solved] = np.asarray(sols.column("cost"), float)[ok]
+        failed, retries = resolve_with_keep_outs(slotted, backend, agents, boundary, data,
+                                                 penalty, q, u, costs)
         outcome.inner_solves += len(agents)
-        outcome.failed_solves += int(np.sum(~ok))
-        outcome.retries += int(np.sum(np.asarray(sols.column("attempts")) - 1))
+        outcome.failed_solves += failed
+        outcome.retries += retries
         outcome.rounds += 1
         outcome.change = float(np.abs(problem.positions(q) - before).max())
         outcome.dropped += dropped

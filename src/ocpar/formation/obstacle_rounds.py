@@ -29,7 +29,7 @@ import numpy as np
 
 from ocpar.bsp import Backend
 from ocpar.bsp.columns import Columns
-from ocpar.formation.keep_out import CHANGE_RTOL, PENALTY
+from ocpar.formation.keep_out import CHANGE_RTOL, PENALTY, resolve_with_keep_outs
 from ocpar.formation.obstacles import (
     Clearance,
     Obstacle,
@@ -37,7 +37,6 @@ from ocpar.formation.obstacles import (
     segment_clearance,
 )
 from ocpar.formation.problem import FormationProblem
-from ocpar.ocp import solve_tasks
 from ocpar.ocp.dmoc import UNUSED_OFFSET
 
 #: Intervals within this (scaled, |A (r − c)| − 1) of an obstacle get its half-space.
@@ -127,20 +126,11 @@ def avoid_obstacles(problem: FormationProblem, backend: Backend, phi: np.ndarray
         if not len(agents):
             outcome.change = 0.0
             break
-        warm = np.hstack([q[agents, 1:-1].reshape(len(agents), -1),
-                          u[agents].reshape(len(agents), -1)])
-        params = np.hstack([boundary[agents], data[agents].reshape(len(agents), -1),
-                            np.full((len(agents), 1), penalty)])
-        sols = backend.superstep_columns(solve_tasks,
-                                         slotted.task_columns(agents, params, warm_start=warm))
-        ok = np.asarray(sols.column("success"), dtype=bool)
-        solved = agents[ok]   # a failed solve keeps its agent's latest path
-        q[solved] = np.asarray(sols.column("q"))[ok]
-        u[solved] = np.asarray(sols.column("u"))[ok]
-        costs[solved] = np.asarray(sols.column("cost"), float)[ok]
+        failed, retries = resolve_with_keep_outs(slotted, backend, agents, boundary, data,
+                                                 penalty, q, u, costs)
         outcome.inner_solves += len(agents)
-        outcome.failed_solves += int(np.sum(~ok))
-        outcome.retries += int(np.sum(np.asarray(sols.column("attempts")) - 1))
+        outcome.failed_solves += failed
+        outcome.retries += retries
         outcome.rounds += 1
         outcome.change = float(np.abs(positions_of(q) - before).max())
         outcome.closest = closest_obstacle(positions_of(q), obstacles, duration)
