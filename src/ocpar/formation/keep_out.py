@@ -69,6 +69,7 @@ from __future__ import annotations
 import dataclasses
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -84,6 +85,9 @@ from ocpar.formation.separation import (
 )
 from ocpar.ocp import solve_tasks
 from ocpar.ocp.dmoc import UNUSED_OFFSET
+
+if TYPE_CHECKING:  # obstacle_rounds builds on this module
+    from ocpar.formation.obstacle_rounds import ObstacleRounds
 
 #: Partners' keep-out half-spaces per agent and interval (the DMOC shape has 2 d slots more:
 #: the trust region's).
@@ -289,12 +293,13 @@ def _boundary_normal(normal: np.ndarray, rel: np.ndarray, distance: float) -> np
 
 def resolve_with_keep_outs(slotted: FormationProblem, backend: Backend, agents: np.ndarray,
                            boundary: np.ndarray, data: np.ndarray, penalty: float,
-                           q: np.ndarray, u: np.ndarray, costs: np.ndarray) -> tuple[int, int]:
-    """One superstep of keep-out solves: ``agents`` re-solve on their keep-out shapes
-    (``slotted``) with boundary data ``boundary`` (n, 4 nq), keep-out data ``data``
-    (n, N, slots, d + 2) and the penalty ρ, warm-started from their latest paths q (n, N+1,
-    nq) and controls u (n, N, nu), which are updated in place with ``costs`` (n,) (a failed
-    solve keeps its agent's latest path). Returns (failed solves, retries)."""
+                           outcome: Separation | ObstacleRounds) -> None:
+    """One round of keep-out solves, one superstep: ``agents`` re-solve on their keep-out
+    shapes (``slotted``) with boundary data ``boundary`` (n, 4 nq), keep-out data ``data``
+    (n, N, slots, d + 2) and the penalty ρ, warm-started from the ``outcome``'s latest paths
+    and controls, which are updated in place with its costs (a failed solve keeps its
+    agent's latest path), and its round and solve counts."""
+    q, u, costs = outcome.q, outcome.u, outcome.costs
     warm = np.hstack([q[agents, 1:-1].reshape(len(agents), -1),
                       u[agents].reshape(len(agents), -1)])
     params = np.hstack([boundary[agents], data[agents].reshape(len(agents), -1),
@@ -306,7 +311,10 @@ def resolve_with_keep_outs(slotted: FormationProblem, backend: Backend, agents: 
     q[solved] = np.asarray(sols.column("q"))[ok]
     u[solved] = np.asarray(sols.column("u"))[ok]
     costs[solved] = np.asarray(sols.column("cost"), float)[ok]
-    return int(np.sum(~ok)), int(np.sum(np.asarray(sols.column("attempts")) - 1))
+    outcome.inner_solves += len(agents)
+    outcome.failed_solves += int(np.sum(~ok))
+    outcome.retries += int(np.sum(np.asarray(sols.column("attempts")) - 1))
+    outcome.rounds += 1
 
 
 def separate(problem: FormationProblem, backend: Backend, phi: np.ndarray, base: Columns,
@@ -339,12 +347,7 @@ def separate(problem: FormationProblem, backend: Backend, phi: np.ndarray, base:
         if not len(agents):   # met, and no pair within reach: no agent would move
             outcome.change = 0.0
             break
-        failed, retries = resolve_with_keep_outs(slotted, backend, agents, boundary, data,
-                                                 penalty, q, u, costs)
-        outcome.inner_solves += len(agents)
-        outcome.failed_solves += failed
-        outcome.retries += retries
-        outcome.rounds += 1
+        resolve_with_keep_outs(slotted, backend, agents, boundary, data, penalty, outcome)
         outcome.change = float(np.abs(problem.positions(q) - before).max())
         outcome.dropped += dropped
         outcome.closest = closest_approach(problem.positions(q), duration)

@@ -126,12 +126,7 @@ def avoid_obstacles(problem: FormationProblem, backend: Backend, phi: np.ndarray
         if not len(agents):
             outcome.change = 0.0
             break
-        failed, retries = resolve_with_keep_outs(slotted, backend, agents, boundary, data,
-                                                 penalty, q, u, costs)
-        outcome.inner_solves += len(agents)
-        outcome.failed_solves += failed
-        outcome.retries += retries
-        outcome.rounds += 1
+        resolve_with_keep_outs(slotted, backend, agents, boundary, data, penalty, outcome)
         outcome.change = float(np.abs(positions_of(q) - before).max())
         outcome.closest = closest_obstacle(positions_of(q), obstacles, duration)
         outcome.met = _met(outcome.closest, scale)

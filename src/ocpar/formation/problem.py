@@ -123,19 +123,31 @@ class FormationProblem:
 
     def _check_path_constraints(self) -> None:
         """Each agent's path constraints must be finite at its start (q_0, q̇_0, u = 0) and
-        those of q alone met there (the nodes next to the start must meet them)."""
-        for i, shape in enumerate(self.shapes):
+        those of q alone met there (the nodes next to the start must meet them); one
+        evaluation per distinct shape."""
+        for shape, agents in self.agents_by_shape().items():
             for j, constraint in enumerate(shape.path_constraints):
-                point = {"q": self.starts[i:i + 1], "v": self.start_velocities[i:i + 1],
-                         "u": np.zeros((1, shape.model.nu))}
-                excess = constraint.violation(point)[0]
-                label = f"shape{'' if isinstance(self.shape, DmocShape) else f'[{i}]'}"
-                if np.isnan(excess):
-                    raise ValueError(f"{label}.path_constraints[{j}] ({constraint.name}): not "
-                                     f"finite at agent {i}'s start")
-                if not constraint.depends_on("v", "u") and excess > CONSTRAINT_TOL:
-                    raise ValueError(f"starts: agent {i} breaks {label}.path_constraints[{j}] "
-                                     f"({constraint.name}) by {excess:.3g}")
+                point = {"q": self.starts[agents], "v": self.start_velocities[agents],
+                         "u": np.zeros((len(agents), shape.model.nu))}
+                excess = constraint.violation(point)
+                label = (f"shape{'' if isinstance(self.shape, DmocShape) else f'[{agents[0]}]'}"
+                         f".path_constraints[{j}] ({constraint.name})")
+                if np.isnan(excess).any():
+                    i = agents[np.flatnonzero(np.isnan(excess))[0]]
+                    raise ValueError(f"{label}: not finite at agent {i}'s start")
+                if not constraint.depends_on("v", "u") and np.max(excess) > CONSTRAINT_TOL:
+                    k = int(np.argmax(excess))
+                    raise ValueError(f"starts: agent {agents[k]} breaks {label} by "
+                                     f"{excess[k]:.3g}")
+
+    def agents_by_shape(self) -> dict[DmocShape, np.ndarray]:
+        """The agents (indices, ascending) of each distinct shape, in order of first use."""
+        if isinstance(self.shape, DmocShape):
+            return {self.shape: np.arange(self.agents)}
+        groups: dict[DmocShape, list[int]] = {}
+        for i, shape in enumerate(self.shape):
+            groups.setdefault(shape, []).append(i)
+        return {shape: np.array(agents) for shape, agents in groups.items()}
 
     def check_clear(self, name: str, configurations: np.ndarray) -> None:
         """ValueError naming ``name`` if a position of ``configurations`` (m, nq) lies in an
@@ -222,13 +234,13 @@ class FormationProblem:
         """Starts and final configurations (at a point of the curve) must satisfy each
         agent's model's c(q) = 0."""
         end = np.concatenate([self.curve.points(np.zeros(1))[0], self.final_attitude])
-        for i, shape in enumerate(self.shapes):
+        for shape, agents in self.agents_by_shape().items():
             model = shape.model
             if not getattr(model, "n_constraints", 0):
                 continue
             q = ca.SX.sym("q", model.nq)
             c = ca.Function("c", [q], [model.constraints(q)])
-            for name, rows in (("starts", self.starts[i:i + 1]), ("final_attitude", end[None])):
+            for name, rows in (("starts", self.starts[agents]), ("final_attitude", end[None])):
                 residual = np.abs(np.asarray(c(rows.T))).max()
                 if not residual <= CONSTRAINT_TOL:
                     raise ValueError(f"{name}: violates the model's holonomic constraints by "
