@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 from conftest import golden
 
-from ocpar.examples import macs_double_integrator
+from ocpar.examples import macs_double_integrator, macs_thrust_limited
 from ocpar.macs import MacsProblem, MacsSettings, Objective, make_problem, solve_macs
 from ocpar.macs.archive import dominates
 from ocpar.macs.local_search import SearchTask, run_search
@@ -23,6 +23,7 @@ from ocpar.macs.metrics import inverted_generational_distance, normalise
 from ocpar.macs.objectives import objective_functions
 from ocpar.macs.plot import plot_controls, plot_front
 from ocpar.ocp import dfet_problem
+from ocpar.ocp.constraints import PathConstraint
 
 DISTANCE, U_MAX = 1.0, 1.0
 
@@ -198,3 +199,98 @@ def test_boundary_data_outside_the_state_bounds_is_refused():
         dataclasses.replace(problem, initial_state=(0.05, 0.0, 0.0, 1.0))
     with pytest.raises(ValueError, match=r"^MacsProblem\.final_state\[0\]: .*state bounds"):
         dataclasses.replace(problem, final_state={0: 0.05})
+
+
+# --- path constraints: a norm thrust limit (ocpar.examples.macs_thrust_limited) -----------------
+
+def opti_least_energy(t_f: float, target: np.ndarray, thrust: float, n: int = 400) -> float:
+    """An independent solve of the fixed-t_f problem: min ∫|u|² dt of a planar unit mass rest
+    to rest onto ``target`` with |u| ≤ ``thrust``, exact zero-order-hold steps of n intervals
+    (the control constant per interval, so the limit holds at all times)."""
+    opti = ca.Opti()
+    u = opti.variable(2, n)
+    h = t_f / n
+    r, v = ca.DM.zeros(2), ca.DM.zeros(2)
+    for k in range(n):
+        r, v = r + h * v + h**2 / 2 * u[:, k], v + h * u[:, k]
+        opti.subject_to(ca.sumsqr(u[:, k]) <= thrust**2)
+    opti.subject_to(r == target)
+    opti.subject_to(v == 0)
+    opti.minimize(h * ca.sumsqr(u))
+    opti.solver("ipopt", {"print_time": False}, {"print_level": 0, "sb": "yes"})
+    return float(opti.solve().value(opti.f))
+
+
+def test_thrust_limited_closed_form_front_matches_an_independent_solve():
+    """The example's closed form on both sides of √6 (the limit binds below it): an Opti solve
+    of n = 400 zero-order-hold intervals agrees to 1e-4 relative (its O(h²) error)."""
+    problem = macs_thrust_limited.make()
+    target = np.array([problem.final_state[0], problem.final_state[1]])
+    for t_f in (2.2, 2.8):
+        (_, expected), = macs_thrust_limited.front(np.array([t_f]))
+        assert opti_least_energy(t_f, target, 1.0) == pytest.approx(expected, rel=1e-4)
+    free = 12 / 2.2**3
+    assert macs_thrust_limited.front(np.array([2.2]))[0, 1] > 1.01 * free  # binds: 1.3 % above
+
+
+@pytest.fixture(scope="module")
+def thrust_limited():
+    problem = macs_thrust_limited.make()
+    return problem, solve_macs(problem, MacsSettings(max_evaluations=3000, archive_size=20,
+                                                     seed=0))
+
+
+def test_thrust_limited_front_lies_on_the_closed_form_and_keeps_the_limit(thrust_limited):
+    """A run of 3000 evaluations: no member below the closed-form front (without the limit the
+    members at t_f < √6 would lie up to 4.8 % below it), at least three where the limit binds,
+    most members on the front to 1e-3 (the others, restored but not yet polished, above it),
+    and every member's control law within |u| ≤ 1.02 everywhere: the limit is imposed at the
+    quadrature points, and a linear control reaches past them to the element's ends (measured
+    1.0146)."""
+    problem, result = thrust_limited
+    j1, j2 = result.front.T
+    excess = j2 / macs_thrust_limited.front(j1)[:, 1] - 1
+    assert excess.min() >= -1e-5 and np.median(excess) <= 1e-3, excess
+    binding = j1 < np.sqrt(6) * 0.99
+    assert binding.sum() >= 3 and np.median(excess[binding]) <= 1e-3, (j1, excess)
+    dfet = dfet_problem(problem.shape)
+    for p in result.decisions:
+        law = dfet.control_law(p)
+        t = np.linspace(0, dfet.final_time(p), 400)
+        assert max(np.linalg.norm(law(s)) for s in t) <= 1.02
+    assert result.igd <= 0.05, result.igd
+
+
+def test_a_search_that_cannot_meet_a_path_constraint_is_infeasible():
+    """With the limit at 0.9 the bang–bang minimum time is 2√(1/0.9) = 2.108: at t_f fixed to
+    2.05 no control meets it, the restoration fails and its result is infeasible (never
+    archived)."""
+    problem = dataclasses.replace(
+        macs_thrust_limited.make(), final_time=(2.05, 2.05), reference_front=None,
+        path_constraints=(PathConstraint(lambda u: ca.sumsqr(u), upper=0.81, name="thrust"),))
+    dfet = dfet_problem(problem.shape)
+    result = run_search(SearchTask(problem, "restore", p0=(dfet.p_lower + dfet.p_upper) / 2))
+    assert not result.feasible
+
+
+@pytest.mark.parametrize(("constraints", "message"), [
+    ((PathConstraint(lambda q: q[0], name="pos"),), "function takes 'q'"),
+    ((PathConstraint(lambda u: u[0] ** 2, upper=-1.0, name="thrust"),), None),
+    ((PathConstraint(lambda x: x[0], lower=0.5, upper=np.inf, name="away"),),
+     "broken by 0.5 at the initial state"),
+    ((PathConstraint(lambda x, u: 1 / (x[0] * u[0]), name="pole"),), "not finite"),
+    ((PathConstraint(lambda u: ca.sumsqr(u), upper=(1.0, 2.0), name="thrust"),), "upper"),
+    (PathConstraint(lambda u: u[0], name="bare"), "list of PathConstraint"),
+])
+def test_malformed_path_constraints_are_one_error_naming_the_field(constraints, message):
+    """Refused when the problem is built, one line naming MacsProblem.path_constraints; a
+    control-only limit that no control can meet (|u|² ≤ −1) is left to the searches (each one
+    infeasible: the run ends with an empty front, as an infeasible problem does)."""
+    build = lambda: dataclasses.replace(macs_thrust_limited.make(),  # noqa: E731
+                                        path_constraints=constraints)
+    if message is None:
+        build()
+        return
+    with pytest.raises(ValueError, match=r"^MacsProblem\.path_constraints") as info:
+        build()
+    assert message in str(info.value) and "\n" not in str(info.value)

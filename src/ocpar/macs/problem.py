@@ -3,6 +3,7 @@
     min over u(·), t_f of (J_1, …, J_m),   J_i = φ_i(x(t_f), t_f) + ∫_0^{t_f} L_i(x, u) dt
     s.t.  ẋ = f(x, u),  x(0) = x_0,  x_k(t_f) = x_k^f for the fixed components k,
           u_lo ≤ u ≤ u_hi,  t_lo ≤ t_f ≤ t_hi,  the model's state bounds,
+          lower ≤ c(x, u) ≤ upper  (path constraints, at the DFET's quadrature points),
 
 with m ≥ 2, t_0 = 0 and every objective minimised; transcribed by DFET (N elements, states of
 order l, controls of order l_u). A :class:`MacsProblem` is checked when it is built: a wrong
@@ -22,6 +23,7 @@ import numpy as np
 
 from ocpar.models.ode import OdeModel
 from ocpar.ocp import DfetShape
+from ocpar.ocp.constraints import CompiledConstraint, PathConstraint, compile_constraints
 
 #: φ(x_f (nx,), t_f) or L(x (nx,), u (nu,)): a scalar CasADi expression of CasADi symbols.
 Term = Callable[[ca.SX, ca.SX], ca.SX]
@@ -50,7 +52,11 @@ class MacsProblem:
     fixed components of x(t_f); ``periodic_controls`` one flag per control (or one for all):
     the control is an angle whose bounds span one period, so a node on one bound equals the
     other bound; ``elements``, ``order``, ``control_order`` (default ``order``) of the DFET;
-    ``reference_front`` (k, m) a known Pareto front, for GD/IGD (None: not known).
+    ``reference_front`` (k, m) a known Pareto front, for GD/IGD (None: not known);
+    ``path_constraints`` :class:`~ocpar.ocp.constraints.PathConstraint` objects of ``x`` and ``u``
+    (a speed limit, a nonlinear control constraint), imposed at every element's quadrature
+    points (:meth:`~ocpar.ocp.dfet.DfetTranscription.path_rows`); those of ``x`` alone must
+    hold at the initial state.
 
     Equal problems (same data, same objective expressions) compare and hash equal, also after
     pickling, so workers build their solvers once per problem.
@@ -68,6 +74,7 @@ class MacsProblem:
     order: int = 4
     control_order: int | None = None
     reference_front: np.ndarray | None = None
+    path_constraints: Sequence[PathConstraint | CompiledConstraint] = ()
     #: (model, SHA-256 of everything else): what equality and hashing compare
     _key: tuple = field(init=False, repr=False)
 
@@ -236,6 +243,8 @@ def _check(problem: MacsProblem) -> dict:
         compiled.append(Objective(mayer, running, str(objective.name)))
     out["objectives"] = tuple(compiled)
 
+    out["path_constraints"] = _path_constraints(problem.path_constraints, nx, nu, x0, u_mid)
+
     if problem.reference_front is not None:
         front = np.array(problem.reference_front, dtype=float)
         m = len(compiled)
@@ -250,11 +259,28 @@ def _check(problem: MacsProblem) -> dict:
     return out
 
 
+def _path_constraints(constraints, nx: int, nu: int, x0: np.ndarray, u_mid: np.ndarray
+                      ) -> tuple[CompiledConstraint, ...]:
+    """The path constraints compiled; finite at (x_0, mid-range u), and those of x alone met
+    at x_0; one ValueError naming the field otherwise."""
+    compiled = compile_constraints(constraints, {"x": nx, "u": nu},
+                                   "MacsProblem.path_constraints")
+    for i, constraint in enumerate(compiled):
+        where = f"path_constraints[{i}] ({constraint.name})"
+        gap = constraint.violation({"x": x0[None, :], "u": u_mid[None, :]})[0]
+        if not np.isfinite(gap):
+            raise _fail(where, "is not finite at the initial state and mid-range controls")
+        if not constraint.depends_on("u") and gap > 0:
+            raise _fail(where, f"is broken by {gap:.3g} at the initial state {x0.tolist()}")
+    return compiled
+
+
 def _digest(problem: MacsProblem) -> str:
     """SHA-256 of everything but the model: the data and the serialised objective functions."""
     parts = [problem.name, problem.initial_state, problem.final_time, problem.control_bounds,
              sorted(problem.final_state.items()), problem.periodic_controls, problem.elements,
-             problem.order, problem.control_order]
+             problem.order, problem.control_order,
+             [(c.serialized, c.lower, c.upper) for c in problem.path_constraints]]
     for objective in problem.objectives:
         parts += [objective.name] + [None if t is None else t.serialize()
                                      for t in (objective.mayer, objective.running)]

@@ -32,6 +32,7 @@ from numpy.polynomial import polynomial as poly
 from scipy.integrate import solve_ivp
 
 from ocpar.models.ode import OdeModel
+from ocpar.ocp.constraints import CompiledConstraint, ConstraintRows
 from ocpar.ocp.ipopt import ipopt_options
 
 #: Gauss–Legendre quadrature points per element = order l + QUADRATURE_EXTRA.
@@ -165,14 +166,21 @@ class DfetTranscription:
         x = ca.reshape(self.z[self._states], nx, n * k)
         u = ca.reshape(self.z[self._controls], nu, n * (m + 1))
         x_f, t_f = self.z[self._final], self.z[self.nz - 1]
+        #: Gauss–Legendre points and weights (q,) of every element, on [−1, 1].
+        self.quadrature = (tau, sigma)
+        #: Per element, the states (nx, q) and controls (nu, q) at its quadrature points, as
+        #: expressions of z: where the weak form, a running cost and path constraints
+        #: evaluate.
+        self.quadrature_states = [x[:, j * k : (j + 1) * k] @ f_q.T for j in range(n)]
+        self.quadrature_controls = [u[:, j * (m + 1) : (j + 1) * (m + 1)] @ g_q.T
+                                    for j in range(n)]
         xs, us = ca.SX.sym("x", nx), ca.SX.sym("u", nu)
         rhs = ca.Function("F", [xs, us], [model.rhs(xs, us)]).map(tau.size)
         half_step = t_f / (2 * n)
         residuals = []  # per element, (nx, l+2): contributions to the element's test nodes
         for j in range(n):
             xj = x[:, j * k : (j + 1) * k]
-            uj = u[:, j * (m + 1) : (j + 1) * (m + 1)]
-            fq = rhs(xj @ f_q.T, uj @ g_q.T)  # (nx, q)
+            fq = rhs(self.quadrature_states[j], self.quadrature_controls[j])  # (nx, q)
             residuals.append(xj @ stiffness.T + half_step * (fq @ load.T))
         columns = [residuals[0][:, 0] + ca.DM(shape.initial_state)]
         for j in range(n):
@@ -191,6 +199,19 @@ class DfetTranscription:
         self.p_upper = np.concatenate([np.tile(c_hi, n * (m + 1)), [shape.duration_bounds[1]]])
         self.lbz = np.concatenate([np.tile(lower, n * k + 1), self.p_lower])
         self.ubz = np.concatenate([np.tile(upper, n * k + 1), self.p_upper])
+
+    def path_rows(self, constraints: tuple[CompiledConstraint, ...]) -> ConstraintRows:
+        """Path constraints of ``x`` and ``u`` (:mod:`ocpar.ocp.constraints`) imposed at every
+        element's quadrature points, the points where the weak form evaluates the dynamics.
+        Between them the element's polynomials are not constrained: the guarantee of a
+        collocation method, violations of O(Δt^{order}) in between."""
+        rows = ConstraintRows()
+        q = self.quadrature[0].size
+        for constraint in constraints:
+            rows.add(constraint, [{"x": xq[:, i], "u": uq[:, i]} for xq, uq in
+                                  zip(self.quadrature_states, self.quadrature_controls,
+                                      strict=True) for i in range(q)])
+        return rows
 
     # --- slicing z ---------------------------------------------------------------------------
 

@@ -25,17 +25,15 @@ from functools import cached_property
 
 import casadi as ca
 import numpy as np
-from numpy.polynomial import legendre
 
 from ocpar.models.ode import OdeModel
 from ocpar.ocp.constraints import (
     CompiledConstraint,
-    ConstraintRows,
     PathConstraint,
     compile_constraints,
 )
 from ocpar.ocp.contract import InnerSolution, call_nlpsol, check_params, transcription
-from ocpar.ocp.dfet import QUADRATURE_EXTRA, DfetShape, DfetTranscription, lagrange_basis
+from ocpar.ocp.dfet import DfetShape, DfetTranscription
 from ocpar.ocp.ipopt import ipopt_options
 
 
@@ -116,27 +114,16 @@ class DfetOcpTranscription:
                            -p[nx:])
         x_f, t_f = dfet.final_state(z), dfet.final_time(z)
         cost = ca.SX(0) if shape.terminal_cost is None else shape.terminal_cost(x_f, t_f)
-        tau, sigma = legendre.leggauss(shape.order + QUADRATURE_EXTRA)
-        f_q = lagrange_basis(dfet.state_nodes, tau)
-        g_q = lagrange_basis(dfet.control_nodes, tau)
-        k, m1 = shape.order + 1, shape.control_order + 1
-        x = ca.reshape(z[: dfet.shape.n_states], nx, n * k)
-        u = ca.reshape(z[dfet.decision_slice][:-1], model.nu, n * m1)
-        # (nx, q) states and (nu, q) controls at each element's quadrature points
-        xq = [x[:, j * k : (j + 1) * k] @ f_q.T for j in range(n)]
-        uq = [u[:, j * m1 : (j + 1) * m1] @ g_q.T for j in range(n)]
+        _, sigma = dfet.quadrature
         if shape.running_cost:
             xs, us = ca.SX.sym("x", nx), ca.SX.sym("u", model.nu)
-            rate = ca.Function("g", [xs, us], [model.running_cost(xs, us)]).map(tau.size)
+            rate = ca.Function("g", [xs, us], [model.running_cost(xs, us)]).map(sigma.size)
             weights = ca.DM(sigma).T
             total = ca.SX(0)
-            for j in range(n):
-                total += ca.mtimes(weights, rate(xq[j], uq[j]).T)
+            for xq, uq in zip(dfet.quadrature_states, dfet.quadrature_controls, strict=True):
+                total += ca.mtimes(weights, rate(xq, uq).T)
             cost += t_f / (2 * n) * total
-        path = ConstraintRows()
-        for constraint in shape.path_constraints:
-            path.add(constraint, [{"x": xq[j][:, i], "u": uq[j][:, i]}
-                                  for j in range(n) for i in range(tau.size)])
+        path = dfet.path_rows(shape.path_constraints)
         self.g = ca.vertcat(dfet.constraints + shift, path.expr)
         #: Constraint bounds: the weak form and final conditions = 0, then the path rows'.
         self.lbg = np.concatenate([np.zeros(dfet.ng), path.lower])
