@@ -138,8 +138,10 @@ def _compile(constraint: object, sizes: Mapping[str, int], label: str) -> Compil
     rows = compiled.function.nnz_out(0)
     lower = _bound(constraint.lower, rows, f"{label}: lower")
     upper = _bound(constraint.upper, rows, f"{label}: upper")
-    if any(lo > hi for lo, hi in zip(lower, upper, strict=True)):
-        raise ValueError(f"{label}: needs lower <= upper in every row, got {lower} and {upper}")
+    if any(lo > hi or lo == math.inf or hi == -math.inf
+           for lo, hi in zip(lower, upper, strict=True)):
+        raise ValueError(f"{label}: needs lower <= upper, lower < inf and upper > -inf in "
+                         f"every row, got {lower} and {upper}")
     return CompiledConstraint(name, compiled.arguments, compiled.sizes, compiled.serialized,
                               lower, upper)
 

@@ -1,0 +1,243 @@
+"""Bad constraints, costs, obstacles and bounds from the command line: fuzzed like the problem
+references (test_cli_problems.py). A user's factory builds a problem of each scheme from
+``--problem-arg`` values drawn at random, valid or not; whatever is drawn, the run either gets
+past validation (to the guard) when every part is valid, or stops with exit 2 and one line
+``ocpar.<scheme>: error: ...`` that names the field and says ``ValueError`` (not a CasADi
+error from deep inside, not a TypeError), before anything starts."""
+
+from __future__ import annotations
+
+import json
+import math
+import sys
+import textwrap
+
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+from ocpar import driver
+from ocpar.config import scheme_class
+
+FACTORIES = textwrap.dedent('''
+    """A user's problems whose constraints, cost, bounds and obstacles come as text."""
+    import casadi as ca
+    import numpy as np
+
+    from ocpar.formation import Circle, DmocShape, FormationProblem
+    from ocpar.formation.obstacles import HalfSpace, Sphere
+    from ocpar.macs import MacsProblem, Objective
+    from ocpar.models import PointMass
+    from ocpar.ocp.constraints import PathConstraint
+    from ocpar.pursuit import PursuitProblem, SampledPlan
+
+
+    def _value(text):
+        """A --problem-arg string as Python (lambdas, lists, inf, nan), or None."""
+        return None if text is None else eval(text, {"ca": ca, "inf": np.inf, "nan": np.nan})
+
+
+    def _constraints(function, lower, upper):
+        if function is None:
+            return ()
+        return (PathConstraint(_value(function), _value(lower), _value(upper), name="c"),)
+
+
+    def formation(function=None, lower="-inf", upper="0.0", cost=None, bounds=None,
+                  sphere=None, plane=None):
+        sphere, plane = _value(sphere), _value(plane)
+        starts = np.column_stack([np.linspace(-1.0, 1.0, 3), np.full(3, -3.0)])
+        obstacles = ([Sphere(tuple(sphere[:-1]), sphere[-1])] if sphere is not None else []) + \\
+            ([HalfSpace(tuple(plane[:-1]), plane[-1])] if plane is not None else [])
+        shape = DmocShape(PointMass(dim=2, mass=1.0), 10, 1.0, solver="sqpmethod",
+                          control_bounds=_value(bounds),
+                          path_constraints=_constraints(function, lower, upper),
+                          running_cost=_value(cost))
+        return FormationProblem(name="fuzz", starts=starts, shape=shape,
+                                curve=Circle(radius=2.0, center=np.zeros(2)),
+                                obstacles=obstacles)
+
+
+    class Integrator:
+        nx, nu = 2, 1
+
+        def rhs(self, x, u):
+            return ca.vertcat(x[1], u[0])
+
+        def running_cost(self, x, u):
+            return u[0] ** 2
+
+        def state_bounds(self):
+            return np.full(2, -np.inf), np.full(2, np.inf)
+
+        def control_bounds(self):
+            return np.array([-1.0]), np.array([1.0])
+
+
+    def pursuit(function=None, lower="-inf", upper="0.0"):
+        h = 0.05
+        u = np.where(np.arange(80) < 40, -0.1, 0.1)
+        x = [np.array([1.0, 0.0])]
+        for uj in u:
+            x.append(np.array([x[-1][0] + x[-1][1] * h + uj * h**2 / 2, x[-1][1] + uj * h]))
+        return PursuitProblem(name="fuzz", model=Integrator(), duration=4.0, samples=81,
+                              initial_state=np.array([1.0, 0.0]), target_components=(0,),
+                              target=np.array([0.0]), plan=SampledPlan(np.array(x), u[:, None]),
+                              path_constraints=_constraints(function, lower, upper))
+
+
+    def macs(function=None, lower="-inf", upper="0.0"):
+        return MacsProblem(
+            name="fuzz", model=Integrator(),
+            objectives=(Objective(mayer=lambda xf, tf: tf),
+                        Objective(running=lambda x, u: u[0] ** 2)),
+            initial_state=(0.0, 0.0), final_time=(2.5, 5.0), control_bounds=((-1.0, 1.0),),
+            final_state={0: 1.0, 1: 0.0}, elements=2, order=2, control_order=1,
+            path_constraints=_constraints(function, lower, upper))
+''')
+
+#: Constraint functions: per scheme (rows, checked), absent where the function is invalid
+#: for the scheme (the formation's u has 2 entries, the others' 1). ``checked``: the scheme
+#: evaluates it before the solve, at the starts (formation: constraints of q alone), the
+#: initial state (MACS: of x alone) or agent 0's plan (pursuit: every constraint); there
+#: every function here takes values in (−1, 1), 0 at the starts and the initial state.
+FUNCTIONS = {
+    "lambda u: u[0]": {"formation": (1, False), "pursuit": (1, True), "macs": (1, False)},
+    "lambda u: ca.sumsqr(u)": {"formation": (1, False), "pursuit": (1, True),
+                               "macs": (1, False)},
+    "lambda u: u": {"formation": (2, False), "pursuit": (1, True), "macs": (1, False)},
+    "lambda q: q[1] + 3": {"formation": (1, True)},
+    "lambda x: x[1]": {"pursuit": (1, True), "macs": (1, True)},
+    "lambda q, v, u: ca.vertcat(v[0], u[1])": {"formation": (2, False)},
+    "lambda y: y[0]": {},
+    "lambda: 1.0": {},
+    "lambda u: ca.DM.ones(2, 2) * u[0]": {},
+    "lambda u: undefined_name": {},
+    "lambda u: u[7]": {},
+    "lambda u: ca.SX.sym('w') * u[0]": {},
+    "'not callable'": {},
+    "lambda u: ca.DM.zeros(0, 1) * u[0]": {},
+}
+#: Bounds as --problem-arg text and what they are: (numbers or None if not numbers).
+BOUNDS = ["-inf", "-1.0", "-5.0", "inf", "1.0", "5.0", "nan", "[-1.0, -2.0]",
+          "[1.0, 2.0]", "[1.0, 2.0, 3.0]", "'abc'", "[]"]
+COSTS = {"lambda u: ca.sumsqr(u)": True, "lambda q, v, u: ca.sumsqr(u) + ca.sumsqr(v)": True,
+         "lambda u: u": False, "lambda z: z[0]": False, "lambda u: 1 / (u[0] - u[0])": True}
+CONTROL_BOUNDS = {"[[-1.0, 1.0], [-1.0, 1.0]]": True, "[[-1.0, 1.0]]": False,
+                  "[[1.0, -1.0], [-1.0, 1.0]]": False, "[[nan, 1.0], [-1.0, 1.0]]": False,
+                  '"wide"': False, "[[-inf, inf], [-1.0, 1.0]]": False,
+                  "[[-inf, 1.0], [-1.0, 1.0]]": True}
+#: Obstacles: a sphere (centre x, y, radius) and a half-space (normal x, y, offset).
+SPHERES = {"[10.0, 10.0, 1.0]": True, "[0.0, -3.0, 0.5]": False, "[10.0, 10.0, -1.0]": False,
+           "[10.0, 10.0, 10.0, 1.0]": False, "[nan, 0.0, 1.0]": False,
+           "[0.0, 0.0, 2.5]": False}   # the last: the circle's final positions are inside
+PLANES = {"[0.0, -1.0, 10.0]": True, "[0.0, 0.0, 1.0]": False, "[0.0, 1.0, 0.0]": False}
+
+
+def numbers(text: str) -> list[float] | None:
+    """The bound ``text`` as a list of floats, or None if it is not numbers."""
+    if text.startswith("'"):
+        return None
+    values = text.strip("[]").split(",") if text.strip("[]") else []
+    return [float(v) for v in values] if text.startswith("[") else [float(text)]
+
+
+def valid_bounds(lower: str, upper: str, rows: int, checked: bool) -> bool:
+    """The rule of ``PathConstraint`` bounds: numbers, one or ``rows`` each, no NaN,
+    lower ≤ upper row by row, lower < inf and upper > −inf (else no value meets the row);
+    and where the scheme checks the function's values (``checked``, all in (−1, 1)),
+    lower ≤ −1 and upper ≥ 1 (the bounds drawn are ±1, ±5 and ±inf)."""
+    lo, hi = numbers(lower), numbers(upper)
+    if lo is None or hi is None or len(lo) not in (1, rows) or len(hi) not in (1, rows):
+        return False
+    lo, hi = lo * (rows // len(lo)), hi * (rows // len(hi))
+    if any(math.isnan(v) for v in lo + hi) or any(a > b for a, b in zip(lo, hi, strict=True)):
+        return False
+    if max(lo) == math.inf or min(hi) == -math.inf:
+        return False
+    return not checked or (max(lo) <= -1.0 and min(hi) >= 1.0)
+
+
+@pytest.fixture(scope="module")
+def package(tmp_path_factory):
+    site = tmp_path_factory.mktemp("fuzz_site")
+    (site / "fuzzpkg").mkdir()
+    (site / "fuzzpkg" / "__init__.py").write_text("")
+    (site / "fuzzpkg" / "problems.py").write_text(FACTORIES)
+    sys.path.insert(0, str(site))
+    yield
+    sys.path.remove(str(site))
+    for name in [m for m in sys.modules if m.startswith("fuzzpkg")]:
+        del sys.modules[name]
+
+
+@pytest.fixture
+def guarded(package, monkeypatch):
+    """Starting a backend or solving fails the test with "passed validation"."""
+    def called(*args, **kwargs):
+        raise AssertionError("run_on_backend called: the input passed validation")
+    monkeypatch.setattr(driver, "run_on_backend", called)
+
+
+def outcome(scheme: str, args: dict[str, str], capsys) -> str | None:
+    """Run ``--problem fuzzpkg.problems:<scheme>`` with ``args``: None if it got past
+    validation, else its one error line (asserting exit 2, nothing on stdout, one line)."""
+    argv = ["--problem", f"fuzzpkg.problems:{scheme}", "--quiet"]
+    for key, value in args.items():
+        argv += ["--problem-arg", f"{key}={json.dumps(value)}"]   # a TOML string
+    capsys.readouterr()
+    try:
+        driver.main(scheme_class(scheme), argv)
+    except AssertionError as exc:
+        assert "passed validation" in str(exc)
+        return None
+    except SystemExit as exc:
+        out, err = capsys.readouterr()
+        assert exc.code == 2 and out == "" and "Traceback" not in err, (args, err)
+        lines = err.splitlines()
+        assert len(lines) == 1 and lines[0].startswith(f"ocpar.{scheme}: error: "), (args, err)
+        return lines[0]
+    raise AssertionError(f"{args}: neither refused nor passed")
+
+
+def expect(args: dict[str, str], line: str | None, fields: list[str]) -> None:
+    """Valid input (no ``fields`` at fault) gets past validation; invalid input is one
+    ValueError line naming one of the ``fields``."""
+    if not fields:
+        assert line is None, (args, line)
+    else:
+        assert line is not None, f"{args} passed validation"
+        assert "raised ValueError: " in line and any(f in line for f in fields), (args, line)
+
+
+@pytest.mark.parametrize("scheme", ["formation", "pursuit", "macs"])
+@settings(max_examples=60, deadline=None, derandomize=True, database=None,
+          suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(function=st.sampled_from(sorted(FUNCTIONS)), lower=st.sampled_from(BOUNDS),
+       upper=st.sampled_from(BOUNDS))
+def test_fuzzed_path_constraints(scheme, function, lower, upper, guarded, capsys):
+    known = FUNCTIONS[function].get(scheme)
+    args = {"function": function, "lower": lower, "upper": upper}
+    line = outcome(scheme, args, capsys)
+    valid = known is not None and valid_bounds(lower, upper, *known)
+    expect(args, line, [] if valid else ["path_constraints"])
+
+
+@settings(max_examples=60, deadline=None, derandomize=True, database=None,
+          suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(cost=st.sampled_from([None, *sorted(COSTS)]),
+       bounds=st.sampled_from([None, *sorted(CONTROL_BOUNDS)]),
+       sphere=st.sampled_from([None, *sorted(SPHERES)]),
+       plane=st.sampled_from([None, *sorted(PLANES)]))
+def test_fuzzed_formation_costs_bounds_and_obstacles(cost, bounds, sphere, plane, guarded,
+                                                     capsys):
+    """A running cost, control bounds, a sphere and a half-space, each valid or not; a cost
+    not finite at the boundary data (1/0) is one the checks cannot see before the solve (its
+    value depends on the solution's u), so it counts as valid here."""
+    args = {key: value for key, value in (("cost", cost), ("bounds", bounds),
+                                          ("sphere", sphere), ("plane", plane)) if value}
+    line = outcome("formation", args, capsys)
+    parts = [("running_cost", cost, COSTS), ("control_bounds", bounds, CONTROL_BOUNDS),
+             ("obstacle", sphere, SPHERES), ("obstacle", plane, PLANES)]
+    invalid = [field for field, value, table in parts if value is not None and not table[value]]
+    expect(args, line, invalid)
