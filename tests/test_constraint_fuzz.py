@@ -31,6 +31,8 @@ FACTORIES = textwrap.dedent('''
     from ocpar.ocp.constraints import PathConstraint
     from ocpar.pursuit import PursuitProblem, SampledPlan
 
+    from mypkg.problems import DoubleIntegrator
+
 
     def _value(text):
         """A --problem-arg string as Python (lambdas, lists, inf, nan), or None."""
@@ -58,29 +60,13 @@ FACTORIES = textwrap.dedent('''
                                 obstacles=obstacles)
 
 
-    class Integrator:
-        nx, nu = 2, 1
-
-        def rhs(self, x, u):
-            return ca.vertcat(x[1], u[0])
-
-        def running_cost(self, x, u):
-            return u[0] ** 2
-
-        def state_bounds(self):
-            return np.full(2, -np.inf), np.full(2, np.inf)
-
-        def control_bounds(self):
-            return np.array([-1.0]), np.array([1.0])
-
-
     def pursuit(function=None, lower="-inf", upper="0.0"):
         h = 0.05
         u = np.where(np.arange(80) < 40, -0.1, 0.1)
         x = [np.array([1.0, 0.0])]
         for uj in u:
             x.append(np.array([x[-1][0] + x[-1][1] * h + uj * h**2 / 2, x[-1][1] + uj * h]))
-        return PursuitProblem(name="fuzz", model=Integrator(), duration=4.0, samples=81,
+        return PursuitProblem(name="fuzz", model=DoubleIntegrator(), duration=4.0, samples=81,
                               initial_state=np.array([1.0, 0.0]), target_components=(0,),
                               target=np.array([0.0]), plan=SampledPlan(np.array(x), u[:, None]),
                               path_constraints=_constraints(function, lower, upper))
@@ -88,7 +74,7 @@ FACTORIES = textwrap.dedent('''
 
     def macs(function=None, lower="-inf", upper="0.0"):
         return MacsProblem(
-            name="fuzz", model=Integrator(),
+            name="fuzz", model=DoubleIntegrator(),
             objectives=(Objective(mayer=lambda xf, tf: tf),
                         Objective(running=lambda x, u: u[0] ** 2)),
             initial_state=(0.0, 0.0), final_time=(2.5, 5.0), control_bounds=((-1.0, 1.0),),
@@ -159,15 +145,17 @@ def valid_bounds(lower: str, upper: str, rows: int, checked: bool) -> bool:
 
 
 @pytest.fixture(scope="module")
-def package(tmp_path_factory):
+def package(tmp_path_factory, user_package):
+    """fuzzpkg.problems importable (with the user package mypkg it builds on)."""
     site = tmp_path_factory.mktemp("fuzz_site")
     (site / "fuzzpkg").mkdir()
     (site / "fuzzpkg" / "__init__.py").write_text("")
     (site / "fuzzpkg" / "problems.py").write_text(FACTORIES)
-    sys.path.insert(0, str(site))
+    sys.path[:0] = [str(site), str(user_package)]
     yield
     sys.path.remove(str(site))
-    for name in [m for m in sys.modules if m.startswith("fuzzpkg")]:
+    sys.path.remove(str(user_package))
+    for name in [m for m in sys.modules if m.startswith(("fuzzpkg", "mypkg"))]:
         del sys.modules[name]
 
 
