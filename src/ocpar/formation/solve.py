@@ -60,7 +60,10 @@ class FormationOptions:
     hierarchical mode only): after the outer solve, separation rounds of keep-out DMOC
     solves (:mod:`ocpar.formation.keep_out`, at most ``separation_rounds`` supersteps) keep
     every pair ≥ D apart on the continuous paths, or the result's status is
-    ``separation_not_met``; None: no constraint (the paths may cross).
+    ``separation_not_met``; None: no constraint (the paths may cross). A problem's obstacles
+    are kept clear by ``obstacle_rounds`` obstacle rounds
+    (:mod:`ocpar.formation.obstacle_rounds`), or with ``min_separation`` by the same
+    separation rounds (``obstacles_not_cleared`` if they end inside one).
     """
 
     mode: str = option("hierarchical", "hierarchical, or monolithic (one NLP, for reference)",
@@ -91,7 +94,8 @@ class FormationOptions:
     separation_rounds: int = option(30, "separation rounds (supersteps of keep-out solves) "
                                     "at most, with --min-separation", low=1)
     obstacle_rounds: int = option(30, "obstacle rounds (supersteps of keep-out solves) at "
-                                  "most, for a problem with obstacles", low=1)
+                                  "most, for a problem with obstacles (with --min-separation "
+                                  "the separation rounds keep them clear too)", low=1)
 
     def __post_init__(self) -> None:
         if self.mode not in MODES:
