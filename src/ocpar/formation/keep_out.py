@@ -285,10 +285,9 @@ def spread(positions: np.ndarray, distance: float, obstacles: Sequence[Obstacle]
             np.add.at(push, (j, node), -step)
             np.add.at(count, (i, node), 1)
             np.add.at(count, (j, node), 1)
-        if obstacles:
-            agent, node, step = pushed
-            np.add.at(push, (agent, node), step)
-            np.add.at(count, (agent, node), 1)
+        agent, node, step = pushed
+        np.add.at(push, (agent, node), step)
+        np.add.at(count, (agent, node), 1)
         push[:, [0, -1]] = 0
         target += push / np.maximum(count, 1)[..., None]
     return target, SPREAD_ITERATIONS
@@ -297,10 +296,11 @@ def spread(positions: np.ndarray, distance: float, obstacles: Sequence[Obstacle]
 def _obstacle_pushes(target: np.ndarray, obstacles: Sequence[Obstacle]
                      ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The moves that take the paths ``target`` (n, N+1, d) out of ``obstacles``: each
-    segment whose clearance is < 0 has its point nearest the obstacle (at s) moved along the
-    normal of the tangent plane there by its depth below it + :data:`SPREAD_MARGIN` · the
-    obstacle's scale, spread over the segment's two nodes in proportion (1 − s, s) as
-    :func:`spread` does; agents (m,), nodes (m,) and moves (m, d), length unit."""
+    segment whose clearance is < 0 has its point nearest the centre (at s, in the obstacle's
+    scaled space) moved along the normal of the tangent plane there by its depth below it +
+    :data:`SPREAD_MARGIN` · the obstacle's scale, spread over the segment's two nodes in
+    proportion (1 − s, s) as :func:`spread` does; agents (m,), nodes (m,) and moves (m, d),
+    length unit."""
     agents, nodes, steps = [np.zeros(0, int)], [np.zeros(0, int)], [np.zeros((0, target.shape[2]))]
     for obstacle in obstacles:
         gap, s = obstacle.clearance(target[:, :-1], target[:, 1:])
