@@ -13,7 +13,14 @@ when every segment is. :func:`segment_clearance` measures it on each segment: th
 distance for a sphere or a half-space, and for an ellipsoid the lower bound
 min(a) (min_s |A (r(s) − c)| − 1) (A⁻¹ stretches by at least min(a)); negative inside.
 
-The rounds that keep the paths clear are :mod:`ocpar.formation.obstacle_rounds`.
+:func:`obstacle_half_spaces` gives each interval near an obstacle the obstacle's tangent
+plane n·r ≥ n·c + 1, n = Aᵀ ŷ, ŷ the unit direction (in the scaled space) of the segment's
+point nearest the centre (the obstacle lies entirely on the other side: a supporting plane
+of a convex set); on an interval with a fixed node (the first and the last) ŷ is that node's
+direction instead, so that the fixed node, outside the obstacle, meets it too. A half-space
+obstacle is its own plane. The rounds that impose these planes are
+:mod:`ocpar.formation.obstacle_rounds` (obstacles alone) and
+:mod:`ocpar.formation.keep_out` (with a minimum separation).
 """
 
 from __future__ import annotations
@@ -25,6 +32,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ocpar.formation.separation import segment_closest
+from ocpar.ocp.dmoc import UNUSED_OFFSET
 
 
 @dataclass(frozen=True)
@@ -196,3 +204,46 @@ def closest_obstacle(positions: np.ndarray, obstacles: Sequence[Obstacle],
     return Clearance(float(gaps[agent, k, o]), int(agent), int(o), float((k + s) * h))
 
 
+#: Intervals within this (scaled, |A (r − c)| − 1) of an obstacle get its half-space.
+OBSTACLE_MARGIN = 0.5
+#: Clearance counts as met at −this · (the obstacle's scale): the planes hold to the
+#: solver's accuracy.
+CLEARANCE_TOL = 1e-9
+#: Obstacle half-spaces per interval at most (the nearest obstacles'; a dropped one is caught
+#: by the next round's check).
+OBSTACLE_SLOTS = 4
+
+
+def obstacle_half_spaces(positions: np.ndarray, obstacles: Sequence[Obstacle], slots: int
+                         ) -> tuple[np.ndarray, np.ndarray]:
+    """Keep-out data (n, N, slots, d + 2) from node positions (n, N+1, d): for each interval
+    within :data:`OBSTACLE_MARGIN` of an obstacle (the nearest ``slots`` of them), its
+    tangent plane (module docstring), static over the interval; unused slots 0 and
+    :data:`~ocpar.ocp.dmoc.UNUSED_OFFSET`. And the agents (sorted) that have any."""
+    n, nodes, dim = positions.shape
+    intervals = nodes - 1
+    data = np.zeros((n, intervals, slots, dim + 2))
+    data[..., dim:] = UNUSED_OFFSET
+    gaps = segment_clearance(positions, obstacles) / np.array([o.scale for o in obstacles])
+    near = gaps < OBSTACLE_MARGIN
+    order = np.argsort(np.where(near, gaps, np.inf), axis=-1, kind="stable")[..., :slots]
+    for slot in range(min(slots, len(obstacles))):
+        for o, obstacle in enumerate(obstacles):
+            a, k = np.nonzero((order[..., slot] == o) & near[..., o])
+            if not len(a):
+                continue
+            start, end = positions[a, k], positions[a, k + 1]
+            _, s = obstacle.clearance(start, end)
+            point = (1 - s[:, None]) * start + s[:, None] * end
+            point[k == 0] = start[k == 0]                       # the fixed first node
+            point[k == intervals - 1] = end[k == intervals - 1]  # the fixed last node
+            normal, offset = obstacle.plane(point)
+            data[a, k, slot, :dim] = normal
+            data[a, k, slot, dim:] = offset[:, None]
+    return data, np.flatnonzero(near.any(axis=(1, 2)))
+
+
+def cleared(closest: Clearance, obstacles: Sequence[Obstacle]) -> bool:
+    """Whether the clearance ``closest`` is ≥ −:data:`CLEARANCE_TOL` · (the smallest
+    obstacle scale, length unit)."""
+    return closest.distance >= -CLEARANCE_TOL * min(o.scale for o in obstacles)

@@ -34,7 +34,8 @@ class FormationResult(RunResult):
     before them (NaN/None/0 without); with obstacles (:mod:`ocpar.formation.obstacles`):
     ``obstacle_clearance`` the smallest clearance of any agent from any obstacle on the
     continuous paths (which agent, obstacle, when), ``obstacle_rounds`` the rounds run, and
-    ``unconstrained_cost`` the cost before them.
+    ``unconstrained_cost`` the cost before them (with both, the same rounds impose both:
+    ``separation_rounds`` = ``obstacle_rounds``).
     The common fields are :class:`ocpar.results.RunResult`'s.
     """
 

@@ -22,6 +22,7 @@ from ocpar.formation.hierarchical import (
 from ocpar.formation.keep_out import separate
 from ocpar.formation.monolithic import solve_monolithic
 from ocpar.formation.obstacle_rounds import avoid_obstacles
+from ocpar.formation.obstacles import Clearance
 from ocpar.formation.ordering import ORDERINGS, optimal_ordering
 from ocpar.formation.potential import coupling
 from ocpar.formation.problem import FormationProblem
@@ -59,7 +60,10 @@ class FormationOptions:
     hierarchical mode only): after the outer solve, separation rounds of keep-out DMOC
     solves (:mod:`ocpar.formation.keep_out`, at most ``separation_rounds`` supersteps) keep
     every pair ≥ D apart on the continuous paths, or the result's status is
-    ``separation_not_met``; None: no constraint (the paths may cross).
+    ``separation_not_met``; None: no constraint (the paths may cross). A problem's obstacles
+    are kept clear by ``obstacle_rounds`` obstacle rounds
+    (:mod:`ocpar.formation.obstacle_rounds`), or with ``min_separation`` by the same
+    separation rounds (``obstacles_not_cleared`` if they end inside one).
     """
 
     mode: str = option("hierarchical", "hierarchical, or monolithic (one NLP, for reference)",
@@ -90,7 +94,8 @@ class FormationOptions:
     separation_rounds: int = option(30, "separation rounds (supersteps of keep-out solves) "
                                     "at most, with --min-separation", low=1)
     obstacle_rounds: int = option(30, "obstacle rounds (supersteps of keep-out solves) at "
-                                  "most, for a problem with obstacles", low=1)
+                                  "most, for a problem with obstacles (with --min-separation "
+                                  "the separation rounds keep them clear too)", low=1)
 
     def __post_init__(self) -> None:
         if self.mode not in MODES:
@@ -132,13 +137,11 @@ def check_applicable(problem: FormationProblem, options: FormationOptions) -> No
     positions already violate (the final positions of the initial angles: on a circle every
     formation has the same spacings, elsewhere the formation is the initial one); a driver
     calls it before starting workers (:func:`solve_formation` calls it too). Obstacles need
-    the hierarchical mode, final positions (of the initial angles) clear of them, and do not
-    combine with ``min_separation`` yet."""
+    the hierarchical mode and final positions (of the initial angles) clear of them; with
+    ``min_separation`` too, the separation rounds keep the paths clear of them as well."""
     if problem.obstacles:
         if options.mode != "hierarchical":
             raise ValueError("obstacles apply to the hierarchical mode only")
-        if options.min_separation is not None:
-            raise ValueError("obstacles and min_separation do not combine yet: choose one")
         nq = problem.common_shape.model.nq
         problem.check_clear("final positions (at the initial angles)",
                             problem.boundary_params_rows(np.arange(problem.agents),
@@ -171,6 +174,16 @@ def coupling_residual(problem: FormationProblem, phi: np.ndarray) -> float:
                                         and phi.size > COUPLING_CHECK_MAX_AGENTS):
         return float("nan")
     return float(np.max(np.abs(coupling(phi, problem.curve))))
+
+
+def _obstacle_words(met: bool, closest: Clearance, rounds: int) -> tuple[str | None, str]:
+    """After ``rounds`` keep-out rounds that reached the clearance ``closest``: the status
+    ``obstacles_not_cleared`` unless ``met`` (None then), and the words on the obstacles."""
+    if met:
+        return None, f"obstacles cleared after {rounds} round(s) (clearance {closest.distance:.3g})"
+    return "obstacles_not_cleared", (
+        f"obstacles not cleared after {rounds} round(s): agent {closest.agent} comes "
+        f"{-closest.distance:.3g} inside obstacle {closest.obstacle} at t = {closest.time:.6g}")
 
 
 def solve_formation(
@@ -247,6 +260,8 @@ def solve_formation(
                           progress)
         extra = {"required_separation": distance, "separation_rounds": rounds.rounds,
                  "unconstrained_cost": float(np.sum(costs))}
+        if problem.obstacles:   # the same rounds kept the paths clear of them
+            extra |= {"obstacle_rounds": rounds.rounds, "obstacle_clearance": rounds.clearance}
         costs, trajectories, controls = rounds.costs, rounds.q, rounds.u
         separation = rounds.closest
         inner_solves += rounds.inner_solves
@@ -264,7 +279,13 @@ def solve_formation(
                        f"come within {rounds.closest.distance:.6g} (short by "
                        f"{distance - rounds.closest.distance:.3g}; {rounds.dropped} "
                        f"half-space(s) dropped for want of slots over the rounds)")
-    if problem.obstacles and status != "failed":
+        if problem.obstacles:
+            not_cleared, words = _obstacle_words(rounds.cleared, rounds.clearance, rounds.rounds)
+            if not_cleared and rounds.met:
+                status, message = not_cleared, words
+            else:
+                message += f"; {words}"
+    elif problem.obstacles and status != "failed":
         avoided = avoid_obstacles(problem, backend, phi, sols, options.obstacle_rounds,
                                   progress)
         extra = {"obstacle_rounds": avoided.rounds, "obstacle_clearance": avoided.closest,
@@ -273,15 +294,11 @@ def solve_formation(
         inner_solves += avoided.inner_solves
         failed_solves += avoided.failed_solves
         retries += avoided.retries
-        closest = avoided.closest
-        if avoided.met:
-            message += (f"; obstacles cleared after {avoided.rounds} round(s) (clearance "
-                        f"{closest.distance:.3g})")
+        not_cleared, words = _obstacle_words(avoided.met, avoided.closest, avoided.rounds)
+        if not_cleared:
+            status, message = not_cleared, words
         else:
-            status = "obstacles_not_cleared"
-            message = (f"obstacles not cleared after {avoided.rounds} round(s): agent "
-                       f"{closest.agent} comes {-closest.distance:.3g} inside obstacle "
-                       f"{closest.obstacle} at t = {closest.time:.6g}")
+            message += f"; {words}"
     wall_time_s = time.perf_counter() - start
     return FormationResult(
         **common,
