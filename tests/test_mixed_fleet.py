@@ -201,23 +201,26 @@ def test_obstacles_refuse_what_they_do_not_combine_with():
 
 
 def test_mixed_fleet_on_mpi_and_dask_is_bitwise_the_serial_result(tmp_path):
-    """Norm thrust limits and the ball: serial, 2 Dask workers and mpirun -n 2 agree bit for
-    bit."""
-    serial = solve_formation(make(limit="norm", obstacle=2.5))
-    assert serial.obstacle_rounds >= 1
+    """Norm thrust limits, the ball and a separation of 0.4 in the same rounds: serial,
+    2 Dask workers and mpirun -n 2 agree bit for bit."""
+    options = FormationOptions(min_separation=0.4)
+    serial = solve_formation(make(limit="norm", obstacle=2.5), options=options)
+    assert serial.status == "converged" and serial.obstacle_rounds >= 1
     with open_backend("dask", workers=2) as backend:
-        dask = solve_formation(make(limit="norm", obstacle=2.5), backend)
+        dask = solve_formation(make(limit="norm", obstacle=2.5), backend, options)
     assert dask.total_cost == serial.total_cost
     np.testing.assert_array_equal(dask.trajectories, serial.trajectories)
     proc = run_cli("-m", "ocpar.formation", "--problem",
                    "ocpar.examples.formation_mixed_fleet:make", "--problem-arg", "limit=norm",
-                   "--problem-arg", "obstacle=2.5", "--output", str(tmp_path), mpi_ranks=2)
+                   "--problem-arg", "obstacle=2.5", "--min-separation", "0.4", "--output",
+                   str(tmp_path), mpi_ranks=2)
     assert proc.returncode == 0, proc.stderr
     mpi = json.loads((tmp_path / "result.json").read_text())
     assert mpi["total_cost"] == serial.total_cost
     assert mpi["trajectories"] == serial.trajectories.tolist()
     assert mpi["peak_thrust"] == pytest.approx(serial.peak_thrust.tolist(), rel=1e-15)
     assert mpi["min_obstacle_clearance"] == serial.obstacle_clearance.distance
+    assert mpi["min_separation"] == serial.separation.distance
 
 
 def test_a_path_constraint_the_starts_break_or_that_is_not_finite_is_refused():
