@@ -26,6 +26,7 @@ from ocpar.formation import (
     Sphere,
     solve_formation,
 )
+from ocpar.models import PointMass
 from ocpar.ocp.constraints import PathConstraint
 
 U_MAX = 2.7
@@ -235,3 +236,39 @@ def test_a_path_constraint_the_starts_break_or_that_is_not_finite_is_refused():
     with pytest.raises(ValueError, match=r"path_constraints\[0\] \(ratio\): not finite"):
         problem.with_shapes(lambda s: dataclasses.replace(s, solver="sqpmethod",
                                                           path_constraints=(singular,)))
+
+
+@pytest.mark.parametrize("intervals", [4, 5, 10, 11])
+def test_dmoc_reaches_no_farther_than_the_continuous_bang_bang_move(intervals):
+    """The formation's reach check assumes DMOC's rest-to-rest move under |u| ≤ a covers at
+    most the continuous T² a / (4 m): 0.1 % less thrust is infeasible, 20 % more is not."""
+    from ocpar.ocp import OcpTask, solve_tasks
+
+    mass, duration, distance = 1.5, 2.0, 1.0
+    least = 4 * mass * distance / duration**2
+    for factor, feasible in ((0.999, False), (1.2, True)):
+        a = factor * least
+        shape = DmocShape(PointMass(dim=1, mass=mass), intervals, duration, solver="ipopt",
+                          control_bounds=((-a, a),))
+        solution = solve_tasks([OcpTask(shape, np.array([0.0, 0.0, distance, 0.0]))])[0]
+        assert (solution.success and np.max(np.abs(solution.u)) <= a * (1 + 1e-9)) == feasible
+
+
+def test_a_box_thrust_limit_that_cannot_reach_the_curve_is_refused():
+    """The least thrust any formation needs, computed here by brute force over 200,000
+    points of the circle (per agent the nearest point in the bang–bang sense,
+    max_j 4 m |Δ_j| / T², then the worst agent): 1 % below it the problem is refused,
+    naming the agent's control_bounds; at 1.001 times it the check lets it through."""
+    problem = make()
+    theta = np.linspace(0, 2 * np.pi, 200_000, endpoint=False)
+    points = problem.curve.points(theta)
+    duration = problem.common_shape.duration
+    masses = np.array([shape.model.mass for shape in problem.shapes])
+    need = [np.min(np.max(4 * m * np.abs(points - start), axis=1)) / duration**2
+            for m, start in zip(masses, problem.starts, strict=True)]
+    least = max(need)
+    with pytest.raises(ValueError, match=rf"^shape\[{int(np.argmax(need))}\]\.control_bounds: "
+                       r"agent \d+ \(mass 1\.5\) cannot reach any point of the curve"):
+        make(u_max=0.99 * least)
+    make(u_max=1.001 * least)
+    make(limit="norm", u_max=0.99 * least)   # a norm limit is a path constraint: not read

@@ -28,11 +28,14 @@ from ocpar.formation.curve import Circle, Curve
 from ocpar.formation.obstacles import Obstacle, check_obstacles
 from ocpar.formation.potential import relax
 from ocpar.formation.separation import ClosestApproach, closest_approach
-from ocpar.models import MechanicalSystem
+from ocpar.models import MechanicalSystem, PointMass
 from ocpar.ocp import DmocShape, OcpTask
 
 #: Boundary configurations must satisfy the model's holonomic constraints to this tolerance.
 CONSTRAINT_TOL = 1e-8
+#: Points of the curve sampled (uniform in φ) to find each start's nearest target
+#: (:meth:`FormationProblem._check_thrust_reach`), and agents per block of that search.
+REACH_SAMPLES, REACH_BLOCK = 2048, 256
 
 
 def _array(name: str, value: object, shape: tuple[int, ...]) -> np.ndarray:
@@ -120,6 +123,46 @@ class FormationProblem:
         object.__setattr__(self, "obstacles", check_obstacles(self.obstacles, len(indices)))
         self.check_clear("starts", self.starts)
         self._check_path_constraints()
+        self._check_thrust_reach()
+
+    def _check_thrust_reach(self) -> None:
+        """Point masses (:class:`~ocpar.models.PointMass`) at rest at both ends under box
+        thrust limits lo_j ≤ u_j ≤ hi_j reach at most |Δq_j| ≤ T² / (2 m (1/hi_j + 1/|lo_j|))
+        in each entry (bang–bang: T² a / (4 m) for a symmetric limit a; DMOC's discrete reach
+        is no larger, ``tests/test_mixed_fleet.py``). An agent from whose start no point of
+        the curve is within that reach has no feasible formation at all: ValueError naming
+        its ``control_bounds``. The curve is sampled at :data:`REACH_SAMPLES` points and
+        each gap shortened by their largest spacing, so that the check never refuses a
+        reachable curve."""
+        limited = {shape: agents for shape, agents in self.agents_by_shape().items()
+                   if isinstance(shape.model, PointMass) and shape.control_bounds is not None}
+        if not limited:
+            return
+        phi = np.arange(REACH_SAMPLES) * 2 * np.pi / REACH_SAMPLES
+        targets = np.hstack([self.final_positions(phi), np.broadcast_to(
+            self.final_attitude, (REACH_SAMPLES, len(self.final_attitude)))])
+        spacing = float(np.max(np.linalg.norm(targets - np.roll(targets, 1, axis=0), axis=1)))
+        for shape, agents in limited.items():
+            model, bounds = shape.model, shape.control_bounds
+            rest = agents[~np.any(self.start_velocities[agents], axis=1)
+                          & ~np.any(self.final_velocities(agents), axis=1)]
+            limits = np.array(bounds)   # (nu, 2): lo, hi
+            lo, hi = np.maximum(-limits[:, 0], 0.0), np.maximum(limits[:, 1], 0.0)
+            with np.errstate(divide="ignore"):
+                reach = shape.duration**2 / (2 * model.mass * (1 / hi + 1 / lo))
+            for block in np.array_split(rest, max(1, -(-len(rest) // REACH_BLOCK))):
+                gaps = np.abs(targets[None] - self.starts[block][:, None]) - spacing
+                with np.errstate(divide="ignore", invalid="ignore"):
+                    need = np.max(np.where(gaps > 0, gaps / reach, 0.0), axis=2).min(axis=1)
+                if np.any(need > 1):
+                    k = int(np.argmax(need))
+                    label = "shape" if isinstance(self.shape, DmocShape) else \
+                        f"shape[{block[k]}]"
+                    raise ValueError(
+                        f"{label}.control_bounds: agent {block[k]} (mass {model.mass:g}) "
+                        f"cannot reach any point of the curve from rest to rest in "
+                        f"T = {shape.duration:g}: the nearest needs {need[k]:.4g} times the "
+                        f"thrust that {tuple(bounds)} allow")
 
     def _check_path_constraints(self) -> None:
         """Each agent's path constraints must be finite at its start (q_0, q̇_0, u = 0) and
