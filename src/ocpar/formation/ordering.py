@@ -128,10 +128,10 @@ def cost_table(problem: FormationProblem, backend: Backend, slots: np.ndarray) -
     if slots.shape != (problem.agents,):
         raise ValueError(f"slots must have shape ({problem.agents},) (one angle per agent, "
                          f"rad), got {slots.shape}")
-    return _tables(problem, backend, slots[None, :])[0]
+    return cost_tables(problem, backend, slots[None, :])[0]
 
 
-def _tables(problem: FormationProblem, backend: Backend, slots: np.ndarray) -> np.ndarray:
+def cost_tables(problem: FormationProblem, backend: Backend, slots: np.ndarray) -> np.ndarray:
     """Cost tables (M, n, n) for the M rows of ``slots`` (M, n) (rad), in one superstep."""
     n = problem.agents
     if not np.all(np.isfinite(slots)):
@@ -149,7 +149,7 @@ def _tables(problem: FormationProblem, backend: Backend, slots: np.ndarray) -> n
     return np.asarray(sols.column("cost"), dtype=float).reshape(tables, n, n)
 
 
-def _assign(table: np.ndarray) -> np.ndarray:
+def cheapest_assignment(table: np.ndarray) -> np.ndarray:
     """The cheapest assignment of a cost table: slot index per agent (n,)."""
     rows, cols = linear_sum_assignment(table)
     assignment = np.empty(len(table), dtype=np.intp)
@@ -157,13 +157,13 @@ def _assign(table: np.ndarray) -> np.ndarray:
     return assignment
 
 
-def _table_cost(table: np.ndarray, assignment: np.ndarray) -> float:
+def assignment_cost(table: np.ndarray, assignment: np.ndarray) -> float:
     return float(np.sum(table[np.arange(len(table)), assignment]))
 
 
 def _improves(table: np.ndarray, current: np.ndarray, new: np.ndarray) -> bool:
-    old = _table_cost(table, current)
-    return _table_cost(table, new) < old - IMPROVEMENT_RTOL * abs(old)
+    old = assignment_cost(table, current)
+    return assignment_cost(table, new) < old - IMPROVEMENT_RTOL * abs(old)
 
 
 def _canonical(assignment: np.ndarray) -> tuple[int, ...]:
@@ -245,7 +245,7 @@ class CostSurrogate:
         assignment, offset = _wrap(assignment, offset, width)
         for _ in range(max_rounds):
             table = self.table(offset)
-            better = _assign(table)
+            better = cheapest_assignment(table)
             if not _improves(table, assignment, better):
                 break
             value, offset = self.minimise(better)
@@ -287,12 +287,12 @@ def optimal_ordering(
 
     # multi-start: tables at `starts` offsets within one slot width, one superstep
     offsets = np.arange(starts) * width / starts
-    tables = _tables(problem, backend, base[None, :] + offsets[:, None])
+    tables = cost_tables(problem, backend, base[None, :] + offsets[:, None])
     inner_solves, table_supersteps = tables.size, 1
     surrogate = CostSurrogate(tables)
     found: dict[tuple[int, ...], np.ndarray] = {}
     for offset in np.arange(FINE_OFFSETS) * width / FINE_OFFSETS:
-        candidate = _assign(surrogate.table(offset))
+        candidate = cheapest_assignment(surrogate.table(offset))
         found.setdefault(_canonical(candidate), candidate)
     descents = [surrogate.descend(a, max_rounds) for a in [keep, *found.values()]]
     estimate, offset, assignment = min(descents, key=lambda d: d[0])
@@ -323,7 +323,7 @@ def optimal_ordering(
         inner_solves += n * n
         surrogate_error = max(surrogate_error, float(
             np.max(np.abs(surrogate.table(offset) - table)) / np.max(np.abs(table))))
-        better = _assign(table)
+        better = cheapest_assignment(table)
         improved = _improves(table, assignment, better)
         moved = int(np.count_nonzero(better != assignment)) if improved else 0
         say(f"ordering round {rounds}: cost {total_cost:.12e}, {moved} agent(s) moved")
@@ -333,7 +333,7 @@ def optimal_ordering(
             break
         # the better assignment at this offset: its cost is known from the table, exactly
         assignment = better
-        phi, total_cost = base[assignment] + offset, _table_cost(table, assignment)
+        phi, total_cost = base[assignment] + offset, assignment_cost(table, assignment)
     return OrderingResult(
         phi=np.asarray(phi, float),
         assignment=assignment,

@@ -35,7 +35,11 @@ class FormationResult(RunResult):
     ``obstacle_clearance`` the smallest clearance of any agent from any obstacle on the
     continuous paths (which agent, obstacle, when), ``obstacle_rounds`` the rounds run, and
     ``unconstrained_cost`` the cost before them (with both, the same rounds impose both:
-    ``separation_rounds`` = ``obstacle_rounds``).
+    ``separation_rounds`` = ``obstacle_rounds``); ``feasible_set`` ``continuous`` on a circle
+    (a common rotation), ``discrete`` elsewhere (the potential's isolated critical points),
+    with ``critical_sets`` the candidates searched by ``--ordering optimal``
+    (:meth:`~ocpar.formation.critical_sets.CriticalSet.to_dict`, cheapest first; None when
+    none were).
     The common fields are :class:`ocpar.results.RunResult`'s.
     """
 
@@ -58,6 +62,8 @@ class FormationResult(RunResult):
     controls: np.ndarray | None = None
     obstacle_clearance: Clearance | None = None
     obstacle_rounds: int = 0
+    feasible_set: str = "continuous"
+    critical_sets: list[dict] | None = None
 
     @property
     def peak_thrust(self) -> np.ndarray:
@@ -92,6 +98,8 @@ class FormationResult(RunResult):
             "agent_costs": [_finite_or_none(c) for c in self.agent_costs],
             "peak_thrust": [_finite_or_none(t) for t in self.peak_thrust],
             **self._obstacle_fields(),
+            "feasible_set": self.feasible_set,
+            "critical_sets": self.critical_sets,
             "trajectories": np.asarray(self.trajectories, float).tolist(),
         }
 

@@ -12,6 +12,12 @@ import numpy as np
 
 from ocpar.bsp import Backend
 from ocpar.bsp.serial import SerialBackend
+from ocpar.formation.critical_sets import (
+    CRITICAL_READINGS,
+    CRITICAL_STARTS,
+    IsolatedChoice,
+    best_isolated_formation,
+)
 from ocpar.formation.hierarchical import (
     InnerSolveFailed,
     OuterObjective,
@@ -79,9 +85,18 @@ class FormationOptions:
     max_outer_iterations: int = option(200, "outer iterations at most", low=1)
     monolithic_tol: float = option(1e-12, "IPOPT's tol in monolithic mode", above=0)
     ordering: str = option("keep", "which agent goes to which place on the curve: keep (the "
-                           "initial guess's order, the paper's) or optimal (assignment over a "
-                           "table of n^2 inner costs, alternated with the common offset)",
+                           "initial guess's order, the paper's) or optimal (on a circle, "
+                           "assignment over a table of n^2 inner costs, alternated with the "
+                           "common offset; on any other curve, the cheapest of the coupling's "
+                           "isolated solution sets and its cheapest assignment)",
                            choices=ORDERINGS)
+    critical: str = option("stable", "off a circle, with --ordering optimal: which solutions "
+                           "of the coupling to search: stable (local minima of the potential, "
+                           "spread-out formations) or any (every critical point, saddles "
+                           "included: the paper's g(phi) = 0)", choices=CRITICAL_READINGS)
+    critical_starts: int = option(CRITICAL_STARTS, "off a circle, with --ordering optimal: "
+                                  "random starts of the search for the coupling's solution "
+                                  "sets, besides the initial guess", low=1)
     inner_solver: str | None = option(
         None, "inner DMOC solver: sqpmethod (a chunk in one mapped call, IPOPT for the solves "
         "that fail its KKT check) or ipopt (one IPOPT call per agent); default: the problem's "
@@ -117,6 +132,11 @@ class FormationOptions:
             raise ValueError("separation_rounds must be at least 1")
         if self.obstacle_rounds < 1:
             raise ValueError("obstacle_rounds must be at least 1")
+        if self.critical not in CRITICAL_READINGS:
+            raise ValueError(f"unknown critical {self.critical!r}; choose one of "
+                             f"{', '.join(CRITICAL_READINGS)}")
+        if self.critical_starts < 1:
+            raise ValueError("critical_starts must be at least 1")
 
 
 def cost_parts(problem: FormationProblem, controls: np.ndarray) -> dict[str, float]:
@@ -146,8 +166,6 @@ def check_applicable(problem: FormationProblem, options: FormationOptions) -> No
         problem.check_clear("final positions (at the initial angles)",
                             problem.boundary_params_rows(np.arange(problem.agents),
                                                          problem.initial_phi())[:, 2 * nq:3 * nq])
-    if options.ordering == "optimal":
-        problem.require_circle("ordering 'optimal'")
     if options.mode == "hierarchical" and options.outer == "offset":
         problem.require_circle("outer 'offset'")
     if options.min_separation is not None:
@@ -186,6 +204,23 @@ def _obstacle_words(met: bool, closest: Clearance, rounds: int) -> tuple[str | N
         f"{-closest.distance:.3g} inside obstacle {closest.obstacle} at t = {closest.time:.6g}")
 
 
+def discrete_choice(problem: FormationProblem, choice: IsolatedChoice | None) -> dict:
+    """The result's fields on the outer problem's feasible set: on a circle ``continuous`` (the
+    common rotation); elsewhere ``discrete`` (the potential's isolated critical points), with
+    ``critical_sets`` the candidates searched (:mod:`ocpar.formation.critical_sets`), None
+    when none were, and the status line's words on it in ``note``."""
+    if problem.on_circle:
+        return {"feasible_set": "continuous", "note": ""}
+    if choice is None:
+        return {"feasible_set": "discrete", "critical_sets": None, "note": (
+            "; the feasible set is discrete (the potential's isolated critical points): this is "
+            "the formation the initial guess selects, other solution sets and assignments not "
+            "searched (--ordering optimal finds the best)")}
+    return {"feasible_set": "discrete", "critical_sets": [s.to_dict() for s in choice.sets],
+            "note": (f"; the best of {len(choice.sets)} critical set(s) found from "
+                     f"{choice.starts} start(s), each with its cheapest assignment")}
+
+
 def solve_formation(
     problem: FormationProblem,
     backend: Backend | None = None,
@@ -212,17 +247,23 @@ def solve_formation(
     start = time.perf_counter()
     common = {"problem": problem.name, "agents": problem.agents, "backend": backend.name,
               "workers": backend.workers, "mode": options.mode, "on_circle": problem.on_circle}
-    ordering_solves = 0
-    if options.ordering == "optimal":
+    ordering_solves, choice = 0, None
+    if options.ordering == "optimal" and problem.on_circle:
         ordered = optimal_ordering(problem, backend, tol=options.outer_tol, progress=progress)
         phi0, ordering_solves = ordered.phi, ordered.inner_solves
+    elif options.ordering == "optimal":
+        choice = best_isolated_formation(problem, backend, options.critical,
+                                         options.critical_starts, progress)
+        phi0, ordering_solves = choice.phi, choice.inner_solves
+    discrete = discrete_choice(problem, choice)
+    note = discrete.pop("note")
 
     if options.mode == "monolithic":
         sol = solve_monolithic(problem, phi0, options.monolithic_tol, options.max_outer_iterations)
         return FormationResult(
             **common,
             status="converged" if sol.success else "not_converged",
-            message=sol.status,
+            message=sol.status + note,
             total_cost=float(np.sum(sol.agent_costs)),
             phi=sol.phi,
             agent_costs=sol.agent_costs,
@@ -236,15 +277,20 @@ def solve_formation(
             trace=backend.traces[first_trace:],
             coupling_residual=coupling_residual(problem, sol.phi),
             controls=sol.controls,
+            **discrete,
         )
 
     objective = OuterObjective(problem, backend, progress)
     try:
-        phi, iterations, success, message = OUTER[options.outer](
-            objective, phi0, options.outer_tol, options.max_outer_iterations
-        )
+        if choice is None:
+            phi, iterations, success, message = OUTER[options.outer](
+                objective, phi0, options.outer_tol, options.max_outer_iterations
+            )
+        else:   # the feasible set is the critical sets: the choice is the outer solve
+            phi, iterations, success, message = phi0, 0, True, "ordering optimal"
         sols = objective.solutions(phi)
         status = "converged" if success else "not_converged"
+        message += note
     except InnerSolveFailed as exc:
         phi, iterations, status, message = objective.last_phi, -1, "failed", str(exc)
         sols = objective.last_solutions
@@ -319,5 +365,6 @@ def solve_formation(
         trace=backend.traces[first_trace:],
         coupling_residual=coupling_residual(problem, phi),
         controls=controls,
+        **discrete,
         **extra,
     )
