@@ -24,6 +24,7 @@ from ocpar.formation.curve import Circle, Curve, Ellipse, ParametricCurve, Plane
 from ocpar.formation.obstacles import Ellipsoid, HalfSpace, Sphere
 from ocpar.formation.problem import FormationProblem
 from ocpar.formation.result import FormationResult
+from ocpar.formation.slots import Slots
 from ocpar.formation.solve import MODES, FormationOptions, solve_formation
 from ocpar.ocp import DmocShape
 
@@ -40,6 +41,7 @@ __all__ = [
     "HalfSpace",
     "ParametricCurve",
     "PlaneCurve",
+    "Slots",
     "Sphere",
     "solve_formation",
 ]

@@ -34,6 +34,7 @@ from ocpar.formation.potential import (
     respace,
 )
 from ocpar.formation.problem import FormationProblem
+from ocpar.formation.slots import Slots
 from ocpar.ocp import solve_tasks
 
 #: Second iterate of the offset search (rad): 1/60 of a slot for the paper's 60 agents.
@@ -135,6 +136,8 @@ class OuterObjective:
         # (50 ms at 1000 agents, as much as the superstep itself on 64 workers)
         if self.problem.on_circle:
             feasibility = f"equidistance {equidistance_error(phi):.1e} rad"
+        elif isinstance(self.problem.curve, Slots):
+            feasibility = f"distinct slots {np.unique(phi).size} of {phi.size}"
         else:
             feasibility = f"coupling {np.max(np.abs(coupling(phi, self.problem.curve))):.1e}"
         self.progress(

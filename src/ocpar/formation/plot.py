@@ -11,6 +11,7 @@ from ocpar.formation.obstacles import Ellipsoid
 from ocpar.formation.problem import FormationProblem
 from ocpar.formation.result import FormationResult
 from ocpar.formation.separation import positions_at
+from ocpar.formation.slots import Slots
 from ocpar.plotting import pyplot, save
 
 #: Most trajectories a picture draws: above it every k-th (100,000 paths took ~15 s to draw and
@@ -29,6 +30,15 @@ def _drawn_note(agents: int) -> str:
     return "" if step == 1 else f" (every {step}th path drawn)"
 
 
+def _target(problem: FormationProblem, samples: int) -> tuple[np.ndarray, dict]:
+    """Points (m, d) to draw the target by, and their style: the curve as a dashed line of
+    ``samples`` points, or the slots as grey dots."""
+    if isinstance(problem.curve, Slots):
+        return problem.curve.points, {"ls": "", "marker": ".", "color": "0.5", "ms": 3}
+    return (problem.final_positions(np.linspace(0, 2 * np.pi, samples)),
+            {"ls": "--", "color": "k", "lw": 0.8})
+
+
 def plot_formation(problem: FormationProblem, result: FormationResult, path: Path) -> Path:
     """Write a PNG to ``path``: for a planar problem two panels (the whole manoeuvre, and a
     close-up of the curve with the last portions of the trajectories), in 3-D one perspective
@@ -39,7 +49,7 @@ def plot_formation(problem: FormationProblem, result: FormationResult, path: Pat
     from matplotlib.collections import LineCollection
 
     fig, (ax_all, ax_end) = plt.subplots(1, 2, figsize=(12, 5.5))
-    circle = problem.final_positions(np.linspace(0, 2 * np.pi, 400))
+    circle, style = _target(problem, 400)
     ends = problem.final_positions(result.phi)
     tail = max(2, result.trajectories.shape[1] // 3)
     drawn = result.trajectories[:: path_step(len(result.trajectories))]
@@ -47,7 +57,7 @@ def plot_formation(problem: FormationProblem, result: FormationResult, path: Pat
         # one collection, not one line per agent: 10,000 paths in ~1 s instead of ~1 min
         ax.add_collection(LineCollection(paths[..., :2], colors="tab:blue", lw=0.7, alpha=0.7))
         ax.autoscale_view()
-        ax.plot(circle[:, 0], circle[:, 1], "k--", lw=0.8)
+        ax.plot(circle[:, 0], circle[:, 1], **style)
         ax.plot(ends[:, 0], ends[:, 1], "x", color="tab:red", ms=5, label="final positions")
         ax.set_aspect("equal")
         ax.set_xlabel("$x_1$")
@@ -74,12 +84,11 @@ def _plot_3d(problem: FormationProblem, result: FormationResult, path: Path) -> 
 
     fig = plt.figure(figsize=(8, 7))
     ax = fig.add_subplot(projection="3d")
-    angles = np.linspace(0, 2 * np.pi, 200)
-    circle = problem.final_positions(angles)
+    circle, style = _target(problem, 200)
     ends = problem.final_positions(result.phi)
     drawn = result.trajectories[:: path_step(len(result.trajectories)), :, :3]
     ax.add_collection(Line3DCollection(drawn, colors="tab:blue", lw=0.7, alpha=0.8))
-    ax.plot(circle[:, 0], circle[:, 1], circle[:, 2], "k--", lw=0.8)
+    ax.plot(circle[:, 0], circle[:, 1], circle[:, 2], **style)
     ax.plot(problem.starts[:, 0], problem.starts[:, 1], problem.starts[:, 2], "o", mfc="none",
             color="k", ms=4, ls="", label="initial positions")
     ax.plot(ends[:, 0], ends[:, 1], ends[:, 2], "x", color="tab:red", ms=6, ls="",

@@ -28,6 +28,7 @@ from ocpar.formation.curve import Circle, Curve
 from ocpar.formation.obstacles import Obstacle, check_obstacles
 from ocpar.formation.potential import relax
 from ocpar.formation.separation import ClosestApproach, closest_approach
+from ocpar.formation.slots import Slots, nearest_assignment
 from ocpar.models import MechanicalSystem, PointMass
 from ocpar.ocp import DmocShape, OcpTask
 
@@ -60,7 +61,9 @@ class FormationProblem:
     entries; agents with equal shapes share one compiled solver per process); ``curve`` the
     final formation's curve (:class:`~ocpar.formation.Circle`,
     :class:`~ocpar.formation.Ellipse`, :class:`~ocpar.formation.PlaneCurve`,
-    :class:`~ocpar.formation.ParametricCurve`, or a user's :class:`~ocpar.formation.Curve`).
+    :class:`~ocpar.formation.ParametricCurve`, or a user's :class:`~ocpar.formation.Curve`),
+    or :class:`~ocpar.formation.Slots`, m ≥ n given points of which the agents take n (then
+    φ_i is agent i's slot index and only the assignment is free: :mod:`ocpar.formation.slots`).
     Shapes, with n agents (n ≥ 2), nq the model's configuration size and d = ``curve.dim``
     ≤ nq: ``starts`` (n, nq); ``start_velocities`` (n, nq), default at rest;
     ``final_velocity`` (nq,) common to all or (n, nq) per agent, default at rest;
@@ -74,7 +77,7 @@ class FormationProblem:
 
     name: str
     shape: DmocShape | tuple[DmocShape, ...]
-    curve: Curve
+    curve: Curve | Slots
     starts: np.ndarray
     start_velocities: np.ndarray | None = None
     final_velocity: np.ndarray | None = None
@@ -83,10 +86,11 @@ class FormationProblem:
 
     def __post_init__(self) -> None:
         self._check_shapes()
-        if not isinstance(self.curve, Curve):
+        if not isinstance(self.curve, Curve | Slots):
             raise ValueError(f"curve: must be a Curve (Circle, Ellipse, PlaneCurve, "
-                             f"ParametricCurve), got {type(self.curve).__name__}")
-        self.curve.check()  # built-in curves checked themselves; a user's subclass may not
+                             f"ParametricCurve) or Slots, got {type(self.curve).__name__}")
+        if isinstance(self.curve, Curve):
+            self.curve.check()  # built-in curves checked themselves; a user's subclass may not
         nq, d = self.common_shape.model.nq, self.curve.dim
         if d > nq:
             raise ValueError(f"curve: lies in {d}-D but the model's configuration has {nq} "
@@ -96,6 +100,9 @@ class FormationProblem:
         n = len(self.starts)
         if n < 2:
             raise ValueError(f"starts: a formation needs at least 2 agents, got {n}")
+        if isinstance(self.curve, Slots) and self.curve.count < n:
+            raise ValueError(f"curve: {self.curve.count} slots for {n} agents: a formation "
+                             "needs at least one slot per agent")
         fields = {
             "starts": (self.starts, (n, nq)),
             "start_velocities": (np.zeros((n, nq)) if self.start_velocities is None
@@ -138,10 +145,14 @@ class FormationProblem:
                    if isinstance(shape.model, PointMass) and shape.control_bounds is not None}
         if not limited:
             return
-        phi = np.arange(REACH_SAMPLES) * 2 * np.pi / REACH_SAMPLES
+        if isinstance(self.curve, Slots):
+            phi, closed = np.arange(self.curve.count), False
+        else:
+            phi, closed = np.arange(REACH_SAMPLES) * 2 * np.pi / REACH_SAMPLES, True
         targets = np.hstack([self.final_positions(phi), np.broadcast_to(
-            self.final_attitude, (REACH_SAMPLES, len(self.final_attitude)))])
-        spacing = float(np.max(np.linalg.norm(targets - np.roll(targets, 1, axis=0), axis=1)))
+            self.final_attitude, (len(phi), len(self.final_attitude)))])
+        spacing = float(np.max(np.linalg.norm(targets - np.roll(targets, 1, axis=0), axis=1))
+                        ) if closed else 0.0
         for shape, agents in limited.items():
             model, bounds = shape.model, shape.control_bounds
             rest = agents[~np.any(self.start_velocities[agents], axis=1)
@@ -276,7 +287,7 @@ class FormationProblem:
     def _check_holonomic_constraints(self) -> None:
         """Starts and final configurations (at a point of the curve) must satisfy each
         agent's model's c(q) = 0."""
-        end = np.concatenate([self.curve.points(np.zeros(1))[0], self.final_attitude])
+        end = np.concatenate([self.final_positions(np.zeros(1))[0], self.final_attitude])
         for shape, agents in self.agents_by_shape().items():
             model = shape.model
             if not getattr(model, "n_constraints", 0):
@@ -327,12 +338,16 @@ class FormationProblem:
                              f"{type(self.curve).__name__}")
 
     def final_positions(self, phi: np.ndarray) -> np.ndarray:
-        """Points z(φ) on the curve at angles φ (n,) rad: shape (n, d)."""
+        """Points z(φ) on the curve at angles φ (n,) rad, or the slots φ (n,): shape (n, d)."""
+        if isinstance(self.curve, Slots):
+            return self.curve.at(phi)
         return self.curve.points(phi)
 
     def final_position_derivatives(self, phi: np.ndarray) -> np.ndarray:
         """d(final configuration q_N)/dφ_i for each agent: shape (n, nq), z′(φ_i) in the
         position entries and zero beyond."""
+        if isinstance(self.curve, Slots):
+            raise ValueError("slots have no parameters to differentiate in")
         along = self.curve.tangents(phi)
         return np.hstack([along, np.zeros((len(along), len(self.final_attitude)))])
 
@@ -384,7 +399,8 @@ class FormationProblem:
         return self.tasks_for(np.arange(self.agents), phi, warm_starts)
 
     def initial_phi(self) -> np.ndarray:
-        """The documented initial guess for φ (rad).
+        """The documented initial guess for φ (rad); onto slots, the slot indices minimising
+        Σ_i |start position_i − slot|² (:func:`~ocpar.formation.slots.nearest_assignment`).
 
         With the start positions projected into the curve's plane (coordinates along the
         axes of :meth:`~ocpar.formation.Curve.frame`, relative to its centre), the agents are
@@ -403,6 +419,8 @@ class FormationProblem:
         decides which local optimum is found (see :mod:`ocpar.formation.ordering` on a
         circle).
         """
+        if isinstance(self.curve, Slots):   # CAPT's assignment, by distance
+            return nearest_assignment(self.positions(self.starts), self.curve).astype(float)
         n = self.agents
         centre, axes = self.curve.frame()
         in_plane = (self.starts[:, : self.curve.dim] - centre) @ axes.T

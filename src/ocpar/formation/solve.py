@@ -34,6 +34,8 @@ from ocpar.formation.potential import coupling
 from ocpar.formation.problem import FormationProblem
 from ocpar.formation.result import FormationResult
 from ocpar.formation.separation import check_separation_feasible
+from ocpar.formation.slot_assignment import SlotChoice, assign_slots
+from ocpar.formation.slots import SLOT_CANDIDATES, Slots
 from ocpar.ocp.batch import SOLVERS
 from ocpar.options import option
 
@@ -94,6 +96,9 @@ class FormationOptions:
                            "of the coupling to search: stable (local minima of the potential, "
                            "spread-out formations) or any (every critical point, saddles "
                            "included: the paper's g(phi) = 0)", choices=CRITICAL_READINGS)
+    slot_candidates: int = option(SLOT_CANDIDATES, "onto slots: candidate slots per agent "
+                                  "(its nearest), whose inner costs are solved; the "
+                                  "assignment is exact over them", low=1)
     critical_starts: int = option(CRITICAL_STARTS, "off a circle, with --ordering optimal: "
                                   "random starts of the search for the coupling's solution "
                                   "sets, besides the initial guess", low=1)
@@ -137,6 +142,8 @@ class FormationOptions:
                              f"{', '.join(CRITICAL_READINGS)}")
         if self.critical_starts < 1:
             raise ValueError("critical_starts must be at least 1")
+        if self.slot_candidates < 1:
+            raise ValueError("slot_candidates must be at least 1")
 
 
 def cost_parts(problem: FormationProblem, controls: np.ndarray) -> dict[str, float]:
@@ -159,6 +166,9 @@ def check_applicable(problem: FormationProblem, options: FormationOptions) -> No
     calls it before starting workers (:func:`solve_formation` calls it too). Obstacles need
     the hierarchical mode and final positions (of the initial angles) clear of them; with
     ``min_separation`` too, the separation rounds keep the paths clear of them as well."""
+    if isinstance(problem.curve, Slots) and options.mode != "hierarchical":
+        raise ValueError("slots apply to the hierarchical mode only (the assignment is the "
+                         "outer problem)")
     if problem.obstacles:
         if options.mode != "hierarchical":
             raise ValueError("obstacles apply to the hierarchical mode only")
@@ -186,8 +196,11 @@ COUPLING_CHECK_MAX_AGENTS = 20_000
 
 def coupling_residual(problem: FormationProblem, phi: np.ndarray) -> float:
     """max_k |c_k(φ)|: the scaled coupling as the outer problem imposes it
-    (:func:`~ocpar.formation.potential.coupling`); NaN if φ is not finite, or on a circle
-    with more than :data:`COUPLING_CHECK_MAX_AGENTS` agents."""
+    (:func:`~ocpar.formation.potential.coupling`); onto slots, how many agents share a
+    slot with another (0: the assignment's coupling holds); NaN if φ is not finite, or on a
+    circle with more than :data:`COUPLING_CHECK_MAX_AGENTS` agents."""
+    if isinstance(problem.curve, Slots):   # the coupling: no slot taken twice
+        return float(phi.size - np.unique(phi).size)
     if not np.all(np.isfinite(phi)) or (problem.on_circle
                                         and phi.size > COUPLING_CHECK_MAX_AGENTS):
         return float("nan")
@@ -204,13 +217,23 @@ def _obstacle_words(met: bool, closest: Clearance, rounds: int) -> tuple[str | N
         f"{-closest.distance:.3g} inside obstacle {closest.obstacle} at t = {closest.time:.6g}")
 
 
-def discrete_choice(problem: FormationProblem, choice: IsolatedChoice | None) -> dict:
+def discrete_choice(problem: FormationProblem, choice: IsolatedChoice | SlotChoice | None
+                    ) -> dict:
     """The result's fields on the outer problem's feasible set: on a circle ``continuous`` (the
-    common rotation); elsewhere ``discrete`` (the potential's isolated critical points), with
+    common rotation); elsewhere ``discrete``: the potential's isolated critical points, with
     ``critical_sets`` the candidates searched (:mod:`ocpar.formation.critical_sets`), None
-    when none were, and the status line's words on it in ``note``."""
+    when none were, or the slots' assignments; and the status line's words on it in
+    ``note``."""
     if problem.on_circle:
         return {"feasible_set": "continuous", "note": ""}
+    if isinstance(choice, SlotChoice):
+        every = choice.candidates == problem.curve.count
+        return {"feasible_set": "discrete", "note": (
+            f"; {problem.agents} agents onto {problem.curve.count} slots, "
+            + ("every slot a candidate: the optimal assignment" if every else
+               f"the optimal assignment over each agent's {choice.candidates} nearest slots "
+               f"to its start and to its place (no cheaper one with "
+               f"{min(2 * choice.candidates, problem.curve.count)})"))}
     if choice is None:
         return {"feasible_set": "discrete", "critical_sets": None, "note": (
             "; the feasible set is discrete (the potential's isolated critical points): this is "
@@ -247,14 +270,17 @@ def solve_formation(
     start = time.perf_counter()
     common = {"problem": problem.name, "agents": problem.agents, "backend": backend.name,
               "workers": backend.workers, "mode": options.mode, "on_circle": problem.on_circle}
-    ordering_solves, choice = 0, None
-    if options.ordering == "optimal" and problem.on_circle:
+    ordering_solves, choice, chosen = 0, None, None
+    if isinstance(problem.curve, Slots):
+        choice = assign_slots(problem, backend, options.slot_candidates, progress)
+        phi0, ordering_solves, chosen = choice.phi, choice.inner_solves, "slots assigned"
+    elif options.ordering == "optimal" and problem.on_circle:
         ordered = optimal_ordering(problem, backend, tol=options.outer_tol, progress=progress)
         phi0, ordering_solves = ordered.phi, ordered.inner_solves
     elif options.ordering == "optimal":
         choice = best_isolated_formation(problem, backend, options.critical,
                                          options.critical_starts, progress)
-        phi0, ordering_solves = choice.phi, choice.inner_solves
+        phi0, ordering_solves, chosen = choice.phi, choice.inner_solves, "ordering optimal"
     discrete = discrete_choice(problem, choice)
     note = discrete.pop("note")
 
@@ -282,12 +308,12 @@ def solve_formation(
 
     objective = OuterObjective(problem, backend, progress)
     try:
-        if choice is None:
+        if chosen is None:
             phi, iterations, success, message = OUTER[options.outer](
                 objective, phi0, options.outer_tol, options.max_outer_iterations
             )
-        else:   # the feasible set is the critical sets: the choice is the outer solve
-            phi, iterations, success, message = phi0, 0, True, "ordering optimal"
+        else:   # the feasible set is discrete and the choice was the outer solve
+            phi, iterations, success, message = phi0, 0, True, chosen
         sols = objective.solutions(phi)
         status = "converged" if success else "not_converged"
         message += note
