@@ -15,9 +15,8 @@ the separation and obstacle rounds and the result work unchanged.
    formation); k = ``candidates`` to begin with, all m slots when m ≤ k.
 2. **Their inner costs**: the ≤ 2 n k inner optimal costs Ĵ_i(slot), one superstep (each
    pair solved once over the rounds).
-3. **The assignment**: exact on the candidate pairs, by
-   :func:`scipy.sparse.csgraph.min_weight_full_bipartite_matching` (by
-   :func:`scipy.optimize.linear_sum_assignment` when every slot is a candidate).
+3. **The assignment**: exact on the candidate pairs (:func:`_match`, by
+   :func:`scipy.optimize.linear_sum_assignment`).
 4. **Confirmation**: k doubles and steps 2–3 repeat (also while the candidates admit no
    assignment of every agent), until doubling no longer lowers the total; the assignment
    before the last doubling is returned.
@@ -34,8 +33,6 @@ from dataclasses import dataclass
 
 import numpy as np
 from scipy.optimize import linear_sum_assignment
-from scipy.sparse import csr_matrix
-from scipy.sparse.csgraph import min_weight_full_bipartite_matching
 from scipy.spatial import cKDTree
 
 #: Candidate slots per agent to begin with (its nearest, twice: module docstring).
@@ -160,16 +157,19 @@ def _aligned(starts: np.ndarray, points: np.ndarray) -> np.ndarray:
 def _match(pairs: np.ndarray, values: np.ndarray, n: int, m: int) -> np.ndarray:
     """The cheapest assignment of n agents to m slots over the candidate ``pairs`` (p, 2)
     (agent, slot) of costs ``values`` (p,): slot index per agent (n,). ValueError if none
-    exists."""
-    if len(pairs) == n * m:   # every slot a candidate: the dense table
-        dense = np.empty((n, m))
-        dense[pairs[:, 0], pairs[:, 1]] = values
-        rows, cols = linear_sum_assignment(dense)
-    else:
-        # costs shifted to ≥ 1: a stored zero would read as a missing edge
-        graph = csr_matrix((values - values.min() + 1.0, (pairs[:, 0], pairs[:, 1])),
-                           shape=(n, m))
-        rows, cols = min_weight_full_bipartite_matching(graph)
+    exists. Solved by :func:`scipy.optimize.linear_sum_assignment` on the dense n × m table
+    with every other pair priced above any assignment over candidates (n m 8 bytes: 0.8 GB at
+    10,000 × 10,000, ~150 s there on this machine, loaded); scipy's sparse
+    ``min_weight_full_bipartite_matching`` took 11 s at 1000 × 1000 with 62,000 candidate
+    pairs and 229 s at 4000 (integer costs), against 0.75 s and 25 s dense."""
+    spread = float(values.max() - values.min()) + 1.0
+    dense = np.full((n, m), (n + 1) * spread + float(values.max()))
+    dense[pairs[:, 0], pairs[:, 1]] = values
+    rows, cols = linear_sum_assignment(dense)
+    candidate = np.zeros((n, m), dtype=bool)
+    candidate[pairs[:, 0], pairs[:, 1]] = True
+    if not candidate[rows, cols].all():
+        raise ValueError("the candidate pairs admit no assignment of every agent")
     assignment = np.empty(n, dtype=np.intp)
     assignment[rows] = cols
     return assignment

@@ -58,11 +58,16 @@ class FormationOptions:
     ``newton``'s relative tolerance on |Σ_i dJ/dφ_i| (against Σ_i |dJ/dφ_i|) or on the
     offset step, SLSQP's ``ftol`` on J/J_0 (keep it above the inner solves' noise), or for
     ``offset`` the relative tolerance on the offset θ; ``monolithic_tol`` is IPOPT's
-    ``tol``. ``ordering``: which agent goes to which place on the circle, ``keep`` (the
-    initial angles' order, the paper's) or ``optimal``
-    (:func:`ocpar.formation.ordering.optimal_ordering`, run on the backend first; its angles
-    start the chosen mode). ``offset`` and ``optimal`` rely on the circle's symmetry:
-    :func:`solve_formation` refuses them (ValueError) on other curves. ``inner_solver``
+    ``tol``. ``ordering``: which agent goes to which place on the curve, ``keep`` (the
+    initial angles' order, the paper's) or ``optimal``: on a circle
+    :func:`ocpar.formation.ordering.optimal_ordering` (run on the backend first; its angles
+    start the chosen mode), on any other curve
+    :func:`ocpar.formation.critical_sets.best_isolated_formation` with ``critical`` and
+    ``critical_starts`` (its choice is the outer solve). Onto
+    :class:`~ocpar.formation.slots.Slots` the outer solve is always the assignment
+    (:func:`ocpar.formation.slot_assignment.assign_slots`, ``slot_candidates``). ``offset``
+    relies on the circle's symmetry: :func:`solve_formation` refuses it (ValueError) on other
+    curves. ``inner_solver``
     (``sqpmethod`` or ``ipopt``, see :mod:`ocpar.ocp.batch`) replaces the problem's
     ``DmocShape.solver`` for this solve; None keeps it. ``min_separation`` D (length unit,
     hierarchical mode only): after the outer solve, separation rounds of keep-out DMOC
@@ -96,12 +101,13 @@ class FormationOptions:
                            "of the coupling to search: stable (local minima of the potential, "
                            "spread-out formations) or any (every critical point, saddles "
                            "included: the paper's g(phi) = 0)", choices=CRITICAL_READINGS)
-    slot_candidates: int = option(SLOT_CANDIDATES, "onto slots: candidate slots per agent "
-                                  "(its nearest), whose inner costs are solved; the "
-                                  "assignment is exact over them", low=1)
     critical_starts: int = option(CRITICAL_STARTS, "off a circle, with --ordering optimal: "
                                   "random starts of the search for the coupling's solution "
                                   "sets, besides the initial guess", low=1)
+    slot_candidates: int = option(SLOT_CANDIDATES, "onto slots: candidate slots per agent to "
+                                  "begin with (its nearest to its start and to its place in "
+                                  "the formation), doubled until doubling finds no cheaper "
+                                  "assignment; the assignment is exact over them", low=1)
     inner_solver: str | None = option(
         None, "inner DMOC solver: sqpmethod (a chunk in one mapped call, IPOPT for the solves "
         "that fail its KKT check) or ipopt (one IPOPT call per agent); default: the problem's "
@@ -251,7 +257,8 @@ def solve_formation(
     phi0: np.ndarray | None = None,
     progress: Callable[[str], None] | None = None,
 ) -> FormationResult:
-    """Solve ``problem`` from the angles ``phi0`` (default :meth:`FormationProblem.initial_phi`).
+    """Solve ``problem`` from the angles ``phi0`` (default :meth:`FormationProblem.initial_phi`;
+    onto slots none: the assignment chooses them).
 
     ``backend`` runs the inner solves (default: serial, in this process); ``progress`` is
     called with one line per superstep. The backend is left open for the caller to close.
@@ -263,15 +270,17 @@ def solve_formation(
             shape.solver != options.inner_solver for shape in problem.shapes):
         problem = problem.with_shapes(
             lambda shape: dataclasses.replace(shape, solver=options.inner_solver))
-    phi0 = problem.initial_phi() if phi0 is None else np.asarray(phi0, float)
-    if phi0.shape != (problem.agents,):
+    slots = isinstance(problem.curve, Slots)   # then the assignment chooses φ: no φ0
+    phi0 = (None if slots else problem.initial_phi()) if phi0 is None \
+        else np.asarray(phi0, float)
+    if phi0 is not None and phi0.shape != (problem.agents,):
         raise ValueError(f"phi0 must have shape ({problem.agents},), got {phi0.shape}")
     first_trace = len(backend.traces)
     start = time.perf_counter()
     common = {"problem": problem.name, "agents": problem.agents, "backend": backend.name,
               "workers": backend.workers, "mode": options.mode, "on_circle": problem.on_circle}
     ordering_solves, choice, chosen = 0, None, None
-    if isinstance(problem.curve, Slots):
+    if slots:
         choice = assign_slots(problem, backend, options.slot_candidates, progress)
         phi0, ordering_solves, chosen = choice.phi, choice.inner_solves, "slots assigned"
     elif options.ordering == "optimal" and problem.on_circle:
