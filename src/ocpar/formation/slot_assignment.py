@@ -56,9 +56,6 @@ def assign_slots(problem: FormationProblem, backend: Backend,
         return np.asarray(sols.column("cost"), dtype=float)
 
     starts = problem.positions(problem.starts)
-    slots, k, total = cheapest_assignment(starts, problem.curve, candidates, inner_costs)
-    if progress is not None:
-        progress(f"slots: {problem.agents} agents onto {problem.curve.count} slots over "
-                 f"{k} candidate(s) each, {costs['solves']} inner solves, total cost "
-                 f"{total:.12e}")
+    slots, k, total = cheapest_assignment(starts, problem.curve, candidates, inner_costs,
+                                          progress)
     return SlotChoice(slots, total, k, costs["solves"], costs["supersteps"])

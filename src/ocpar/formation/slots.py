@@ -101,12 +101,14 @@ def nearest_assignment(starts: np.ndarray, slots: Slots,
 
 
 def cheapest_assignment(starts: np.ndarray, slots: Slots, candidates: int,
-                        cost: Callable[[np.ndarray, np.ndarray], np.ndarray]
+                        cost: Callable[[np.ndarray, np.ndarray], np.ndarray],
+                        progress: Callable[[str], None] | None = None
                         ) -> tuple[np.ndarray, int, float]:
     """The cheapest assignment of the starts (n, d) to ``slots`` over candidate pairs (module
     docstring: k = ``candidates`` to begin, doubled until an assignment exists and doubling
     no longer lowers the total), the pair costs from ``cost(agents, slots)`` (p,) → (p,),
-    each pair's once: (slot per agent (n,), the k of the result, total cost)."""
+    each pair's once: (slot per agent (n,), the k of the result, total cost). ``progress``
+    gets a line per round."""
     n, m = len(starts), slots.count
     tree = cKDTree(slots.points)
     near = (starts, _aligned(starts, slots.points))
@@ -129,6 +131,9 @@ def cheapest_assignment(starts: np.ndarray, slots: Slots, candidates: int,
             k = min(2 * k, m)
             continue
         total = float(sum(known[(i, int(s))] for i, s in enumerate(assignment)))
+        if progress is not None:
+            progress(f"slots: {k} candidate(s) per agent, {len(pairs)} pairs ({len(new)} new), "
+                     f"total cost {total:.12e}")
         if best is not None and total >= best[2] - ASSIGNMENT_RTOL * abs(best[2]):
             return best
         best = (assignment, k, total)
