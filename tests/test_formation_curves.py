@@ -222,10 +222,12 @@ def test_curves_from_a_casadi_function_and_a_python_function_agree():
 
 
 def test_circle_shortcuts_are_refused_on_other_curves(ellipse_runs):
+    """``offset`` is a circle's; ``optimal`` ordering elsewhere is the search over critical
+    sets (tests/test_critical_sets.py), no longer refused."""
     problem, hierarchical, _ = ellipse_runs
-    for options in (FormationOptions(outer="offset"), FormationOptions(ordering="optimal")):
-        with pytest.raises(ValueError, match="only applies to a formation on a Circle"):
-            solve_formation(problem, options=options)
+    with pytest.raises(ValueError, match="only applies to a formation on a Circle"):
+        solve_formation(problem, options=FormationOptions(outer="offset"))
+    check_applicable(problem, FormationOptions(ordering="optimal"))
     with pytest.raises(ValueError, match="outer 'offset'"):
         check_applicable(problem, FormationOptions(outer="offset"))
     check_applicable(problem, FormationOptions(mode="monolithic", outer="offset"))  # unused
