@@ -332,7 +332,7 @@ class PursuitTrain:
                 if self.certificate is not None:
                     return True, STOP_REASONS[0], (
                         f"{name} {self.remaining:.2e}{unit} short of the full-horizon MS "
-                        f"optimum {self.certificate:.6g}{unit} < {eps} after agent "
+                        f"optimum {self.certificate:.6f}{unit} < {eps} after agent "
                         f"{agent.index}")
                 return True, STOP_REASONS[1], (
                     f"estimated {name} improvement still to come {self.remaining:.2e}{unit} "
