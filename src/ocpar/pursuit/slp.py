@@ -50,21 +50,22 @@ from ocpar.pursuit.problem import PursuitProblem, SampledPlan
 @dataclass(frozen=True)
 class PursuitSettings:
     """SLP settings: ``window`` N_Δ (samples per catch-up problem), ``update`` N_δ (samples
-    applied per update), ``epsilon`` the stopping threshold on the estimated improvement of
-    the problem's headline still to come (in the headline's unit; see
-    :func:`remaining_improvement`), ``max_agents`` a bound on the number of pursuing agents
-    (per level), ``levels`` the coarse-to-fine levels (:func:`run_levels`; 1: the paper's
-    scheme), ``certify_samples`` the largest N whose stop is certified by a full-horizon MS
-    solve (module docstring; 0: never), ``local_solver`` the subproblems' solver from the
-    leader's plan (IPOPT if it fails; see :class:`~ocpar.ocp.MsShape`)."""
+    applied per update), ``epsilon`` the stopping threshold on the improvement of the
+    problem's headline still to come (in the headline's unit; see the module docstring),
+    ``max_agents`` a bound on the number of pursuing agents (per level), ``levels`` the
+    coarse-to-fine levels (:func:`run_levels`; 1: the paper's scheme), ``certify_samples``
+    the largest N whose stop is certified by a full-horizon MS solve (module docstring; 0:
+    never), ``local_solver`` the subproblems' solver from the leader's plan (IPOPT if it
+    fails; see :class:`~ocpar.ocp.MsShape`)."""
 
     window: int = option(60, "samples per catch-up problem N_Δ (Δ = (N_Δ-1)h)", low=2,
                          metavar="N_DELTA")
     update: int = option(32, "samples applied per update N_δ (δ = N_δ h)", low=1,
                          metavar="N_UPDATE")
-    epsilon: float = option(1e-3, "stop when the improvement of the headline still to come, "
-                            "estimated from the agents' recent rate, is below EPS (in the "
-                            "headline's unit, kg for the orbit transfer)",
+    epsilon: float = option(1e-3, "stop when the improvement of the headline still to come "
+                            "(certified by the full-horizon MS, or estimated from the agents' "
+                            "recent rate) is below EPS (in the headline's unit, kg for the "
+                            "orbit transfer)",
                             above=0, metavar="EPS")
     max_agents: int = option(100_000, "stop after this many agents", low=2)
     levels: int = option(1, "coarse-to-fine levels L: PBMS first on (N-1)/2^(L-1)+1 samples, "
