@@ -6,9 +6,10 @@
 
 Each problem (``--problems``: the paper's case 1, N = 301, and case 2, N = 501, both N_Δ = 60,
 N_δ = 32; the pendulum of docs/tutorials/pursuit.md, its code taken from the tutorial's text;
-the van der Pol example, N = 41; all but the paper's cases N_Δ = 21, N_δ = 10) runs serially
-with each of its ε (the default 1e-3 and ten times smaller; the pendulum also with the
-tutorial's 1e-6 and 1e-7), with the full-horizon MS reference: the reported remaining
+the van der Pol example, N = 41, N_Δ = 21, N_δ = 10, and on the issue's grid, Euler, N = 300,
+N_Δ = 31, N_δ = 15, at most 20,000 agents) runs serially with each of its ε (the default 1e-3
+and ten times smaller; the pendulum also with the tutorial's 1e-6 and 1e-7), with the
+full-horizon MS reference: the reported remaining
 improvement of the headline (``estimated_remaining``), how it was obtained, the actual
 remaining (the headline's distance to the reference), their ratio, agents, the stop reason and
 the wall time. ``--extrapolated`` also runs each with ``certify_samples=0`` (the extrapolated
@@ -29,9 +30,10 @@ from pathlib import Path
 from ocpar.pursuit import PursuitProblem, PursuitSettings, solve_pursuit
 
 TUTORIAL = Path(__file__).resolve().parents[1] / "docs" / "tutorials" / "pursuit.md"
-#: problem: (N_Δ, N_δ, the ε values)
-RUNS = {"case1": (60, 32, (1e-3, 1e-4)), "case2": (60, 32, (1e-3, 1e-4)),
-        "pendulum": (21, 10, (1e-3, 1e-4, 1e-6, 1e-7)), "vdp": (21, 10, (1e-3, 1e-4))}
+#: problem: (N_Δ, N_δ, the ε values, max_agents)
+RUNS = {"case1": (60, 32, (1e-3, 1e-4), 100_000), "case2": (60, 32, (1e-3, 1e-4), 100_000),
+        "pendulum": (21, 10, (1e-3, 1e-4, 1e-6, 1e-7), 100_000),
+        "vdp": (21, 10, (1e-3, 1e-4), 100_000), "vdp-euler300": (31, 15, (1e-3, 1e-4), 20_000)}
 
 
 def tutorial_pendulum(workdir: Path) -> PursuitProblem:
@@ -55,6 +57,8 @@ def build(name: str, workdir: Path) -> PursuitProblem:
         return tutorial_pendulum(workdir)
     if name == "vdp":
         return pursuit_van_der_pol.make()
+    if name == "vdp-euler300":
+        return pursuit_van_der_pol.make(samples=300, integrator="euler")
     case = int(name[-1])
     return pursuit_orbit_transfer.make(case=case, samples={1: 301, 2: 501}[case])
 
@@ -69,6 +73,7 @@ def measure(problem: PursuitProblem, settings: PursuitSettings) -> dict:
             "ratio": actual / reported if reported else None, "agents": result.agents,
             "stop_reason": result.stop_reason, "headline": result.headline,
             "reference": result.reference_headline, "certificate": result.certificate_headline,
+            "solves": result.subproblem_solves,
             "wall_s": result.wall_time_s}
 
 
@@ -83,10 +88,11 @@ def main() -> int:
     rows = []
     with tempfile.TemporaryDirectory() as workdir:
         for name in args.problems:
-            window, update, epsilons = RUNS[name]
+            window, update, epsilons, max_agents = RUNS[name]
             problem = build(name, Path(workdir))
             for epsilon in epsilons:
-                settings = PursuitSettings(window=window, update=update, epsilon=epsilon)
+                settings = PursuitSettings(window=window, update=update, epsilon=epsilon,
+                                           max_agents=max_agents)
                 variants = [settings] + ([dataclasses.replace(settings, certify_samples=0)]
                                          if args.extrapolated else [])
                 for variant in variants:

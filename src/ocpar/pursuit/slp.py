@@ -397,10 +397,10 @@ def run_pursuit(
                                  costs=[task.shape.intervals for _, task in work])
         for (agent, _), sol in zip(work, sols, strict=True):
             train.apply(agent, sol)
+        trace = backend.traces[-1]  # the wave's, not the certificate's
         verdict = train.retire_finished(
             lambda task: backend.superstep(solve_task, [task])[0])
         if progress is not None:
-            trace = backend.traces[-1]
             progress(
                 f"superstep {trace.index:5d}  agents in flight {len(work):3d}  "
                 f"finished {len(train.headlines) - 1:5d}  last {problem.headline_name} "
