@@ -71,7 +71,7 @@ class PursuitSettings:
     levels: int = option(1, "coarse-to-fine levels L: PBMS first on (N-1)/2^(L-1)+1 samples, "
                          "then on grids twice as fine, each starting from the coarser result "
                          "(agent 0); 1: the paper's scheme", low=1)
-    certify_samples: int = option(1001, "largest N on which the stop is certified: once the "
+    certify_samples: int = option(10_001, "largest N on which the stop is certified: once the "
                                   "extrapolated estimate is below EPS, the full-horizon MS "
                                   "(one NLP on one worker) is solved from the train's "
                                   "trajectory and the train stops within EPS of its optimum; "
