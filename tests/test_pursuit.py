@@ -357,7 +357,7 @@ def test_coarse_to_fine_levels_reach_the_full_horizon_optimum():
     result; one level has not converged after 400 agents): within ε of the independent
     solve's optimum, certified, each agent of the fine level at least as good as its leader;
     agents count both levels. (With ε = 1e-7 the extrapolated estimate stopped the fine level
-    at its 9th agent, 4.9e-6 short; the train is still 3.6e-6 short after 5,000 agents.)"""
+    at its 25th agent, 4.1e-6 short; the train is still 3.6e-6 short after 5,000 agents.)"""
     problem = van_der_pol.make(samples=81)
     model = problem.model
     reference = vdp_reference_cost(problem.samples, problem.duration, model.mu, model.u_max)
