@@ -124,7 +124,7 @@ def solvers_part(supersteps: int, repeats: int) -> list[dict]:
         for agent, task in work:
             tasks.append(task)
             train.apply(agent, solve_task(task))
-        train.retire_finished()
+        train.retire_finished(solve_task)
     variants = {name: dataclasses.replace(tasks[0].shape, local_solver=name)
                 for name in LOCAL_SOLVERS} | {"ipopt": dataclasses.replace(
                     tasks[0].shape, warm_start=False)}

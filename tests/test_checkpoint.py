@@ -207,3 +207,26 @@ def test_pursuit_resumes_to_the_uninterrupted_train(tmp_path):
     result = solve_pursuit(problem, settings, resumed, reference=False)
     assert np.array_equal(result.x, expected.x) and np.array_equal(result.u, expected.u)
     assert result.supersteps == expected.supersteps
+
+
+def test_pursuit_resumes_across_its_full_horizon_certificate(tmp_path):
+    """The van der Pol example with ε = 1e-4: the full-horizon certificate (a superstep of its
+    own) is replayed with the train, and the resumed run stops where the uninterrupted one
+    did, on the same certified figure."""
+    from ocpar.examples.pursuit_van_der_pol import make
+    from ocpar.pursuit import PursuitSettings, solve_pursuit
+
+    problem, settings = make(), PursuitSettings(window=21, update=10, epsilon=1e-4)
+    expected = solve_pursuit(problem, settings, reference=False)
+    assert expected.stop_reason == "certified_within_epsilon"
+    backend = SerialBackend()
+    backend.journal = Journal(tmp_path, {"run": "pursuit"}, resume=False)
+    crash_after(backend, expected.supersteps - 1)  # after the certificate
+    with pytest.raises(Crash):
+        solve_pursuit(problem, settings, backend, reference=False)
+    resumed = SerialBackend()
+    resumed.journal = Journal(tmp_path, {"run": "pursuit"}, resume=True)
+    result = solve_pursuit(problem, settings, resumed, reference=False)
+    assert np.array_equal(result.u, expected.u) and result.agents == expected.agents
+    assert result.certificate_headline == expected.certificate_headline
+    assert result.estimated_remaining == expected.estimated_remaining

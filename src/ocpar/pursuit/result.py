@@ -19,9 +19,12 @@ class PursuitResult(RunResult):
     finished agent (``headlines``, agent 0 first) and of the full-horizon MS solution when
     computed; ``cost`` Σ h g (under ``cost_key``); ``rk_checks`` the problem's checks of the
     re-simulated final state by key; with PBMS, ``stop_reason`` (one of
-    :data:`~ocpar.pursuit.slp.STOP_REASONS`) and ``estimated_remaining`` the headline's
-    improvement still to come, estimated from the agents' recent rate (``inf`` while the
-    gains do not shrink; :func:`~ocpar.pursuit.slp.remaining_improvement`). ``x`` (N, nx)
+    :data:`~ocpar.pursuit.slp.STOP_REASONS`), ``estimated_remaining`` the headline's
+    improvement still to come and ``remaining_method`` how it was obtained: ``extrapolated``
+    from the agents' recent rate (``inf`` while the gains do not shrink;
+    :func:`~ocpar.pursuit.slp.remaining_improvement`) or ``certified``, the gap to
+    ``certificate_headline``, the full-horizon MS optimum solved from the train's trajectory
+    (:class:`~ocpar.pursuit.slp.PursuitTrain`; of the finest level). ``x`` (N, nx)
     and ``u`` (N−1, nu) are the result trajectory, ``initial_x`` agent 0's, ``reference_x``
     the full-horizon MS solution's. ``agents`` counts every level's agents,
     ``agents_per_level`` coarsest first (:func:`~ocpar.pursuit.slp.run_levels`); ``headlines``
@@ -57,6 +60,8 @@ class PursuitResult(RunResult):
     reference_x: np.ndarray | None = None
     stop_reason: str | None = None
     estimated_remaining: float | None = None
+    remaining_method: str | None = None
+    certificate_headline: float | None = None
     agents_per_level: list[int] = field(default_factory=list)
     #: the common count of inner solves is the catch-up (and full-horizon) solves
     inner_solves: int = field(init=False)
@@ -98,6 +103,8 @@ class PursuitResult(RunResult):
             "peak_rss_mb_per_worker": self.peak_rss_mb_per_worker,
             f"reference_ms_{key}": self.reference_headline,
             "stop_reason": self.stop_reason,
+            "remaining_method": self.remaining_method,
+            f"certificate_ms_{key}": self.certificate_headline,
             # JSON has no infinity: null while the gains do not shrink
             f"estimated_remaining_{key}": (None if self.estimated_remaining is None
                                            or np.isinf(self.estimated_remaining)

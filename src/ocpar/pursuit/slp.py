@@ -15,8 +15,13 @@ of ~4 from the leader's trajectory. With Δ = (N_Δ−1)h, δ = N_δ h, the catc
 N_Δ samples; in local sample indices, agent k's update at index j needs its leader's states up
 to index j + N_Δ − 1 (the leader is Δ ahead in time).
 
-The train stops when the headline's improvement still to come, estimated from the agents'
-recent gains (:func:`remaining_improvement`), is below ε, or after ``max_agents`` agents.
+The train stops when the headline's improvement still to come is below ε, or after
+``max_agents`` agents. What is still to come is extrapolated from the agents' recent gains
+(:func:`remaining_improvement`) until that estimate first falls below ε; then, where the
+horizon fits one worker (N ≤ ``certify_samples``), the full-horizon MS problem is solved once
+from the last agent's trajectory (:func:`full_horizon_task`, one superstep) and what is still
+to come is measured against its optimum from then on: the train stops when it is within ε of
+it (the stop reason says which rule fired; :data:`STOP_REASONS`).
 With ``levels`` L > 1 the train runs first on a grid 2^(L−1) times coarser, then on grids
 twice as fine, each from the coarser result (:func:`run_levels`).
 
@@ -36,7 +41,7 @@ import numpy as np
 
 from ocpar.bsp import Backend
 from ocpar.models.ode import control_bounds
-from ocpar.ocp import MsShape, MsSolution, OcpTask, solve_tasks
+from ocpar.ocp import MsShape, MsSolution, OcpTask, solve_task, solve_tasks
 from ocpar.ocp.multiple_shooting import LOCAL_SOLVERS
 from ocpar.options import option
 from ocpar.pursuit.problem import PursuitProblem, SampledPlan
@@ -45,25 +50,32 @@ from ocpar.pursuit.problem import PursuitProblem, SampledPlan
 @dataclass(frozen=True)
 class PursuitSettings:
     """SLP settings: ``window`` N_Δ (samples per catch-up problem), ``update`` N_δ (samples
-    applied per update), ``epsilon`` the stopping threshold on the estimated improvement of
-    the problem's headline still to come (in the headline's unit; see
-    :func:`remaining_improvement`), ``max_agents`` a bound on the number of pursuing agents
-    (per level), ``levels`` the coarse-to-fine levels (:func:`run_levels`; 1: the paper's
-    scheme), ``local_solver`` the subproblems' solver from the leader's plan (IPOPT if it fails; see
-    :class:`~ocpar.ocp.MsShape`)."""
+    applied per update), ``epsilon`` the stopping threshold on the improvement of the
+    problem's headline still to come (in the headline's unit; see the module docstring),
+    ``max_agents`` a bound on the number of pursuing agents (per level), ``levels`` the
+    coarse-to-fine levels (:func:`run_levels`; 1: the paper's scheme), ``certify_samples``
+    the largest N whose stop is certified by a full-horizon MS solve (module docstring; 0:
+    never), ``local_solver`` the subproblems' solver from the leader's plan (IPOPT if it
+    fails; see :class:`~ocpar.ocp.MsShape`)."""
 
     window: int = option(60, "samples per catch-up problem N_Δ (Δ = (N_Δ-1)h)", low=2,
                          metavar="N_DELTA")
     update: int = option(32, "samples applied per update N_δ (δ = N_δ h)", low=1,
                          metavar="N_UPDATE")
-    epsilon: float = option(1e-3, "stop when the improvement of the headline still to come, "
-                            "estimated from the agents' recent rate, is below EPS (in the "
-                            "headline's unit, kg for the orbit transfer)",
+    epsilon: float = option(1e-3, "stop when the improvement of the headline still to come "
+                            "(certified by the full-horizon MS, or estimated from the agents' "
+                            "recent rate) is below EPS (in the headline's unit, kg for the "
+                            "orbit transfer)",
                             above=0, metavar="EPS")
     max_agents: int = option(100_000, "stop after this many agents", low=2)
     levels: int = option(1, "coarse-to-fine levels L: PBMS first on (N-1)/2^(L-1)+1 samples, "
                          "then on grids twice as fine, each starting from the coarser result "
                          "(agent 0); 1: the paper's scheme", low=1)
+    certify_samples: int = option(10_001, "largest N on which the stop is certified: once the "
+                                  "extrapolated estimate is below EPS, the full-horizon MS "
+                                  "(one NLP on one worker) is solved from the train's "
+                                  "trajectory and the train stops within EPS of its optimum; "
+                                  "0: stop on the extrapolated estimate", low=0, metavar="N")
     local_solver: str = option("newton", "subproblems' solver from the leader's plan: newton "
                                "(Newton steps on the KKT system) or sqp (CasADi sqpmethod, "
                                "qrqp); IPOPT if it fails", choices=LOCAL_SOLVERS)
@@ -79,6 +91,8 @@ class PursuitSettings:
             raise ValueError(f"epsilon must be a positive number, got {self.epsilon}")
         if self.max_agents < 2:
             raise ValueError(f"max_agents must be at least 2, got {self.max_agents}")
+        if self.certify_samples < 0:
+            raise ValueError(f"certify_samples must be at least 0, got {self.certify_samples}")
         if self.levels < 1:
             raise ValueError(f"levels must be at least 1, got {self.levels}")
         factor = 2 ** (self.levels - 1)
@@ -93,8 +107,12 @@ class PursuitSettings:
 
 #: Fewest agent-to-agent improvements :func:`remaining_improvement` estimates from.
 MIN_GAINS = 8
-#: Why a run stopped (``result.json``'s ``stop_reason``).
-STOP_REASONS = ("remaining_below_epsilon", "max_agents")
+#: Why a run stopped (``result.json``'s ``stop_reason``): within ε of the certificate's
+#: optimum, the extrapolated estimate below ε (no certificate: N > ``certify_samples``, or it
+#: failed), or the agent budget spent.
+STOP_REASONS = ("certified_within_epsilon", "estimate_below_epsilon", "max_agents")
+#: How the reported improvement still to come was obtained (``remaining_method``).
+REMAINING_METHODS = ("extrapolated", "certified")
 
 
 def remaining_improvement(progress: Sequence[float]) -> float:
@@ -105,9 +123,10 @@ def remaining_improvement(progress: Sequence[float]) -> float:
     continued as a geometric series: S ρ/(1 − ρ) with ρ = S/S'.
 
     Exact when the gains decay geometrically; an underestimate when they decay more slowly
-    (the diffusion-like descent of a long horizon: compare the headline with a reference
-    before trusting it there); ``inf`` while the gains do not shrink (ρ ≥ 1) or with fewer
-    than :data:`MIN_GAINS` gains; 0 when the last quarter brought no improvement.
+    (the diffusion-like descent of a long horizon, or a slower mode taking over:
+    :class:`PursuitTrain` certifies it where it can); ``inf`` while the gains do not shrink
+    (ρ ≥ 1) or with fewer than :data:`MIN_GAINS` gains; 0 when the last quarter brought no
+    improvement.
     """
     k = len(progress) - 1
     if k < MIN_GAINS:
@@ -121,6 +140,21 @@ def remaining_improvement(progress: Sequence[float]) -> float:
         return float("inf")
     ratio = recent / before
     return recent * ratio / (1 - ratio)
+
+
+def full_horizon_task(problem: PursuitProblem, x: np.ndarray, u: np.ndarray,
+                      fallback: tuple[np.ndarray, np.ndarray] | None = None) -> OcpTask:
+    """Plain multiple shooting over [0, T] with N samples (one NLP, IPOPT) from the trajectory
+    ``x`` (N, nx), ``u`` (N−1, nu); ``fallback`` a second (x, u) to start from if that fails."""
+    shape = MsShape(problem.model, problem.samples - 1, problem.step,
+                    problem.target_components, problem.integrator,
+                    path_constraints=problem.path_constraints)
+
+    def guess(x: np.ndarray, u: np.ndarray) -> np.ndarray:
+        return np.concatenate([np.asarray(x)[1:].ravel(), np.asarray(u).ravel()])
+
+    return OcpTask(shape, np.concatenate([problem.initial_state, problem.target]), guess(x, u),
+                   fallback=None if fallback is None else guess(*fallback))
 
 
 @dataclass
@@ -144,9 +178,11 @@ class Agent:
 @dataclass
 class PursuitOutcome:
     """What the pursuit loop returns: the last finished agent (the result), every finished
-    agent's headline (agent 0 first), counters and status: why it stopped (one of
-    :data:`STOP_REASONS`) and the estimated improvement still to come (``remaining``, in the
-    headline's unit; :func:`remaining_improvement`)."""
+    agent's headline (agent 0 first), counters (``subproblem_solves`` with the certificate)
+    and status: why it stopped (one of :data:`STOP_REASONS`), the improvement still to come
+    (``remaining``, in the headline's unit), how it was obtained (``remaining_method``, one of
+    :data:`REMAINING_METHODS`) and the certificate's full-horizon optimum (``certificate``,
+    None without one)."""
 
     best: Agent
     initial: Agent
@@ -159,6 +195,8 @@ class PursuitOutcome:
     message: str
     stop_reason: str
     remaining: float
+    remaining_method: str
+    certificate: float | None
     failures: list[str] = field(default_factory=list)
     #: agents of each level, coarsest first (:func:`run_levels`)
     agents_per_level: list[int] = field(default_factory=list)
@@ -189,8 +227,12 @@ class PursuitTrain:
         self.launched = 0
         #: how much each finished agent improves on agent 1 (agent 1 first)
         self.progress: list[float] = []
-        #: the estimated improvement still to come (:func:`remaining_improvement`)
-        self.remaining = float("inf")
+        #: the improvement still to come, and how it was obtained (:data:`REMAINING_METHODS`)
+        self.remaining, self.remaining_method = float("inf"), REMAINING_METHODS[0]
+        #: the full-horizon optimum from the train's trajectory, once solved; None before
+        self.certificate: float | None = None
+        #: whether the certificate was solved (or tried), and why it failed ("" if it did not)
+        self._certified, self._certificate_failure = False, ""
 
     def _shape(self, intervals: int) -> MsShape:
         """The subproblem shape with ``intervals`` intervals (made once per train)."""
@@ -269,10 +311,12 @@ class PursuitTrain:
             agent.u[j : j + steps] = leader.u[j : j + steps]
         agent.position = j + steps
 
-    def retire_finished(self) -> tuple[bool, str, str] | None:
+    def retire_finished(self, solve: Callable[[OcpTask], MsSolution]
+                        ) -> tuple[bool, str, str] | None:
         """Take finished agents off the train in order; return (converged, stop reason,
-        message) when the estimated improvement still to come (:attr:`remaining`) falls below
-        ε or the agent budget is spent, else None."""
+        message) when the improvement still to come (:attr:`remaining`) falls below ε or the
+        agent budget is spent, else None. ``solve`` solves the full-horizon certificate
+        (:meth:`certify`) when it falls due."""
         while self.in_flight and self.in_flight[0].done:
             agent = self.in_flight.pop(0)
             self.headlines.append(self.problem.headline_value(agent.x, agent.u))
@@ -281,19 +325,56 @@ class PursuitTrain:
             if agent.index >= 1:  # agent 0 does not end on S_Q: progress from agent 1 on
                 self.progress.append(self.problem.improvement(self.headlines[1],
                                                               self.headlines[-1]))
-                self.remaining = remaining_improvement(self.progress)
+                self._update_remaining(agent, solve)
             unit = f" {self.problem.headline_unit}".rstrip()
+            eps = f"epsilon {self.settings.epsilon:g}{unit}"
+            name = self.problem.headline_name
             if self.remaining < self.settings.epsilon:
-                return True, STOP_REASONS[0], (
-                    f"estimated {self.problem.headline_name} improvement still to come "
-                    f"{self.remaining:.2e}{unit} < epsilon {self.settings.epsilon:g}{unit} "
-                    f"after agent {agent.index}")
+                if self.certificate is not None:
+                    return True, STOP_REASONS[0], (
+                        f"{name} {self.remaining:.2e}{unit} short of the full-horizon MS "
+                        f"optimum {self.certificate:.6f}{unit} < {eps} after agent "
+                        f"{agent.index}")
+                return True, STOP_REASONS[1], (
+                    f"estimated {name} improvement still to come {self.remaining:.2e}{unit} "
+                    f"< {eps} after agent {agent.index}{self._certificate_failure}")
             if agent.index >= self.settings.max_agents:
-                return False, STOP_REASONS[1], (
-                    f"max_agents {self.settings.max_agents} reached; estimated "
-                    f"{self.problem.headline_name} improvement still to come "
-                    f"{self.remaining:.2e}{unit}")
+                return False, STOP_REASONS[2], (
+                    f"max_agents {self.settings.max_agents} reached; {self.remaining_method} "
+                    f"{name} improvement still to come {self.remaining:.2e}{unit}")
         return None
+
+    def _update_remaining(self, agent: Agent, solve: Callable[[OcpTask], MsSolution]) -> None:
+        """:attr:`remaining` after ``agent``: extrapolated from the gains until the estimate
+        first falls below ε, then (N ≤ ``certify_samples``) measured against the
+        certificate."""
+        estimate = remaining_improvement(self.progress)
+        if (estimate < self.settings.epsilon and not self._certified
+                and self.problem.samples <= self.settings.certify_samples):
+            self.certify(agent, solve)
+        if self.certificate is None:
+            self.remaining, self.remaining_method = estimate, REMAINING_METHODS[0]
+        else:
+            to_come = self.problem.improvement(self.headlines[-1], self.certificate)
+            self.remaining, self.remaining_method = max(0.0, to_come), REMAINING_METHODS[1]
+
+    def certify(self, agent: Agent, solve: Callable[[OcpTask], MsSolution]) -> None:
+        """Solve the full-horizon MS problem from ``agent``'s trajectory (agent 0's if that
+        fails) with ``solve``; its headline becomes :attr:`certificate`, the optimum the
+        train's improvement still to come is measured against. A failure is noted and
+        leaves the extrapolated estimate in charge."""
+        sol = solve(full_horizon_task(self.problem, agent.x, agent.u,
+                                      fallback=(self.initial.x, self.initial.u)))
+        self._certified = True
+        self.solves += 1
+        self.retries += sol.attempts - 1
+        if sol.success:
+            self.certificate = self.problem.headline_value(sol.x, sol.u)
+        else:
+            self.failed += 1
+            self.failures.append(f"full-horizon certificate after agent {agent.index}: "
+                                 f"{sol.status}")
+            self._certificate_failure = f" (the full-horizon certificate failed: {sol.status})"
 
 
 def run_pursuit(
@@ -316,9 +397,10 @@ def run_pursuit(
                                  costs=[task.shape.intervals for _, task in work])
         for (agent, _), sol in zip(work, sols, strict=True):
             train.apply(agent, sol)
-        verdict = train.retire_finished()
+        trace = backend.traces[-1]  # the wave's, not the certificate's
+        verdict = train.retire_finished(
+            lambda task: backend.superstep(solve_task, [task])[0])
         if progress is not None:
-            trace = backend.traces[-1]
             progress(
                 f"superstep {trace.index:5d}  agents in flight {len(work):3d}  "
                 f"finished {len(train.headlines) - 1:5d}  last {problem.headline_name} "
@@ -339,6 +421,8 @@ def run_pursuit(
                 message=message,
                 stop_reason=stop_reason,
                 remaining=train.remaining,
+                remaining_method=train.remaining_method,
+                certificate=train.certificate,
                 failures=train.failures[:20],
                 agents_per_level=[train.best.index],
             )

@@ -5,14 +5,12 @@ from __future__ import annotations
 import time
 from collections.abc import Callable
 
-import numpy as np
-
 from ocpar.bsp import Backend
 from ocpar.bsp.serial import SerialBackend
-from ocpar.ocp import MsShape, MsSolution, OcpTask, solve_task
+from ocpar.ocp import MsSolution, solve_task
 from ocpar.pursuit.problem import PursuitProblem
 from ocpar.pursuit.result import PursuitResult
-from ocpar.pursuit.slp import PursuitSettings, run_levels
+from ocpar.pursuit.slp import PursuitSettings, full_horizon_task, run_levels
 from ocpar.pursuit.validate import discrete_residual, rk_check
 
 MODES = ("pbms", "ms")
@@ -23,12 +21,7 @@ REFERENCE_MAX_SAMPLES = 1001
 def solve_full_horizon(problem: PursuitProblem, backend: Backend) -> MsSolution:
     """Plain multiple shooting over [0, T] with N samples, from agent 0's trajectory, as one
     task on the backend."""
-    x0, u0 = problem.feasible_trajectory()
-    shape = MsShape(problem.model, problem.samples - 1, problem.step,
-                    problem.target_components, problem.integrator,
-                    path_constraints=problem.path_constraints)
-    guess = np.concatenate([x0[1:].ravel(), u0.ravel()])
-    task = OcpTask(shape, np.concatenate([problem.initial_state, problem.target]), guess)
+    task = full_horizon_task(problem, *problem.feasible_trajectory())
     return backend.superstep(solve_task, [task])[0]
 
 
@@ -64,6 +57,7 @@ def solve_pursuit(
         failed, in_flight, headlines = int(not sol.success), 1, []
         retries = sol.attempts - 1
         stop_reason, remaining, agents_per_level = None, None, []
+        remaining_method, certificate = None, None
     else:
         outcome = run_levels(problem, settings, backend, progress)
         x, u = outcome.best.x, outcome.best.u
@@ -74,6 +68,7 @@ def solve_pursuit(
                                         outcome.headlines)
         retries = outcome.retries
         stop_reason, remaining = outcome.stop_reason, outcome.remaining
+        remaining_method, certificate = outcome.remaining_method, outcome.certificate
         agents_per_level = outcome.agents_per_level
     trace = backend.traces[first_trace:]
     wall = time.perf_counter() - start
@@ -97,5 +92,6 @@ def solve_pursuit(
         wall_time_s=wall, x=x, u=u, initial_x=initial_x, headlines=headlines,
         reference_headline=reference_headline, reference_x=reference_x, trace=trace,
         stop_reason=stop_reason, estimated_remaining=remaining,
+        remaining_method=remaining_method, certificate_headline=certificate,
         agents_per_level=agents_per_level,
     )
