@@ -6,10 +6,16 @@ that runs one of them.
   the DFET constraints and bounds. Parameters: λ (m), z̃ (m), z* (m).
 * **Constraint restoration** (eq. 14 inner level, social action): min 1 s.t. the DFET
   constraints and bounds, from a candidate.
+* **ε-constraint refinement** (the final refinement of the archive, our addition): variables
+  z, min J_k(z)/s_k s.t. (J_i(z) − ε_i)/s_i ≤ 0 for i ≠ k, the DFET constraints and bounds,
+  with ε = J(z₀) of the member it starts from and k = :data:`REFINED_OBJECTIVE`. Parameters:
+  ε (m), s (m) the archive's span. The member's first-order Pareto-stationarity residual is
+  measured afterwards (:meth:`InnerSolvers.stationarity`).
 
 Counting evaluations: a local search counts one objective evaluation per evaluation of its
 constraint function (each one evaluates J(z)) plus one for the start point, summed over its
-seam hops (below); a restoration counts one (the objectives of the point it returns).
+seam hops (below); a restoration counts one (the objectives of the point it returns); a
+refinement counts like a local search.
 """
 
 from __future__ import annotations
@@ -20,7 +26,9 @@ from functools import cached_property, lru_cache
 
 import casadi as ca
 import numpy as np
+from scipy.optimize import lsq_linear
 
+from ocpar.macs.archive import TIE_TOL
 from ocpar.macs.objectives import objective_functions
 from ocpar.macs.problem import MacsProblem
 from ocpar.ocp import DfetTranscription, dfet_problem
@@ -41,7 +49,14 @@ CONSISTENCY_TOL = 1e-2
 INTEGRATION_RTOL = 1e-5
 #: IPOPT iteration limit of one local search (the paper gave fmincon 100 evaluations).
 MAX_ITER = 100
-KINDS = ("scalarised", "restore")
+KINDS = ("scalarised", "restore", "refine")
+#: The objective a refinement minimises (the last); the others are bounded by the member's.
+REFINED_OBJECTIVE = -1
+#: A variable or path row within this (relative to 1 + |bound|) of a bound counts as active
+#: in the stationarity measure.
+ACTIVE_TOL = 1e-6
+#: A member whose Pareto-stationarity residual is at most this counts as converged.
+STATIONARITY_TOL = 1e-6
 #: Weight of Σ_i ϑ_i added to α (augmented Pascoletti–Serafini): without it a search that
 #: reaches a bound of one objective (t_f = 20 in orbit raising) stops at a weakly Pareto
 #: optimal point instead of also improving the other objective.
@@ -72,7 +87,8 @@ FEASIBLE_RESTORATION_OPTIONS = {"constr_viol_tol": 1e-8, "dual_inf_tol": 1.0,
 @dataclass(frozen=True)
 class SearchTask:
     """One inner solve: ``kind`` "scalarised" (Pascoletti–Serafini, needs ``weights`` λ,
-    ``utopia`` z̃) or "restore"; the start is ``z0`` (full NLP vector) or, if None, the
+    ``utopia`` z̃), "restore", or "refine" (ε-constraint, needs ``span`` s (m,), the scale of
+    each objective); the start is ``z0`` (full NLP vector) or, if None, the
     decision vector ``p0`` (controls and t_f) from which the states are integrated. The
     result is clipped to the bounds (IPOPT relaxes them by ~1e-8)."""
 
@@ -83,12 +99,17 @@ class SearchTask:
     weights: np.ndarray | None = None
     utopia: np.ndarray | None = None
     restoration: str = "centred"
+    span: np.ndarray | None = None
 
 
 @dataclass
 class SearchResult:
     """``z`` the NLP vector reached, ``objectives`` J(z) (m,), ``feasible``, ``evaluations``
-    counted as in the module docstring, IPOPT ``status`` and ``iterations``."""
+    counted as in the module docstring, IPOPT ``status`` and ``iterations``. A refinement
+    also returns whether its solve was kept (``refined``: feasible and dominating or equal to
+    its start; else ``z`` is the start), and for the point returned the Pareto-stationarity
+    residual ``stationarity`` and the trade-off weights ``tradeoff`` (m,)
+    (:meth:`InnerSolvers.stationarity`)."""
 
     z: np.ndarray
     objectives: np.ndarray
@@ -97,6 +118,9 @@ class SearchResult:
     status: str
     iterations: int
     solve_time_s: float
+    refined: bool = False
+    stationarity: float | None = None
+    tradeoff: np.ndarray | None = None
 
 
 class InnerSolvers:
@@ -126,6 +150,15 @@ class InnerSolvers:
         scalarised = {"x": ca.vertcat(z, alpha), "p": ca.vertcat(lam, utopia, start),
                       "f": alpha + AUGMENTATION * ca.sum1(theta),
                       "g": ca.vertcat(g, lam * theta - alpha)}
+        eps, span = ca.SX.sym("eps", m), ca.SX.sym("span", m)
+        epsilon = {"x": z, "p": ca.vertcat(eps, span),
+                   "f": objectives[REFINED_OBJECTIVE] / span[REFINED_OBJECTIVE],
+                   "g": ca.vertcat(g, (objectives - eps) / span)}
+        self.epsilon = ca.nlpsol("eps", "ipopt", epsilon,
+                                 ipopt_options(1e-8, MAX_ITER, mu_init=SEARCH_MU_INIT))
+        # ∂J/∂z (m, nz) and ∂g/∂z (ng, nz), dense, for the stationarity measure
+        self._jacobians = BufferedFunction(ca.Function(
+            "dJg", [z], [ca.densify(ca.jacobian(objectives, z)), ca.densify(ca.jacobian(g, z))]))
         opts = ipopt_options(1e-8, MAX_ITER)
         self.scalarised = ca.nlpsol("ps", "ipopt", scalarised,
                                     ipopt_options(1e-8, MAX_ITER, mu_init=SEARCH_MU_INIT))
@@ -165,6 +198,10 @@ class InnerSolvers:
         times: the bound is where the angle wraps, not a limit, and a node resting on it is a
         spurious local optimum. Evaluations and time of every search are summed."""
         t0 = time.perf_counter()
+        if task.kind == "refine":
+            result = self._refine(task, self.start_point(task))
+            result.solve_time_s = time.perf_counter() - t0
+            return result
         result = self._solve(task, self.start_point(task))
         evaluations = result.evaluations
         hop_seams = task.kind == "scalarised" and any(self.problem.periodic_controls)
@@ -194,6 +231,75 @@ class InnerSolvers:
         hopped = z.copy()
         hopped[controls] = np.where(at_lower, upper, np.where(at_upper, lower, u))
         return hopped
+
+    def _refine(self, task: SearchTask, z0: np.ndarray) -> SearchResult:
+        """The ε-constraint NLP from z0 with ε = J(z0); its point is kept if it is feasible and
+        dominates or equals z0's objectives (ties to :data:`~ocpar.macs.archive.TIE_TOL`),
+        else z0 is returned (``refined`` False). Either way with its stationarity."""
+        start = self.objectives(z0)
+        m = start.size
+        out = self.epsilon(
+            x0=z0, p=np.concatenate([start, task.span]), lbx=self.dfet.lbz, ubx=self.dfet.ubz,
+            lbg=np.concatenate([self.lbg, np.full(m, -np.inf)]),
+            ubg=np.concatenate([self.ubg, np.where(np.arange(m) == m + REFINED_OBJECTIVE,
+                                                   np.inf, 0.0)]))
+        stats = self.epsilon.stats()
+        z = np.clip(np.asarray(out["x"]).ravel(), self.dfet.lbz, self.dfet.ubz)
+        objectives = self.objectives(z)
+        refined = (bool(stats["success"]) and self.violation(z) <= FEASIBILITY_TOL
+                   and bool(np.all(np.isfinite(z)))
+                   and bool(np.all(objectives <= start + TIE_TOL * (1 + np.abs(start))))
+                   and self.consistent(z, objectives))
+        if not refined:
+            z, objectives = z0, start
+        residual, weights = self.stationarity(z, task.span)
+        return SearchResult(z=z, objectives=objectives, feasible=True,
+                            evaluations=int(stats.get("n_call_nlp_g", 0)) + 1,
+                            status=str(stats["return_status"]),
+                            iterations=int(stats["iter_count"]), solve_time_s=0.0,
+                            refined=refined, stationarity=residual, tradeoff=weights)
+
+    def stationarity(self, z: np.ndarray, span: np.ndarray) -> tuple[float, np.ndarray]:
+        """First-order Pareto stationarity of a feasible z: the least ‖Σ_i w_i ∇J_i/s_i +
+        ∇gᵀλ + ν‖∞ over trade-off weights w ≥ 0 (Σ w = 1), multipliers λ of the DFET
+        equations and of the active path rows, ν of the active bounds (each with its KKT
+        sign), fitted by bounded least squares. Returns (residual, w (m,)); the residual is
+        in units of the normalised objectives J_i/s_i per unit of z, 0 at a KKT point of
+        min Σ w_i J_i/s_i."""
+        dj, dg = self._jacobians(z)
+        nz = z.size
+        grads = dj.reshape(nz, -1).T / span[:, None]  # (m, nz) of J_i/s_i
+        dg = dg.reshape(nz, -1).T  # (ng, nz)
+        m, g = grads.shape[0], self._residual(z)[0]
+        tol_g = ACTIVE_TOL * (1 + np.abs(g))
+        equality = self.lbg == self.ubg
+        lower_g = ~equality & (g <= self.lbg + tol_g)
+        upper_g = ~equality & (g >= self.ubg - tol_g)
+        tol_z = ACTIVE_TOL * (1 + np.abs(z))
+        fixed = self.dfet.lbz == self.dfet.ubz
+        lower_z = ~fixed & (z <= self.dfet.lbz + tol_z)
+        upper_z = ~fixed & (z >= self.dfet.ubz - tol_z)
+        rows = equality | lower_g | upper_g
+        eye = np.eye(nz)
+        bounds_z = fixed | lower_z | upper_z
+        columns = np.hstack([grads.T, dg[rows].T, eye[:, bounds_z]])
+        inf = np.inf
+        lb = np.concatenate([np.zeros(m), np.where(equality[rows], -inf,
+                                                   np.where(lower_g[rows], -inf, 0.0)),
+                             np.where(fixed[bounds_z], -inf, np.where(lower_z[bounds_z], -inf,
+                                                                      0.0))])
+        ub = np.concatenate([np.full(m, inf), np.where(equality[rows], inf,
+                                                       np.where(lower_g[rows], 0.0, inf)),
+                             np.where(fixed[bounds_z], inf, np.where(lower_z[bounds_z], 0.0,
+                                                                     inf))])
+        # Σ w = 1 as a heavily weighted row of the least-squares system
+        norm = 1e3 * max(1.0, float(np.max(np.abs(grads))))
+        a = np.vstack([columns, np.concatenate([np.full(m, norm), np.zeros(columns.shape[1]
+                                                                            - m)])])
+        b = np.concatenate([np.zeros(nz), [norm]])
+        x = lsq_linear(a, b, bounds=(lb, ub), method="bvls").x
+        x /= max(np.sum(x[:m]), 1e-300)
+        return float(np.max(np.abs(columns @ x))), x[:m]
 
     def objectives(self, z: np.ndarray) -> np.ndarray:
         """J(z) (m,) on the transcription."""
