@@ -315,15 +315,18 @@ class Macs:
         """The final refinement, one superstep: every archive member re-solved by the
         ε-constraint NLP from its own point (objectives scaled by the archive's span); a
         member takes the refined point only if it dominates or equals its own, and gets its
-        stationarity either way. Members that now dominate or repeat others drop out. Returns
-        the refinement's evaluations."""
+        stationarity either way (NaN if the task failed). Members that now dominate or repeat
+        others drop out. Returns the refinement's evaluations."""
         span = self._span()
-        tasks = [SearchTask(self.problem, "refine", z0=member.z, span=span)
-                 for member in self.archive.members]
+        members = self.archive.members
+        tasks = [SearchTask(self.problem, "refine", z0=member.z, span=span) for member in members]
         before = self.evaluations
         results = self._superstep(tasks)
-        refined = [Member(r.z, r.objectives, optimised=True, refined=r.refined,
-                          stationarity=r.stationarity, tradeoff=r.tradeoff) for r in results]
+        refined = [Member(r.z, r.objectives, refined=r.refined, stationarity=r.stationarity,
+                          tradeoff=r.tradeoff) if r.feasible else
+                   Member(member.z, member.objectives, member.optimised, refined=False,
+                          stationarity=np.nan, tradeoff=np.full(self.m, np.nan))
+                   for member, r in zip(members, results, strict=True)]
         self.archive.members = []
         self.archive.add(refined)
         return self.evaluations - before

@@ -50,11 +50,9 @@ INTEGRATION_RTOL = 1e-5
 #: IPOPT iteration limit of one local search (the paper gave fmincon 100 evaluations).
 MAX_ITER = 100
 KINDS = ("scalarised", "restore", "refine")
-#: The objective a refinement minimises (the last); the others are bounded by the member's.
+#: The objective a refinement minimises (the last: t_f is the first of every example, so a
+#: member keeps its final time and gets the least J_m for it); the others are bounded.
 REFINED_OBJECTIVE = -1
-#: A variable or path row within this (relative to 1 + |bound|) of a bound counts as active
-#: in the stationarity measure.
-ACTIVE_TOL = 1e-6
 #: A member whose Pareto-stationarity residual is at most this counts as converged.
 STATIONARITY_TOL = 1e-6
 #: Weight of Σ_i ϑ_i added to α (augmented Pascoletti–Serafini): without it a search that
@@ -237,12 +235,11 @@ class InnerSolvers:
         dominates or equals z0's objectives (ties to :data:`~ocpar.macs.archive.TIE_TOL`),
         else z0 is returned (``refined`` False). Either way with its stationarity."""
         start = self.objectives(z0)
-        m = start.size
+        free = np.arange(start.size) == start.size + REFINED_OBJECTIVE  # the minimised one
         out = self.epsilon(
             x0=z0, p=np.concatenate([start, task.span]), lbx=self.dfet.lbz, ubx=self.dfet.ubz,
-            lbg=np.concatenate([self.lbg, np.full(m, -np.inf)]),
-            ubg=np.concatenate([self.ubg, np.where(np.arange(m) == m + REFINED_OBJECTIVE,
-                                                   np.inf, 0.0)]))
+            lbg=np.concatenate([self.lbg, np.full(start.size, -np.inf)]),
+            ubg=np.concatenate([self.ubg, np.where(free, np.inf, 0.0)]))
         stats = self.epsilon.stats()
         z = np.clip(np.asarray(out["x"]).ravel(), self.dfet.lbz, self.dfet.ubz)
         objectives = self.objectives(z)
@@ -260,46 +257,54 @@ class InnerSolvers:
                             refined=refined, stationarity=residual, tradeoff=weights)
 
     def stationarity(self, z: np.ndarray, span: np.ndarray) -> tuple[float, np.ndarray]:
-        """First-order Pareto stationarity of a feasible z: the least ‖Σ_i w_i ∇J_i/s_i +
-        ∇gᵀλ + ν‖∞ over trade-off weights w ≥ 0 (Σ w = 1), multipliers λ of the DFET
-        equations and of the active path rows, ν of the active bounds (each with its KKT
-        sign), fitted by bounded least squares. Returns (residual, w (m,)); the residual is
-        in units of the normalised objectives J_i/s_i per unit of z, 0 at a KKT point of
-        min Σ w_i J_i/s_i."""
+        """First-order Pareto stationarity of a feasible z: the KKT residual of
+        min Σ_i w_i J_i/s_i at the trade-off weights w ≥ 0 (Σ w = 1) and multipliers that fit
+        it best, max(‖Σ_i w_i ∇J_i/s_i + ∇gᵀλ + ν‖∞, max |complementarity|): λ free on the
+        DFET equations, each bound of a path row or of z with its KKT sign and its
+        complementarity product (multiplier × distance to the bound) in the fit, so no
+        activity threshold is needed. Fitted by bounded least squares. Returns (residual,
+        w (m,)); the residual is in units of the normalised objectives J_i/s_i (per unit of
+        z for the gradient part), 0 at a KKT point."""
         dj, dg = self._jacobians(z)
         nz = z.size
         grads = dj.reshape(nz, -1).T / span[:, None]  # (m, nz) of J_i/s_i
         dg = dg.reshape(nz, -1).T  # (ng, nz)
         m, g = grads.shape[0], self._residual(z)[0]
-        tol_g = ACTIVE_TOL * (1 + np.abs(g))
         equality = self.lbg == self.ubg
-        lower_g = ~equality & (g <= self.lbg + tol_g)
-        upper_g = ~equality & (g >= self.ubg - tol_g)
-        tol_z = ACTIVE_TOL * (1 + np.abs(z))
         fixed = self.dfet.lbz == self.dfet.ubz
-        lower_z = ~fixed & (z <= self.dfet.lbz + tol_z)
-        upper_z = ~fixed & (z >= self.dfet.ubz - tol_z)
-        rows = equality | lower_g | upper_g
+        # one column per bound: its gradient (a row of ∂g/∂z, or a unit vector), its sign
+        # (-1 lower: multiplier ≤ 0; +1 upper: ≥ 0) and the distance to it
+        bounds = [(dg[rows], sign, np.abs(distance[rows]))
+                  for rows, sign, distance in (
+                      (~equality & np.isfinite(self.lbg), -1.0, g - self.lbg),
+                      (~equality & np.isfinite(self.ubg), 1.0, self.ubg - g))]
         eye = np.eye(nz)
-        bounds_z = fixed | lower_z | upper_z
-        columns = np.hstack([grads.T, dg[rows].T, eye[:, bounds_z]])
-        inf = np.inf
-        lb = np.concatenate([np.zeros(m), np.where(equality[rows], -inf,
-                                                   np.where(lower_g[rows], -inf, 0.0)),
-                             np.where(fixed[bounds_z], -inf, np.where(lower_z[bounds_z], -inf,
-                                                                      0.0))])
-        ub = np.concatenate([np.full(m, inf), np.where(equality[rows], inf,
-                                                       np.where(lower_g[rows], 0.0, inf)),
-                             np.where(fixed[bounds_z], inf, np.where(lower_z[bounds_z], 0.0,
-                                                                     inf))])
+        bounds += [(eye[cols], sign, np.abs(distance[cols]))
+                   for cols, sign, distance in (
+                       (~fixed & np.isfinite(self.dfet.lbz), -1.0, z - self.dfet.lbz),
+                       (~fixed & np.isfinite(self.dfet.ubz), 1.0, self.dfet.ubz - z))]
+        gradients = np.vstack([grads, dg[equality], eye[fixed]] + [b[0] for b in bounds])
+        n_free = int(equality.sum() + fixed.sum())
+        lower = np.concatenate([np.zeros(m), np.full(n_free, -np.inf)]
+                               + [np.where(b[1] < 0, -np.inf, 0.0) * np.ones(len(b[2]))
+                                  for b in bounds])
+        upper = np.concatenate([np.full(m + n_free, np.inf)]
+                               + [np.where(b[1] < 0, 0.0, np.inf) * np.ones(len(b[2]))
+                                  for b in bounds])
+        distances = np.concatenate([b[2] for b in bounds])
+        n = gradients.shape[0]
+        complementarity = np.zeros((distances.size, n))
+        complementarity[:, n - distances.size:] = np.diag(distances)
         # Σ w = 1 as a heavily weighted row of the least-squares system
-        norm = 1e3 * max(1.0, float(np.max(np.abs(grads))))
-        a = np.vstack([columns, np.concatenate([np.full(m, norm), np.zeros(columns.shape[1]
-                                                                            - m)])])
-        b = np.concatenate([np.zeros(nz), [norm]])
-        x = lsq_linear(a, b, bounds=(lb, ub), method="bvls").x
+        weight = 1e3 * max(1.0, float(np.max(np.abs(grads))))
+        total = np.concatenate([np.full(m, weight), np.zeros(n - m)])
+        a = np.vstack([gradients.T, complementarity, total])
+        b = np.concatenate([np.zeros(nz + distances.size), [weight]])
+        x = lsq_linear(a, b, bounds=(lower, upper), method="bvls").x
         x /= max(np.sum(x[:m]), 1e-300)
-        return float(np.max(np.abs(columns @ x))), x[:m]
+        residual = max(float(np.max(np.abs(gradients.T @ x))),
+                       float(np.max(np.abs(complementarity @ x), initial=0.0)))
+        return residual, x[:m]
 
     def objectives(self, z: np.ndarray) -> np.ndarray:
         """J(z) (m,) on the transcription."""

@@ -11,6 +11,11 @@ from ocpar.macs.local_search import STATIONARITY_TOL
 from ocpar.results import RunResult
 
 
+def finite_or_none(values: np.ndarray) -> list[float | None]:
+    """``values`` (1-D) as a JSON list, a non-finite entry (a failed refinement) as null."""
+    return [float(v) if np.isfinite(v) else None for v in np.asarray(values, dtype=float)]
+
+
 @dataclass
 class MacsResult(RunResult):
     """Outcome of :func:`ocpar.macs.solve_macs`.
@@ -25,7 +30,8 @@ class MacsResult(RunResult):
     After the final refinement (else None): per member whether its refinement was kept
     (``refined``, k), its Pareto-stationarity residual (``stationarity``, k; converged when
     ≤ :data:`~ocpar.macs.local_search.STATIONARITY_TOL`) and trade-off weights (``tradeoff``,
-    (k, m)); ``refinement_evaluations`` are included in ``evaluations``.
+    (k, m); NaN where the refinement's task failed); ``refinement_evaluations`` are included
+    in ``evaluations``.
     """
 
     scheme: ClassVar[str] = "macs"
@@ -78,9 +84,9 @@ class MacsResult(RunResult):
                 "evaluations": self.refinement_evaluations,
                 "tolerance": STATIONARITY_TOL,
                 "refined": np.asarray(self.refined).tolist(),
-                "stationarity": np.asarray(self.stationarity).tolist(),
+                "stationarity": finite_or_none(self.stationarity),
                 "converged": self.converged.tolist(),
-                "tradeoff": np.asarray(self.tradeoff).tolist(),
+                "tradeoff": [finite_or_none(w) for w in self.tradeoff],
             },
         }
 
