@@ -224,6 +224,7 @@ def test_same_seed_same_front_on_two_dask_workers(short_serial):
     with open_backend("dask", workers=2) as backend:
         result = solve_macs(make_problem("goddard"), SHORT, backend)
     np.testing.assert_array_equal(result.front, short_serial.front)
+    np.testing.assert_array_equal(result.stationarity, short_serial.stationarity)
     assert result.evaluations == short_serial.evaluations
 
 
@@ -234,6 +235,9 @@ def test_command_line_contract_under_mpirun(short_serial, tmp_path):
     data = json.loads((tmp_path / "result.json").read_text())
     assert data["scheme"] == "macs" and data["workers"] == 2
     assert data["front"] == short_serial.front.tolist()  # same seed, 1 vs 2 workers
+    # the final refinement too: the same flags, residuals and weights
+    assert data["refinement"] == short_serial.to_dict()["refinement"]
+    assert all(data["refinement"]["converged"])
     for key in ("evaluations", "iterations", "supersteps"):
         assert isinstance(data[key], int)
     assert all(len(p) == 2 for p in data["front"])
