@@ -48,8 +48,10 @@ def plot_front(result: MacsResult, path: Path) -> Path:
         ax.grid(alpha=0.3)
     for ax in axes.ravel()[len(pairs):]:
         ax.set_visible(False)
-    fig.suptitle(f"{result.problem}: {result.quality()} ({result.evaluations} evaluations)",
-                 fontsize=10)
+    refining = (f", {result.refinement_evaluations} of them refining"
+                if result.stationarity is not None else "")
+    fig.suptitle(f"{result.problem}: {result.quality()} ({result.evaluations} evaluations"
+                 f"{refining})", fontsize=10)
     return save(fig, path)
 
 
