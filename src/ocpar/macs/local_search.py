@@ -190,38 +190,61 @@ class InnerSolvers:
         return self.dfet.guess_from_decision(task.p0, INTEGRATION_RTOL)
 
     def run(self, task: SearchTask) -> SearchResult:
-        """One inner solve. A scalarised search of a problem with ``periodic_controls`` that
-        ends with nodes of a periodic control on a bound moves those nodes to the opposite
-        bound (the same angle) and searches again, up to :data:`MAX_SEAM_HOPS`
-        times: the bound is where the angle wraps, not a limit, and a node resting on it is a
-        spurious local optimum. Evaluations and time of every search are summed."""
+        """One inner solve. A scalarised search or refinement of a problem with
+        ``periodic_controls`` that ends with nodes of a periodic control on a bound moves
+        those nodes to the opposite bound (the same angle) and solves again, up to
+        :data:`MAX_SEAM_HOPS` times: the bound is where the angle wraps, not a limit, and a
+        node resting on it is a spurious local optimum. Evaluations and time of every solve
+        are summed; a refinement's point then gets its stationarity."""
         t0 = time.perf_counter()
+        z0 = self.start_point(task)
         if task.kind == "refine":
-            result = self._refine(task, self.start_point(task))
-            result.solve_time_s = time.perf_counter() - t0
-            return result
-        result = self._solve(task, self.start_point(task))
+            start = self.objectives(z0)  # every re-solve must dominate or equal the member
+
+            def solve(z: np.ndarray) -> SearchResult:
+                return self._refine(task, z, start)
+
+            def done(result: SearchResult) -> bool:
+                return result.refined
+        else:
+            def solve(z: np.ndarray) -> SearchResult:
+                return self._solve(task, z)
+
+            def done(result: SearchResult) -> bool:
+                return result.feasible
+        result = solve(z0)
         evaluations = result.evaluations
-        hop_seams = task.kind == "scalarised" and any(self.problem.periodic_controls)
+        hop_seams = task.kind != "restore" and any(self.problem.periodic_controls)
         for _ in range(MAX_SEAM_HOPS if hop_seams else 0):
-            hopped = self._hop_seams(result.z) if result.feasible else None
+            hopped = self._hop_seams(result.z) if done(result) else None
             if hopped is None:
                 break
-            retry = self._solve(task, hopped)
+            retry = solve(hopped)
             evaluations += retry.evaluations
-            if not retry.feasible:
+            if not done(retry):
                 break
             result = retry
         result.evaluations = evaluations
+        if task.kind == "refine":
+            result.stationarity, result.tradeoff = self.stationarity(result.z, task.span)
         result.solve_time_s = time.perf_counter() - t0
         return result
+
+    @cached_property
+    def _periodic(self) -> np.ndarray:
+        """Which entries of z (nz,) are nodes of a periodic control."""
+        controls = slice(self.dfet.decision_slice.start, self.dfet.nz - 1)
+        mask = np.zeros(self.dfet.nz, dtype=bool)
+        # nodes component-fastest
+        mask[controls] = np.resize(self.problem.periodic_controls, controls.stop - controls.start)
+        return mask
 
     def _hop_seams(self, z: np.ndarray) -> np.ndarray | None:
         """z with every node of a periodic control within :data:`SEAM_TOL` of a bound moved
         to the opposite bound, or None if no such node is on a bound."""
         controls = slice(self.dfet.decision_slice.start, self.dfet.nz - 1)
         u, lower, upper = z[controls], self.dfet.lbz[controls], self.dfet.ubz[controls]
-        periodic = np.resize(self.problem.periodic_controls, u.size)  # nodes component-fastest
+        periodic = self._periodic[controls]
         at_lower = periodic & (u <= lower + SEAM_TOL)
         at_upper = periodic & (u >= upper - SEAM_TOL)
         if not np.any(at_lower | at_upper):
@@ -230,11 +253,10 @@ class InnerSolvers:
         hopped[controls] = np.where(at_lower, upper, np.where(at_upper, lower, u))
         return hopped
 
-    def _refine(self, task: SearchTask, z0: np.ndarray) -> SearchResult:
-        """The ε-constraint NLP from z0 with ε = J(z0); its point is kept if it is feasible and
-        dominates or equals z0's objectives (ties to :data:`~ocpar.macs.archive.TIE_TOL`),
-        else z0 is returned (``refined`` False). Either way with its stationarity."""
-        start = self.objectives(z0)
+    def _refine(self, task: SearchTask, z0: np.ndarray, start: np.ndarray) -> SearchResult:
+        """The ε-constraint NLP from z0 with ε = ``start``, the member's objectives (m,); its
+        point is kept if it is feasible and dominates or equals them (ties to
+        :data:`~ocpar.macs.archive.TIE_TOL`), else z0 is returned (``refined`` False)."""
         free = np.arange(start.size) == start.size + REFINED_OBJECTIVE  # the minimised one
         out = self.epsilon(
             x0=z0, p=np.concatenate([start, task.span]), lbx=self.dfet.lbz, ubx=self.dfet.ubz,
@@ -248,13 +270,12 @@ class InnerSolvers:
                    and bool(np.all(objectives <= start + TIE_TOL * (1 + np.abs(start))))
                    and self.consistent(z, objectives))
         if not refined:
-            z, objectives = z0, start
-        residual, weights = self.stationarity(z, task.span)
+            z, objectives = z0, self.objectives(z0)
         return SearchResult(z=z, objectives=objectives, feasible=True,
                             evaluations=int(stats.get("n_call_nlp_g", 0)) + 1,
                             status=str(stats["return_status"]),
                             iterations=int(stats["iter_count"]), solve_time_s=0.0,
-                            refined=refined, stationarity=residual, tradeoff=weights)
+                            refined=refined)
 
     def stationarity(self, z: np.ndarray, span: np.ndarray) -> tuple[float, np.ndarray]:
         """First-order Pareto stationarity of a feasible z: the KKT residual of
@@ -262,7 +283,8 @@ class InnerSolvers:
         it best, max(‖Σ_i w_i ∇J_i/s_i + ∇gᵀλ + ν‖∞, max |complementarity|): λ free on the
         DFET equations, each bound of a path row or of z with its KKT sign and its
         complementarity product (multiplier × distance to the bound) in the fit, so no
-        activity threshold is needed. Fitted by bounded least squares. Returns (residual,
+        activity threshold is needed; a periodic control's bounds are no limits (the seam)
+        and get none. Fitted by bounded least squares. Returns (residual,
         w (m,)); the residual is in units of the normalised objectives J_i/s_i (per unit of
         z for the gradient part), 0 at a KKT point."""
         dj, dg = self._jacobians(z)
@@ -272,6 +294,7 @@ class InnerSolvers:
         m, g = grads.shape[0], self._residual(z)[0]
         equality = self.lbg == self.ubg
         fixed = self.dfet.lbz == self.dfet.ubz
+        bounded = ~fixed & ~self._periodic
         # one column per bound: its gradient (a row of ∂g/∂z, or a unit vector), its sign
         # (-1 lower: multiplier ≤ 0; +1 upper: ≥ 0) and the distance to it
         bounds = [(dg[rows], sign, np.abs(distance[rows]))
@@ -281,8 +304,8 @@ class InnerSolvers:
         eye = np.eye(nz)
         bounds += [(eye[cols], sign, np.abs(distance[cols]))
                    for cols, sign, distance in (
-                       (~fixed & np.isfinite(self.dfet.lbz), -1.0, z - self.dfet.lbz),
-                       (~fixed & np.isfinite(self.dfet.ubz), 1.0, self.dfet.ubz - z))]
+                       (bounded & np.isfinite(self.dfet.lbz), -1.0, z - self.dfet.lbz),
+                       (bounded & np.isfinite(self.dfet.ubz), 1.0, self.dfet.ubz - z))]
         gradients = np.vstack([grads, dg[equality], eye[fixed]] + [b[0] for b in bounds])
         n_free = int(equality.sum() + fixed.sum())
         lower = np.concatenate([np.zeros(m), np.full(n_free, -np.inf)]
