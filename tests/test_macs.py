@@ -183,6 +183,34 @@ def test_seam_hops_free_a_periodic_control_from_its_bound(monkeypatch):
     assert not any(make_problem("goddard").periodic_controls)
 
 
+def test_refinement_frees_a_member_stuck_on_the_seam(monkeypatch):
+    """The point of the test above stuck on the seam (≥ 10 nodes at −π) is no stationary point
+    (a periodic control's bounds are no limits) and its refinement hops the seam too: it ends
+    stationary, dominating the stuck point, at least 10x nearer the reference front."""
+    from ocpar.macs import local_search
+    from ocpar.macs.metrics import generational_distance
+
+    problem = make_problem("orbit-raising")
+    dfet = dfet_problem(problem.shape)
+    p = dfet.sample_controls(lambda t: np.array([-2.0 if t < 25 else 1.5]), 50.0)
+    task = SearchTask(problem, "scalarised", p0=p, weights=np.array([0.0, 1.0]),
+                      utopia=np.array([0.0, -1.0]))
+    with monkeypatch.context() as patch:
+        patch.setattr(local_search, "MAX_SEAM_HOPS", 0)
+        stuck = run_search(task)
+    span = np.array([60.0, 0.35])
+    assert local_search.inner_solvers(problem).stationarity(stuck.z, span)[0] > 1e-5
+    refined = run_search(SearchTask(problem, "refine", z0=stuck.z, span=span))
+    assert refined.refined and refined.stationarity <= local_search.STATIONARITY_TOL
+    assert np.all(refined.objectives <= stuck.objectives + 1e-7 * (1 + np.abs(stuck.objectives)))
+    reference = reference_front(problem.name)
+
+    def distance(z):
+        return generational_distance(resimulated_objectives(problem, z)[None], reference)
+
+    assert distance(refined.z) < distance(stuck.z) / 10
+
+
 def test_goddard_single_objective_searches_reach_the_front_extremes():
     """λ = e_1 finds the minimum time (109.109: thrust straight up, then straight down; the
     DFET's polynomial control of order 6 cannot jump, so it gets within 0.1), λ = e_2 the

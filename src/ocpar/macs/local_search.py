@@ -26,7 +26,7 @@ from functools import cached_property, lru_cache
 
 import casadi as ca
 import numpy as np
-from scipy.optimize import lsq_linear
+from scipy.optimize import nnls
 
 from ocpar.macs.archive import TIE_TOL
 from ocpar.macs.objectives import objective_functions
@@ -284,9 +284,10 @@ class InnerSolvers:
         DFET equations, each bound of a path row or of z with its KKT sign and its
         complementarity product (multiplier × distance to the bound) in the fit, so no
         activity threshold is needed; a periodic control's bounds are no limits (the seam)
-        and get none. Fitted by bounded least squares. Returns (residual,
-        w (m,)); the residual is in units of the normalised objectives J_i/s_i (per unit of
-        z for the gradient part), 0 at a KKT point."""
+        and get none. Fitted by non-negative least squares (Lawson–Hanson; on orbit raising's
+        305 variables ~1 s from a point off the front, 5-16 s by scipy's bvls). Returns
+        (residual, w (m,)); the residual is in units of the normalised objectives J_i/s_i (per
+        unit of z for the gradient part), 0 at a KKT point."""
         dj, dg = self._jacobians(z)
         nz = z.size
         grads = dj.reshape(nz, -1).T / span[:, None]  # (m, nz) of J_i/s_i
@@ -323,7 +324,12 @@ class InnerSolvers:
         total = np.concatenate([np.full(m, weight), np.zeros(n - m)])
         a = np.vstack([gradients.T, complementarity, total])
         b = np.concatenate([np.zeros(nz + distances.size), [weight]])
-        x = lsq_linear(a, b, bounds=(lower, upper), method="bvls").x
+        # as non-negative least squares: a free column twice (±), a non-positive one negated
+        free = np.isinf(lower) & np.isinf(upper)
+        sign = np.where(np.isinf(lower) & ~free, -1.0, 1.0)
+        y = nnls(np.hstack([a * sign, -a[:, free]]), b, maxiter=50 * a.shape[1])[0]
+        x = sign * y[:a.shape[1]]
+        x[free] -= y[a.shape[1]:]
         x /= max(np.sum(x[:m]), 1e-300)
         residual = max(float(np.max(np.abs(gradients.T @ x))),
                        float(np.max(np.abs(complementarity @ x), initial=0.0)))
