@@ -18,7 +18,7 @@ from conftest import golden
 from ocpar.examples import macs_double_integrator, macs_thrust_limited
 from ocpar.macs import MacsProblem, MacsSettings, Objective, make_problem, solve_macs
 from ocpar.macs.archive import dominates
-from ocpar.macs.local_search import SearchTask, run_search
+from ocpar.macs.local_search import SearchTask, inner_solvers, run_search
 from ocpar.macs.metrics import inverted_generational_distance, normalise
 from ocpar.macs.objectives import objective_functions
 from ocpar.macs.plot import plot_controls, plot_front
@@ -83,15 +83,30 @@ def test_a_fixed_final_time_is_kept():
     assert result.objectives[1] == pytest.approx(12 / 27, rel=1e-8)
 
 
-def test_double_integrator_front_short_run():
-    """A short run (1,500 evaluations, archive 20): no member beats the closed-form front, most
-    are on it (the others, from restoration only, are not polished yet), and IGD against it is
-    ≤ 0.06 (the 10,000-evaluation target, 0.03, is in the slow test)."""
+SHORT = MacsSettings(max_evaluations=1500, archive_size=20, seed=0)
+
+
+@pytest.fixture(scope="module")
+def short_runs():
+    """The double integrator, 1,500 evaluations, archive 20, without and with the final
+    refinement (the same loop: the refinement only follows it)."""
     problem = make_problem("double-integrator")
-    result = solve_macs(problem, MacsSettings(max_evaluations=1500, archive_size=20, seed=0))
-    j1, j2 = result.front.T
-    excess = j2 / (12 * DISTANCE**2 / j1**3) - 1
-    assert excess.min() >= -1e-7 and np.median(excess) <= 1e-7, excess
+    return (solve_macs(problem, dataclasses.replace(SHORT, no_refine=True)),
+            solve_macs(problem, SHORT))
+
+
+def excess(front: np.ndarray) -> np.ndarray:
+    """How far each member (k, 2) lies above the closed-form front, relative."""
+    return front[:, 1] / (12 * DISTANCE**2 / front[:, 0] ** 3) - 1
+
+
+def test_double_integrator_front_short_run(short_runs):
+    """A short run (1,500 evaluations, archive 20): no member beats the closed-form front, all
+    are on it after the refinement, and IGD against it is ≤ 0.06 (the 10,000-evaluation
+    target, 0.03, is in the slow test)."""
+    _, result = short_runs
+    problem = make_problem("double-integrator")
+    assert excess(result.front).min() >= -1e-7 and excess(result.front).max() <= 1e-7
     lo, hi = problem.final_time
     reference = closed_form_front(lo, hi)
     assert inverted_generational_distance(result.front, reference) <= 0.06
@@ -99,16 +114,58 @@ def test_double_integrator_front_short_run():
                                        abs=1e-3)
 
 
+def test_refinement_puts_every_member_on_the_front_and_reports_it(short_runs, tmp_path):
+    """Without the refinement two members of this run lie 1.5e-4 and 2e-4 above the closed-form
+    front; with it every one is on it to 1e-7 and is stationary, each member of the archive
+    refined, in one more superstep; its evaluations are reported and counted in the total.
+    result.json carries the flags, residuals and weights (null without the refinement)."""
+    plain, refined = short_runs
+    assert excess(plain.front).max() > 1e-4 and plain.stationarity is None
+    assert refined.supersteps == plain.supersteps + 1
+    assert refined.evaluations == plain.evaluations + refined.refinement_evaluations
+    assert 0 < refined.refinement_evaluations <= 20 * len(refined.front)
+    assert np.abs(excess(refined.front)).max() <= 1e-7
+    assert refined.refined.all() and refined.converged.all()
+    assert refined.stationarity.max() <= 1e-8 and refined.tradeoff.shape == (len(refined.front), 2)
+    data = refined.to_dict()["refinement"]
+    assert data["converged"] == [True] * len(refined.front)
+    assert data["evaluations"] == refined.refinement_evaluations
+    assert plain.to_dict()["refinement"] is None
+    plot_front(refined, tmp_path / "front.png")  # converged members drawn filled
+
+
+def test_stationarity_measures_the_fronts_slope_and_its_distance():
+    """From a restored point (not optimal) the ε-constraint refinement reaches the transcribed
+    front; there the residual is ~0 and the weights are the front's slope, w1/w2 =
+    −dJ2/dJ1 · s1/s2 = (36 d²/J1⁴) s1/s2; at the restored point the residual is large."""
+    problem = make_problem("double-integrator")
+    dfet = dfet_problem(problem.shape)
+    start = run_search(SearchTask(problem, "restore", p0=(dfet.p_lower + dfet.p_upper) / 2))
+    span = np.array([2.0, 0.5])
+    solvers = inner_solvers(problem)
+    assert solvers.stationarity(start.z, span)[0] > 1e-4
+    result = run_search(SearchTask(problem, "refine", z0=start.z, span=span))
+    assert result.refined and result.feasible and result.stationarity <= 1e-8
+    assert dominates(result.objectives, start.objectives)
+    j1 = result.objectives[0]
+    assert result.objectives[1] == pytest.approx(12 * DISTANCE**2 / j1**3, rel=1e-8)
+    w1, w2 = result.tradeoff
+    assert w1 + w2 == pytest.approx(1.0) and w1 / w2 == pytest.approx(
+        36 * DISTANCE**2 / j1**4 * span[0] / span[1], rel=1e-5)
+
+
 @pytest.mark.slow
 def test_double_integrator_front_over_five_seeds():
     """The issue's target: mean IGD ≤ 0.03 (normalised) over 5 seeds, 10,000 evaluations,
-    archive 20, against the closed-form front."""
+    archive 20, against the closed-form front; after the final refinement every member within
+    1e-4 of it, relative (measured 1.4e-8 at most), and stationary."""
     problem = make_problem("double-integrator")
     reference = closed_form_front(*problem.final_time)
-    igd = [inverted_generational_distance(
-        solve_macs(problem, MacsSettings(archive_size=20, seed=seed)).front, reference)
-        for seed in range(5)]
+    results = [solve_macs(problem, MacsSettings(archive_size=20, seed=seed)) for seed in range(5)]
+    igd = [inverted_generational_distance(r.front, reference) for r in results]
     assert np.mean(igd) <= golden("macs-double-integrator.mean_igd_5_seeds").at_most, igd
+    for result in results:
+        assert np.abs(excess(result.front)).max() <= 1e-4 and result.converged.all()
 
 
 @pytest.fixture(scope="module")
@@ -243,16 +300,20 @@ def thrust_limited():
 def test_thrust_limited_front_lies_on_the_closed_form_and_keeps_the_limit(thrust_limited):
     """A run of 3000 evaluations: no member below the closed-form front (without the limit the
     members at t_f < √6 would lie up to 4.8 % below it), at least three where the limit binds,
-    most members on the front to 1e-3 (the others, restored but not yet polished, above it),
-    and every member's control law within |u| ≤ 1.02 everywhere: the limit is imposed at the
-    quadrature points, and a linear control reaches past them to the element's ends (measured
-    1.0146)."""
+    every member stationary after the final refinement (without it two lay 1.3 % and 3 %
+    above the front): on the front to 1e-6 where the limit is inactive, and within 2e-3 where
+    it binds, the transcription's own error there (its least energy at a fixed t_f, 8 linear
+    elements, is up to 1.15e-3 above the closed form: 2.15, 2.3); and every member's control
+    law within |u| ≤ 1.02 everywhere: the limit is imposed at the quadrature points, and a
+    linear control reaches past them to the element's ends (measured 1.0146)."""
     problem, result = thrust_limited
     j1, j2 = result.front.T
     excess = j2 / macs_thrust_limited.front(j1)[:, 1] - 1
-    assert excess.min() >= -1e-5 and np.median(excess) <= 1e-3, excess
+    assert excess.min() >= -1e-5 and excess.max() <= 2e-3, excess
     binding = j1 < np.sqrt(6) * 0.99
     assert binding.sum() >= 3 and np.median(excess[binding]) <= 1e-3, (j1, excess)
+    assert np.abs(excess[j1 > np.sqrt(6) * 1.01]).max() <= 1e-6
+    assert result.converged.all(), result.stationarity
     dfet = dfet_problem(problem.shape)
     for p in result.decisions:
         law = dfet.control_law(p)

@@ -40,7 +40,8 @@ class MacsSettings:
     (F), ``crossover`` (CR), ``social_fraction`` (p_social), ``archive_size`` (max_arch),
     ``max_contractions`` (max_contr_ratio); ``contraction`` is the factor applied to ρ on a
     failed local search, ``seed`` the master seed, ``restoration`` how a restoration's IPOPT
-    stops (:data:`~ocpar.macs.local_search.RESTORATIONS`)."""
+    stops (:data:`~ocpar.macs.local_search.RESTORATIONS`), ``no_refine`` skips the final
+    refinement of the archive (:meth:`Macs.refine`)."""
 
     max_evaluations: int = option(10_000, "budget of objective evaluations, more than "
                                   "--population", name="max_evals", low=1)
@@ -63,6 +64,9 @@ class MacsSettings:
         "between its bounds) or feasible (at the first feasible point: about half the "
         "restorations' time, but restored points nearer the front may stay unpolished in the "
         "archive)", choices=RESTORATIONS)
+    no_refine: bool = option(False, "skip the final refinement (every archive member re-solved "
+                             "once by an ε-constraint NLP, with its Pareto-stationarity "
+                             "residual)")
 
     def __post_init__(self) -> None:
         checks = [
@@ -130,7 +134,8 @@ class Agent:
 @dataclass
 class MacsOutcome:
     """Archive, counters and per-iteration history of a MACS run; ``fronts`` the archive's
-    objectives (k, m) after every iteration."""
+    objectives (k, m) after every iteration; ``refinement_evaluations`` those of the final
+    refinement (included in ``evaluations``)."""
 
     archive: Archive
     evaluations: int
@@ -138,6 +143,7 @@ class MacsOutcome:
     failed_searches: int
     history: list[dict] = field(default_factory=list)
     fronts: list[np.ndarray] = field(default_factory=list)
+    refinement_evaluations: int = 0
 
 
 class Macs:
@@ -185,11 +191,14 @@ class Macs:
     def _archive(self, results: list[SearchResult], optimised: bool) -> None:
         self.archive.add([Member(r.z, r.objectives, optimised) for r in results if r.feasible])
 
+    def _span(self) -> np.ndarray:
+        """z*_A − z of the (non-empty) archive (m,), at least 1e-3 max(|z|, 1) when flat."""
+        ideal, nadir = self.archive.ideal_and_nadir()
+        return np.maximum(nadir - ideal, 1e-3 * np.maximum(np.abs(ideal), 1.0))
+
     def _utopia(self) -> np.ndarray:
         """z̃ = 2z − z*_A from the archive (eq. 15), pushed away when the archive is flat."""
-        ideal, nadir = self.archive.ideal_and_nadir()
-        span = np.maximum(nadir - ideal, 1e-3 * np.maximum(np.abs(ideal), 1.0))
-        return ideal - span
+        return self.archive.ideal_and_nadir()[0] - self._span()
 
     def _neighbour(self, agent: Agent) -> np.ndarray:
         """A random decision vector in agent's neighbourhood B_j (radius ρ_j of the range)."""
@@ -302,6 +311,26 @@ class Macs:
                                     if agent.subproblem == self.equal else self.equal)
             agent.moved = False
 
+    def refine(self) -> int:
+        """The final refinement, one superstep: every archive member re-solved by the
+        ε-constraint NLP from its own point (objectives scaled by the archive's span); a
+        member takes the refined point only if it dominates or equals its own, and gets its
+        stationarity either way (NaN if the task failed). Members that now dominate or repeat
+        others drop out. Returns the refinement's evaluations."""
+        span = self._span()
+        members = self.archive.members
+        tasks = [SearchTask(self.problem, "refine", z0=member.z, span=span) for member in members]
+        before = self.evaluations
+        results = self._superstep(tasks)
+        refined = [Member(r.z, r.objectives, refined=r.refined, stationarity=r.stationarity,
+                          tradeoff=r.tradeoff) if r.feasible else
+                   Member(member.z, member.objectives, member.optimised, refined=False,
+                          stationarity=np.nan, tradeoff=np.full(self.m, np.nan))
+                   for member, r in zip(members, results, strict=True)]
+        self.archive.members = []
+        self.archive.add(refined)
+        return self.evaluations - before
+
     def _move(self, agent: Agent, result: SearchResult) -> None:
         moved = agent.objectives is None or not np.allclose(
             agent.objectives, result.objectives, rtol=1e-9, atol=1e-12)
@@ -330,5 +359,12 @@ class Macs:
                           if self.indicator and self.archive.members else "")
                 self.progress(f"iteration {iteration:4d}  evaluations {self.evaluations:6d}  "
                               f"archive {len(self.archive.members):3d}{figure}")
+        refinement = 0
+        if not self.settings.no_refine and self.archive.members:
+            refinement = self.refine()
+            if self.progress:
+                members = self.archive.members
+                self.progress(f"refinement: {sum(m.refined for m in members)} of "
+                              f"{len(members)} members refined, {refinement} evaluations")
         return MacsOutcome(self.archive, self.evaluations, iteration, self.failed, history,
-                           fronts)
+                           fronts, refinement)

@@ -20,11 +20,16 @@ TIE_TOL = 1e-7
 @dataclass
 class Member:
     """One archived solution: its NLP vector ``z``, objectives ``objectives`` (m,), and
-    whether a scalarised local search produced it (``optimised``) or only restoration."""
+    whether a scalarised local search produced it (``optimised``) or only restoration. After
+    the final refinement: whether its refinement was kept (``refined``), its Pareto-stationarity
+    residual ``stationarity`` and trade-off weights ``tradeoff`` (m,) (None before)."""
 
     z: np.ndarray
     objectives: np.ndarray
     optimised: bool = True
+    refined: bool | None = None
+    stationarity: float | None = None
+    tradeoff: np.ndarray | None = None
 
 
 def dominates(a: np.ndarray, b: np.ndarray) -> bool:

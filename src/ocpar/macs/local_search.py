@@ -6,10 +6,16 @@ that runs one of them.
   the DFET constraints and bounds. Parameters: λ (m), z̃ (m), z* (m).
 * **Constraint restoration** (eq. 14 inner level, social action): min 1 s.t. the DFET
   constraints and bounds, from a candidate.
+* **ε-constraint refinement** (the final refinement of the archive, our addition): variables
+  z, min J_k(z)/s_k s.t. (J_i(z) − ε_i)/s_i ≤ 0 for i ≠ k, the DFET constraints and bounds,
+  with ε = J(z₀) of the member it starts from and k = :data:`REFINED_OBJECTIVE`. Parameters:
+  ε (m), s (m) the archive's span. The member's first-order Pareto-stationarity residual is
+  measured afterwards (:meth:`InnerSolvers.stationarity`).
 
 Counting evaluations: a local search counts one objective evaluation per evaluation of its
 constraint function (each one evaluates J(z)) plus one for the start point, summed over its
-seam hops (below); a restoration counts one (the objectives of the point it returns).
+seam hops (below); a restoration counts one (the objectives of the point it returns); a
+refinement counts like a local search.
 """
 
 from __future__ import annotations
@@ -20,7 +26,9 @@ from functools import cached_property, lru_cache
 
 import casadi as ca
 import numpy as np
+from scipy.optimize import nnls
 
+from ocpar.macs.archive import TIE_TOL
 from ocpar.macs.objectives import objective_functions
 from ocpar.macs.problem import MacsProblem
 from ocpar.ocp import DfetTranscription, dfet_problem
@@ -41,7 +49,12 @@ CONSISTENCY_TOL = 1e-2
 INTEGRATION_RTOL = 1e-5
 #: IPOPT iteration limit of one local search (the paper gave fmincon 100 evaluations).
 MAX_ITER = 100
-KINDS = ("scalarised", "restore")
+KINDS = ("scalarised", "restore", "refine")
+#: The objective a refinement minimises (the last: t_f is the first of every example, so a
+#: member keeps its final time and gets the least J_m for it); the others are bounded.
+REFINED_OBJECTIVE = -1
+#: A member whose Pareto-stationarity residual is at most this counts as converged.
+STATIONARITY_TOL = 1e-6
 #: Weight of Σ_i ϑ_i added to α (augmented Pascoletti–Serafini): without it a search that
 #: reaches a bound of one objective (t_f = 20 in orbit raising) stops at a weakly Pareto
 #: optimal point instead of also improving the other objective.
@@ -72,7 +85,8 @@ FEASIBLE_RESTORATION_OPTIONS = {"constr_viol_tol": 1e-8, "dual_inf_tol": 1.0,
 @dataclass(frozen=True)
 class SearchTask:
     """One inner solve: ``kind`` "scalarised" (Pascoletti–Serafini, needs ``weights`` λ,
-    ``utopia`` z̃) or "restore"; the start is ``z0`` (full NLP vector) or, if None, the
+    ``utopia`` z̃), "restore", or "refine" (ε-constraint, needs ``span`` s (m,), the scale of
+    each objective); the start is ``z0`` (full NLP vector) or, if None, the
     decision vector ``p0`` (controls and t_f) from which the states are integrated. The
     result is clipped to the bounds (IPOPT relaxes them by ~1e-8)."""
 
@@ -83,12 +97,17 @@ class SearchTask:
     weights: np.ndarray | None = None
     utopia: np.ndarray | None = None
     restoration: str = "centred"
+    span: np.ndarray | None = None
 
 
 @dataclass
 class SearchResult:
     """``z`` the NLP vector reached, ``objectives`` J(z) (m,), ``feasible``, ``evaluations``
-    counted as in the module docstring, IPOPT ``status`` and ``iterations``."""
+    counted as in the module docstring, IPOPT ``status`` and ``iterations``. A refinement
+    also returns whether its solve was kept (``refined``: feasible and dominating or equal to
+    its start; else ``z`` is the start), and for the point returned the Pareto-stationarity
+    residual ``stationarity`` and the trade-off weights ``tradeoff`` (m,)
+    (:meth:`InnerSolvers.stationarity`)."""
 
     z: np.ndarray
     objectives: np.ndarray
@@ -97,6 +116,9 @@ class SearchResult:
     status: str
     iterations: int
     solve_time_s: float
+    refined: bool = False
+    stationarity: float | None = None
+    tradeoff: np.ndarray | None = None
 
 
 class InnerSolvers:
@@ -126,6 +148,15 @@ class InnerSolvers:
         scalarised = {"x": ca.vertcat(z, alpha), "p": ca.vertcat(lam, utopia, start),
                       "f": alpha + AUGMENTATION * ca.sum1(theta),
                       "g": ca.vertcat(g, lam * theta - alpha)}
+        eps, span = ca.SX.sym("eps", m), ca.SX.sym("span", m)
+        epsilon = {"x": z, "p": ca.vertcat(eps, span),
+                   "f": objectives[REFINED_OBJECTIVE] / span[REFINED_OBJECTIVE],
+                   "g": ca.vertcat(g, (objectives - eps) / span)}
+        self.epsilon = ca.nlpsol("eps", "ipopt", epsilon,
+                                 ipopt_options(1e-8, MAX_ITER, mu_init=SEARCH_MU_INIT))
+        # ∂J/∂z (m, nz) and ∂g/∂z (ng, nz), dense, for the stationarity measure
+        self._jacobians = BufferedFunction(ca.Function(
+            "dJg", [z], [ca.densify(ca.jacobian(objectives, z)), ca.densify(ca.jacobian(g, z))]))
         opts = ipopt_options(1e-8, MAX_ITER)
         self.scalarised = ca.nlpsol("ps", "ipopt", scalarised,
                                     ipopt_options(1e-8, MAX_ITER, mu_init=SEARCH_MU_INIT))
@@ -159,34 +190,61 @@ class InnerSolvers:
         return self.dfet.guess_from_decision(task.p0, INTEGRATION_RTOL)
 
     def run(self, task: SearchTask) -> SearchResult:
-        """One inner solve. A scalarised search of a problem with ``periodic_controls`` that
-        ends with nodes of a periodic control on a bound moves those nodes to the opposite
-        bound (the same angle) and searches again, up to :data:`MAX_SEAM_HOPS`
-        times: the bound is where the angle wraps, not a limit, and a node resting on it is a
-        spurious local optimum. Evaluations and time of every search are summed."""
+        """One inner solve. A scalarised search or refinement of a problem with
+        ``periodic_controls`` that ends with nodes of a periodic control on a bound moves
+        those nodes to the opposite bound (the same angle) and solves again, up to
+        :data:`MAX_SEAM_HOPS` times: the bound is where the angle wraps, not a limit, and a
+        node resting on it is a spurious local optimum. Evaluations and time of every solve
+        are summed; a refinement's point then gets its stationarity."""
         t0 = time.perf_counter()
-        result = self._solve(task, self.start_point(task))
+        z0 = self.start_point(task)
+        if task.kind == "refine":
+            start = self.objectives(z0)  # every re-solve must dominate or equal the member
+
+            def solve(z: np.ndarray) -> SearchResult:
+                return self._refine(task, z, start)
+
+            def done(result: SearchResult) -> bool:
+                return result.refined
+        else:
+            def solve(z: np.ndarray) -> SearchResult:
+                return self._solve(task, z)
+
+            def done(result: SearchResult) -> bool:
+                return result.feasible
+        result = solve(z0)
         evaluations = result.evaluations
-        hop_seams = task.kind == "scalarised" and any(self.problem.periodic_controls)
+        hop_seams = task.kind != "restore" and any(self.problem.periodic_controls)
         for _ in range(MAX_SEAM_HOPS if hop_seams else 0):
-            hopped = self._hop_seams(result.z) if result.feasible else None
+            hopped = self._hop_seams(result.z) if done(result) else None
             if hopped is None:
                 break
-            retry = self._solve(task, hopped)
+            retry = solve(hopped)
             evaluations += retry.evaluations
-            if not retry.feasible:
+            if not done(retry):
                 break
             result = retry
         result.evaluations = evaluations
+        if task.kind == "refine":
+            result.stationarity, result.tradeoff = self.stationarity(result.z, task.span)
         result.solve_time_s = time.perf_counter() - t0
         return result
+
+    @cached_property
+    def _periodic(self) -> np.ndarray:
+        """Which entries of z (nz,) are nodes of a periodic control."""
+        controls = slice(self.dfet.decision_slice.start, self.dfet.nz - 1)
+        mask = np.zeros(self.dfet.nz, dtype=bool)
+        # nodes component-fastest
+        mask[controls] = np.resize(self.problem.periodic_controls, controls.stop - controls.start)
+        return mask
 
     def _hop_seams(self, z: np.ndarray) -> np.ndarray | None:
         """z with every node of a periodic control within :data:`SEAM_TOL` of a bound moved
         to the opposite bound, or None if no such node is on a bound."""
         controls = slice(self.dfet.decision_slice.start, self.dfet.nz - 1)
         u, lower, upper = z[controls], self.dfet.lbz[controls], self.dfet.ubz[controls]
-        periodic = np.resize(self.problem.periodic_controls, u.size)  # nodes component-fastest
+        periodic = self._periodic[controls]
         at_lower = periodic & (u <= lower + SEAM_TOL)
         at_upper = periodic & (u >= upper - SEAM_TOL)
         if not np.any(at_lower | at_upper):
@@ -194,6 +252,88 @@ class InnerSolvers:
         hopped = z.copy()
         hopped[controls] = np.where(at_lower, upper, np.where(at_upper, lower, u))
         return hopped
+
+    def _refine(self, task: SearchTask, z0: np.ndarray, start: np.ndarray) -> SearchResult:
+        """The ε-constraint NLP from z0 with ε = ``start``, the member's objectives (m,); its
+        point is kept if it is feasible and dominates or equals them (ties to
+        :data:`~ocpar.macs.archive.TIE_TOL`), else z0 is returned (``refined`` False)."""
+        free = np.arange(start.size) == start.size + REFINED_OBJECTIVE  # the minimised one
+        out = self.epsilon(
+            x0=z0, p=np.concatenate([start, task.span]), lbx=self.dfet.lbz, ubx=self.dfet.ubz,
+            lbg=np.concatenate([self.lbg, np.full(start.size, -np.inf)]),
+            ubg=np.concatenate([self.ubg, np.where(free, np.inf, 0.0)]))
+        stats = self.epsilon.stats()
+        z = np.clip(np.asarray(out["x"]).ravel(), self.dfet.lbz, self.dfet.ubz)
+        objectives = self.objectives(z)
+        refined = (bool(stats["success"]) and self.violation(z) <= FEASIBILITY_TOL
+                   and bool(np.all(np.isfinite(z)))
+                   and bool(np.all(objectives <= start + TIE_TOL * (1 + np.abs(start))))
+                   and self.consistent(z, objectives))
+        if not refined:
+            z, objectives = z0, self.objectives(z0)
+        return SearchResult(z=z, objectives=objectives, feasible=True,
+                            evaluations=int(stats.get("n_call_nlp_g", 0)) + 1,
+                            status=str(stats["return_status"]),
+                            iterations=int(stats["iter_count"]), solve_time_s=0.0,
+                            refined=refined)
+
+    def stationarity(self, z: np.ndarray, span: np.ndarray) -> tuple[float, np.ndarray]:
+        """First-order Pareto stationarity of a feasible z: the KKT residual of
+        min Σ_i w_i J_i/s_i at the trade-off weights w ≥ 0 (Σ w = 1) and multipliers that fit
+        it best, max(‖Σ_i w_i ∇J_i/s_i + ∇gᵀλ + ν‖∞, max |complementarity|): λ free on the
+        DFET equations, each bound of a path row or of z with its KKT sign and its
+        complementarity product (multiplier × distance to the bound) in the fit, so no
+        activity threshold is needed; a periodic control's bounds are no limits (the seam)
+        and get none. Fitted by non-negative least squares (Lawson–Hanson; on orbit raising's
+        305 variables ~1 s from a point off the front, 5-16 s by scipy's bvls). Returns
+        (residual, w (m,)); the residual is in units of the normalised objectives J_i/s_i (per
+        unit of z for the gradient part), 0 at a KKT point."""
+        dj, dg = self._jacobians(z)
+        nz = z.size
+        grads = dj.reshape(nz, -1).T / span[:, None]  # (m, nz) of J_i/s_i
+        dg = dg.reshape(nz, -1).T  # (ng, nz)
+        m, g = grads.shape[0], self._residual(z)[0]
+        equality = self.lbg == self.ubg
+        fixed = self.dfet.lbz == self.dfet.ubz
+        bounded = ~fixed & ~self._periodic
+        # one column per bound: its gradient (a row of ∂g/∂z, or a unit vector), its sign
+        # (-1 lower: multiplier ≤ 0; +1 upper: ≥ 0) and the distance to it
+        bounds = [(dg[rows], sign, np.abs(distance[rows]))
+                  for rows, sign, distance in (
+                      (~equality & np.isfinite(self.lbg), -1.0, g - self.lbg),
+                      (~equality & np.isfinite(self.ubg), 1.0, self.ubg - g))]
+        eye = np.eye(nz)
+        bounds += [(eye[cols], sign, np.abs(distance[cols]))
+                   for cols, sign, distance in (
+                       (bounded & np.isfinite(self.dfet.lbz), -1.0, z - self.dfet.lbz),
+                       (bounded & np.isfinite(self.dfet.ubz), 1.0, self.dfet.ubz - z))]
+        gradients = np.vstack([grads, dg[equality], eye[fixed]] + [b[0] for b in bounds])
+        n_free = int(equality.sum() + fixed.sum())
+        lower = np.concatenate([np.zeros(m), np.full(n_free, -np.inf)]
+                               + [np.where(b[1] < 0, -np.inf, 0.0) * np.ones(len(b[2]))
+                                  for b in bounds])
+        upper = np.concatenate([np.full(m + n_free, np.inf)]
+                               + [np.where(b[1] < 0, 0.0, np.inf) * np.ones(len(b[2]))
+                                  for b in bounds])
+        distances = np.concatenate([b[2] for b in bounds])
+        n = gradients.shape[0]
+        complementarity = np.zeros((distances.size, n))
+        complementarity[:, n - distances.size:] = np.diag(distances)
+        # Σ w = 1 as a heavily weighted row of the least-squares system
+        weight = 1e3 * max(1.0, float(np.max(np.abs(grads))))
+        total = np.concatenate([np.full(m, weight), np.zeros(n - m)])
+        a = np.vstack([gradients.T, complementarity, total])
+        b = np.concatenate([np.zeros(nz + distances.size), [weight]])
+        # as non-negative least squares: a free column twice (±), a non-positive one negated
+        free = np.isinf(lower) & np.isinf(upper)
+        sign = np.where(np.isinf(lower) & ~free, -1.0, 1.0)
+        y = nnls(np.hstack([a * sign, -a[:, free]]), b, maxiter=50 * a.shape[1])[0]
+        x = sign * y[:a.shape[1]]
+        x[free] -= y[a.shape[1]:]
+        x /= max(np.sum(x[:m]), 1e-300)
+        residual = max(float(np.max(np.abs(gradients.T @ x))),
+                       float(np.max(np.abs(complementarity @ x), initial=0.0)))
+        return residual, x[:m]
 
     def objectives(self, z: np.ndarray) -> np.ndarray:
         """J(z) (m,) on the transcription."""

@@ -8,6 +8,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ocpar.macs.local_search import STATIONARITY_TOL
 from ocpar.macs.problem import MacsProblem
 from ocpar.macs.result import MacsResult
 from ocpar.ocp import dfet_problem
@@ -16,7 +17,9 @@ from ocpar.plotting import pyplot, save
 
 def plot_front(result: MacsResult, path: Path) -> Path:
     """Archive (re-simulated objectives) over the reference front: the front itself for two
-    objectives, every pairwise projection (J_a, J_b) for more."""
+    objectives, every pairwise projection (J_a, J_b) for more. After the final refinement
+    the members whose stationarity residual is within the tolerance are filled, those whose
+    refinement was not kept crossed."""
     plt = pyplot()
     names, reference = result.objective_names, result.reference_front
     pairs = list(combinations(range(len(names)), 2))
@@ -30,14 +33,25 @@ def plot_front(result: MacsResult, path: Path) -> Path:
                     label="reference front")
         ax.plot(result.front[:, a], result.front[:, b], "o", mfc="none", color="tab:blue",
                 label=f"MACS archive ({len(result.front)})")
+        if result.converged is not None:
+            for members, style, label in (
+                    (result.converged, dict(marker="o", color="tab:blue"),
+                     f"stationary to {STATIONARITY_TOL:g}"),
+                    (~np.asarray(result.refined, dtype=bool),
+                     dict(marker="x", color="tab:red"), "refinement not kept")):
+                if np.any(members):
+                    ax.plot(result.front[members, a], result.front[members, b], ls="none",
+                            label=f"{label} ({int(np.sum(members))})", **style)
         ax.set_xlabel(names[a])
         ax.set_ylabel(names[b])
         ax.legend()
         ax.grid(alpha=0.3)
     for ax in axes.ravel()[len(pairs):]:
         ax.set_visible(False)
-    fig.suptitle(f"{result.problem}: {result.quality()} ({result.evaluations} evaluations)",
-                 fontsize=10)
+    refining = (f", {result.refinement_evaluations} of them refining"
+                if result.stationarity is not None else "")
+    fig.suptitle(f"{result.problem}: {result.quality()} ({result.evaluations} evaluations"
+                 f"{refining})", fontsize=10)
     return save(fig, path)
 
 

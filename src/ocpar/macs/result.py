@@ -7,7 +7,13 @@ from typing import ClassVar
 
 import numpy as np
 
+from ocpar.macs.local_search import STATIONARITY_TOL
 from ocpar.results import RunResult
+
+
+def finite_or_none(values: np.ndarray) -> list[float | None]:
+    """``values`` (1-D) as a JSON list, a non-finite entry (a failed refinement) as null."""
+    return [float(v) if np.isfinite(v) else None for v in np.asarray(values, dtype=float)]
 
 
 @dataclass
@@ -21,6 +27,11 @@ class MacsResult(RunResult):
     normalised by the reference front, or without one by the final front itself (None if that
     has no extent); ``decisions`` the members' decision vectors (controls and t_f);
     ``objective_names`` m labels; ``reference_front`` the problem's (not written to JSON).
+    After the final refinement (else None): per member whether its refinement was kept
+    (``refined``, k), its Pareto-stationarity residual (``stationarity``, k; converged when
+    ≤ :data:`~ocpar.macs.local_search.STATIONARITY_TOL`) and trade-off weights (``tradeoff``,
+    (k, m); NaN where the refinement's task failed); ``refinement_evaluations`` are included
+    in ``evaluations``.
     """
 
     scheme: ClassVar[str] = "macs"
@@ -39,6 +50,10 @@ class MacsResult(RunResult):
     objective_names: list[str]
     reference_front: np.ndarray | None = None
     history: list[dict] = field(default_factory=list)
+    refined: np.ndarray | None = None
+    stationarity: np.ndarray | None = None
+    tradeoff: np.ndarray | None = None
+    refinement_evaluations: int = 0
     #: the common counts: every evaluation is one DFET solve; a failed search is rejected
     #: (the paper's penalty), never retried
     inner_solves: int = field(init=False)
@@ -65,16 +80,42 @@ class MacsResult(RunResult):
             "settings": self.settings,
             "decisions": np.asarray(self.decisions).tolist(),
             "history": self.history,
+            "refinement": None if self.stationarity is None else {
+                "evaluations": self.refinement_evaluations,
+                "tolerance": STATIONARITY_TOL,
+                "refined": np.asarray(self.refined).tolist(),
+                "stationarity": finite_or_none(self.stationarity),
+                "converged": self.converged.tolist(),
+                "tradeoff": [finite_or_none(w) for w in self.tradeoff],
+            },
         }
+
+    @property
+    def converged(self) -> np.ndarray | None:
+        """Per member (k,): its stationarity residual is within the tolerance (None without
+        the refinement)."""
+        if self.stationarity is None:
+            return None
+        return np.asarray(self.stationarity) <= STATIONARITY_TOL
 
     def summary(self) -> str:
         return (
             f"status {self.status}: {len(self.front)} archive members after {self.evaluations} "
             f"evaluations, {self.iterations} iterations, {self.supersteps} supersteps "
             f"({self.failed_searches} infeasible searches rejected)\n"
+            f"{self.refinement()}"
             f"{self.quality()}\n"
             f"wall time {self.wall_time_s:.2f} s on {self.workers} {self.backend} worker(s)"
         )
+
+    def refinement(self) -> str:
+        """The final refinement as one line (empty without it)."""
+        if self.stationarity is None:
+            return ""
+        return (f"refinement: {int(np.sum(self.refined))} of {len(self.front)} members refined, "
+                f"{int(np.sum(self.converged))} stationary to {STATIONARITY_TOL:g} (largest "
+                f"residual {np.max(self.stationarity, initial=0.0):.1e}), "
+                f"{self.refinement_evaluations} of the evaluations\n")
 
     def quality(self) -> str:
         """GD, IGD (when known) and HV as one line."""

@@ -11,6 +11,7 @@ import numpy as np
 from ocpar.bsp import Backend
 from ocpar.bsp.serial import SerialBackend
 from ocpar.macs.algorithm import Macs, MacsSettings
+from ocpar.macs.archive import Member
 from ocpar.macs.metrics import generational_distance, hypervolume, inverted_generational_distance
 from ocpar.macs.objectives import objective_functions
 from ocpar.macs.problem import MacsProblem
@@ -30,6 +31,17 @@ def hypervolume_box(problem: MacsProblem, front: np.ndarray) -> np.ndarray | Non
     run, not runs); None if they have no extent in some objective."""
     box = problem.reference_front if problem.reference_front is not None else front
     return box if len(box) >= 2 and np.all(np.ptp(box, axis=0) > 0) else None
+
+
+def refinement_fields(members: list[Member], evaluations: int) -> dict:
+    """The members' refinement outcome as :class:`MacsResult` fields (none if the
+    refinement did not run)."""
+    if not members or members[0].stationarity is None:
+        return {}
+    return {"refined": np.array([mb.refined for mb in members]),
+            "stationarity": np.array([mb.stationarity for mb in members]),
+            "tradeoff": np.array([mb.tradeoff for mb in members]),
+            "refinement_evaluations": evaluations}
 
 
 def solve_macs(
@@ -82,5 +94,6 @@ def solve_macs(
         objective_names=problem.objective_names,
         reference_front=reference,
         history=history,
+        **refinement_fields(members, outcome.refinement_evaluations),
         trace=backend.traces[first_trace:],
     )
