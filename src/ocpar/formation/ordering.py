@@ -139,14 +139,23 @@ def cost_tables(problem: FormationProblem, backend: Backend, slots: np.ndarray) 
     tables = len(slots)
     agents = np.tile(np.repeat(np.arange(n), n), tables)
     angles = np.repeat(slots, n, axis=0).ravel()  # row (m, i) holds the slots of table m
-    sols = backend.superstep_columns(solve_tasks, problem.tasks_for(agents, angles))
+    return pair_costs(problem, backend, agents, angles, "cost-table").reshape(tables, n, n)
+
+
+def pair_costs(problem: FormationProblem, backend: Backend, agents: np.ndarray,
+               phi: np.ndarray, what: str) -> np.ndarray:
+    """Ĵ (p,) of agent ``agents[k]`` ending at ``phi[k]`` (an angle, rad, or a slot index):
+    one superstep of p inner solves; raises
+    :class:`~ocpar.formation.hierarchical.InnerSolveFailed`, naming them ``what``, if any
+    fails."""
+    sols = backend.superstep_columns(solve_tasks, problem.tasks_for(agents, phi))
     failed = np.flatnonzero(~np.asarray(sols.column("success"), dtype=bool))
     if len(failed):
         k = int(failed[0])
         raise InnerSolveFailed(
-            f"{len(failed)} of {len(sols)} cost-table solve(s) failed; first: agent "
-            f"{agents[k]} at angle {float(angles[k])!r} rad: {sols.column('status')[k]}")
-    return np.asarray(sols.column("cost"), dtype=float).reshape(tables, n, n)
+            f"{len(failed)} of {len(sols)} {what} solve(s) failed; first: agent "
+            f"{agents[k]} ending at phi = {float(phi[k])!r}: {sols.column('status')[k]}")
+    return np.asarray(sols.column("cost"), dtype=float)
 
 
 def cheapest_assignment(table: np.ndarray) -> np.ndarray:

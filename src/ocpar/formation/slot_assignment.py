@@ -10,10 +10,9 @@ from dataclasses import dataclass
 import numpy as np
 
 from ocpar.bsp import Backend
-from ocpar.formation.hierarchical import InnerSolveFailed
+from ocpar.formation.ordering import pair_costs
 from ocpar.formation.problem import FormationProblem
 from ocpar.formation.slots import SLOT_CANDIDATES, cheapest_assignment
-from ocpar.ocp import solve_tasks
 
 
 @dataclass
@@ -43,17 +42,9 @@ def assign_slots(problem: FormationProblem, backend: Backend,
     costs = {"solves": 0, "supersteps": 0}
 
     def inner_costs(agents: np.ndarray, chosen: np.ndarray) -> np.ndarray:
-        sols = backend.superstep_columns(solve_tasks,
-                                         problem.tasks_for(agents, chosen.astype(float)))
         costs["solves"] += len(agents)
         costs["supersteps"] += 1
-        failed = np.flatnonzero(~np.asarray(sols.column("success"), dtype=bool))
-        if len(failed):
-            k = int(failed[0])
-            raise InnerSolveFailed(
-                f"{len(failed)} of {len(agents)} slot-cost solve(s) failed; first: agent "
-                f"{agents[k]} to slot {chosen[k]}: {sols.column('status')[k]}")
-        return np.asarray(sols.column("cost"), dtype=float)
+        return pair_costs(problem, backend, agents, chosen.astype(float), "slot-cost")
 
     starts = problem.positions(problem.starts)
     slots, k, total = cheapest_assignment(starts, problem.curve, candidates, inner_costs,

@@ -139,17 +139,13 @@ class FormationOptions:
         if self.min_separation is not None and not (0 < self.min_separation < math.inf):
             raise ValueError(f"min_separation must be a positive finite length, got "
                              f"{self.min_separation}")
-        if self.separation_rounds < 1:
-            raise ValueError("separation_rounds must be at least 1")
-        if self.obstacle_rounds < 1:
-            raise ValueError("obstacle_rounds must be at least 1")
         if self.critical not in CRITICAL_READINGS:
             raise ValueError(f"unknown critical {self.critical!r}; choose one of "
                              f"{', '.join(CRITICAL_READINGS)}")
-        if self.critical_starts < 1:
-            raise ValueError("critical_starts must be at least 1")
-        if self.slot_candidates < 1:
-            raise ValueError("slot_candidates must be at least 1")
+        for name in ("separation_rounds", "obstacle_rounds", "critical_starts",
+                     "slot_candidates"):
+            if getattr(self, name) < 1:
+                raise ValueError(f"{name} must be at least 1")
 
 
 def cost_parts(problem: FormationProblem, controls: np.ndarray) -> dict[str, float]:
