@@ -181,7 +181,7 @@ def test_bad_obstacles_are_one_error_naming_the_field(change, message):
 
 @pytest.mark.parametrize(("build", "message"), [
     (lambda: Sphere((0.0, 5.0), -1.0), "semi_axes must be > 0"),
-    (lambda: Sphere((0.0, float("nan")), 1.0), "center: must be d finite numbers"),
+    (lambda: Sphere((0.0, float("nan")), 1.0), "obstacle sphere: center must be d finite numbers"),
     (lambda: Ellipsoid((0.0, 0.0), (1.0, 2.0), axes=((1.0, 0.0), (1.0, 0.0))), "orthonormal"),
     (lambda: HalfSpace((0.0, 0.0), 1.0), "non-zero normal"),
 ])

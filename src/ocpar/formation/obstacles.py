@@ -46,9 +46,9 @@ class Ellipsoid:
     name: str = "ellipsoid"
 
     def __post_init__(self) -> None:
-        center = _vector("center", self.center)
+        center = _vector(self.name, "center", self.center)
         d = len(center)
-        semi_axes = _vector("semi_axes", self.semi_axes, d)
+        semi_axes = _vector(self.name, "semi_axes", self.semi_axes, d)
         if not np.all(semi_axes > 0):
             raise ValueError(f"obstacle {self.name}: semi_axes must be > 0, got {semi_axes}")
         axes = np.eye(d) if self.axes is None else np.asarray(self.axes, float)
@@ -96,7 +96,7 @@ class Ellipsoid:
 
 def Sphere(center: Sequence[float], radius: float, name: str = "sphere") -> Ellipsoid:
     """The ball |r − c| < ``radius`` (an :class:`Ellipsoid` with equal semi-axes)."""
-    center = _vector("center", center)
+    center = _vector(name, "center", center)
     return Ellipsoid(tuple(center.tolist()), (float(radius),) * len(center), name=name)
 
 
@@ -109,7 +109,7 @@ class HalfSpace:
     name: str = "half-space"
 
     def __post_init__(self) -> None:
-        normal = _vector("normal", self.normal)
+        normal = _vector(self.name, "normal", self.normal)
         length = float(np.linalg.norm(normal))
         if not length > 0 or not math.isfinite(float(self.offset)):
             raise ValueError(f"obstacle {self.name}: needs a non-zero normal and a finite "
@@ -141,14 +141,17 @@ class HalfSpace:
 Obstacle = Ellipsoid | HalfSpace
 
 
-def _vector(name: str, value: object, size: int | None = None) -> np.ndarray:
+def _vector(obstacle: str, field: str, value: object, size: int | None = None) -> np.ndarray:
+    """``value`` as a float vector (``size`` entries if given, finite), or one ValueError
+    naming the obstacle and its ``field``."""
     try:
         array = np.asarray(value, float).ravel()
     except (TypeError, ValueError):
-        raise ValueError(f"obstacle {name}: must be numbers") from None
+        raise ValueError(f"obstacle {obstacle}: {field} must be numbers") from None
     if (size is not None and array.size != size) or not array.size or \
             not np.all(np.isfinite(array)):
-        raise ValueError(f"obstacle {name}: must be {size or 'd'} finite numbers, got {value!r}")
+        raise ValueError(f"obstacle {obstacle}: {field} must be {size or 'd'} finite numbers, "
+                         f"got {value!r}")
     return array
 
 
