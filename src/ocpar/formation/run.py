@@ -13,6 +13,7 @@ from ocpar.driver import PROBLEM_GROUP, SchemeRun
 from ocpar.formation.examples import EXAMPLES, make_example
 from ocpar.formation.problem import FormationProblem
 from ocpar.formation.result import FormationResult
+from ocpar.formation.slots import Slots
 from ocpar.formation.solve import FormationOptions, check_applicable, solve_formation
 from ocpar.options import option, project
 from ocpar.references import is_reference
@@ -83,8 +84,9 @@ class FormationRun(SchemeRun, FormationOptions):
         return make_example(self.problem, self.agents, self.radius)
 
     def describe(self, problem: FormationProblem) -> str:
-        return (f"{problem.name}, {problem.agents} agents, mode {self.mode}, ordering "
-                f"{self.ordering}")
+        choice = (f"onto {problem.curve.count} slots" if isinstance(problem.curve, Slots)
+                  else f"ordering {self.ordering}")
+        return f"{problem.name}, {problem.agents} agents, mode {self.mode}, {choice}"
 
     def solve(self, problem: FormationProblem, backend: Backend,
               progress: Progress) -> FormationResult:
