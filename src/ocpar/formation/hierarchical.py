@@ -198,6 +198,11 @@ def solve_outer_offset(
     return phi0 + theta, int(result.iterations), success, message
 
 
+#: Off a circle, the projection onto c(φ) = 0 (:func:`~ocpar.formation.potential.relax`)
+#: must reach max |c_k| ≤ this, else the outer solve has not converged.
+PROJECTION_TOL = 1e-8
+
+
 def solve_outer_newton(
     objective: OuterObjective, phi0: np.ndarray, tol: float, max_iterations: int
 ) -> tuple[np.ndarray, int, bool, str]:
@@ -218,13 +223,18 @@ def solve_outer_newton(
     * On any other curve c(φ) = 0 has isolated solutions (dc/dφ, the scaled Hessian of the
       potential, is nonsingular at its minima, if nearly singular for many agents: see
       :func:`~ocpar.formation.potential.relax`): the tangent space is {0}, the projection is
-      ``relax``, and the method ends after it and one evaluation (0 iterations).
+      ``relax``, and the method ends after it and one evaluation (0 iterations), converged
+      if it reached max |c_k| ≤ :data:`PROJECTION_TOL`.
     """
     problem = objective.problem
     if not problem.curve.rotation_invariant:
         phi = relax(phi0, problem.curve)
         objective.solutions(phi)
-        return phi, 0, True, "feasible set is isolated points: projected onto c(phi) = 0"
+        residual = float(np.max(np.abs(coupling(phi, problem.curve))))
+        if residual > PROJECTION_TOL:
+            return phi, 0, False, (f"the relaxation did not reach c(phi) = 0 (max |c| "
+                                   f"{residual:.1e})")
+        return phi, 0, True, "projected onto c(phi) = 0"
     base = respace(phi0)
     n = len(base)
 
