@@ -76,14 +76,13 @@ class CriticalSet:
 class IsolatedChoice:
     """Outcome of :func:`best_isolated_formation`: ``phi`` (n,) the best angles in agent order
     (rad); ``total_cost`` there; ``sets`` every distinct critical set found, cheapest first;
-    ``starts`` the searches run (the initial guess's included); ``failed_starts`` those that
-    did not converge; ``inner_solves`` M n²."""
+    ``starts`` the searches run (the initial guess's included; those that did not converge or
+    were not stable are ``starts`` − Σ hits); ``inner_solves`` M n²."""
 
     phi: np.ndarray
     total_cost: float
     sets: list[CriticalSet]
     starts: int
-    failed_starts: int
     inner_solves: int
 
 
@@ -156,4 +155,4 @@ def best_isolated_formation(problem: FormationProblem, backend: Backend,
                  f"({failed} not converged or not stable); costs "
                  + ", ".join(f"{s.total_cost:.9e}" for s in sets))
     return IsolatedChoice(best.phi[best.assignment], float(best.total_cost), sets, starts + 1,
-                          failed, tables.size)
+                          tables.size)

@@ -12,20 +12,19 @@ import numpy as np
 from ocpar.bsp import Backend
 from ocpar.formation.ordering import pair_costs
 from ocpar.formation.problem import FormationProblem
-from ocpar.formation.slots import SLOT_CANDIDATES, cheapest_assignment
+from ocpar.formation.slots import SLOT_CANDIDATES, assign_over_candidates
 
 
 @dataclass
 class SlotChoice:
     """Outcome of :func:`assign_slots`: ``slots`` (n,) the slot index of each agent;
     ``total_cost`` Σ_i Ĵ_i there; ``candidates`` slots per agent in the last round (m: all,
-    the global optimum); ``inner_solves``; ``supersteps``."""
+    the global optimum); ``inner_solves``."""
 
     slots: np.ndarray
     total_cost: float
     candidates: int
     inner_solves: int
-    supersteps: int
 
     @property
     def phi(self) -> np.ndarray:
@@ -39,14 +38,14 @@ def assign_slots(problem: FormationProblem, backend: Backend,
     """The assignment of ``problem``'s agents to its slots minimising the total inner cost
     (module docstring), its inner solves on ``backend``; raises
     :class:`~ocpar.formation.hierarchical.InnerSolveFailed` if one fails."""
-    costs = {"solves": 0, "supersteps": 0}
+    solves = 0
 
     def inner_costs(agents: np.ndarray, chosen: np.ndarray) -> np.ndarray:
-        costs["solves"] += len(agents)
-        costs["supersteps"] += 1
+        nonlocal solves
+        solves += len(agents)
         return pair_costs(problem, backend, agents, chosen.astype(float), "slot-cost")
 
     starts = problem.positions(problem.starts)
-    slots, k, total = cheapest_assignment(starts, problem.curve, candidates, inner_costs,
-                                          progress)
-    return SlotChoice(slots, total, k, costs["solves"], costs["supersteps"])
+    slots, k, total = assign_over_candidates(starts, problem.curve, candidates, inner_costs,
+                                             progress)
+    return SlotChoice(slots, total, k, solves)

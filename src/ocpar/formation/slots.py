@@ -7,7 +7,7 @@ targets carries the slot indices here (exact integers as floats), so that the in
 the separation and obstacle rounds and the result work unchanged.
 
 :func:`~ocpar.formation.slot_assignment.assign_slots` solves it, on
-:func:`cheapest_assignment`:
+:func:`assign_over_candidates`:
 
 1. **Candidates**: for each agent the k nearest slots (:class:`scipy.spatial.cKDTree`) to
    its start position, and the k nearest to its start moved and scaled with all starts
@@ -94,16 +94,16 @@ def nearest_assignment(starts: np.ndarray, slots: Slots,
                        candidates: int = SLOT_CANDIDATES) -> np.ndarray:
     """The slot index (n,) of each start position (n, d) minimising Σ_i |start_i − slot|²,
     CAPT's assignment, over each start's ``candidates`` candidate slots
-    (:func:`cheapest_assignment`)."""
+    (:func:`assign_over_candidates`)."""
     def squared(agents: np.ndarray, chosen: np.ndarray) -> np.ndarray:
         return np.sum((starts[agents] - slots.at(chosen)) ** 2, axis=1)
-    return cheapest_assignment(starts, slots, candidates, squared)[0]
+    return assign_over_candidates(starts, slots, candidates, squared)[0]
 
 
-def cheapest_assignment(starts: np.ndarray, slots: Slots, candidates: int,
-                        cost: Callable[[np.ndarray, np.ndarray], np.ndarray],
-                        progress: Callable[[str], None] | None = None
-                        ) -> tuple[np.ndarray, int, float]:
+def assign_over_candidates(starts: np.ndarray, slots: Slots, candidates: int,
+                           cost: Callable[[np.ndarray, np.ndarray], np.ndarray],
+                           progress: Callable[[str], None] | None = None
+                           ) -> tuple[np.ndarray, int, float]:
     """The cheapest assignment of the starts (n, d) to ``slots`` over candidate pairs (module
     docstring: k = ``candidates`` to begin, doubled until an assignment exists and doubling
     no longer lowers the total), the pair costs from ``cost(agents, slots)`` (p,) → (p,),
@@ -167,13 +167,11 @@ def _match(pairs: np.ndarray, values: np.ndarray, n: int, m: int) -> np.ndarray:
     10,000 × 10,000, ~150 s there on this machine, loaded); scipy's sparse
     ``min_weight_full_bipartite_matching`` took 11 s at 1000 × 1000 with 62,000 candidate
     pairs and 229 s at 4000 (integer costs), against 0.75 s and 25 s dense."""
-    spread = float(values.max() - values.min()) + 1.0
-    dense = np.full((n, m), (n + 1) * spread + float(values.max()))
+    priced_out = (n + 1) * (float(values.max() - values.min()) + 1.0) + float(values.max())
+    dense = np.full((n, m), priced_out)
     dense[pairs[:, 0], pairs[:, 1]] = values
     rows, cols = linear_sum_assignment(dense)
-    candidate = np.zeros((n, m), dtype=bool)
-    candidate[pairs[:, 0], pairs[:, 1]] = True
-    if not candidate[rows, cols].all():
+    if np.any(dense[rows, cols] == priced_out):
         raise ValueError("the candidate pairs admit no assignment of every agent")
     assignment = np.empty(n, dtype=np.intp)
     assignment[rows] = cols
