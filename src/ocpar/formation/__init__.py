@@ -2,8 +2,10 @@
 
 Any number of agents, each any Lagrangian mechanical system, move from their own start
 states to a final formation on a closed curve z(φ) (a :class:`Circle`, an :class:`Ellipse`, a
-:class:`PlaneCurve` in a tilted plane or any :class:`ParametricCurve`), subject to the
-coupling g(φ) = dG/dφ = 0 of the paper's potential. The outer problem chooses the final
+:class:`PlaneCurve` in a tilted plane or any :class:`ParametricCurve`), subject to a
+coupling g(φ) = 0: the paper's potential dG/dφ = 0 (:class:`PotentialCoupling`, the
+default), equal arc-length spacing (:class:`EqualArcLength`) or the user's own
+(:class:`UserCoupling`). The outer problem chooses the final
 angles φ_i; each inner problem moves one agent by DMOC to its point, and all inner problems of
 one outer evaluation run in one superstep.
 
@@ -20,6 +22,7 @@ The paper's examples are built the same way in :mod:`ocpar.examples`
 (``formation_point_masses``, ``formation_halo``; ``formation_ellipse`` is a new one).
 """
 
+from ocpar.formation.coupling import Coupling, EqualArcLength, PotentialCoupling, UserCoupling
 from ocpar.formation.curve import Circle, Curve, Ellipse, ParametricCurve, PlaneCurve
 from ocpar.formation.obstacles import Ellipsoid, HalfSpace, Sphere
 from ocpar.formation.problem import FormationProblem
@@ -31,18 +34,22 @@ from ocpar.ocp import DmocShape
 __all__ = [
     "MODES",
     "Circle",
+    "Coupling",
     "Curve",
     "DmocShape",
     "Ellipse",
     "Ellipsoid",
+    "EqualArcLength",
     "FormationOptions",
     "FormationProblem",
     "FormationResult",
     "HalfSpace",
     "ParametricCurve",
     "PlaneCurve",
+    "PotentialCoupling",
     "Slots",
     "Sphere",
+    "UserCoupling",
     "solve_formation",
 ]
 

@@ -32,6 +32,10 @@ SAMPLES = 1024
 #: z(φ + 2π) must equal z(φ) to this fraction of the curve's size.
 CLOSURE_RTOL = 1e-9
 
+#: Equal panels of [0, 2π) and Gauss–Legendre nodes per panel of the arc length s(φ)
+#: (:meth:`Curve.arc_lengths`): ~1e-15 relative on an ellipse of axis ratio 2.
+ARC_PANELS, ARC_NODES = 16, 16
+
 Expression = ca.SX | ca.MX
 
 
@@ -70,6 +74,55 @@ class Curve(ABC):
     def curvatures(self, phi: np.ndarray) -> np.ndarray:
         """z″(φ) = d²z/dφ² for angles φ (n,): shape (n, d), length unit per rad²."""
         return self._evaluate(phi, 2)
+
+    @cached_property
+    def _arc_length(self) -> ca.Function:
+        """φ ↦ (s, s′, s″), s(φ) = ∫_0^φ |z′(t)| dt, compiled once (maps over a row).
+
+        On [0, 2π) a composite Gauss–Legendre rule with :data:`ARC_PANELS` panels of
+        [0, φ] and :data:`ARC_NODES` nodes each (smooth in φ); beyond, s(φ + 2πk) = s(φ) + kℓ
+        with ℓ the same rule at 2π, so s is continuous and s(φ + 2π) − s(φ) = ℓ exactly."""
+        phi, t = ca.SX.sym("phi"), ca.SX.sym("t")
+        speed = ca.Function("speed", [t], [ca.norm_2(ca.jacobian(self.point(t), t))])
+        nodes, weights = np.polynomial.legendre.leggauss(ARC_NODES)
+        fractions = ((np.arange(ARC_PANELS)[:, None] + (nodes[None, :] + 1) / 2)
+                     / ARC_PANELS).ravel()
+        weights = np.tile(weights / (2 * ARC_PANELS), ARC_PANELS)
+
+        def rule(upper: ca.SX) -> ca.SX:
+            return upper * ca.dot(ca.DM(weights), ca.vec(speed(upper * ca.DM(fractions).T)))
+
+        turns = ca.floor(phi / (2 * np.pi))
+        s = turns * rule(ca.SX(2 * np.pi)) + rule(phi - 2 * np.pi * turns)
+        ds = ca.jacobian(s, phi)
+        return ca.Function("arc_length", [phi], [s, ds, ca.jacobian(ds, phi)])
+
+    def arc_length_expr(self, phi: Expression) -> Expression:
+        """s(φ) for a CasADi column of angles ``phi`` (n, 1): a column (n, 1)."""
+        return self._arc_length(phi.T)[0].T
+
+    def arc_lengths(self, phi: np.ndarray, which: int = 0) -> np.ndarray:
+        """s(φ) (length unit), or its first or second derivative in φ (``which`` 1, 2), at
+        the angles φ (n,): shape (n,). See :attr:`length` for ℓ = s(2π)."""
+        phi = np.atleast_1d(np.asarray(phi, float)).ravel()
+        return np.asarray(self._arc_length(phi[None, :])[which]).ravel()
+
+    @cached_property
+    def length(self) -> float:
+        """ℓ = s(2π), the curve's length by the rule of :meth:`arc_lengths` (length unit)."""
+        return float(self.arc_lengths(np.array([2 * np.pi]))[0])
+
+    def at_arc_lengths(self, s: np.ndarray) -> np.ndarray:
+        """The angles φ (n,) rad with s(φ) = ``s`` (n,): Newton's method from the angles of
+        the same fractions of a circle, to rounding (at most 50 iterations)."""
+        s = np.asarray(s, float)
+        phi = 2 * np.pi * s / self.length
+        for _ in range(50):
+            step = (self.arc_lengths(phi) - s) / self.arc_lengths(phi, 1)
+            phi = phi - step
+            if np.max(np.abs(step), initial=0.0) <= 4e-16 * (1 + np.max(np.abs(phi))):
+                break
+        return phi
 
     @property
     def rotation_invariant(self) -> bool:

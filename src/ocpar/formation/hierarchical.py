@@ -1,15 +1,17 @@
 """The hierarchical scheme (paper §IV): outer optimisation over φ, one superstep of n inner
 DMOC solves per outer evaluation.
 
-Outer problem: min_φ Σ_i Ĵ_i(φ_i) s.t. c(φ) = 0 (the scaled g = dG/dφ of
-:mod:`ocpar.formation.potential`). The outer gradient comes from the inner sensitivities
-(envelope theorem): dĴ_i/dφ_i = (dJ*_i/dq_N) · dq_N/dφ_i, dq_N/dφ_i = z′(φ_i) in the position
-entries, for any curve z. Each Ĵ_i depends on φ_i alone, so the Hessian of J is diagonal,
+Outer problem: min_φ Σ_i Ĵ_i(φ_i) s.t. c(φ) = 0 (the problem's coupling,
+:mod:`ocpar.formation.coupling`; by default the scaled g = dG/dφ of the paper's
+potential). The outer gradient comes from the inner sensitivities (envelope theorem):
+dĴ_i/dφ_i = (dJ*_i/dq_N) · dq_N/dφ_i, dq_N/dφ_i = z′(φ_i) in the position entries, for any
+curve z. Each Ĵ_i depends on φ_i alone, so the Hessian of J is diagonal,
 h_i = z′ᵀ H_pos z′ + ∇_pos J*_i · z″ (H_pos = d²J*_i/dq_N² in the position entries, from the
 inner KKT system). Three outer solvers:
 
 * :func:`solve_outer_newton` (``newton``, the default): projected Newton on the manifold
-  c(φ) = 0 with that diagonal Hessian, any curve; a handful of supersteps at any n;
+  c(φ) = 0 with that diagonal Hessian, any curve and coupling; a handful of supersteps at
+  any n where c = 0 leaves one free shift or none;
 * :func:`solve_outer` (``sqp``, the paper's): SLSQP on J/J_0 in all n angles, any curve;
 * :func:`solve_outer_offset` (``offset``, circles only): from equidistant angles, c(φ) = 0
   keeps them equidistant in the same order, so the feasible set is the one-parameter family
@@ -26,13 +28,8 @@ from scipy.optimize import minimize, root_scalar
 
 from ocpar.bsp import Backend
 from ocpar.bsp.columns import Columns
-from ocpar.formation.potential import (
-    coupling,
-    coupling_jacobian,
-    equidistance_error,
-    relax,
-    respace,
-)
+from ocpar.formation.coupling import PROJECTION_TOL, ShiftFamily
+from ocpar.formation.potential import equidistance_error
 from ocpar.formation.problem import FormationProblem
 from ocpar.formation.slots import Slots
 from ocpar.ocp import solve_tasks
@@ -139,7 +136,8 @@ class OuterObjective:
         elif isinstance(self.problem.curve, Slots):
             feasibility = f"distinct slots {np.unique(phi).size} of {phi.size}"
         else:
-            feasibility = f"coupling {np.max(np.abs(coupling(phi, self.problem.curve))):.1e}"
+            residual = self.problem.coupling.residual(phi, self.problem.curve)
+            feasibility = f"coupling {np.max(np.abs(residual)):.1e}"
         self.progress(
             f"superstep {trace.index:4d}  cost {cost:.12e}  {feasibility}  "
             f"wall {trace.wall_s * 1e3:7.1f} ms  overhead {trace.overhead_s * 1e3:6.1f} ms"
@@ -150,7 +148,7 @@ def solve_outer(
     objective: OuterObjective, phi0: np.ndarray, tol: float, max_iterations: int
 ) -> tuple[np.ndarray, int, bool, str]:
     """SLSQP on J(φ)/J(φ_0) s.t. c(φ) = 0. Returns (φ, iterations, success, message)."""
-    curve = objective.problem.curve
+    curve, coupling = objective.problem.curve, objective.problem.coupling
     scale = 1.0 / max(objective.value(phi0), 1e-300)
     result = minimize(
         lambda phi: objective.value(phi) * scale,
@@ -160,8 +158,8 @@ def solve_outer(
         constraints=[
             {
                 "type": "eq",
-                "fun": lambda phi: coupling(phi, curve),
-                "jac": lambda phi: coupling_jacobian(phi, curve),
+                "fun": lambda phi: coupling.residual(phi, curve),
+                "jac": lambda phi: coupling.jacobian(phi, curve),
             }
         ],
         options={"ftol": tol, "maxiter": max_iterations},
@@ -198,53 +196,61 @@ def solve_outer_offset(
     return phi0 + theta, int(result.iterations), success, message
 
 
-#: Off a circle, the projection onto c(φ) = 0 (:func:`~ocpar.formation.potential.relax`)
-#: must reach max |c_k| ≤ this, else the outer solve has not converged.
-PROJECTION_TOL = 1e-8
-
-
 def solve_outer_newton(
     objective: OuterObjective, phi0: np.ndarray, tol: float, max_iterations: int
 ) -> tuple[np.ndarray, int, bool, str]:
-    """Projected Newton on the feasible manifold c(φ) = 0, with the diagonal Hessian
-    (:meth:`OuterObjective.hessian_diagonal`): each iteration a Newton step in the tangent
-    space of c = 0, then projection back onto c = 0. Returns (φ, iterations, success,
-    message); one superstep per iterate gives J, its gradient g and Hessian diagonal h.
+    """Projected Newton on the feasible manifold c(φ) = 0 of the problem's coupling
+    (:mod:`ocpar.formation.coupling`), with the diagonal Hessian
+    (:meth:`OuterObjective.hessian_diagonal`). Returns (φ, iterations, success, message); one
+    superstep per iterate gives J, its gradient g and Hessian diagonal h.
 
-    * On a circle the tangent space is span(1) (a common rotation θ) and the projection is
-      closed form (:func:`~ocpar.formation.potential.respace`: equidistant, same cyclic
-      order, O(n log n)). The reduced Newton step is θ ← θ − Σg_i/Σh_i, safeguarded: no step
-      longer than :data:`MAX_OFFSET_STEP`; where Σh_i ≤ 0 a step of half a slot (π/n)
-      downhill (a stationary θ there is a maximum: not converged); a step that raises J
-      beyond rounding (:data:`ROUNDING_RTOL`) is rejected and halved; once a minimum is
-      bracketed (dJ/dθ < 0 left of dJ/dθ > 0), a step leaving the bracket is replaced by the
-      secant step inside it (bisection after a rejected step). Converged when |Σg_i| ≤
-      ``tol`` Σ|g_i| with Σh_i > 0, or an accepted step was at most ``tol``·(1 + |θ|).
-    * On any other curve c(φ) = 0 has isolated solutions (dc/dφ, the scaled Hessian of the
+    * Where the solutions through φ0 form a one-parameter family φ(θ) (a common shift: the
+      potential on a circle, equal arc length on any curve), Newton's method on J(φ(θ)) in
+      θ alone (:func:`_shift_newton`): a handful of supersteps at any n.
+    * Where they are isolated (the potential off a circle: dc/dφ, the scaled Hessian of the
       potential, is nonsingular at its minima, if nearly singular for many agents: see
-      :func:`~ocpar.formation.potential.relax`): the tangent space is {0}, the projection is
-      ``relax``, and the method ends after it and one evaluation (0 iterations), converged
-      if it reached max |c_k| ≤ :data:`PROJECTION_TOL`.
+      :func:`~ocpar.formation.potential.relax`), the projection of φ0 is the answer: one
+      evaluation (0 iterations), converged if it reached max |c_k| ≤ :data:`PROJECTION_TOL`.
+    * Otherwise (a user's coupling with r free directions), Newton steps in the tangent
+      space of c = 0 with the Lagrangian's Hessian, each projected back onto c = 0
+      (:func:`_tangent_newton`): dense, its superstep count grows with r, not with n.
     """
     problem = objective.problem
-    if not problem.curve.rotation_invariant:
-        phi = relax(phi0, problem.curve)
-        objective.solutions(phi)
-        residual = float(np.max(np.abs(coupling(phi, problem.curve))))
-        if residual > PROJECTION_TOL:
-            return phi, 0, False, (f"the relaxation did not reach c(phi) = 0 (max |c| "
-                                   f"{residual:.1e})")
-        return phi, 0, True, "projected onto c(phi) = 0"
-    base = respace(phi0)
-    n = len(base)
+    family = problem.coupling.family(phi0, problem.curve)
+    if family is not None:
+        return _shift_newton(objective, family, tol, max_iterations)
+    phi = problem.coupling.project(phi0, problem.curve)
+    objective.solutions(phi)
+    residual = float(np.max(np.abs(problem.coupling.residual(phi, problem.curve))))
+    if residual > PROJECTION_TOL:
+        return phi, 0, False, (f"the projection did not reach c(phi) = 0 (max |c| "
+                               f"{residual:.1e})")
+    if problem.coupling.free_directions(phi, problem.curve).shape[1]:
+        return _tangent_newton(objective, phi, tol, max_iterations)
+    return phi, 0, True, "projected onto c(phi) = 0"
+
+
+def _shift_newton(objective: OuterObjective, family: ShiftFamily, tol: float,
+                  max_iterations: int) -> tuple[np.ndarray, int, bool, str]:
+    """Newton's method on J(φ(θ)) over the family's shift θ (rad):
+    dJ/dθ = Σ g_i dφ_i/dθ, d²J/dθ² = Σ h_i (dφ_i/dθ)² + g_i d²φ_i/dθ² (on a circle
+    dφ_i/dθ = 1). The step θ ← θ − (dJ/dθ)/(d²J/dθ²) is safeguarded: no step longer than
+    :data:`MAX_OFFSET_STEP`; where d²J/dθ² ≤ 0 a step of half a slot (π/n) downhill (a
+    stationary θ there is a maximum: not converged); a step that raises J beyond rounding
+    (:data:`ROUNDING_RTOL`) is rejected and halved; once a minimum is bracketed
+    (dJ/dθ < 0 left of dJ/dθ > 0), a step leaving the bracket is replaced by the secant step
+    inside it (bisection after a rejected step). Converged when |dJ/dθ| ≤ ``tol``
+    Σ|g_i dφ_i/dθ| with d²J/dθ² > 0, or an accepted step was at most ``tol``·(1 + |θ|)."""
 
     def evaluate(theta: float) -> tuple[float, float, float, float]:
-        phi = base + theta
+        phi, along, bend = family.angles(theta)
         g = objective.gradient(phi)
-        return (objective.value(phi), float(np.sum(g)), float(np.sum(np.abs(g))),
-                float(np.sum(objective.hessian_diagonal(phi))))
+        return (objective.value(phi), float(np.sum(g * along)),
+                float(np.sum(np.abs(g * along))),
+                float(np.sum(objective.hessian_diagonal(phi) * along**2 + g * bend)))
 
     theta = 0.0
+    n = objective.problem.agents
     value, slope, scale, curvature = evaluate(theta)
     # the latest (θ, dJ/dθ) with dJ/dθ < 0 and with dJ/dθ > 0
     below = (theta, slope) if slope < 0 else None
@@ -252,7 +258,7 @@ def solve_outer_newton(
     shrink = 1.0  # halved after each rejected step
     for iteration in range(max_iterations):
         if abs(slope) <= tol * scale and curvature > 0:
-            return base + theta, iteration, True, "|sum of dJ/dphi_i| below tolerance"
+            return family.angles(theta)[0], iteration, True, "|sum of dJ/dphi_i| below tolerance"
         step = shrink * (np.clip(-slope / curvature, -MAX_OFFSET_STEP, MAX_OFFSET_STEP)
                          if curvature > 0 else -(np.sign(slope) or 1.0) * np.pi / n)
         if below is not None and above is not None and below[0] < above[0] \
@@ -269,7 +275,43 @@ def solve_outer_newton(
             theta, value, slope, scale, curvature = trial, t_value, t_slope, t_scale, t_curvature
             shrink = 1.0
             if abs(step) <= tol * (1 + abs(theta)):
-                return base + theta, iteration + 1, True, "step below tolerance"
+                return family.angles(theta)[0], iteration + 1, True, "step below tolerance"
         else:
             shrink /= 2
-    return base + theta, max_iterations, False, "iteration limit reached"
+    return family.angles(theta)[0], max_iterations, False, "iteration limit reached"
+
+
+def _tangent_newton(objective: OuterObjective, phi: np.ndarray, tol: float,
+                    max_iterations: int) -> tuple[np.ndarray, int, bool, str]:
+    """Newton's method on the manifold c(φ) = 0 from a point ``phi`` on it: with Z (n, r) an
+    orthonormal basis of its tangent space, λ the least-squares multipliers (dc/dφ)ᵀλ = g and
+    W = diag(h) − d²(λᵀc)/dφ² the Lagrangian's Hessian, the step −Z (ZᵀWZ)⁻¹ Zᵀg (the
+    reduced Hessian's eigenvalues taken in absolute value, its step no longer than
+    :data:`MAX_OFFSET_STEP`), projected back onto c = 0; a step that raises J beyond rounding
+    is halved. Converged when |Zᵀg|_∞ ≤ ``tol`` Σ|g_i| with ZᵀWZ positive definite, or a
+    step was at most ``tol``·(1 + |φ|_∞)."""
+    coupling, curve = objective.problem.coupling, objective.problem.curve
+    value = objective.value(phi)
+    shrink = 1.0
+    for iteration in range(max_iterations):
+        g, h = objective.gradient(phi), objective.hessian_diagonal(phi)
+        free = coupling.free_directions(phi, curve)
+        weights = np.linalg.lstsq(coupling.jacobian(phi, curve).T, g, rcond=None)[0]
+        hessian = np.diag(h) - coupling.weighted_hessian(phi, weights, curve)
+        eigenvalues, vectors = np.linalg.eigh(free.T @ hessian @ free)
+        reduced = free.T @ g
+        if np.max(np.abs(reduced)) <= tol * np.sum(np.abs(g)) and eigenvalues[0] > 0:
+            return phi, iteration, True, "reduced gradient below tolerance"
+        floor = 1e-12 * max(np.max(np.abs(eigenvalues)), 1e-300)
+        step = -free @ (vectors @ ((vectors.T @ reduced) / np.maximum(np.abs(eigenvalues),
+                                                                      floor)))
+        step *= shrink * min(1.0, MAX_OFFSET_STEP / max(np.max(np.abs(step)), 1e-300))
+        trial = coupling.project(phi + step, curve)
+        t_value = objective.value(trial)
+        if t_value <= value + ROUNDING_RTOL * abs(value):
+            phi, value, shrink = trial, t_value, 1.0
+            if np.max(np.abs(step)) <= tol * (1 + np.max(np.abs(phi))):
+                return phi, iteration + 1, True, "step below tolerance"
+        else:
+            shrink /= 2
+    return phi, max_iterations, False, "iteration limit reached"

@@ -14,7 +14,6 @@ from dataclasses import dataclass
 import casadi as ca
 import numpy as np
 
-from ocpar.formation.potential import coupling_expr
 from ocpar.formation.problem import FormationProblem
 from ocpar.ocp import DmocTranscription, dmoc_problem
 from ocpar.ocp.ipopt import ipopt_options
@@ -54,7 +53,7 @@ def solve_monolithic(
     ]
     w_i = [w[offsets[i] : offsets[i + 1]] for i in range(n)]
     costs = ca.vertcat(*[dmocs[i].cost(w_i[i], params[i]) for i in range(n)])
-    coupling_rows = coupling_expr(phi, problem.curve)
+    coupling_rows = problem.coupling.expr(phi, problem.curve)
     g = ca.vertcat(*[dmocs[i].constraints(w_i[i], params[i]) for i in range(n)], coupling_rows)
     x = ca.vertcat(w, phi)
     nlp = {"x": x, "f": ca.sum1(costs), "g": g}

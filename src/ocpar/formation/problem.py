@@ -10,7 +10,7 @@ velocity ``start_velocities[i]`` and must end, after T, with its position (the f
 d = ``curve.dim`` entries of its configuration) at z(φ_i) on the closed curve z, the rest of
 its configuration equal to ``final_attitude`` and its velocity ``final_velocity``, minimising
 ∫|u|² dt. The angles φ are chosen by the outer problem subject to the coupling g(φ) = 0
-(:mod:`ocpar.formation.potential`).
+(:mod:`ocpar.formation.coupling`: the paper's potential by default).
 """
 
 from __future__ import annotations
@@ -18,15 +18,15 @@ from __future__ import annotations
 import dataclasses
 import math
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import casadi as ca
 import numpy as np
 
 from ocpar.bsp.columns import LISTED, Columns
+from ocpar.formation.coupling import Coupling, PotentialCoupling
 from ocpar.formation.curve import Circle, Curve
 from ocpar.formation.obstacles import Obstacle, check_obstacles
-from ocpar.formation.potential import relax
 from ocpar.formation.separation import ClosestApproach, closest_approach
 from ocpar.formation.slots import Slots, nearest_assignment
 from ocpar.models import MechanicalSystem, PointMass
@@ -72,7 +72,10 @@ class FormationProblem:
     ``obstacles``: static :class:`~ocpar.formation.obstacles.Ellipsoid` (or ``Sphere``) and
     :class:`~ocpar.formation.obstacles.HalfSpace` obstacles in position space that every
     path keeps clear of at all times (:mod:`ocpar.formation.obstacles`); the starts must be
-    clear of them.
+    clear of them. ``coupling``: what the final angles satisfy on a curve
+    (:mod:`ocpar.formation.coupling`): the paper's potential (default),
+    :class:`~ocpar.formation.coupling.EqualArcLength` or a user's
+    :class:`~ocpar.formation.coupling.UserCoupling`; onto slots only the default.
     """
 
     name: str
@@ -83,6 +86,7 @@ class FormationProblem:
     final_velocity: np.ndarray | None = None
     final_attitude: np.ndarray | None = None
     obstacles: tuple[Obstacle, ...] = ()
+    coupling: Coupling = field(default_factory=PotentialCoupling)
 
     def __post_init__(self) -> None:
         self._check_shapes()
@@ -103,6 +107,14 @@ class FormationProblem:
         if isinstance(self.curve, Slots) and self.curve.count < n:
             raise ValueError(f"curve: {self.curve.count} slots for {n} agents: a formation "
                              "needs at least one slot per agent")
+        if not isinstance(self.coupling, Coupling):
+            raise ValueError(f"coupling: must be a Coupling (PotentialCoupling, EqualArcLength, "
+                             f"UserCoupling), got {type(self.coupling).__name__}")
+        if isinstance(self.curve, Slots) and self.coupling != PotentialCoupling():
+            raise ValueError("coupling: onto slots the coupling is the assignment (no slot "
+                             "taken twice); leave coupling at its default")
+        if isinstance(self.curve, Curve):
+            self.coupling.check(self.curve, n)
         fields = {
             "starts": (self.starts, (n, nq)),
             "start_velocities": (np.zeros((n, nq)) if self.start_velocities is None
@@ -411,13 +423,14 @@ class FormationProblem:
         (rank_i − (n−1)/2)/n of the curve's length on from φ_c
         (:meth:`~ocpar.formation.Curve.spread`). On a circle φ_c = θ_c and
         φ_i = θ_c + 2π (rank_i − (n−1)/2) / n, which satisfies g(φ) = 0. On any other curve
-        these angles are then relaxed to the local minimum of the potential G they lead to
-        (:func:`~ocpar.formation.potential.relax`): there g(φ) = 0 has isolated solutions
-        only, so the guess is the formation itself, and the hierarchical and the monolithic
-        mode start from the same feasible point. In the paper's example θ_c = −3π/4 and the
-        tangent points along +x, so agents sorted by x go counter-clockwise. This ordering
-        decides which local optimum is found (see :mod:`ocpar.formation.ordering` on a
-        circle).
+        these angles are then projected onto the coupling
+        (:meth:`~ocpar.formation.coupling.Coupling.project`; for the potential the local
+        minimum of G they lead to, :func:`~ocpar.formation.potential.relax`: g(φ) = 0 has
+        isolated solutions there, so the guess is the formation itself), and the hierarchical
+        and the monolithic mode start from the same feasible point. In the paper's example
+        θ_c = −3π/4 and the tangent points along +x, so agents sorted by x go
+        counter-clockwise. This ordering decides which local optimum is found (see
+        :mod:`ocpar.formation.ordering` on a circle).
         """
         if isinstance(self.curve, Slots):   # CAPT's assignment, by distance
             return nearest_assignment(self.positions(self.starts), self.curve).astype(float)
@@ -430,4 +443,4 @@ class FormationProblem:
         rank = np.empty(n)
         rank[np.argsort(in_plane @ tangent, kind="stable")] = np.arange(n)
         guess = self.curve.spread(self.curve.parameter_at(theta_c), (rank - (n - 1) / 2) / n)
-        return relax(guess, self.curve)
+        return self.coupling.project(guess, self.curve)

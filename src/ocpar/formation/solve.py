@@ -12,6 +12,7 @@ import numpy as np
 
 from ocpar.bsp import Backend
 from ocpar.bsp.serial import SerialBackend
+from ocpar.formation.coupling import PROJECTION_TOL, PotentialCoupling
 from ocpar.formation.critical_sets import (
     CRITICAL_READINGS,
     CRITICAL_STARTS,
@@ -30,7 +31,6 @@ from ocpar.formation.monolithic import solve_monolithic
 from ocpar.formation.obstacle_rounds import avoid_obstacles
 from ocpar.formation.obstacles import Clearance
 from ocpar.formation.ordering import ORDERINGS, optimal_ordering
-from ocpar.formation.potential import coupling
 from ocpar.formation.problem import FormationProblem
 from ocpar.formation.result import FormationResult
 from ocpar.formation.separation import check_separation_feasible
@@ -164,7 +164,8 @@ def check_applicable(problem: FormationProblem, options: FormationOptions) -> No
     outer solver, ``optimal`` ordering) on a problem whose curve is not a circle, or for a
     ``min_separation`` that the monolithic mode does not offer or that two start or final
     positions already violate (the final positions of the initial angles: on a circle every
-    formation has the same spacings, elsewhere the formation is the initial one); a driver
+    formation has the same spacings, elsewhere the formation is the initial one), or a
+    coupling other than the potential that has no solution near the initial guess; a driver
     calls it before starting workers (:func:`solve_formation` calls it too). Obstacles need
     the hierarchical mode and final positions (of the initial angles) clear of them; with
     ``min_separation`` too, the separation rounds keep the paths clear of them as well."""
@@ -180,6 +181,19 @@ def check_applicable(problem: FormationProblem, options: FormationOptions) -> No
                                                          problem.initial_phi())[:, 2 * nq:3 * nq])
     if options.mode == "hierarchical" and options.outer == "offset":
         problem.require_circle("outer 'offset'")
+    if options.ordering == "optimal" and not problem.on_circle \
+            and problem.coupling != PotentialCoupling():
+        raise ValueError(f"ordering 'optimal' off a circle searches the potential's isolated "
+                         f"solution sets; the {problem.coupling.label} coupling is not "
+                         "searched (use ordering 'keep')")
+    if not isinstance(problem.curve, Slots) and problem.coupling != PotentialCoupling():
+        phi0 = problem.initial_phi()
+        residual = np.max(np.abs(problem.coupling.residual(phi0, problem.curve)))
+        if not np.isfinite(residual):
+            raise ValueError("coupling: g(phi) is not finite at the initial guess")
+        if not residual <= PROJECTION_TOL:
+            raise ValueError(f"coupling: no solution of g(phi) = 0 found from the initial "
+                             f"guess (max |g| {residual:.3g} after the projection)")
     if options.min_separation is not None:
         if options.mode != "hierarchical":
             raise ValueError("min_separation applies to the hierarchical mode only")
@@ -198,7 +212,7 @@ COUPLING_CHECK_MAX_AGENTS = 20_000
 
 def coupling_residual(problem: FormationProblem, phi: np.ndarray) -> float:
     """max_k |c_k(φ)|: the scaled coupling as the outer problem imposes it
-    (:func:`~ocpar.formation.potential.coupling`); onto slots, how many agents share a
+    (:meth:`~ocpar.formation.coupling.Coupling.residual`); onto slots, how many agents share a
     slot with another (0: the assignment's coupling holds); NaN if φ is not finite, or on a
     circle with more than :data:`COUPLING_CHECK_MAX_AGENTS` agents."""
     if isinstance(problem.curve, Slots):   # the coupling: no slot taken twice
@@ -206,7 +220,7 @@ def coupling_residual(problem: FormationProblem, phi: np.ndarray) -> float:
     if not np.all(np.isfinite(phi)) or (problem.on_circle
                                         and phi.size > COUPLING_CHECK_MAX_AGENTS):
         return float("nan")
-    return float(np.max(np.abs(coupling(phi, problem.curve))))
+    return float(np.max(np.abs(problem.coupling.residual(phi, problem.curve))))
 
 
 def _obstacle_words(met: bool, closest: Clearance, rounds: int) -> tuple[str | None, str]:
@@ -219,14 +233,16 @@ def _obstacle_words(met: bool, closest: Clearance, rounds: int) -> tuple[str | N
         f"{-closest.distance:.3g} inside obstacle {closest.obstacle} at t = {closest.time:.6g}")
 
 
-def discrete_choice(problem: FormationProblem, choice: IsolatedChoice | SlotChoice | None
-                    ) -> dict:
-    """The result's fields on the outer problem's feasible set: on a circle ``continuous`` (the
-    common rotation); elsewhere ``discrete``: the potential's isolated critical points, with
-    ``critical_sets`` the candidates searched (:mod:`ocpar.formation.critical_sets`), None
-    when none were, or the slots' assignments; and the status line's words on it in
+def discrete_choice(problem: FormationProblem, choice: IsolatedChoice | SlotChoice | None,
+                    phi0: np.ndarray | None) -> dict:
+    """The result's fields on the outer problem's feasible set near the start ``phi0``:
+    ``continuous`` where the coupling leaves free directions (a circle's common rotation,
+    equal arc length's shift); elsewhere ``discrete``: the coupling's isolated solutions,
+    with ``critical_sets`` the candidates searched (:mod:`ocpar.formation.critical_sets`),
+    None when none were, or the slots' assignments; and the status line's words on it in
     ``note``."""
-    if problem.on_circle:
+    if choice is None and not isinstance(problem.curve, Slots) \
+            and problem.coupling.feasible_set(phi0, problem.curve) == "continuous":
         return {"feasible_set": "continuous", "note": ""}
     if isinstance(choice, SlotChoice):
         every = choice.candidates == problem.curve.count
@@ -236,6 +252,10 @@ def discrete_choice(problem: FormationProblem, choice: IsolatedChoice | SlotChoi
                f"the optimal assignment over each agent's {choice.candidates} nearest slots "
                f"to its start and to its place (no cheaper one with "
                f"{min(2 * choice.candidates, problem.curve.count)})"))}
+    if choice is None and problem.coupling != PotentialCoupling():
+        return {"feasible_set": "discrete", "critical_sets": None, "note": (
+            f"; the feasible set is discrete (the {problem.coupling.label} coupling's isolated "
+            "solutions): this is the one the initial guess selects, others not searched")}
     if choice is None:
         return {"feasible_set": "discrete", "critical_sets": None, "note": (
             "; the feasible set is discrete (the potential's isolated critical points): this is "
@@ -286,7 +306,7 @@ def solve_formation(
         choice = best_isolated_formation(problem, backend, options.critical,
                                          options.critical_starts, progress)
         phi0, ordering_solves, chosen = choice.phi, choice.inner_solves, "ordering optimal"
-    discrete = discrete_choice(problem, choice)
+    discrete = discrete_choice(problem, choice, phi0)
     note = discrete.pop("note")
 
     if options.mode == "monolithic":

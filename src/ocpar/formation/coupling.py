@@ -1,0 +1,256 @@
+"""Couplings c(φ) = 0 of the final angles φ (n,) on a curve: what the outer problem imposes.
+
+One protocol, :class:`Coupling`, three kinds:
+
+* :class:`PotentialCoupling` (the default, the paper's): c = (ℓ²/n³) dG/dφ of the artificial
+  potential (:mod:`ocpar.formation.potential`). On a circle its solutions are the equidistant
+  angles, a one-parameter family (a free common rotation, chosen by the cost); on any other
+  curve they are isolated (the critical points of G).
+* :class:`EqualArcLength`: the agents equally spaced in arc length along any closed curve,
+  with a free common shift along it that the cost chooses, as a circle's rotation.
+* :class:`UserCoupling`: any g(φ) = 0 the user writes as CasADi expressions.
+
+Each gives its residual and Jacobian (closed form where n is large, CasADi otherwise), its
+symbolic rows (for the monolithic NLP), a projection of any angles onto c = 0 and, where its
+solutions form a one-parameter family through a point (:class:`ShiftFamily`), that family:
+there :func:`~ocpar.formation.hierarchical.solve_outer_newton` searches the shift alone, a
+handful of supersteps at any n. Elsewhere it takes Newton steps in the tangent space of
+c = 0 (dense: the coordinator's work grows like n³, its superstep count with the dimension
+of that space), or ends after the projection where the solutions are isolated.
+"""
+
+from __future__ import annotations
+
+from abc import ABC, abstractmethod
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import casadi as ca
+import numpy as np
+from scipy.linalg import null_space
+
+from ocpar.formation.curve import Circle, Curve
+from ocpar.formation.potential import (
+    coupling,
+    coupling_expr,
+    coupling_jacobian,
+    relax,
+    respace,
+)
+
+#: A projection onto c(φ) = 0 (and a solution found from the start guess) must reach
+#: max |c_k| ≤ this.
+PROJECTION_TOL = 1e-8
+
+#: Gauss–Newton iterations of :meth:`Coupling.project` at most.
+PROJECTION_ITERATIONS = 50
+
+#: Singular values of dc/dφ below this times the largest count as zero (the dimension of
+#: the tangent space of c = 0).
+RANK_RTOL = 1e-9
+
+#: The unit circle: equidistant parameters are the solutions of its potential's coupling.
+UNIT_CIRCLE = Circle(radius=1.0)
+
+
+@dataclass(frozen=True)
+class ShiftFamily:
+    """Solutions φ(θ) of c = 0 through a point, one per common shift θ (rad):
+    ``angles(θ)`` gives φ (n,), dφ/dθ (n,) and d²φ/dθ² (n,)."""
+
+    angles: Callable[[float], tuple[np.ndarray, np.ndarray, np.ndarray]]
+
+
+class Coupling(ABC):
+    """c(φ) = 0, m rows in the n angles φ (rad) of the agents on ``curve``.
+
+    Subclasses give :meth:`expr`; the numeric methods default to CasADi functions of it,
+    compiled once per curve and n."""
+
+    #: Name in results and status lines.
+    label: str = "coupling"
+
+    @abstractmethod
+    def expr(self, phi: ca.SX, curve: Curve) -> ca.SX:
+        """c(φ) as a CasADi column (m, 1) of the angle column ``phi`` (n, 1)."""
+
+    def _compiled(self, curve: Curve, n: int) -> ca.Function:
+        """φ ↦ (c, dc/dφ); (φ, λ) ↦ d²(λᵀc)/dφ²: built on first use for (curve, n)."""
+        cache = self.__dict__.setdefault("_functions", {})
+        key = (id(curve), n)
+        if key not in cache:
+            phi = ca.SX.sym("phi", n)
+            c = ca.vertcat(self.expr(phi, curve))
+            lam = ca.SX.sym("lam", c.numel())
+            cache[key] = (curve, ca.Function("coupling", [phi], [c, ca.jacobian(c, phi)]),
+                          ca.Function("coupling_hessian", [phi, lam],
+                                      [ca.hessian(ca.dot(lam, c), phi)[0]]))
+        return cache[key]
+
+    def __getstate__(self) -> dict:
+        return {k: v for k, v in self.__dict__.items() if k != "_functions"}
+
+    def residual(self, phi: np.ndarray, curve: Curve) -> np.ndarray:
+        """c(φ) (m,)."""
+        phi = np.asarray(phi, float).ravel()
+        return np.asarray(self._compiled(curve, phi.size)[1](phi)[0]).ravel()
+
+    def jacobian(self, phi: np.ndarray, curve: Curve) -> np.ndarray:
+        """dc/dφ (m, n)."""
+        phi = np.asarray(phi, float).ravel()
+        return np.asarray(self._compiled(curve, phi.size)[1](phi)[1])
+
+    def weighted_hessian(self, phi: np.ndarray, weights: np.ndarray, curve: Curve
+                         ) -> np.ndarray:
+        """d²(weightsᵀ c)/dφ² (n, n): the coupling's part of the outer Lagrangian's Hessian."""
+        phi = np.asarray(phi, float).ravel()
+        return np.asarray(self._compiled(curve, phi.size)[2](phi, weights))
+
+    def project(self, phi: np.ndarray, curve: Curve) -> np.ndarray:
+        """A solution of c = 0 near ``phi``: Gauss–Newton with minimum-norm steps while
+        max |c_k| falls (to rounding)."""
+        phi = np.asarray(phi, float).ravel()
+        c = self.residual(phi, curve)
+        for _ in range(PROJECTION_ITERATIONS):
+            trial = phi - np.linalg.lstsq(self.jacobian(phi, curve), c, rcond=None)[0]
+            trial_c = self.residual(trial, curve)
+            if not np.max(np.abs(trial_c), initial=0.0) < np.max(np.abs(c), initial=0.0):
+                break
+            phi, c = trial, trial_c
+        return phi
+
+    def family(self, phi: np.ndarray, curve: Curve) -> ShiftFamily | None:
+        """The one-parameter family of solutions through the projection of ``phi``, where
+        the coupling's solutions form one; None otherwise."""
+        return None
+
+    def free_directions(self, phi: np.ndarray, curve: Curve) -> np.ndarray:
+        """An orthonormal basis (n, r) of the tangent space of c = 0 at ``phi``: r = 0 where
+        the solution is isolated."""
+        jacobian = self.jacobian(phi, curve)
+        return null_space(jacobian, rcond=RANK_RTOL) if jacobian.size else np.eye(len(phi))
+
+    def feasible_set(self, phi: np.ndarray, curve: Curve) -> str:
+        """``continuous`` if the solutions near ``phi`` (a solution) form a manifold the cost
+        chooses on, ``discrete`` if they are isolated."""
+        return "continuous" if self.free_directions(phi, curve).shape[1] else "discrete"
+
+    def check(self, curve: Curve, n: int) -> None:
+        """Raise ValueError (one line naming ``coupling``) unless c evaluates on n symbolic
+        angles to a column of 1…n rows."""
+        try:
+            rows = ca.vertcat(self.expr(ca.SX.sym("phi", n), curve))
+        except Exception as exc:  # a user's function: any failure means "does not evaluate"
+            raise ValueError(f"coupling: g(phi) does not evaluate on {n} symbolic angles: "
+                             f"{type(exc).__name__}: {str(exc).splitlines()[0] if str(exc) else ''}"
+                             ) from None
+        if rows.shape[1] != 1 or not 1 <= rows.shape[0] <= n:
+            raise ValueError(f"coupling: g(phi) must be a column of 1 to {n} rows for {n} "
+                             f"agents, got shape {rows.shape}")
+
+
+@dataclass(frozen=True)
+class PotentialCoupling(Coupling):
+    """The paper's c(φ) = (ℓ²/n³) dG/dφ = 0 (:mod:`ocpar.formation.potential`), closed form;
+    on a circle its first n − 1 rows (the free rotation is the family)."""
+
+    label: str = "potential"
+
+    def expr(self, phi: ca.SX, curve: Curve) -> ca.SX:
+        return coupling_expr(phi, curve)
+
+    def residual(self, phi: np.ndarray, curve: Curve) -> np.ndarray:
+        return coupling(phi, curve)
+
+    def jacobian(self, phi: np.ndarray, curve: Curve) -> np.ndarray:
+        return coupling_jacobian(phi, curve)
+
+    def project(self, phi: np.ndarray, curve: Curve) -> np.ndarray:
+        """The local minimum of G that ``phi`` leads to (:func:`relax`); circles: ``phi``."""
+        return relax(phi, curve)
+
+    def family(self, phi: np.ndarray, curve: Curve) -> ShiftFamily | None:
+        """On a circle the equidistant angles in ``phi``'s cyclic order, rotated by θ."""
+        if not curve.rotation_invariant:
+            return None
+        base = respace(phi)
+        ones, zeros = np.ones(base.size), np.zeros(base.size)
+        return ShiftFamily(lambda theta: (base + theta, ones, zeros))
+
+    def free_directions(self, phi: np.ndarray, curve: Curve) -> np.ndarray:
+        n = np.asarray(phi).size
+        return (np.full((n, 1), 1 / np.sqrt(n)) if curve.rotation_invariant
+                else np.zeros((n, 0)))
+
+    def check(self, curve: Curve, n: int) -> None:
+        """The potential evaluates on every curve the problem accepts: nothing to check."""
+
+
+@dataclass(frozen=True)
+class EqualArcLength(Coupling):
+    """The agents equally spaced in arc length along the curve, in any cyclic order, with a
+    free common shift.
+
+    With u(φ) = 2π s(φ)/ℓ the arc-length angle (:meth:`~ocpar.formation.Curve.arc_lengths`),
+    c(φ) is the unit circle's potential coupling at u (n − 1 rows, zero exactly where the u_i
+    are equidistant): the same rows in the monolithic NLP and in the outer solver. The family
+    through φ: u_i = u_i⁰ + θ, u⁰ the nearest equidistant arc-length angles."""
+
+    label: str = "equal-arc-length"
+
+    def _u(self, phi: np.ndarray, curve: Curve, which: int = 0) -> np.ndarray:
+        """u(φ) (rad) or its derivatives in φ (``which`` 1, 2), (n,)."""
+        return 2 * np.pi / curve.length * curve.arc_lengths(phi, which)
+
+    def expr(self, phi: ca.SX, curve: Curve) -> ca.SX:
+        u = ca.SX.sym("u", phi.numel())
+        on_circle = ca.Function("equidistance", [u], [coupling_expr(u, UNIT_CIRCLE)])
+        return on_circle(2 * np.pi / curve.length * curve.arc_length_expr(phi))
+
+    def residual(self, phi: np.ndarray, curve: Curve) -> np.ndarray:
+        return coupling(self._u(phi, curve), UNIT_CIRCLE)
+
+    def jacobian(self, phi: np.ndarray, curve: Curve) -> np.ndarray:
+        return coupling_jacobian(self._u(phi, curve), UNIT_CIRCLE) * self._u(phi, curve, 1)
+
+    def _angles(self, u: np.ndarray, curve: Curve) -> np.ndarray:
+        return curve.at_arc_lengths(u * curve.length / (2 * np.pi))
+
+    def project(self, phi: np.ndarray, curve: Curve) -> np.ndarray:
+        return self._angles(respace(self._u(phi, curve)), curve)
+
+    def family(self, phi: np.ndarray, curve: Curve) -> ShiftFamily:
+        base = respace(self._u(phi, curve))
+
+        def angles(theta: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+            phi = self._angles(base + theta, curve)
+            du, d2u = self._u(phi, curve, 1), self._u(phi, curve, 2)
+            return phi, 1 / du, -d2u / du**3
+
+        return ShiftFamily(angles)
+
+    def free_directions(self, phi: np.ndarray, curve: Curve) -> np.ndarray:
+        along = 1 / self._u(phi, curve, 1)
+        return (along / np.linalg.norm(along))[:, None]
+
+    def check(self, curve: Curve, n: int) -> None:
+        """Every closed curve has an arc length: nothing to check."""
+
+
+@dataclass(frozen=True)
+class UserCoupling(Coupling):
+    """A user's coupling: ``g`` maps the angle column φ (n, 1), a CasADi SX symbol, to the
+    column g(φ) (m, 1), 1 ≤ m ≤ n, built from CasADi operations. Its Jacobian and Hessian
+    come from CasADi; the outer solver projects onto g = 0 by Gauss–Newton and steps in its
+    tangent space (dense: for tens to hundreds of agents)."""
+
+    g: Callable[[ca.SX], ca.SX]
+    label: str = "user"
+
+    def __post_init__(self) -> None:
+        if not callable(self.g):
+            raise ValueError(f"coupling: g must be callable (phi -> g(phi)), got "
+                             f"{type(self.g).__name__}")
+
+    def expr(self, phi: ca.SX, curve: Curve) -> ca.SX:
+        return ca.vertcat(self.g(phi))
