@@ -2,7 +2,9 @@
 
 Any number of agents, each any Lagrangian mechanical system, move from their own start
 states to a final formation on a closed curve z(φ) (a :class:`Circle`, an :class:`Ellipse`, a
-:class:`PlaneCurve` in a tilted plane or any :class:`ParametricCurve`), subject to a
+:class:`PlaneCurve` in a tilted plane or any :class:`ParametricCurve`), on a surface with two
+parameters per agent (a :class:`SphereSurface`, an :class:`EllipsoidSurface` or any
+:class:`ParametricSurface`) or onto given :class:`Slots`, subject to a
 coupling g(φ) = 0: the paper's potential dG/dφ = 0 (:class:`PotentialCoupling`, the
 default), equal arc-length spacing (:class:`EqualArcLength`) or the user's own
 (:class:`UserCoupling`). The outer problem chooses the final
@@ -29,6 +31,7 @@ from ocpar.formation.problem import FormationProblem
 from ocpar.formation.result import FormationResult
 from ocpar.formation.slots import Slots
 from ocpar.formation.solve import MODES, FormationOptions, solve_formation
+from ocpar.formation.surface import EllipsoidSurface, ParametricSurface, SphereSurface, Surface
 from ocpar.ocp import DmocShape
 
 __all__ = [
@@ -39,16 +42,20 @@ __all__ = [
     "DmocShape",
     "Ellipse",
     "Ellipsoid",
+    "EllipsoidSurface",
     "EqualArcLength",
     "FormationOptions",
     "FormationProblem",
     "FormationResult",
     "HalfSpace",
     "ParametricCurve",
+    "ParametricSurface",
     "PlaneCurve",
     "PotentialCoupling",
     "Slots",
     "Sphere",
+    "SphereSurface",
+    "Surface",
     "UserCoupling",
     "solve_formation",
 ]

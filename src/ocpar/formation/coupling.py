@@ -28,6 +28,7 @@ from dataclasses import dataclass
 import casadi as ca
 import numpy as np
 from scipy.linalg import null_space
+from scipy.optimize import minimize
 
 from ocpar.formation.curve import Circle, Curve
 from ocpar.formation.potential import (
@@ -37,6 +38,7 @@ from ocpar.formation.potential import (
     relax,
     respace,
 )
+from ocpar.formation.surface import Surface
 
 #: A projection onto c(φ) = 0 (and a solution found from the start guess) must reach
 #: max |c_k| ≤ this.
@@ -107,8 +109,13 @@ class Coupling(ABC):
         return np.asarray(self._compiled(curve, phi.size)[2](phi, weights))
 
     def project(self, phi: np.ndarray, curve: Curve) -> np.ndarray:
-        """A solution of c = 0 near ``phi``: Gauss–Newton with minimum-norm steps while
-        max |c_k| falls (to rounding)."""
+        """The solution of c = 0 that a guess ``phi`` leads to (an initial formation): here
+        :meth:`retract`."""
+        return self.retract(phi, curve)
+
+    def retract(self, phi: np.ndarray, curve: Curve) -> np.ndarray:
+        """The solution of c = 0 nearest ``phi`` (back onto c = 0 after a step along it):
+        Gauss–Newton with minimum-norm steps while max |c_k| falls (to rounding)."""
         phi = np.asarray(phi, float).ravel()
         c = self.residual(phi, curve)
         for _ in range(PROJECTION_ITERATIONS):
@@ -151,39 +158,79 @@ class Coupling(ABC):
 
 @dataclass(frozen=True)
 class PotentialCoupling(Coupling):
-    """The paper's c(φ) = (ℓ²/n³) dG/dφ = 0 (:mod:`ocpar.formation.potential`), closed form;
-    on a circle its first n − 1 rows (the free rotation is the family)."""
+    """The paper's c(φ) = (ℓ²/n³) dG/dφ = 0 (:mod:`ocpar.formation.potential`), G the sum
+    of 1/|z_i − z_j|² over pairs. On a curve in closed form, on a circle its first n − 1 rows
+    (the free rotation is the family). On a :class:`~ocpar.formation.surface.Surface` all 2n
+    rows by CasADi (ℓ its length scale); on a sphere its solutions come with three free
+    directions, the rotations, which the outer solver searches."""
 
     label: str = "potential"
 
-    def expr(self, phi: ca.SX, curve: Curve) -> ca.SX:
+    def expr(self, phi: ca.SX, curve: Curve | Surface) -> ca.SX:
+        if isinstance(curve, Surface):
+            scaled = curve.length_scale**2 / (phi.numel() // 2) ** 3 * _surface_potential(
+                phi, curve)
+            return ca.gradient(scaled, phi)
         return coupling_expr(phi, curve)
 
-    def residual(self, phi: np.ndarray, curve: Curve) -> np.ndarray:
+    def residual(self, phi: np.ndarray, curve: Curve | Surface) -> np.ndarray:
+        if isinstance(curve, Surface):
+            return super().residual(phi, curve)
         return coupling(phi, curve)
 
-    def jacobian(self, phi: np.ndarray, curve: Curve) -> np.ndarray:
+    def jacobian(self, phi: np.ndarray, curve: Curve | Surface) -> np.ndarray:
+        if isinstance(curve, Surface):
+            return super().jacobian(phi, curve)
         return coupling_jacobian(phi, curve)
 
-    def project(self, phi: np.ndarray, curve: Curve) -> np.ndarray:
-        """The local minimum of G that ``phi`` leads to (:func:`relax`); circles: ``phi``."""
-        return relax(phi, curve)
+    def project(self, phi: np.ndarray, curve: Curve | Surface) -> np.ndarray:
+        """The local minimum of G that ``phi`` leads to (:func:`relax`; on a surface SciPy's
+        trust-exact on the scaled G, then :meth:`retract`); circles: ``phi``."""
+        if not isinstance(curve, Surface):
+            return relax(phi, curve)
+        phi = np.asarray(phi, float).ravel()
 
-    def family(self, phi: np.ndarray, curve: Curve) -> ShiftFamily | None:
+        relaxed = minimize(lambda x: self.scaled_potential(x, curve), phi,
+                           jac=lambda x: self.residual(x, curve),
+                           hess=lambda x: self.jacobian(x, curve), method="trust-exact",
+                           options={"gtol": 1e-12})
+        return self.retract(np.asarray(relaxed.x, float), curve)
+
+    def scaled_potential(self, phi: np.ndarray, surface: Surface) -> float:
+        """The scaled potential (ℓ²/n³) G on a surface (its gradient is c)."""
+        n = phi.size // 2
+        cache = self.__dict__.setdefault("_functions", {})
+        key = ("G", id(surface), n)
+        if key not in cache:
+            x = ca.SX.sym("phi", 2 * n)
+            cache[key] = (surface, ca.Function("G", [x], [
+                surface.length_scale**2 / n**3 * _surface_potential(x, surface)]))
+        return float(cache[key][1](phi))
+
+    def family(self, phi: np.ndarray, curve: Curve | Surface) -> ShiftFamily | None:
         """On a circle the equidistant angles in ``phi``'s cyclic order, rotated by θ."""
-        if not curve.rotation_invariant:
+        if isinstance(curve, Surface) or not curve.rotation_invariant:
             return None
         base = respace(phi)
         ones, zeros = np.ones(base.size), np.zeros(base.size)
         return ShiftFamily(lambda theta: (base + theta, ones, zeros))
 
-    def free_directions(self, phi: np.ndarray, curve: Curve) -> np.ndarray:
+    def free_directions(self, phi: np.ndarray, curve: Curve | Surface) -> np.ndarray:
+        if isinstance(curve, Surface):
+            return super().free_directions(phi, curve)
         n = np.asarray(phi).size
         return (np.full((n, 1), 1 / np.sqrt(n)) if curve.rotation_invariant
                 else np.zeros((n, 0)))
 
-    def check(self, curve: Curve, n: int) -> None:
-        """The potential evaluates on every curve the problem accepts: nothing to check."""
+    def check(self, curve: Curve | Surface, n: int) -> None:
+        """The potential evaluates on every target the problem accepts: nothing to check."""
+
+
+def _surface_potential(phi: ca.SX, surface: Surface) -> ca.SX:
+    """G = Σ_{i≠j} 1/|z(φ_i) − z(φ_j)|² for the parameters φ (2n, 1), agent i's at 2i, 2i+1."""
+    z = [surface.point(phi[2 * i : 2 * i + 2]) for i in range(phi.numel() // 2)]
+    return 2 * ca.sum1(ca.vertcat(*[1.0 / ca.sumsqr(z[i] - z[j])
+                                    for i in range(len(z)) for j in range(i + 1, len(z))]))
 
 
 @dataclass(frozen=True)

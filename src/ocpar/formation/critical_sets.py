@@ -28,12 +28,17 @@ from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.optimize import root
+from scipy.linalg import null_space
+from scipy.optimize import least_squares, linear_sum_assignment, root
+from scipy.spatial.distance import cdist, pdist
+from scipy.spatial.transform import Rotation
 
 from ocpar.bsp import Backend
+from ocpar.formation.hierarchical import ROUNDING_RTOL, OuterObjective, tangent_newton
 from ocpar.formation.ordering import assignment_cost, cheapest_assignment, cost_tables
-from ocpar.formation.potential import coupling, coupling_jacobian, potential, relax
+from ocpar.formation.potential import potential
 from ocpar.formation.problem import FormationProblem
+from ocpar.formation.surface import SphereSurface, Surface
 
 #: Random starts of the search besides the initial guess (default).
 CRITICAL_STARTS = 32
@@ -44,15 +49,26 @@ SAME_SET_TOL = 1e-6
 #: Newton's method on g = 0 (``any``) has converged at max |c_k| ≤ this (c scaled as
 #: :func:`~ocpar.formation.potential.coupling`).
 ROOT_TOL = 1e-10
+#: A critical set on a surface counts only with every agent's ∂z/∂φ_i of rank 2, its smaller
+#: singular value at least this times the length scale.
+REGULAR_RTOL = 1e-6
+#: On a sphere: rounds of assignment and outer solve over the rotations per critical set, at
+#: most, and the outer solve's iterations per round.
+ROTATION_ROUNDS, MAX_ROTATION_ITERATIONS = 5, 50
+#: On a sphere: the turns of each critical set the search over rotations starts from (the set
+#: as found and seeded random rotations of it).
+ROTATION_STARTS, ROTATION_SEED = 32, 0
 
 
 @dataclass
 class CriticalSet:
     """One critical configuration of G: ``phi`` (n,) its points' angles (rad, sorted in
-    [0, 2π)); ``potential`` the scaled G there; ``min_eigenvalue`` the smallest eigenvalue of
-    the scaled Hessian of G on the curve (> 0: a stable formation); ``hits`` how many starts
-    reached it; ``assignment`` (n,) the cheapest point index per agent and ``total_cost``
-    Σ_i Ĵ_i there (None until the tables are solved)."""
+    [0, 2π)), on a surface (2n,) their parameters as found; ``potential`` the scaled G there;
+    ``min_eigenvalue`` the smallest eigenvalue of the scaled Hessian of G on the target
+    across its symmetries (> 0: a stable formation); ``hits`` how many starts reached it;
+    ``assignment`` (n,) the cheapest point index per agent and ``total_cost`` Σ_i Ĵ_i there
+    (None until the tables are solved); ``rotated`` (2n,) on a sphere the set turned by the
+    outer solve over its rotations, in agent order (``total_cost`` is there)."""
 
     phi: np.ndarray
     potential: float
@@ -60,6 +76,7 @@ class CriticalSet:
     hits: int = 1
     assignment: np.ndarray | None = None
     total_cost: float | None = None
+    rotated: np.ndarray | None = None
 
     @property
     def stable(self) -> bool:
@@ -67,9 +84,12 @@ class CriticalSet:
 
     def to_dict(self) -> dict:
         """The candidate as ``result.json`` lists it."""
-        return {"total_cost": self.total_cost, "potential": self.potential,
-                "stable": self.stable, "min_eigenvalue": self.min_eigenvalue,
-                "hits": self.hits, "phi": self.phi.tolist()}
+        found = {"total_cost": self.total_cost, "potential": self.potential,
+                 "stable": self.stable, "min_eigenvalue": self.min_eigenvalue,
+                 "hits": self.hits, "phi": self.phi.tolist()}
+        if self.rotated is not None:
+            found["rotated_phi"] = self.rotated.tolist()
+        return found
 
 
 @dataclass
@@ -96,63 +116,163 @@ def critical_sets(problem: FormationProblem, critical: str = "stable",
     if critical not in CRITICAL_READINGS:
         raise ValueError(f"critical must be one of {', '.join(CRITICAL_READINGS)}, got "
                          f"{critical!r}")
-    curve, n = problem.curve, problem.agents
+    curve, n, coupling = problem.curve, problem.agents, problem.coupling
+    on_surface = isinstance(curve, Surface)
     rng = np.random.default_rng(seed)
-    guesses = [problem.initial_phi(), *(np.sort(rng.uniform(0, 2 * np.pi, n))
-                                        for _ in range(starts))]
+    guesses = [problem.initial_phi().ravel()]
+    for _ in range(starts):
+        if on_surface:
+            directions = rng.normal(size=(n, 3))
+            guesses.append(curve.parameters_toward(directions).ravel())
+        else:
+            guesses.append(np.sort(rng.uniform(0, 2 * np.pi, n)))
     found: list[CriticalSet] = []
     failed = 0
     for guess in guesses:
         if critical == "stable":
-            phi = relax(guess, curve)
+            phi = coupling.project(guess, curve)
+        elif on_surface:   # Levenberg–Marquardt on c = 0 (rank-deficient: the rotations)
+            solution = least_squares(coupling.residual, guess, jac=coupling.jacobian,
+                                     args=(curve,), method="lm", xtol=1e-15, ftol=1e-15,
+                                     gtol=1e-15)
+            phi = coupling.retract(np.asarray(solution.x, float), curve)
         else:
-            solution = root(coupling, guess, args=(curve,), jac=coupling_jacobian)
+            solution = root(coupling.residual, guess, args=(curve,), jac=coupling.jacobian)
             phi = np.asarray(solution.x, float)
-        eigenvalue = float(np.linalg.eigvalsh(coupling_jacobian(phi, curve))[0])
-        converged = np.max(np.abs(coupling(phi, curve))) <= ROOT_TOL
+        eigenvalue = _smallest_eigenvalue(problem, phi)
+        converged = np.max(np.abs(coupling.residual(phi, curve))) <= ROOT_TOL \
+            and (not on_surface or _regular(curve, phi))
         if not converged or (critical == "stable" and eigenvalue <= 0):
             failed += 1
             continue
-        phi = np.sort(np.mod(phi, 2 * np.pi))
-        same = next((s for s in found if _same_set(s.phi, phi)), None)
+        if not on_surface:
+            phi = np.sort(np.mod(phi, 2 * np.pi))
+        same = next((s for s in found if _same_set(problem, s.phi, phi)), None)
         if same is None:
-            found.append(CriticalSet(phi, potential(phi, curve), eigenvalue))
+            found.append(CriticalSet(phi, _potential(problem, phi), eigenvalue))
         else:
             same.hits += 1
     return found, failed
 
 
-def _same_set(a: np.ndarray, b: np.ndarray) -> bool:
-    """Whether sorted angle sets ``a`` and ``b`` (n,) agree to :data:`SAME_SET_TOL` up to a
-    cyclic shift (the wrap at 2π moves the first angle to the end)."""
-    return any(np.max(np.abs(np.angle(np.exp(1j * (np.roll(a, k) - b))))) <= SAME_SET_TOL
-               for k in range(len(a)))
+def _regular(surface: Surface, phi: np.ndarray) -> bool:
+    """Whether no agent sits at a singular point of the surface's parametrisation (a chart
+    pole: there dc/dφ = 0 does not make the point critical), the smaller singular value of
+    each ∂z/∂φ_i at least :data:`REGULAR_RTOL` times the length scale."""
+    singular = np.linalg.svd(surface.jacobians(phi.reshape(-1, 2)), compute_uv=False)
+    return bool(np.min(singular[:, 1]) >= REGULAR_RTOL * surface.length_scale)
+
+
+def _smallest_eigenvalue(problem: FormationProblem, phi: np.ndarray) -> float:
+    """The smallest eigenvalue of G's scaled Hessian dc/dφ at ``phi`` across its symmetry
+    (on a sphere the three rotations leave G unchanged: their directions are left out)."""
+    hessian = problem.coupling.jacobian(phi, problem.curve)
+    if not isinstance(problem.curve, Surface):
+        return float(np.linalg.eigvalsh(hessian)[0])
+    across = null_space(problem.coupling.free_directions(phi, problem.curve).T)
+    return float(np.linalg.eigvalsh(across.T @ hessian @ across)[0])
+
+
+def _potential(problem: FormationProblem, phi: np.ndarray) -> float:
+    """The scaled potential (ℓ²/n³) G at ``phi``."""
+    if isinstance(problem.curve, Surface):
+        return problem.coupling.scaled_potential(phi, problem.curve)
+    return potential(phi, problem.curve)
+
+
+def _same_set(problem: FormationProblem, a: np.ndarray, b: np.ndarray) -> bool:
+    """Whether two critical sets are one. On a curve: sorted angles (n,) agreeing to
+    :data:`SAME_SET_TOL` up to a cyclic shift (the wrap at 2π moves the first angle to the
+    end). On a surface with free directions (a sphere's rotations): equal sorted pairwise
+    distances, to :data:`SAME_SET_TOL` times the length scale (a rotation or reflection apart);
+    on any other surface: the same points in some order, to that tolerance."""
+    if not isinstance(problem.curve, Surface):
+        return any(np.max(np.abs(np.angle(np.exp(1j * (np.roll(a, k) - b))))) <= SAME_SET_TOL
+                   for k in range(len(a)))
+    tol = SAME_SET_TOL * problem.curve.length_scale
+    p, q = problem.final_positions(a), problem.final_positions(b)
+    if problem.coupling.free_directions(a, problem.curve).shape[1]:
+        return bool(np.max(np.abs(np.sort(pdist(p)) - np.sort(pdist(q)))) <= tol)
+    distances = cdist(p, q)
+    rows, cols = linear_sum_assignment(distances)
+    return bool(np.max(distances[rows, cols]) <= tol)
 
 
 def best_isolated_formation(problem: FormationProblem, backend: Backend,
                             critical: str = "stable", starts: int = CRITICAL_STARTS,
-                            progress: Callable[[str], None] | None = None) -> IsolatedChoice:
+                            progress: Callable[[str], None] | None = None,
+                            tol: float = 1e-12) -> IsolatedChoice:
     """The cheapest critical set and assignment (module docstring): the sets on the
-    coordinator, their cost tables in one superstep; raises
+    coordinator, their cost tables in one superstep; on a surface whose sets have free
+    directions (a sphere's rotations) each set's assignment alternated with the outer Newton
+    solve over them (:func:`_rotate`, tolerance ``tol``). Raises
     :class:`~ocpar.formation.hierarchical.InnerSolveFailed` if an inner solve fails, and
     ValueError on a circle (its feasible set is continuous:
     :func:`~ocpar.formation.ordering.optimal_ordering`) or when no search converged."""
-    if problem.curve.rotation_invariant:
+    if not isinstance(problem.curve, Surface) and problem.curve.rotation_invariant:
         raise ValueError("best_isolated_formation is for curves whose coupling has isolated "
                          "solutions; on a circle use optimal_ordering")
     sets, failed = critical_sets(problem, critical, starts)
     if not sets:
         raise ValueError(f"no critical set of the potential found from {starts + 1} starts "
                          f"(reading {critical!r})")
-    tables = cost_tables(problem, backend, np.array([s.phi for s in sets]))
+    n = problem.agents
+    tables = cost_tables(problem, backend, np.array([s.phi.reshape(n, -1) for s in sets]))
+    solves = tables.size
     for candidate, table in zip(sets, tables, strict=True):
         candidate.assignment = cheapest_assignment(table)
         candidate.total_cost = assignment_cost(table, candidate.assignment)
+        if problem.coupling.free_directions(candidate.phi, problem.curve).shape[1]:
+            candidate.rotated, candidate.total_cost, rotated_solves = _rotate(
+                problem, backend, candidate.phi, tol)
+            solves += rotated_solves
     sets.sort(key=lambda s: s.total_cost)
     best = sets[0]
     if progress is not None:
         progress(f"critical sets ({critical}): {len(sets)} distinct from {starts + 1} starts "
                  f"({failed} not converged or not stable); costs "
                  + ", ".join(f"{s.total_cost:.9e}" for s in sets))
-    return IsolatedChoice(best.phi[best.assignment], float(best.total_cost), sets, starts + 1,
-                          tables.size)
+    phi = (best.rotated if best.rotated is not None
+           else best.phi.reshape(n, -1)[best.assignment].ravel())
+    return IsolatedChoice(phi, float(best.total_cost), sets, starts + 1, solves)
+
+
+def _rotate(problem: FormationProblem, backend: Backend, phi: np.ndarray, tol: float
+            ) -> tuple[np.ndarray, float, int]:
+    """The best turn of a critical set ``phi`` (2n,) with free directions: from the set as
+    labelled and, on a :class:`~ocpar.formation.surface.SphereSurface`, from
+    :data:`ROTATION_STARTS` − 1 seeded random rotations of it (:func:`_turned`), rounds of the
+    outer Newton solve over the free directions and the cheapest assignment of the agents to
+    the points reached (one table superstep each), while the assignment changes (at most
+    :data:`ROTATION_ROUNDS`). Returns (φ in agent order, its total cost, inner solves)."""
+    n, solves = problem.agents, 0
+    starts = [phi]
+    if isinstance(problem.curve, SphereSurface):
+        turns = Rotation.random(ROTATION_STARTS - 1, random_state=ROTATION_SEED)
+        starts += [_turned(problem, phi, turn) for turn in turns]
+    best: tuple[np.ndarray, float] | None = None
+    for start in starts:
+        table = cost_tables(problem, backend, start.reshape(1, n, -1))[0]
+        solves += table.size
+        phi = start.reshape(n, -1)[cheapest_assignment(table)].ravel()
+        for _ in range(ROTATION_ROUNDS):
+            objective = OuterObjective(problem, backend)
+            phi, _, _, _ = tangent_newton(objective, phi, tol, MAX_ROTATION_ITERATIONS)
+            cost = objective.value(phi)
+            table = cost_tables(problem, backend, phi.reshape(1, n, -1))[0]
+            solves += objective.inner_solves + table.size
+            assignment = cheapest_assignment(table)
+            if assignment_cost(table, assignment) >= cost * (1 - ROUNDING_RTOL):
+                break
+            phi = phi.reshape(n, -1)[assignment].ravel()
+        if best is None or cost < best[1]:
+            best = (phi, cost)
+    return best[0], best[1], solves
+
+
+def _turned(problem: FormationProblem, phi: np.ndarray, turn: Rotation) -> np.ndarray:
+    """The parameters (2n,) of the points of ``phi`` turned by ``turn`` about the sphere's
+    centre."""
+    centre = problem.curve.center
+    points = turn.apply(problem.final_positions(phi) - centre)
+    return problem.curve.parameters_toward(points).ravel()

@@ -24,6 +24,7 @@ from __future__ import annotations
 from collections.abc import Callable
 
 import numpy as np
+from scipy.linalg import block_diag
 from scipy.optimize import minimize, root_scalar
 
 from ocpar.bsp import Backend
@@ -32,6 +33,7 @@ from ocpar.formation.coupling import PROJECTION_TOL, ShiftFamily
 from ocpar.formation.potential import equidistance_error
 from ocpar.formation.problem import FormationProblem
 from ocpar.formation.slots import Slots
+from ocpar.formation.surface import Surface
 from ocpar.ocp import solve_tasks
 
 #: Second iterate of the offset search (rad): 1/60 of a slot for the paper's 60 agents.
@@ -104,10 +106,14 @@ class OuterObjective:
         return float(np.sum(self.solutions(phi).column("cost")))
 
     def gradient(self, phi: np.ndarray) -> np.ndarray:
-        """dJ/dφ (n,) from each agent's dJ*/dq_N (entries 2nq..3nq of dJ*/dp)."""
+        """dJ/dφ (n k,) from each agent's dJ*/dq_N (entries 2nq..3nq of dJ*/dp): on a curve
+        dJ*/dq_N · z′(φ_i), on a surface (∂z/∂φ_i)ᵀ ∇_pos J*_i (agent i's at 2i, 2i+1)."""
         sols = self.solutions(phi)
         nq = self.problem.common_shape.model.nq
         d_end = np.asarray(sols.column("cost_gradient"))[:, 2 * nq : 3 * nq]
+        if isinstance(self.problem.curve, Surface):
+            along = self.problem.curve.jacobians(np.reshape(phi, (-1, 2)))
+            return np.einsum("id,idk->ik", d_end[:, : along.shape[1]], along).ravel()
         return np.sum(d_end * self.problem.final_position_derivatives(phi), axis=1)
 
     def hessian_diagonal(self, phi: np.ndarray) -> np.ndarray:
@@ -123,6 +129,21 @@ class OuterObjective:
         curvature = self.problem.curve.curvatures(phi)
         return (np.einsum("id,ide,ie->i", tangent, h_pos, tangent)
                 + np.sum(d_pos * curvature, axis=1))
+
+    def hessian_blocks(self, phi: np.ndarray) -> np.ndarray:
+        """The diagonal blocks d²J/dφ_i² (n, k, k) of J's block-diagonal Hessian: on a curve
+        :meth:`hessian_diagonal` (k = 1); on a surface Tᵀ H_pos T + Σ_d ∇_pos,d J*_i ∂²z_d/∂φ_i²
+        with T = ∂z/∂φ_i (3 × 2)."""
+        if not isinstance(self.problem.curve, Surface):
+            return self.hessian_diagonal(phi)[:, None, None]
+        sols = self.solutions(phi)
+        nq, d = self.problem.common_shape.model.nq, self.problem.curve.dim
+        h_pos = np.asarray(sols.column("end_hessian"))[:, :d, :d]
+        d_pos = np.asarray(sols.column("cost_gradient"))[:, 2 * nq : 2 * nq + d]
+        at = np.reshape(phi, (-1, 2))
+        along = self.problem.curve.jacobians(at)
+        return (np.einsum("ida,ide,ieb->iab", along, h_pos, along)
+                + np.einsum("id,idab->iab", d_pos, self.problem.curve.second_derivatives(at)))
 
     def _report(self, phi: np.ndarray, sols: Columns) -> None:
         if self.progress is None:
@@ -213,7 +234,7 @@ def solve_outer_newton(
       evaluation (0 iterations), converged if it reached max |c_k| ≤ :data:`PROJECTION_TOL`.
     * Otherwise (a user's coupling with r free directions), Newton steps in the tangent
       space of c = 0 with the Lagrangian's Hessian, each projected back onto c = 0
-      (:func:`_tangent_newton`): dense, its superstep count grows with r, not with n.
+      (:func:`tangent_newton`): dense, its superstep count grows with r, not with n.
     """
     problem = objective.problem
     family = problem.coupling.family(phi0, problem.curve)
@@ -226,7 +247,7 @@ def solve_outer_newton(
         return phi, 0, False, (f"the projection did not reach c(phi) = 0 (max |c| "
                                f"{residual:.1e})")
     if problem.coupling.free_directions(phi, problem.curve).shape[1]:
-        return _tangent_newton(objective, phi, tol, max_iterations)
+        return tangent_newton(objective, phi, tol, max_iterations)
     return phi, 0, True, "projected onto c(phi) = 0"
 
 
@@ -281,37 +302,50 @@ def _shift_newton(objective: OuterObjective, family: ShiftFamily, tol: float,
     return family.angles(theta)[0], max_iterations, False, "iteration limit reached"
 
 
-def _tangent_newton(objective: OuterObjective, phi: np.ndarray, tol: float,
+def tangent_newton(objective: OuterObjective, phi: np.ndarray, tol: float,
                     max_iterations: int) -> tuple[np.ndarray, int, bool, str]:
     """Newton's method on the manifold c(φ) = 0 from a point ``phi`` on it: with Z (n, r) an
     orthonormal basis of its tangent space, λ the least-squares multipliers (dc/dφ)ᵀλ = g and
-    W = diag(h) − d²(λᵀc)/dφ² the Lagrangian's Hessian, the step −Z (ZᵀWZ)⁻¹ Zᵀg (the
-    reduced Hessian's eigenvalues taken in absolute value, its step no longer than
-    :data:`MAX_OFFSET_STEP`), projected back onto c = 0; a step that raises J beyond rounding
+    W = blockdiag(:meth:`OuterObjective.hessian_blocks`) − d²(λᵀc)/dφ² the Lagrangian's
+    Hessian, the step −Z (ZᵀWZ)⁻¹ Zᵀg (the reduced Hessian's eigenvalues taken in absolute
+    value, its step no longer than :data:`MAX_OFFSET_STEP`), retracted onto c = 0
+    (:meth:`~ocpar.formation.coupling.Coupling.retract`); a step that raises J beyond
+    rounding, or from which the retraction does not reach max |c_k| ≤ :data:`PROJECTION_TOL`,
     is halved. Converged when |Zᵀg|_∞ ≤ ``tol`` Σ|g_i| with ZᵀWZ positive definite, or a
     step was at most ``tol``·(1 + |φ|_∞)."""
     coupling, curve = objective.problem.coupling, objective.problem.curve
-    value = objective.value(phi)
-    shrink = 1.0
-    for iteration in range(max_iterations):
-        g, h = objective.gradient(phi), objective.hessian_diagonal(phi)
+
+    def model(phi: np.ndarray) -> tuple[float, np.ndarray, bool]:
+        """J at ``phi`` (one superstep), the Newton step there and whether it is converged."""
+        g = objective.gradient(phi)
         free = coupling.free_directions(phi, curve)
         weights = np.linalg.lstsq(coupling.jacobian(phi, curve).T, g, rcond=None)[0]
-        hessian = np.diag(h) - coupling.weighted_hessian(phi, weights, curve)
+        hessian = block_diag(*objective.hessian_blocks(phi)) \
+            - coupling.weighted_hessian(phi, weights, curve)
         eigenvalues, vectors = np.linalg.eigh(free.T @ hessian @ free)
         reduced = free.T @ g
-        if np.max(np.abs(reduced)) <= tol * np.sum(np.abs(g)) and eigenvalues[0] > 0:
-            return phi, iteration, True, "reduced gradient below tolerance"
         floor = 1e-12 * max(np.max(np.abs(eigenvalues)), 1e-300)
         step = -free @ (vectors @ ((vectors.T @ reduced) / np.maximum(np.abs(eigenvalues),
                                                                       floor)))
-        step *= shrink * min(1.0, MAX_OFFSET_STEP / max(np.max(np.abs(step)), 1e-300))
-        trial = coupling.project(phi + step, curve)
+        step *= min(1.0, MAX_OFFSET_STEP / max(np.max(np.abs(step)), 1e-300))
+        converged = np.max(np.abs(reduced)) <= tol * np.sum(np.abs(g)) and eigenvalues[0] > 0
+        return objective.value(phi), step, converged
+
+    value, step, converged = model(phi)
+    shrink = 1.0
+    for iteration in range(max_iterations):
+        if converged:
+            return phi, iteration, True, "reduced gradient below tolerance"
+        trial = coupling.retract(phi + shrink * step, curve)
+        if np.max(np.abs(coupling.residual(trial, curve))) > PROJECTION_TOL:
+            shrink /= 2   # too long a step to retract onto c = 0 from
+            continue
         t_value = objective.value(trial)
         if t_value <= value + ROUNDING_RTOL * abs(value):
-            phi, value, shrink = trial, t_value, 1.0
-            if np.max(np.abs(step)) <= tol * (1 + np.max(np.abs(phi))):
-                return phi, iteration + 1, True, "step below tolerance"
+            if np.max(np.abs(shrink * step)) <= tol * (1 + np.max(np.abs(trial))):
+                return trial, iteration + 1, True, "step below tolerance"
+            phi, shrink = trial, 1.0
+            value, step, converged = model(phi)
         else:
             shrink /= 2
     return phi, max_iterations, False, "iteration limit reached"

@@ -29,6 +29,7 @@ from ocpar.formation.curve import Circle, Curve
 from ocpar.formation.obstacles import Obstacle, check_obstacles
 from ocpar.formation.separation import ClosestApproach, closest_approach
 from ocpar.formation.slots import Slots, nearest_assignment
+from ocpar.formation.surface import PARAMETERS, Surface, fibonacci_directions
 from ocpar.models import MechanicalSystem, PointMass
 from ocpar.ocp import DmocShape, OcpTask
 
@@ -80,7 +81,7 @@ class FormationProblem:
 
     name: str
     shape: DmocShape | tuple[DmocShape, ...]
-    curve: Curve | Slots
+    curve: Curve | Surface | Slots
     starts: np.ndarray
     start_velocities: np.ndarray | None = None
     final_velocity: np.ndarray | None = None
@@ -90,9 +91,10 @@ class FormationProblem:
 
     def __post_init__(self) -> None:
         self._check_shapes()
-        if not isinstance(self.curve, Curve | Slots):
+        if not isinstance(self.curve, Curve | Surface | Slots):
             raise ValueError(f"curve: must be a Curve (Circle, Ellipse, PlaneCurve, "
-                             f"ParametricCurve) or Slots, got {type(self.curve).__name__}")
+                             f"ParametricCurve), a Surface (Sphere, Ellipsoid, "
+                             f"ParametricSurface) or Slots, got {type(self.curve).__name__}")
         if isinstance(self.curve, Curve):
             self.curve.check()  # built-in curves checked themselves; a user's subclass may not
         nq, d = self.common_shape.model.nq, self.curve.dim
@@ -113,8 +115,8 @@ class FormationProblem:
         if isinstance(self.curve, Slots) and self.coupling != PotentialCoupling():
             raise ValueError("coupling: onto slots the coupling is the assignment (no slot "
                              "taken twice); leave coupling at its default")
-        if isinstance(self.curve, Curve):
-            self.coupling.check(self.curve, n)
+        if isinstance(self.curve, Curve | Surface):
+            self.coupling.check(self.curve, n * self.parameters)
         fields = {
             "starts": (self.starts, (n, nq)),
             "start_velocities": (np.zeros((n, nq)) if self.start_velocities is None
@@ -152,10 +154,10 @@ class FormationProblem:
         the curve is within that reach has no feasible formation at all: ValueError naming
         its ``control_bounds``. The curve is sampled at :data:`REACH_SAMPLES` points and
         each gap shortened by their largest spacing, so that the check never refuses a
-        reachable curve."""
+        reachable curve. Surfaces are not checked (no such bound on their sampling)."""
         limited = {shape: agents for shape, agents in self.agents_by_shape().items()
                    if isinstance(shape.model, PointMass) and shape.control_bounds is not None}
-        if not limited:
+        if not limited or isinstance(self.curve, Surface):   # no sampling bound on a surface
             return
         if isinstance(self.curve, Slots):
             phi, closed = np.arange(self.curve.count), False
@@ -299,7 +301,8 @@ class FormationProblem:
     def _check_holonomic_constraints(self) -> None:
         """Starts and final configurations (at a point of the curve) must satisfy each
         agent's model's c(q) = 0."""
-        end = np.concatenate([self.final_positions(np.zeros(1))[0], self.final_attitude])
+        end = np.concatenate([self.final_positions(np.zeros(self.parameters))[0],
+                              self.final_attitude])
         for shape, agents in self.agents_by_shape().items():
             model = shape.model
             if not getattr(model, "n_constraints", 0):
@@ -349,10 +352,24 @@ class FormationProblem:
                              f"slots, a free common rotation); {self.name!r} ends on a "
                              f"{type(self.curve).__name__}")
 
+    @property
+    def parameters(self) -> int:
+        """k, each agent's parameters on the target: 2 on a surface, else 1 (an angle on a
+        curve, a slot index onto slots)."""
+        return PARAMETERS if isinstance(self.curve, Surface) else 1
+
+    @property
+    def parameter_shape(self) -> tuple[int, ...]:
+        """The shape of φ: (n,), or (n, 2) on a surface."""
+        return (self.agents,) if self.parameters == 1 else (self.agents, self.parameters)
+
     def final_positions(self, phi: np.ndarray) -> np.ndarray:
-        """Points z(φ) on the curve at angles φ (n,) rad, or the slots φ (n,): shape (n, d)."""
+        """Points z(φ) on the curve at angles φ (n,) rad, on a surface at parameters φ
+        (n, 2) (or flat, 2n), or the slots φ (n,): shape (n, d)."""
         if isinstance(self.curve, Slots):
             return self.curve.at(phi)
+        if isinstance(self.curve, Surface):
+            return self.curve.points(np.reshape(phi, (-1, PARAMETERS)))
         return self.curve.points(phi)
 
     def final_position_derivatives(self, phi: np.ndarray) -> np.ndarray:
@@ -412,7 +429,8 @@ class FormationProblem:
 
     def initial_phi(self) -> np.ndarray:
         """The documented initial guess for φ (rad); onto slots, the slot indices minimising
-        Σ_i |start position_i − slot|² (:func:`~ocpar.formation.slots.nearest_assignment`).
+        Σ_i |start position_i − slot|² (:func:`~ocpar.formation.slots.nearest_assignment`);
+        on a surface (n, 2), see :meth:`_initial_on_surface`.
 
         With the start positions projected into the curve's plane (coordinates along the
         axes of :meth:`~ocpar.formation.Curve.frame`, relative to its centre), the agents are
@@ -434,6 +452,8 @@ class FormationProblem:
         """
         if isinstance(self.curve, Slots):   # CAPT's assignment, by distance
             return nearest_assignment(self.positions(self.starts), self.curve).astype(float)
+        if isinstance(self.curve, Surface):
+            return self._initial_on_surface()
         n = self.agents
         centre, axes = self.curve.frame()
         in_plane = (self.starts[:, : self.curve.dim] - centre) @ axes.T
@@ -444,3 +464,15 @@ class FormationProblem:
         rank[np.argsort(in_plane @ tangent, kind="stable")] = np.arange(n)
         guess = self.curve.spread(self.curve.parameter_at(theta_c), (rank - (n - 1) / 2) / n)
         return self.coupling.project(guess, self.curve)
+
+    def _initial_on_surface(self) -> np.ndarray:
+        """On a surface (n, 2): the points seen from its centre along n evenly spread
+        directions (:func:`~ocpar.formation.surface.fibonacci_directions`), each agent taking
+        one by CAPT's assignment (Σ_i |start_i − point|² minimal), then projected onto the
+        coupling (for the potential, relaxed to the local minimum of G it leads to)."""
+        n = self.agents
+        candidates = self.curve.parameters_toward(fibonacci_directions(n))
+        slots = Slots(self.curve.points(candidates))
+        chosen = nearest_assignment(self.positions(self.starts), slots)
+        guess = candidates[chosen].ravel()
+        return self.coupling.project(guess, self.curve).reshape(n, PARAMETERS)

@@ -84,7 +84,7 @@ class FormationResult(RunResult):
             "mode": self.mode,
             "total_cost": _finite_or_none(self.total_cost),
             **{name: _finite_or_none(value) for name, value in self.cost_parts.items()},
-            "phi": [float(p) for p in self.phi],
+            "phi": np.asarray(self.phi, float).tolist(),
             "equidistance_error": _finite_or_none(self.equidistance_error),
             "coupling_residual": _finite_or_none(self.coupling_residual),
             "outer_iterations": self.outer_iterations,

@@ -36,6 +36,7 @@ from ocpar.formation.result import FormationResult
 from ocpar.formation.separation import check_separation_feasible
 from ocpar.formation.slot_assignment import SlotChoice, assign_slots
 from ocpar.formation.slots import SLOT_CANDIDATES, Slots
+from ocpar.formation.surface import Surface
 from ocpar.ocp.batch import SOLVERS
 from ocpar.options import option
 
@@ -169,6 +170,8 @@ def check_applicable(problem: FormationProblem, options: FormationOptions) -> No
     calls it before starting workers (:func:`solve_formation` calls it too). Obstacles need
     the hierarchical mode and final positions (of the initial angles) clear of them; with
     ``min_separation`` too, the separation rounds keep the paths clear of them as well."""
+    if isinstance(problem.curve, Surface) and options.mode != "hierarchical":
+        raise ValueError("surfaces apply to the hierarchical mode only")
     if isinstance(problem.curve, Slots) and options.mode != "hierarchical":
         raise ValueError("slots apply to the hierarchical mode only (the assignment is the "
                          "outer problem)")
@@ -237,13 +240,11 @@ def discrete_choice(problem: FormationProblem, choice: IsolatedChoice | SlotChoi
                     phi0: np.ndarray | None) -> dict:
     """The result's fields on the outer problem's feasible set near the start ``phi0``:
     ``continuous`` where the coupling leaves free directions (a circle's common rotation,
-    equal arc length's shift); elsewhere ``discrete``: the coupling's isolated solutions,
-    with ``critical_sets`` the candidates searched (:mod:`ocpar.formation.critical_sets`),
-    None when none were, or the slots' assignments; and the status line's words on it in
-    ``note``."""
-    if choice is None and not isinstance(problem.curve, Slots) \
-            and problem.coupling.feasible_set(phi0, problem.curve) == "continuous":
-        return {"feasible_set": "continuous", "note": ""}
+    equal arc length's shift, a sphere's rotations); elsewhere ``discrete``: the coupling's
+    isolated solutions. Off a circle the potential's critical sets are a discrete choice
+    either way: ``critical_sets`` lists the candidates searched
+    (:mod:`ocpar.formation.critical_sets`), None when none were; onto slots the
+    assignments. The status line's words on it are in ``note``."""
     if isinstance(choice, SlotChoice):
         every = choice.candidates == problem.curve.count
         return {"feasible_set": "discrete", "note": (
@@ -252,18 +253,29 @@ def discrete_choice(problem: FormationProblem, choice: IsolatedChoice | SlotChoi
                f"the optimal assignment over each agent's {choice.candidates} nearest slots "
                f"to its start and to its place (no cheaper one with "
                f"{min(2 * choice.candidates, problem.curve.count)})"))}
-    if choice is None and problem.coupling != PotentialCoupling():
+    feasible_set = problem.coupling.feasible_set(phi0, problem.curve)
+    if choice is not None:
+        return {"feasible_set": feasible_set,
+                "critical_sets": [s.to_dict() for s in choice.sets],
+                "note": (f"; the best of {len(choice.sets)} critical set(s) found from "
+                         f"{choice.starts} start(s), each with its cheapest assignment"
+                         + (" and rotation" if feasible_set == "continuous" else ""))}
+    potential = problem.coupling == PotentialCoupling()
+    if feasible_set == "continuous" and (problem.on_circle or not potential):
+        return {"feasible_set": "continuous", "note": ""}
+    if not potential:
         return {"feasible_set": "discrete", "critical_sets": None, "note": (
             f"; the feasible set is discrete (the {problem.coupling.label} coupling's isolated "
             "solutions): this is the one the initial guess selects, others not searched")}
-    if choice is None:
-        return {"feasible_set": "discrete", "critical_sets": None, "note": (
-            "; the feasible set is discrete (the potential's isolated critical points): this is "
-            "the formation the initial guess selects, other solution sets and assignments not "
-            "searched (--ordering optimal finds the best)")}
-    return {"feasible_set": "discrete", "critical_sets": [s.to_dict() for s in choice.sets],
-            "note": (f"; the best of {len(choice.sets)} critical set(s) found from "
-                     f"{choice.starts} start(s), each with its cheapest assignment")}
+    if feasible_set == "continuous":   # a sphere: critical sets, each up to a rotation
+        return {"feasible_set": "continuous", "critical_sets": None, "note": (
+            "; the potential's critical sets are isolated up to the target's rotations: this "
+            "is the set the initial guess selects, turned by the cost; other sets and "
+            "assignments not searched (--ordering optimal finds the best)")}
+    return {"feasible_set": "discrete", "critical_sets": None, "note": (
+        "; the feasible set is discrete (the potential's isolated critical points): this is "
+        "the formation the initial guess selects, other solution sets and assignments not "
+        "searched (--ordering optimal finds the best)")}
 
 
 def solve_formation(
@@ -289,8 +301,10 @@ def solve_formation(
     slots = isinstance(problem.curve, Slots)   # then the assignment chooses φ: no φ0
     phi0 = (None if slots else problem.initial_phi()) if phi0 is None \
         else np.asarray(phi0, float)
-    if phi0 is not None and phi0.shape != (problem.agents,):
-        raise ValueError(f"phi0 must have shape ({problem.agents},), got {phi0.shape}")
+    if phi0 is not None and phi0.shape != problem.parameter_shape:
+        raise ValueError(f"phi0 must have shape {problem.parameter_shape}, got {phi0.shape}")
+    if phi0 is not None:
+        phi0 = phi0.ravel()   # the outer solvers see a vector (on a surface agent i's at 2i, 2i+1)
     first_trace = len(backend.traces)
     start = time.perf_counter()
     common = {"problem": problem.name, "agents": problem.agents, "backend": backend.name,
@@ -304,7 +318,7 @@ def solve_formation(
         phi0, ordering_solves = ordered.phi, ordered.inner_solves
     elif options.ordering == "optimal":
         choice = best_isolated_formation(problem, backend, options.critical,
-                                         options.critical_starts, progress)
+                                         options.critical_starts, progress, options.outer_tol)
         phi0, ordering_solves, chosen = choice.phi, choice.inner_solves, "ordering optimal"
     discrete = discrete_choice(problem, choice, phi0)
     note = discrete.pop("note")
@@ -402,7 +416,7 @@ def solve_formation(
         status=status,
         message=message,
         total_cost=float(np.sum(costs)),
-        phi=phi,
+        phi=np.reshape(phi, problem.parameter_shape),
         agent_costs=costs,
         trajectories=trajectories,
         cost_parts=cost_parts(problem, controls),
