@@ -5,11 +5,13 @@ same on every backend, and bad couplings refused before anything runs."""
 from __future__ import annotations
 
 import json
+import subprocess
+import sys
 
 import casadi as ca
 import numpy as np
 import pytest
-from conftest import run_cli
+from conftest import run_cli, tool, user_environment
 from scipy.integrate import quad
 from scipy.special import ellipe
 
@@ -153,3 +155,32 @@ def test_the_arc_length_formation_is_the_same_on_every_backend(tmp_path):
     mpi = json.loads((tmp_path / "result.json").read_text())
     assert mpi["total_cost"] == serial.total_cost and mpi["phi"] == serial.phi.tolist()
     assert mpi["feasible_set"] == "continuous"
+
+
+USER_MODULE = '''
+import dataclasses
+
+from ocpar.examples.formation_ellipse import make as tilted
+from ocpar.formation import UserCoupling
+
+
+def unreachable(agents: int = 6):
+    """g(phi) = phi_0^2 + 1 = 0 has no real solution."""
+    return dataclasses.replace(tilted(agents=agents),
+                               coupling=UserCoupling(lambda phi: phi[0] ** 2 + 1))
+'''
+
+
+def test_a_coupling_without_a_solution_exits_2_before_any_worker(tmp_path):
+    """Through the command line on mpirun -n 2: one line naming the coupling, exit 2, no
+    result written."""
+    (tmp_path / "coupkg.py").write_text(USER_MODULE)
+    proc = subprocess.run([tool("mpirun"), "-n", "2", sys.executable, "-m", "ocpar.formation",
+                           "--problem", "coupkg:unreachable", "--output", str(tmp_path / "out")],
+                          capture_output=True, text=True, timeout=300,
+                          env=user_environment(tmp_path))
+    assert proc.returncode == 2 and proc.stdout == ""
+    assert proc.stderr.splitlines()[-1].startswith(
+        "ocpar.formation: error: coupling: no solution of g(phi) = 0 found from the initial "
+        "guess")
+    assert not (tmp_path / "out" / "result.json").exists()

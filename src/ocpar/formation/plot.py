@@ -12,6 +12,7 @@ from ocpar.formation.problem import FormationProblem
 from ocpar.formation.result import FormationResult
 from ocpar.formation.separation import positions_at
 from ocpar.formation.slots import Slots
+from ocpar.formation.surface import Surface, fibonacci_directions
 from ocpar.plotting import pyplot, save
 
 #: Most trajectories a picture draws: above it every k-th (100,000 paths took ~15 s to draw and
@@ -32,9 +33,14 @@ def _drawn_note(agents: int) -> str:
 
 def _target(problem: FormationProblem, samples: int) -> tuple[np.ndarray, dict]:
     """Points (m, d) to draw the target by, and their style: the curve as a dashed line of
-    ``samples`` points, or the slots as grey dots."""
+    ``samples`` points, the slots as grey dots, or ``samples`` grey dots spread over a
+    surface."""
     if isinstance(problem.curve, Slots):
         return problem.curve.points, {"ls": "", "marker": ".", "color": "0.5", "ms": 3}
+    if isinstance(problem.curve, Surface):   # evenly spread points of the surface
+        spread = problem.curve.parameters_toward(fibonacci_directions(samples))
+        return problem.curve.points(spread), {"ls": "", "marker": ".", "color": "0.6",
+                                              "ms": 1.5}
     return (problem.final_positions(np.linspace(0, 2 * np.pi, samples)),
             {"ls": "--", "color": "k", "lw": 0.8})
 
