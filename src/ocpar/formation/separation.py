@@ -156,9 +156,9 @@ def _box_terms(lo: np.ndarray, hi: np.ndarray, reach: float) -> tuple[np.ndarray
 
 def _may_meet(first: np.ndarray, second: np.ndarray, a: np.ndarray, b: np.ndarray
               ) -> np.ndarray:
-    """Whether node boxes a and b (each index (m,)) may come within ``reach`` of each other at
-    some s ∈ [0, 1] of the interval (m,), a necessary condition for any of their pairs;
-    ``first``, ``second`` from :func:`_box_terms`.
+    """Whether node boxes a and b (each index (m,)) may come within the ``reach`` of
+    :func:`_box_terms` (which gave ``first``, ``second``) of each other at some s ∈ [0, 1] of
+    the interval (m,), a necessary condition for any of their pairs.
 
     A box (lo, hi) bounds its agents' positions at the interval's start and end. The pair's
     relative position at s lies in the box whose bounds interpolate linearly between those of
@@ -176,6 +176,7 @@ def _may_meet(first: np.ndarray, second: np.ndarray, a: np.ndarray, b: np.ndarra
         np.maximum(start[:, 0], start[:, column], out=start[:, 0])
         np.minimum(end[:, 0], end[:, column], out=end[:, 0])
     start, end = start[:, 0], end[:, 0]
+    # a function > 0 at both ends crosses 0 outside [0, 1] (or never: ±inf, or start > 1)
     return (start <= end) & (start <= 1.0) & (end >= 0.0)
 
 
@@ -214,8 +215,8 @@ def _interval_within(x: np.ndarray, reach: float) -> tuple[np.ndarray, np.ndarra
         meet = _may_meet(*_box_terms(lo, hi, reach), a, b)
         a, b = a[meet], b[meet]
     found_i, found_j = [], []
-    for lo in range(0, len(a), CHUNK):
-        i, j = _leaf_pairs(a[lo:lo + CHUNK], b[lo:lo + CHUNK], levels[-1][2])
+    for chunk in range(0, len(a), CHUNK):
+        i, j = _leaf_pairs(a[chunk:chunk + CHUNK], b[chunk:chunk + CHUNK], levels[-1][2])
         distance, _ = segment_closest(x[i, :dim] - x[j, :dim], x[i, dim:] - x[j, dim:])
         close = distance <= reach
         found_i.append(order[i[close]])
