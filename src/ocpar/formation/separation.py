@@ -217,7 +217,8 @@ def _interval_within(x: np.ndarray, reach: float) -> tuple[np.ndarray, np.ndarra
     found_i, found_j = [], []
     for chunk in range(0, len(a), CHUNK):
         i, j = _leaf_pairs(a[chunk:chunk + CHUNK], b[chunk:chunk + CHUNK], levels[-1][2])
-        distance, _ = segment_closest(x[i, :dim] - x[j, :dim], x[i, dim:] - x[j, dim:])
+        relative = x[i] - x[j]
+        distance, _ = segment_closest(relative[:, :dim], relative[:, dim:])
         close = distance <= reach
         found_i.append(order[i[close]])
         found_j.append(order[j[close]])
