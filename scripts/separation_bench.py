@@ -99,7 +99,7 @@ def main() -> None:
     fig, ax = plt.subplots(figsize=(6.5, 4.5))
     for family, rows in report["families"].items():
         n = [r["agents"] for r in rows]
-        line, = ax.loglog(n, [r["seconds"] for r in rows], "o-", label=f"{family}: spatial hash")
+        line, = ax.loglog(n, [r["seconds"] for r in rows], "o-", label=f"{family}: tree of boxes")
         brute = [(r["agents"], r["brute_force_seconds"]) for r in rows
                  if "brute_force_seconds" in r]
         if brute:

@@ -12,12 +12,16 @@ from ocpar.examples.formation_point_masses import make as paper_example
 from ocpar.formation import Circle, FormationOptions, solve_formation
 from ocpar.formation.hierarchical import OuterObjective
 from ocpar.formation.potential import (
+    EXPANSION_RATIO,
+    circle_coupling,
     coupling,
     coupling_expr,
     coupling_jacobian,
     equidistance_error,
     respace,
+    within_expansion,
 )
+from ocpar.formation.solve import DIRECT_COUPLING_MAX_AGENTS, coupling_residual
 
 
 def test_outer_gradient_from_sensitivities_matches_finite_differences():
@@ -91,6 +95,54 @@ def test_coupling_vanishes_exactly_at_equidistant_angles():
     assert np.linalg.matrix_rank(np.asarray(dc(equidistant))) == 59
     assert equidistance_error(equidistant) < 1e-13
     assert equidistance_error(perturbed) == pytest.approx(1e-3, rel=1e-6)
+
+
+def long_double_coupling(phi: np.ndarray) -> np.ndarray:
+    """c(φ) on a circle by the direct sum in long double: −(1/2n³) Σ_{j≠k} (w + w³),
+    w = cot((φ_k − φ_j)/2) (n − 1,)."""
+    angles = np.asarray(phi, np.longdouble)
+    n = len(angles)
+    w = 1 / np.tan((angles[:, None] - angles[None, :] + np.eye(n)) / 2)
+    np.fill_diagonal(w, 0)
+    return np.asarray(-(w + w**3).sum(axis=1) / (2 * np.longdouble(n) ** 3), float)[:-1]
+
+
+@pytest.mark.parametrize("n, spread", [(500, 0.0), (501, 1e-12), (800, 1e-6),
+                                       (1500, 0.4 * EXPANSION_RATIO)])
+def test_circle_coupling_matches_the_direct_sum(n, spread):
+    """Near-equidistant angles in any order, on any branch, on circles of any radius and
+    centre: the O(n log n) expansion agrees with the direct sum (within its rounding) and
+    with the direct sum in long double (closer still)."""
+    rng = np.random.default_rng(n)
+    phi = (rng.uniform(0, 7) + 2 * np.pi * rng.permutation(n) / n
+           + spread * np.pi / n * rng.uniform(-1, 1, n) + 2 * np.pi * rng.integers(-2, 3, n))
+    assert within_expansion(phi)
+    fast = circle_coupling(phi)
+    reference = long_double_coupling(phi)
+    direct = coupling(phi, Circle(radius=3.0, center=np.array([1.0, -2.0])))
+    scale = 1e-17 * n   # the direct sum's rounding: ~1e-15 at 500 agents
+    np.testing.assert_allclose(direct, reference, rtol=0, atol=scale * 10)
+    np.testing.assert_allclose(fast, reference, rtol=0, atol=scale)
+
+
+def test_circle_coupling_refuses_angles_far_from_equidistant():
+    phi = 2 * np.pi * np.arange(200) / 200
+    phi[7] += 2 * EXPANSION_RATIO * np.pi / 200
+    assert not within_expansion(phi)
+    with pytest.raises(ValueError, match="from equidistant"):
+        circle_coupling(phi)
+
+
+def test_coupling_residual_above_the_direct_limit_uses_the_expansion():
+    """Above the direct sum's limit on a circle: the expansion near equidistant angles, the
+    direct sum (up to its own limit) elsewhere, the same value within rounding."""
+    n = DIRECT_COUPLING_MAX_AGENTS + 1
+    problem = paper_example(agents=n)
+    phi = respace(problem.initial_phi())
+    assert coupling_residual(problem, phi) == np.max(np.abs(circle_coupling(phi)))
+    assert coupling_residual(problem, phi) < 1e-12
+    far = phi + 0.1 * np.pi / n * np.sin(np.arange(n))
+    assert coupling_residual(problem, far) == np.max(np.abs(coupling(far, problem.curve)))
 
 
 def test_initial_guess_places_agents_sorted_by_x_counter_clockwise():

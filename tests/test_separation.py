@@ -96,7 +96,7 @@ def test_close_pairs_are_exactly_the_pairs_within_the_radius(seed):
 
 def test_crossing_bundles_match_all_pairs():
     """Two dense bundles (spacing 0.1) pass through each other in opposite directions, offset
-    by 0.05: crowded grid cells that only time slices in each bundle's own frame resolve."""
+    by 0.05: pairs of boxes that overlap in space all the time, told apart by their motion."""
     rng = np.random.default_rng(7)
     grid = 0.1 * np.stack(np.meshgrid(np.arange(20), np.arange(15)), -1).reshape(-1, 2)
     t = np.linspace(-1, 1, 5)[:, None]
@@ -109,6 +109,49 @@ def test_crossing_bundles_match_all_pairs():
         np.testing.assert_array_equal(close_pairs(positions, radius), pairs[minima <= radius])
     found = closest_approach(positions, 1.0)
     assert found.distance == minima.min() and found.agents == tuple(pairs[np.argmin(minima)])
+
+
+def all_pairs(positions: np.ndarray, duration: float) -> tuple[float, tuple[int, int], float]:
+    """The exact all-pairs minimum with the contract's ties (first pair in (i, j) order, then
+    the earliest interval): distance, pair, time."""
+    pairs = np.array(list(itertools.combinations(range(len(positions)), 2)))
+    distance, fraction = interval_closest(positions, pairs)
+    row = int(np.argmin(distance.min(axis=1)))
+    k = int(np.argmin(distance[row]))
+    when = float(k + fraction[row, k]) * duration / (positions.shape[1] - 1)
+    return float(distance[row, k]), (int(pairs[row, 0]), int(pairs[row, 1])), when
+
+
+def bundles(rng: np.random.Generator, n: int, intervals: int, dim: int) -> np.ndarray:
+    """Paths in four bundles, each agent its bundle's random walk plus a fixed offset and a
+    jitter of 1e-9 … 1e-3; a fan of agents that all pass near one point (a focus: paths that
+    cross their neighbours' mid-interval); and exact repeats of some agents (ties at 0)."""
+    centre = rng.normal(0, 5, (4, intervals + 1, dim)).cumsum(axis=1)
+    size = 10.0 ** rng.uniform(-9, -3, (n, 1, 1))
+    positions = (centre[rng.integers(0, 4, n)] + rng.normal(0, 1, (n, 1, dim)) * size
+                 + rng.standard_normal((n, intervals + 1, dim)) * size * 1e-3)
+    fan = n // 4
+    t = np.linspace(0, 1, intervals + 1)[None, :, None]
+    spread = rng.uniform(-1, 1, (fan, 1, dim))
+    positions[:fan] = spread * (1 - 2 * t) + 1e-7 * rng.standard_normal((fan, 1, dim))
+    if rng.random() < 0.5:
+        positions[-5:] = positions[rng.integers(0, n - 5, 5)]
+    return positions
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_bundled_and_coincident_paths_match_all_pairs(seed):
+    """Near-coincident bundles, a focus and repeated agents (where a bound from node
+    neighbours is far above the closest approach, and many pairs tie): the closest approach
+    (distance, pair, time, ties) and the close pairs are the all-pairs exact ones."""
+    rng = np.random.default_rng(100 + seed)
+    positions = bundles(rng, 240, 7, 1 + seed % 3)
+    found = closest_approach(positions, 2.0)
+    assert (found.distance, found.agents, found.time) == all_pairs(positions, 2.0)
+    pairs = np.array(list(itertools.combinations(range(len(positions)), 2)))
+    minima = interval_closest(positions, pairs)[0].min(axis=1)
+    for radius in (0.0, 1e-8, 1e-5, 1e-2):
+        np.testing.assert_array_equal(close_pairs(positions, radius), pairs[minima <= radius])
 
 
 def test_ten_thousand_agents_with_a_known_closest_pair():

@@ -8,17 +8,17 @@ relative position of two agents, r(s) = d_k + s (d_k+1 − d_k) with s = (t − 
 linear in t, so the minimum of |r| on the interval is exact: the clamped minimiser of a
 quadratic, s* = clip(−d_k·e / e·e, 0, 1) with e = d_k+1 − d_k (:func:`interval_closest`).
 
-Which pairs to test, without testing all pairs (:func:`close_pairs`): each interval, seen in
-the frame of the agents' median velocity, is a task; the boxes each agent sweeps over it,
-grown by half the radius, go into a uniform grid (a spatial hash); pairs whose boxes overlap
-in a cell shared by few agents get the exact test. A crowded cell (agents travelling far
-compared with their spacing, or a bundle of paths) becomes two tasks: the two halves of the
-time slice, in the frame of the mean velocity of its agents, whose boxes are then smaller
-(frames and slices change no distance, so no pair is missed). The cost grows about linearly
-with the number of agents n for spread-out paths; a bundle that converges (many paths passing
-near one point at about the same time) costs more. :func:`closest_approach` bounds the
-minimum by an actual pair distance (neighbours in order along the first coordinate, at every
-node) and tests the pairs within that bound: its result equals the all-pairs minimum.
+Which pairs to test, without testing all pairs (:func:`close_pairs`): each interval, the agents
+are sorted by the Z-order key of their midpoints into an implicit binary tree of boxes that
+bound their positions at the interval's start and end; node pairs are refined from the root
+down, and a pair of boxes is dropped where the box of their relative positions, which moves
+linearly over the interval, stays outside the radius (:func:`_may_meet`, exact for the L∞
+distance of boxes); the agent pairs of the leaf pairs left get the exact test. Agents that
+travel together, however far, stay in small boxes relative to each other, and agents that
+cross are dropped unless they pass close at about the same time, so the cost is about
+n log n per interval unless many pairs really come within the radius. :func:`closest_approach`
+bounds the minimum by an actual pair distance (neighbours in order along the first coordinate,
+at every node) and tests the pairs within that bound: its result equals the all-pairs minimum.
 
 Positions are the agents' translational coordinates, shape (n, N+1, dim), in the model's
 length unit (for a formation: :meth:`ocpar.formation.FormationProblem.positions`).
@@ -31,14 +31,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-#: Grid cells are this many times a task's mean box (or a quarter of its largest box) wide.
-CELL = 2.0
-#: A grid cell shared by more agents than this is split in time (see :func:`_within`)...
-CROWD = 16
-#: ... at most this many times (then all pairs of a crowded cell are tested).
-MAX_DEPTH = 16
-#: Most agents in one batch of tasks, and most pairs in one batch of exact tests.
-BUDGET = 2_000_000
+#: Agents per leaf of the tree over one interval's segments (see :func:`_interval_within`).
+LEAF = 2
+#: Bits per coordinate of the Z-order key that sorts agents into the tree (at most 62/dim).
+KEY_BITS = 16
 #: Pairs per chunk of the exact test (bounds its temporary arrays to a few hundred MB).
 CHUNK = 200_000
 
@@ -100,130 +96,146 @@ def interval_closest(positions: np.ndarray, pairs: np.ndarray) -> tuple[np.ndarr
     return distance, fraction
 
 
-def _run_entries(runs: np.ndarray, sizes: np.ndarray) -> np.ndarray:
-    """Indices of the entries of runs of sorted entries starting at ``runs`` with ``sizes``
-    entries each, run after run."""
-    return np.repeat(runs, sizes) + np.arange(sizes.sum()) - np.repeat(np.cumsum(sizes) - sizes,
-                                                                       sizes)
+def _zorder(points: np.ndarray) -> np.ndarray:
+    """Z-order (Morton) keys (n,) of ``points`` (n, dim): each coordinate scaled to
+    :data:`KEY_BITS` bits (at most 62/dim) over the points' bounding box, bits interleaved."""
+    n, dim = points.shape
+    bits = max(1, min(KEY_BITS, 62 // dim))
+    low, span = points.min(axis=0), np.ptp(points, axis=0)
+    scale = np.divide(2.0**bits - 1, span, out=np.zeros(dim), where=span > 0)
+    grid = ((points - low) * scale).astype(np.int64)
+    key = np.zeros(n, np.int64)
+    for bit in range(bits - 1, -1, -1):
+        for d in range(dim):
+            key = (key << 1) | ((grid[:, d] >> bit) & 1)
+    return key
 
 
-def _pairs_in_runs(runs: np.ndarray, sizes: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """All pairs (left, right), left < right, of entries within each run (see
-    :func:`_run_entries`)."""
-    index = _run_entries(runs, sizes)
-    partners = np.repeat(runs + sizes, sizes) - index - 1
-    left = np.repeat(index, partners)
-    return left, left + 1 + _run_entries(np.zeros_like(partners), partners)
+def _tree_levels(x: np.ndarray) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
+    """The implicit binary tree over the rows of ``x`` (n, m) in their order, root first: per
+    level the nodes' boxes lo, hi (nodes, m) and row counts (nodes,). Leaf j holds rows
+    j·LEAF … j·LEAF + count − 1; node j's children are nodes 2j and 2j + 1 of the next level
+    (a level of odd length gets an empty last node: box lo = +inf, hi = −inf, count 0)."""
+    starts = np.arange(0, len(x), LEAF)
+    lo, hi = np.minimum.reduceat(x, starts), np.maximum.reduceat(x, starts)
+    count = np.diff(np.r_[starts, len(x)])
+    levels = []
+    while True:
+        if len(count) > 1 and len(count) % 2:
+            lo = np.vstack([lo, np.full((1, x.shape[1]), np.inf)])
+            hi = np.vstack([hi, np.full((1, x.shape[1]), -np.inf)])
+            count = np.r_[count, 0]
+        levels.append((lo, hi, count))
+        if len(count) == 1:
+            return levels[::-1]
+        lo, hi = np.minimum(lo[::2], lo[1::2]), np.maximum(hi[::2], hi[1::2])
+        count = count[::2] + count[1::2]
 
 
-def _batches(weights: np.ndarray, limit: int) -> list[np.ndarray]:
-    """Consecutive index ranges of ``weights`` (≥ 0) whose sums stay within ``limit`` (a
-    single heavier item makes a batch of its own)."""
-    batches, first = [], 0
-    total = np.cumsum(weights)
-    while first < len(weights):
-        base = total[first - 1] if first else 0
-        last = max(first + 1, int(np.searchsorted(total, base + limit, side="right")))
-        batches.append(np.arange(first, last))
-        first = last
-    return batches
+def _children(a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The child node pairs of node pairs (a, b), a ≤ b: (a, a) has three, (2a, 2a),
+    (2a, 2a + 1) and (2a + 1, 2a + 1); a < b four. Children keep a ≤ b."""
+    other = a != b
+    return (np.concatenate([2 * a, 2 * a, 2 * a + 1, 2 * a[other] + 1]),
+            np.concatenate([2 * b, 2 * b + 1, 2 * b + 1, 2 * b[other]]))
+
+
+def _box_terms(lo: np.ndarray, hi: np.ndarray, reach: float) -> tuple[np.ndarray, np.ndarray]:
+    """Per node, the terms (nodes, 2, 2 dim) of :func:`_may_meet`'s affine functions at the
+    interval's start and end: of the first node of a pair [lo − reach, −hi − reach], of the
+    second [−hi, lo]."""
+    dim = lo.shape[1] // 2
+    first = np.empty((len(lo), 2, 2 * dim))
+    second = np.empty_like(first)
+    for end in (0, 1):
+        at = slice(end * dim, (end + 1) * dim)
+        first[:, end, :dim], first[:, end, dim:] = lo[:, at] - reach, -hi[:, at] - reach
+        second[:, end, :dim], second[:, end, dim:] = -hi[:, at], lo[:, at]
+    return first, second
+
+
+def _may_meet(first: np.ndarray, second: np.ndarray, a: np.ndarray, b: np.ndarray
+              ) -> np.ndarray:
+    """Whether node boxes a and b (each index (m,)) may come within the ``reach`` of
+    :func:`_box_terms` (which gave ``first``, ``second``) of each other at some s ∈ [0, 1] of
+    the interval (m,), a necessary condition for any of their pairs.
+
+    A box (lo, hi) bounds its agents' positions at the interval's start and end. The pair's
+    relative position at s lies in the box whose bounds interpolate linearly between those of
+    the boxes' differences at s = 0 and s = 1, lo_a − hi_b … hi_a − lo_b: per axis it is
+    within ``reach`` of 0 where two affine functions of s are ≤ 0, lo_a − hi_b − reach and
+    lo_b − hi_a − reach. Each holds on a sub-interval of [0, 1] (before or after the s where
+    it crosses 0): the pair may meet only if all of them overlap."""
+    g = first[a] + second[b]
+    g0, g1 = g[:, 0], g[:, 1]                     # at s = 0 and s = 1, (m, 2 dim)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        cross = g0 / (g0 - g1)
+    start = np.where(g0 > 0, cross, 0.0)
+    end = np.where(g1 > 0, cross, 1.0)
+    for column in range(1, g0.shape[1]):   # a loop over the few columns beats .max(axis=1)
+        np.maximum(start[:, 0], start[:, column], out=start[:, 0])
+        np.minimum(end[:, 0], end[:, column], out=end[:, 0])
+    start, end = start[:, 0], end[:, 0]
+    # a function > 0 at both ends crosses 0 outside [0, 1] (or never: ±inf, or start > 1)
+    return (start <= end) & (start <= 1.0) & (end >= 0.0)
+
+
+def _leaf_pairs(a: np.ndarray, b: np.ndarray, count: np.ndarray
+                ) -> tuple[np.ndarray, np.ndarray]:
+    """The row pairs (i, j) of leaf pairs (a, b), a ≤ b (within a leaf i < j)."""
+    rows = []
+    for p in range(LEAF):
+        for q in range(LEAF):
+            keep = (p < count[a]) & (q < count[b]) & ((a < b) | (p < q))
+            rows.append((a[keep] * LEAF + p, b[keep] * LEAF + q))
+    return (np.concatenate([i for i, _ in rows]), np.concatenate([j for _, j in rows]))
+
+
+def _interval_within(x: np.ndarray, reach: float) -> tuple[np.ndarray, np.ndarray]:
+    """Agent pairs (i, j) (each (m,), unordered) whose segments come within ``reach`` of each
+    other on one interval by the exact test: ``x`` (n, 2 dim) holds each agent's position at
+    the interval's start and at its end.
+
+    The agents are sorted by the Z-order key of their midpoints into an implicit binary tree
+    of boxes (:func:`_tree_levels`); node pairs are refined from the root down, level by
+    level, keeping those whose boxes may meet (:func:`_may_meet`); the agent pairs of the
+    surviving leaf pairs get the exact test. Agents that travel together, however far, stay
+    in small boxes relative to each other, so the work is about n log n for paths that do not
+    crowd within ``reach``."""
+    dim = x.shape[1] // 2
+    order = np.argsort(_zorder(0.5 * (x[:, :dim] + x[:, dim:])), kind="stable")
+    x = x[order]
+    a = b = np.zeros(1, np.intp)
+    levels = _tree_levels(x)
+    for depth, (lo, hi, count) in enumerate(levels):
+        if depth:
+            a, b = _children(a, b)
+            filled = (count[a] > 0) & (count[b] > 0)
+            a, b = a[filled], b[filled]
+        meet = _may_meet(*_box_terms(lo, hi, reach), a, b)
+        a, b = a[meet], b[meet]
+    found_i, found_j = [], []
+    for chunk in range(0, len(a), CHUNK):
+        i, j = _leaf_pairs(a[chunk:chunk + CHUNK], b[chunk:chunk + CHUNK], levels[-1][2])
+        relative = x[i] - x[j]
+        distance, _ = segment_closest(relative[:, :dim], relative[:, dim:])
+        close = distance <= reach
+        found_i.append(order[i[close]])
+        found_j.append(order[j[close]])
+    return np.concatenate(found_i), np.concatenate(found_j)
 
 
 def _within(positions: np.ndarray, radius: float) -> np.ndarray:
     """Pairs (m, 2), i < j, sorted, that come within ``radius`` on some interval by the exact
     test on that interval, with a slack of 1e-9 radius (a superset of :func:`close_pairs`
-    that rounding cannot shrink), found without testing all pairs.
-
-    A task is a time slice [s0, s1] of one interval seen in a frame moving with velocity u,
-    and the agents that take part; its agents' boxes swept over the slice (grown by half the
-    radius) go into a uniform grid. Pairs that share a cell with few others and whose boxes
-    overlap get the exact test; a crowded cell becomes two tasks, the two halves of its slice
-    in the frame of its agents' mean velocity (agents moving together then sweep small
-    boxes). Frames and slices do not change which pairs come close, so nothing is missed.
-    Tasks wait in a queue in batches of at most BUDGET agents; pairs are tested in batches of
-    at most BUDGET.
-    """
-    n, nodes, dim = positions.shape
-    intervals = nodes - 1
-    start, step = positions[:, :-1], np.diff(positions, axis=1)     # (n, N, dim)
-    scale = 1e-12 * (1.0 + np.abs(positions).max())
-    grow = 0.5 * radius * (1 + 1e-9) + scale
+    that rounding cannot shrink), found without testing all pairs: interval by interval
+    (:func:`_interval_within`)."""
+    n, nodes, _ = positions.shape
+    reach = radius * (1 + 1e-9) + 1e-12 * (1.0 + np.abs(positions).max())
     found = [np.empty(0, np.int64)]
-    # first tasks: each interval, all agents, the frame of the median velocity
-    queue = [(np.array([k]), np.array([[0.0, 1.0]]), np.median(step[:, k], axis=0)[None],
-              np.zeros(n, np.intp), np.arange(n), 0) for k in range(intervals)]
-    while queue:
-        task_k, task_s, task_u, member_task, member, depth = queue.pop()
-        k = task_k[member_task]
-        a, v = start[member, k], step[member, k] - task_u[member_task]
-        lo = a + task_s[member_task, :1] * v
-        hi = a + task_s[member_task, 1:] * v
-        lo, hi = np.minimum(lo, hi) - grow, np.maximum(lo, hi) + grow
-        extent = (hi - lo).max(axis=1)
-        bounds = np.r_[0, np.flatnonzero(np.diff(member_task)) + 1]   # members are by task
-        count = np.diff(np.r_[bounds, len(member)])
-        cell = np.maximum(CELL * np.add.reduceat(extent, bounds) / count,
-                          0.25 * np.maximum.reduceat(extent, bounds))
-        origin = np.repeat(np.minimum.reduceat(lo, bounds), count, axis=0)
-        while True:   # cells so coarse that (task, cell) fits one int64 key
-            scaled_lo, scaled_hi = ((x - origin) / np.repeat(cell, count)[:, None]
-                                    for x in (lo, hi))
-            if len(cell) * (float(scaled_hi.max()) + 2) ** dim < 2.0 ** 62:
-                break
-            cell = 2 * cell
-        first = np.floor(scaled_lo).astype(np.int64)
-        cells = np.floor(scaled_hi).astype(np.int64) - first + 1
-        # one entry per (member, cell its box touches), keyed by (task, cell)
-        per_member = cells.prod(axis=1)
-        entry = np.repeat(np.arange(len(member)), per_member)
-        local = _run_entries(np.zeros_like(per_member), per_member)
-        span = int((first + cells).max()) + 1
-        key = member_task[entry].astype(np.int64)
-        coord = np.empty((entry.size, dim), np.int64)
-        for d in range(dim):
-            c = cells[entry, d]
-            coord[:, d] = first[entry, d] + local % c
-            key = key * span + coord[:, d]
-            local //= c
-        order = np.argsort(key, kind="stable")
-        key, entry, coord = key[order], entry[order], coord[order]
-        runs = np.flatnonzero(np.r_[True, key[1:] != key[:-1]])
-        sizes = np.diff(np.r_[runs, key.size])
-        # split a crowded cell while its boxes are mostly motion (halving the slice shrinks
-        # them) and the depth allows
-        motion = np.add.reduceat(extent[entry] - 2 * grow, runs) / sizes
-        split = (sizes > CROWD) & (motion > 2 * grow) & (depth < MAX_DEPTH)
-        final = np.flatnonzero((sizes > 1) & ~split)
-        for batch in _batches(sizes[final] * (sizes[final] - 1) // 2, BUDGET):
-            left, right = _pairs_in_runs(runs[final[batch]], sizes[final[batch]])
-            ma, mb = entry[left], entry[right]
-            # boxes that overlap, counted once: in the cell of their overlap's lower corner
-            keep = np.all((lo[ma] <= hi[mb]) & (lo[mb] <= hi[ma]), axis=1)
-            keep &= np.all(np.floor(np.maximum(scaled_lo[ma], scaled_lo[mb])) == coord[left],
-                           axis=1)
-            ma, mb = ma[keep], mb[keep]
-            i, j = np.minimum(member[ma], member[mb]), np.maximum(member[ma], member[mb])
-            at = k[ma]
-            distance, _ = segment_closest(positions[i, at] - positions[j, at],
-                                           positions[i, at + 1] - positions[j, at + 1])
-            close = distance <= radius * (1 + 1e-9) + scale
-            found.append(i[close].astype(np.int64) * n + j[close])
-        # each split cell: two tasks (halves of its slice), frame of its members' mean velocity
-        split = np.flatnonzero(split)
-        for batch in _batches(2 * sizes[split], BUDGET):
-            runs_b, sizes_b = runs[split[batch]], sizes[split[batch]]
-            parent = member_task[entry[runs_b]]
-            agents = member[entry[_run_entries(runs_b, sizes_b)]]
-            group = np.repeat(np.arange(len(runs_b)), sizes_b)
-            velocity = step[agents, task_k[parent][group]]
-            mean_u = np.stack([np.bincount(group, velocity[:, d]) for d in range(dim)], 1) \
-                / sizes_b[:, None]
-            middle = task_s[parent].mean(axis=1)
-            queue.append((np.r_[task_k[parent], task_k[parent]],
-                          np.r_[np.column_stack([task_s[parent, 0], middle]),
-                                np.column_stack([middle, task_s[parent, 1]])],
-                          np.r_[mean_u, mean_u], np.r_[group, group + len(runs_b)],
-                          np.r_[agents, agents], depth + 1))
+    for k in range(nodes - 1):
+        i, j = _interval_within(positions[:, k:k + 2].reshape(n, -1), reach)
+        found.append(np.minimum(i, j).astype(np.int64) * n + np.maximum(i, j))
     return np.column_stack(np.divmod(np.unique(np.concatenate(found)), n)).astype(np.intp)
 
 

@@ -31,6 +31,7 @@ from ocpar.formation.monolithic import solve_monolithic
 from ocpar.formation.obstacle_rounds import avoid_obstacles
 from ocpar.formation.obstacles import Clearance
 from ocpar.formation.ordering import ORDERINGS, optimal_ordering
+from ocpar.formation.potential import circle_coupling, within_expansion
 from ocpar.formation.problem import FormationProblem
 from ocpar.formation.result import FormationResult
 from ocpar.formation.separation import check_separation_feasible
@@ -207,22 +208,34 @@ def check_applicable(problem: FormationProblem, options: FormationOptions) -> No
                                   options.min_separation)
 
 
-#: Above this many agents on a circle the result's coupling residual is not evaluated (it
-#: costs O(n²): 3 s at 10,000 agents, ~5 min at 100,000); the equidistance error, which is
-#: zero exactly where c(φ) is, is reported instead.
+#: Up to this many agents the result's coupling residual is the direct O(n²) sum (~5 ms at
+#: 1000 agents); above it, on a circle, the O(n log n) expansion about equidistant angles
+#: (:func:`~ocpar.formation.potential.circle_coupling`: ~0.03 s at 100,000 agents) where
+#: it applies...
+DIRECT_COUPLING_MAX_AGENTS = 1_000
+#: ... and where it does not (angles far from equidistant ones), the direct sum up to this
+#: many agents on a circle and NaN above (3 s at 10,000 agents, ~5 min at 100,000); the
+#: equidistance error, zero exactly where c(φ) is, is reported too.
 COUPLING_CHECK_MAX_AGENTS = 20_000
 
 
 def coupling_residual(problem: FormationProblem, phi: np.ndarray) -> float:
     """max_k |c_k(φ)|: the scaled coupling as the outer problem imposes it
-    (:meth:`~ocpar.formation.coupling.Coupling.residual`); onto slots, how many agents share a
+    (:meth:`~ocpar.formation.coupling.Coupling.residual`; the potential on a circle with
+    more than :data:`DIRECT_COUPLING_MAX_AGENTS` agents near equidistant angles
+    :func:`~ocpar.formation.potential.circle_coupling`); onto slots, how many agents share a
     slot with another (0: the assignment's coupling holds); NaN if φ is not finite, or on a
-    circle with more than :data:`COUPLING_CHECK_MAX_AGENTS` agents."""
+    circle with more than :data:`COUPLING_CHECK_MAX_AGENTS` agents far from equidistant."""
     if isinstance(problem.curve, Slots):   # the coupling: no slot taken twice
         return float(phi.size - np.unique(phi).size)
-    if not np.all(np.isfinite(phi)) or (problem.on_circle
-                                        and phi.size > COUPLING_CHECK_MAX_AGENTS):
+    if not np.all(np.isfinite(phi)):
         return float("nan")
+    if problem.on_circle and problem.coupling == PotentialCoupling() \
+            and phi.size > DIRECT_COUPLING_MAX_AGENTS:
+        if within_expansion(phi):
+            return float(np.max(np.abs(circle_coupling(phi))))
+        if phi.size > COUPLING_CHECK_MAX_AGENTS:
+            return float("nan")
     return float(np.max(np.abs(problem.coupling.residual(phi, problem.curve))))
 
 
