@@ -40,6 +40,7 @@ channel), ``Client.run`` 15–20×, and a Dask actor (own thread, reached direct
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import copy
 import gc
 import os
@@ -374,6 +375,10 @@ class DaskBackend(Backend):
                            f"{self.superstep_timeout_s:g} s (lost or hung)")
 
     def close(self) -> None:
+        if getattr(self, "client", None) is not None and getattr(self, "_resident_sets", None):
+            # workers gone take their states with them
+            with contextlib.suppress(OSError, EOFError, BackendError):
+                self._close_resident_sets()
         for address in list(getattr(self, "_channels", {})):
             self._drop_channel(address)
         client, self.client = getattr(self, "client", None), None

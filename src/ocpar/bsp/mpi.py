@@ -174,6 +174,7 @@ class MpiBackend(Backend):
 
     def close(self) -> None:
         if self.is_coordinator and not self._closed:
+            self._close_resident_sets()
             self._closed = True
             for rank in range(1, self.workers):
                 self.comm.send(None, dest=rank, tag=TASKS)
