@@ -58,6 +58,7 @@ def test_dask_workers_give_the_serial_run_bit_for_bit(serial_run, workers):
     with open_backend("dask", workers=workers) as backend:
         result = solve_formation(paper_example(AGENTS), backend)
     assert_bitwise(result, serial_run)
+    assert all(t.sent_bytes > 0 and t.received_bytes > 0 for t in result.trace)
 
 
 def test_mpirun_gives_the_serial_run_bit_for_bit(serial_run, tmp_path):
@@ -70,6 +71,10 @@ def test_mpirun_gives_the_serial_run_bit_for_bit(serial_run, tmp_path):
     assert data["phi"] == serial_run.phi.tolist()
     assert data["agent_costs"] == serial_run.agent_costs.tolist()
     assert data["supersteps"] == serial_run.supersteps
+    # the transport counts the bytes: every superstep's few, the last's (the paths) many
+    *solves, gather = data["trace"]
+    assert all(0 < t["received_bytes"] < gather["received_bytes"] / 4 for t in solves)
+    assert all(t["sent_bytes"] > gather["sent_bytes"] for t in solves)
 
 
 def test_a_resumed_run_rebuilds_the_workers_states_from_the_history(serial_run, tmp_path):

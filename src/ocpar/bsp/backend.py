@@ -188,6 +188,8 @@ class Backend(ABC):
                 task_wall_s=walls,
                 task_cpu_s=cpus,
                 task_worker=workers.tolist(),
+                worker_sent_bytes=[c.sent_bytes for c in chunks],
+                worker_received_bytes=[c.received_bytes for c in chunks],
             )
         )
         self._last_kernel = name

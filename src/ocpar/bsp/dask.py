@@ -42,6 +42,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import copy
+import dataclasses
 import gc
 import os
 import time
@@ -321,8 +322,10 @@ class DaskBackend(Backend):
                 if w in failed:
                     continue
                 try:
-                    replies[w] = self._channels[targets[w]].receive(
-                        max(deadline - time.monotonic(), 0.0))
+                    channel = self._channels[targets[w]]
+                    reply = channel.receive(max(deadline - time.monotonic(), 0.0))
+                    replies[w] = dataclasses.replace(reply, sent_bytes=channel.sent_bytes,
+                                                     received_bytes=channel.received_bytes)
                 except TimeoutError:
                     for address in list(self._channels):  # replies may still come: out of step
                         self._drop_channel(address)

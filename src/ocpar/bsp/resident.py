@@ -226,12 +226,13 @@ class ResidentSet:
             items[w % self.backend.workers].append(chunk(w, groups[w], missing))
         second = self.backend._run_chunks(RUNNER, items) if lacking else []
         for c, slots in zip(second, items if lacking else [], strict=True):
-            for item, reply in zip(slots, _replies(c), strict=True):
+            for k, (item, reply) in enumerate(zip(slots, _replies(c), strict=True)):
                 if reply.results is None:
                     raise RuntimeError(f"resident set {self.key}: slot {item.slot} still "
                                        "lacks states after its history was sent")
                 replies[item.slot] = [reply]
-                first[item.slot] = _added(first[item.slot], c)
+                if k == 0:  # the worker's second round counted once, with its first slot
+                    first[item.slot] = _added(first[item.slot], c)
         return [_per_agent(c, r, len(g))
                 for c, r, g in zip(first, replies, groups, strict=True)]
 
@@ -256,10 +257,12 @@ def _replies(chunk: ChunkResult) -> list[ResidentReply]:
 
 
 def _added(first: ChunkResult, second: ChunkResult) -> ChunkResult:
-    """``first`` with the busy and CPU time of ``second`` (its worker's second round)."""
+    """``first`` with the time and bytes of ``second`` (its worker's second round) added."""
     return ChunkResult(results=first.results, task_wall_s=[], task_cpu_s=[],
                        busy_s=first.busy_s + second.busy_s, cpu_s=first.cpu_s + second.cpu_s,
-                       peak_rss_mb=max(first.peak_rss_mb, second.peak_rss_mb))
+                       peak_rss_mb=max(first.peak_rss_mb, second.peak_rss_mb),
+                       sent_bytes=first.sent_bytes + second.sent_bytes,
+                       received_bytes=first.received_bytes + second.received_bytes)
 
 
 def _per_agent(chunk: ChunkResult, replies: list[ResidentReply], k: int) -> ChunkResult:
@@ -270,4 +273,5 @@ def _per_agent(chunk: ChunkResult, replies: list[ResidentReply], k: int) -> Chun
     share = max(k, 1)
     return ChunkResult(results=results, task_wall_s=[chunk.busy_s / share] * k,
                        task_cpu_s=[chunk.cpu_s / share] * k, busy_s=chunk.busy_s,
-                       cpu_s=chunk.cpu_s, peak_rss_mb=chunk.peak_rss_mb)
+                       cpu_s=chunk.cpu_s, peak_rss_mb=chunk.peak_rss_mb,
+                       sent_bytes=chunk.sent_bytes, received_bytes=chunk.received_bytes)
