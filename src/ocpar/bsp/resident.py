@@ -69,7 +69,7 @@ _BLOCKS: dict[tuple[str, int], _Block] = {}
 @dataclass(frozen=True)
 class ResidentChunk:
     """One worker's share of a resident superstep: ``what`` (:data:`STEP`, :data:`COLLECT` or
-    :data:`DROP`) for the agents ``agents`` ((k,) int64, ascending) of slot ``slot`` of the
+    :data:`DROP`) for the agents ``agents`` (a range: their ids) of slot ``slot`` of the
     set ``key`` (run-unique), whose resident kernel is ``kernel``; each agent has had
     ``version`` tasks before. ``tasks``: the k tasks of a step. ``history``: where the
     worker lacked agents, each of their earlier tasks (``version`` Columns, one row per
@@ -79,7 +79,7 @@ class ResidentChunk:
     key: str
     slot: int
     kernel: str
-    agents: np.ndarray
+    agents: range
     version: int
     tasks: Columns | None = None
     rebuild: np.ndarray | None = None
@@ -106,19 +106,20 @@ def run_resident(chunk: ResidentChunk) -> ResidentReply:
     if not len(chunk.agents):
         return ResidentReply(results=[])
     kernel = resolve_kernel(chunk.kernel)
-    states, missing = _lookup(_BLOCKS.get(slot), chunk.agents, chunk.version)
+    agents = np.arange(chunk.agents.start, chunk.agents.stop, dtype=np.int64)
+    states, missing = _lookup(_BLOCKS.get(slot), agents, chunk.version)
     if len(missing):
         if chunk.history is None or chunk.rebuild is None:
             return ResidentReply(results=None, missing=missing)
-        states = _rebuilt(kernel, chunk, states)
+        states = _rebuilt(kernel, agents, chunk, states)
     if chunk.what == COLLECT:
         return ResidentReply(results=states)
     assert chunk.tasks is not None
     results, new_states = kernel(chunk.tasks, states)
-    if len(new_states) != len(chunk.agents):
+    if len(new_states) != len(agents):
         raise ValueError(f"resident kernel {chunk.kernel} returned {len(new_states)} states "
-                         f"for {len(chunk.agents)} tasks")
-    _BLOCKS[slot] = _Block(agents=chunk.agents, version=chunk.version + 1, states=new_states)
+                         f"for {len(agents)} tasks")
+    _BLOCKS[slot] = _Block(agents=agents, version=chunk.version + 1, states=new_states)
     return ResidentReply(results=results)
 
 
@@ -143,18 +144,19 @@ def _lookup(block: _Block | None, agents: np.ndarray, version: int
     return block.states.take(np.searchsorted(block.agents, agents[held])), agents[~held]
 
 
-def _rebuilt(kernel: Any, chunk: ResidentChunk, held: Columns | None) -> Columns:
-    """The states of all of ``chunk.agents``: ``held`` (the rows of those the worker had,
-    in agent order) and the others replayed from ``chunk.history``."""
+def _rebuilt(kernel: Any, agents: np.ndarray, chunk: ResidentChunk, held: Columns | None
+             ) -> Columns:
+    """The states of all of ``agents`` (the chunk's): ``held`` (the rows of those the
+    worker had, in agent order) and the others replayed from ``chunk.history``."""
     assert chunk.history is not None and chunk.rebuild is not None
     states = None
     for tasks in chunk.history:
         _, states = kernel(tasks, states)
     assert states is not None
-    have = ~np.isin(chunk.agents, chunk.rebuild)
+    have = ~np.isin(agents, chunk.rebuild)
     if not have.any():
         return states
-    order = np.concatenate([chunk.agents[have], chunk.rebuild])
+    order = np.concatenate([agents[have], chunk.rebuild])
     return Columns.concat([held, states]).take(np.argsort(order, kind="stable"))  # type: ignore[list-item]
 
 
@@ -207,12 +209,11 @@ class ResidentSet:
         backend's chunks; the chunk results' ``results`` are per agent (a reply's results),
         their times are the rounds' sums (a second round if a worker lacked states)."""
         def chunk(w: int, group: range, rebuild: np.ndarray | None = None) -> ResidentChunk:
-            agents = np.arange(group.start, group.stop, dtype=np.int64)
             history = None
             if rebuild is not None:
                 history = tuple(t.take(rebuild) for t in self.history)
             return ResidentChunk(what=what, key=self.key, slot=w, kernel=self.kernel,
-                                 agents=agents, version=self.version,
+                                 agents=group, version=self.version,
                                  tasks=None if tasks is None else tasks.take(group),
                                  rebuild=rebuild, history=history)
 
@@ -242,7 +243,7 @@ class ResidentSet:
             return
         self.closed = True
         drop = ResidentChunk(what=DROP, key=self.key, slot=0, kernel=self.kernel,
-                             agents=np.zeros(0, np.int64), version=self.version)
+                             agents=range(0), version=self.version)
         self.backend._run_chunks(RUNNER, [[drop] for _ in range(self.backend.workers)])
 
     def _check_open(self) -> None:

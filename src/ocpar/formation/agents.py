@@ -2,14 +2,15 @@
 DMOC solution stays on the worker that computed it, and a superstep moves only what the outer
 step needs.
 
-Per agent and superstep the coordinator sends an :class:`AgentTask` (its DMOC shape, shared by
-a chunk's agents, and its boundary data: 4 nq numbers) and gets back an :class:`AgentOutcome`
-(J*, dJ*/dq_N, the end Hessian's position block, success, status, attempts: 1 + nq + d²
-numbers, d = the curve's dimension). The agent's :class:`~ocpar.ocp.DmocSolution` (paths,
-controls, multipliers) is its resident state: the next superstep's fallback start (the
+An agent's first task (an :class:`AgentTask`) carries its DMOC shape (shared by a chunk's
+agents) and its boundary data p = (q_0, q̇_0, q_N, q̇_N) (4 nq numbers); later tasks only the
+position part of q_N, z(φ_i) (d numbers, d = the curve's dimension), the rest of p being
+fixed. Back comes an :class:`AgentOutcome` (J*, dJ*/dq_N, the end Hessian's position block,
+success, status, attempts: 1 + nq + d² numbers and three small ones). The agent's
+:class:`AgentState` (its :class:`~ocpar.ocp.DmocSolution`: paths, controls, multipliers; and
+its boundary data) stays on its worker: the solution is the next solve's fallback start (the
 failure policy of :func:`~ocpar.ocp.solve_tasks`), gathered by the coordinator once, at the
-end. The solves are those of sending the previous solutions out as fallbacks each superstep,
-bit for bit.
+end. The solves are those of sending everything out and back each superstep, bit for bit.
 """
 
 from __future__ import annotations
@@ -18,9 +19,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ocpar.bsp.columns import SHARED, STACKED, Columns, to_columns
+from ocpar.bsp.columns import LISTED, SHARED, STACKED, Columns, to_columns
 from ocpar.bsp.kernel import run_chunk
-from ocpar.ocp import OcpTask, Shape
+from ocpar.formation.problem import FormationProblem
+from ocpar.ocp import DmocShape, DmocSolution, OcpTask, Shape
 
 #: The engine kernel the agents' solves go through (so that the kernel hook
 #: :data:`~ocpar.bsp.kernel.WRAPPER_VARIABLE` applies to them as to any superstep's).
@@ -29,13 +31,24 @@ INNER_KERNEL = "ocpar.ocp:solve_tasks"
 
 @dataclass(frozen=True)
 class AgentTask:
-    """One agent's inner solve in a superstep: its DMOC ``shape``, boundary data ``params``
-    p = (q_0, q̇_0, q_N, q̇_N) (4 nq,), and ``positions`` d, the number of leading
-    configuration entries whose end-Hessian block the outer step needs."""
+    """One agent's inner solve in a superstep: its DMOC ``shape``; on its first task its
+    boundary data ``params`` p = (q_0, q̇_0, q_N, q̇_N) (4 nq,) and ``end`` None, later
+    ``params`` None and ``end`` the position part of q_N (d,) (the first d entries of q_N:
+    the rest of p is kept from the first task); ``positions`` d, the number of leading
+    configuration entries (the curve's dimension)."""
 
     shape: Shape
-    params: np.ndarray
+    params: np.ndarray | None
+    end: np.ndarray | None
     positions: int
+
+
+@dataclass
+class AgentState(DmocSolution):
+    """What stays on an agent's worker: its latest solution and its boundary data ``params``
+    (4 nq,) of that solve."""
+
+    params: np.ndarray
 
 
 @dataclass
@@ -54,21 +67,26 @@ class AgentOutcome:
 
 def solve_agents(tasks: Columns, states: Columns | None) -> tuple[Columns, Columns]:
     """Resident kernel: the agents' solves from ``tasks`` (Columns of :class:`AgentTask`),
-    each falling back to its previous solution (``states``: Columns of
-    :class:`~ocpar.ocp.DmocSolution`; None on the first superstep: no fallback). Returns
-    their :class:`AgentOutcome` and their new solutions (the new states)."""
+    each falling back to its previous solution (``states``: Columns of :class:`AgentState`;
+    None on the first task: no fallback). Returns their :class:`AgentOutcome` and their new
+    :class:`AgentState` (the new states)."""
     k = len(tasks)
+    d = int(tasks.column("positions")[0])  # the curve's dimension: every agent's
     fallback: tuple[str, object] = (SHARED, None)
-    if states is not None:
+    if states is None:
+        params = np.asarray(tasks.column("params"), float)
+    else:
         q, u = np.asarray(states.column("q")), np.asarray(states.column("u"))
         fallback = (STACKED, np.hstack([q[:, 1:-1].reshape(k, -1), u.reshape(k, -1)]))
+        params = np.array(states.column("params"), float)
+        nq = params.shape[1] // 4
+        params[:, 2 * nq: 2 * nq + d] = tasks.column("end")
     inner = Columns(cls=OcpTask, length=k, fields={
-        "shape": tasks.fields["shape"], "params": tasks.fields["params"],
+        "shape": tasks.fields["shape"], "params": (STACKED, params),
         "warm_start": (SHARED, None), "multipliers": (SHARED, None), "fallback": fallback})
     solutions = to_columns(run_chunk(INNER_KERNEL, inner).results)
     assert isinstance(solutions, Columns)
-    d = int(tasks.column("positions")[0])  # the curve's dimension: every agent's
-    nq = np.asarray(solutions.column("q")).shape[2]
+    nq = params.shape[1] // 4
     gradient = np.asarray(solutions.column("cost_gradient"))[:, 2 * nq: 3 * nq]
     outcome = Columns(cls=AgentOutcome, length=k, fields={
         "cost": solutions.fields["cost"],
@@ -79,15 +97,25 @@ def solve_agents(tasks: Columns, states: Columns | None) -> tuple[Columns, Colum
         "status": solutions.fields["status"],
         "attempts": solutions.fields["attempts"],
     })
-    return outcome, solutions
+    states = Columns(cls=AgentState, length=k,
+                     fields=solutions.fields | {"params": (STACKED, params)})
+    return outcome, states
 
 
-def agent_tasks(shapes: tuple[str, object], params: np.ndarray, positions: int) -> Columns:
-    """Columns of :class:`AgentTask`: one per row of ``params`` (n, 4 nq), the ``shapes``
-    column as :meth:`~ocpar.formation.FormationProblem.task_columns` makes it (one shared
-    shape, or one per agent), ``positions`` d shared."""
-    return Columns(cls=AgentTask, length=len(params), fields={
-        "shape": shapes, "params": (STACKED, params), "positions": (SHARED, positions)})
+def agent_tasks(problem: FormationProblem, phi: np.ndarray, first: bool) -> Columns:
+    """Columns of :class:`AgentTask`, agent i ending at angle ``phi[i]`` (rad): the agents'
+    ``first`` tasks with their whole boundary data, else only the position part of q_N."""
+    shapes = problem.shape
+    shape_column = (SHARED, shapes) if isinstance(shapes, DmocShape) else (LISTED, list(shapes))
+    if first:
+        params = (STACKED, problem.boundary_params_rows(np.arange(problem.agents), phi))
+        end: tuple[str, object] = (SHARED, None)
+    else:
+        params, end = (SHARED, None), (STACKED, problem.final_positions(phi))
+    return Columns(cls=AgentTask, length=problem.agents, fields={
+        "shape": shape_column, "params": params, "end": end,
+        "positions": (SHARED, problem.curve.dim)})
 
 
-__all__ = ["INNER_KERNEL", "AgentOutcome", "AgentTask", "agent_tasks", "solve_agents"]
+__all__ = ["INNER_KERNEL", "AgentOutcome", "AgentState", "AgentTask", "agent_tasks",
+           "solve_agents"]

@@ -85,10 +85,8 @@ class OuterObjective:
         one asked for. Raises :class:`InnerSolveFailed` if a solve failed."""
         phi = np.asarray(phi, float)
         if self.last_phi is None or not np.array_equal(phi, self.last_phi):
-            problem, agents = self.problem, np.arange(self.problem.agents)
-            params = problem.boundary_params_rows(agents, phi)
-            shapes = problem.task_columns(agents, params).fields["shape"]
-            outcomes = self._agents.step(agent_tasks(shapes, params, problem.curve.dim))
+            first = self._agents.version == 0  # later, the agents keep their boundary data
+            outcomes = self._agents.step(agent_tasks(self.problem, phi, first))
             self.inner_solves += len(outcomes)
             self.retries += int(np.sum(np.asarray(outcomes.column("attempts")) - 1))
             failed = np.flatnonzero(~np.asarray(outcomes.column("success"), dtype=bool))
@@ -103,7 +101,8 @@ class OuterObjective:
         return self.last_outcomes  # type: ignore[return-value]
 
     def solutions(self, phi: np.ndarray) -> Columns:
-        """The inner solutions at angles φ (Columns of :class:`~ocpar.ocp.DmocSolution`:
+        """The inner solutions at angles φ (Columns of :class:`~ocpar.formation.agents.AgentState`,
+        a :class:`~ocpar.ocp.DmocSolution` with its boundary data:
         costs (n,), paths (n, N+1, nq), controls (n, N, nu), ...): :meth:`outcomes`, then
         one superstep that gathers the solutions from the workers (once per φ)."""
         self.outcomes(phi)
