@@ -38,8 +38,9 @@ At the largest size the BSP cost model (:mod:`ocpar.bsp.cost_model`) predicts P 
 fastest serial run (its per-task CPU times and serial part, both scaled by the ratio of
 agents: per-agent work and data do not depend on n) and its supersteps' bytes h (from the
 MPI run with the most ranks, or the baseline's traffic file; scaled likewise), with each
-parallel backend's constants σ(P, h) = a + b·log2 P + g·h fitted to every superstep measured
-on that backend (this design's runs: their traces count the bytes).
+parallel backend's constants σ(P, h) = a + b·log2 P + g·h fitted to the supersteps measured
+on that backend (this design's runs: their traces count the bytes; per superstep the median
+over the repetitions, each run's first superstep left out).
 
 Writes ``formation_bench.json`` and ``formation_bench.png`` (solve wall vs agents per
 configuration; predicted efficiency vs P) in ``--output``.
@@ -255,6 +256,23 @@ def median_result(output: Path, agents: int, config: Configuration, runs: list[d
                        / "result.json").read_text())
 
 
+def fit_samples(output: Path, agents: int, config: Configuration, runs: list[dict]
+                ) -> list[tuple[int, float, float]]:
+    """(P, bytes that crossed, overhead s) per superstep of ``config`` at ``agents``, each the
+    median over the repetitions, the first superstep left out (its one-time costs: imports,
+    solver builds; reported as ``first_overhead_ms``)."""
+    per_rep = []
+    for rep, r in enumerate(runs):
+        if "wall_s" in r:
+            result = json.loads((output / f"{agents}-{config.name.replace('/', '-')}-{rep}"
+                                 / "result.json").read_text())
+            per_rep.append(superstep_samples(result["trace"])[1:])
+    if not per_rep or len({len(s) for s in per_rep}) != 1:
+        return []
+    return [(steps[0][0], statistics.median(s[1] for s in steps),
+             statistics.median(s[2] for s in steps)) for steps in zip(*per_rep, strict=True)]
+
+
 def superstep_bytes(output: Path, agents: int, configs: list[Configuration], reps: dict,
                     variant: str, baseline_traffic: dict | None, design: str,
                     supersteps: int) -> list[float] | None:
@@ -304,8 +322,7 @@ def model(output: Path, agents: int, table: dict, configs: list[Configuration],
             for backend in ("mpi", "dask"):
                 samples = [sample for c in configs if c.backend == backend
                            and c.design == "this" and c.variant == base.variant
-                           for r in [median_result(output, agents, c, reps[c.name])]
-                           if r is not None for sample in superstep_samples(r["trace"])]
+                           for sample in fit_samples(output, agents, c, reps[c.name])]
                 if samples:
                     fitted[backend] = SyncCost.fit_supersteps(samples, backend == "mpi")
             out["backends"] = {b: vars(s) for b, s in fitted.items()}

@@ -26,7 +26,6 @@ from scipy.optimize import minimize, root_scalar
 
 from ocpar.bsp import Backend
 from ocpar.bsp.columns import Columns
-from ocpar.formation.agents import agent_tasks, solve_agents
 from ocpar.formation.potential import (
     coupling,
     coupling_jacobian,
@@ -36,6 +35,7 @@ from ocpar.formation.potential import (
 )
 from ocpar.formation.problem import FormationProblem
 from ocpar.formation.slots import Slots
+from ocpar.ocp.endpoint_agents import agent_tasks, solve_agents
 
 #: Second iterate of the offset search (rad): 1/60 of a slot for the paper's 60 agents.
 OFFSET_FIRST_STEP = 1.7e-3
@@ -56,9 +56,10 @@ class InnerSolveFailed(RuntimeError):
 class OuterObjective:
     """Σ_i Ĵ_i(φ_i) and its gradient, one superstep per new φ (cached for the last φ).
 
-    The agents are resident on the backend's workers (:mod:`ocpar.formation.agents`): a
-    superstep sends each agent's boundary data and gathers its
-    :class:`~ocpar.formation.agents.AgentOutcome` (J*, dJ*/dq_N, the end Hessian's position
+    The agents are resident on the backend's workers (:mod:`ocpar.ocp.endpoint_agents`): a
+    superstep sends each agent's boundary data (on its first superstep; later only the
+    position part of its end configuration, z(φ_i)) and gathers its
+    :class:`~ocpar.ocp.endpoint_agents.AgentOutcome` (J*, dJ*/dq_N, the end Hessian's position
     block), as columns (:meth:`outcomes`); the inner solutions (paths, controls) stay on the
     workers, each agent's the fallback start of its next solve, until :meth:`solutions`
     gathers them (once per φ). :meth:`close` frees the workers' memory of them.
@@ -81,12 +82,17 @@ class OuterObjective:
 
     def outcomes(self, phi: np.ndarray) -> Columns:
         """The agents' outcomes at angles φ (Columns of
-        :class:`~ocpar.formation.agents.AgentOutcome`): one superstep, unless φ is the last
+        :class:`~ocpar.ocp.endpoint_agents.AgentOutcome`): one superstep, unless φ is the last
         one asked for. Raises :class:`InnerSolveFailed` if a solve failed."""
         phi = np.asarray(phi, float)
         if self.last_phi is None or not np.array_equal(phi, self.last_phi):
-            first = self._agents.version == 0  # later, the agents keep their boundary data
-            outcomes = self._agents.step(agent_tasks(self.problem, phi, first))
+            problem, d = self.problem, self.problem.curve.dim
+            if self._agents.version == 0:
+                tasks = agent_tasks(problem.shape, d, params=problem.boundary_params_rows(
+                    np.arange(problem.agents), phi))
+            else:  # the agents keep the rest of their boundary data
+                tasks = agent_tasks(problem.shape, d, end=problem.final_positions(phi))
+            outcomes = self._agents.step(tasks)
             self.inner_solves += len(outcomes)
             self.retries += int(np.sum(np.asarray(outcomes.column("attempts")) - 1))
             failed = np.flatnonzero(~np.asarray(outcomes.column("success"), dtype=bool))
@@ -101,10 +107,11 @@ class OuterObjective:
         return self.last_outcomes  # type: ignore[return-value]
 
     def solutions(self, phi: np.ndarray) -> Columns:
-        """The inner solutions at angles φ (Columns of :class:`~ocpar.formation.agents.AgentState`,
-        a :class:`~ocpar.ocp.DmocSolution` with its boundary data:
-        costs (n,), paths (n, N+1, nq), controls (n, N, nu), ...): :meth:`outcomes`, then
-        one superstep that gathers the solutions from the workers (once per φ)."""
+        """The inner solutions at angles φ (Columns of
+        :class:`~ocpar.ocp.endpoint_agents.AgentState`, a :class:`~ocpar.ocp.DmocSolution`
+        with its boundary data: costs (n,), paths (n, N+1, nq), controls (n, N, nu), ...):
+        :meth:`outcomes`, then one superstep that gathers the solutions from the workers (once
+        per φ)."""
         self.outcomes(phi)
         return self.last_solutions  # type: ignore[return-value]
 

@@ -1,28 +1,34 @@
-"""The formation's agents as resident agents (:mod:`ocpar.bsp.resident`): each agent's inner
-DMOC solution stays on the worker that computed it, and a superstep moves only what the outer
-step needs.
+"""DMOC agents whose end position an outer problem chooses, as resident agents
+(:mod:`ocpar.bsp.resident`): each agent's inner solution stays on the worker that computed
+it, and a superstep moves only what the outer step needs (the formation's outer objective,
+:class:`~ocpar.formation.hierarchical.OuterObjective`).
 
 An agent's first task (an :class:`AgentTask`) carries its DMOC shape (shared by a chunk's
 agents) and its boundary data p = (q_0, q̇_0, q_N, q̇_N) (4 nq numbers); later tasks only the
-position part of q_N, z(φ_i) (d numbers, d = the curve's dimension), the rest of p being
-fixed. Back comes an :class:`AgentOutcome` (J*, dJ*/dq_N, the end Hessian's position block,
-success, status, attempts: 1 + nq + d² numbers and three small ones). The agent's
-:class:`AgentState` (its :class:`~ocpar.ocp.DmocSolution`: paths, controls, multipliers; and
-its boundary data) stays on its worker: the solution is the next solve's fallback start (the
-failure policy of :func:`~ocpar.ocp.solve_tasks`), gathered by the coordinator once, at the
-end. The solves are those of sending everything out and back each superstep, bit for bit.
+position part of q_N (the first d entries, d numbers), the rest of p being fixed. Back comes
+an :class:`AgentOutcome` (J*, dJ*/dq_N, the end Hessian's position block, success, status,
+attempts: 1 + nq + d² numbers and three small ones). The agent's :class:`AgentState` (its
+:class:`~ocpar.ocp.DmocSolution`: paths, controls, multipliers; and its boundary data) stays
+on its worker: the solution is the next solve's fallback start (the failure policy of
+:func:`~ocpar.ocp.solve_tasks`), gathered by the coordinator once, at the end. The solves are
+those of sending everything out and back each superstep, bit for bit.
+
+In the transcription layer (not the formation's package) so that a worker that has imported
+:mod:`ocpar.ocp` (the Dask workers' preload) unpickles these tasks without importing a
+scheme.
 """
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
 
 from ocpar.bsp.columns import LISTED, SHARED, STACKED, Columns, to_columns
 from ocpar.bsp.kernel import run_chunk
-from ocpar.formation.problem import FormationProblem
-from ocpar.ocp import DmocShape, DmocSolution, OcpTask, Shape
+from ocpar.ocp.contract import OcpTask, Shape
+from ocpar.ocp.dmoc import DmocShape, DmocSolution
 
 #: The engine kernel the agents' solves go through (so that the kernel hook
 #: :data:`~ocpar.bsp.kernel.WRAPPER_VARIABLE` applies to them as to any superstep's).
@@ -102,19 +108,21 @@ def solve_agents(tasks: Columns, states: Columns | None) -> tuple[Columns, Colum
     return outcome, states
 
 
-def agent_tasks(problem: FormationProblem, phi: np.ndarray, first: bool) -> Columns:
-    """Columns of :class:`AgentTask`, agent i ending at angle ``phi[i]`` (rad): the agents'
-    ``first`` tasks with their whole boundary data, else only the position part of q_N."""
-    shapes = problem.shape
-    shape_column = (SHARED, shapes) if isinstance(shapes, DmocShape) else (LISTED, list(shapes))
-    if first:
-        params = (STACKED, problem.boundary_params_rows(np.arange(problem.agents), phi))
-        end: tuple[str, object] = (SHARED, None)
-    else:
-        params, end = (SHARED, None), (STACKED, problem.final_positions(phi))
-    return Columns(cls=AgentTask, length=problem.agents, fields={
-        "shape": shape_column, "params": params, "end": end,
-        "positions": (SHARED, problem.curve.dim)})
+def agent_tasks(shapes: DmocShape | Sequence[DmocShape], positions: int,
+                params: np.ndarray | None = None, end: np.ndarray | None = None) -> Columns:
+    """Columns of :class:`AgentTask`, one per agent: their first tasks given their boundary
+    data ``params`` (n, 4 nq), later ones given the position part of q_N ``end`` (n, d =
+    ``positions``) instead. ``shapes``: one shape for all, or one per agent."""
+    rows = params if params is not None else end
+    if rows is None or (params is None) == (end is None):
+        raise ValueError("agent_tasks needs either params or end")
+    shape_column = ((SHARED, shapes) if isinstance(shapes, DmocShape)
+                    else (LISTED, list(shapes)))
+    return Columns(cls=AgentTask, length=len(rows), fields={
+        "shape": shape_column,
+        "params": (SHARED, None) if params is None else (STACKED, params),
+        "end": (SHARED, None) if end is None else (STACKED, end),
+        "positions": (SHARED, positions)})
 
 
 __all__ = ["INNER_KERNEL", "AgentOutcome", "AgentState", "AgentTask", "agent_tasks",
