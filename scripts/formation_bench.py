@@ -355,7 +355,9 @@ def plot(report: dict, path: Path) -> None:
     styles = {v: ("-", "--", ":", "-.")[k % 4] for k, v in enumerate(report["variants"])}
     for name in names:
         where, _, variant = name.partition("/")
-        style = {"color": f"C{wheres.index(where) % 10}", "ls": styles.get(variant, "-")}
+        variant, _, baseline = variant.partition("@")
+        style = {"color": f"C{wheres.index(where) % 10}",
+                 "ls": ":" if baseline else styles.get(variant, "-")}
         xs, ys, xt, yt = [], [], [], []
         for agents, size in sorted(report["sizes"].items(), key=lambda kv: int(kv[0])):
             row = size["configurations"].get(name)

@@ -120,9 +120,11 @@ def medians(runs: list[dict[str, Any]]) -> dict[str, Any]:
 
 
 def commit() -> str:
-    """The checked-out commit of this script's repository ('' outside git)."""
-    done = subprocess.run(["git", "-C", str(Path(__file__).parent), "rev-parse", "--short",
-                           "HEAD"], capture_output=True, text=True)
+    """The checked-out commit of the ocpar this script imported ('' outside git)."""
+    import ocpar
+
+    done = subprocess.run(["git", "-C", str(Path(ocpar.__file__).parent), "rev-parse",
+                           "--short", "HEAD"], capture_output=True, text=True)
     return done.stdout.strip()
 
 
@@ -145,7 +147,8 @@ def main() -> int:
                   f"{row['received_bytes_per_superstep'] / 1e6:.3f} MB per superstep; "
                   f"coordinator {row['coordinator_s_per_superstep'] * 1e3:.1f} ms per "
                   f"superstep; cost {row['total_cost']:.12e}", flush=True)
-    report = {"commit": commit(), "workers": args.workers, "repeat": args.repeat,
+    report = {"commit": commit(), "source": str(Path(sys.modules["ocpar"].__file__).parent),
+              "workers": args.workers, "repeat": args.repeat,
               "sizes": {str(n): medians(rows) | {"runs": rows} for n, rows in runs.items()}}
     args.output.mkdir(parents=True, exist_ok=True)
     path = args.output / "superstep_traffic.json"
