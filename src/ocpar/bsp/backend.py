@@ -108,7 +108,7 @@ class Backend(ABC):
         self._resident_sets.add(resident)
         return resident
 
-    def resident_superstep(self, resident: ResidentSet, what: str, tasks: Columns | None
+    def _resident_superstep(self, resident: ResidentSet, what: str, tasks: Columns | None
                            ) -> Columns:
         """One superstep of ``resident`` (:meth:`ResidentSet.step` with its n ``tasks``, or
         :meth:`ResidentSet.collect` with None): agent i on the worker of slot i of
@@ -129,7 +129,7 @@ class Backend(ABC):
                    run: Callable[[list[range]], list[ChunkResult]] | None = None) -> Any:
         """The superstep of ``kernel`` on ``n`` tasks, ``select(indices)`` giving those tasks
         (and, for all indices, what the journal's digest is of). ``run``: how a resident
-        superstep runs the contiguous blocks (:meth:`resident_superstep`) instead."""
+        superstep runs the contiguous blocks (:meth:`_resident_superstep`) instead."""
         name = kernel_name(kernel)
         if self.stop_file is not None and self.stop_file.exists():
             raise RunCancelled(f"cancelled before superstep {len(self.traces)}")
