@@ -28,10 +28,19 @@ must agree across all runs of a size to ``--cost-rtol``; speedup and efficiency 
 fastest serial configuration of the same size (the 1-worker ocpar configuration, whatever its
 backend and variant, with the smallest median solve wall time).
 
+``--baseline-src DIR`` runs every ocpar configuration a second time with ``PYTHONPATH=DIR``
+(another checkout's ``src``: the design before a change, in the same sitting), named
+``…@baseline``; ``--baseline-traffic FILE`` is that design's ``superstep_traffic.json``
+(``scripts/superstep_traffic.py``: its supersteps' bytes, which its traces may not count).
+
 At the largest size the BSP cost model (:mod:`ocpar.bsp.cost_model`) predicts P = 1, 2, 4,
-…, 1024 workers from the fastest serial run (its per-task CPU times and serial part) with
-each parallel backend's synchronisation constants σ(P) = a + b·log2 P fitted to that
-backend's measured overheads at that size and variant.
+…, 1024 workers for ``--model-agents`` agents (default 10,000 and 100,000) from each design's
+fastest serial run (its per-task CPU times and serial part, both scaled by the ratio of
+agents: per-agent work and data do not depend on n) and its supersteps' bytes h (from the
+MPI run with the most ranks, or the baseline's traffic file; scaled likewise), with each
+parallel backend's constants σ(P, h) = a + b·log2 P + g·h fitted to the supersteps measured
+on that backend (this design's runs: their traces count the bytes; per superstep the median
+over the repetitions, each run's first superstep left out).
 
 Writes ``formation_bench.json`` and ``formation_bench.png`` (solve wall vs agents per
 configuration; predicted efficiency vs P) in ``--output``.
@@ -54,16 +63,18 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from ocpar.bsp.cost_model import (
-    POLICIES,
     SyncCost,
     coordinator_share,
     median_overhead,
     predict,
     serial_time,
+    superstep_samples,
     task_times,
 )
 
 SIZES = (60, 1000, 10_000)
+MODEL_AGENTS = (10_000, 100_000)
+BASELINE = "baseline"
 QUICK_SIZES = (60, 200)
 DEFAULT_VARIANTS = ("default=", "offset=--outer offset")
 MODEL_WORKERS = tuple(2**k for k in range(11))
@@ -84,13 +95,19 @@ class Configuration:
     workers: int
     variant: str
     args: tuple[str, ...]
+    source: str | None = None  # PYTHONPATH of a baseline design's runs
 
     @property
     def name(self) -> str:
         if self.backend == "monolithic":
             return "monolithic"
         where = "serial" if self.backend == "serial" else f"{self.backend}x{self.workers}"
-        return f"{where}/{self.variant}"
+        return f"{where}/{self.variant}" + (f"@{BASELINE}" if self.source else "")
+
+    @property
+    def design(self) -> str:
+        """``this`` (the checkout the benchmark runs from) or ``baseline``."""
+        return BASELINE if self.source else "this"
 
     def command(self, problem: str, agents: int, out: Path) -> list[str]:
         """The command line of one run."""
@@ -122,19 +139,22 @@ def parse_variant(text: str) -> tuple[str, tuple[str, ...]]:
     return name, words
 
 
-def run_once(cmd: list[str], out: Path, limit_s: float, memory_mb: float | None = None) -> dict:
+def run_once(cmd: list[str], out: Path, limit_s: float, memory_mb: float | None = None,
+             source: str | None = None) -> dict:
     """Run ``cmd`` in its own process group; kill the group after ``limit_s`` seconds. With
     ``memory_mb`` its address space is capped at that many MiB (an allocation beyond it
     fails, and the run ends as ``error``).
     Returns the result.json's fields (``status`` ``timeout`` or ``error`` if there is none),
     ``process_peak_rss_mb``, the peak resident memory of the largest process it ran, and
-    ``process_s``, its wall time from launch to exit (start-up included)."""
+    ``process_s``, its wall time from launch to exit (start-up included). ``source``: the
+    ``PYTHONPATH`` to run it with (default this process's environment)."""
     out.mkdir(parents=True, exist_ok=True)
     (out / "result.json").unlink(missing_ok=True)
     with open(out / "stderr.txt", "w") as err:
         cap = None if memory_mb is None else int(memory_mb * 2**20)
+        env = None if source is None else os.environ | {"PYTHONPATH": source}
         proc = subprocess.Popen(
-            cmd, stdout=subprocess.DEVNULL, stderr=err, start_new_session=True,
+            cmd, stdout=subprocess.DEVNULL, stderr=err, start_new_session=True, env=env,
             preexec_fn=None if cap is None else
             lambda: resource.setrlimit(resource.RLIMIT_AS, (cap, cap)))
         launched = time.monotonic()
@@ -225,36 +245,103 @@ def compare_costs(size_runs: dict[str, list[dict]], reference: float, rtol: floa
     return out
 
 
-def model(output: Path, agents: int, table: dict, configs: list[Configuration],
-          reps: dict) -> dict | None:
-    """Cost-model predictions at ``agents`` from the fastest serial configuration, with each
-    parallel backend's synchronisation constants measured at this size and variant."""
-    base = table.get("fastest_serial")
-    if base is None:
+def median_result(output: Path, agents: int, config: Configuration, runs: list[dict]
+                  ) -> dict | None:
+    """The result.json of ``config``'s median run (by solve wall time) at ``agents``."""
+    done = [(rep, r) for rep, r in enumerate(runs) if "wall_s" in r]
+    if not done:
         return None
-    serial = next(c for c in configs if c.name == base)
-    done = [(rep, r) for rep, r in enumerate(reps[base]) if "wall_s" in r]
     rep, _ = sorted(done, key=lambda x: x[1]["wall_s"])[len(done) // 2]
-    result = json.loads((output / f"{agents}-{base.replace('/', '-')}-{rep}" / "result.json")
-                        .read_text())
-    tasks = task_times(result["trace"], use="cpu")
-    serial_s = serial_time(result["wall_time_s"], result["trace"])
-    out = {"agents": agents, "from": base, "rep": rep, "serial_s": serial_s,
-           "supersteps": len(tasks), "backends": {}}
+    return json.loads((output / f"{agents}-{config.name.replace('/', '-')}-{rep}"
+                       / "result.json").read_text())
+
+
+def fit_samples(output: Path, agents: int, config: Configuration, runs: list[dict]
+                ) -> list[tuple[int, float, float]]:
+    """(P, bytes that crossed, overhead s) per superstep of ``config`` at ``agents``, each the
+    median over the repetitions, the first superstep left out (its one-time costs: imports,
+    solver builds; reported as ``first_overhead_ms``)."""
+    per_rep = []
+    for rep, r in enumerate(runs):
+        if "wall_s" in r:
+            result = json.loads((output / f"{agents}-{config.name.replace('/', '-')}-{rep}"
+                                 / "result.json").read_text())
+            per_rep.append(superstep_samples(result["trace"])[1:])
+    if not per_rep or len({len(s) for s in per_rep}) != 1:
+        return []
+    return [(steps[0][0], statistics.median(s[1] for s in steps),
+             statistics.median(s[2] for s in steps)) for steps in zip(*per_rep, strict=True)]
+
+
+def superstep_bytes(output: Path, agents: int, configs: list[Configuration], reps: dict,
+                    variant: str, baseline_traffic: dict | None, design: str,
+                    supersteps: int) -> list[float] | None:
+    """Each superstep's bytes h (all its tasks and results) of ``design`` at ``agents``:
+    from the MPI (else Dask) run with the most workers of this design, from the traffic file
+    for the baseline; None where unknown."""
+    if design == BASELINE:
+        size = (baseline_traffic or {}).get("sizes", {}).get(str(agents))
+        if size is None:
+            return None
+        volumes = [s["sent_bytes"] + s["received_bytes"] for s in size["per_superstep"]]
+        if len(volumes) != supersteps:  # another outer path: its median for every superstep
+            volumes = [statistics.median(volumes)] * supersteps
+        return volumes
     for backend in ("mpi", "dask"):
-        measured = {c.workers: table["configurations"][c.name]["overhead_ms"] / 1e3
-                    for c in configs if c.backend == backend and c.variant == serial.variant
-                    and table["configurations"][c.name].get("overhead_ms") is not None}
-        if not measured:
+        ranked = sorted((c for c in configs if c.backend == backend and c.design == design
+                         and c.variant == variant and c.workers > 1), key=lambda c: c.workers)
+        for c in reversed(ranked):
+            result = median_result(output, agents, c, reps[c.name])
+            if result is not None and len(result["trace"]) == supersteps:
+                share = SyncCost(0, 0, local_chunk=backend == "mpi").crossing(c.workers)
+                return [(t["sent_bytes"] + t["received_bytes"]) / share
+                        for t in result["trace"]]
+    return None
+
+
+def model(output: Path, agents: int, table: dict, configs: list[Configuration],
+          reps: dict, model_agents: list[int], baseline_traffic: dict | None) -> dict | None:
+    """Cost-model predictions for ``model_agents`` agents, per design, from that design's
+    fastest serial configuration measured at ``agents``, with each parallel backend's
+    constants fitted to this design's supersteps measured at ``agents`` (module docstring)."""
+    out: dict = {"agents": agents, "model_agents": model_agents, "designs": {},
+                 "backends": {}}
+    fitted: dict[str, SyncCost] = {}
+    for design in ("this", BASELINE):
+        serial = {c.name: table["configurations"][c.name]["wall_s"] for c in configs
+                  if c.workers == 1 and c.design == design and c.backend != "monolithic"
+                  and "wall_s" in table["configurations"][c.name]}
+        if not serial:
             continue
-        sync = SyncCost.fit(measured)
-        out["backends"][backend] = {
-            "sync": {"a_s": sync.a_s, "b_s": sync.b_s, "fitted_to": measured},
-            "policies": {policy: [vars(p) | {"coordinator_share": p.coordinator_share}
-                                  for p in predict(tasks, MODEL_WORKERS, policy, sync,
-                                                   serial_s)]
-                         for policy in POLICIES}}
-    return out
+        base = next(c for c in configs if c.name == min(serial, key=serial.get))
+        result = median_result(output, agents, base, reps[base.name])
+        assert result is not None
+        tasks = task_times(result["trace"], use="cpu")
+        serial_s = serial_time(result["wall_time_s"], result["trace"])
+        if not fitted:
+            for backend in ("mpi", "dask"):
+                samples = [sample for c in configs if c.backend == backend
+                           and c.design == "this" and c.variant == base.variant
+                           for sample in fit_samples(output, agents, c, reps[c.name])]
+                if samples:
+                    fitted[backend] = SyncCost.fit_supersteps(samples, backend == "mpi")
+            out["backends"] = {b: vars(s) for b, s in fitted.items()}
+        volumes = superstep_bytes(output, agents, configs, reps, base.variant,
+                                  baseline_traffic, design, len(tasks))
+        row: dict = {"from": base.name, "supersteps": len(tasks), "serial_s": serial_s,
+                     "superstep_bytes": volumes, "predictions": {}}
+        for n in model_agents:
+            factor = max(round(n / agents), 1)
+            scaled = [times * factor for times in tasks]
+            row["predictions"][str(n)] = {
+                backend: [vars(p) | {"coordinator_share": p.coordinator_share}
+                          for p in predict(scaled, MODEL_WORKERS, "blocks", sync,
+                                           serial_s * factor,
+                                           None if volumes is None
+                                           else [h * factor for h in volumes])]
+                for backend, sync in fitted.items()}
+        out["designs"][design] = row
+    return out if out["designs"] else None
 
 
 def plot(report: dict, path: Path) -> None:
@@ -268,7 +355,9 @@ def plot(report: dict, path: Path) -> None:
     styles = {v: ("-", "--", ":", "-.")[k % 4] for k, v in enumerate(report["variants"])}
     for name in names:
         where, _, variant = name.partition("/")
-        style = {"color": f"C{wheres.index(where) % 10}", "ls": styles.get(variant, "-")}
+        variant, _, baseline = variant.partition("@")
+        style = {"color": f"C{wheres.index(where) % 10}",
+                 "ls": ":" if baseline else styles.get(variant, "-")}
         xs, ys, xt, yt = [], [], [], []
         for agents, size in sorted(report["sizes"].items(), key=lambda kv: int(kv[0])):
             row = size["configurations"].get(name)
@@ -292,15 +381,20 @@ def plot(report: dict, path: Path) -> None:
     ax_t.grid(alpha=0.3, which="both")
     predicted = report.get("model")
     if predicted:
-        for backend, m in predicted["backends"].items():
-            points = m["policies"]["blocks"]
-            ax_e.plot([p["workers"] for p in points], [p["efficiency"] for p in points], "o-",
-                      label=f"{backend} sync constants (blocks)")
+        lines = {"this": "-", BASELINE: ":"}
+        for design, row in predicted["designs"].items():
+            for k, (n, by_backend) in enumerate(row["predictions"].items()):
+                for backend, points in by_backend.items():
+                    ax_e.plot([p["workers"] for p in points],
+                              [p["efficiency"] for p in points], lines[design],
+                              marker="os"[k % 2], ms=4,
+                              color=f"C{2 * (backend == 'dask') + k}",
+                              label=f"{backend}, {int(n):,} agents, {design}")
         for p, target in EFFICIENCY_TARGETS.items():
             ax_e.plot([p], [target], "k^", ms=8)
-        ax_e.set_title(f"cost model, {predicted['agents']} agents, from {predicted['from']}"
-                       " (▲ targets)", fontsize=9)
-        ax_e.legend(fontsize=8)
+        ax_e.set_title(f"cost model σ = a + b·log2 P + g·h fitted at {predicted['agents']:,} "
+                       "agents (▲ targets)", fontsize=9)
+        ax_e.legend(fontsize=6)
     ax_e.set_xscale("log", base=2)
     ax_e.set_ylim(0, 1.05)
     ax_e.set_xlabel("workers P")
@@ -340,16 +434,21 @@ def print_report(report: dict) -> None:
     predicted = report.get("model")
     if not predicted:
         return
-    print(f"\ncost model at {predicted['agents']} agents from {predicted['from']} "
-          f"({predicted['supersteps']} supersteps, serial part {predicted['serial_s']:.3f} s):")
-    for backend, m in predicted["backends"].items():
-        sync = m["sync"]
-        points = {p["workers"]: p for p in m["policies"]["blocks"]}
-        effs = ", ".join(f"{points[p]['efficiency']:.2f} at {p} (target {t})"
-                         for p, t in EFFICIENCY_TARGETS.items())
-        print(f"  {backend}: σ(P) = {sync['a_s'] * 1e3:.3f} ms + {sync['b_s'] * 1e3:.3f} ms·log2 P;"
-              f" efficiency (blocks) {effs}; coordinator share at 1024: "
-              f"{points[1024]['coordinator_share']:.1%}")
+    print(f"\ncost model fitted at {predicted['agents']} agents:")
+    for backend, sync in predicted["backends"].items():
+        print(f"  {backend}: σ(P, h) = {sync['a_s'] * 1e3:.3f} ms + {sync['b_s'] * 1e3:.3f} ms·"
+              f"log2 P + {sync['g_s_per_byte'] * 1e9:.3f} ns/byte · h")
+    for design, row in predicted["designs"].items():
+        volumes = row["superstep_bytes"]
+        print(f"  {design}: from {row['from']} ({row['supersteps']} supersteps, serial part "
+              f"{row['serial_s']:.3f} s, h per superstep "
+              + ("unknown" if volumes is None else
+                 "/".join(f"{h / 1e6:.2f}" for h in volumes) + " MB") + ")")
+        for n, by_backend in row["predictions"].items():
+            for backend, points in by_backend.items():
+                effs = ", ".join(f"{p['efficiency']:.2f}" for p in points
+                                 if p["workers"] >= 8)
+                print(f"    {int(n):7,d} agents {backend}: efficiency at 8…1024 workers {effs}")
 
 
 def main() -> int:
@@ -384,6 +483,13 @@ def main() -> int:
                              "coupling's Jacobian is dense in the angles (n² entries)")
     parser.add_argument("--cost-rtol", type=float, default=1e-8,
                         help="relative tolerance of the total-cost agreement check")
+    parser.add_argument("--baseline-src", default=None, metavar="DIR",
+                        help="also run every ocpar configuration with PYTHONPATH=DIR (another "
+                             "design's src), named ...@baseline")
+    parser.add_argument("--baseline-traffic", type=Path, default=None, metavar="FILE",
+                        help="the baseline's superstep_traffic.json (its supersteps' bytes)")
+    parser.add_argument("--model-agents", nargs="+", type=int, default=list(MODEL_AGENTS),
+                        help="agents the cost model predicts for (default 10000 100000)")
     parser.add_argument("--output", type=Path, default=Path("runs/formation-bench"))
     args = parser.parse_args()
     sizes = sorted(set(args.agents or (QUICK_SIZES if args.quick else SIZES)))
@@ -401,7 +507,9 @@ def main() -> int:
     if repeat < 3:
         print(f"note: {repeat} repetitions: the issue asks for medians of at least 3")
 
-    configs = [Configuration(b, p, name, extra) for name, extra in variants
+    sources = [None] if args.baseline_src is None else [None, args.baseline_src]
+    configs = [Configuration(b, p, name, extra, source) for source in sources
+               for name, extra in variants
                for b in args.backends for p in ([1] if b == "serial" else args.workers)]
     if not args.no_monolithic:
         configs.append(Configuration("monolithic", 1, "monolithic", ()))
@@ -421,7 +529,7 @@ def main() -> int:
                 mono = c.backend == "monolithic"
                 result = run_once(c.command(args.problem, agents, out), out,
                                   mono_limit if mono else limit,
-                                  args.monolithic_memory if mono else None)
+                                  args.monolithic_memory if mono else None, c.source)
                 row = run_figures(result)
                 runs[agents][c.name].append(row)
                 if row["status"] in ("timeout", "error"):
@@ -431,6 +539,7 @@ def main() -> int:
                       flush=True)
 
     report: dict = {"problem": args.problem, "repeat": repeat,
+                    "baseline_src": args.baseline_src,
                     "variants": {name: list(extra) for name, extra in variants},
                     "limits_s": {"ocpar": limit, "monolithic": mono_limit},
                     "cost_rtol": args.cost_rtol, "benchmark_wall_s": 0.0, "sizes": {}}
@@ -453,8 +562,10 @@ def main() -> int:
     largest = max((n for n in sizes if "fastest_serial" in report["sizes"][str(n)]),
                   default=None)
     if largest is not None:
+        traffic = (json.loads(args.baseline_traffic.read_text())
+                   if args.baseline_traffic is not None else None)
         report["model"] = model(args.output, largest, report["sizes"][str(largest)], configs,
-                                runs[largest])
+                                runs[largest], args.model_agents, traffic)
     report["benchmark_wall_s"] = time.perf_counter() - start
     args.output.mkdir(parents=True, exist_ok=True)
     (args.output / "formation_bench.json").write_text(json.dumps(report, indent=1))

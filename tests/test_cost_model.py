@@ -122,6 +122,24 @@ def test_sync_fit_one_point_and_clamping():
     assert sync.b_s == pytest.approx(0.06 / 10)
 
 
+def test_sync_fit_separates_latency_and_bytes():
+    """σ(P, h) = a + b log2 P + g h: supersteps on 1 and 2 workers of varying bytes give back
+    a, b and g; with the coordinator running a chunk itself only (P−1)/P of h crosses."""
+    a, b, g = 3e-4, 2e-4, 1.5e-9
+    samples = [(p, h, a + b * math.log2(p) + g * h)
+               for p in (1, 2, 4) for h in (0.0, 2e5, 8e5, 5e6)]
+    sync = SyncCost.fit_supersteps(samples, local_chunk=True)
+    assert (sync.a_s, sync.b_s, sync.g_s_per_byte) == (
+        pytest.approx(a, rel=1e-6), pytest.approx(b, rel=1e-6), pytest.approx(g, rel=1e-6))
+    assert sync.at(2, 1e6) == pytest.approx(a + b + g * 0.5e6)
+    assert SyncCost(a, b, g).at(2, 1e6) == pytest.approx(a + b + g * 1e6)
+    (one,) = predict([[1.0], [1.0]], [2], "blocks", SyncCost(0.0, 0.0, 1e-6),
+                     superstep_bytes=[1e6, 3e6])
+    assert one.sync_s == pytest.approx(4.0)
+    with pytest.raises(ValueError, match="2 supersteps"):
+        predict([[1.0], [1.0]], [2], "blocks", FREE, superstep_bytes=[1.0])
+
+
 # --- predictions ------------------------------------------------------------------------
 
 
@@ -243,7 +261,8 @@ def test_trace_dict_has_every_field_and_its_own_lists():
     trace = make_trace(0, [0.1, 0.2, 0.3], [0.15, 0.25, 0.35], overhead=0.01)
     d = trace.to_dict()
     assert d == dataclasses.asdict(trace) | {"overhead_s": trace.overhead_s,
-                                             "imbalance": trace.imbalance}
+                                             "imbalance": trace.imbalance, "sent_bytes": 0,
+                                             "received_bytes": 0}
     assert d["overhead_s"] == pytest.approx(0.01)
     d["task_wall_s"].append(9.0)  # the dict's lists are copies
     assert trace.task_wall_s == [0.15, 0.25, 0.35]

@@ -8,7 +8,9 @@ time, and gets the results back in task order.
 
 Backends: ``serial`` (in process), ``mpi`` (SPMD under ``mpirun``), ``dask`` (embedded
 ``LocalCluster`` or an existing scheduler), ``dask-mpi`` (a Dask cluster made of the ranks of
-an MPI allocation). Every superstep is timed (:class:`SuperstepTrace`).
+an MPI allocation). Every superstep is timed (:class:`SuperstepTrace`). Agents whose state
+carries over from one superstep to the next keep it on the workers (:class:`ResidentSet`,
+:meth:`Backend.resident`; see :mod:`ocpar.bsp.resident`).
 """
 
 from __future__ import annotations
@@ -23,6 +25,7 @@ from ocpar.bsp.backend import (
 from ocpar.bsp.kernel import ChunkResult, kernel_name, run_chunk
 from ocpar.bsp.mpi import SUPERSTEP_TIMEOUT_S, launched_by_mpirun
 from ocpar.bsp.partition import contiguous_blocks
+from ocpar.bsp.resident import ResidentSet
 from ocpar.bsp.trace import SuperstepTrace
 
 BACKENDS = ("serial", "mpi", "dask", "dask-mpi")
@@ -84,6 +87,7 @@ __all__ = [
     "Backend",
     "BackendError",
     "ChunkResult",
+    "ResidentSet",
     "RunCancelled",
     "SuperstepTrace",
     "contiguous_blocks",

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import itertools
 import time
+import weakref
 from abc import ABC, abstractmethod
 from collections.abc import Callable, Sequence
 from pathlib import Path
@@ -15,6 +16,7 @@ from ocpar.bsp.columns import Columns, from_columns, to_columns
 from ocpar.bsp.journal import Journal, digest
 from ocpar.bsp.kernel import ChunkResult, KernelRef, kernel_name
 from ocpar.bsp.partition import contiguous_blocks, longest_first, sticky_longest_first
+from ocpar.bsp.resident import STEP, ResidentSet
 from ocpar.bsp.trace import SuperstepTrace
 
 #: How a superstep's tasks are assigned to workers when no cost estimates are given:
@@ -61,6 +63,7 @@ class Backend(ABC):
         #: If this file exists when a superstep is to start, the run stops there
         #: (:class:`RunCancelled`): how a detached job is cancelled, its checkpoint intact.
         self.stop_file: Path | None = None
+        self._resident_sets: weakref.WeakSet[ResidentSet] = weakref.WeakSet()
 
     @property
     def is_coordinator(self) -> bool:
@@ -97,8 +100,36 @@ class Backend(ABC):
             raise ValueError("superstep_columns needs a non-empty Columns of tasks")
         return self._superstep(kernel, len(tasks), tasks.take, costs, columns=True)
 
+    def resident(self, kernel: KernelRef, agents: int) -> ResidentSet:
+        """A :class:`~ocpar.bsp.resident.ResidentSet` of ``agents`` agents whose states stay
+        on this backend's workers, driven by the resident kernel ``kernel`` (see
+        :mod:`ocpar.bsp.resident`); closed when the backend closes, if not before."""
+        resident = ResidentSet(self, kernel, agents)
+        self._resident_sets.add(resident)
+        return resident
+
+    def _resident_superstep(self, resident: ResidentSet, what: str, tasks: Columns | None
+                           ) -> Columns:
+        """One superstep of ``resident`` (:meth:`ResidentSet.step` with its n ``tasks``, or
+        :meth:`ResidentSet.collect` with None): agent i on the worker of slot i of
+        :func:`~ocpar.bsp.partition.contiguous_blocks` (whatever the :attr:`balance`
+        policy), results in agent order, timed and journaled like any superstep. The
+        results must be instances of one dataclass (as for :meth:`superstep_columns`)."""
+        n = resident.agents
+        if what == STEP:
+            assert tasks is not None
+            return self._superstep(resident.kernel, n, tasks.take, None, columns=True,
+                                   run=lambda groups: resident.run(STEP, tasks, groups))
+        return self._superstep(f"{resident.kernel}#{what}", n,
+                               lambda _: (what, resident.version, n), None, columns=True,
+                               run=lambda groups: resident.run(what, None, groups))
+
     def _superstep(self, kernel: KernelRef, n: int, select: Callable[[list[int]], Any],
-                   costs: Sequence[float] | None, columns: bool) -> Any:
+                   costs: Sequence[float] | None, columns: bool,
+                   run: Callable[[list[range]], list[ChunkResult]] | None = None) -> Any:
+        """The superstep of ``kernel`` on ``n`` tasks, ``select(indices)`` giving those tasks
+        (and, for all indices, what the journal's digest is of). ``run``: how a resident
+        superstep runs the contiguous blocks (:meth:`_resident_superstep`) instead."""
         name = kernel_name(kernel)
         if self.stop_file is not None and self.stop_file.exists():
             raise RunCancelled(f"cancelled before superstep {len(self.traces)}")
@@ -112,7 +143,10 @@ class Backend(ABC):
         if costs is not None and len(costs) != n:
             raise ValueError(f"{len(costs)} costs for {n} tasks")
         start = time.perf_counter()
-        if costs is not None and self._queues(name):
+        if run is not None:
+            groups = contiguous_blocks(n, self.workers)
+            chunks = run(groups)
+        elif costs is not None and self._queues(name):
             queue = sorted(range(n), key=lambda i: (-costs[i], i))
             taken, chunks = self._run_queue(name, select(queue))
             groups: list[list[int]] | list[range] = [[queue[k] for k in ks] for ks in taken]
@@ -154,6 +188,8 @@ class Backend(ABC):
                 task_wall_s=walls,
                 task_cpu_s=cpus,
                 task_worker=workers.tolist(),
+                worker_sent_bytes=[c.sent_bytes for c in chunks],
+                worker_received_bytes=[c.received_bytes for c in chunks],
             )
         )
         self._last_kernel = name
@@ -194,8 +230,15 @@ class Backend(ABC):
         """Run chunk w (a list of tasks, or :class:`Columns`) on worker w; return the chunk
         results in worker order, each chunk's results as a list or as :class:`Columns`."""
 
-    def close(self) -> None:  # noqa: B027 - backends without resources need no cleanup
+    def close(self) -> None:
         """Release workers (idempotent)."""
+        self._close_resident_sets()
+
+    def _close_resident_sets(self) -> None:
+        """Free the workers' memory of the resident sets still open (coordinator only)."""
+        if self.is_coordinator:
+            for resident in list(self._resident_sets):
+                resident.close()
 
     def __enter__(self) -> Backend:
         return self

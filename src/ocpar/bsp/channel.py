@@ -37,20 +37,22 @@ class ChannelClosed(ConnectionError):
     """The peer closed the channel (e.g. its process is gone)."""
 
 
-def send_message(sock: socket.socket, obj: Any) -> None:
-    """Send ``obj`` pickled (protocol 5) with its out-of-band buffers as one message."""
+def send_message(sock: socket.socket, obj: Any) -> int:
+    """Send ``obj`` pickled (protocol 5) with its out-of-band buffers as one message; return
+    the message's length (bytes, header included)."""
     buffers: list[pickle.PickleBuffer] = []
     stream = pickle.dumps(obj, protocol=5, buffer_callback=buffers.append)
     frames = [memoryview(stream), *(b.raw() for b in buffers)]
     header = struct.pack(f"!{1 + len(frames)}Q", len(frames), *(f.nbytes for f in frames))
+    total = len(header) + sum(f.nbytes for f in frames)
     if isinstance(sock, ssl.SSLSocket):  # no scatter-gather over TLS
         for part in (header, *frames):
             sock.sendall(part)
-        return
+        return total
     sent = sock.sendmsg([header, *frames])  # one system call for a whole small message
-    total = len(header) + sum(f.nbytes for f in frames)
     if sent < total:
         sock.sendall(memoryview(b"".join([header, *frames]))[sent:])
+    return total
 
 
 def _recv_exact(sock: socket.socket, n: int) -> bytearray:
@@ -64,14 +66,16 @@ def _recv_exact(sock: socket.socket, n: int) -> bytearray:
     return buf
 
 
-def receive_message(sock: socket.socket) -> Any:
-    """Receive one message sent by :func:`send_message` and unpickle it."""
+def receive_message(sock: socket.socket) -> tuple[Any, int]:
+    """Receive one message sent by :func:`send_message`: its object, unpickled, and its
+    length (bytes, header included)."""
     (count,) = _COUNT.unpack(_recv_exact(sock, _COUNT.size))
     lengths = struct.unpack(f"!{count}Q", _recv_exact(sock, 8 * count))
     payload = memoryview(_recv_exact(sock, sum(lengths)))  # every frame in one read
     ends = list(itertools.accumulate(lengths))
     frames = [payload[end - n:end] for n, end in zip(lengths, ends, strict=True)]
-    return pickle.loads(frames[0], buffers=frames[1:])
+    size = _COUNT.size * (1 + count) + sum(lengths)
+    return pickle.loads(frames[0], buffers=frames[1:]), size
 
 
 class ChannelServer:
@@ -105,7 +109,7 @@ class ChannelServer:
             if self._ssl_context is not None:
                 sock = self._ssl_context.wrap_socket(sock, server_side=True)
             while True:
-                function, args = receive_message(sock)
+                (function, args), _ = receive_message(sock)
                 with SOLVE_LOCK:
                     try:
                         reply: tuple[bool, Any] = (True, function(*args))
@@ -136,17 +140,19 @@ class Channel:
         if ssl_context is not None:
             sock = ssl_context.wrap_socket(sock)
         self._sock = sock
+        #: Length (bytes) of the last request sent and of the last reply received.
+        self.sent_bytes = self.received_bytes = 0
 
     def send(self, function: Callable[..., Any], *args: Any) -> None:
         """Ask the worker to run ``function(*args)`` (``function`` importable there)."""
         self._sock.settimeout(None)
-        send_message(self._sock, (function, args))
+        self.sent_bytes = send_message(self._sock, (function, args))
 
     def receive(self, timeout_s: float | None = None) -> Any:
         """The value of the last request sent, or its exception raised here; ``socket.timeout``
         after ``timeout_s``, :class:`ChannelClosed`/``OSError`` if the worker is gone."""
         self._sock.settimeout(timeout_s)
-        ok, value = receive_message(self._sock)
+        (ok, value), self.received_bytes = receive_message(self._sock)
         if not ok:
             raise value
         return value

@@ -3,14 +3,19 @@
 A run is a serial coordinator part plus a sequence of supersteps, each a set of independent
 tasks followed by a barrier. With P workers the model predicts (all times in seconds)
 
-    T(P) = serial + Σ_supersteps [makespan_P(task times, policy) + σ(P)],
-    σ(P) = a + b·log2(P)            (tree barrier / gather: :class:`SyncCost`),
+    T(P) = serial + Σ_supersteps [makespan_P(task times, policy) + σ(P, h)],
+    σ(P, h) = L(P) + g·h(P),  L(P) = a + b·log2(P)     (:class:`SyncCost`),
 
 where ``makespan_P`` schedules the superstep's measured per-task times onto P workers with the
 partitioning policy the engine would use (``"blocks"``: ``partition.contiguous_blocks``;
 ``"lpt"``: ``partition.longest_first`` with the measured times as the cost estimates), and
 ``serial`` (the coordinator's time outside supersteps: outer optimiser, I/O, ...) does not
-shrink with P. Speedup is T(1)/T(P) of the model itself.
+shrink with P. L(P) is the latency of a superstep (barrier, scatter and gather along a tree
+of P workers), g the coordinator's time per byte it sends or receives (pickling, copying,
+the wire), h(P) the bytes of a superstep that cross between the coordinator and its workers:
+all of the superstep's bytes h, or (P−1)/P of them where the coordinator runs one of the P
+chunks itself (MPI's rank 0). A superstep's h does not shrink with P: every agent's task and
+result goes through the coordinator. Speedup is T(1)/T(P) of the model itself.
 
 Assumptions worth remembering when reading the numbers: a task's time does not depend on P
 (no memory-bandwidth contention, no oversubscription), ``"lpt"`` sees the exact times (the
@@ -87,21 +92,54 @@ def _makespan(times: list[float], workers: int, policy: str) -> float:
 
 @dataclass(frozen=True)
 class SyncCost:
-    """Per-superstep synchronisation cost σ(P) = ``a_s`` + ``b_s``·log2(P), in seconds: the
-    barrier, scatter of tasks and gather of results along a tree of P workers."""
+    """Per-superstep synchronisation cost σ(P, h) = ``a_s`` + ``b_s``·log2(P) +
+    ``g_s_per_byte``·h(P), in seconds: the latency of the barrier, scatter of tasks and gather
+    of results along a tree of P workers, and the coordinator's time per byte of the
+    superstep's h bytes. ``local_chunk``: the coordinator runs one of the P chunks itself
+    (MPI's rank 0), so only (P−1)/P of the bytes cross (module docstring)."""
 
     a_s: float
     b_s: float
+    g_s_per_byte: float = 0.0
+    local_chunk: bool = False
 
     def __post_init__(self) -> None:
-        for name in ("a_s", "b_s"):
+        for name in ("a_s", "b_s", "g_s_per_byte"):
             value = getattr(self, name)
             if not math.isfinite(value) or value < 0:
-                raise ValueError(f"SyncCost.{name} must be a finite time ≥ 0 s, got {value!r}")
+                raise ValueError(f"SyncCost.{name} must be finite and ≥ 0, got {value!r}")
 
-    def at(self, workers: int) -> float:
-        """σ(P) in seconds for ``workers`` = P ≥ 1."""
-        return self.a_s + self.b_s * math.log2(_check_workers(workers))
+    def at(self, workers: int, superstep_bytes: float = 0.0) -> float:
+        """σ(P, h) in seconds for ``workers`` = P ≥ 1 and a superstep of ``superstep_bytes``
+        = h bytes (its tasks and results, all of them)."""
+        p = _check_workers(workers)
+        return (self.a_s + self.b_s * math.log2(p)
+                + self.g_s_per_byte * superstep_bytes * self.crossing(p))
+
+    def crossing(self, workers: int) -> float:
+        """The share of a superstep's bytes that crosses between the coordinator and
+        ``workers`` workers: (P−1)/P with :attr:`local_chunk`, else 1."""
+        return (workers - 1) / workers if self.local_chunk else 1.0
+
+    @classmethod
+    def fit_supersteps(cls, samples: Iterable[tuple[int, float, float]],
+                       local_chunk: bool) -> SyncCost:
+        """Non-negative least-squares fit of a, b, g to measured supersteps: ``samples`` of
+        (P, bytes that crossed, overhead s) per superstep (a trace's ``workers``,
+        ``sent_bytes`` + ``received_bytes`` and ``overhead_s``), from runs on at least two
+        worker counts or with bytes that vary (else the terms cannot be told apart: the
+        coefficient NNLS sets to 0 is then folded into the others)."""
+        rows = [(float(_check_workers(p)), float(h), float(y)) for p, h, y in samples]
+        if not rows:
+            raise ValueError("SyncCost.fit_supersteps needs at least one superstep")
+        if any(not (math.isfinite(h) and h >= 0 and math.isfinite(y)) for _, h, y in rows):
+            raise ValueError("superstep bytes must be finite and ≥ 0, overheads finite")
+        p, h, y = (np.array(column) for column in zip(*rows, strict=True))
+        design = np.column_stack([np.ones(len(p)), np.log2(p), h])
+        scale = np.maximum(np.abs(design).max(axis=0), 1e-300)  # bytes ~1e6, the rest ~1
+        coefficients, _ = nnls(design / scale, y)
+        a, b, g = (float(c) for c in coefficients / scale)
+        return cls(a_s=a, b_s=b, g_s_per_byte=g, local_chunk=local_chunk)
 
     @classmethod
     def fit(cls, overheads: Mapping[int, float]) -> SyncCost:
@@ -170,23 +208,30 @@ def predict(
     policy: str,
     sync: SyncCost,
     serial_s: float = 0.0,
+    superstep_bytes: Sequence[float] | None = None,
 ) -> list[Prediction]:
     """Predict the run at each worker count in ``workers``.
 
     ``supersteps``: one list per superstep of per-task times in seconds (task order, as from
     :func:`task_times`); ``policy``: ``"blocks"`` or ``"lpt"``; ``sync``: the per-superstep
     synchronisation cost; ``serial_s``: coordinator time outside supersteps (s, does not
-    shrink with P). Returns one :class:`Prediction` per entry of ``workers``, in that order.
+    shrink with P); ``superstep_bytes``: per superstep the bytes of all its tasks and
+    results, h (None: 0). Returns one :class:`Prediction` per entry of ``workers``, in that
+    order.
     """
     _check_policy(policy)
     steps = _check_supersteps(supersteps)
     counts = [_check_workers(p) for p in workers]
     if not math.isfinite(serial_s) or serial_s < 0:
         raise ValueError(f"serial_s must be a finite time ≥ 0 s, got {serial_s!r}")
+    volumes = _check_times(superstep_bytes if superstep_bytes is not None
+                           else [0.0] * len(steps), "superstep_bytes")
+    if len(volumes) != len(steps):
+        raise ValueError(f"{len(volumes)} superstep byte counts for {len(steps)} supersteps")
 
     def parts(p: int) -> tuple[float, float]:
         compute = sum(_makespan(times, p, policy) for times in steps)
-        return compute, len(steps) * sync.at(p)
+        return compute, sum(sync.at(p, h) for h in volumes)
 
     base = serial_s + sum(parts(1))
     out = []
@@ -218,6 +263,21 @@ def task_times(traces: Iterable[TraceLike], use: str = "cpu") -> list[list[float
         raise ValueError(f"use must be 'cpu' or 'wall', got {use!r}")
     name = f"task_{use}_s"
     return [_check_times(_field(t, name, k), f"trace[{k}].{name}") for k, t in enumerate(traces)]
+
+
+def superstep_samples(traces: Iterable[TraceLike]) -> list[tuple[int, float, float]]:
+    """(P, bytes that crossed, overhead s) of each superstep of a run's traces, for
+    :meth:`SyncCost.fit_supersteps` (0 bytes from traces that did not count them)."""
+    out = []
+    for k, t in enumerate(traces):
+        busy = _field(t, "worker_busy_s", k)
+        wall = float(_field(t, "wall_s", k))
+        if isinstance(t, SuperstepTrace):
+            crossed = t.sent_bytes + t.received_bytes
+        else:
+            crossed = sum(t.get("worker_sent_bytes", [])) + sum(t.get("worker_received_bytes", []))
+        out.append((len(busy), float(crossed), wall - max(busy, default=0.0)))
+    return out
 
 
 def median_overhead(traces: Iterable[TraceLike]) -> float:
@@ -261,5 +321,6 @@ __all__ = [
     "median_overhead",
     "predict",
     "serial_time",
+    "superstep_samples",
     "task_times",
 ]

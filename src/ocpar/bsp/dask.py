@@ -40,7 +40,9 @@ channel), ``Client.run`` 15–20×, and a Dask actor (own thread, reached direct
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import copy
+import dataclasses
 import gc
 import os
 import time
@@ -320,8 +322,10 @@ class DaskBackend(Backend):
                 if w in failed:
                     continue
                 try:
-                    replies[w] = self._channels[targets[w]].receive(
-                        max(deadline - time.monotonic(), 0.0))
+                    channel = self._channels[targets[w]]
+                    reply = channel.receive(max(deadline - time.monotonic(), 0.0))
+                    replies[w] = dataclasses.replace(reply, sent_bytes=channel.sent_bytes,
+                                                     received_bytes=channel.received_bytes)
                 except TimeoutError:
                     for address in list(self._channels):  # replies may still come: out of step
                         self._drop_channel(address)
@@ -374,6 +378,10 @@ class DaskBackend(Backend):
                            f"{self.superstep_timeout_s:g} s (lost or hung)")
 
     def close(self) -> None:
+        if getattr(self, "client", None) is not None and getattr(self, "_resident_sets", None):
+            # workers gone take their states with them
+            with contextlib.suppress(OSError, EOFError, BackendError):
+                self._close_resident_sets()
         for address in list(getattr(self, "_channels", {})):
             self._drop_channel(address)
         client, self.client = getattr(self, "client", None), None

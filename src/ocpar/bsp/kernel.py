@@ -73,7 +73,10 @@ class ChunkResult:
     ``results`` is a list, or :class:`~ocpar.bsp.columns.Columns` where a backend packed
     them; ``task_wall_s``/``task_cpu_s`` are per task (s); ``busy_s``/``cpu_s`` cover the
     whole chunk (with its unpacking and packing, where there is any);
-    ``peak_rss_mb`` is the worker process's peak resident memory so far (MiB).
+    ``peak_rss_mb`` is the worker process's peak resident memory so far (MiB);
+    ``sent_bytes``/``received_bytes`` the length of the coordinator's message with the chunk
+    and of the reply, as the backend's transport counted them (0 where the chunk ran in the
+    coordinator's process, or the transport does not count: Dask's ``tasks`` dispatch).
     """
 
     results: list[Any] | Columns
@@ -82,6 +85,8 @@ class ChunkResult:
     busy_s: float
     cpu_s: float
     peak_rss_mb: float
+    sent_bytes: int = 0
+    received_bytes: int = 0
 
 
 def run_chunk(name: str, tasks: Sequence[Any] | Columns) -> ChunkResult:

@@ -22,6 +22,7 @@ checkpoint (:mod:`ocpar.bsp.journal`) holds every superstep completed before.
 from __future__ import annotations
 
 import os
+import pickle
 import sys
 import time
 from collections.abc import Iterator
@@ -79,10 +80,12 @@ class MpiBackend(Backend):
         return self.rank == 0
 
     def _run_chunks(self, name: str, chunks: list[list[Any] | Columns]) -> list[ChunkResult]:
-        sends = [self.comm.isend((name, to_columns(chunk)), dest=rank, tag=TASKS)
+        sends = [self._isend((name, to_columns(chunk)), rank, TASKS)
                  for rank, chunk in enumerate(chunks[1:], start=1)]
         deadline = time.monotonic() + self.timeout_s
-        return self._gather(run_packed_chunk(name, to_columns(chunks[0])), sends, deadline)
+        results, sizes = self._gather(run_packed_chunk(name, to_columns(chunks[0])), sends,
+                                      deadline)
+        return [_counted(result, size) for result, size in zip(results, sizes, strict=True)]
 
     def _queues(self, name: str) -> bool:
         return self.workers > 1 and not getattr(resolve_kernel(name), "batched", False)
@@ -92,11 +95,12 @@ class MpiBackend(Backend):
         packed = to_columns(tasks)
         base = self._fetched
         self._fetched += len(packed) + self.workers  # each rank's last fetch finds it empty
-        sends = [self.comm.isend((name, packed, base), dest=rank, tag=TASKS)
+        sends = [self._isend((name, packed, base), rank, TASKS)
                  for rank in range(1, self.workers)]
         deadline = time.monotonic() + self.timeout_s
-        gathered = self._gather(self._take(name, packed, base), sends, deadline)
-        return [taken for taken, _ in gathered], [chunk for _, chunk in gathered]
+        gathered, sizes = self._gather(self._take(name, packed, base), sends, deadline)
+        return ([taken for taken, _ in gathered],
+                [_counted(chunk, size) for (_, chunk), size in zip(gathered, sizes, strict=True)])
 
     def _take(self, name: str, tasks: list[Any] | Columns, base: int
               ) -> tuple[list[int], ChunkResult]:
@@ -136,16 +140,42 @@ class MpiBackend(Backend):
             self.comm.Barrier()  # no rank counts before the counter is 0
         return self._window
 
-    def _gather(self, own: Any, sends: list[Any], deadline: float) -> list[Any]:
+    def _isend(self, message: Any, rank: int, tag: int) -> tuple[Any, int]:
+        """Send ``message`` pickled (as mpi4py's ``isend`` does) to ``rank``, without waiting:
+        the request and the message's length (bytes)."""
+        from mpi4py import MPI
+
+        data = pickle.dumps(message, protocol=pickle.HIGHEST_PROTOCOL)
+        return self.comm.Isend([data, MPI.BYTE], dest=rank, tag=tag), len(data)
+
+    def _send(self, message: Any, rank: int, tag: int) -> None:
+        """Send ``message`` pickled to ``rank`` and wait until it has left."""
+        request, _ = self._isend(message, rank, tag)
+        request.Wait()
+
+    def _receive(self, rank: int, tag: int) -> tuple[Any, int]:
+        """The next message from ``rank`` with ``tag``, unpickled, and its length (bytes)."""
+        from mpi4py import MPI
+
+        status = MPI.Status()
+        self.comm.Probe(source=rank, tag=tag, status=status)
+        data = bytearray(status.Get_count(MPI.BYTE))
+        self.comm.Recv([data, MPI.BYTE], source=rank, tag=tag)
+        return pickle.loads(data), len(data)
+
+    def _gather(self, own: Any, sends: list[tuple[Any, int]], deadline: float
+                ) -> tuple[list[Any], list[tuple[int, int]]]:
         """Rank 0's own result followed by every other rank's, received by ``deadline``
-        (else abort)."""
+        (else abort), and per rank the bytes (sent, received): (0, 0) for rank 0."""
         results: list[Any] = [own] + [None] * (self.workers - 1)
+        sizes = [(0, 0)] + [(sent, 0) for _, sent in sends]
         waiting = set(range(1, self.workers))
         finished = time.monotonic()  # rank 0's own chunk
         while waiting:
             for rank in sorted(waiting):
                 if self.comm.Iprobe(source=rank, tag=RESULTS):
-                    results[rank] = self.comm.recv(source=rank, tag=RESULTS)
+                    results[rank], received = self._receive(rank, RESULTS)
+                    sizes[rank] = (sizes[rank][0], received)
                     waiting.discard(rank)
             if waiting:
                 now = time.monotonic()
@@ -153,9 +183,9 @@ class MpiBackend(Backend):
                     self._abort(waiting)
                 if now - finished > SPIN_S:
                     time.sleep(1e-4)
-        for request in sends:
-            request.wait()
-        return results
+        for request, _ in sends:
+            request.Wait()
+        return results, sizes
 
     def _abort(self, missing: set[int]) -> None:
         ranks = ", ".join(str(r) for r in sorted(missing))
@@ -167,16 +197,17 @@ class MpiBackend(Backend):
 
     def serve(self) -> None:
         """On ranks > 0: solve the chunks rank 0 sends until it closes the backend."""
-        while (message := self.comm.recv(source=0, tag=TASKS)) is not None:
+        while (message := self._receive(0, TASKS)[0]) is not None:
             result = run_packed_chunk(*message) if len(message) == 2 else self._take(*message)
-            self.comm.send(result, dest=0, tag=RESULTS)
+            self._send(result, 0, RESULTS)
         self._free_window()
 
     def close(self) -> None:
         if self.is_coordinator and not self._closed:
+            self._close_resident_sets()
             self._closed = True
             for rank in range(1, self.workers):
-                self.comm.send(None, dest=rank, tag=TASKS)
+                self._send(None, rank, TASKS)
             self._free_window()
 
     def _free_window(self) -> None:
@@ -184,3 +215,9 @@ class MpiBackend(Backend):
             self._window.Unlock_all()
             self._window.Free()
             self._window = None
+
+
+def _counted(result: ChunkResult, size: tuple[int, int]) -> ChunkResult:
+    """``result`` with the bytes (sent, received) its chunk crossed."""
+    result.sent_bytes, result.received_bytes = size
+    return result

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass, fields
+from dataclasses import dataclass, field, fields
 
 
 @dataclass
@@ -13,7 +13,11 @@ class SuperstepTrace:
     task order; ``worker_busy_s``/``worker_cpu_s``
     and ``worker_peak_rss_mb`` (peak resident memory of the worker process so far, MiB)
     per worker; ``overhead_s`` = ``wall_s`` - max(``worker_busy_s``): communication, barrier
-    and scheduling cost.
+    and scheduling cost. ``worker_sent_bytes``/``worker_received_bytes``: per worker, the
+    bytes of the coordinator's messages to it and of its replies (0 for a chunk run in the
+    coordinator's own process, as worker 0 under MPI and the serial backend's, or where the
+    transport does not count: Dask's ``tasks`` dispatch); :attr:`sent_bytes` and
+    :attr:`received_bytes` their sums (the h of the cost model's g·h).
     """
 
     index: int
@@ -26,6 +30,18 @@ class SuperstepTrace:
     task_wall_s: list[float]
     task_cpu_s: list[float]
     task_worker: list[int]
+    worker_sent_bytes: list[int] = field(default_factory=list)
+    worker_received_bytes: list[int] = field(default_factory=list)
+
+    @property
+    def sent_bytes(self) -> int:
+        """Bytes the coordinator sent this superstep."""
+        return sum(self.worker_sent_bytes)
+
+    @property
+    def received_bytes(self) -> int:
+        """Bytes the coordinator received this superstep."""
+        return sum(self.worker_received_bytes)
 
     @property
     def workers(self) -> int:
@@ -47,4 +63,5 @@ class SuperstepTrace:
         ~1 s per run at 10,000 agents), with ``overhead_s`` and ``imbalance``."""
         out = {f.name: getattr(self, f.name) for f in fields(self)}
         out = {k: list(v) if isinstance(v, list) else v for k, v in out.items()}
-        return out | {"overhead_s": self.overhead_s, "imbalance": self.imbalance}
+        return out | {"overhead_s": self.overhead_s, "imbalance": self.imbalance,
+                      "sent_bytes": self.sent_bytes, "received_bytes": self.received_bytes}

@@ -259,6 +259,7 @@ def _rotate(problem: FormationProblem, backend: Backend, phi: np.ndarray, tol: f
             objective = OuterObjective(problem, backend)
             phi, _, _, _ = tangent_newton(objective, phi, tol, MAX_ROTATION_ITERATIONS)
             cost = objective.value(phi)
+            objective.close()
             table = cost_tables(problem, backend, phi.reshape(1, n, -1))[0]
             solves += objective.inner_solves + table.size
             assignment = cheapest_assignment(table)

@@ -34,7 +34,7 @@ from ocpar.formation.potential import equidistance_error
 from ocpar.formation.problem import FormationProblem
 from ocpar.formation.slots import Slots
 from ocpar.formation.surface import Surface
-from ocpar.ocp import solve_tasks
+from ocpar.ocp.endpoint_agents import agent_tasks, solve_agents
 
 #: Second iterate of the offset search (rad): 1/60 of a slot for the paper's 60 agents.
 OFFSET_FIRST_STEP = 1.7e-3
@@ -55,10 +55,13 @@ class InnerSolveFailed(RuntimeError):
 class OuterObjective:
     """Σ_i Ĵ_i(φ_i) and its gradient, one superstep per new φ (cached for the last φ).
 
-    The inner solutions of the last superstep are kept in columnar form (:attr:`last_solutions`,
-    a :class:`~ocpar.bsp.columns.Columns` of :class:`~ocpar.ocp.DmocSolution`): the
-    coordinator reads whole columns (costs (n,), gradients (n, 4 nq), paths (n, N+1, nq)),
-    never one object per agent.
+    The agents are resident on the backend's workers (:mod:`ocpar.ocp.endpoint_agents`): a
+    superstep sends each agent's boundary data (on its first superstep; later only the
+    position part of its end configuration, z(φ_i)) and gathers its
+    :class:`~ocpar.ocp.endpoint_agents.AgentOutcome` (J*, dJ*/dq_N, the end Hessian's position
+    block), as columns (:meth:`outcomes`); the inner solutions (paths, controls) stay on the
+    workers, each agent's the fallback start of its next solve, until :meth:`solutions`
+    gathers them (once per φ). :meth:`close` frees the workers' memory of them.
     """
 
     def __init__(
@@ -72,45 +75,70 @@ class OuterObjective:
         self.failed_solves = 0
         self.retries = 0
         self.last_phi: np.ndarray | None = None
-        self.last_solutions: Columns | None = None
+        self.last_outcomes: Columns | None = None
+        self._agents = backend.resident(solve_agents, problem.agents)
+        self._gathered: Columns | None = None  # the solutions at last_phi, once gathered
 
-    def solutions(self, phi: np.ndarray) -> Columns:
-        """Inner solutions for angles φ: one superstep, unless φ is the last one asked for."""
+    def outcomes(self, phi: np.ndarray) -> Columns:
+        """The agents' outcomes at angles φ (Columns of
+        :class:`~ocpar.ocp.endpoint_agents.AgentOutcome`): one superstep, unless φ is the last
+        one asked for. Raises :class:`InnerSolveFailed` if a solve failed."""
         phi = np.asarray(phi, float)
         if self.last_phi is None or not np.array_equal(phi, self.last_phi):
-            tasks = self.problem.tasks(phi, self._warm_starts())
-            sols = self.backend.superstep_columns(solve_tasks, tasks)
-            self.inner_solves += len(sols)
-            self.retries += int(np.sum(np.asarray(sols.column("attempts")) - 1))
-            failed = np.flatnonzero(~np.asarray(sols.column("success"), dtype=bool))
+            problem, d = self.problem, self.problem.curve.dim
+            if self._agents.version == 0:
+                tasks = agent_tasks(problem.shape, d, params=problem.boundary_params_rows(
+                    np.arange(problem.agents), phi))
+            else:  # the agents keep the rest of their boundary data
+                tasks = agent_tasks(problem.shape, d, end=problem.final_positions(phi))
+            outcomes = self._agents.step(tasks)
+            self.inner_solves += len(outcomes)
+            self.retries += int(np.sum(np.asarray(outcomes.column("attempts")) - 1))
+            failed = np.flatnonzero(~np.asarray(outcomes.column("success"), dtype=bool))
             self.failed_solves += len(failed)
-            self.last_phi, self.last_solutions = phi.copy(), sols
-            self._report(phi, sols)
+            self.last_phi, self.last_outcomes, self._gathered = phi.copy(), outcomes, None
+            self._report(phi, outcomes)
             if len(failed):
                 raise InnerSolveFailed(
                     f"{len(failed)} inner solve(s) failed, first agent {failed[0]}: "
-                    f"{sols.column('status')[failed[0]]}"
+                    f"{outcomes.column('status')[failed[0]]}"
                 )
-        return self.last_solutions
+        return self.last_outcomes  # type: ignore[return-value]
 
-    def _warm_starts(self) -> np.ndarray | None:
-        """The last superstep's paths and controls (n, nq (N−1) + nu N): each agent's retry
-        start if its next first attempt fails (the failure policy of
-        :func:`~ocpar.ocp.solve_tasks`: previous solution, then the straight line)."""
-        if self.last_solutions is None:
+    def solutions(self, phi: np.ndarray) -> Columns:
+        """The inner solutions at angles φ (Columns of
+        :class:`~ocpar.ocp.endpoint_agents.AgentState`, a :class:`~ocpar.ocp.DmocSolution`
+        with its boundary data: costs (n,), paths (n, N+1, nq), controls (n, N, nu), ...):
+        :meth:`outcomes`, then one superstep that gathers the solutions from the workers (once
+        per φ)."""
+        self.outcomes(phi)
+        return self.last_solutions  # type: ignore[return-value]
+
+    @property
+    def last_solutions(self) -> Columns | None:
+        """The inner solutions of the last superstep, gathered from the workers on first use
+        (None before the first superstep); also after a superstep whose solves failed."""
+        if self.last_phi is None:
             return None
-        q, u = (np.asarray(self.last_solutions.column(name)) for name in ("q", "u"))
-        return np.hstack([q[:, 1:-1].reshape(len(q), -1), u.reshape(len(u), -1)])
+        if self._gathered is None:
+            self._gathered = self._agents.collect()
+            if self.progress is not None:
+                trace = self.backend.traces[-1]
+                self.progress(f"superstep {trace.index:4d}  gathered the {trace.tasks} agents' "
+                              f"paths  wall {trace.wall_s * 1e3:7.1f} ms")
+        return self._gathered
+
+    def close(self) -> None:
+        """Free the workers' memory of the agents' solutions (then no more supersteps)."""
+        self._agents.close()
 
     def value(self, phi: np.ndarray) -> float:
-        return float(np.sum(self.solutions(phi).column("cost")))
+        return float(np.sum(self.outcomes(phi).column("cost")))
 
     def gradient(self, phi: np.ndarray) -> np.ndarray:
         """dJ/dφ (n k,) from each agent's dJ*/dq_N (entries 2nq..3nq of dJ*/dp): on a curve
         dJ*/dq_N · z′(φ_i), on a surface (∂z/∂φ_i)ᵀ ∇_pos J*_i (agent i's at 2i, 2i+1)."""
-        sols = self.solutions(phi)
-        nq = self.problem.common_shape.model.nq
-        d_end = np.asarray(sols.column("cost_gradient"))[:, 2 * nq : 3 * nq]
+        d_end = np.asarray(self.outcomes(phi).column("end_gradient"))
         if isinstance(self.problem.curve, Surface):
             along = self.problem.curve.jacobians(np.reshape(phi, (-1, 2)))
             return np.einsum("id,idk->ik", d_end[:, : along.shape[1]], along).ravel()
@@ -121,10 +149,10 @@ class OuterObjective:
         position block (d × d, d = curve.dim) of each agent's d²J*/dq_N² and ∇_pos J*_i the
         position entries of dJ*/dq_N. The off-diagonal entries are zero (Ĵ_i depends on φ_i
         alone)."""
-        sols = self.solutions(phi)
-        nq, d = self.problem.common_shape.model.nq, self.problem.curve.dim
-        h_pos = np.asarray(sols.column("end_hessian"))[:, :d, :d]
-        d_pos = np.asarray(sols.column("cost_gradient"))[:, 2 * nq : 2 * nq + d]
+        outcomes = self.outcomes(phi)
+        d = self.problem.curve.dim
+        h_pos = np.asarray(outcomes.column("end_hessian"))
+        d_pos = np.asarray(outcomes.column("end_gradient"))[:, :d]
         tangent = self.problem.curve.tangents(phi)
         curvature = self.problem.curve.curvatures(phi)
         return (np.einsum("id,ide,ie->i", tangent, h_pos, tangent)
@@ -136,20 +164,20 @@ class OuterObjective:
         with T = ∂z/∂φ_i (3 × 2)."""
         if not isinstance(self.problem.curve, Surface):
             return self.hessian_diagonal(phi)[:, None, None]
-        sols = self.solutions(phi)
-        nq, d = self.problem.common_shape.model.nq, self.problem.curve.dim
-        h_pos = np.asarray(sols.column("end_hessian"))[:, :d, :d]
-        d_pos = np.asarray(sols.column("cost_gradient"))[:, 2 * nq : 2 * nq + d]
+        outcomes = self.outcomes(phi)
+        d = self.problem.curve.dim
+        h_pos = np.asarray(outcomes.column("end_hessian"))
+        d_pos = np.asarray(outcomes.column("end_gradient"))[:, :d]
         at = np.reshape(phi, (-1, 2))
         along = self.problem.curve.jacobians(at)
         return (np.einsum("ida,ide,ieb->iab", along, h_pos, along)
                 + np.einsum("id,idab->iab", d_pos, self.problem.curve.second_derivatives(at)))
 
-    def _report(self, phi: np.ndarray, sols: Columns) -> None:
+    def _report(self, phi: np.ndarray, outcomes: Columns) -> None:
         if self.progress is None:
             return
         trace = self.backend.traces[-1]
-        cost = float(np.sum(sols.column("cost")))
+        cost = float(np.sum(outcomes.column("cost")))
         # on a circle the gaps' deviation, O(n log n): |c(φ)| would cost O(n²) per superstep
         # (50 ms at 1000 agents, as much as the superstep itself on 64 workers)
         if self.problem.on_circle:

@@ -372,6 +372,7 @@ def solve_formation(
     except InnerSolveFailed as exc:
         phi, iterations, status, message = objective.last_phi, -1, "failed", str(exc)
         sols = objective.last_solutions
+    objective.close()  # the solutions are gathered: the workers need not keep them
     costs = np.asarray(sols.column("cost"), dtype=float)
     trajectories, controls = np.asarray(sols.column("q")), np.asarray(sols.column("u"))
     separation = None  # the unconstrained paths' closest approach, once the solve is timed

@@ -1,0 +1,129 @@
+"""DMOC agents whose end position an outer problem chooses, as resident agents
+(:mod:`ocpar.bsp.resident`): each agent's inner solution stays on the worker that computed
+it, and a superstep moves only what the outer step needs (the formation's outer objective,
+:class:`~ocpar.formation.hierarchical.OuterObjective`).
+
+An agent's first task (an :class:`AgentTask`) carries its DMOC shape (shared by a chunk's
+agents) and its boundary data p = (q_0, q̇_0, q_N, q̇_N) (4 nq numbers); later tasks only the
+position part of q_N (the first d entries, d numbers), the rest of p being fixed. Back comes
+an :class:`AgentOutcome` (J*, dJ*/dq_N, the end Hessian's position block, success, status,
+attempts: 1 + nq + d² numbers and three small ones). The agent's :class:`AgentState` (its
+:class:`~ocpar.ocp.DmocSolution`: paths, controls, multipliers; and its boundary data) stays
+on its worker: the solution is the next solve's fallback start (the failure policy of
+:func:`~ocpar.ocp.solve_tasks`), gathered by the coordinator once, at the end. The solves are
+those of sending everything out and back each superstep, bit for bit.
+
+In the transcription layer (not the formation's package) so that a worker that has imported
+:mod:`ocpar.ocp` (the Dask workers' preload) unpickles these tasks without importing a
+scheme.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from ocpar.bsp.columns import LISTED, SHARED, STACKED, Columns, to_columns
+from ocpar.bsp.kernel import run_chunk
+from ocpar.ocp.contract import OcpTask, Shape
+from ocpar.ocp.dmoc import DmocShape, DmocSolution
+
+#: The engine kernel the agents' solves go through (so that the kernel hook
+#: :data:`~ocpar.bsp.kernel.WRAPPER_VARIABLE` applies to them as to any superstep's).
+INNER_KERNEL = "ocpar.ocp:solve_tasks"
+
+
+@dataclass(frozen=True)
+class AgentTask:
+    """One agent's inner solve in a superstep: its DMOC ``shape``; on its first task its
+    boundary data ``params`` p = (q_0, q̇_0, q_N, q̇_N) (4 nq,) and ``end`` None, later
+    ``params`` None and ``end`` the position part of q_N (d,) (the first d entries of q_N:
+    the rest of p is kept from the first task); ``positions`` d, the number of leading
+    configuration entries (the curve's dimension)."""
+
+    shape: Shape
+    params: np.ndarray | None
+    end: np.ndarray | None
+    positions: int
+
+
+@dataclass
+class AgentState(DmocSolution):
+    """What stays on an agent's worker: its latest solution and its boundary data ``params``
+    (4 nq,) of that solve."""
+
+    params: np.ndarray
+
+
+@dataclass
+class AgentOutcome:
+    """What the outer step needs of one agent's solve: ``cost`` J* (NaN on failure),
+    ``end_gradient`` dJ*/dq_N (nq,), ``end_hessian`` the position block of d²J*/dq_N²
+    (d, d), ``success``, the solver's ``status`` and the failure policy's ``attempts``."""
+
+    cost: float
+    end_gradient: np.ndarray
+    end_hessian: np.ndarray
+    success: bool
+    status: str
+    attempts: int
+
+
+def solve_agents(tasks: Columns, states: Columns | None) -> tuple[Columns, Columns]:
+    """Resident kernel: the agents' solves from ``tasks`` (Columns of :class:`AgentTask`),
+    each falling back to its previous solution (``states``: Columns of :class:`AgentState`;
+    None on the first task: no fallback). Returns their :class:`AgentOutcome` and their new
+    :class:`AgentState` (the new states)."""
+    k = len(tasks)
+    d = int(tasks.column("positions")[0])  # the curve's dimension: every agent's
+    fallback: tuple[str, object] = (SHARED, None)
+    if states is None:
+        params = np.asarray(tasks.column("params"), float)
+    else:
+        q, u = np.asarray(states.column("q")), np.asarray(states.column("u"))
+        fallback = (STACKED, np.hstack([q[:, 1:-1].reshape(k, -1), u.reshape(k, -1)]))
+        params = np.array(states.column("params"), float)
+        nq = params.shape[1] // 4
+        params[:, 2 * nq: 2 * nq + d] = tasks.column("end")
+    inner = Columns(cls=OcpTask, length=k, fields={
+        "shape": tasks.fields["shape"], "params": (STACKED, params),
+        "warm_start": (SHARED, None), "multipliers": (SHARED, None), "fallback": fallback})
+    solutions = to_columns(run_chunk(INNER_KERNEL, inner).results)
+    assert isinstance(solutions, Columns)
+    nq = params.shape[1] // 4
+    gradient = np.asarray(solutions.column("cost_gradient"))[:, 2 * nq: 3 * nq]
+    outcome = Columns(cls=AgentOutcome, length=k, fields={
+        "cost": solutions.fields["cost"],
+        "end_gradient": (STACKED, np.ascontiguousarray(gradient)),
+        "end_hessian": (STACKED, np.ascontiguousarray(
+            np.asarray(solutions.column("end_hessian"))[:, :d, :d])),
+        "success": solutions.fields["success"],
+        "status": solutions.fields["status"],
+        "attempts": solutions.fields["attempts"],
+    })
+    states = Columns(cls=AgentState, length=k,
+                     fields=solutions.fields | {"params": (STACKED, params)})
+    return outcome, states
+
+
+def agent_tasks(shapes: DmocShape | Sequence[DmocShape], positions: int,
+                params: np.ndarray | None = None, end: np.ndarray | None = None) -> Columns:
+    """Columns of :class:`AgentTask`, one per agent: their first tasks given their boundary
+    data ``params`` (n, 4 nq), later ones given the position part of q_N ``end`` (n, d =
+    ``positions``) instead. ``shapes``: one shape for all, or one per agent."""
+    rows = params if params is not None else end
+    if rows is None or (params is None) == (end is None):
+        raise ValueError("agent_tasks needs either params or end")
+    shape_column = ((SHARED, shapes) if isinstance(shapes, DmocShape)
+                    else (LISTED, list(shapes)))
+    return Columns(cls=AgentTask, length=len(rows), fields={
+        "shape": shape_column,
+        "params": (SHARED, None) if params is None else (STACKED, params),
+        "end": (SHARED, None) if end is None else (STACKED, end),
+        "positions": (SHARED, positions)})
+
+
+__all__ = ["INNER_KERNEL", "AgentOutcome", "AgentState", "AgentTask", "agent_tasks",
+           "solve_agents"]

@@ -1,0 +1,130 @@
+"""Resident agents (ocpar.bsp.resident): the formation's solutions stay on the workers, and
+the run is bit for bit the same whatever holds them: serial, mpirun -n 2, Dask with 1, 2 or 3
+workers, a Dask worker killed between supersteps, a run resumed from its checkpoint."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import time
+
+import numpy as np
+import pytest
+from conftest import run_cli
+from test_checkpoint import Crash, crash_after
+
+from ocpar.bsp import open_backend
+from ocpar.bsp.journal import Journal
+from ocpar.examples.formation_point_masses import make as paper_example
+from ocpar.formation import solve_formation
+from ocpar.formation.hierarchical import OuterObjective
+
+AGENTS = 24
+
+
+@pytest.fixture(scope="module")
+def serial_run():
+    return solve_formation(paper_example(AGENTS))
+
+
+def assert_bitwise(result, reference) -> None:
+    assert result.total_cost == reference.total_cost
+    assert np.array_equal(result.phi, reference.phi)
+    assert np.array_equal(result.agent_costs, reference.agent_costs)
+    assert np.array_equal(result.trajectories, reference.trajectories)
+    assert np.array_equal(result.controls, reference.controls)
+    assert result.supersteps == reference.supersteps
+
+
+def test_a_superstep_moves_outcomes_and_the_paths_come_once(serial_run):
+    """Every superstep but the last returns outcomes (no paths); the last gathers the
+    paths, once."""
+    with open_backend("serial") as backend:
+        objective = OuterObjective(paper_example(AGENTS), backend)
+        phi = serial_run.phi
+        outcomes = objective.outcomes(phi)
+        assert set(outcomes.fields) == {"cost", "end_gradient", "end_hessian", "success",
+                                        "status", "attempts"}
+        assert np.asarray(outcomes.column("end_hessian")).shape == (AGENTS, 2, 2)
+        solutions = objective.solutions(phi)
+        assert objective.solutions(phi) is solutions and len(backend.traces) == 2
+        assert np.asarray(solutions.column("q")).shape == (AGENTS, 11, 2)
+        assert np.array_equal(solutions.column("cost"), outcomes.column("cost"))
+
+
+@pytest.mark.parametrize("workers", [1, 2, 3])
+def test_dask_workers_give_the_serial_run_bit_for_bit(serial_run, workers):
+    with open_backend("dask", workers=workers) as backend:
+        result = solve_formation(paper_example(AGENTS), backend)
+    assert_bitwise(result, serial_run)
+    assert all(t.sent_bytes > 0 and t.received_bytes > 0 for t in result.trace)
+
+
+def test_mpirun_gives_the_serial_run_bit_for_bit(serial_run, tmp_path):
+    proc = run_cli("-m", "ocpar.formation", "--agents", str(AGENTS), "--quiet", "--output",
+                   str(tmp_path), mpi_ranks=2)
+    assert proc.returncode == 0, proc.stderr
+    data = json.loads((tmp_path / "result.json").read_text())
+    assert data["workers"] == 2
+    assert data["total_cost"] == serial_run.total_cost
+    assert data["phi"] == serial_run.phi.tolist()
+    assert data["agent_costs"] == serial_run.agent_costs.tolist()
+    assert data["supersteps"] == serial_run.supersteps
+    # the transport counts the bytes: every superstep's few, the last's (the paths) many
+    *solves, gather = data["trace"]
+    assert all(0 < t["received_bytes"] < gather["received_bytes"] / 4 for t in solves)
+    assert all(t["sent_bytes"] > gather["sent_bytes"] for t in solves)
+
+
+def test_a_resumed_run_rebuilds_the_workers_states_from_the_history(serial_run, tmp_path):
+    """Killed after 3 supersteps and resumed: the journal serves them, the workers hold no
+    states, and the next superstep replays each agent's three tasks to rebuild them."""
+    backend = open_backend("serial")
+    backend.journal = Journal(tmp_path, {"run": "formation"}, resume=False)
+    crash_after(backend, 3)
+    with pytest.raises(Crash):
+        solve_formation(paper_example(AGENTS), backend)
+    resumed = open_backend("serial")
+    resumed.journal = Journal(tmp_path, {"run": "formation"}, resume=True)
+    calls = []
+    run = resumed._run_chunks
+    resumed._run_chunks = lambda name, chunks: calls.append(chunks) or run(name, chunks)
+    result = solve_formation(paper_example(AGENTS), resumed)
+    assert_bitwise(result, serial_run)
+    rebuilt = [item for chunks in calls for chunk in chunks for item in chunk
+               if item.history is not None]
+    assert len(rebuilt) == 1 and len(rebuilt[0].history) == 3
+    assert len(rebuilt[0].rebuild) == AGENTS
+
+
+def test_a_killed_dask_worker_s_agents_are_rebuilt_on_a_live_one(serial_run):
+    """Two Dask workers; one is killed (SIGKILL) between supersteps: its agents' states are
+    rebuilt on the other from their history, and every value and path is the serial one."""
+    problem = paper_example(AGENTS)
+    angles = [serial_run.phi + delta for delta in (0.03, 0.02, 0.01, 0.0)]
+    with open_backend("serial") as serial:
+        reference = OuterObjective(problem, serial)
+        expected = [reference.gradient(phi) for phi in angles]
+        paths = np.asarray(reference.solutions(angles[-1]).column("q"))
+    with open_backend("dask", workers=2) as backend:
+        objective = OuterObjective(problem, backend)
+        got = [objective.gradient(phi) for phi in angles[:2]]
+        victim = backend.client.run(os.getpid)[backend.addresses[1]]
+        os.kill(victim, signal.SIGKILL)
+        time.sleep(0.5)
+        got += [objective.gradient(phi) for phi in angles[2:]]
+        assert backend.workers == 1
+        assert all(np.array_equal(g, e) for g, e in zip(got, expected, strict=True))
+        assert np.array_equal(np.asarray(objective.solutions(angles[-1]).column("q")), paths)
+
+
+def test_closing_frees_the_workers_states():
+    from ocpar.bsp import resident
+
+    with open_backend("serial") as backend:
+        objective = OuterObjective(paper_example(4), backend)
+        objective.value(paper_example(4).initial_phi())
+        assert any(key == objective._agents.key for key, _ in resident._BLOCKS)
+        objective.close()
+        assert not any(key == objective._agents.key for key, _ in resident._BLOCKS)
