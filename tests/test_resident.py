@@ -1,6 +1,6 @@
 """Resident agents (ocpar.bsp.resident): the formation's solutions stay on the workers, and
-the run is bit for bit the same whatever holds them: serial, mpirun -n 2, Dask with 1, 2 or 3
-workers, a Dask worker killed between supersteps, a run resumed from its checkpoint."""
+the run is bit for bit the same whatever holds them: serial, mpirun -n 2 and -n 8, Dask with
+1, 2 or 3 workers, a Dask worker killed between supersteps, a run resumed from its checkpoint."""
 
 from __future__ import annotations
 
@@ -61,12 +61,13 @@ def test_dask_workers_give_the_serial_run_bit_for_bit(serial_run, workers):
     assert all(t.sent_bytes > 0 and t.received_bytes > 0 for t in result.trace)
 
 
-def test_mpirun_gives_the_serial_run_bit_for_bit(serial_run, tmp_path):
+@pytest.mark.parametrize("ranks", [2, 8])   # 8: oversubscribed, 3 agents per rank
+def test_mpirun_gives_the_serial_run_bit_for_bit(serial_run, tmp_path, ranks):
     proc = run_cli("-m", "ocpar.formation", "--agents", str(AGENTS), "--quiet", "--output",
-                   str(tmp_path), mpi_ranks=2)
+                   str(tmp_path), mpi_ranks=ranks)
     assert proc.returncode == 0, proc.stderr
     data = json.loads((tmp_path / "result.json").read_text())
-    assert data["workers"] == 2
+    assert data["workers"] == ranks
     assert data["total_cost"] == serial_run.total_cost
     assert data["phi"] == serial_run.phi.tolist()
     assert data["agent_costs"] == serial_run.agent_costs.tolist()
