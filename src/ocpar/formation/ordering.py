@@ -343,6 +343,7 @@ def optimal_ordering(
         # the better assignment at this offset: its cost is known from the table, exactly
         assignment = better
         phi, total_cost = base[assignment] + offset, assignment_cost(table, assignment)
+    objective.close()   # the chosen angles start the outer solve, with its own agents
     return OrderingResult(
         phi=np.asarray(phi, float),
         assignment=assignment,
