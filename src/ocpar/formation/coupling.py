@@ -76,7 +76,7 @@ class Coupling(ABC):
     def expr(self, phi: ca.SX, curve: Curve) -> ca.SX:
         """c(φ) as a CasADi column (m, 1) of the angle column ``phi`` (n, 1)."""
 
-    def _compiled(self, curve: Curve, n: int) -> ca.Function:
+    def _compiled(self, curve: Curve, n: int) -> tuple[Curve, ca.Function, ca.Function]:
         """φ ↦ (c, dc/dφ); (φ, λ) ↦ d²(λᵀc)/dφ²: built on first use for (curve, n)."""
         cache = self.__dict__.setdefault("_functions", {})
         key = (id(curve), n)
@@ -134,8 +134,7 @@ class Coupling(ABC):
     def free_directions(self, phi: np.ndarray, curve: Curve) -> np.ndarray:
         """An orthonormal basis (n, r) of the tangent space of c = 0 at ``phi``: r = 0 where
         the solution is isolated."""
-        jacobian = self.jacobian(phi, curve)
-        return null_space(jacobian, rcond=RANK_RTOL) if jacobian.size else np.eye(len(phi))
+        return null_space(self.jacobian(phi, curve), rcond=RANK_RTOL)
 
     def feasible_set(self, phi: np.ndarray, curve: Curve) -> str:
         """``continuous`` if the solutions near ``phi`` (a solution) form a manifold the cost
@@ -168,9 +167,7 @@ class PotentialCoupling(Coupling):
 
     def expr(self, phi: ca.SX, curve: Curve | Surface) -> ca.SX:
         if isinstance(curve, Surface):
-            scaled = curve.length_scale**2 / (phi.numel() // 2) ** 3 * _surface_potential(
-                phi, curve)
-            return ca.gradient(scaled, phi)
+            return ca.gradient(_scaled_surface_potential(phi, curve), phi)
         return coupling_expr(phi, curve)
 
     def residual(self, phi: np.ndarray, curve: Curve | Surface) -> np.ndarray:
@@ -203,8 +200,7 @@ class PotentialCoupling(Coupling):
         key = ("G", id(surface), n)
         if key not in cache:
             x = ca.SX.sym("phi", 2 * n)
-            cache[key] = (surface, ca.Function("G", [x], [
-                surface.length_scale**2 / n**3 * _surface_potential(x, surface)]))
+            cache[key] = (surface, ca.Function("G", [x], [_scaled_surface_potential(x, surface)]))
         return float(cache[key][1](phi))
 
     def family(self, phi: np.ndarray, curve: Curve | Surface) -> ShiftFamily | None:
@@ -226,10 +222,12 @@ class PotentialCoupling(Coupling):
         """The potential evaluates on every target the problem accepts: nothing to check."""
 
 
-def _surface_potential(phi: ca.SX, surface: Surface) -> ca.SX:
-    """G = Σ_{i≠j} 1/|z(φ_i) − z(φ_j)|² for the parameters φ (2n, 1), agent i's at 2i, 2i+1."""
-    z = [surface.point(phi[2 * i : 2 * i + 2]) for i in range(phi.numel() // 2)]
-    return 2 * ca.sum1(ca.vertcat(*[1.0 / ca.sumsqr(z[i] - z[j])
+def _scaled_surface_potential(phi: ca.SX, surface: Surface) -> ca.SX:
+    """(ℓ²/n³) G, G = Σ_{i≠j} 1/|z(φ_i) − z(φ_j)|², for the parameters φ (2n, 1), agent i's
+    at 2i, 2i+1 (ℓ the surface's length scale)."""
+    n = phi.numel() // 2
+    z = [surface.point(phi[2 * i : 2 * i + 2]) for i in range(n)]
+    return surface.length_scale**2 / n**3 * 2 * ca.sum1(ca.vertcat(*[1.0 / ca.sumsqr(z[i] - z[j])
                                     for i in range(len(z)) for j in range(i + 1, len(z))]))
 
 

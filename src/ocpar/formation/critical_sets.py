@@ -265,7 +265,8 @@ def _rotate(problem: FormationProblem, backend: Backend, phi: np.ndarray, tol: f
             assignment = cheapest_assignment(table)
             if assignment_cost(table, assignment) >= cost * (1 - ROUNDING_RTOL):
                 break
-            phi = phi.reshape(n, -1)[assignment].ravel()
+            # the cheaper labelling of the same points: its cost is known from the table
+            phi, cost = phi.reshape(n, -1)[assignment].ravel(), assignment_cost(table, assignment)
         if best is None or cost < best[1]:
             best = (phi, cost)
     return best[0], best[1], solves
