@@ -15,7 +15,13 @@ from ocpar.bsp.partition import contiguous_blocks
 from ocpar.examples.formation_halo import make as halo_example
 from ocpar.examples.formation_point_masses import make as point_masses
 from ocpar.ocp import DmocShape, OcpTask, dmoc_problem, solve_task, solve_tasks
-from ocpar.ocp.batch import MappedNlp
+from ocpar.ocp.batch import (
+    MappedNlp,
+    batched_kkt_newton_function,
+    constant_kkt_matrix,
+    constant_outputs,
+    kkt_newton_function,
+)
 
 
 def formation_tasks(problem, phi=None, solver: str | None = None) -> list[OcpTask]:
@@ -41,10 +47,14 @@ def payload(solution) -> bytes:
 
 @BATCHED
 @pytest.mark.parametrize("workers", [1, 2, 3])
-def test_results_do_not_depend_on_the_chunking(workers, solver):
+@pytest.mark.parametrize("example", ["halo", "point-masses"])
+def test_results_do_not_depend_on_the_chunking(workers, solver, example):
     """A worker solves its chunk in one mapped call: every task's solution is bitwise the
-    one it gets alone, for the chunks of 1, 2 and 3 workers."""
-    tasks = formation_tasks(halo_example(agents=5, intervals=10), solver=solver)
+    one it gets alone, for the chunks of 1, 2 and 3 workers, on rigid spacecraft (a
+    nonlinear NLP) and on point masses (a QP: one factorisation per call)."""
+    problem = (halo_example(agents=5, intervals=10) if example == "halo"
+               else point_masses(7))
+    tasks = formation_tasks(problem, solver=solver)
     alone = [payload(solve_tasks([task])[0]) for task in tasks]
     chunked = [payload(s) for block in contiguous_blocks(len(tasks), workers)
                for s in solve_tasks([tasks[i] for i in block])]
@@ -150,3 +160,33 @@ def test_a_batch_packs_into_columns():
 def test_the_solver_option_is_checked():
     with pytest.raises(ValueError, match="unknown DMOC solver 'fatrop'"):
         DmocShape(point_masses(2).shape.model, solver="fatrop")
+
+
+@pytest.mark.parametrize("columns", [1, 5, 64])
+def test_a_constant_kkt_matrix_factorised_once_gives_the_per_column_bits(columns):
+    """A point-mass DMOC is a QP: its KKT matrix is constant, and a batch factorises it once.
+    From random iterates, multipliers and boundary data, every output of the batched Newton
+    step (iterate, multipliers, cost, constraints, dual residual, dJ/dp) is bitwise that of
+    the per-column Newton step mapped over the columns; the end Hessian is constant."""
+    transcription = dmoc_problem(point_masses(4).shape)
+    x, p = transcription._w, transcription._p
+    f, g = transcription.cost(x, p), transcription.constraints(x, p)
+    matrix = constant_kkt_matrix(x, p, f, g)
+    assert matrix is not None
+    assert constant_outputs(transcription.end_hessian)
+    rng = np.random.default_rng(3)
+    inputs = [rng.standard_normal((n, columns)) * 10 for n in (x.numel(), g.numel(), p.numel())]
+    per_column = kkt_newton_function("pc", x, p, f, g, 2).map(columns, "serial")(*inputs)
+    batched = batched_kkt_newton_function("b", x, p, f, g, 2, matrix, columns)(*inputs)
+    for one, other in zip(per_column, batched, strict=True):
+        assert np.asarray(one).tobytes() == np.asarray(other).tobytes()
+
+
+def test_a_nonlinear_problem_keeps_its_per_column_factorisation():
+    """Rigid spacecraft (attitude dynamics): the KKT matrix depends on the iterate, so there
+    is no constant matrix, and the end Hessian depends on the solution."""
+    transcription = dmoc_problem(halo_example(agents=2, intervals=10).shape)
+    x, p = transcription._w, transcription._p
+    assert constant_kkt_matrix(x, p, transcription.cost(x, p),
+                               transcription.constraints(x, p)) is None
+    assert not constant_outputs(transcription.end_hessian)
