@@ -15,17 +15,20 @@ import numpy as np
 from ocpar.bsp.columns import Columns, from_columns, to_columns
 from ocpar.bsp.journal import Journal, digest
 from ocpar.bsp.kernel import ChunkResult, KernelRef, kernel_name
-from ocpar.bsp.partition import contiguous_blocks, longest_first, sticky_longest_first
+from ocpar.bsp.partition import (
+    AFFINITY_TOLERANCE,
+    contiguous_blocks,
+    longest_first,
+    sticky_longest_first,
+)
 from ocpar.bsp.resident import STEP, ResidentSet
 from ocpar.bsp.trace import SuperstepTrace
 
 #: How a superstep's tasks are assigned to workers when no cost estimates are given:
 #: ``blocks`` (contiguous blocks of equal size) or ``lpt`` (longest-processing-time-first on
 #: the previous superstep's measured task times, keeping each task on its previous worker
-#: where that costs at most :data:`AFFINITY_TOLERANCE` of the makespan).
+#: where that costs at most :data:`~ocpar.bsp.partition.AFFINITY_TOLERANCE` of the makespan).
 BALANCE_POLICIES = ("blocks", "lpt")
-AFFINITY_TOLERANCE = 0.05
-
 
 
 class RunCancelled(RuntimeError):
