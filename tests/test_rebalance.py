@@ -6,6 +6,9 @@ every result is the serial run's bit for bit: Dask with 2 workers, mpirun -n 2."
 from __future__ import annotations
 
 import json
+import os
+import signal
+import time
 
 import numpy as np
 import pytest
@@ -140,3 +143,30 @@ def test_mpirun_blocks_follow_the_costs_and_every_result_is_the_serial_one(seria
     assert data["supersteps"] == serial_run.supersteps
     tasks = [t["worker_tasks"] for t in data["trace"]]
     assert tasks[0] == [120, 120] and any(t[0] < 120 for t in tasks), tasks
+
+
+def test_a_worker_killed_while_states_move_loses_nothing():
+    """Dask, 2 workers: worker 1 is killed (SIGKILL) right after a superstep that returned
+    moving agents' states: those reach the live worker with the next chunk, the dead
+    worker's other agents are rebuilt from their history, and every value and path is the
+    serial one."""
+    problem = skewed()
+    angles = [problem.initial_phi() + delta for delta in (0.0, 0.01, 0.02, 0.03, 0.04)]
+    with open_backend("serial") as serial:
+        reference = OuterObjective(problem, serial)
+        expected = [reference.gradient(phi) for phi in angles]
+        paths = np.asarray(reference.solutions(angles[-1]).column("q"))
+    with open_backend("dask", workers=2) as backend:
+        objective = OuterObjective(problem, backend)
+        agents = objective._agents
+        got = []
+        for phi in angles:
+            got.append(objective.gradient(phi))
+            if agents._moving is not None and backend.workers == 2:
+                victim = backend.client.run(os.getpid)[backend.addresses[1]]
+                os.kill(victim, signal.SIGKILL)
+                time.sleep(0.5)
+        assert backend.workers == 1 and agents.moved > 0
+        solutions = objective.solutions(angles[-1])
+    assert all(np.array_equal(g, e) for g, e in zip(got, expected, strict=True))
+    assert np.array_equal(np.asarray(solutions.column("q")), paths)

@@ -17,8 +17,9 @@ An agent's result and new state must depend only on its own task and previous st
 on which other agents share the call; then an agent's state is a function of its history of
 tasks alone, wherever it is computed.
 
-Placement: agent i belongs to worker slot w of :func:`~ocpar.bsp.partition.contiguous_blocks`
-(n agents, the backend's worker count), fixed while the worker count is. Each worker process
+Placement: the agents are split into contiguous blocks, one per worker slot
+(:attr:`ResidentSet.blocks`, at first :func:`~ocpar.bsp.partition.contiguous_blocks` of n
+agents over the backend's workers); slot w's chunk goes to worker w. Each worker process
 holds a store (module-level, :data:`_BLOCKS`) of its slots' states, keyed by the set and the
 slot, with the number of tasks they have seen (the *version*). A chunk names its agents and
 the version the coordinator expects; a worker that lacks some of them at that version (a
@@ -31,9 +32,30 @@ never depend on placement, worker count, faults or resumption. The history costs
 coordinator one task per agent per superstep in memory (100,000 formation agents: 6.4 MB for
 the first superstep, 1.6 MB for each later one) and is only sent where a worker lacks states.
 
-Not (yet) done: blocks are not rebalanced by measured per-agent costs (the ``balance``
-policy does not apply to resident supersteps), and a set that is never closed keeps its
-states on other processes until the backend closes.
+Rebalancing: the blocks follow the agents' measured costs. After each step an agent's cost
+is estimated as its slot's busy time over the slot's agents (a batched kernel times no finer),
+a piecewise-constant cost over agent ids, averaged over the steps (:data:`COST_SMOOTHING`;
+a slot that took in agents in that step keeps its agents' estimates: its time includes
+building solvers for the newcomers' shapes). Before a step the coordinator asks
+:meth:`ResidentSet.rebalanced` whether blocks of equal estimated cost
+(:func:`~ocpar.bsp.partition.cost_balanced_blocks`) pay: the current blocks' estimated
+imbalance (max/mean load) must exceed 1 + the backend's
+:attr:`~ocpar.bsp.Backend.resident_tolerance` (default
+:data:`~ocpar.bsp.partition.AFFINITY_TOLERANCE`, None: fixed blocks; ``--resident-blocks``
+on the command lines) and the makespan they save in one superstep must exceed the estimated
+cost of moving the leaving agents' states (:data:`MOVE_SECONDS` plus their bytes, as the
+workers report them, times :data:`MOVE_SECONDS_PER_BYTE`); never with one worker. A move
+takes no superstep of its own: in that step each old worker solves its old block, returns the
+leaving agents' new states with its reply (``export``) and forgets them; the next superstep's
+chunks (a step's or a collect's) carry them to their new workers (``imports``), which merge
+them with the states they hold. The states travel in the chunks, so the traces' bytes count
+them; a planned move never replays history (a worker lost with states in flight is a fault
+like any other: the moved states still arrive, the lost ones are replayed). The moves depend
+on timings, the results do not: an agent's state is a function of its own tasks.
+
+Not (yet) done: a set that is never closed keeps its states on other processes until the
+backend closes; the ``balance`` policy does not apply to resident supersteps (their blocks
+follow the measured costs instead).
 """
 
 from __future__ import annotations
