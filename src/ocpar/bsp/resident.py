@@ -36,15 +36,19 @@ Rebalancing: the blocks follow the agents' measured costs. After each step an ag
 is estimated as its slot's busy time over the slot's agents (a batched kernel times no finer),
 a piecewise-constant cost over agent ids, averaged over the steps (:data:`COST_SMOOTHING`;
 a slot that took in agents in that step keeps its agents' estimates: its time includes
-building solvers for the newcomers' shapes). Before a step the coordinator asks
-:meth:`ResidentSet.rebalanced` whether blocks of equal estimated cost
+building solvers for the newcomers' shapes), and so is how far the slots' measured times
+stray from their estimates (the *noise*, relative to the mean slot's time; from the third
+step on: the first step's times include building the solvers). Before a step the
+coordinator asks :meth:`ResidentSet.rebalanced` whether blocks of equal estimated cost
 (:func:`~ocpar.bsp.partition.cost_balanced_blocks`) pay: the current blocks' estimated
 imbalance (max/mean load) must exceed 1 + the backend's
 :attr:`~ocpar.bsp.Backend.resident_tolerance` (default
 :data:`~ocpar.bsp.partition.AFFINITY_TOLERANCE`, None: fixed blocks; ``--resident-blocks``
-on the command lines) and the makespan they save in one superstep must exceed the estimated
-cost of moving the leaving agents' states (:data:`MOVE_SECONDS` plus their bytes, as the
-workers report them, times :data:`MOVE_SECONDS_PER_BYTE`); never with one worker. A move
+on the command lines) + the noise (:data:`INITIAL_NOISE` until measured: an imbalance the
+timings' noise could make is no reason to move), and the makespan they save in one superstep
+must exceed the estimated cost of moving the leaving agents' states (:data:`MOVE_SECONDS`
+plus their bytes, as the workers report them, times :data:`MOVE_SECONDS_PER_BYTE`); never
+with one worker. A move
 takes no superstep of its own: in that step each old worker solves its old block, returns the
 leaving agents' new states with its reply (``export``) and forgets them; the next superstep's
 chunks (a step's or a collect's) carry them to their new workers (``imports``), which merge
@@ -82,6 +86,10 @@ STEP, COLLECT, DROP = "step", "collect", "drop"
 #: Weight of the latest step's measurement in an agent's estimated cost (an exponential
 #: average over the steps: one slow step of a worker moves its agents' estimates by half).
 COST_SMOOTHING = 0.5
+#: The relative noise of a slot's measured time assumed until a second step measures it
+#: (then :attr:`ResidentSet.noise`, measured): uniform formation agents' slots measured ±10 %
+#: from one superstep to the next on this 2-core machine with another process running.
+INITIAL_NOISE = 0.1
 #: Estimated seconds per byte of state an agent move costs: the old worker's reply and the
 #: new worker's chunk each carry it (pickled, sent and unpickled twice). Conservative: 10 ns,
 #: where pickling and unpickling the formation's states measured 0.14 ns per byte (850 bytes
@@ -284,6 +292,9 @@ class ResidentSet:
         #: Each agent's estimated solve time (s): its slot's busy time per agent, averaged
         #: over the steps measured (:data:`COST_SMOOTHING`); None before the first.
         self.costs: np.ndarray | None = None
+        #: How far a step's measured slot times stray from their estimates, relative to the
+        #: mean slot's (averaged like the costs; :data:`INITIAL_NOISE` until measured).
+        self.noise = INITIAL_NOISE
         #: The mean bytes of an agent's state, as the workers last reported them.
         self.state_bytes = 0.0
         #: Agents moved to another slot so far.
@@ -374,15 +385,15 @@ class ResidentSet:
         """The blocks for the superstep after the next one: those that equalise the agents'
         estimated :attr:`costs` (:func:`~ocpar.bsp.partition.cost_balanced_blocks`) if the
         current blocks' estimated imbalance (max/mean load) exceeds 1 + the backend's
-        :attr:`~ocpar.bsp.Backend.resident_tolerance` and the makespan they save in one
-        superstep exceeds the estimated cost of moving the states (:data:`MOVE_SECONDS`
-        and :data:`MOVE_SECONDS_PER_BYTE`); otherwise the current ones (always with one worker,
-        no estimates yet, or a tolerance of None)."""
+        :attr:`~ocpar.bsp.Backend.resident_tolerance` + the measurements' :attr:`noise` and
+        the makespan they save in one superstep exceeds the estimated cost of moving the
+        states (:data:`MOVE_SECONDS` and :data:`MOVE_SECONDS_PER_BYTE`); otherwise the
+        current ones (always with one worker, no estimates yet, or a tolerance of None)."""
         tolerance = self.backend.resident_tolerance
         if tolerance is None or self.costs is None or len(self.blocks) < 2:
             return self.blocks
         loads = block_loads(self.costs, self.blocks)
-        if loads.max() <= (1.0 + tolerance) * loads.mean():
+        if loads.max() <= (1.0 + tolerance + self.noise) * loads.mean():
             return self.blocks
         proposed = cost_balanced_blocks(self.costs, len(self.blocks))
         saving = loads.max() - block_loads(self.costs, proposed).max()
@@ -405,16 +416,22 @@ class ResidentSet:
             self.moved += len(agents)
 
     def _measure(self, groups: list[range], busy_s: list[float], arrived: list[bool]) -> None:
-        """Update the agents' estimated :attr:`costs` by a step's busy time per slot, but for
-        the slots where agents ``arrived`` (a worker's first solves of an agent's shape build
-        its solver: not the agents' cost), whose agents keep their estimates."""
+        """Update the agents' estimated :attr:`costs` and the :attr:`noise` by a step's busy
+        time per slot, but for the slots where agents ``arrived`` (a worker's first solves of
+        an agent's shape build its solver: not the agents' cost), whose agents keep their
+        estimates."""
         sizes = [len(g) for g in groups]
         sample = np.repeat([b / max(k, 1) for b, k in zip(busy_s, sizes, strict=True)], sizes)
         if self.costs is None:
             self.costs = sample
             return
-        settled = np.repeat(np.logical_not(arrived), sizes)
-        self.costs = np.where(settled, COST_SMOOTHING * sample
+        settled = np.logical_not(arrived)
+        if settled.any() and self.version > 1:  # not against the first step's times: they
+            # include building the workers' solvers
+            expected = block_loads(self.costs, groups)
+            stray = np.abs(np.asarray(busy_s) - expected)[settled].max() / expected.mean()
+            self.noise = COST_SMOOTHING * stray + (1.0 - COST_SMOOTHING) * self.noise
+        self.costs = np.where(np.repeat(settled, sizes), COST_SMOOTHING * sample
                               + (1.0 - COST_SMOOTHING) * self.costs, self.costs)
 
     def close(self) -> None:
