@@ -34,11 +34,12 @@ the first superstep, 1.6 MB for each later one) and is only sent where a worker 
 
 Rebalancing: the blocks follow the agents' measured costs. After each step an agent's cost
 is estimated as its slot's busy time over the slot's agents (a batched kernel times no finer),
-a piecewise-constant cost over agent ids, averaged over the steps (:data:`COST_SMOOTHING`;
-a slot that took in agents in that step keeps its agents' estimates: its time includes
-building solvers for the newcomers' shapes), and so is how far the slots' measured times
-stray from their estimates (the *noise*, relative to the mean slot's time; from the third
-step on: the first step's times include building the solvers). Before a step the
+a piecewise-constant cost over agent ids, averaged over the steps (:data:`COST_SMOOTHING`)
+from the second step on (the first step's times, which include building the workers'
+solvers, serve until then; a slot that took in agents in a step keeps its agents' estimates:
+its time includes building solvers for the newcomers' shapes), and so, from the third step
+on, is how far the slots' measured times stray from their estimates (the *noise*, relative
+to the mean slot's time). Before a step the
 coordinator asks :meth:`ResidentSet.rebalanced` whether blocks of equal estimated cost
 (:func:`~ocpar.bsp.partition.cost_balanced_blocks`) pay: the current blocks' estimated
 imbalance (max/mean load) must exceed 1 + the backend's
@@ -422,12 +423,11 @@ class ResidentSet:
         estimates."""
         sizes = [len(g) for g in groups]
         sample = np.repeat([b / max(k, 1) for b, k in zip(busy_s, sizes, strict=True)], sizes)
-        if self.costs is None:
-            self.costs = sample
+        if self.costs is None or self.version == 1:  # the first step's times, which include
+            self.costs = sample                        # building the solvers, until the next
             return
         settled = np.logical_not(arrived)
-        if settled.any() and self.version > 1:  # not against the first step's times: they
-            # include building the workers' solvers
+        if settled.any():
             expected = block_loads(self.costs, groups)
             stray = np.abs(np.asarray(busy_s) - expected)[settled].max() / expected.mean()
             self.noise = COST_SMOOTHING * stray + (1.0 - COST_SMOOTHING) * self.noise
