@@ -412,8 +412,11 @@ class ResidentSet:
         exported = [r.exported for r in replies if r.exported is not None]
         if exported:
             agents = np.concatenate(leaving)
-            self._moving = _Moving(agents=agents, version=self.version + 1,
-                                   states=Columns.concat(exported))
+            states = Columns.concat(exported)
+            if len(states) != len(agents):
+                raise RuntimeError(f"resident set {self.key}: {len(states)} states came back "
+                                   f"for {len(agents)} leaving agents")
+            self._moving = _Moving(agents=agents, version=self.version + 1, states=states)
             self.moved += len(agents)
 
     def _measure(self, groups: list[range], busy_s: list[float], arrived: list[bool]) -> None:
@@ -427,8 +430,8 @@ class ResidentSet:
             self.costs = sample                        # building the solvers, until the next
             return
         settled = np.logical_not(arrived)
-        if settled.any():
-            expected = block_loads(self.costs, groups)
+        expected = block_loads(self.costs, groups)
+        if settled.any() and expected.mean() > 0:
             stray = np.abs(np.asarray(busy_s) - expected)[settled].max() / expected.mean()
             self.noise = COST_SMOOTHING * stray + (1.0 - COST_SMOOTHING) * self.noise
         self.costs = np.where(np.repeat(settled, sizes), COST_SMOOTHING * sample
