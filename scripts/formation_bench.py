@@ -42,6 +42,18 @@ parallel backend's constants σ(P, h) = a + b·log2 P + g·h fitted to the super
 on that backend (this design's runs: their traces count the bytes; per superstep the median
 over the repetitions, each run's first superstep left out).
 
+``--problem mixed-fleet-by-kind``: the mixed fleet whose first half is thrust-limited and
+second half is not (``ocpar.examples.formation_mixed_fleet:make`` with ``unlimited`` = half the
+agents; a limited agent's solve costs ~5× an unlimited one's): a cost skewed by agent order,
+for the resident agents' blocks that follow the measured costs. Rebalancing on vs off::
+
+    python scripts/formation_bench.py --problem mixed-fleet-by-kind --agents 2000 \
+        --no-monolithic --variant measured="" --variant fixed="--resident-blocks fixed"
+
+Per run the figures include ``imbalances`` (each superstep's max/mean worker busy) and
+``moved_agents`` (agents whose worker changed between supersteps, from the traces' block
+sizes).
+
 Writes ``formation_bench.json`` and ``formation_bench.png`` (solve wall vs agents per
 configuration; predicted efficiency vs P) in ``--output``.
 """
@@ -49,6 +61,7 @@ configuration; predicted efficiency vs P) in ``--output``.
 from __future__ import annotations
 
 import argparse
+import itertools
 import json
 import math
 import os
@@ -84,6 +97,17 @@ EFFICIENCY_TARGETS = {64: 0.85, 1024: 0.7}
 RESERVED = ("--agents", "--backend", "--workers", "--mode", "--output", "--problem",
             "--quiet", "--scheduler")
 MPIRUN = str(Path(sys.executable).parent / "mpirun")
+#: The problems besides the built-in examples: the mixed fleet listed by kind (module doc).
+SKEWED_FLEET = "mixed-fleet-by-kind"
+PROBLEMS = ("point-mass-plane", "crtbp-rigid", SKEWED_FLEET)
+
+
+def problem_options(problem: str, agents: int) -> list[str]:
+    """The ``python -m ocpar.formation`` options that give ``problem`` with ``agents``."""
+    if problem == SKEWED_FLEET:
+        return ["--problem", "ocpar.examples.formation_mixed_fleet:make", "--problem-arg",
+                f"agents={agents}", "--problem-arg", f"unlimited={agents // 2}"]
+    return ["--problem", problem, "--agents", str(agents)]
 
 
 @dataclass(frozen=True)
@@ -111,8 +135,8 @@ class Configuration:
 
     def command(self, problem: str, agents: int, out: Path) -> list[str]:
         """The command line of one run."""
-        cmd = [sys.executable, "-m", "ocpar.formation", "--problem", problem, "--agents",
-               str(agents), *self.args, "--quiet", "--output", str(out)]
+        cmd = [sys.executable, "-m", "ocpar.formation", *problem_options(problem, agents),
+               *self.args, "--quiet", "--output", str(out)]
         if self.backend == "monolithic":
             return [*cmd, "--mode", "monolithic"]
         if self.backend == "mpi":
@@ -205,13 +229,30 @@ def run_figures(result: dict) -> dict:
         "coordinator_s": serial_time(wall, trace),
         "coordinator_share": coordinator_share(wall, trace),
         "imbalance": statistics.median(t["imbalance"] for t in trace) if trace else None,
+        "imbalances": [t["imbalance"] for t in trace],
+        "moved_agents": moved_agents(trace),
         "peak_rss_mb_per_worker": peaks,
     }
 
 
+def moved_agents(trace: list[dict]) -> int:
+    """Agents whose worker changed between consecutive supersteps of contiguous blocks (a
+    resident set's), from the block sizes (``worker_tasks``) in the trace."""
+    moved = 0
+    for before, after in itertools.pairwise(t["worker_tasks"] for t in trace):
+        if len(before) != len(after) or sum(before) != sum(after):
+            continue  # another kind of superstep, or another worker count
+        old = list(itertools.accumulate(before, initial=0))
+        new = list(itertools.accumulate(after, initial=0))
+        moved += sum(before) - sum(max(0, min(old[w + 1], new[w + 1]) - max(old[w], new[w]))
+                                   for w in range(len(before)))
+    return moved
+
+
 MEDIANS = ("wall_s", "supersteps", "inner_solves", "outer_iterations", "total_cost",
            "solve_ms", "overhead_ms", "first_overhead_ms", "coordinator_s",
-           "coordinator_share", "imbalance", "process_peak_rss_mb", "process_s")
+           "coordinator_share", "imbalance", "moved_agents", "process_peak_rss_mb",
+           "process_s")
 
 
 def summarise(runs: list[dict]) -> dict:
@@ -414,7 +455,8 @@ def print_report(report: dict) -> None:
               f"{size.get('fastest_serial', '- (no serial result)')}")
         print(f"{'configuration':22s}{'runs':>5s}{'wall s':>9s}{'speedup':>8s}{'effic':>7s}"
               f"{'steps':>6s}{'solves':>8s}{'solve ms':>9s}{'ovh ms':>8s}{'1st ms':>8s}"
-              f"{'coord':>7s}{'MiB/worker':>12s}{'total cost':>20s}")
+              f"{'coord':>7s}{'imbal':>6s}{'moved':>7s}{'MiB/worker':>12s}"
+              f"{'total cost':>20s}")
         for name, r in size["configurations"].items():
             if "wall_s" not in r:
                 print(f"{name:22s}{r['runs']:5d}  {', '.join(r['statuses'])}")
@@ -426,7 +468,8 @@ def print_report(report: dict) -> None:
                   f"{fmt(r['supersteps'], 6, '.0f')}{fmt(r['inner_solves'], 8, '.0f')}"
                   f"{fmt(r['solve_ms'], 9, '.3f')}{fmt(r['overhead_ms'], 8, '.2f')}"
                   f"{fmt(r['first_overhead_ms'], 8, '.2f')}"
-                  f"{fmt(r['coordinator_share'], 7, '.1%')}{mem:>12s}"
+                  f"{fmt(r['coordinator_share'], 7, '.1%')}{fmt(r['imbalance'], 6, '.2f')}"
+                  f"{fmt(r['moved_agents'], 7, '.0f')}{mem:>12s}"
                   f"{fmt(r['total_cost'], 20, '.12e')}")
         for flag in size["cost_disagreements"]:
             print(f"  COST DISAGREES: {flag['configuration']} rep {flag['rep']}: "
@@ -458,8 +501,8 @@ def main() -> int:
                              f"{' '.join(map(str, QUICK_SIZES))})")
     parser.add_argument("--quick", action="store_true",
                         help="small sizes, 2 repetitions, short limits: for trying the script")
-    parser.add_argument("--problem", default="point-mass-plane",
-                        choices=("point-mass-plane", "crtbp-rigid"), help="built-in example")
+    parser.add_argument("--problem", default="point-mass-plane", choices=PROBLEMS,
+                        help=f"built-in example, or {SKEWED_FLEET} (module doc)")
     parser.add_argument("--variant", action="append", type=parse_variant, default=None,
                         metavar='NAME="ARGS"',
                         help="an option set of the ocpar runs, repeatable (default: "

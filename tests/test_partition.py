@@ -5,7 +5,13 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from ocpar.bsp.partition import contiguous_blocks, longest_first, sticky_longest_first
+from ocpar.bsp.partition import (
+    block_loads,
+    contiguous_blocks,
+    cost_balanced_blocks,
+    longest_first,
+    sticky_longest_first,
+)
 
 
 def loads(groups, costs):
@@ -167,3 +173,59 @@ def test_bad_input():
         sticky_longest_first([1.0, -1.0], 2)
     with pytest.raises(ValueError, match="tolerance"):
         sticky_longest_first([1.0], 2, tolerance=-0.1)
+
+
+@pytest.mark.parametrize(("n", "workers"), [(12, 3), (12, 4), (10, 2), (7, 1), (64, 8)])
+def test_equal_costs_give_contiguous_blocks(n, workers):
+    assert cost_balanced_blocks([2.5] * n, workers) == contiguous_blocks(n, workers)
+    assert cost_balanced_blocks([0.0] * n, workers) == contiguous_blocks(n, workers)
+
+
+@pytest.mark.parametrize(("n", "workers"), [(10, 3), (11, 4), (5, 8), (0, 2)])
+def test_equal_costs_give_blocks_within_one_agent(n, workers):
+    blocks = cost_balanced_blocks([1.0] * n, workers)
+    sizes = [len(b) for b in blocks]
+    assert len(blocks) == workers and sum(sizes) == n
+    assert max(sizes) - min(sizes) <= 1
+    assert [b.start for b in blocks[1:]] == [b.stop for b in blocks[:-1]]
+
+
+def test_skewed_costs_move_the_boundaries_towards_the_expensive_agents():
+    """The first quarter costs 5 times the rest: worker 0 takes fewer agents, the loads come
+    out equal to within one agent's cost, and the same costs give the same blocks."""
+    costs = np.where(np.arange(400) < 100, 5.0, 1.0)
+    blocks = cost_balanced_blocks(costs, 2)
+    assert blocks == cost_balanced_blocks(costs.tolist(), 2)
+    assert blocks == [range(0, 80), range(80, 400)]
+    assert len(blocks[0]) < len(contiguous_blocks(400, 2)[0])
+    loads = block_loads(costs, blocks)
+    assert np.ptp(loads) <= costs.max()
+    assert loads.max() < block_loads(costs, contiguous_blocks(400, 2)).max()
+    # the expensive agents at the end: the boundaries move the other way
+    reverse = cost_balanced_blocks(costs[::-1], 2)
+    assert reverse == [range(0, 320), range(320, 400)]
+
+
+@pytest.mark.parametrize("seed", range(5))
+def test_balanced_blocks_are_a_partition_within_one_cost_of_the_ideal(seed):
+    rng = np.random.default_rng(seed)
+    costs = rng.exponential(size=500) * np.repeat(rng.uniform(0.2, 5.0, size=5), 100)
+    for workers in (2, 3, 7):
+        blocks = cost_balanced_blocks(costs, workers)
+        assert [i for b in blocks for i in b] == list(range(500))
+        assert block_loads(costs, blocks).max() <= costs.sum() / workers + costs.max()
+
+
+def test_one_agent_heavier_than_a_share_leaves_a_block_empty():
+    assert cost_balanced_blocks([100.0, 1.0, 1.0], 2) == [range(0, 1), range(1, 3)]
+    assert cost_balanced_blocks([1.0, 100.0, 1.0], 3) == [range(0, 1), range(1, 2), range(2, 3)]
+    assert cost_balanced_blocks([100.0], 3) == [range(0, 0), range(0, 1), range(1, 1)]
+
+
+def test_balanced_blocks_bad_input():
+    with pytest.raises(ValueError):
+        cost_balanced_blocks([1.0, -1.0], 2)
+    with pytest.raises(ValueError):
+        cost_balanced_blocks([1.0, float("nan")], 2)
+    with pytest.raises(ValueError):
+        cost_balanced_blocks([1.0], 0)

@@ -63,8 +63,12 @@ def test_dask_workers_give_the_serial_run_bit_for_bit(serial_run, workers):
 
 @pytest.mark.parametrize("ranks", [2, 8])   # 8: oversubscribed, 3 agents per rank
 def test_mpirun_gives_the_serial_run_bit_for_bit(serial_run, tmp_path, ranks):
-    proc = run_cli("-m", "ocpar.formation", "--agents", str(AGENTS), "--quiet", "--output",
-                   str(tmp_path), mpi_ranks=ranks)
+    """On 2 ranks with fixed blocks (no states in a superstep's replies: the bytes are
+    checked), on 8 with blocks moved by the measured costs (the timing noise of ~0.1 ms
+    solves moves some)."""
+    blocks = "fixed" if ranks == 2 else "measured"
+    proc = run_cli("-m", "ocpar.formation", "--agents", str(AGENTS), "--resident-blocks",
+                   blocks, "--quiet", "--output", str(tmp_path), mpi_ranks=ranks)
     assert proc.returncode == 0, proc.stderr
     data = json.loads((tmp_path / "result.json").read_text())
     assert data["workers"] == ranks

@@ -34,6 +34,8 @@ MAX_LOCAL_WORKERS = 256
 #: The TLS options (argparse destinations): a client's CA file, certificate and key.
 TLS_OPTIONS = ("tls_ca_file", "tls_cert", "tls_key")
 BACKEND_GROUP = "parallel backend"
+#: How resident agents' blocks are placed (``--resident-blocks``): by measured costs, or fixed.
+RESIDENT_BLOCKS = ("measured", "fixed")
 CHECKPOINT_GROUP = "checkpoints"
 TLS_GROUP = ("TLS (dask backend; all three together): certificates for a tls:// scheduler, or "
              "to secure the embedded cluster (workers/tls.md)")
@@ -112,6 +114,11 @@ class RuntimeOptions:
         "blocks", "task assignment: contiguous blocks, or lpt: longest first on the previous "
         "superstep's times, tasks kept on their worker where that does not hurt the balance",
         choices=BALANCE_POLICIES, group=BACKEND_GROUP)
+    resident_blocks: str = option(
+        "measured", "resident agents' blocks (the formation's agents): measured: moved "
+        "between supersteps to equalise the agents' measured costs, where the imbalance "
+        "(max/mean busy) exceeds 1.05 and the time saved exceeds the cost of moving their "
+        "states; fixed: equal blocks throughout", choices=RESIDENT_BLOCKS, group=BACKEND_GROUP)
     superstep_timeout: float = option(
         SUPERSTEP_TIMEOUT_S, "abort a superstep whose results have not all arrived after S "
         "seconds", above=0, metavar="S", group=BACKEND_GROUP)
@@ -239,14 +246,17 @@ def start_backend(args: RuntimeOptions, backend_name: str, prog: str) -> Backend
     that refuses this client's TLS certificate)."""
     security = client_security(args, prog)
     try:
-        return open_backend(backend_name, workers=args.workers, scheduler=args.scheduler,
-                            balance=args.balance, security=security,
-                            superstep_timeout_s=getattr(args, "superstep_timeout",
-                                                        SUPERSTEP_TIMEOUT_S),
-                            dispatch=getattr(args, "dispatch", "direct"),
-                            run_name=getattr(args, "job_name", None))
+        backend = open_backend(backend_name, workers=args.workers, scheduler=args.scheduler,
+                               balance=args.balance, security=security,
+                               superstep_timeout_s=getattr(args, "superstep_timeout",
+                                                           SUPERSTEP_TIMEOUT_S),
+                               dispatch=getattr(args, "dispatch", "direct"),
+                               run_name=getattr(args, "job_name", None))
     except BackendError as exc:
         fail(prog, str(exc))
+    if getattr(args, "resident_blocks", "measured") == "fixed":
+        backend.resident_tolerance = None
+    return backend
 
 
 def prepare_output_dir(path: str | None, prog: str) -> Path | None:

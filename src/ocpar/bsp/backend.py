@@ -15,17 +15,20 @@ import numpy as np
 from ocpar.bsp.columns import Columns, from_columns, to_columns
 from ocpar.bsp.journal import Journal, digest
 from ocpar.bsp.kernel import ChunkResult, KernelRef, kernel_name
-from ocpar.bsp.partition import contiguous_blocks, longest_first, sticky_longest_first
+from ocpar.bsp.partition import (
+    AFFINITY_TOLERANCE,
+    contiguous_blocks,
+    longest_first,
+    sticky_longest_first,
+)
 from ocpar.bsp.resident import STEP, ResidentSet
 from ocpar.bsp.trace import SuperstepTrace
 
 #: How a superstep's tasks are assigned to workers when no cost estimates are given:
 #: ``blocks`` (contiguous blocks of equal size) or ``lpt`` (longest-processing-time-first on
 #: the previous superstep's measured task times, keeping each task on its previous worker
-#: where that costs at most :data:`AFFINITY_TOLERANCE` of the makespan).
+#: where that costs at most :data:`~ocpar.bsp.partition.AFFINITY_TOLERANCE` of the makespan).
 BALANCE_POLICIES = ("blocks", "lpt")
-AFFINITY_TOLERANCE = 0.05
-
 
 
 class RunCancelled(RuntimeError):
@@ -64,6 +67,10 @@ class Backend(ABC):
         #: (:class:`RunCancelled`): how a detached job is cancelled, its checkpoint intact.
         self.stop_file: Path | None = None
         self._resident_sets: weakref.WeakSet[ResidentSet] = weakref.WeakSet()
+        #: Resident sets' blocks move between supersteps when their estimated imbalance
+        #: (max/mean load) exceeds 1 + this and the move pays (:mod:`ocpar.bsp.resident`);
+        #: None: they stay the equal blocks of :func:`~ocpar.bsp.partition.contiguous_blocks`.
+        self.resident_tolerance: float | None = AFFINITY_TOLERANCE
 
     @property
     def is_coordinator(self) -> bool:
@@ -111,25 +118,27 @@ class Backend(ABC):
     def _resident_superstep(self, resident: ResidentSet, what: str, tasks: Columns | None
                            ) -> Columns:
         """One superstep of ``resident`` (:meth:`ResidentSet.step` with its n ``tasks``, or
-        :meth:`ResidentSet.collect` with None): agent i on the worker of slot i of
-        :func:`~ocpar.bsp.partition.contiguous_blocks` (whatever the :attr:`balance`
-        policy), results in agent order, timed and journaled like any superstep. The
-        results must be instances of one dataclass (as for :meth:`superstep_columns`)."""
+        :meth:`ResidentSet.collect` with None): the agents on the workers of their slots'
+        blocks (:attr:`ResidentSet.blocks`, whatever the :attr:`balance` policy), results in
+        agent order, timed and journaled like any superstep. The results must be instances
+        of one dataclass (as for :meth:`superstep_columns`)."""
         n = resident.agents
         if what == STEP:
             assert tasks is not None
             return self._superstep(resident.kernel, n, tasks.take, None, columns=True,
-                                   run=lambda groups: resident.run(STEP, tasks, groups))
+                                   run=lambda: resident.run(STEP, tasks))
         return self._superstep(f"{resident.kernel}#{what}", n,
                                lambda _: (what, resident.version, n), None, columns=True,
-                               run=lambda groups: resident.run(what, None, groups))
+                               run=lambda: resident.run(what, None))
 
     def _superstep(self, kernel: KernelRef, n: int, select: Callable[[list[int]], Any],
                    costs: Sequence[float] | None, columns: bool,
-                   run: Callable[[list[range]], list[ChunkResult]] | None = None) -> Any:
+                   run: Callable[[], tuple[list[range], list[ChunkResult]]] | None = None
+                   ) -> Any:
         """The superstep of ``kernel`` on ``n`` tasks, ``select(indices)`` giving those tasks
         (and, for all indices, what the journal's digest is of). ``run``: how a resident
-        superstep runs the contiguous blocks (:meth:`_resident_superstep`) instead."""
+        superstep runs its contiguous blocks (:meth:`_resident_superstep`) instead: the
+        blocks and their chunk results."""
         name = kernel_name(kernel)
         if self.stop_file is not None and self.stop_file.exists():
             raise RunCancelled(f"cancelled before superstep {len(self.traces)}")
@@ -144,8 +153,7 @@ class Backend(ABC):
             raise ValueError(f"{len(costs)} costs for {n} tasks")
         start = time.perf_counter()
         if run is not None:
-            groups = contiguous_blocks(n, self.workers)
-            chunks = run(groups)
+            groups, chunks = run()
         elif costs is not None and self._queues(name):
             queue = sorted(range(n), key=lambda i: (-costs[i], i))
             taken, chunks = self._run_queue(name, select(queue))

@@ -3,9 +3,18 @@
 from __future__ import annotations
 
 import heapq
+import itertools
 import math
 from collections.abc import Sequence
 from numbers import Integral
+
+import numpy as np
+
+#: How much makespan the engine gives up to keep work in place: ``lpt`` keeps a task on its
+#: previous worker where that costs at most this fraction of the makespan
+#: (:func:`sticky_longest_first`), and a resident set's blocks move only when their estimated
+#: imbalance (max/mean load) exceeds 1 + this (:mod:`ocpar.bsp.resident`).
+AFFINITY_TOLERANCE = 0.05
 
 
 def contiguous_blocks(n_tasks: int, n_workers: int) -> list[range]:
@@ -22,6 +31,36 @@ def contiguous_blocks(n_tasks: int, n_workers: int) -> list[range]:
         blocks.append(range(start, start + size))
         start += size
     return blocks
+
+
+def cost_balanced_blocks(costs: Sequence[float] | np.ndarray, n_workers: int) -> list[range]:
+    """Split indices 0..n-1 (n = ``len(costs)``) into n_workers contiguous blocks of nearly
+    equal total estimated cost (``costs`` ≥ 0, one per index): boundary k is the index b whose
+    prefix sum Σ_{i<b} costs[i] is closest to k/n_workers of the total (the lower one on a
+    tie). Deterministic; equal costs give :func:`contiguous_blocks` where n_workers divides n
+    (otherwise blocks whose sizes differ by at most one), all-zero costs give
+    :func:`contiguous_blocks`. A block may be empty (an index whose cost outweighs a
+    worker's share)."""
+    if n_workers < 1:
+        raise ValueError(f"need at least one worker, got {n_workers}")
+    costs = np.asarray(costs, dtype=float)
+    if costs.ndim != 1 or not np.all(np.isfinite(costs)) or np.any(costs < 0):
+        raise ValueError("costs must be a 1-D sequence of finite numbers ≥ 0")
+    prefix = np.concatenate([[0.0], np.cumsum(costs)])
+    if prefix[-1] <= 0:
+        return contiguous_blocks(len(costs), n_workers)
+    targets = prefix[-1] * np.arange(1, n_workers) / n_workers
+    above = np.minimum(np.searchsorted(prefix, targets), len(costs))  # first prefix ≥ target
+    below = np.maximum(above - 1, 0)
+    closer = np.where(targets - prefix[below] <= prefix[above] - targets, below, above)
+    bounds = [0, *np.maximum.accumulate(closer).tolist(), len(costs)]
+    return [range(a, b) for a, b in itertools.pairwise(bounds)]
+
+
+def block_loads(costs: Sequence[float] | np.ndarray, blocks: Sequence[range]) -> np.ndarray:
+    """The total of ``costs`` over each of the contiguous ``blocks`` (ranges of step 1)."""
+    prefix = np.concatenate([[0.0], np.cumsum(np.asarray(costs, dtype=float))])
+    return np.array([prefix[b.stop] - prefix[b.start] for b in blocks])
 
 
 def longest_first(costs: list[float], n_workers: int) -> list[list[int]]:

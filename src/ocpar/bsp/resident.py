@@ -17,8 +17,9 @@ An agent's result and new state must depend only on its own task and previous st
 on which other agents share the call; then an agent's state is a function of its history of
 tasks alone, wherever it is computed.
 
-Placement: agent i belongs to worker slot w of :func:`~ocpar.bsp.partition.contiguous_blocks`
-(n agents, the backend's worker count), fixed while the worker count is. Each worker process
+Placement: the agents are split into contiguous blocks, one per worker slot
+(:attr:`ResidentSet.blocks`, at first :func:`~ocpar.bsp.partition.contiguous_blocks` of n
+agents over the backend's workers); slot w's chunk goes to worker w. Each worker process
 holds a store (module-level, :data:`_BLOCKS`) of its slots' states, keyed by the set and the
 slot, with the number of tasks they have seen (the *version*). A chunk names its agents and
 the version the coordinator expects; a worker that lacks some of them at that version (a
@@ -31,23 +32,49 @@ never depend on placement, worker count, faults or resumption. The history costs
 coordinator one task per agent per superstep in memory (100,000 formation agents: 6.4 MB for
 the first superstep, 1.6 MB for each later one) and is only sent where a worker lacks states.
 
-Not (yet) done: blocks are not rebalanced by measured per-agent costs (the ``balance``
-policy does not apply to resident supersteps), and a set that is never closed keeps its
-states on other processes until the backend closes.
+Rebalancing: the blocks follow the agents' measured costs. After each step an agent's cost
+is estimated as its slot's busy time over the slot's agents (a batched kernel times no finer),
+a piecewise-constant cost over agent ids, averaged over the steps (:data:`COST_SMOOTHING`)
+from the second step on (the first step's times, which include building the workers'
+solvers, serve until then; a slot that took in agents in a step keeps its agents' estimates:
+its time includes building solvers for the newcomers' shapes), and so, from the third step
+on, is how far the slots' measured times stray from their estimates (the *noise*, relative
+to the mean slot's time). Before a step the
+coordinator asks :meth:`ResidentSet.rebalanced` whether blocks of equal estimated cost
+(:func:`~ocpar.bsp.partition.cost_balanced_blocks`) pay: the current blocks' estimated
+imbalance (max/mean load) must exceed 1 + the backend's
+:attr:`~ocpar.bsp.Backend.resident_tolerance` (default
+:data:`~ocpar.bsp.partition.AFFINITY_TOLERANCE`, None: fixed blocks; ``--resident-blocks``
+on the command lines) + the noise (:data:`INITIAL_NOISE` until measured: an imbalance the
+timings' noise could make is no reason to move), and the makespan they save in one superstep
+must exceed the estimated cost of moving the leaving agents' states (:data:`MOVE_SECONDS`
+plus their bytes, as the workers report them, times :data:`MOVE_SECONDS_PER_BYTE`); never
+with one worker. A move
+takes no superstep of its own: in that step each old worker solves its old block, returns the
+leaving agents' new states with its reply (``export``) and forgets them; the next superstep's
+chunks (a step's or a collect's) carry them to their new workers (``imports``), which merge
+them with the states they hold. The states travel in the chunks, so the traces' bytes count
+them; a planned move never replays history (a worker lost with states in flight is a fault
+like any other: the moved states still arrive, the lost ones are replayed). The moves depend
+on timings, the results do not: an agent's state is a function of its own tasks.
+
+Not (yet) done: a set that is never closed keeps its states on other processes until the
+backend closes; the ``balance`` policy does not apply to resident supersteps (their blocks
+follow the measured costs instead).
 """
 
 from __future__ import annotations
 
 import uuid
 import weakref
-from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from ocpar.bsp.columns import Columns
+from ocpar.bsp.columns import LISTED, SHARED, Columns
 from ocpar.bsp.kernel import ChunkResult, kernel_name, resolve_kernel
+from ocpar.bsp.partition import block_loads, contiguous_blocks, cost_balanced_blocks
 
 if TYPE_CHECKING:
     from ocpar.bsp.backend import Backend
@@ -57,6 +84,23 @@ if TYPE_CHECKING:
 RUNNER = "ocpar.bsp.resident:run_resident"
 #: What a :class:`ResidentChunk` asks: solve tasks, return states, or forget the set.
 STEP, COLLECT, DROP = "step", "collect", "drop"
+#: Weight of the latest step's measurement in an agent's estimated cost (an exponential
+#: average over the steps: one slow step of a worker moves its agents' estimates by half).
+COST_SMOOTHING = 0.5
+#: The relative noise of a slot's measured time assumed until a second step measures it
+#: (then :attr:`ResidentSet.noise`, measured): uniform formation agents' slots measured ±10 %
+#: from one superstep to the next on this 2-core machine with another process running.
+INITIAL_NOISE = 0.1
+#: Estimated seconds per byte of state an agent move costs: the old worker's reply and the
+#: new worker's chunk each carry it (pickled, sent and unpickled twice). Conservative: 10 ns,
+#: where pickling and unpickling the formation's states measured 0.14 ns per byte (850 bytes
+#: per mixed-fleet agent) and moving 290 kB of them in a Dask superstep added less than the
+#: superstep's few-ms noise, on this 2-core machine (2026-12).
+MOVE_SECONDS_PER_BYTE = 1e-8
+#: Estimated fixed cost (s) of moving blocks, whatever they carry: the old and new workers'
+#: bookkeeping, and a margin for a superstep's timing noise (its overhead, wall − busiest
+#: worker, measured ~0.6 ms on MPI and ~1.9 ms on Dask at 1000 agents): a move must save more.
+MOVE_SECONDS = 1e-3
 
 
 @dataclass
@@ -80,7 +124,10 @@ class ResidentChunk:
     set ``key`` (run-unique), whose resident kernel is ``kernel``; each agent has had
     ``version`` tasks before. ``tasks``: the k tasks of a step. ``history``: where the
     worker lacked agents, each of their earlier tasks (``version`` Columns, one row per
-    agent of ``rebuild``, in the order given) to replay."""
+    agent of ``rebuild``, in the order given) to replay. ``imported``: agents that move into
+    the slot, their states (after ``version`` tasks) in ``imports`` (one row each, in the
+    order given); ``export``: agents that leave the slot after this step, their new states
+    to be returned and forgotten."""
 
     what: str
     key: str
@@ -91,16 +138,23 @@ class ResidentChunk:
     tasks: Columns | None = None
     rebuild: np.ndarray | None = None
     history: tuple[Columns, ...] | None = None
+    imported: np.ndarray | None = None
+    imports: Columns | None = None
+    export: np.ndarray | None = None
 
 
 @dataclass
 class ResidentReply:
     """A worker's answer to a :class:`ResidentChunk`: the k ``results`` (a step's results,
     or the states of a collect), or, when the worker lacks some agents' states at the
-    expected version and was given no history, those agents (``missing``) and no results."""
+    expected version and was given no history, those agents (``missing``) and no results.
+    After a step: the new states of the chunk's ``export`` agents (``exported``, in agent
+    order) and the size of all k new states (``state_bytes``, their arrays' bytes)."""
 
     results: Columns | list[Any] | None
     missing: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
+    exported: Columns | None = None
+    state_bytes: int = 0
 
 
 def run_resident(chunk: ResidentChunk) -> ResidentReply:
@@ -110,6 +164,8 @@ def run_resident(chunk: ResidentChunk) -> ResidentReply:
     if chunk.what == DROP:
         _forget(chunk.key)
         return ResidentReply(results=[])
+    if chunk.imported is not None:
+        _BLOCKS[slot] = _merged(_BLOCKS.get(slot), chunk)
     if not len(chunk.agents):
         return ResidentReply(results=[])
     kernel = resolve_kernel(chunk.kernel)
@@ -126,8 +182,13 @@ def run_resident(chunk: ResidentChunk) -> ResidentReply:
     if len(new_states) != len(agents):
         raise ValueError(f"resident kernel {chunk.kernel} returned {len(new_states)} states "
                          f"for {len(agents)} tasks")
+    size, exported = _nbytes(new_states), None
+    if chunk.export is not None and len(chunk.export):
+        leaving = np.isin(agents, chunk.export)
+        exported = new_states.take(np.flatnonzero(leaving))
+        agents, new_states = agents[~leaving], new_states.take(np.flatnonzero(~leaving))
     _BLOCKS[slot] = _Block(agents=agents, version=chunk.version + 1, states=new_states)
-    return ResidentReply(results=results)
+    return ResidentReply(results=results, exported=exported, state_bytes=size)
 
 
 def _forget(key: str) -> None:
@@ -135,6 +196,32 @@ def _forget(key: str) -> None:
     for held in list(_BLOCKS):
         if held[0] == key:
             _BLOCKS.pop(held, None)
+
+
+def _merged(block: _Block | None, chunk: ResidentChunk) -> _Block:
+    """``block`` (if at the chunk's version) with the chunk's imported states: the agents
+    in increasing order (a chunk sent twice merges its imports once)."""
+    assert chunk.imported is not None and chunk.imports is not None
+    if block is None or block.version != chunk.version:
+        return _Block(agents=chunk.imported, version=chunk.version, states=chunk.imports)
+    kept = np.flatnonzero(~np.isin(block.agents, chunk.imported))
+    agents = np.concatenate([block.agents[kept], chunk.imported])
+    order = np.argsort(agents, kind="stable")
+    states = Columns.concat([block.states.take(kept), chunk.imports]).take(order)
+    return _Block(agents=agents[order], version=chunk.version, states=states)
+
+
+def _nbytes(states: Columns) -> int:
+    """The bytes of ``states``' arrays (a shared value counted once, a listed one as 8)."""
+    total = 0
+    for kind, data in states.fields.values():
+        if kind == SHARED:
+            total += getattr(data, "nbytes", 8)
+        elif kind == LISTED:
+            total += sum(getattr(value, "nbytes", 8) for value in data)
+        else:
+            total += data.nbytes
+    return total
 
 
 def _lookup(block: _Block | None, agents: np.ndarray, version: int
@@ -167,13 +254,30 @@ def _rebuilt(kernel: Any, agents: np.ndarray, chunk: ResidentChunk, held: Column
     return Columns.concat([held, states]).take(np.argsort(order, kind="stable"))  # type: ignore[list-item]
 
 
+@dataclass(frozen=True)
+class _Moving:
+    """States on their way between slots: those of ``agents`` (increasing) after ``version``
+    tasks, one row each in ``states``, returned by their old workers, for their new ones."""
+
+    agents: np.ndarray
+    version: int
+    states: Columns
+
+    def into(self, group: range) -> tuple[np.ndarray, Columns] | None:
+        """The agents of ``group`` among these and their states (None: none)."""
+        rows = np.flatnonzero((self.agents >= group.start) & (self.agents < group.stop))
+        return (self.agents[rows], self.states.take(rows)) if len(rows) else None
+
+
 class ResidentSet:
     """n agents whose states stay on the workers of ``backend`` (module docstring), driven by
     the resident kernel ``kernel``. Use :meth:`step` once per superstep, :meth:`collect` for
     the states, :meth:`close` to free the workers' memory (the backend closes open sets when
     it closes; a set that is garbage-collected frees its states in this process at once, on
     other processes when the backend closes). Made by :meth:`~ocpar.bsp.Backend.resident`;
-    runs its chunks through the backend's own chunk transport."""
+    runs its chunks through the backend's own chunk transport. Its blocks move between steps
+    by the agents' measured costs, by the backend's
+    :attr:`~ocpar.bsp.Backend.resident_tolerance` (module docstring)."""
 
     def __init__(self, backend: Backend, kernel: KernelRef, agents: int) -> None:
         if agents < 1:
@@ -184,6 +288,19 @@ class ResidentSet:
         self.key = uuid.uuid4().hex
         #: The tasks of each superstep so far (Columns of n tasks each): the agents' history.
         self.history: list[Columns] = []
+        #: Each worker slot's agents (contiguous ranges, in slot order) at the next superstep.
+        self.blocks: list[range] = contiguous_blocks(agents, backend.workers)
+        #: Each agent's estimated solve time (s): its slot's busy time per agent, averaged
+        #: over the steps measured (:data:`COST_SMOOTHING`); None before the first.
+        self.costs: np.ndarray | None = None
+        #: How far a step's measured slot times stray from their estimates, relative to the
+        #: mean slot's (averaged like the costs; :data:`INITIAL_NOISE` until measured).
+        self.noise = INITIAL_NOISE
+        #: The mean bytes of an agent's state, as the workers last reported them.
+        self.state_bytes = 0.0
+        #: Agents moved to another slot so far.
+        self.moved = 0
+        self._moving: _Moving | None = None
         self.closed = False
         weakref.finalize(self, _forget, self.key)
 
@@ -210,28 +327,44 @@ class ResidentSet:
         self._check_open()
         return self.backend._resident_superstep(self, COLLECT, None)
 
-    def run(self, what: str, tasks: Columns | None, groups: Sequence[range]
-            ) -> list[ChunkResult]:
-        """Run ``what`` for the agents of ``groups`` (group w on worker w) through the
-        backend's chunks; the chunk results' ``results`` are per agent (a reply's results),
-        their times are the rounds' sums (a second round if a worker lacked states)."""
-        def chunk(w: int, group: range, rebuild: np.ndarray | None = None) -> ResidentChunk:
+    def run(self, what: str, tasks: Columns | None) -> tuple[list[range], list[ChunkResult]]:
+        """Run ``what`` for every agent through the backend's chunks, slot w's agents
+        (:attr:`blocks`) on worker w, with the states moving into each slot; a step also
+        moves the blocks where that pays (:meth:`rebalanced`: the leaving agents' new states
+        come back with the replies, for the next superstep's chunks). Returns the blocks run
+        and the chunk results, whose ``results`` are per agent (a reply's results) and whose
+        times are the rounds' sums (a second round if a worker lacked states)."""
+        if len(self.blocks) != self.backend.workers:  # the worker count changed
+            self.blocks, self.costs = contiguous_blocks(self.agents, self.backend.workers), None
+        groups = self.blocks
+        following = self.rebalanced() if what == STEP else groups
+        moving, self._moving = self._moving, None
+        if moving is not None and moving.version != self.version:
+            moving = None  # supersteps replayed from the journal since: the history rebuilds
+        arriving = [moving.into(g) if moving is not None else None for g in groups]
+        leaving = [_outside(g, f) for g, f in zip(groups, following, strict=True)]
+
+        def chunk(w: int, rebuild: np.ndarray | None = None) -> ResidentChunk:
+            group, imported = groups[w], arriving[w]
             history = None
             if rebuild is not None:
                 history = tuple(t.take(rebuild) for t in self.history)
             return ResidentChunk(what=what, key=self.key, slot=w, kernel=self.kernel,
                                  agents=group, version=self.version,
                                  tasks=None if tasks is None else tasks.take(group),
-                                 rebuild=rebuild, history=history)
+                                 rebuild=rebuild, history=history,
+                                 imported=None if imported is None else imported[0],
+                                 imports=None if imported is None else imported[1],
+                                 export=leaving[w] if len(leaving[w]) else None)
 
-        first = self.backend._run_chunks(RUNNER, [[chunk(w, g)] for w, g in enumerate(groups)])
+        first = self.backend._run_chunks(RUNNER, [[chunk(w)] for w in range(len(groups))])
         replies = [_replies(c) for c in first]
         lacking = {w: r[0].missing for w, r in enumerate(replies) if r[0].results is None}
         # a second round: each slot that lacked states, with its agents' history, to the
         # worker of its slot (or, if the backend has fewer workers now, another one)
         items: list[list[ResidentChunk]] = [[] for _ in range(self.backend.workers)]
         for w, missing in lacking.items():
-            items[w % self.backend.workers].append(chunk(w, groups[w], missing))
+            items[w % self.backend.workers].append(chunk(w, missing))
         second = self.backend._run_chunks(RUNNER, items) if lacking else []
         for c, slots in zip(second, items if lacking else [], strict=True):
             for k, (item, reply) in enumerate(zip(slots, _replies(c), strict=True)):
@@ -241,14 +374,75 @@ class ResidentSet:
                 replies[item.slot] = [reply]
                 if k == 0:  # the worker's second round counted once, with its first slot
                     first[item.slot] = _added(first[item.slot], c)
-        return [_per_agent(c, r, len(g))
-                for c, r, g in zip(first, replies, groups, strict=True)]
+        if what == STEP:
+            self._moved_on(following, leaving, [r[0] for r in replies])
+            if not lacking:  # a replay's time is not the agents' cost
+                self._measure(groups, [c.busy_s for c in first],
+                              [imported is not None for imported in arriving])
+        return groups, [_per_agent(c, r, len(g))
+                        for c, r, g in zip(first, replies, groups, strict=True)]
+
+    def rebalanced(self) -> list[range]:
+        """The blocks for the superstep after the next one: those that equalise the agents'
+        estimated :attr:`costs` (:func:`~ocpar.bsp.partition.cost_balanced_blocks`) if the
+        current blocks' estimated imbalance (max/mean load) exceeds 1 + the backend's
+        :attr:`~ocpar.bsp.Backend.resident_tolerance` + the measurements' :attr:`noise` and
+        the makespan they save in one superstep exceeds the estimated cost of moving the
+        states (:data:`MOVE_SECONDS` and :data:`MOVE_SECONDS_PER_BYTE`); otherwise the
+        current ones (always with one worker, no estimates yet, or a tolerance of None)."""
+        tolerance = self.backend.resident_tolerance
+        if tolerance is None or self.costs is None or len(self.blocks) < 2:
+            return self.blocks
+        loads = block_loads(self.costs, self.blocks)
+        if loads.max() <= (1.0 + tolerance + self.noise) * loads.mean():
+            return self.blocks
+        proposed = cost_balanced_blocks(self.costs, len(self.blocks))
+        saving = loads.max() - block_loads(self.costs, proposed).max()
+        staying = sum(max(0, min(a.stop, b.stop) - max(a.start, b.start))
+                      for a, b in zip(self.blocks, proposed, strict=True))
+        moving_s = MOVE_SECONDS + (self.agents - staying) * self.state_bytes * MOVE_SECONDS_PER_BYTE
+        return proposed if saving > moving_s else self.blocks
+
+    def _moved_on(self, following: list[range], leaving: list[np.ndarray],
+                  replies: list[ResidentReply]) -> None:
+        """After a step: the blocks are ``following``, the states of ``leaving`` (per slot)
+        that ``replies`` returned on their way to their new slots."""
+        self.state_bytes = sum(r.state_bytes for r in replies) / self.agents
+        self.blocks = following
+        exported = [r.exported for r in replies if r.exported is not None]
+        if exported:
+            agents = np.concatenate(leaving)
+            states = Columns.concat(exported)
+            if len(states) != len(agents):
+                raise RuntimeError(f"resident set {self.key}: {len(states)} states came back "
+                                   f"for {len(agents)} leaving agents")
+            self._moving = _Moving(agents=agents, version=self.version + 1, states=states)
+            self.moved += len(agents)
+
+    def _measure(self, groups: list[range], busy_s: list[float], arrived: list[bool]) -> None:
+        """Update the agents' estimated :attr:`costs` and the :attr:`noise` by a step's busy
+        time per slot, but for the slots where agents ``arrived`` (a worker's first solves of
+        an agent's shape build its solver: not the agents' cost), whose agents keep their
+        estimates."""
+        sizes = [len(g) for g in groups]
+        sample = np.repeat([b / max(k, 1) for b, k in zip(busy_s, sizes, strict=True)], sizes)
+        if self.costs is None or self.version == 1:  # the first step's times, which include
+            self.costs = sample                        # building the solvers, until the next
+            return
+        settled = np.logical_not(arrived)
+        expected = block_loads(self.costs, groups)
+        if settled.any() and expected.mean() > 0:
+            stray = np.abs(np.asarray(busy_s) - expected)[settled].max() / expected.mean()
+            self.noise = COST_SMOOTHING * stray + (1.0 - COST_SMOOTHING) * self.noise
+        self.costs = np.where(np.repeat(settled, sizes), COST_SMOOTHING * sample
+                              + (1.0 - COST_SMOOTHING) * self.costs, self.costs)
 
     def close(self) -> None:
         """Forget the states on every worker (idempotent)."""
         if self.closed:
             return
         self.closed = True
+        self._moving = None
         drop = ResidentChunk(what=DROP, key=self.key, slot=0, kernel=self.kernel,
                              agents=range(0), version=self.version)
         self.backend._run_chunks(RUNNER, [[drop] for _ in range(self.backend.workers)])
@@ -256,6 +450,12 @@ class ResidentSet:
     def _check_open(self) -> None:
         if self.closed:
             raise RuntimeError(f"resident set {self.key} is closed")
+
+
+def _outside(group: range, block: range) -> np.ndarray:
+    """The agents of ``group`` that are not in ``block``, in increasing order."""
+    agents = np.arange(group.start, group.stop, dtype=np.int64)
+    return agents[(agents < block.start) | (agents >= block.stop)]
 
 
 def _replies(chunk: ChunkResult) -> list[ResidentReply]:

@@ -8,7 +8,11 @@ constraint), or not at all (``limit=None``); with the default u_max = 2.7 (force
 limits of the heaviest agents bind at the optimum, which the free optimum breaks (peak
 3.23): the total cost rises from 63.0311 to 63.2814 (box) and 63.2996 (norm). With
 ``obstacle`` = R a ball of radius R about (0, 5), which the optimal paths cross, is kept
-clear on the continuous paths (:mod:`ocpar.formation.obstacle_rounds`).
+clear on the continuous paths (:mod:`ocpar.formation.obstacle_rounds`). With ``unlimited`` = m
+the last m agents have no thrust limit: a fleet listed by kind, whose solves' cost is skewed
+by agent order (a limited agent's solve, by ``sqpmethod``, ~0.24 ms; an unlimited one's, by
+the batched Newton kernel, ~0.05 ms), what resident agents' blocks are rebalanced for
+(:mod:`ocpar.bsp.resident`).
 """
 
 import casadi as ca
@@ -36,16 +40,20 @@ def thrust_shape(mass: float, limit: str | None, u_max: float) -> DmocShape:
 
 
 def make(agents: int = 12, limit: str | None = "box", u_max: float = 2.7,
-         obstacle: float | None = None) -> FormationProblem:
+         obstacle: float | None = None, unlimited: int = 0) -> FormationProblem:
     """``agents`` point masses of masses 0.5, 1, 1.5 in turn, thrust limit ``limit`` at ``u_max``
-    (force unit), and a ball of radius ``obstacle`` about (0, 5) to keep clear of (None:
-    none)."""
+    (force unit) but for the last ``unlimited`` of them, and a ball of radius ``obstacle``
+    about (0, 5) to keep clear of (None: none)."""
+    if not 0 <= unlimited <= agents:
+        raise ValueError(f"unlimited: {unlimited} is not between 0 and {agents} agents")
     masses = 0.5 + 0.5 * (np.arange(agents) % 3)
+    limits = [limit] * (agents - unlimited) + [None] * unlimited
     starts = np.zeros((agents, 2))
     starts[:, 0] = np.linspace(-3.0, 3.0, agents)
     return FormationProblem(
         name="mixed-fleet",
-        shape=tuple(thrust_shape(float(m), limit, u_max) for m in masses),
+        shape=tuple(thrust_shape(float(m), lim, u_max) for m, lim in zip(masses, limits,
+                                                                          strict=True)),
         curve=Circle(radius=4.0, center=np.array([0.0, 6.0])),
         starts=starts,
         obstacles=() if obstacle is None else (Sphere((0.0, 5.0), obstacle, "ball"),),
