@@ -13,7 +13,7 @@ import time
 import numpy as np
 import pytest
 from conftest import run_cli
-from test_resident import assert_bitwise
+from test_resident import assert_bitwise, serial_reference
 
 from ocpar.bsp import open_backend
 from ocpar.bsp.partition import contiguous_blocks
@@ -156,10 +156,7 @@ def test_a_worker_killed_while_states_move_loses_nothing():
     serial one."""
     problem = skewed()
     angles = [problem.initial_phi() + delta for delta in (0.0, 0.01, 0.02, 0.03, 0.04)]
-    with open_backend("serial") as serial:
-        reference = OuterObjective(problem, serial)
-        expected = [reference.gradient(phi) for phi in angles]
-        paths = np.asarray(reference.solutions(angles[-1]).column("q"))
+    expected, paths = serial_reference(problem, angles)
     with open_backend("dask", workers=2) as backend:
         objective = OuterObjective(problem, backend)
         agents = objective._agents

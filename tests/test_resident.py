@@ -37,6 +37,14 @@ def assert_bitwise(result, reference) -> None:
     assert result.supersteps == reference.supersteps
 
 
+def serial_reference(problem, angles) -> tuple[list[np.ndarray], np.ndarray]:
+    """The outer gradient at each of ``angles`` and the paths at the last, served serially."""
+    with open_backend("serial") as serial:
+        reference = OuterObjective(problem, serial)
+        gradients = [reference.gradient(phi) for phi in angles]
+        return gradients, np.asarray(reference.solutions(angles[-1]).column("q"))
+
+
 def test_a_superstep_moves_outcomes_and_the_paths_come_once(serial_run):
     """Every superstep but the last returns outcomes (no paths); the last gathers the
     paths, once."""
@@ -110,10 +118,7 @@ def test_a_killed_dask_worker_s_agents_are_rebuilt_on_a_live_one(serial_run):
     rebuilt on the other from their history, and every value and path is the serial one."""
     problem = paper_example(AGENTS)
     angles = [serial_run.phi + delta for delta in (0.03, 0.02, 0.01, 0.0)]
-    with open_backend("serial") as serial:
-        reference = OuterObjective(problem, serial)
-        expected = [reference.gradient(phi) for phi in angles]
-        paths = np.asarray(reference.solutions(angles[-1]).column("q"))
+    expected, paths = serial_reference(problem, angles)
     with open_backend("dask", workers=2) as backend:
         objective = OuterObjective(problem, backend)
         got = [objective.gradient(phi) for phi in angles[:2]]
