@@ -15,13 +15,7 @@ from ocpar.bsp.partition import contiguous_blocks
 from ocpar.examples.formation_halo import make as halo_example
 from ocpar.examples.formation_point_masses import make as point_masses
 from ocpar.ocp import DmocShape, OcpTask, dmoc_problem, solve_task, solve_tasks
-from ocpar.ocp.batch import (
-    MappedNlp,
-    batched_kkt_newton_function,
-    constant_kkt_matrix,
-    constant_outputs,
-    kkt_newton_function,
-)
+from ocpar.ocp.batch import KktSystem, MappedNlp, constant_outputs
 
 
 def formation_tasks(problem, phi=None, solver: str | None = None) -> list[OcpTask]:
@@ -171,13 +165,14 @@ def test_a_constant_kkt_matrix_factorised_once_gives_the_per_column_bits(columns
     transcription = dmoc_problem(point_masses(4).shape)
     x, p = transcription._w, transcription._p
     f, g = transcription.cost(x, p), transcription.constraints(x, p)
-    matrix = constant_kkt_matrix(x, p, f, g)
+    system = KktSystem.of(x, p, f, g)
+    matrix = system.constant_matrix()
     assert matrix is not None
     assert constant_outputs(transcription.end_hessian)
     rng = np.random.default_rng(3)
     inputs = [rng.standard_normal((n, columns)) * 10 for n in (x.numel(), g.numel(), p.numel())]
-    per_column = kkt_newton_function("pc", x, p, f, g, 2).map(columns, "serial")(*inputs)
-    batched = batched_kkt_newton_function("b", x, p, f, g, 2, matrix, columns)(*inputs)
+    per_column = system.newton("pc", 2).map(columns, "serial")(*inputs)
+    batched = system.batched_newton("b", 2, matrix, columns)(*inputs)
     for one, other in zip(per_column, batched, strict=True):
         assert np.asarray(one).tobytes() == np.asarray(other).tobytes()
 
@@ -187,6 +182,6 @@ def test_a_nonlinear_problem_keeps_its_per_column_factorisation():
     is no constant matrix, and the end Hessian depends on the solution."""
     transcription = dmoc_problem(halo_example(agents=2, intervals=10).shape)
     x, p = transcription._w, transcription._p
-    assert constant_kkt_matrix(x, p, transcription.cost(x, p),
-                               transcription.constraints(x, p)) is None
+    assert KktSystem.of(x, p, transcription.cost(x, p),
+                        transcription.constraints(x, p)).constant_matrix() is None
     assert not constant_outputs(transcription.end_hessian)
