@@ -179,7 +179,10 @@ def test_mpirun_two_ranks_matches_serial(serial_reference, tmp_path):
     data = json.loads((tmp_path / "result.json").read_text())
     assert data["backend"] == "mpi" and data["workers"] == 2
     assert_same_run(data, serial_reference)
-    assert all(t["worker_tasks"] == [30, 30] for t in data["trace"])
+    # the blocks start even; measured costs may move agents later (a descheduled rank looks
+    # slow), which never changes a bit of the result (tests/test_rebalance.py)
+    tasks = [t["worker_tasks"] for t in data["trace"]]
+    assert tasks[0] == [30, 30] and all(sum(t) == 60 and min(t) > 0 for t in tasks), tasks
     assert proc.stdout.count("superstep ") == data["supersteps"]
 
 
