@@ -1,7 +1,7 @@
 """Resident agents' blocks follow their measured costs (ocpar.bsp.resident): on a mixed fleet
 whose expensive (thrust-limited) agents come first, the blocks move between supersteps, the
 moved agents' states travel in the replies and the next chunks (never a history replay), and
-every result is the serial run's bit for bit: Dask with 2 workers, mpirun -n 2."""
+every result is the serial run's bit for bit: Dask with 2 and 3 workers, mpirun -n 2."""
 
 from __future__ import annotations
 
@@ -171,3 +171,14 @@ def test_a_worker_killed_while_states_move_loses_nothing():
         solutions = objective.solutions(angles[-1])
     assert all(np.array_equal(g, e) for g, e in zip(got, expected, strict=True))
     assert np.array_equal(np.asarray(solutions.column("q")), paths)
+
+
+def test_three_dask_workers_move_blocks_and_give_the_serial_run(serial_run):
+    """Dask, 3 workers: the expensive first half fills the first block and half the second,
+    so both boundaries move towards the start; the run is the serial one bit for bit."""
+    with open_backend("dask", workers=3) as backend:
+        result = solve_formation(skewed(), backend)
+    assert_bitwise(result, serial_run)
+    tasks = [t.worker_tasks for t in result.trace]
+    assert tasks[0] == [160, 160, 160], tasks
+    assert any(t[0] < 160 and sum(t) == AGENTS for t in tasks), tasks
