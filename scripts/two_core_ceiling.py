@@ -70,8 +70,8 @@ def inner_solves(agents: int, processes: int, rounds: int) -> list[float]:
     """Per round, the slowest of ``processes`` processes' per-agent time per superstep (s),
     each solving ``agents`` agents at the same moment."""
     context = mp.get_context("spawn")
-    barrier = context.Manager().Barrier(processes)
-    with context.Pool(processes) as pool:
+    with context.Manager() as manager, context.Pool(processes) as pool:
+        barrier = manager.Barrier(processes)
         per_process = pool.starmap(_solve_rounds, [(agents, rounds, barrier)] * processes)
     return [max(round_times) for round_times in zip(*per_process, strict=True)]
 
