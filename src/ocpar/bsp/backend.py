@@ -161,11 +161,8 @@ class Backend(ABC):
         else:
             groups = self._assign(name, n, costs)
             chunks = self._run_chunks(name, [select(group) for group in groups])
-        in_order = _in_order(groups, n)  # contiguous blocks: nothing to reorder
-        position = np.arange(n)  # position[i]: where task i's result is among the chunks'
-        if not in_order:
-            order = np.fromiter(itertools.chain.from_iterable(groups), dtype=np.intp, count=n)
-            position[order] = np.arange(n)
+        position = _positions(groups, n)  # position[i]: where task i's result is among the
+        in_order = position is None        # chunks'; None for contiguous blocks (in order)
         if columns:
             packed = [to_columns(c.results) for c in chunks if len(c.results)]
             if not all(isinstance(p, Columns) for p in packed):
@@ -259,13 +256,19 @@ class Backend(ABC):
         self.close()
 
 
-def _in_order(groups: Sequence[Sequence[int]], n: int) -> bool:
-    """True if ``groups`` (worker w's task indices, in order) run 0..n−1 in increasing order
-    from group to group: contiguous blocks (ranges: checked in O(P)), so the workers' results
-    concatenated are already in task order."""
+def _positions(groups: Sequence[Sequence[int]], n: int) -> np.ndarray | None:
+    """Where each task's result lies among the workers' results concatenated (``groups``:
+    worker w's task indices, in order), or None if they already run 0..n−1 in increasing
+    order from group to group: contiguous blocks (ranges: checked in O(P))."""
     if all(isinstance(g, range) and g.step == 1 for g in groups):
         ends = [g for g in groups if len(g)]
-        return (not ends or ends[0].start == 0) and all(
-            a.stop == b.start for a, b in itertools.pairwise(ends)) and sum(map(len, ends)) == n
+        if (not ends or ends[0].start == 0) and all(
+                a.stop == b.start for a, b in itertools.pairwise(ends)) \
+                and sum(map(len, ends)) == n:
+            return None
     order = np.fromiter(itertools.chain.from_iterable(groups), dtype=np.intp, count=n)
-    return bool(np.all(order[1:] > order[:-1]))
+    if np.all(order[1:] > order[:-1]):
+        return None
+    position = np.empty(n, dtype=np.intp)
+    position[order] = np.arange(n)
+    return position
