@@ -85,8 +85,8 @@ def solve_agents(tasks: Columns, states: Columns | None) -> tuple[Columns, Colum
         q, u = np.asarray(states.column("q")), np.asarray(states.column("u"))
         fallback = (STACKED, np.hstack([q[:, 1:-1].reshape(k, -1), u.reshape(k, -1)]))
         params = np.array(states.column("params"), float)
-        nq = params.shape[1] // 4
-        params[:, 2 * nq: 2 * nq + d] = tasks.column("end")
+        start = 2 * (params.shape[1] // 4)   # q_N's first entry in p = (q_0, q̇_0, q_N, q̇_N)
+        params[:, start: start + d] = tasks.column("end")
     inner = Columns(cls=OcpTask, length=k, fields={
         "shape": tasks.fields["shape"], "params": (STACKED, params),
         "warm_start": (SHARED, None), "multipliers": (SHARED, None), "fallback": fallback})
