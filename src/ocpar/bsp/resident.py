@@ -68,7 +68,7 @@ from __future__ import annotations
 import uuid
 import weakref
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, Protocol
 
 import numpy as np
 
@@ -77,7 +77,6 @@ from ocpar.bsp.kernel import ChunkResult, kernel_name, resolve_kernel
 from ocpar.bsp.partition import block_loads, contiguous_blocks, cost_balanced_blocks
 
 if TYPE_CHECKING:
-    from ocpar.bsp.backend import Backend
     from ocpar.bsp.kernel import KernelRef
 
 #: The engine kernel that runs a :class:`ResidentChunk` in a worker (:func:`run_resident`).
@@ -269,6 +268,22 @@ class _Moving:
         return (self.agents[rows], self.states.take(rows)) if len(rows) else None
 
 
+class ResidentHost(Protocol):
+    """What a :class:`ResidentSet` needs of its backend (:class:`~ocpar.bsp.Backend` is one):
+    its worker count, its rebalancing tolerance, its chunk transport and its superstep of a
+    resident set. A protocol, so that this module does not import the backend's."""
+
+    workers: int
+    resident_tolerance: float | None
+
+    def _run_chunks(self, name: str, chunks: list[list[Any] | Columns]) -> list[ChunkResult]:
+        ...
+
+    def _resident_superstep(self, resident: ResidentSet, what: str, tasks: Columns | None
+                            ) -> Any:
+        ...
+
+
 class ResidentSet:
     """n agents whose states stay on the workers of ``backend`` (module docstring), driven by
     the resident kernel ``kernel``. Use :meth:`step` once per superstep, :meth:`collect` for
@@ -279,7 +294,7 @@ class ResidentSet:
     by the agents' measured costs, by the backend's
     :attr:`~ocpar.bsp.Backend.resident_tolerance` (module docstring)."""
 
-    def __init__(self, backend: Backend, kernel: KernelRef, agents: int) -> None:
+    def __init__(self, backend: ResidentHost, kernel: KernelRef, agents: int) -> None:
         if agents < 1:
             raise ValueError(f"a resident set needs at least one agent, got {agents}")
         self.backend = backend
