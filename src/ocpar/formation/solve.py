@@ -26,6 +26,7 @@ from ocpar.formation.hierarchical import (
     solve_outer_newton,
     solve_outer_offset,
 )
+from ocpar.formation.feasibility import feasible_start
 from ocpar.formation.keep_out import separate
 from ocpar.formation.monolithic import solve_monolithic
 from ocpar.formation.obstacle_rounds import avoid_obstacles
@@ -39,7 +40,7 @@ from ocpar.formation.slot_assignment import SlotChoice, assign_slots
 from ocpar.formation.slots import SLOT_CANDIDATES, Slots
 from ocpar.formation.surface import Surface
 from ocpar.ocp.batch import SOLVERS
-from ocpar.options import option
+from ocpar.options import numbers, option
 
 MODES = ("hierarchical", "monolithic")
 #: The hierarchical mode's outer solvers by name (see :mod:`ocpar.formation.hierarchical`).
@@ -124,6 +125,14 @@ class FormationOptions:
     obstacle_rounds: int = option(30, "obstacle rounds (supersteps of keep-out solves) at "
                                   "most, for a problem with obstacles (with --min-separation "
                                   "the separation rounds keep them clear too)", low=1)
+    initial_angles: tuple[float, ...] | None = option(
+        None, "the start: the final angles (rad), one per agent (on a surface two per agent, "
+        "agent i's at 2i, 2i+1), numbers separated by commas; default: the documented "
+        "initial guess, moved to the nearest feasible formation where thrust limits are "
+        "known exactly", metavar="PHI,PHI,...")
+    initial_rotation: float | None = option(
+        None, "the start: the documented initial guess rotated by this angle (rad, added to "
+        "every agent's initial angle; curves only)", metavar="RAD")
 
     def __post_init__(self) -> None:
         if self.mode not in MODES:
@@ -148,6 +157,16 @@ class FormationOptions:
                      "slot_candidates"):
             if getattr(self, name) < 1:
                 raise ValueError(f"{name} must be at least 1")
+        if self.initial_angles is not None:
+            try:
+                object.__setattr__(self, "initial_angles", numbers(self.initial_angles))
+            except ValueError as exc:
+                raise ValueError(f"initial_angles: {exc}") from None
+        if self.initial_rotation is not None and not math.isfinite(self.initial_rotation):
+            raise ValueError(f"initial_rotation: must be a finite angle (rad), got "
+                             f"{self.initial_rotation!r}")
+        if self.initial_angles is not None and self.initial_rotation is not None:
+            raise ValueError("initial_angles and initial_rotation: give one start, not both")
 
 
 def cost_parts(problem: FormationProblem, controls: np.ndarray) -> dict[str, float]:
@@ -159,6 +178,29 @@ def cost_parts(problem: FormationProblem, controls: np.ndarray) -> dict[str, flo
     h = problem.common_shape.duration / problem.common_shape.intervals
     groups = getattr(problem.common_shape.model, "cost_parts", {})
     return {name: float(h * np.sum(controls[..., a:b] ** 2)) for name, (a, b) in groups.items()}
+
+
+def given_start(problem: FormationProblem, options: FormationOptions) -> np.ndarray | None:
+    """The start the options give (``initial_angles``, or ``initial_rotation`` added to
+    :meth:`~ocpar.formation.FormationProblem.initial_phi`), shape
+    :attr:`~ocpar.formation.FormationProblem.parameter_shape`; None if they give none.
+    ValueError (one line) for a start of the wrong length or onto slots."""
+    if options.initial_angles is None and options.initial_rotation is None:
+        return None
+    if isinstance(problem.curve, Slots):
+        raise ValueError("initial_angles/initial_rotation: onto slots the assignment chooses "
+                         "the start")
+    if options.initial_rotation is not None:
+        if isinstance(problem.curve, Surface):
+            raise ValueError("initial_rotation: applies to curves; on a surface give "
+                             "initial_angles")
+        return problem.initial_phi() + options.initial_rotation
+    size = problem.agents * problem.parameters
+    if len(options.initial_angles) != size:
+        raise ValueError(f"initial_angles: needs {size} angles ({problem.agents} agents"
+                         f"{' x 2 parameters' if problem.parameters == 2 else ''}), got "
+                         f"{len(options.initial_angles)}")
+    return np.reshape(np.array(options.initial_angles), problem.parameter_shape)
 
 
 def check_applicable(problem: FormationProblem, options: FormationOptions) -> None:
@@ -198,6 +240,9 @@ def check_applicable(problem: FormationProblem, options: FormationOptions) -> No
         if not residual <= PROJECTION_TOL:
             raise ValueError(f"coupling: no solution of g(phi) = 0 found from the initial "
                              f"guess (max |g| {residual:.3g} after the projection)")
+    given_start(problem, options)
+    if problem.reach_sets():   # ValueError if no formation is feasible
+        feasible_start(problem, problem.initial_phi())
     if options.min_separation is not None:
         if options.mode != "hierarchical":
             raise ValueError("min_separation applies to the hierarchical mode only")
@@ -298,8 +343,10 @@ def solve_formation(
     phi0: np.ndarray | None = None,
     progress: Callable[[str], None] | None = None,
 ) -> FormationResult:
-    """Solve ``problem`` from the angles ``phi0`` (default :meth:`FormationProblem.initial_phi`;
-    onto slots none: the assignment chooses them).
+    """Solve ``problem`` from the angles ``phi0`` (default: the options' ``initial_angles``
+    or ``initial_rotation``, else :meth:`FormationProblem.initial_phi` moved to the nearest
+    feasible formation, :func:`~ocpar.formation.feasibility.feasible_start`; onto slots
+    none: the assignment chooses them).
 
     ``backend`` runs the inner solves (default: serial, in this process); ``progress`` is
     called with one line per superstep. The backend is left open for the caller to close.
@@ -312,8 +359,12 @@ def solve_formation(
         problem = problem.with_shapes(
             lambda shape: dataclasses.replace(shape, solver=options.inner_solver))
     slots = isinstance(problem.curve, Slots)   # then the assignment chooses φ: no φ0
-    phi0 = (None if slots else problem.initial_phi()) if phi0 is None \
-        else np.asarray(phi0, float)
+    if phi0 is None:
+        phi0 = given_start(problem, options)
+    if phi0 is None and not slots:
+        phi0 = feasible_start(problem, problem.initial_phi())
+    elif phi0 is not None:
+        phi0 = np.asarray(phi0, float)
     if phi0 is not None and phi0.shape != problem.parameter_shape:
         raise ValueError(f"phi0 must have shape {problem.parameter_shape}, got {phi0.shape}")
     if phi0 is not None:
