@@ -19,6 +19,7 @@ from ocpar.formation.critical_sets import (
     IsolatedChoice,
     best_isolated_formation,
 )
+from ocpar.formation.feasibility import feasible_start
 from ocpar.formation.hierarchical import (
     InnerSolveFailed,
     OuterObjective,
@@ -26,7 +27,6 @@ from ocpar.formation.hierarchical import (
     solve_outer_newton,
     solve_outer_offset,
 )
-from ocpar.formation.feasibility import feasible_start
 from ocpar.formation.keep_out import separate
 from ocpar.formation.monolithic import solve_monolithic
 from ocpar.formation.obstacle_rounds import avoid_obstacles
