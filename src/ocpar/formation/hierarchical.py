@@ -391,9 +391,9 @@ def tangent_newton(objective: OuterObjective, phi: np.ndarray, tol: float,
     Hessian, the step −Z (ZᵀWZ)⁻¹ Zᵀg (the reduced Hessian's eigenvalues taken in absolute
     value, its step no longer than :data:`MAX_OFFSET_STEP`), retracted onto c = 0
     (:meth:`~ocpar.formation.coupling.Coupling.retract`); a step that raises J beyond
-    rounding, or from which the retraction does not reach max |c_k| ≤ :data:`PROJECTION_TOL`,
-    is halved. Converged when |Zᵀg|_∞ ≤ ``tol`` Σ|g_i| with ZᵀWZ positive definite, or a
-    step was at most ``tol``·(1 + |φ|_∞)."""
+    rounding, whose inner solves fail, or from which the retraction does not reach
+    max |c_k| ≤ :data:`PROJECTION_TOL`, is halved. Converged when |Zᵀg|_∞ ≤ ``tol`` Σ|g_i|
+    with ZᵀWZ positive definite, or a step was at most ``tol``·(1 + |φ|_∞)."""
     coupling, curve = objective.problem.coupling, objective.problem.curve
 
     def model(phi: np.ndarray) -> tuple[float, np.ndarray, bool]:
@@ -421,7 +421,11 @@ def tangent_newton(objective: OuterObjective, phi: np.ndarray, tol: float,
         if np.max(np.abs(coupling.residual(trial, curve))) > PROJECTION_TOL:
             shrink /= 2   # too long a step to retract onto c = 0 from
             continue
-        t_value = objective.value(trial)
+        try:
+            t_value = objective.value(trial)
+        except InnerSolveFailed:   # infeasible (or unsolved) there: a rejected step
+            shrink /= 2
+            continue
         if t_value <= value + ROUNDING_RTOL * abs(value):
             if np.max(np.abs(shrink * step)) <= tol * (1 + np.max(np.abs(trial))):
                 return trial, iteration + 1, True, "step below tolerance"

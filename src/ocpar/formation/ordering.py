@@ -166,9 +166,9 @@ def pair_costs(problem: FormationProblem, backend: Backend, agents: np.ndarray,
     every pair is infeasible."""
     found = inner_costs(problem, backend, agents, phi)
     if not np.any(np.isfinite(found.costs)):
-        raise InnerSolveFailed(f"every one of {len(found.costs)} {what} pair(s) is infeasible "
-                               f"({found.failed} solve(s) failed, {found.skipped} out of "
-                               f"reach){'; first: ' + found.first_failure if found.failed else ''}")
+        first = f"; first: {found.first_failure}" if found.failed else ""
+        raise InnerSolveFailed(f"all {len(found.costs)} {what} solve(s) infeasible: "
+                               f"{found.failed} failed, {found.skipped} out of reach{first}")
     return found.costs
 
 

@@ -43,6 +43,9 @@ from ocpar.ocp.batch import SOLVERS
 from ocpar.options import numbers, option
 
 MODES = ("hierarchical", "monolithic")
+#: The monolithic answer must meet its constraints and bounds to this (the model's units, as
+#: evaluated on the returned point) to count as feasible.
+MONOLITHIC_VIOLATION_TOL = 1e-6
 #: The hierarchical mode's outer solvers by name (see :mod:`ocpar.formation.hierarchical`).
 OUTER = {"newton": solve_outer_newton, "sqp": solve_outer, "offset": solve_outer_offset}
 OUTER_SOLVERS = tuple(OUTER)
@@ -374,25 +377,45 @@ def solve_formation(
     common = {"problem": problem.name, "agents": problem.agents, "backend": backend.name,
               "workers": backend.workers, "mode": options.mode, "on_circle": problem.on_circle}
     ordering_solves, choice, chosen = 0, None, None
-    if slots:
-        choice = assign_slots(problem, backend, options.slot_candidates, progress)
-        phi0, ordering_solves, chosen = choice.phi, choice.inner_solves, "slots assigned"
-    elif options.ordering == "optimal" and problem.on_circle:
-        ordered = optimal_ordering(problem, backend, tol=options.outer_tol, progress=progress)
-        phi0, ordering_solves = ordered.phi, ordered.inner_solves
-    elif options.ordering == "optimal":
-        choice = best_isolated_formation(problem, backend, options.critical,
-                                         options.critical_starts, progress, options.outer_tol)
-        phi0, ordering_solves, chosen = choice.phi, choice.inner_solves, "ordering optimal"
+    try:
+        if slots:
+            choice = assign_slots(problem, backend, options.slot_candidates, progress)
+            phi0, ordering_solves, chosen = choice.phi, choice.inner_solves, "slots assigned"
+        elif options.ordering == "optimal" and problem.on_circle:
+            ordered = optimal_ordering(problem, backend, tol=options.outer_tol,
+                                       progress=progress)
+            phi0, ordering_solves = ordered.phi, ordered.inner_solves
+        elif options.ordering == "optimal":
+            choice = best_isolated_formation(problem, backend, options.critical,
+                                             options.critical_starts, progress,
+                                             options.outer_tol)
+            phi0, ordering_solves, chosen = choice.phi, choice.inner_solves, "ordering optimal"
+    except InnerSolveFailed as exc:   # no assignment with every agent feasible: no answer
+        n, shape = problem.agents, problem.common_shape
+        return FormationResult(
+            **common, status="failed", message=f"ordering: {exc}", total_cost=math.nan,
+            phi=np.full(problem.parameter_shape, np.nan), agent_costs=np.full(n, np.nan),
+            trajectories=np.full((n, shape.intervals + 1, shape.model.nq), np.nan),
+            outer_iterations=-1, inner_solves=0, failed_solves=0,
+            wall_time_s=time.perf_counter() - start,
+            separation=problem.closest_approach(np.full((n, 2, shape.model.nq), np.nan)),
+            trace=backend.traces[first_trace:])
     discrete = discrete_choice(problem, choice, phi0)
     note = discrete.pop("note")
 
     if options.mode == "monolithic":
         sol = solve_monolithic(problem, phi0, options.monolithic_tol, options.max_outer_iterations)
+        feasible = sol.violation <= MONOLITHIC_VIOLATION_TOL
+        status = ("converged" if sol.success and feasible
+                  else "not_converged" if feasible else "failed")
+        words = (f"{sol.status}; constraints met (max violation {sol.violation:.1e})"
+                 if feasible else
+                 f"{sol.status}; the returned point breaks the constraints by "
+                 f"{sol.violation:.3g}: an infeasible iterate, no answer")
         return FormationResult(
             **common,
-            status="converged" if sol.success else "not_converged",
-            message=sol.status + note,
+            status=status,
+            message=words + note,
             total_cost=float(np.sum(sol.agent_costs)),
             phi=sol.phi,
             agent_costs=sol.agent_costs,
