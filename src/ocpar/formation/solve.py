@@ -243,7 +243,9 @@ def check_applicable(problem: FormationProblem, options: FormationOptions) -> No
         if not residual <= PROJECTION_TOL:
             raise ValueError(f"coupling: no solution of g(phi) = 0 found from the initial "
                              f"guess (max |g| {residual:.3g} after the projection)")
-    given_start(problem, options)
+    if given_start(problem, options) is not None and options.ordering == "optimal":
+        raise ValueError("initial_angles/initial_rotation: ordering 'optimal' chooses its own "
+                         "start (use ordering 'keep')")
     if problem.reach_sets():   # ValueError if no formation is feasible
         feasible_start(problem, problem.initial_phi())
     if options.min_separation is not None:
