@@ -329,3 +329,55 @@ def test_initial_angles_in_toml_become_the_start(tmp_path, capsys):
     assert code == 0, text
     first = float(re.search(r"superstep +0 +cost (\S+)", text).group(1))
     assert first == pytest.approx(expected, rel=1e-11)
+
+
+@pytest.mark.parametrize("limit", ["box", "norm"])
+def test_the_feasible_window_ends_where_an_agent_leaves_its_reach(limit):
+    """The window of rotations (about the initial guess) ends where some agent's move leaves
+    the reach of the hand-written LP: 1e-7 rad inside both ends every agent reaches its
+    target, 1e-7 rad outside one does not; the start lies inside, the initial guess not."""
+    from ocpar.formation.feasibility import feasible_window
+
+    problem = fleet(limit)
+    u_max = 0.8 * free_peak()
+    reach = np.array([lp_reach(float(m), INTERVALS, DURATION, -u_max, u_max)[1]
+                      for m in masses(problem.agents)])
+    phi0 = problem.initial_phi()
+
+    def reached(theta: float) -> bool:
+        moves = CENTRE + RADIUS * np.column_stack([np.cos(phi0 + theta),
+                                                   np.sin(phi0 + theta)]) - problem.starts
+        size = (np.linalg.norm(moves, axis=1) if limit == "norm"
+                else np.max(np.abs(moves), axis=1))
+        return bool(np.all(size <= reach))
+
+    window = feasible_window(problem, problem.coupling.family(phi0, problem.curve))
+    assert not reached(0.0) and reached(window.start)
+    assert window.low < window.start < window.high
+    for end, inward in ((window.low, 1.0), (window.high, -1.0)):
+        assert reached(end + inward * 1e-7) and not reached(end - inward * 1e-7)
+
+
+@pytest.mark.parametrize(("argv", "needle"), [
+    (["--initial-angles", "0.1,x"], "argument --initial-angles: expected numbers separated "
+                                    "by commas, got '0.1,x'"),
+    (["--initial-angles", "0.1,inf"], "argument --initial-angles: expected a non-empty list "
+                                      "of finite numbers"),
+    (["--initial-rotation", "nan"], "argument --initial-rotation: expected a finite number"),
+    (["--initial-rotation=-1", "--ordering", "optimal"],
+     "initial_angles/initial_rotation: ordering 'optimal' chooses its own start"),
+    (["--initial-rotation=-1", "--initial-angles=1,2"],
+     "initial_angles and initial_rotation: give one start, not both"),
+])
+def test_bad_starts_on_the_command_line_are_one_line_exit_2(argv, needle, capsys, monkeypatch):
+    from ocpar import driver
+    from ocpar.formation.run import FormationRun
+
+    monkeypatch.setattr("ocpar.formation.run.solve_formation", None)   # never reached
+    try:
+        code = driver.main(FormationRun, ["--problem", "feasibility_problems:fleet", "--quiet",
+                                          *argv])
+    except SystemExit as exc:
+        code = exc.code
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 2 and len(err) == 1 and needle in err[0], err
