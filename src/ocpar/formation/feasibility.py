@@ -8,10 +8,11 @@ Two mechanisms, one per kind of knowledge:
   is reachable where e_i(θ) = excess of z(φ_i(θ)) − start_i over its reach set is ≤ 0;
   the feasible shifts are where E(θ) = max_i e_i(θ) ≤ 0 (:func:`feasible_window`: E on a
   grid of :data:`WINDOW_GRID` shifts over one period, the interval's ends by bisection).
-  E is Lipschitz (|dE/dθ| ≤ max_i |z′(φ_i)| |dφ_i/dθ|), so a grid whose smallest E exceeds
-  that bound times half its spacing proves that no shift is feasible: then the formation is
-  refused (one line naming the agent that misses its reach at the best shift and its
-  limit). The start is the feasible shift nearest the given one, :data:`WINDOW_MARGIN` of
+  E is Lipschitz (|dE/dθ| ≤ L = max_i |z′(φ_i)| |dφ_i/dθ|, estimated on the grid with a
+  margin of 2), so a feasible shift can hide between grid points only next to one where
+  E ≤ L · spacing / 2; those are polished by a bounded local minimisation, and if none
+  reaches E ≤ 0 the formation is refused (one line naming the agent that misses its reach
+  at the best shift, and its limit). The start is the feasible shift nearest the given one, :data:`WINDOW_MARGIN` of
   the interval's width inside it; the outer Newton search stays inside the interval.
 * **Failures as data** (any model and constraint): :func:`inner_costs` returns +∞ for an
   inner problem whose solve failed (and, where the reach set is exact, for one outside it,
