@@ -258,7 +258,8 @@ def test_a_box_thrust_limit_that_cannot_reach_the_curve_is_refused():
     """The least thrust any formation needs, computed here by brute force over 200,000
     points of the circle (per agent the nearest point in the bang–bang sense,
     max_j 4 m |Δ_j| / T², then the worst agent): 1 % below it the problem is refused,
-    naming the agent's control_bounds; at 1.001 times it the check lets it through."""
+    naming the agent's control_bounds; at 1.001 times it the check lets it through. The same
+    for a norm limit (the disc), naming its path constraint."""
     problem = make()
     theta = np.linspace(0, 2 * np.pi, 200_000, endpoint=False)
     points = problem.curve.points(theta)
@@ -271,4 +272,12 @@ def test_a_box_thrust_limit_that_cannot_reach_the_curve_is_refused():
                        r"agent \d+ \(mass 1\.5\) cannot reach any point of the curve"):
         make(u_max=0.99 * least)
     make(u_max=1.001 * least)
-    make(limit="norm", u_max=0.99 * least)   # a norm limit is a path constraint: not read
+    # a norm limit |u| ≤ a reaches the disc |Δ| ≤ T² a / (4 m) (DMOC's reach on N = 20
+    # intervals equals the continuous bang–bang move's, tests/test_feasibility.py)
+    need = [np.min(4 * m * np.linalg.norm(points - start, axis=1)) / duration**2
+            for m, start in zip(masses, problem.starts, strict=True)]
+    least = max(need)
+    with pytest.raises(ValueError, match=rf"^shape\[{int(np.argmax(need))}\]\.path_constraints"
+                       r"\[0\] \(thrust\): agent \d+ \(mass 1\.5\) cannot reach any point"):
+        make(limit="norm", u_max=0.99 * least)
+    make(limit="norm", u_max=1.001 * least)

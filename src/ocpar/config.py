@@ -32,7 +32,10 @@ too, so a new option has its key without any change here. Values:
   and the table ``[problem_args]`` (after every top-level key, as TOML requires) its keyword
   arguments, scalars each: ``--problem-arg KEY=VALUE`` on the command line.
 
-Unknown keys (with a suggestion when one is close), values of the wrong type, arrays and other
+* an option that takes a list of numbers gets a TOML array of numbers
+  (``initial_angles = [0.1, 0.6]``), numbers separated by commas on the command line;
+
+Unknown keys (with a suggestion when one is close), values of the wrong type, other arrays and
 tables raise :class:`ConfigError`, whose message is one line ``CONFIG: KEY: problem``.
 Everything else (ranges, choices, combinations, the problem itself) is left to the scheme's
 command line: :meth:`RunConfig.argv` is the scheme's command line, run by its ``main(argv)``,
@@ -78,7 +81,7 @@ class Option:
 
     key: str     # max_evals
     flag: str    # --max-evals
-    kind: str    # "flag", "integer", "number", "string" or "table"
+    kind: str    # "flag", "integer", "number", "string", "table" or "list"
 
 
 @dataclass(frozen=True)
@@ -101,6 +104,9 @@ class RunConfig:
             if option.kind == "table":
                 argv += [f"{option.flag}={name}={toml_scalar(item)}"
                          for name, item in value.items()]
+                continue
+            if option.kind == "list":
+                argv += [f"{option.flag}={','.join(toml_scalar(float(x)) for x in value)}"]
                 continue
             text = repr(value) if isinstance(value, float) else str(value)
             # a value that starts with "-" would read as an option: attach it with "="
@@ -177,6 +183,7 @@ EXPECTED = {
     "number": "a number",
     "string": "a string",
     "table": "a table of scalars",
+    "list": "an array of numbers",
 }
 ACCEPTS = {
     "flag": (bool,),
@@ -184,6 +191,7 @@ ACCEPTS = {
     "number": (int, float),
     "string": (str,),
     "table": (dict,),
+    "list": (list,),
 }
 
 
@@ -203,6 +211,10 @@ def check_value(scheme: str, key: str, value: Any, where: str) -> Any:
     ok = isinstance(value, ACCEPTS[kind]) and (kind == "flag" or not isinstance(value, bool))
     if not ok:
         raise ConfigError(f"{where}: {key}: expected {EXPECTED[kind]}, got {_describe(value)}")
+    if kind == "list" and not (value and all(
+            isinstance(x, int | float) and not isinstance(x, bool) for x in value)):
+        raise ConfigError(f"{where}: {key}: expected {EXPECTED[kind]}, got an array of "
+                          f"{len(value)} item(s) not all numbers")
     if kind == "table":
         for name, item in value.items():
             if not name.isidentifier():

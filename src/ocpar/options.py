@@ -4,7 +4,8 @@ Each field is declared once with :func:`option` (default, help text, choices, ra
 command line (:func:`add_options`), the keys of a TOML configuration (:mod:`ocpar.config`)
 and Python (construct the dataclass) are all read from it. The field's type says how an option
 is written: ``bool`` a flag (``--quiet``; TOML ``true``/``false``), ``int`` and ``float`` a
-number, ``str`` a string, ``X | None`` an option that may stay unset, ``dict`` a table of
+number, ``str`` a string, ``tuple[float, ...]`` a list of numbers (``--initial-angles
+0.1,0.2,0.3``; a TOML array), ``X | None`` an option that may stay unset, ``dict`` a table of
 keyword arguments (``--problem-arg KEY=VALUE`` repeated; a TOML table).
 
 >>> from dataclasses import dataclass
@@ -28,7 +29,8 @@ from functools import cache
 from typing import Any
 
 #: How a field's type is written: a flag, a number, a string or a table of scalars.
-KINDS = {bool: "flag", int: "integer", float: "number", str: "string", dict: "table"}
+KINDS = {bool: "flag", int: "integer", float: "number", str: "string", dict: "table",
+         tuple: "list"}
 
 
 def option(default: Any = MISSING, help: str = "", *, name: str | None = None,
@@ -55,7 +57,7 @@ class OptionSpec:
     field: str            # max_evaluations
     key: str              # max_evals (the TOML key)
     flag: str             # --max-evals
-    kind: str             # "flag", "integer", "number", "string" or "table"
+    kind: str             # "flag", "integer", "number", "string", "table" or "list"
     optional: bool        # None allowed (the option may stay unset)
     default: Any
     help: str
@@ -81,6 +83,8 @@ class OptionSpec:
             if (self.low is not None and value < self.low) or \
                     (self.high is not None and value > self.high):
                 raise ValueError(f"expected {self._range()}, got {value!r}")
+        if self.kind == "list":
+            value = numbers(value)
         return value
 
     def _range(self) -> str:
@@ -103,9 +107,23 @@ class OptionSpec:
                 value = float(text)
             except ValueError:
                 raise ValueError(f"expected a number, got {text!r}") from None
+        elif self.kind == "list":
+            parsed = parse_value(text if text.lstrip().startswith("[") else f"[{text}]")
+            if not isinstance(parsed, list):
+                raise ValueError(f"expected numbers separated by commas, got {text!r}")
+            value = parsed
         else:
             value = text
         return self.check(value)
+
+
+def numbers(value: Any) -> tuple[float, ...]:
+    """``value`` (a list or tuple of finite numbers) as a tuple of floats, or ValueError."""
+    if not isinstance(value, list | tuple) or not value or not all(
+            isinstance(x, int | float) and not isinstance(x, bool) and math.isfinite(x)
+            for x in value):
+        raise ValueError(f"expected a non-empty list of finite numbers, got {value!r}")
+    return tuple(float(x) for x in value)
 
 
 def _kind(annotation: Any) -> tuple[str, bool]:
@@ -114,8 +132,8 @@ def _kind(annotation: Any) -> tuple[str, bool]:
     base = next(a for a in args if a is not type(None)) if optional else annotation
     base = typing.get_origin(base) or base
     if base not in KINDS:
-        raise TypeError(f"an option's type must be one of bool, int, float, str, dict (or "
-                        f"X | None), not {annotation}")
+        raise TypeError(f"an option's type must be one of bool, int, float, str, dict, "
+                        f"tuple[float, ...] (or X | None), not {annotation}")
     return KINDS[base], optional
 
 

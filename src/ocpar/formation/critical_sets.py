@@ -24,6 +24,7 @@ that led to each set is reported, so a user can judge coverage).
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
 from dataclasses import dataclass
 
@@ -34,7 +35,12 @@ from scipy.spatial.distance import cdist, pdist
 from scipy.spatial.transform import Rotation
 
 from ocpar.bsp import Backend
-from ocpar.formation.hierarchical import ROUNDING_RTOL, OuterObjective, tangent_newton
+from ocpar.formation.hierarchical import (
+    ROUNDING_RTOL,
+    InnerSolveFailed,
+    OuterObjective,
+    tangent_newton,
+)
 from ocpar.formation.ordering import assignment_cost, cheapest_assignment, cost_tables
 from ocpar.formation.potential import potential
 from ocpar.formation.problem import FormationProblem
@@ -205,8 +211,9 @@ def best_isolated_formation(problem: FormationProblem, backend: Backend,
     """The cheapest critical set and assignment (module docstring): the sets on the
     coordinator, their cost tables in one superstep; on a surface whose sets have free
     directions (a sphere's rotations) each set's assignment alternated with the outer Newton
-    solve over them (:func:`_rotate`, tolerance ``tol``). Raises
-    :class:`~ocpar.formation.hierarchical.InnerSolveFailed` if an inner solve fails, and
+    solve over them (:func:`_rotate`, tolerance ``tol``). Infeasible pairs are +∞ in the
+    tables; a set with no assignment of feasible pairs is no candidate. Raises
+    :class:`~ocpar.formation.hierarchical.InnerSolveFailed` if no set has one, and
     ValueError on a circle (its feasible set is continuous:
     :func:`~ocpar.formation.ordering.optimal_ordering`) or when no search converged."""
     if not isinstance(problem.curve, Surface) and problem.curve.rotation_invariant:
@@ -220,7 +227,11 @@ def best_isolated_formation(problem: FormationProblem, backend: Backend,
     tables = cost_tables(problem, backend, np.array([s.phi.reshape(n, -1) for s in sets]))
     solves = tables.size
     for candidate, table in zip(sets, tables, strict=True):
-        candidate.assignment = cheapest_assignment(table)
+        try:
+            candidate.assignment = cheapest_assignment(table)
+        except InnerSolveFailed:   # no assignment with every pair feasible: not a candidate
+            candidate.total_cost = math.inf
+            continue
         candidate.total_cost = assignment_cost(table, candidate.assignment)
         if problem.coupling.free_directions(candidate.phi, problem.curve).shape[1]:
             candidate.rotated, candidate.total_cost, rotated_solves = _rotate(
@@ -228,6 +239,9 @@ def best_isolated_formation(problem: FormationProblem, backend: Backend,
             solves += rotated_solves
     sets.sort(key=lambda s: s.total_cost)
     best = sets[0]
+    if not math.isfinite(best.total_cost):
+        raise InnerSolveFailed(f"none of the {len(sets)} critical set(s) has an assignment "
+                               "with every agent's inner problem feasible")
     if progress is not None:
         progress(f"critical sets ({critical}): {len(sets)} distinct from {starts + 1} starts "
                  f"({failed} not converged or not stable); costs "

@@ -30,6 +30,7 @@ from scipy.optimize import minimize, root_scalar
 from ocpar.bsp import Backend
 from ocpar.bsp.columns import Columns
 from ocpar.formation.coupling import PROJECTION_TOL, ShiftFamily
+from ocpar.formation.feasibility import feasible_window, inner_costs
 from ocpar.formation.potential import equidistance_error
 from ocpar.formation.problem import FormationProblem
 from ocpar.formation.slots import Slots
@@ -46,6 +47,9 @@ MAX_OFFSET_STEP = np.pi / 2
 #: J values this close (relative) count as equal: the offset search starting at the optimum
 #: (e.g. after the optimal ordering) ends where rounding decides.
 ROUNDING_RTOL = 1e-12
+
+#: Shifts tried by :func:`_scan_start` (one superstep of this many times n inner solves).
+SCAN_SHIFTS = 32
 
 
 class InnerSolveFailed(RuntimeError):
@@ -289,7 +293,13 @@ def _shift_newton(objective: OuterObjective, family: ShiftFamily, tol: float,
     (:data:`ROUNDING_RTOL`) is rejected and halved; once a minimum is bracketed
     (dJ/dθ < 0 left of dJ/dθ > 0), a step leaving the bracket is replaced by the secant step
     inside it (bisection after a rejected step). Converged when |dJ/dθ| ≤ ``tol``
-    Σ|g_i dφ_i/dθ| with d²J/dθ² > 0, or an accepted step was at most ``tol``·(1 + |θ|)."""
+    Σ|g_i dφ_i/dθ| with d²J/dθ² > 0, or an accepted step was at most ``tol``·(1 + |θ|).
+
+    Feasibility (:mod:`ocpar.formation.feasibility`): where the agents' reach sets are exact,
+    θ starts at the feasible start of :func:`~ocpar.formation.feasibility.feasible_window`
+    and stays inside its interval (a step beyond an end goes half way to it). Any model: a
+    step whose inner solves fail is rejected (halved) and bounds the interval; if the start
+    fails, :func:`_scan_start` looks for a feasible one."""
 
     def evaluate(theta: float) -> tuple[float, float, float, float]:
         phi, along, bend = family.angles(theta)
@@ -298,9 +308,15 @@ def _shift_newton(objective: OuterObjective, family: ShiftFamily, tol: float,
                 float(np.sum(np.abs(g * along))),
                 float(np.sum(objective.hessian_diagonal(phi) * along**2 + g * bend)))
 
-    theta = 0.0
+    window = feasible_window(objective.problem, family)
+    low, high, theta = (-np.inf, np.inf, 0.0) if window is None else \
+        (window.low, window.high, window.start)
     n = objective.problem.agents
-    value, slope, scale, curvature = evaluate(theta)
+    try:
+        value, slope, scale, curvature = evaluate(theta)
+    except InnerSolveFailed:   # no feasible start known: scan for one
+        theta, low, high = _scan_start(objective, family, low, high)
+        value, slope, scale, curvature = evaluate(theta)
     # the latest (θ, dJ/dθ) with dJ/dθ < 0 and with dJ/dθ > 0
     below = (theta, slope) if slope < 0 else None
     above = (theta, slope) if slope > 0 else None
@@ -314,8 +330,15 @@ def _shift_newton(objective: OuterObjective, family: ShiftFamily, tol: float,
                 and not below[0] < theta + step < above[0]:  # a minimum is bracketed
             (a, g_a), (b, g_b) = below, above
             step = (a - g_a * (b - a) / (g_b - g_a) if shrink == 1 else (a + b) / 2) - theta
+        if not low < theta + step < high:   # half way to the feasible interval's end
+            step = ((high if step > 0 else low) - theta) / 2
         trial = theta + step
-        t_value, t_slope, t_scale, t_curvature = evaluate(trial)
+        try:
+            t_value, t_slope, t_scale, t_curvature = evaluate(trial)
+        except InnerSolveFailed:   # infeasible (or unsolved) there: a rejected step
+            low, high = (low, trial) if trial > theta else (trial, high)
+            shrink /= 2
+            continue
         if t_slope < 0:
             below = (trial, t_slope)
         elif t_slope > 0:
@@ -330,6 +353,36 @@ def _shift_newton(objective: OuterObjective, family: ShiftFamily, tol: float,
     return family.angles(theta)[0], max_iterations, False, "iteration limit reached"
 
 
+def _scan_start(objective: OuterObjective, family: ShiftFamily, low: float, high: float
+                ) -> tuple[float, float, float]:
+    """A feasible start of the shift search where θ = the given start failed: one superstep
+    of :data:`SCAN_SHIFTS` · n inner solves at shifts spread over (``low``, ``high``) (a
+    period if unbounded; failures are +∞, :func:`~ocpar.formation.feasibility.inner_costs`),
+    the cheapest shift whose every agent solved, and the interval between its failed
+    neighbours. Raises :class:`InnerSolveFailed` if none solved."""
+    problem = objective.problem
+    if not np.isfinite(low) or not np.isfinite(high):
+        low, high = -np.pi, np.pi
+    shifts = low + (np.arange(SCAN_SHIFTS) + 0.5) * (high - low) / SCAN_SHIFTS
+    n = problem.agents
+    phi = np.stack([family.angles(float(t))[0] for t in shifts])
+    found = inner_costs(problem, objective.backend, np.tile(np.arange(n), SCAN_SHIFTS),
+                        phi.ravel())
+    objective.inner_solves += found.solved
+    objective.failed_solves += found.failed
+    totals = found.costs.reshape(SCAN_SHIFTS, n).sum(axis=1)
+    if not np.any(np.isfinite(totals)):
+        raise InnerSolveFailed(f"no feasible start among {SCAN_SHIFTS} shifts in "
+                               f"[{low:.4g}, {high:.4g}] rad ({found.failed} inner solve(s) "
+                               f"failed, {found.skipped} target(s) out of reach; first: "
+                               f"{found.first_failure})")
+    best = int(np.argmin(totals))
+    failed = np.flatnonzero(~np.isfinite(totals))
+    left, right = failed[failed < best], failed[failed > best]
+    return (float(shifts[best]), float(shifts[left[-1]]) if len(left) else low,
+            float(shifts[right[0]]) if len(right) else high)
+
+
 def tangent_newton(objective: OuterObjective, phi: np.ndarray, tol: float,
                     max_iterations: int) -> tuple[np.ndarray, int, bool, str]:
     """Newton's method on the manifold c(φ) = 0 from a point ``phi`` on it: with Z (n, r) an
@@ -338,9 +391,9 @@ def tangent_newton(objective: OuterObjective, phi: np.ndarray, tol: float,
     Hessian, the step −Z (ZᵀWZ)⁻¹ Zᵀg (the reduced Hessian's eigenvalues taken in absolute
     value, its step no longer than :data:`MAX_OFFSET_STEP`), retracted onto c = 0
     (:meth:`~ocpar.formation.coupling.Coupling.retract`); a step that raises J beyond
-    rounding, or from which the retraction does not reach max |c_k| ≤ :data:`PROJECTION_TOL`,
-    is halved. Converged when |Zᵀg|_∞ ≤ ``tol`` Σ|g_i| with ZᵀWZ positive definite, or a
-    step was at most ``tol``·(1 + |φ|_∞)."""
+    rounding, whose inner solves fail, or from which the retraction does not reach
+    max |c_k| ≤ :data:`PROJECTION_TOL`, is halved. Converged when |Zᵀg|_∞ ≤ ``tol`` Σ|g_i|
+    with ZᵀWZ positive definite, or a step was at most ``tol``·(1 + |φ|_∞)."""
     coupling, curve = objective.problem.coupling, objective.problem.curve
 
     def model(phi: np.ndarray) -> tuple[float, np.ndarray, bool]:
@@ -368,7 +421,11 @@ def tangent_newton(objective: OuterObjective, phi: np.ndarray, tol: float,
         if np.max(np.abs(coupling.residual(trial, curve))) > PROJECTION_TOL:
             shrink /= 2   # too long a step to retract onto c = 0 from
             continue
-        t_value = objective.value(trial)
+        try:
+            t_value = objective.value(trial)
+        except InnerSolveFailed:   # infeasible (or unsolved) there: a rejected step
+            shrink /= 2
+            continue
         if t_value <= value + ROUNDING_RTOL * abs(value):
             if np.max(np.abs(shrink * step)) <= tol * (1 + np.max(np.abs(trial))):
                 return trial, iteration + 1, True, "step below tolerance"

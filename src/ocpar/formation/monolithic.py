@@ -21,8 +21,9 @@ from ocpar.ocp.ipopt import ipopt_options
 
 @dataclass
 class MonolithicSolution:
-    """φ (n,), per-agent costs (n,), trajectories (n, N+1, nq), controls (n, N, nu), and
-    IPOPT's verdict."""
+    """φ (n,), per-agent costs (n,), trajectories (n, N+1, nq), controls (n, N, nu), IPOPT's
+    verdict, and ``violation``: the returned point's largest constraint or bound violation
+    (the model's units; checked here, not taken from IPOPT)."""
 
     phi: np.ndarray
     agent_costs: np.ndarray
@@ -32,6 +33,7 @@ class MonolithicSolution:
     status: str
     iterations: int
     solve_time_s: float
+    violation: float = 0.0
 
 
 def solve_monolithic(
@@ -72,6 +74,7 @@ def solve_monolithic(
     x_opt = np.asarray(out["x"]).ravel()
     phi_opt = x_opt[offsets[-1]:]
     agent_costs = np.asarray(ca.Function("costs", [x], [costs])(x_opt)).ravel()
+    rows = np.asarray(ca.Function("g", [x], [g])(x_opt)).ravel()
     paths = [dmocs[i].unpack(x_opt[offsets[i] : offsets[i + 1]],
                              problem.boundary_params(i, phi_opt[i])) for i in range(n)]
     return MonolithicSolution(
@@ -83,7 +86,20 @@ def solve_monolithic(
         status=str(stats["return_status"]),
         iterations=int(stats["iter_count"]),
         solve_time_s=elapsed,
+        violation=violation(rows, x_opt, bounds),
     )
+
+
+def violation(rows: np.ndarray, x: np.ndarray, bounds: dict) -> float:
+    """max(lbg − g, g − ubg, lbx − x, x − ubx, 0) of the constraint rows ``rows`` and the
+    point ``x`` under IPOPT's ``bounds`` (scalars broadcast); +∞ if not finite."""
+    if not (np.all(np.isfinite(rows)) and np.all(np.isfinite(x))):
+        return float("inf")
+    lbg, ubg = (np.broadcast_to(bounds[k], rows.shape) for k in ("lbg", "ubg"))
+    lbx, ubx = (np.broadcast_to(bounds.get(k, fill), x.shape)
+                for k, fill in (("lbx", -np.inf), ("ubx", np.inf)))
+    return float(max(0.0, np.max(lbg - rows), np.max(rows - ubg), np.max(lbx - x),
+                     np.max(x - ubx)))
 
 
 def _bounds(dmocs: list[DmocTranscription], n_coupling: int, n_angles: int

@@ -40,6 +40,15 @@ difference surrogate − real table is reported). The result is a local optimum 
 in this sense; the global optimum is found whenever the surrogate is accurate and its best
 ordering is cheapest on at least one fine offset (it matched brute force over all orderings
 in every test).
+
+Infeasible pairs (an agent that cannot reach a slot, e.g. under a thrust limit) are +∞ in
+the tables (:func:`pair_costs`: outside an exact reach set not even solved; a failed solve
+likewise), never an error. Then no interpolant exists: the candidates are each multi-start
+table's cheapest assignment with every pair feasible, the real descent runs from the
+cheapest of them and from ``keep`` (at its feasible start,
+:func:`~ocpar.formation.feasibility.feasible_start`), and the offset searches are the
+Newton search that stays inside the feasible shifts
+(:func:`~ocpar.formation.hierarchical.solve_outer_newton`); the better end wins.
 """
 
 from __future__ import annotations
@@ -52,9 +61,14 @@ import numpy as np
 from scipy.optimize import linear_sum_assignment, minimize_scalar
 
 from ocpar.bsp import Backend
-from ocpar.formation.hierarchical import InnerSolveFailed, OuterObjective, solve_outer_offset
+from ocpar.formation.feasibility import feasible_start, inner_costs
+from ocpar.formation.hierarchical import (
+    InnerSolveFailed,
+    OuterObjective,
+    solve_outer_newton,
+    solve_outer_offset,
+)
 from ocpar.formation.problem import FormationProblem
-from ocpar.ocp import solve_tasks
 
 ORDERINGS = ("keep", "optimal")
 
@@ -85,7 +99,8 @@ class OrderingResult:
     ``converged``: the assignment stopped changing and every offset search converged;
     ``starts`` offsets per slot width of the multi-start tables; ``candidates`` distinct
     orderings (modulo rotation) the surrogate scan proposed; ``surrogate_error`` the largest
-    |surrogate − real| entry of the tables of the rounds, relative to the largest real entry;
+    |surrogate − real| entry of the tables of the rounds, relative to the largest real entry
+    (NaN where the tables held infeasible pairs and no surrogate was built);
     ``message`` why it stopped.
     """
 
@@ -121,9 +136,8 @@ def default_starts(agents: int) -> int:
 
 def cost_table(problem: FormationProblem, backend: Backend, slots: np.ndarray) -> np.ndarray:
     """C[i, j] = Ĵ_i(slots[j]): agent i's inner optimal cost ending at angle ``slots[j]``
-    (rad), shape (n, n) for n agents and n ``slots``. One superstep of n² inner solves
-    (task i·n + j); raises :class:`~ocpar.formation.hierarchical.InnerSolveFailed` if any
-    fails."""
+    (rad), shape (n, n) for n agents and n ``slots``, +∞ where infeasible
+    (:func:`pair_costs`). One superstep of n² inner solves (task i·n + j)."""
     slots = np.asarray(slots, float)
     if slots.shape != (problem.agents,):
         raise ValueError(f"slots must have shape ({problem.agents},) (one angle per agent, "
@@ -145,22 +159,28 @@ def cost_tables(problem: FormationProblem, backend: Backend, slots: np.ndarray) 
 def pair_costs(problem: FormationProblem, backend: Backend, agents: np.ndarray,
                phi: np.ndarray, what: str) -> np.ndarray:
     """Ĵ (p,) of agent ``agents[k]`` ending at ``phi[k]`` (an angle, rad, or a slot index):
-    one superstep of p inner solves; raises
-    :class:`~ocpar.formation.hierarchical.InnerSolveFailed`, naming them ``what``, if any
-    fails."""
-    sols = backend.superstep_columns(solve_tasks, problem.tasks_for(agents, phi))
-    failed = np.flatnonzero(~np.asarray(sols.column("success"), dtype=bool))
-    if len(failed):
-        k = int(failed[0])
-        raise InnerSolveFailed(
-            f"{len(failed)} of {len(sols)} {what} solve(s) failed; first: agent "
-            f"{agents[k]} ending at phi = {float(phi[k])!r}: {sols.column('status')[k]}")
-    return np.asarray(sols.column("cost"), dtype=float)
+    one superstep of inner solves, +∞ where the pair is infeasible: its solve failed, or its
+    target lies outside the agent's exact reach set (then it is not solved:
+    :func:`~ocpar.formation.feasibility.inner_costs`). Raises
+    :class:`~ocpar.formation.hierarchical.InnerSolveFailed`, naming them ``what``, only if
+    every pair is infeasible."""
+    found = inner_costs(problem, backend, agents, phi)
+    if not np.any(np.isfinite(found.costs)):
+        first = f"; first: {found.first_failure}" if found.failed else ""
+        raise InnerSolveFailed(f"all {len(found.costs)} {what} solve(s) infeasible: "
+                               f"{found.failed} failed, {found.skipped} out of reach{first}")
+    return found.costs
 
 
 def cheapest_assignment(table: np.ndarray) -> np.ndarray:
-    """The cheapest assignment of a cost table: slot index per agent (n,)."""
-    rows, cols = linear_sum_assignment(table)
+    """The cheapest assignment of a cost table (+∞: an infeasible pair): slot index per agent
+    (n,). Raises :class:`~ocpar.formation.hierarchical.InnerSolveFailed` if every assignment
+    takes an infeasible pair."""
+    try:
+        rows, cols = linear_sum_assignment(table)
+    except ValueError:   # scipy: "cost matrix is infeasible"
+        raise InnerSolveFailed("no assignment of every agent to a place it can reach (every "
+                               "one takes an infeasible pair)") from None
     assignment = np.empty(len(table), dtype=np.intp)
     assignment[rows] = cols
     return assignment
@@ -298,25 +318,78 @@ def optimal_ordering(
     offsets = np.arange(starts) * width / starts
     tables = cost_tables(problem, backend, base[None, :] + offsets[:, None])
     inner_solves, table_supersteps = tables.size, 1
-    surrogate = CostSurrogate(tables)
     found: dict[tuple[int, ...], np.ndarray] = {}
-    for offset in np.arange(FINE_OFFSETS) * width / FINE_OFFSETS:
-        candidate = cheapest_assignment(surrogate.table(offset))
-        found.setdefault(_canonical(candidate), candidate)
-    descents = [surrogate.descend(a, max_rounds) for a in [keep, *found.values()]]
-    estimate, offset, assignment = min(descents, key=lambda d: d[0])
-    say(f"ordering tables: {starts} offset(s) x {n}x{n} solves, {len(found)} candidate "
-        f"ordering(s); surrogate optimum {estimate:.12e} at offset {offset:.6f} rad, "
-        f"{np.count_nonzero(assignment != keep)} agent(s) off the keep ordering")
-
+    if np.all(np.isfinite(tables)):
+        surrogate: CostSurrogate | None = CostSurrogate(tables)
+        for offset in np.arange(FINE_OFFSETS) * width / FINE_OFFSETS:
+            candidate = cheapest_assignment(surrogate.table(offset))
+            found.setdefault(_canonical(candidate), candidate)
+        descents = [surrogate.descend(a, max_rounds) for a in [keep, *found.values()]]
+        estimate, offset, assignment = min(descents, key=lambda d: d[0])
+        say(f"ordering tables: {starts} offset(s) x {n}x{n} solves, {len(found)} candidate "
+            f"ordering(s); surrogate optimum {estimate:.12e} at offset {offset:.6f} rad, "
+            f"{np.count_nonzero(assignment != keep)} agent(s) off the keep ordering")
+        begin = [(assignment, offset)]
+    else:   # infeasible pairs (+∞): no interpolant; each table's cheapest assignment
+        surrogate = None
+        best = None
+        for table, offset in zip(tables, offsets, strict=True):
+            try:
+                candidate = cheapest_assignment(table)
+            except InnerSolveFailed:   # no finite assignment at this offset
+                continue
+            found.setdefault(_canonical(candidate), candidate)
+            value = assignment_cost(table, candidate)
+            if best is None or value < best[0]:
+                best = (value, candidate, float(offset))
+        # and keep, from its feasible start
+        start = feasible_start(problem, base[keep])
+        begin = [_wrap(keep, float(start[0] - base[keep[0]]), width)]
+        if best is not None:
+            begin.insert(0, (best[1], best[2]))
+        say(f"ordering tables: {starts} offset(s) x {n}x{n} solves, "
+            f"{int(np.sum(~np.isfinite(tables)))} infeasible pair(s), {len(found)} candidate "
+            f"ordering(s) with every pair feasible; descending from "
+            f"{'the cheapest and ' if best is not None else ''}keep")
+    # the offset search: the secant where every agent is feasible everywhere, else the
+    # Newton search that keeps to the feasible shifts (hierarchical._shift_newton)
+    search = solve_outer_offset if surrogate is not None and not problem.reach_sets() \
+        else solve_outer_newton
     objective = OuterObjective(problem, backend)
+    outcomes = []
+    for assignment, offset in begin:
+        try:
+            outcomes.append(_descend(problem, backend, objective, search, base, assignment,
+                                     offset, tol, max_rounds, surrogate, say))
+        except InnerSolveFailed as exc:   # this start's descent met an infeasible step
+            failure = exc
+    objective.close()   # the chosen angles start the outer solve, with its own agents
+    if not outcomes:
+        raise failure
+    table_supersteps += sum(o.pop("tables") for o in outcomes)
+    inner_solves += sum(o.pop("solves") for o in outcomes) + objective.inner_solves
+    return OrderingResult(**min(outcomes, key=lambda o: o["total_cost"]),
+                          table_supersteps=table_supersteps, inner_solves=inner_solves,
+                          starts=starts, candidates=len(found))
+
+
+def _descend(problem: FormationProblem, backend: Backend, objective: OuterObjective,
+             search, base: np.ndarray, assignment: np.ndarray, offset: float, tol: float,
+             max_rounds: int, surrogate: CostSurrogate | None,
+             say: Callable[[str], None]) -> dict:
+    """The real descent of :func:`optimal_ordering` from ``assignment`` at ``offset``:
+    alternating offset searches (``search``) and cost tables at the new offset until the
+    assignment stops changing or ``max_rounds`` offset searches were run. Returns the fields
+    of :class:`OrderingResult` it decides, with ``tables`` and ``solves`` (its table
+    supersteps and their solves)."""
+    n, width = problem.agents, 2 * np.pi / problem.agents
     converged, message = False, f"assignment still changing after {max_rounds} round(s)"
-    all_offsets_converged, surrogate_error = True, 0.0
+    all_offsets_converged, surrogate_error = True, 0.0 if surrogate is not None else math.nan
+    tables = solves = 0
     for rounds in range(1, max_rounds + 1):
         phi0 = base[assignment] + offset
         start_cost = objective.value(phi0)  # the search's first superstep (then cached)
-        phi, _, success, offset_message = solve_outer_offset(
-            objective, phi0, tol, OFFSET_MAX_ITERATIONS)
+        phi, _, success, offset_message = search(objective, phi0, tol, OFFSET_MAX_ITERATIONS)
         total_cost = objective.value(phi)  # cached: the search's last superstep
         if total_cost > start_cost:
             # started at the optimum (the surrogate's): the search only moved by rounding, or
@@ -328,10 +401,11 @@ def optimal_ordering(
             message = f"offset search of round {rounds}: {offset_message}"
         assignment, offset = _wrap(assignment, float(phi[0] - base[assignment[0]]), width)
         table = cost_table(problem, backend, base + offset)
-        table_supersteps += 1
-        inner_solves += n * n
-        surrogate_error = max(surrogate_error, float(
-            np.max(np.abs(surrogate.table(offset) - table)) / np.max(np.abs(table))))
+        tables += 1
+        solves += n * n
+        if surrogate is not None:
+            surrogate_error = max(surrogate_error, float(
+                np.max(np.abs(surrogate.table(offset) - table)) / np.max(np.abs(table))))
         better = cheapest_assignment(table)
         improved = _improves(table, assignment, better)
         moved = int(np.count_nonzero(better != assignment)) if improved else 0
@@ -343,18 +417,7 @@ def optimal_ordering(
         # the better assignment at this offset: its cost is known from the table, exactly
         assignment = better
         phi, total_cost = base[assignment] + offset, assignment_cost(table, assignment)
-    objective.close()   # the chosen angles start the outer solve, with its own agents
-    return OrderingResult(
-        phi=np.asarray(phi, float),
-        assignment=assignment,
-        total_cost=float(total_cost),
-        rounds=rounds,
-        table_supersteps=table_supersteps,
-        inner_solves=inner_solves + objective.inner_solves,
-        converged=converged,
-        offset=offset,
-        starts=starts,
-        candidates=len(found),
-        surrogate_error=surrogate_error,
-        message=message,
-    )
+    return {"phi": np.asarray(phi, float), "assignment": assignment,
+            "total_cost": float(total_cost), "rounds": rounds, "converged": converged,
+            "offset": offset, "surrogate_error": surrogate_error, "message": message,
+            "tables": tables, "solves": solves}

@@ -30,8 +30,9 @@ from ocpar.formation.obstacles import Obstacle, check_obstacles
 from ocpar.formation.separation import ClosestApproach, closest_approach
 from ocpar.formation.slots import Slots, nearest_assignment
 from ocpar.formation.surface import PARAMETERS, Surface, fibonacci_directions
-from ocpar.models import MechanicalSystem, PointMass
+from ocpar.models import MechanicalSystem
 from ocpar.ocp import DmocShape, OcpTask
+from ocpar.ocp.reach import Reach, rest_to_rest_reach
 
 #: Boundary configurations must satisfy the model's holonomic constraints to this tolerance.
 CONSTRAINT_TOL = 1e-8
@@ -146,48 +147,64 @@ class FormationProblem:
         self._check_path_constraints()
         self._check_thrust_reach()
 
+    def reach_sets(self) -> list[tuple[Reach, np.ndarray]]:
+        """Each distinct shape's exact rest-to-rest reach set
+        (:func:`~ocpar.ocp.reach.rest_to_rest_reach`: box- or norm-limited point masses) with
+        its agents that start and end at rest (indices, ascending); shapes without an exact
+        set, or without such agents, are left out."""
+        cached = self.__dict__.get("_reach_sets")
+        if cached is not None:
+            return cached
+        sets = []
+        for shape, agents in self.agents_by_shape().items():
+            reach = rest_to_rest_reach(shape)
+            if reach is None:
+                continue
+            rest = agents[~np.any(self.start_velocities[agents], axis=1)
+                          & ~np.any(self.final_velocities(agents), axis=1)]
+            if len(rest):
+                sets.append((reach, rest))
+        object.__setattr__(self, "_reach_sets", sets)   # once per problem (a frozen one)
+        return sets
+
+    def limit_label(self, agent: int, reach: Reach) -> str:
+        """The field that bounds ``agent``'s reach, for messages (``shape[3].control_bounds``)."""
+        where = "shape" if isinstance(self.shape, DmocShape) else f"shape[{agent}]"
+        return f"{where}.{reach.limit}"
+
     def _check_thrust_reach(self) -> None:
-        """Point masses (:class:`~ocpar.models.PointMass`) at rest at both ends under box
-        thrust limits lo_j ≤ u_j ≤ hi_j reach at most |Δq_j| ≤ T² / (2 m (1/hi_j + 1/|lo_j|))
-        in each entry (bang–bang: T² a / (4 m) for a symmetric limit a; DMOC's discrete reach
-        is no larger, ``tests/test_mixed_fleet.py``). An agent from whose start no point of
-        the curve is within that reach has no feasible formation at all: ValueError naming
-        its ``control_bounds``. The curve is sampled at :data:`REACH_SAMPLES` points and
-        each gap shortened by their largest spacing, so that the check never refuses a
-        reachable curve. Surfaces are not checked (no such bound on their sampling)."""
-        limited = {shape: agents for shape, agents in self.agents_by_shape().items()
-                   if isinstance(shape.model, PointMass) and shape.control_bounds is not None}
-        if not limited or isinstance(self.curve, Surface):   # no sampling bound on a surface
+        """Point masses at rest at both ends under box or norm thrust limits reach exactly
+        the displacements of their DMOC reach set (:mod:`ocpar.ocp.reach`). An agent from
+        whose start no point of the curve is within it has no feasible formation at all:
+        ValueError naming its limit. The curve is sampled at :data:`REACH_SAMPLES` points
+        and each gap shortened by their largest spacing, so that the check never refuses a
+        reachable curve. Surfaces are not checked (no such bound on their sampling); the
+        formation as a whole is checked by :func:`ocpar.formation.feasibility.feasible_window`."""
+        try:
+            sets = self.reach_sets()
+        except ValueError as exc:
+            raise ValueError(f"shape: {exc}") from None
+        if not sets or isinstance(self.curve, Surface):   # no sampling bound on a surface
             return
         if isinstance(self.curve, Slots):
             phi, closed = np.arange(self.curve.count), False
         else:
             phi, closed = np.arange(REACH_SAMPLES) * 2 * np.pi / REACH_SAMPLES, True
-        targets = np.hstack([self.final_positions(phi), np.broadcast_to(
-            self.final_attitude, (len(phi), len(self.final_attitude)))])
+        targets = self.final_positions(phi)
         spacing = float(np.max(np.linalg.norm(targets - np.roll(targets, 1, axis=0), axis=1))
                         ) if closed else 0.0
-        for shape, agents in limited.items():
-            model, bounds = shape.model, shape.control_bounds
-            rest = agents[~np.any(self.start_velocities[agents], axis=1)
-                          & ~np.any(self.final_velocities(agents), axis=1)]
-            limits = np.array(bounds)   # (nu, 2): lo, hi
-            lo, hi = np.maximum(-limits[:, 0], 0.0), np.maximum(limits[:, 1], 0.0)
-            with np.errstate(divide="ignore"):
-                reach = shape.duration**2 / (2 * model.mass * (1 / hi + 1 / lo))
+        starts = self.positions(self.starts)
+        for reach, rest in sets:
             for block in np.array_split(rest, max(1, -(-len(rest) // REACH_BLOCK))):
-                gaps = np.abs(targets[None] - self.starts[block][:, None]) - spacing
-                with np.errstate(divide="ignore", invalid="ignore"):
-                    need = np.max(np.where(gaps > 0, gaps / reach, 0.0), axis=2).min(axis=1)
+                need = reach.need(targets[None] - starts[block][:, None], spacing).min(axis=1)
                 if np.any(need > 1):
                     k = int(np.argmax(need))
-                    label = "shape" if isinstance(self.shape, DmocShape) else \
-                        f"shape[{block[k]}]"
+                    i = int(block[k])
                     raise ValueError(
-                        f"{label}.control_bounds: agent {block[k]} (mass {model.mass:g}) "
-                        f"cannot reach any point of the curve from rest to rest in "
-                        f"T = {shape.duration:g}: the nearest needs {need[k]:.4g} times the "
-                        f"thrust that {tuple(bounds)} allow")
+                        f"{self.limit_label(i, reach)}: agent {i} (mass "
+                        f"{self.shapes[i].model.mass:g}) cannot reach any point of the curve "
+                        f"from rest to rest in T = {self.shapes[i].duration:g}: the nearest "
+                        f"needs {need[k]:.4g} times the thrust its limit allows")
 
     def _check_path_constraints(self) -> None:
         """Each agent's path constraints must be finite at its start (q_0, q̇_0, u = 0) and

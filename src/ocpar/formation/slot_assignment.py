@@ -10,6 +10,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ocpar.bsp import Backend
+from ocpar.formation.hierarchical import InnerSolveFailed
 from ocpar.formation.ordering import pair_costs
 from ocpar.formation.problem import FormationProblem
 from ocpar.formation.slots import SLOT_CANDIDATES, assign_over_candidates
@@ -36,8 +37,10 @@ def assign_slots(problem: FormationProblem, backend: Backend,
                  candidates: int = SLOT_CANDIDATES,
                  progress: Callable[[str], None] | None = None) -> SlotChoice:
     """The assignment of ``problem``'s agents to its slots minimising the total inner cost
-    (module docstring), its inner solves on ``backend``; raises
-    :class:`~ocpar.formation.hierarchical.InnerSolveFailed` if one fails."""
+    (module docstring), its inner solves on ``backend`` (an infeasible pair is +∞:
+    :func:`~ocpar.formation.ordering.pair_costs`); raises
+    :class:`~ocpar.formation.hierarchical.InnerSolveFailed` if no assignment has every
+    agent's pair feasible."""
     solves = 0
 
     def inner_costs(agents: np.ndarray, chosen: np.ndarray) -> np.ndarray:
@@ -46,6 +49,10 @@ def assign_slots(problem: FormationProblem, backend: Backend,
         return pair_costs(problem, backend, agents, chosen.astype(float), "slot-cost")
 
     starts = problem.positions(problem.starts)
-    slots, k, total = assign_over_candidates(starts, problem.curve, candidates, inner_costs,
-                                             progress)
+    try:
+        slots, k, total = assign_over_candidates(starts, problem.curve, candidates,
+                                                 inner_costs, progress)
+    except ValueError:   # every slot a candidate, and no assignment of finite pairs
+        raise InnerSolveFailed("no assignment of every agent to a slot it can reach (every "
+                               "one takes an infeasible pair)") from None
     return SlotChoice(slots, total, k, solves)

@@ -166,7 +166,12 @@ def _match(pairs: np.ndarray, values: np.ndarray, n: int, m: int) -> np.ndarray:
     with every other pair priced above any assignment over candidates (n m 8 bytes: 0.8 GB at
     10,000 × 10,000, ~150 s there on this machine, loaded); scipy's sparse
     ``min_weight_full_bipartite_matching`` took 11 s at 1000 × 1000 with 62,000 candidate
-    pairs and 229 s at 4000 (integer costs), against 0.75 s and 25 s dense."""
+    pairs and 229 s at 4000 (integer costs), against 0.75 s and 25 s dense. Pairs of cost +∞
+    (infeasible) are no candidates."""
+    feasible = np.isfinite(values)
+    pairs, values = pairs[feasible], values[feasible]
+    if not len(values):
+        raise ValueError("the candidate pairs admit no assignment of every agent")
     priced_out = (n + 1) * (float(values.max() - values.min()) + 1.0) + float(values.max())
     dense = np.full((n, m), priced_out)
     dense[pairs[:, 0], pairs[:, 1]] = values

@@ -19,6 +19,7 @@ from ocpar.formation.critical_sets import (
     IsolatedChoice,
     best_isolated_formation,
 )
+from ocpar.formation.feasibility import feasible_start
 from ocpar.formation.hierarchical import (
     InnerSolveFailed,
     OuterObjective,
@@ -39,9 +40,12 @@ from ocpar.formation.slot_assignment import SlotChoice, assign_slots
 from ocpar.formation.slots import SLOT_CANDIDATES, Slots
 from ocpar.formation.surface import Surface
 from ocpar.ocp.batch import SOLVERS
-from ocpar.options import option
+from ocpar.options import numbers, option
 
 MODES = ("hierarchical", "monolithic")
+#: The monolithic answer must meet its constraints and bounds to this (the model's units, as
+#: evaluated on the returned point) to count as feasible.
+MONOLITHIC_VIOLATION_TOL = 1e-6
 #: The hierarchical mode's outer solvers by name (see :mod:`ocpar.formation.hierarchical`).
 OUTER = {"newton": solve_outer_newton, "sqp": solve_outer, "offset": solve_outer_offset}
 OUTER_SOLVERS = tuple(OUTER)
@@ -124,6 +128,14 @@ class FormationOptions:
     obstacle_rounds: int = option(30, "obstacle rounds (supersteps of keep-out solves) at "
                                   "most, for a problem with obstacles (with --min-separation "
                                   "the separation rounds keep them clear too)", low=1)
+    initial_angles: tuple[float, ...] | None = option(
+        None, "the start: the final angles (rad), one per agent (on a surface two per agent, "
+        "agent i's at 2i, 2i+1), numbers separated by commas; default: the documented "
+        "initial guess, moved to the nearest feasible formation where thrust limits are "
+        "known exactly", metavar="PHI,PHI,...")
+    initial_rotation: float | None = option(
+        None, "the start: the documented initial guess rotated by this angle (rad, added to "
+        "every agent's initial angle; curves only)", metavar="RAD")
 
     def __post_init__(self) -> None:
         if self.mode not in MODES:
@@ -148,6 +160,16 @@ class FormationOptions:
                      "slot_candidates"):
             if getattr(self, name) < 1:
                 raise ValueError(f"{name} must be at least 1")
+        if self.initial_angles is not None:
+            try:
+                object.__setattr__(self, "initial_angles", numbers(self.initial_angles))
+            except ValueError as exc:
+                raise ValueError(f"initial_angles: {exc}") from None
+        if self.initial_rotation is not None and not math.isfinite(self.initial_rotation):
+            raise ValueError(f"initial_rotation: must be a finite angle (rad), got "
+                             f"{self.initial_rotation!r}")
+        if self.initial_angles is not None and self.initial_rotation is not None:
+            raise ValueError("initial_angles and initial_rotation: give one start, not both")
 
 
 def cost_parts(problem: FormationProblem, controls: np.ndarray) -> dict[str, float]:
@@ -159,6 +181,29 @@ def cost_parts(problem: FormationProblem, controls: np.ndarray) -> dict[str, flo
     h = problem.common_shape.duration / problem.common_shape.intervals
     groups = getattr(problem.common_shape.model, "cost_parts", {})
     return {name: float(h * np.sum(controls[..., a:b] ** 2)) for name, (a, b) in groups.items()}
+
+
+def given_start(problem: FormationProblem, options: FormationOptions) -> np.ndarray | None:
+    """The start the options give (``initial_angles``, or ``initial_rotation`` added to
+    :meth:`~ocpar.formation.FormationProblem.initial_phi`), shape
+    :attr:`~ocpar.formation.FormationProblem.parameter_shape`; None if they give none.
+    ValueError (one line) for a start of the wrong length or onto slots."""
+    if options.initial_angles is None and options.initial_rotation is None:
+        return None
+    if isinstance(problem.curve, Slots):
+        raise ValueError("initial_angles/initial_rotation: onto slots the assignment chooses "
+                         "the start")
+    if options.initial_rotation is not None:
+        if isinstance(problem.curve, Surface):
+            raise ValueError("initial_rotation: applies to curves; on a surface give "
+                             "initial_angles")
+        return problem.initial_phi() + options.initial_rotation
+    size = problem.agents * problem.parameters
+    if len(options.initial_angles) != size:
+        raise ValueError(f"initial_angles: needs {size} angles ({problem.agents} agents"
+                         f"{' x 2 parameters' if problem.parameters == 2 else ''}), got "
+                         f"{len(options.initial_angles)}")
+    return np.reshape(np.array(options.initial_angles), problem.parameter_shape)
 
 
 def check_applicable(problem: FormationProblem, options: FormationOptions) -> None:
@@ -198,6 +243,11 @@ def check_applicable(problem: FormationProblem, options: FormationOptions) -> No
         if not residual <= PROJECTION_TOL:
             raise ValueError(f"coupling: no solution of g(phi) = 0 found from the initial "
                              f"guess (max |g| {residual:.3g} after the projection)")
+    if given_start(problem, options) is not None and options.ordering == "optimal":
+        raise ValueError("initial_angles/initial_rotation: ordering 'optimal' chooses its own "
+                         "start (use ordering 'keep')")
+    if problem.reach_sets():   # ValueError if no formation is feasible
+        feasible_start(problem, problem.initial_phi())
     if options.min_separation is not None:
         if options.mode != "hierarchical":
             raise ValueError("min_separation applies to the hierarchical mode only")
@@ -298,8 +348,10 @@ def solve_formation(
     phi0: np.ndarray | None = None,
     progress: Callable[[str], None] | None = None,
 ) -> FormationResult:
-    """Solve ``problem`` from the angles ``phi0`` (default :meth:`FormationProblem.initial_phi`;
-    onto slots none: the assignment chooses them).
+    """Solve ``problem`` from the angles ``phi0`` (default: the options' ``initial_angles``
+    or ``initial_rotation``, else :meth:`FormationProblem.initial_phi` moved to the nearest
+    feasible formation, :func:`~ocpar.formation.feasibility.feasible_start`; onto slots
+    none: the assignment chooses them).
 
     ``backend`` runs the inner solves (default: serial, in this process); ``progress`` is
     called with one line per superstep. The backend is left open for the caller to close.
@@ -312,8 +364,12 @@ def solve_formation(
         problem = problem.with_shapes(
             lambda shape: dataclasses.replace(shape, solver=options.inner_solver))
     slots = isinstance(problem.curve, Slots)   # then the assignment chooses φ: no φ0
-    phi0 = (None if slots else problem.initial_phi()) if phi0 is None \
-        else np.asarray(phi0, float)
+    if phi0 is None:
+        phi0 = given_start(problem, options)
+    if phi0 is None and not slots:
+        phi0 = feasible_start(problem, problem.initial_phi())
+    elif phi0 is not None:
+        phi0 = np.asarray(phi0, float)
     if phi0 is not None and phi0.shape != problem.parameter_shape:
         raise ValueError(f"phi0 must have shape {problem.parameter_shape}, got {phi0.shape}")
     if phi0 is not None:
@@ -323,25 +379,45 @@ def solve_formation(
     common = {"problem": problem.name, "agents": problem.agents, "backend": backend.name,
               "workers": backend.workers, "mode": options.mode, "on_circle": problem.on_circle}
     ordering_solves, choice, chosen = 0, None, None
-    if slots:
-        choice = assign_slots(problem, backend, options.slot_candidates, progress)
-        phi0, ordering_solves, chosen = choice.phi, choice.inner_solves, "slots assigned"
-    elif options.ordering == "optimal" and problem.on_circle:
-        ordered = optimal_ordering(problem, backend, tol=options.outer_tol, progress=progress)
-        phi0, ordering_solves = ordered.phi, ordered.inner_solves
-    elif options.ordering == "optimal":
-        choice = best_isolated_formation(problem, backend, options.critical,
-                                         options.critical_starts, progress, options.outer_tol)
-        phi0, ordering_solves, chosen = choice.phi, choice.inner_solves, "ordering optimal"
+    try:
+        if slots:
+            choice = assign_slots(problem, backend, options.slot_candidates, progress)
+            phi0, ordering_solves, chosen = choice.phi, choice.inner_solves, "slots assigned"
+        elif options.ordering == "optimal" and problem.on_circle:
+            ordered = optimal_ordering(problem, backend, tol=options.outer_tol,
+                                       progress=progress)
+            phi0, ordering_solves = ordered.phi, ordered.inner_solves
+        elif options.ordering == "optimal":
+            choice = best_isolated_formation(problem, backend, options.critical,
+                                             options.critical_starts, progress,
+                                             options.outer_tol)
+            phi0, ordering_solves, chosen = choice.phi, choice.inner_solves, "ordering optimal"
+    except InnerSolveFailed as exc:   # no assignment with every agent feasible: no answer
+        n, shape = problem.agents, problem.common_shape
+        return FormationResult(
+            **common, status="failed", message=f"ordering: {exc}", total_cost=math.nan,
+            phi=np.full(problem.parameter_shape, np.nan), agent_costs=np.full(n, np.nan),
+            trajectories=np.full((n, shape.intervals + 1, shape.model.nq), np.nan),
+            outer_iterations=-1, inner_solves=0, failed_solves=0,
+            wall_time_s=time.perf_counter() - start,
+            separation=problem.closest_approach(np.full((n, 2, shape.model.nq), np.nan)),
+            trace=backend.traces[first_trace:])
     discrete = discrete_choice(problem, choice, phi0)
     note = discrete.pop("note")
 
     if options.mode == "monolithic":
         sol = solve_monolithic(problem, phi0, options.monolithic_tol, options.max_outer_iterations)
+        feasible = sol.violation <= MONOLITHIC_VIOLATION_TOL
+        status = ("converged" if sol.success and feasible
+                  else "not_converged" if feasible else "failed")
+        words = (f"{sol.status}; constraints met (max violation {sol.violation:.1e})"
+                 if feasible else
+                 f"{sol.status}; the returned point breaks the constraints by "
+                 f"{sol.violation:.3g}: an infeasible iterate, no answer")
         return FormationResult(
             **common,
-            status="converged" if sol.success else "not_converged",
-            message=sol.status + note,
+            status=status,
+            message=words + note,
             total_cost=float(np.sum(sol.agent_costs)),
             phi=sol.phi,
             agent_costs=sol.agent_costs,
