@@ -19,7 +19,8 @@ agents to its points is feasible. :func:`best_isolated_formation` searches both 
 
 On a surface the search runs in the surface's chart, except that a set found with a point
 near a chart pole (where the azimuth does not move the point and c = 0 does not make it
-critical) is solved again in a chart whose pole is far from every point
+critical) that is not critical in space, or not regular in the chart, is solved again in a
+chart whose pole is far from every point
 (:meth:`~ocpar.formation.surface.EllipsoidSurface.charted_away`). Where the surface has
 rotational symmetry (a sphere, an ellipsoid of revolution) the sets are isolated up to its
 rotations, and each set's best rotation is searched by rotating its points rigidly in space
@@ -178,9 +179,10 @@ def critical_sets(problem: FormationProblem, critical: str = "stable",
     failed = 0
     for guess in guesses:
         phi, chart = _solve(problem, guess, critical, curve), curve
-        if isinstance(curve, EllipsoidSurface):   # solved again away from the chart's poles
-            points = curve.points(phi.reshape(n, -1))
-            chart = curve.charted_away(points)
+        points = problem.final_positions(phi) if on_surface else None
+        if isinstance(curve, EllipsoidSurface) and not (
+                _regular(curve, phi) and _critical_points(curve, points)[0]):
+            chart = curve.charted_away(points)   # near a pole: solved again away from it
             if chart is not curve:
                 phi = _solve(problem, chart.locate(points).ravel(), critical, chart)
         eigenvalue = _smallest_eigenvalue(problem, phi, chart)
@@ -264,12 +266,19 @@ def _verify(problem: FormationProblem, candidate: CriticalSet) -> bool:
     n, surface = problem.agents, problem.curve
     points = problem.final_positions(candidate.returned())
     candidate.points_potential = coupling_scale(surface, n) * point_potential(points)
-    tangential = np.linalg.norm(tangential_potential_gradient(surface, points), axis=1)
-    candidate.tangential_gradient = float(np.max(tangential))
+    critical, candidate.tangential_gradient = _critical_points(surface, points)
+    return critical and abs(candidate.points_potential - candidate.potential) \
+        <= POTENTIAL_RTOL * abs(candidate.potential)
+
+
+def _critical_points(surface: Surface, points: np.ndarray) -> tuple[bool, float]:
+    """Whether ``points`` (n, 3) on ``surface`` are a critical configuration of G, checked in
+    space (max_i |tangential ∇G_i| ≤ :data:`CRITICAL_RTOL` max_i |∇G_i|), and that largest
+    tangential |∇G_i| (length⁻³)."""
+    tangential = float(np.max(np.linalg.norm(tangential_potential_gradient(surface, points),
+                                             axis=1)))
     scale = float(np.max(np.linalg.norm(point_potential_gradient(points), axis=1)))
-    return (candidate.tangential_gradient <= CRITICAL_RTOL * scale
-            and abs(candidate.points_potential - candidate.potential)
-            <= POTENTIAL_RTOL * abs(candidate.potential))
+    return tangential <= CRITICAL_RTOL * scale, tangential
 
 
 def _potential(problem: FormationProblem, phi: np.ndarray) -> float:

@@ -30,7 +30,12 @@ from scipy.spatial.transform import Rotation
 
 from ocpar.bsp import Backend
 from ocpar.bsp.columns import Columns
-from ocpar.formation.coupling import PROJECTION_TOL, RANK_RTOL, ShiftFamily
+from ocpar.formation.coupling import (
+    PROJECTION_TOL,
+    RANK_RTOL,
+    PotentialCoupling,
+    ShiftFamily,
+)
 from ocpar.formation.potential import equidistance_error
 from ocpar.formation.problem import FormationProblem
 from ocpar.formation.slots import Slots
@@ -261,6 +266,9 @@ def solve_outer_newton(
       potential, is nonsingular at its minima, if nearly singular for many agents: see
       :func:`~ocpar.formation.potential.relax`), the projection of φ0 is the answer: one
       evaluation (0 iterations), converged if it reached max |c_k| ≤ :data:`PROJECTION_TOL`.
+    * On a surface with rotational symmetry (a sphere, an ellipsoid of revolution) the
+      potential coupling's solutions are isolated up to its rotations: Newton's method over them,
+      applied rigidly to the projection's points (:func:`rotation_newton`).
     * Otherwise (a user's coupling with r free directions), Newton steps in the tangent
       space of c = 0 with the Lagrangian's Hessian, each projected back onto c = 0
       (:func:`tangent_newton`): dense, its superstep count grows with r, not with n.
@@ -275,6 +283,9 @@ def solve_outer_newton(
     if residual > PROJECTION_TOL:
         return phi, 0, False, (f"the projection did not reach c(phi) = 0 (max |c| "
                                f"{residual:.1e})")
+    if isinstance(problem.coupling, PotentialCoupling) and isinstance(
+            problem.curve, EllipsoidSurface) and len(problem.curve.symmetry_axes):
+        return rotation_newton(objective, phi, tol, max_iterations)
     if problem.coupling.free_directions(phi, problem.curve).shape[1]:
         return tangent_newton(objective, phi, tol, max_iterations)
     return phi, 0, True, "projected onto c(phi) = 0"
