@@ -336,8 +336,9 @@ def best_isolated_formation(problem: FormationProblem, backend: Backend,
             solves += rotated_solves
     dropped = []
     if isinstance(problem.curve, Surface):
-        dropped = [s for s in sets if not _verify(problem, s)]
-        sets = [s for s in sets if s not in dropped]
+        kept = [_verify(problem, s) for s in sets]
+        dropped = [s for s, ok in zip(sets, kept, strict=True) if not ok]
+        sets = [s for s, ok in zip(sets, kept, strict=True) if ok]
         if progress is not None:
             for s in dropped:
                 progress(f"critical set dropped: its returned points have potential "
