@@ -286,7 +286,8 @@ def asymmetric_six() -> FormationProblem:
 def test_any_reading_on_a_sphere_keeps_only_critical_candidates_and_finds_the_best(make, starts):
     """``--ordering optimal --critical any`` with as many starts as the reference: every
     candidate listed is critical from its own returned end points (the tangential ∇G by
-    CasADi here, ≤ 1e-8), its points' G equals the reported potential; every set of an
+    CasADi here, ≤ 1e-8), is the set as found turned rigidly (the same pairwise distances to
+    1e-6 of the radius), its points' G equals the reported potential; every set of an
     independent enumeration (random starts of Levenberg–Marquardt on the Riemannian gradient
     of unit vectors) is among the candidates, and the best equals the best over those sets
     of the exact optimum over all n! assignments and every rotation (Kabsch's) to 1e-8."""
@@ -299,6 +300,9 @@ def test_any_reading_on_a_sphere_keeps_only_critical_candidates_and_finds_the_be
     for candidate in result.critical_sets:
         x = problem.final_positions(np.asarray(candidate["rotated_phi"]))
         assert np.max(np.abs(hand_tangential_gradient(x, sphere.center))) <= 1e-8
+        # turned rigidly: the same pairwise distances as the set as found
+        assert same_shape(unit_points(problem, candidate["phi"]), (x - sphere.center)
+                          / sphere.radius)
         assert hand_potential(x) * scale == pytest.approx(candidate["potential"], rel=1e-9)
         assert candidate["points_potential"] == pytest.approx(candidate["potential"], rel=1e-9)
     assert result.total_cost == result.critical_sets[0]["total_cost"]
