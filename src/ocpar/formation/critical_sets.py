@@ -17,6 +17,18 @@ agents to its points is feasible. :func:`best_isolated_formation` searches both 
    (:func:`~ocpar.formation.ordering.cost_tables`), then the cheapest assignment of each
    (:func:`scipy.optimize.linear_sum_assignment`, exact).
 
+On a surface the search runs in the surface's chart, except that a set found with a point
+near a chart pole (where the azimuth does not move the point and c = 0 does not make it
+critical) that is not critical in space, or not regular in the chart, is solved again in a
+chart whose pole is far from every point
+(:meth:`~ocpar.formation.surface.EllipsoidSurface.charted_away`). Where the surface has
+rotational symmetry (a sphere, an ellipsoid of revolution) the sets are isolated up to its
+rotations, and each set's best rotation is searched by rotating its points rigidly in space
+(:func:`~ocpar.formation.hierarchical.rotation_newton`), then re-charting them. Every
+candidate is then checked from its own returned end points, in space, without the chart
+(:func:`_verify`): a set whose points are not critical or whose points' potential is not the
+one reported is dropped, and said so.
+
 The best (set, assignment) is returned with every candidate set's cost. It is the global
 optimum over the sets found; a set that no start reaches is not seen (the count of starts
 that led to each set is reported, so a user can judge coverage).
@@ -35,16 +47,24 @@ from scipy.spatial.distance import cdist, pdist
 from scipy.spatial.transform import Rotation
 
 from ocpar.bsp import Backend
+from ocpar.formation.curve import Curve
 from ocpar.formation.hierarchical import (
     ROUNDING_RTOL,
     InnerSolveFailed,
     OuterObjective,
+    rotation_newton,
     tangent_newton,
 )
 from ocpar.formation.ordering import assignment_cost, cheapest_assignment, cost_tables
-from ocpar.formation.potential import potential
+from ocpar.formation.potential import (
+    coupling_scale,
+    point_potential,
+    point_potential_gradient,
+    potential,
+    tangential_potential_gradient,
+)
 from ocpar.formation.problem import FormationProblem
-from ocpar.formation.surface import SphereSurface, Surface
+from ocpar.formation.surface import EllipsoidSurface, Surface
 
 #: Random starts of the search besides the initial guess (default).
 CRITICAL_STARTS = 32
@@ -58,12 +78,18 @@ ROOT_TOL = 1e-10
 #: A critical set on a surface counts only with every agent's ∂z/∂φ_i of rank 2, its smaller
 #: singular value at least this times the length scale.
 REGULAR_RTOL = 1e-6
-#: On a sphere: rounds of assignment and outer solve over the rotations per critical set, at
-#: most, and the outer solve's iterations per round.
+#: On a surface with free directions: rounds of assignment and outer solve over them per
+#: critical set, at most, and the outer solve's iterations per round.
 ROTATION_ROUNDS, MAX_ROTATION_ITERATIONS = 5, 50
-#: On a sphere: the turns of each critical set the search over rotations starts from (the set
-#: as found and seeded random rotations of it).
+#: On a surface with rotational symmetry: the turns of each critical set the search over
+#: rotations starts from (the set as found and seeded random rotations of it).
 ROTATION_STARTS, ROTATION_SEED = 32, 0
+#: A candidate is critical, checked from its returned points, when max_i |tangential ∇G_i|
+#: ≤ this times max_i |∇G_i| (the gradient of G in the 3-D positions at the same points,
+#: :func:`~ocpar.formation.potential.tangential_potential_gradient`).
+CRITICAL_RTOL = 1e-8
+#: ... and its reported potential (at the set as found) equals its points' to this, relative.
+POTENTIAL_RTOL = 1e-9
 
 
 @dataclass
@@ -74,7 +100,9 @@ class CriticalSet:
     across its symmetries (> 0: a stable formation); ``hits`` how many starts reached it;
     ``assignment`` (n,) the cheapest point index per agent and ``total_cost`` Σ_i Ĵ_i there
     (None until the tables are solved); ``rotated`` (2n,) on a sphere the set turned by the
-    outer solve over its rotations, in agent order (``total_cost`` is there)."""
+    outer solve over its rotations, in agent order (``total_cost`` is there);
+    ``points_potential`` and ``tangential_gradient`` on a surface the scaled G and the largest
+    tangential |∇G| (length⁻³) of the returned points (:func:`_verify`)."""
 
     phi: np.ndarray
     potential: float
@@ -83,33 +111,50 @@ class CriticalSet:
     assignment: np.ndarray | None = None
     total_cost: float | None = None
     rotated: np.ndarray | None = None
+    points_potential: float | None = None
+    tangential_gradient: float | None = None
 
     @property
     def stable(self) -> bool:
         return self.min_eigenvalue > 0
 
+    def returned(self) -> np.ndarray:
+        """The parameters in agent order that carry ``total_cost``: ``rotated`` where the set
+        was turned, else the set's points in the cheapest assignment (n k,)."""
+        if self.rotated is not None:
+            return self.rotated
+        n = len(self.assignment)
+        return self.phi.reshape(n, -1)[self.assignment].ravel()
+
     def to_dict(self) -> dict:
-        """The candidate as ``result.json`` lists it."""
+        """The candidate as ``result.json`` lists it (on a surface with its returned points'
+        scaled potential and largest tangential |∇G|, length⁻³)."""
         found = {"total_cost": self.total_cost, "potential": self.potential,
                  "stable": self.stable, "min_eigenvalue": self.min_eigenvalue,
                  "hits": self.hits, "phi": self.phi.tolist()}
         if self.rotated is not None:
             found["rotated_phi"] = self.rotated.tolist()
+        if self.points_potential is not None:
+            found["points_potential"] = self.points_potential
+            found["tangential_gradient"] = self.tangential_gradient
         return found
 
 
 @dataclass
 class IsolatedChoice:
     """Outcome of :func:`best_isolated_formation`: ``phi`` (n,) the best angles in agent order
-    (rad); ``total_cost`` there; ``sets`` every distinct critical set found, cheapest first;
-    ``starts`` the searches run (the initial guess's included; those that did not converge or
-    were not stable are ``starts`` − Σ hits); ``inner_solves`` M n²."""
+    (rad); ``total_cost`` there; ``sets`` every distinct critical set found and verified,
+    cheapest first; ``starts`` the searches run (the initial guess's included; those that did
+    not converge or were not stable are ``starts`` − Σ hits − the dropped sets' hits);
+    ``inner_solves`` M n² and the rotation searches'; ``dropped`` the sets whose returned
+    points failed :func:`_verify`."""
 
     phi: np.ndarray
     total_cost: float
     sets: list[CriticalSet]
     starts: int
     inner_solves: int
+    dropped: int = 0
 
 
 def critical_sets(problem: FormationProblem, critical: str = "stable",
@@ -135,23 +180,22 @@ def critical_sets(problem: FormationProblem, critical: str = "stable",
     found: list[CriticalSet] = []
     failed = 0
     for guess in guesses:
-        if critical == "stable":
-            phi = coupling.project(guess, curve)
-        elif on_surface:   # Levenberg–Marquardt on c = 0 (rank-deficient: the rotations)
-            solution = least_squares(coupling.residual, guess, jac=coupling.jacobian,
-                                     args=(curve,), method="lm", xtol=1e-15, ftol=1e-15,
-                                     gtol=1e-15)
-            phi = coupling.retract(np.asarray(solution.x, float), curve)
-        else:
-            solution = root(coupling.residual, guess, args=(curve,), jac=coupling.jacobian)
-            phi = np.asarray(solution.x, float)
-        eigenvalue = _smallest_eigenvalue(problem, phi)
-        converged = np.max(np.abs(coupling.residual(phi, curve))) <= ROOT_TOL \
-            and (not on_surface or _regular(curve, phi))
+        phi, chart = _solve(problem, guess, critical, curve), curve
+        points = problem.final_positions(phi) if on_surface else None
+        if isinstance(curve, EllipsoidSurface) and not (
+                _regular(curve, phi) and _critical_points(curve, points)[0]):
+            chart = curve.charted_away(points)   # near a pole: solved again away from it
+            if chart is not curve:
+                phi = _solve(problem, chart.locate(points).ravel(), critical, chart)
+        eigenvalue = _smallest_eigenvalue(problem, phi, chart)
+        converged = np.max(np.abs(coupling.residual(phi, chart))) <= ROOT_TOL \
+            and (not on_surface or _regular(chart, phi))
         if not converged or (critical == "stable" and eigenvalue <= 0):
             failed += 1
             continue
-        if not on_surface:
+        if on_surface:   # kept in the problem's chart
+            phi = curve.locate(chart.points(phi.reshape(n, -1))).ravel()
+        else:
             phi = np.sort(np.mod(phi, 2 * np.pi))
         same = next((s for s in found if _same_set(problem, s.phi, phi)), None)
         if same is None:
@@ -159,6 +203,24 @@ def critical_sets(problem: FormationProblem, critical: str = "stable",
         else:
             same.hits += 1
     return found, failed
+
+
+def _solve(problem: FormationProblem, guess: np.ndarray, critical: str,
+           curve: Curve | Surface) -> np.ndarray:
+    """The solution of c = 0 on ``curve`` (the problem's, or its surface in another chart)
+    that ``guess`` leads to: :meth:`~ocpar.formation.coupling.Coupling.project` (``stable``),
+    else Levenberg–Marquardt on a surface (c = 0 is rank-deficient there where the surface
+    has symmetries) or Newton's method (SciPy's ``root``) on a curve."""
+    coupling = problem.coupling
+    if critical == "stable":
+        return coupling.project(guess, curve)
+    if isinstance(curve, Surface):
+        solution = least_squares(coupling.residual, guess, jac=coupling.jacobian,
+                                 args=(curve,), method="lm", xtol=1e-15, ftol=1e-15,
+                                 gtol=1e-15)
+        return coupling.retract(np.asarray(solution.x, float), curve)
+    solution = root(coupling.residual, guess, args=(curve,), jac=coupling.jacobian)
+    return np.asarray(solution.x, float)
 
 
 def _regular(surface: Surface, phi: np.ndarray) -> bool:
@@ -169,14 +231,56 @@ def _regular(surface: Surface, phi: np.ndarray) -> bool:
     return bool(np.min(singular[:, 1]) >= REGULAR_RTOL * surface.length_scale)
 
 
-def _smallest_eigenvalue(problem: FormationProblem, phi: np.ndarray) -> float:
-    """The smallest eigenvalue of G's scaled Hessian dc/dφ at ``phi`` across its symmetry
-    (on a sphere the three rotations leave G unchanged: their directions are left out)."""
-    hessian = problem.coupling.jacobian(phi, problem.curve)
-    if not isinstance(problem.curve, Surface):
+def _smallest_eigenvalue(problem: FormationProblem, phi: np.ndarray,
+                         curve: Curve | Surface) -> float:
+    """The smallest eigenvalue of G's scaled Hessian dc/dφ at ``phi`` on ``curve`` (the
+    problem's, or its surface in another chart) across its symmetry (on a sphere the three
+    rotations leave G unchanged: their directions are left out)."""
+    hessian = problem.coupling.jacobian(phi, curve)
+    if not isinstance(curve, Surface):
         return float(np.linalg.eigvalsh(hessian)[0])
-    across = null_space(problem.coupling.free_directions(phi, problem.curve).T)
+    across = null_space(problem.coupling.free_directions(phi, curve).T)
     return float(np.linalg.eigvalsh(across.T @ hessian @ across)[0])
+
+
+def _rotations(problem: FormationProblem) -> np.ndarray | None:
+    """The axes (k, 3) of the rotations that map the problem's surface onto itself where
+    known (an ellipsoid's :attr:`~ocpar.formation.surface.EllipsoidSurface.symmetry_axes`),
+    else None (a parametric surface: its free directions come from dc/dφ)."""
+    curve = problem.curve
+    return curve.symmetry_axes if isinstance(curve, EllipsoidSurface) else None
+
+
+def _turnable(problem: FormationProblem, phi: np.ndarray) -> bool:
+    """Whether the set ``phi`` is isolated only up to free directions of c = 0 (the surface's
+    rotations): k > 0 for an ellipsoid, the null space of dc/dφ otherwise."""
+    axes = _rotations(problem)
+    if axes is not None:
+        return bool(len(axes))
+    return bool(problem.coupling.free_directions(phi, problem.curve).shape[1])
+
+
+def _verify(problem: FormationProblem, candidate: CriticalSet) -> bool:
+    """Check a candidate on a surface from its returned end points x = z(φ) alone (no chart):
+    records their scaled potential (ℓ²/n³) G(x) and max_i |tangential ∇G_i| (length⁻³), and
+    says whether they are critical (that at most :data:`CRITICAL_RTOL` max_i |∇G_i|) and
+    carry the reported potential (to :data:`POTENTIAL_RTOL`)."""
+    n, surface = problem.agents, problem.curve
+    points = problem.final_positions(candidate.returned())
+    candidate.points_potential = coupling_scale(surface, n) * point_potential(points)
+    critical, candidate.tangential_gradient = _critical_points(surface, points)
+    return critical and abs(candidate.points_potential - candidate.potential) \
+        <= POTENTIAL_RTOL * abs(candidate.potential)
+
+
+def _critical_points(surface: Surface, points: np.ndarray) -> tuple[bool, float]:
+    """Whether ``points`` (n, 3) on ``surface`` are a critical configuration of G, checked in
+    space (max_i |tangential ∇G_i| ≤ :data:`CRITICAL_RTOL` max_i |∇G_i|), and that largest
+    tangential |∇G_i| (length⁻³)."""
+    tangential = float(np.max(np.linalg.norm(tangential_potential_gradient(surface, points),
+                                             axis=1)))
+    scale = float(np.max(np.linalg.norm(point_potential_gradient(points), axis=1)))
+    return tangential <= CRITICAL_RTOL * scale, tangential
 
 
 def _potential(problem: FormationProblem, phi: np.ndarray) -> float:
@@ -197,7 +301,7 @@ def _same_set(problem: FormationProblem, a: np.ndarray, b: np.ndarray) -> bool:
                    for k in range(len(a)))
     tol = SAME_SET_TOL * problem.curve.length_scale
     p, q = problem.final_positions(a), problem.final_positions(b)
-    if problem.coupling.free_directions(a, problem.curve).shape[1]:
+    if _turnable(problem, a):
         return bool(np.max(np.abs(np.sort(pdist(p)) - np.sort(pdist(q)))) <= tol)
     distances = cdist(p, q)
     rows, cols = linear_sum_assignment(distances)
@@ -233,10 +337,23 @@ def best_isolated_formation(problem: FormationProblem, backend: Backend,
             candidate.total_cost = math.inf
             continue
         candidate.total_cost = assignment_cost(table, candidate.assignment)
-        if problem.coupling.free_directions(candidate.phi, problem.curve).shape[1]:
+        if isinstance(problem.curve, Surface) and _turnable(problem, candidate.phi):
             candidate.rotated, candidate.total_cost, rotated_solves = _rotate(
                 problem, backend, candidate.phi, tol)
             solves += rotated_solves
+    dropped = []
+    if isinstance(problem.curve, Surface):
+        kept = [_verify(problem, s) for s in sets]
+        dropped = [s for s, ok in zip(sets, kept, strict=True) if not ok]
+        sets = [s for s, ok in zip(sets, kept, strict=True) if ok]
+        if progress is not None:
+            for s in dropped:
+                progress(f"critical set dropped: its returned points have potential "
+                         f"{s.points_potential:.12g} (reported {s.potential:.12g}) and "
+                         f"tangential |grad G| {s.tangential_gradient:.1e}")
+        if not sets:
+            raise ValueError(f"no critical set of the potential passed the check from its "
+                             f"returned points ({len(dropped)} dropped)")
     sets.sort(key=lambda s: s.total_cost)
     best = sets[0]
     if not math.isfinite(best.total_cost):
@@ -244,26 +361,31 @@ def best_isolated_formation(problem: FormationProblem, backend: Backend,
                                "with every agent's inner problem feasible")
     if progress is not None:
         progress(f"critical sets ({critical}): {len(sets)} distinct from {starts + 1} starts "
-                 f"({failed} not converged or not stable); costs "
-                 + ", ".join(f"{s.total_cost:.9e}" for s in sets))
-    phi = (best.rotated if best.rotated is not None
-           else best.phi.reshape(n, -1)[best.assignment].ravel())
-    return IsolatedChoice(phi, float(best.total_cost), sets, starts + 1, solves)
+                 f"({failed} not converged or not stable, {len(dropped)} dropped by the check "
+                 f"from their points); costs " + ", ".join(f"{s.total_cost:.9e}" for s in sets))
+    return IsolatedChoice(best.returned(), float(best.total_cost), sets, starts + 1, solves,
+                          len(dropped))
 
 
 def _rotate(problem: FormationProblem, backend: Backend, phi: np.ndarray, tol: float
             ) -> tuple[np.ndarray, float, int]:
     """The best turn of a critical set ``phi`` (2n,) with free directions: from the set as
-    labelled and, on a :class:`~ocpar.formation.surface.SphereSurface`, from
-    :data:`ROTATION_STARTS` − 1 seeded random rotations of it (:func:`_turned`), rounds of the
-    outer Newton solve over the free directions and the cheapest assignment of the agents to
-    the points reached (one table superstep each), while the assignment changes (at most
-    :data:`ROTATION_ROUNDS`). Returns (φ in agent order, its total cost, inner solves)."""
+    labelled and, on a surface with rotational symmetry, from :data:`ROTATION_STARTS` − 1
+    seeded random rotations of it (:func:`_turns`), rounds of the outer Newton solve over the
+    free directions (the rotations applied rigidly, :func:`rotation_newton`; on a parametric
+    surface the tangent space of c = 0, :func:`tangent_newton`) and the cheapest assignment of
+    the agents to the points reached (one table superstep each), while the assignment changes
+    (at most :data:`ROTATION_ROUNDS`). Returns (φ in agent order, its total cost, inner
+    solves)."""
     n, solves = problem.agents, 0
+    axes = _rotations(problem)
     starts = [phi]
-    if isinstance(problem.curve, SphereSurface):
-        turns = Rotation.random(ROTATION_STARTS - 1, random_state=ROTATION_SEED)
-        starts += [_turned(problem, phi, turn) for turn in turns]
+    if axes is not None:
+        centre = problem.curve.center
+        points = problem.final_positions(phi) - centre
+        starts += [problem.curve.locate(centre + turn.apply(points)).ravel()
+                   for turn in _turns(axes)]
+    newton = rotation_newton if axes is not None else tangent_newton
     best: tuple[np.ndarray, float] | None = None
     for start in starts:
         table = cost_tables(problem, backend, start.reshape(1, n, -1))[0]
@@ -271,7 +393,7 @@ def _rotate(problem: FormationProblem, backend: Backend, phi: np.ndarray, tol: f
         phi = start.reshape(n, -1)[cheapest_assignment(table)].ravel()
         for _ in range(ROTATION_ROUNDS):
             objective = OuterObjective(problem, backend)
-            phi, _, _, _ = tangent_newton(objective, phi, tol, MAX_ROTATION_ITERATIONS)
+            phi, _, _, _ = newton(objective, phi, tol, MAX_ROTATION_ITERATIONS)
             cost = objective.value(phi)
             objective.close()
             table = cost_tables(problem, backend, phi.reshape(1, n, -1))[0]
@@ -286,9 +408,10 @@ def _rotate(problem: FormationProblem, backend: Backend, phi: np.ndarray, tol: f
     return best[0], best[1], solves
 
 
-def _turned(problem: FormationProblem, phi: np.ndarray, turn: Rotation) -> np.ndarray:
-    """The parameters (2n,) of the points of ``phi`` turned by ``turn`` about the sphere's
-    centre."""
-    centre = problem.curve.center
-    points = turn.apply(problem.final_positions(phi) - centre)
-    return problem.curve.parameters_toward(points).ravel()
+def _turns(axes: np.ndarray) -> Rotation:
+    """:data:`ROTATION_STARTS` − 1 seeded rotations about the axes (k, 3): uniformly random
+    with three (a sphere's), else the angles 2πm/ROTATION_STARTS about the one axis."""
+    if len(axes) == 3:
+        return Rotation.random(ROTATION_STARTS - 1, random_state=ROTATION_SEED)
+    angles = 2 * np.pi * np.arange(1, ROTATION_STARTS) / ROTATION_STARTS
+    return Rotation.from_rotvec(angles[:, None] * axes[0])

@@ -12,8 +12,9 @@ Two mechanisms, one per kind of knowledge:
   margin of 2), so a feasible shift can hide between grid points only next to one where
   E ≤ L · spacing / 2; those are polished by a bounded local minimisation, and if none
   reaches E ≤ 0 the formation is refused (one line naming the agent that misses its reach
-  at the best shift, and its limit). The start is the feasible shift nearest the given one, :data:`WINDOW_MARGIN` of
-  the interval's width inside it; the outer Newton search stays inside the interval.
+  at the best shift, and its limit). The start is the feasible shift nearest the given
+  one, :data:`WINDOW_MARGIN` of the interval's width inside it; the outer Newton search
+  stays inside the interval.
 * **Failures as data** (any model and constraint): :func:`inner_costs` returns +∞ for an
   inner problem whose solve failed (and, where the reach set is exact, for one outside it,
   without solving it), so that cost tables and scans carry infeasibility as a value.
@@ -202,14 +203,16 @@ def inner_costs(problem: FormationProblem, backend: Backend, agents: np.ndarray,
     """Ĵ of agent ``agents[k]`` ending at ``phi[k]`` (an angle, rad, or a slot index): one
     superstep of inner solves for the pairs inside their exact reach sets (all where none
     is known); failed solves and pairs outside are +∞ (failures are data)."""
-    agents, phi = np.asarray(agents, dtype=np.intp), np.asarray(phi, float)
+    agents = np.asarray(agents, dtype=np.intp)
+    rows = np.asarray(phi, float).reshape(len(agents), -1)   # on a surface 2 per pair
     costs = np.full(len(agents), np.inf)
-    skip = outside_reach(problem, agents, phi)
+    skip = outside_reach(problem, agents, rows[:, 0]) if rows.shape[1] == 1 \
+        else np.zeros(len(agents), dtype=bool)
     todo = np.flatnonzero(~skip)
     failed, first = 0, ""
     if len(todo):
         sols = backend.superstep_columns(solve_tasks, problem.tasks_for(agents[todo],
-                                                                        phi[todo]))
+                                                                        rows[todo].ravel()))
         success = np.asarray(sols.column("success"), dtype=bool)
         solved = np.asarray(sols.column("cost"), dtype=float)
         costs[todo[success]] = solved[success]
@@ -217,6 +220,6 @@ def inner_costs(problem: FormationProblem, backend: Backend, agents: np.ndarray,
         failed = len(bad)
         if failed:
             k = int(todo[bad[0]])
-            first = (f"agent {agents[k]} ending at phi = {float(phi[k])!r}: "
+            first = (f"agent {agents[k]} ending at phi = {rows[k].tolist()}: "
                      f"{sols.column('status')[bad[0]]}")
     return InnerCosts(costs, len(todo), failed, int(np.sum(skip)), first)

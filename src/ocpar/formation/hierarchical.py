@@ -26,15 +26,21 @@ from collections.abc import Callable
 import numpy as np
 from scipy.linalg import block_diag
 from scipy.optimize import minimize, root_scalar
+from scipy.spatial.transform import Rotation
 
 from ocpar.bsp import Backend
 from ocpar.bsp.columns import Columns
-from ocpar.formation.coupling import PROJECTION_TOL, ShiftFamily
+from ocpar.formation.coupling import (
+    PROJECTION_TOL,
+    RANK_RTOL,
+    PotentialCoupling,
+    ShiftFamily,
+)
 from ocpar.formation.feasibility import feasible_window, inner_costs
 from ocpar.formation.potential import equidistance_error
 from ocpar.formation.problem import FormationProblem
 from ocpar.formation.slots import Slots
-from ocpar.formation.surface import Surface
+from ocpar.formation.surface import EllipsoidSurface, Surface
 from ocpar.ocp.endpoint_agents import agent_tasks, solve_agents
 
 #: Second iterate of the offset search (rad): 1/60 of a slot for the paper's 60 agents.
@@ -264,6 +270,9 @@ def solve_outer_newton(
       potential, is nonsingular at its minima, if nearly singular for many agents: see
       :func:`~ocpar.formation.potential.relax`), the projection of φ0 is the answer: one
       evaluation (0 iterations), converged if it reached max |c_k| ≤ :data:`PROJECTION_TOL`.
+    * On a surface with rotational symmetry (a sphere, an ellipsoid of revolution) the
+      potential coupling's solutions are isolated up to its rotations: Newton's method over them,
+      applied rigidly to the projection's points (:func:`rotation_newton`).
     * Otherwise (a user's coupling with r free directions), Newton steps in the tangent
       space of c = 0 with the Lagrangian's Hessian, each projected back onto c = 0
       (:func:`tangent_newton`): dense, its superstep count grows with r, not with n.
@@ -278,6 +287,9 @@ def solve_outer_newton(
     if residual > PROJECTION_TOL:
         return phi, 0, False, (f"the projection did not reach c(phi) = 0 (max |c| "
                                f"{residual:.1e})")
+    if isinstance(problem.coupling, PotentialCoupling) and isinstance(
+            problem.curve, EllipsoidSurface) and len(problem.curve.symmetry_axes):
+        return rotation_newton(objective, phi, tol, max_iterations)
     if problem.coupling.free_directions(phi, problem.curve).shape[1]:
         return tangent_newton(objective, phi, tol, max_iterations)
     return phi, 0, True, "projected onto c(phi) = 0"
@@ -433,4 +445,71 @@ def tangent_newton(objective: OuterObjective, phi: np.ndarray, tol: float,
             value, step, converged = model(phi)
         else:
             shrink /= 2
+    return phi, max_iterations, False, "iteration limit reached"
+
+
+def rotation_newton(objective: OuterObjective, phi: np.ndarray, tol: float,
+                    max_iterations: int) -> tuple[np.ndarray, int, bool, str]:
+    """Newton's method on J over the rotations that map the problem's ellipsoid onto itself
+    (:attr:`~ocpar.formation.surface.EllipsoidSurface.symmetry_axes` A (k, 3) about its
+    centre c), applied rigidly in space to the points of ``phi`` (2n,): x_i(ω) =
+    c + exp(Σ_a ω_a [A_a]×) r_i, r_i = x_i − c, each iterate re-charted
+    (:meth:`~ocpar.formation.surface.Surface.locate`) for its superstep, so that the chart's
+    poles play no part. With v_i = ∇_pos J*_i and H_i its position block: the gradient
+    g_a = A_a · Σ_i r_i × v_i and the Hessian H_ab = Σ_i (A_a × r_i)ᵀ H_i (A_b × r_i)
+    + A_aᵀ M A_b, M = Σ_i ½ (r_i v_iᵀ + v_i r_iᵀ) − (r_i · v_i) I. The step −H⁺g takes the
+    eigenvalues in absolute value and drops those below :data:`RANK_RTOL` times the largest (a
+    rotation that changes no cost, e.g. about a line through c that holds every start), is
+    at most :data:`MAX_OFFSET_STEP` rad, and is halved while it raises J beyond rounding.
+    Converged when |g|_∞ ≤ ``tol`` Σ_i |r_i × v_i| with H positive semidefinite (to
+    :data:`RANK_RTOL`), or a step of at most ``tol`` rad was taken or was the last to fail
+    to lower J. Returns (φ (2n,) of the points
+    reached, iterations, success, message)."""
+    surface = objective.problem.curve
+    if not isinstance(surface, EllipsoidSurface) or not len(surface.symmetry_axes):
+        raise ValueError("rotation_newton needs an ellipsoid with rotational symmetry")
+    axes, centre = surface.symmetry_axes, surface.center
+
+    def model(phi: np.ndarray) -> tuple[float, np.ndarray, bool]:
+        """J at ``phi`` (one superstep), the Newton step in ω (k,) and whether converged."""
+        outcomes = objective.outcomes(phi)
+        v = np.asarray(outcomes.column("end_gradient"))[:, :3]
+        h = np.asarray(outcomes.column("end_hessian"))
+        r = surface.points(np.reshape(phi, (-1, 2))) - centre
+        torque = np.cross(r, v)
+        gradient = axes @ np.sum(torque, axis=0)
+        moved = np.cross(axes[None], r[:, None])            # (n, k, 3): A_a × r_i
+        m = (0.5 * (np.einsum("id,ie->de", r, v) + np.einsum("id,ie->de", v, r))
+             - np.sum(r * v) * np.eye(3))
+        hessian = np.einsum("iad,ide,ibe->ab", moved, h, moved) + axes @ m @ axes.T
+        eigenvalues, vectors = np.linalg.eigh(hessian)
+        floor = RANK_RTOL * max(np.max(np.abs(eigenvalues)), 1e-300)
+        kept = np.abs(eigenvalues) > floor
+        step = -vectors[:, kept] @ ((vectors[:, kept].T @ gradient) / np.abs(eigenvalues[kept]))
+        step *= min(1.0, MAX_OFFSET_STEP / max(np.linalg.norm(step), 1e-300))
+        converged = (np.max(np.abs(gradient)) <= tol * np.sum(np.linalg.norm(torque, axis=1))
+                     and eigenvalues[0] >= -floor)
+        return float(np.sum(outcomes.column("cost"))), step, converged
+
+    def turned(phi: np.ndarray, omega: np.ndarray) -> np.ndarray:
+        points = surface.points(np.reshape(phi, (-1, 2))) - centre
+        return surface.locate(centre + Rotation.from_rotvec(omega @ axes).apply(points)).ravel()
+
+    phi = np.asarray(phi, float).ravel()
+    value, step, converged = model(phi)
+    shrink = 1.0
+    for iteration in range(max_iterations):
+        if converged:
+            return phi, iteration, True, "rotation gradient below tolerance"
+        trial = turned(phi, shrink * step)
+        t_value = objective.value(trial)
+        if t_value <= value + ROUNDING_RTOL * abs(value):
+            if shrink * np.linalg.norm(step) <= tol:
+                return trial, iteration + 1, True, "step below tolerance"
+            phi, shrink = trial, 1.0
+            value, step, converged = model(phi)
+        else:
+            shrink /= 2
+            if shrink * np.linalg.norm(step) <= tol:
+                return phi, iteration + 1, True, "no step longer than the tolerance lowers J"
     return phi, max_iterations, False, "iteration limit reached"

@@ -30,6 +30,7 @@ from scipy.sparse import csc_matrix
 from scipy.sparse.linalg import LinearOperator, cg, splu
 
 from ocpar.formation.curve import Curve
+from ocpar.formation.surface import Surface
 
 #: Rows of the coupling evaluated at once by :func:`coupling`: its temporaries (BLOCK, n)
 #: stay in cache (10,000 agents: ~2 s on this machine, loaded; in one piece 2.4 GB).
@@ -101,6 +102,38 @@ def potential(phi: np.ndarray, curve: Curve) -> float:
         s[k - start, k] = np.inf
         total += float(np.sum(1.0 / s))
     return coupling_scale(curve, n) * total
+
+
+def point_potential(points: np.ndarray) -> float:
+    """G = Σ_{i≠j} 1/|x_i − x_j|² (length⁻²) of the points ``points`` (n, d) themselves, no
+    parameters involved (unscaled)."""
+    points = np.asarray(points, float)
+    d = points[:, None] - points[None]
+    s = np.sum(d * d, axis=-1)
+    np.fill_diagonal(s, np.inf)
+    return float(np.sum(1.0 / s))
+
+
+def point_potential_gradient(points: np.ndarray) -> np.ndarray:
+    """∇G (n, d), length⁻³, in the positions of ``points`` (n, d):
+    ∂G/∂x_k = −4 Σ_{j≠k} (x_k − x_j)/|x_k − x_j|⁴."""
+    points = np.asarray(points, float)
+    d = points[:, None] - points[None]
+    s = np.sum(d * d, axis=-1)
+    np.fill_diagonal(s, np.inf)
+    return -4.0 * np.sum(d / (s * s)[..., None], axis=1)
+
+
+def tangential_potential_gradient(surface: Surface, points: np.ndarray) -> np.ndarray:
+    """The part of ∇G along the surface (n, 3), length⁻³, at ``points`` (n, 3) on it:
+    :func:`point_potential_gradient` less its component along each point's unit normal
+    (:meth:`~ocpar.formation.surface.Surface.normals`). Zero exactly where the points are a
+    critical configuration of G on the surface, whatever the chart: the check of a formation
+    from its returned end points."""
+    points = np.asarray(points, float).reshape(-1, 3)
+    gradient = point_potential_gradient(points)
+    normal = surface.normals(points)
+    return gradient - np.sum(gradient * normal, axis=1, keepdims=True) * normal
 
 
 def relax(phi: np.ndarray, curve: Curve) -> np.ndarray:

@@ -322,7 +322,10 @@ def discrete_choice(problem: FormationProblem, choice: IsolatedChoice | SlotChoi
                 "critical_sets": [s.to_dict() for s in choice.sets],
                 "note": (f"; the best of {len(choice.sets)} critical set(s) found from "
                          f"{choice.starts} start(s), each with its cheapest assignment"
-                         + (" and rotation" if feasible_set == "continuous" else ""))}
+                         + (" and rotation" if feasible_set == "continuous" else "")
+                         + (f" ({choice.dropped} more dropped: their returned points are "
+                            "not critical or not of the potential reported)"
+                            if choice.dropped else ""))}
     potential = problem.coupling == PotentialCoupling()
     if feasible_set == "continuous" and (problem.on_circle or not potential):
         return {"feasible_set": "continuous", "note": ""}

@@ -13,12 +13,20 @@ blocks. The formation's φ holds the agents' parameters as an (n, 2) array.
   direction off every symmetry axis, where symmetric formations do not put an agent.
 * :class:`ParametricSurface`: any φ ↦ z(φ), a Python function of a CasADi (2, 1) symbol.
 
+Every surface also maps back, :meth:`Surface.locate` (points to parameters: the inverse
+chart, closed form on an ellipsoid, Gauss–Newton on a parametric surface), and gives its unit
+normals at points (:meth:`Surface.normals`), so that a configuration can be moved in space
+(a rotation applied to the points) and checked there without the chart. An ellipsoid can
+also be re-charted, :meth:`EllipsoidSurface.charted_away`: the same surface with its pole far
+from given points.
+
 Each is checked when built (finite data, orthonormal axes, z evaluates to 3 finite entries
 with a Jacobian of rank 2 away from the poles): one ValueError naming the field.
 """
 
 from __future__ import annotations
 
+import dataclasses
 from abc import ABC, abstractmethod
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -32,6 +40,15 @@ PARAMETERS = 2
 
 #: Directions sampled for checks, the length scale and the nearest parameters of a point.
 SAMPLES = 2048
+
+#: Gauss–Newton iterations of :meth:`Surface.locate` on a parametric surface, at most.
+LOCATE_ITERATIONS = 50
+
+#: Candidate poles (spread directions) :meth:`EllipsoidSurface.charted_away` chooses from.
+POLE_CANDIDATES = 256
+#: :meth:`EllipsoidSurface.charted_away` keeps a chart while every point's unit vector e has
+#: 1 − |pole · e| ≥ this (18° or more from either pole).
+POLE_MARGIN = 0.05
 
 
 def fibonacci_directions(n: int) -> np.ndarray:
@@ -58,6 +75,32 @@ class Surface(ABC):
     def parameters_toward(self, directions: np.ndarray) -> np.ndarray:
         """Parameters (n, 2) of the points seen in ``directions`` (n, 3) from the surface's
         centre: where an initial formation is laid out."""
+
+    def locate(self, points: np.ndarray) -> np.ndarray:
+        """Parameters (n, 2) (rad) of ``points`` (n, 3) on the surface (the inverse chart):
+        here the closest point by Gauss–Newton on |z(φ) − p|² from the nearest of
+        :data:`SAMPLES` spread points, to rounding (at most :data:`LOCATE_ITERATIONS`)."""
+        points = np.asarray(points, float).reshape(-1, 3)
+        spread = self.parameters_toward(fibonacci_directions(SAMPLES))
+        nearest = np.argmin(np.sum((points[:, None] - self.points(spread)[None]) ** 2, axis=-1),
+                            axis=1)
+        phi = spread[nearest]
+        for _ in range(LOCATE_ITERATIONS):
+            miss = self.points(phi) - points
+            step = np.stack([np.linalg.lstsq(j, -m, rcond=None)[0]
+                             for j, m in zip(self.jacobians(phi), miss, strict=True)])
+            phi = phi + step
+            if np.max(np.abs(step)) <= 1e-15 * (1 + np.max(np.abs(phi))):
+                break
+        return phi
+
+    def normals(self, points: np.ndarray) -> np.ndarray:
+        """Unit normals (n, 3) at ``points`` (n, 3) on the surface: here the cross product of
+        ∂z/∂φ's columns at :meth:`locate`'s parameters (undefined where the chart is
+        singular)."""
+        jacobian = self.jacobians(self.locate(points))
+        normal = np.cross(jacobian[:, :, 0], jacobian[:, :, 1])
+        return normal / np.linalg.norm(normal, axis=1, keepdims=True)
 
     @cached_property
     def _derivatives(self) -> ca.Function:
@@ -175,6 +218,53 @@ class EllipsoidSurface(Surface):
         local = local / np.linalg.norm(local, axis=1, keepdims=True) @ self.chart.T
         return np.column_stack([np.arccos(np.clip(local[:, 2], -1, 1)),
                                 np.arctan2(local[:, 1], local[:, 0])])
+
+    def _unit(self, points: np.ndarray) -> np.ndarray:
+        """The unit vectors e (n, 3) of ``points`` (n, 3), in the ellipsoid's frame."""
+        local = (np.asarray(points, float).reshape(-1, 3) - self.center) @ self.frame.T
+        local = local / np.array(self.semi_axes)
+        return local / np.linalg.norm(local, axis=1, keepdims=True)
+
+    def locate(self, points: np.ndarray) -> np.ndarray:
+        """The parameters (n, 2) of ``points`` (n, 3), closed form (the points seen from the
+        centre, :meth:`parameters_toward`)."""
+        return self.parameters_toward(np.asarray(points, float).reshape(-1, 3) - self.center)
+
+    def normals(self, points: np.ndarray) -> np.ndarray:
+        """Unit normals (n, 3), closed form: ∝ the gradient of Σ_k (axes[k]·(p − c))²/a_k²."""
+        normal = (self._unit(points) / np.array(self.semi_axes)) @ self.frame
+        return normal / np.linalg.norm(normal, axis=1, keepdims=True)
+
+    @property
+    def symmetry_axes(self) -> np.ndarray:
+        """Unit axes (k, 3) through ``center`` whose rotations map the surface onto itself
+        (an orthonormal basis of them): all three on a sphere, the odd axis of an ellipsoid
+        of revolution, none (0, 3) otherwise."""
+        a = np.array(self.semi_axes)
+        equal = np.isclose(a[:, None], a[None], rtol=1e-12, atol=0)
+        if np.all(equal):
+            return np.eye(3)
+        odd = np.flatnonzero(equal.sum(axis=1) == 1)
+        return self.frame[odd] if len(odd) == 1 else np.zeros((0, 3))
+
+    def pole_distance(self, points: np.ndarray) -> float:
+        """min_i (1 − |pole · e_i|) ∈ [0, 1] over ``points`` (n, 3): 0 with a point on a pole
+        of the chart (e_i the points' unit vectors in the ellipsoid's frame)."""
+        return float(np.min(1 - np.abs(self._unit(points) @ self.chart[2])))
+
+    def charted_away(self, points: np.ndarray) -> EllipsoidSurface:
+        """The same surface with the chart's pole the one of :data:`POLE_CANDIDATES` spread
+        directions farthest from every one of ``points`` (n, 3) (the largest
+        :meth:`pole_distance`); ``self`` while every point keeps :data:`POLE_MARGIN` from its
+        own poles. Each re-charted surface is built once (its CasADi functions with it)."""
+        if self.pole_distance(points) >= POLE_MARGIN:
+            return self
+        poles = fibonacci_directions(POLE_CANDIDATES)
+        best = int(np.argmax(np.min(1 - np.abs(self._unit(points) @ poles.T), axis=0)))
+        charts = self.__dict__.setdefault("_charts", {})
+        if best not in charts:
+            charts[best] = dataclasses.replace(self, pole=poles[best])
+        return charts[best]
 
 
 @dataclass(frozen=True, eq=False, kw_only=True)
