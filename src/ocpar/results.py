@@ -43,6 +43,9 @@ class RunResult:
     record per superstep. A scheme's result adds its own fields (:meth:`scheme_fields`)."""
 
     scheme: ClassVar[str]
+    #: The scheme's headline figures, keys of ``result.json``: written as null unless the
+    #: status is ``converged`` (a run reports no figure it did not reach).
+    headline: ClassVar[tuple[str, ...]] = ()
 
     problem: str
     backend: str
@@ -72,18 +75,32 @@ class RunResult:
         """The command line's exit status for this result (:data:`EXIT_STATUS`)."""
         return EXIT_STATUS[self.status]
 
+    def headline_keys(self) -> tuple[str, ...]:
+        """The keys of :attr:`headline` (a scheme may add keys only known per run)."""
+        return self.headline
+
+    def not_reached(self) -> str:
+        """What a summary line says instead of a headline figure the run did not reach:
+        'not reached (<status>: <the message's first clause>)'."""
+        first = self.message.splitlines()[0].split("; ")[0] if self.message else ""
+        return f"not reached ({self.status}: {first})"
+
     def scheme_fields(self) -> dict:  # pragma: no cover - provided by each scheme
         """The scheme's own fields of ``result.json`` (JSON values)."""
         raise NotImplementedError
 
     def to_dict(self) -> dict:
-        """The ``result.json`` contract: the common fields, then the scheme's own."""
+        """The ``result.json`` contract: the common fields, then the scheme's own (its
+        :meth:`headline_keys` null unless the status is ``converged``)."""
+        fields = self.scheme_fields()
+        if not self.converged:
+            fields |= {key: None for key in self.headline_keys() if key in fields}
         return {
             "scheme": self.scheme, "problem": self.problem, "backend": self.backend,
             "workers": self.workers, "status": self.status, "message": self.message,
             "supersteps": self.supersteps, "inner_solves": self.inner_solves,
             "failed_solves": self.failed_solves, "retries": self.retries,
-            "wall_time_s": self.wall_time_s, **self.scheme_fields(),
+            "wall_time_s": self.wall_time_s, **fields,
             "trace": [t.to_dict() for t in self.trace],
         }
 

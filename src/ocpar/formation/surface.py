@@ -30,6 +30,9 @@ import numpy as np
 #: Parameters per agent on a surface.
 PARAMETERS = 2
 
+#: Newton steps of :meth:`Surface.locate` at most (from a hint on the surface: one or two).
+LOCATE_STEPS = 8
+
 #: Directions sampled for checks, the length scale and the nearest parameters of a point.
 SAMPLES = 2048
 
@@ -85,6 +88,28 @@ class Surface(ABC):
         """∂²z/∂φ_a∂φ_b (n, 3, 2, 2), length unit per rad²."""
         return (self._evaluate(phi, 2).reshape(-1, PARAMETERS, PARAMETERS, 3)
                 .transpose(0, 3, 2, 1))
+
+    def locate(self, points: np.ndarray, hint: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The inverse of :meth:`points` through the chart: for ``points`` (n, 3) the
+        parameters (n, 2) of the nearest points of the surface by Newton's method on
+        ½|z(φ) − x|² from ``hint`` (n, 2) (at most :data:`LOCATE_STEPS` steps; Gauss–Newton
+        where its Hessian is not positive definite, pseudo-inverses at a chart's pole), and
+        the distances |z(φ) − x| (n,), length unit."""
+        x = np.asarray(points, float)
+        phi = np.array(hint, float).reshape(-1, PARAMETERS)
+        for _ in range(LOCATE_STEPS):
+            gap, jac = self.points(phi) - x, self.jacobians(phi)
+            gauss = np.einsum("nka,nkb->nab", jac, jac)
+            hessian = gauss + np.einsum("nk,nkab->nab", gap, self.second_derivatives(phi))
+            convex = (np.linalg.det(hessian) > 0) & (np.trace(hessian, axis1=1, axis2=2) > 0)
+            hessian = np.where(convex[:, None, None], hessian, gauss)
+            step = np.einsum("nab,nb->na", np.linalg.pinv(hessian),
+                             np.einsum("nka,nk->na", jac, gap))
+            phi = phi - step
+            if not np.max(np.abs(step), initial=0.0) > 1e-15 * (1 + np.max(np.abs(phi),
+                                                                          initial=0.0)):
+                break
+        return phi, np.linalg.norm(self.points(phi) - x, axis=1)
 
     @cached_property
     def length_scale(self) -> float:
