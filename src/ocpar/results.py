@@ -7,7 +7,8 @@ Statuses (the same words in every scheme):
   the outer optimality test; pursuit: an agent improved on its leader by less than ε, or the
   full-horizon NLP solved; MACS: the evaluation budget spent with a non-empty archive);
 * ``not_converged``: it stopped at a bound (outer iterations, agents) without meeting it;
-* ``failed``: it has no usable answer (an inner solve failed for good, no feasible point);
+* ``failed``: it has no usable answer (an inner solve failed for good, no feasible point,
+  a formation answer that fails its verification, :mod:`ocpar.formation.verify`);
 * ``separation_not_met``: a formation run with a required minimum separation whose rounds
   ended (round limit) with two agents closer than required; its paths are returned, with
   by how much they miss;
@@ -15,6 +16,9 @@ Statuses (the same words in every scheme):
   with a path inside an obstacle; its paths are returned, with by how much;
 * ``cancelled``: stopped by its stop file at a superstep boundary (``ocpar cancel``); such a
   run writes no result.json, its checkpoint resumes it.
+
+Unless the status is ``converged``, a result reports none of its scheme's headline figures
+(:attr:`RunResult.headline_fields`: null in ``result.json``, "not reached" in the summary).
 """
 
 from __future__ import annotations
@@ -45,7 +49,7 @@ class RunResult:
     scheme: ClassVar[str]
     #: The scheme's headline figures, keys of ``result.json``: written as null unless the
     #: status is ``converged`` (a run reports no figure it did not reach).
-    headline: ClassVar[tuple[str, ...]] = ()
+    headline_fields: ClassVar[tuple[str, ...]] = ()
 
     problem: str
     backend: str
@@ -76,8 +80,8 @@ class RunResult:
         return EXIT_STATUS[self.status]
 
     def headline_keys(self) -> tuple[str, ...]:
-        """The keys of :attr:`headline` (a scheme may add keys only known per run)."""
-        return self.headline
+        """The keys of :attr:`headline_fields` (a scheme may add keys only known per run)."""
+        return self.headline_fields
 
     def not_reached(self) -> str:
         """What a summary line says instead of a headline figure the run did not reach:

@@ -46,7 +46,8 @@ class FormationResult(RunResult):
 
     scheme: ClassVar[str] = "formation"
     #: Null in ``result.json`` unless converged (with the cost parts, :meth:`headline_keys`).
-    headline: ClassVar[tuple[str, ...]] = ("total_cost", "agent_costs", "unconstrained_cost")
+    headline_fields: ClassVar[tuple[str, ...]] = ("total_cost", "agent_costs",
+                                                  "unconstrained_cost")
 
     agents: int
     mode: str
@@ -70,8 +71,8 @@ class FormationResult(RunResult):
     verification: Verification | None = None
 
     def headline_keys(self) -> tuple[str, ...]:
-        """:attr:`headline` and the cost parts' keys."""
-        return self.headline + tuple(self.cost_parts)
+        """:attr:`headline_fields` and the cost parts' keys."""
+        return self.headline_fields + tuple(self.cost_parts)
 
     def title(self) -> str:
         """The plot's headline: the total cost if converged, else the status and why."""

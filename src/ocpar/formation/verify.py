@@ -363,7 +363,7 @@ def verify_formation(problem: FormationProblem, trajectories: np.ndarray,
         near = {"distance": closest.distance, "agents": list(closest.agents),
                 "time": closest.time, "spacing": spacing,
                 "fraction": closest.distance / spacing,
-                "rule": f"closest approach below {NEAR_COLLISION_FRACTION:.0%} of the "
+                "rule": f"closest approach below {100 * NEAR_COLLISION_FRACTION:g} % of the "
                         f"formation's spacing (the smallest distance between two target "
                         f"points)"}
     return Verification(checks, located, residual, closest, spacing, clearance, near,
@@ -374,7 +374,7 @@ def near_collision_words(near: dict) -> str:
     """The status line's words on a near-collision (:class:`Verification`)."""
     i, j = near["agents"]
     return (f"near-collision: agents {i} and {j} come within {near['distance']:.3g} at "
-            f"t = {near['time']:.3g}, {near['fraction']:.2%} of the formation's spacing "
-            f"{near['spacing']:.3g} (below {NEAR_COLLISION_FRACTION:.0%}); this is the "
+            f"t = {near['time']:.3g}, {100 * near['fraction']:.2g} % of the formation's spacing "
+            f"{near['spacing']:.3g} (below {100 * NEAR_COLLISION_FRACTION:g} %); this is the "
             f"optimum without a separation requirement: --min-separation D keeps every "
             f"pair D apart")
