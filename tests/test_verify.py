@@ -54,7 +54,7 @@ def _independent_coupling(points: np.ndarray, centre: np.ndarray) -> np.ndarray:
 
 
 def test_a_converged_circle_verifies_from_its_end_points(six):
-    problem, result = six
+    _, result = six
     v = result.verification
     assert result.status == "converged" and v.passed and not v.failures
     ends = result.trajectories[:, -1, :2]
