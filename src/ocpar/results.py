@@ -97,7 +97,7 @@ class RunResult:
         """The ``result.json`` contract: the common fields, then the scheme's own (its
         :meth:`headline_keys` null unless the status is ``converged``)."""
         fields = self.scheme_fields()
-        if not self.converged:
+        if self.status != "converged":   # (a scheme may give ``converged`` its own meaning)
             fields |= {key: None for key in self.headline_keys() if key in fields}
         return {
             "scheme": self.scheme, "problem": self.problem, "backend": self.backend,

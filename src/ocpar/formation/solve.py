@@ -218,21 +218,29 @@ def _obstacle_words(met: bool, closest: Clearance, rounds: int) -> tuple[str | N
         f"{-closest.distance:.3g} inside obstacle {closest.obstacle} at t = {closest.time:.6g}")
 
 
+#: The verification's checks a status already reports (its message says by how much).
+KNOWN_FAILURES = {"separation_not_met": ("separation",), "obstacles_not_cleared": ("obstacles",)}
+
+
 def _verified(problem: FormationProblem, options: FormationOptions, trajectories: np.ndarray,
               controls: np.ndarray, phi: np.ndarray, status: str, message: str
               ) -> tuple[Verification, str, str]:
     """The answer's verification (:func:`~ocpar.formation.verify.verify_formation`) and the
     status and message it leaves: ``converged`` becomes ``failed`` if it fails (the message
-    then starts with the first failure), other statuses stay with the failure appended; a
-    near-collision is said in the message (the status stays)."""
+    then starts with the first failure), other statuses stay with the failures appended that
+    they do not already report (:data:`KNOWN_FAILURES`); a near-collision is said in the
+    message (the status stays)."""
     verification = verify_formation(problem, trajectories, controls, phi,
                                     options.min_separation)
     if not verification.passed:
-        words = f"the returned formation fails verification: {verification.failure_words()}"
         if status == "converged":
-            return verification, "failed", f"{words}; the solve said: {message}"
-        return verification, status, f"{message}; {words}"
-    if verification.near_collision is not None:
+            words = verification.failure_words()
+            return verification, "failed", (f"the returned formation fails verification: "
+                                            f"{words}; the solve said: {message}")
+        words = verification.failure_words(KNOWN_FAILURES.get(status, ()))
+        if words:
+            message += f"; the returned formation fails verification: {words}"
+    elif verification.near_collision is not None:
         message += f"; {near_collision_words(verification.near_collision)}"
     return verification, status, message
 

@@ -154,13 +154,18 @@ class Verification:
     @property
     def failures(self) -> list[str]:
         """One line per failed check."""
+        return self.failures_except(())
+
+    def failures_except(self, known: tuple[str, ...]) -> list[str]:
+        """One line per failed check but those named in ``known``."""
         return [FAILURE_WORDS[name].format(agent=c.agent, value=c.value, where=c.where)
                 + f" (tolerance {c.tolerance:.1e})"
-                for name, c in self.checks.items() if not c.passed]
+                for name, c in self.checks.items() if not c.passed and name not in known]
 
-    def failure_words(self) -> str:
-        """'<first failure> (and k more)' ('' if it passed)."""
-        failures = self.failures
+    def failure_words(self, known: tuple[str, ...] = ()) -> str:
+        """'<first failure> (and k more)' ('' if none failed), leaving out the checks named in
+        ``known``."""
+        failures = self.failures_except(known)
         if not failures:
             return ""
         more = f" (and {len(failures) - 1} more)" if len(failures) > 1 else ""
