@@ -8,6 +8,7 @@ from __future__ import annotations
 import dataclasses
 import json
 
+import casadi as ca
 import numpy as np
 import pytest
 from scipy.optimize import minimize_scalar
@@ -20,6 +21,7 @@ from ocpar.formation import (
     Ellipse,
     FormationOptions,
     FormationProblem,
+    Sphere,
     solve_formation,
 )
 from ocpar.formation.plot import plot_formation
@@ -27,6 +29,7 @@ from ocpar.formation.solve import _verified
 from ocpar.formation.surface import SphereSurface
 from ocpar.formation.verify import NEAR_COLLISION_FRACTION, verify_formation
 from ocpar.models import PointMass
+from ocpar.ocp.columns_eval import evaluate_columns
 
 CENTRE, RADIUS = np.array([100.0, 100.0]), 10.0
 
@@ -207,3 +210,37 @@ def test_no_near_collision_where_paths_keep_apart(six):
     assert v.near_collision is None and v.closest.distance > NEAR_COLLISION_FRACTION * v.spacing
     assert result.to_dict()["near_collision"] is None
     assert "near-collision" not in result.message
+
+
+def test_a_path_through_an_obstacle_is_named():
+    """An obstacle beside the paths: the run clears it; a node of agent 2 moved onto the
+    ball's centre puts two of its segments through it, by the radius."""
+    problem = dataclasses.replace(make_masses(6), obstacles=(Sphere((50.0, -20.0), 5.0),))
+    result = solve_formation(problem)
+    assert result.status == "converged" and result.verification.passed
+    q = result.trajectories.copy()
+    q[2, 5, :2] = (50.0, -20.0)
+    v = verify_formation(problem, q, result.controls, result.phi)
+    failed = {name: c for name, c in v.checks.items() if not c.passed}
+    assert set(failed) == {"obstacles"} and failed["obstacles"].agent == 2
+    assert failed["obstacles"].value == pytest.approx(5.0, rel=1e-12)
+    assert v.failures[0].startswith("agent 2's path enters obstacles[0] (sphere) by 5")
+
+
+def test_columns_evaluated_with_numpy_equal_casadi():
+    """:func:`evaluate_columns` walks an SX function's instructions in numpy: the same
+    numbers as CasADi's own map, on a function using many operations; an MX function goes
+    through the map."""
+    x, y = ca.SX.sym("x", 3), ca.SX.sym("y")
+    out = ca.vertcat(ca.sin(x[0]) * y + 3.0, ca.sqrt(ca.fabs(x[1])), ca.atan2(x[2], y),
+                     ca.if_else(x[0] > 0, x[1] ** 3, ca.exp(-x[2])),
+                     ca.fmin(x[0], y) / ca.cosh(x[1]), ca.norm_2(x), ca.power(ca.fabs(y), 0.7))
+    f = ca.Function("f", [x, y], [out, ca.sumsqr(x) * y])
+    rng = np.random.default_rng(0)
+    xs, ys = rng.normal(size=(50, 3)), rng.normal(size=(50, 1))
+    expected = [np.asarray(o).T for o in f.map(50)(xs.T, ys.T)]
+    for got, want in zip(evaluate_columns(f, xs, ys), expected, strict=True):
+        np.testing.assert_allclose(got, want, rtol=1e-14, atol=1e-15)
+    mx = ca.MX.sym("x", 3)
+    g = ca.Function("g", [mx], [ca.sin(mx) * 2])
+    np.testing.assert_allclose(evaluate_columns(g, xs)[0], 2 * np.sin(xs), rtol=1e-15)
