@@ -97,6 +97,12 @@ class Surface(ABC):
         the distances |z(φ) − x| (n,), length unit."""
         x = np.asarray(points, float)
         phi = np.array(hint, float).reshape(-1, PARAMETERS)
+        finite = np.all(np.isfinite(x), axis=1) & np.all(np.isfinite(phi), axis=1)
+        if not np.all(finite):   # a failed path's point: NaN parameters and distance
+            located, distance = np.full_like(phi, np.nan), np.full(len(phi), np.nan)
+            if np.any(finite):
+                located[finite], distance[finite] = self.locate(x[finite], phi[finite])
+            return located, distance
         for _ in range(LOCATE_STEPS):
             gap, jac = self.points(phi) - x, self.jacobians(phi)
             gauss = np.einsum("nka,nkb->nab", jac, jac)

@@ -261,8 +261,10 @@ def _momentum_residuals(shape: DmocShape, q: np.ndarray, u: np.ndarray, v0: np.n
         r = terms[0] + terms[1] + terms[2]
         if grad.size:   # least-squares reactions λ: r − G (GᵀG)⁻¹ Gᵀ r, G = ∇cᵀ (nq, nc)
             g = grad.reshape(m, -1, nq).transpose(0, 2, 1)
-            gt = g.transpose(0, 2, 1)
-            r = r - (g @ np.linalg.solve(gt @ g, gt @ r[..., None]))[..., 0]
+            ok = np.all(np.isfinite(g), axis=(1, 2)) & np.all(np.isfinite(r), axis=1)
+            r = np.where(ok[:, None], r, np.nan)   # a failed path's NaN stays NaN
+            g, gt = g[ok], g[ok].transpose(0, 2, 1)
+            r[ok] -= (g @ np.linalg.solve(gt @ g, gt @ r[ok][..., None]))[..., 0]
         size = sum(np.sqrt(np.einsum("ij,ij->i", t, t)) for t in terms)
         residuals.append(np.sqrt(np.einsum("ij,ij->i", r, r)) / (1.0 + size))
     return np.maximum(*residuals)
