@@ -26,7 +26,10 @@ class FormationResult(RunResult):
     control groups where the model names them (e.g. ``translational_cost``,
     ``rotational_cost``); ``coupling_residual``
     max_k |c_k(φ)|, the scaled coupling c = (ℓ²/n³) dG/dφ as the outer problem imposes it
-    (:mod:`ocpar.formation.potential`); ``on_circle`` whether the curve is a circle (the
+    (:mod:`ocpar.formation.potential`), at the parameters located from the returned end
+    points (``verification``: :class:`~ocpar.formation.verify.Verification`, whose checks
+    decide whether the run may say ``converged``; ``result.json`` carries it and
+    ``near_collision``); ``on_circle`` whether the curve is a circle (the
     equidistance error is NaN otherwise); ``separation`` the closest approach of any two
     agents on the continuous paths (:meth:`FormationProblem.closest_approach
     <ocpar.formation.FormationProblem.closest_approach>`); with a required minimum
