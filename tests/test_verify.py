@@ -244,3 +244,20 @@ def test_columns_evaluated_with_numpy_equal_casadi():
     mx = ca.MX.sym("x", 3)
     g = ca.Function("g", [mx], [ca.sin(mx) * 2])
     np.testing.assert_allclose(evaluate_columns(g, xs)[0], 2 * np.sin(xs), rtol=1e-15)
+
+
+def test_pursuit_stopped_at_its_agent_budget_reports_no_final_mass():
+    """The same mechanism (:class:`ocpar.results.RunResult`) in the pursuit scheme: a train
+    stopped at ``max_agents`` (not converged) writes its final mass and fuel as null and says
+    "not reached"; its per-agent history stays."""
+    from ocpar.examples.pursuit_orbit_transfer import make
+    from ocpar.pursuit import PursuitSettings, solve_pursuit
+
+    result = solve_pursuit(make(case=1, samples=101),
+                           PursuitSettings(window=32, update=16, max_agents=12),
+                           reference=False)
+    assert result.status == "not_converged" and np.isfinite(result.headline)
+    data = result.to_dict()
+    assert data["final_mass_kg"] is None and data["fuel_kg"] is None
+    assert data["final_mass_kg_per_agent"] == result.headlines
+    assert "final mass — not reached (not_converged: " in result.summary()
