@@ -21,7 +21,7 @@ from ocpar.formation.potential import (
     respace,
     within_expansion,
 )
-from ocpar.formation.solve import DIRECT_COUPLING_MAX_AGENTS, coupling_residual
+from ocpar.formation.verify import DIRECT_COUPLING_MAX_AGENTS, coupling_residual
 
 
 def test_outer_gradient_from_sensitivities_matches_finite_differences():

@@ -7,7 +7,8 @@ Statuses (the same words in every scheme):
   the outer optimality test; pursuit: an agent improved on its leader by less than ε, or the
   full-horizon NLP solved; MACS: the evaluation budget spent with a non-empty archive);
 * ``not_converged``: it stopped at a bound (outer iterations, agents) without meeting it;
-* ``failed``: it has no usable answer (an inner solve failed for good, no feasible point);
+* ``failed``: it has no usable answer (an inner solve failed for good, no feasible point,
+  a formation answer that fails its verification, :mod:`ocpar.formation.verify`);
 * ``separation_not_met``: a formation run with a required minimum separation whose rounds
   ended (round limit) with two agents closer than required; its paths are returned, with
   by how much they miss;
@@ -15,6 +16,9 @@ Statuses (the same words in every scheme):
   with a path inside an obstacle; its paths are returned, with by how much;
 * ``cancelled``: stopped by its stop file at a superstep boundary (``ocpar cancel``); such a
   run writes no result.json, its checkpoint resumes it.
+
+Unless the status is ``converged``, a result reports none of its scheme's headline figures
+(:attr:`RunResult.headline_fields`: null in ``result.json``, "not reached" in the summary).
 """
 
 from __future__ import annotations
@@ -43,6 +47,9 @@ class RunResult:
     record per superstep. A scheme's result adds its own fields (:meth:`scheme_fields`)."""
 
     scheme: ClassVar[str]
+    #: The scheme's headline figures, keys of ``result.json``: written as null unless the
+    #: status is ``converged`` (a run reports no figure it did not reach).
+    headline_fields: ClassVar[tuple[str, ...]] = ()
 
     problem: str
     backend: str
@@ -72,18 +79,32 @@ class RunResult:
         """The command line's exit status for this result (:data:`EXIT_STATUS`)."""
         return EXIT_STATUS[self.status]
 
+    def headline_keys(self) -> tuple[str, ...]:
+        """The keys of :attr:`headline_fields` (a scheme may add keys only known per run)."""
+        return self.headline_fields
+
+    def not_reached(self) -> str:
+        """What a summary line says instead of a headline figure the run did not reach:
+        'not reached (<status>: <the message's first clause>)'."""
+        first = self.message.splitlines()[0].split("; ")[0] if self.message else ""
+        return f"not reached ({self.status}: {first})"
+
     def scheme_fields(self) -> dict:  # pragma: no cover - provided by each scheme
         """The scheme's own fields of ``result.json`` (JSON values)."""
         raise NotImplementedError
 
     def to_dict(self) -> dict:
-        """The ``result.json`` contract: the common fields, then the scheme's own."""
+        """The ``result.json`` contract: the common fields, then the scheme's own (its
+        :meth:`headline_keys` null unless the status is ``converged``)."""
+        fields = self.scheme_fields()
+        if self.status != "converged":   # (a scheme may give ``converged`` its own meaning)
+            fields |= {key: None for key in self.headline_keys() if key in fields}
         return {
             "scheme": self.scheme, "problem": self.problem, "backend": self.backend,
             "workers": self.workers, "status": self.status, "message": self.message,
             "supersteps": self.supersteps, "inner_solves": self.inner_solves,
             "failed_solves": self.failed_solves, "retries": self.retries,
-            "wall_time_s": self.wall_time_s, **self.scheme_fields(),
+            "wall_time_s": self.wall_time_s, **fields,
             "trace": [t.to_dict() for t in self.trace],
         }
 

@@ -9,7 +9,8 @@ coupling g(φ) = 0: the paper's potential dG/dφ = 0 (:class:`PotentialCoupling`
 default), equal arc-length spacing (:class:`EqualArcLength`) or the user's own
 (:class:`UserCoupling`). The outer problem chooses the final
 angles φ_i; each inner problem moves one agent by DMOC to its point, and all inner problems of
-one outer evaluation run in one superstep.
+one outer evaluation run in one superstep. Every returned formation is checked as returned
+(:func:`verify_formation`).
 
 >>> import numpy as np
 >>> from ocpar.formation import Circle, DmocShape, FormationProblem, solve_formation
@@ -32,6 +33,7 @@ from ocpar.formation.result import FormationResult
 from ocpar.formation.slots import Slots
 from ocpar.formation.solve import MODES, FormationOptions, solve_formation
 from ocpar.formation.surface import EllipsoidSurface, ParametricSurface, SphereSurface, Surface
+from ocpar.formation.verify import Verification, verify_formation
 from ocpar.ocp import DmocShape
 
 __all__ = [
@@ -57,6 +59,8 @@ __all__ = [
     "SphereSurface",
     "Surface",
     "UserCoupling",
+    "Verification",
     "solve_formation",
+    "verify_formation",
 ]
 

@@ -59,9 +59,8 @@ from ocpar.formation.ordering import assignment_cost, cheapest_assignment, cost_
 from ocpar.formation.potential import (
     coupling_scale,
     point_potential,
-    point_potential_gradient,
     potential,
-    tangential_potential_gradient,
+    surface_criticality,
 )
 from ocpar.formation.problem import FormationProblem
 from ocpar.formation.surface import EllipsoidSurface, Surface
@@ -275,12 +274,11 @@ def _verify(problem: FormationProblem, candidate: CriticalSet) -> bool:
 
 def _critical_points(surface: Surface, points: np.ndarray) -> tuple[bool, float]:
     """Whether ``points`` (n, 3) on ``surface`` are a critical configuration of G, checked in
-    space (max_i |tangential ∇G_i| ≤ :data:`CRITICAL_RTOL` max_i |∇G_i|), and that largest
-    tangential |∇G_i| (length⁻³)."""
-    tangential = float(np.max(np.linalg.norm(tangential_potential_gradient(surface, points),
-                                             axis=1)))
-    scale = float(np.max(np.linalg.norm(point_potential_gradient(points), axis=1)))
-    return tangential <= CRITICAL_RTOL * scale, tangential
+    space (max_i |tangential ∇G_i| ≤ :data:`CRITICAL_RTOL` max_i |∇G_i|:
+    :func:`~ocpar.formation.potential.surface_criticality`), and that largest tangential
+    |∇G_i| (length⁻³)."""
+    relative, tangential = surface_criticality(surface, points)
+    return relative <= CRITICAL_RTOL, tangential
 
 
 def _potential(problem: FormationProblem, phi: np.ndarray) -> float:

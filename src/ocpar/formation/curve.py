@@ -32,6 +32,9 @@ SAMPLES = 1024
 #: z(φ + 2π) must equal z(φ) to this fraction of the curve's size.
 CLOSURE_RTOL = 1e-9
 
+#: Newton steps of :meth:`Curve.locate` at most (from a hint on the curve: one or two).
+LOCATE_STEPS = 8
+
 #: Equal panels of [0, 2π) and Gauss–Legendre nodes per panel of the arc length s(φ)
 #: (:meth:`Curve.arc_lengths`): ~1e-15 relative on an ellipse of axis ratio 2.
 ARC_PANELS, ARC_NODES = 16, 16
@@ -123,6 +126,27 @@ class Curve(ABC):
             if np.max(np.abs(step), initial=0.0) <= 4e-16 * (1 + np.max(np.abs(phi))):
                 break
         return phi
+
+    def locate(self, points: np.ndarray, hint: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The inverse of :meth:`points`: for ``points`` (n, d) the angles φ (n,) rad of the
+        nearest points of the curve, by Newton's method on the closest-point condition
+        z′(φ)·(z(φ) − x) = 0 from ``hint`` (n,) (at most :data:`LOCATE_STEPS` steps;
+        Gauss–Newton where the squared distance is not convex), and the distances
+        |z(φ) − x| (n,), length unit."""
+        x = np.asarray(points, float)
+        phi = np.array(hint, float).ravel()
+        for _ in range(LOCATE_STEPS):
+            z, dz, d2z = (np.asarray(v).reshape(self.dim, -1).T
+                          for v in self._derivatives(phi[None, :]))
+            gap = z - x
+            speed_sq = np.sum(dz * dz, axis=1)
+            curvature = speed_sq + np.sum(d2z * gap, axis=1)
+            step = np.sum(dz * gap, axis=1) / np.where(curvature > 0, curvature, speed_sq)
+            phi = phi - step
+            if not np.max(np.abs(step), initial=0.0) > 1e-15 * (1 + np.max(np.abs(phi),
+                                                                          initial=0.0)):
+                break
+        return phi, np.linalg.norm(self.points(phi) - x, axis=1)
 
     @property
     def rotation_invariant(self) -> bool:
@@ -281,6 +305,19 @@ class Circle(PlaneCurve):
     def parameter_at(self, angle: float) -> float:
         """The polar angle is the parameter: ``angle`` itself."""
         return float(angle)
+
+    def locate(self, points: np.ndarray, hint: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """In closed form: φ (n,) the polar angle of ``points`` (n, d) in the circle's plane
+        frame (atan2), on the branch nearest ``hint`` (n,); and the distances (n,) of the
+        points from the circle, length unit."""
+        x = np.asarray(points, float) - self.center
+        xy = x @ self.plane.T
+        hint = np.asarray(hint, float).ravel()
+        phi = np.arctan2(xy[:, 1], xy[:, 0])
+        phi = hint + np.angle(np.exp(1j * (phi - hint)))
+        off_plane = x - xy @ self.plane
+        radial = np.hypot(xy[:, 0], xy[:, 1]) - self.radius
+        return phi, np.sqrt(radial**2 + np.sum(off_plane**2, axis=1))
 
     def _evaluate(self, phi: np.ndarray, which: int) -> np.ndarray:
         """z, z′ or z″ (``which`` 0, 1, 2) in closed form, (n, d): the k-th derivative of

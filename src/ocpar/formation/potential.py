@@ -136,6 +136,16 @@ def tangential_potential_gradient(surface: Surface, points: np.ndarray) -> np.nd
     return gradient - np.sum(gradient * normal, axis=1, keepdims=True) * normal
 
 
+def surface_criticality(surface: Surface, points: np.ndarray) -> tuple[float, float]:
+    """How far ``points`` (n, 3) on ``surface`` are from a critical configuration of G,
+    checked in space: (max_i |tangential ∇G_i| / max_i |∇G_i|, max_i |tangential ∇G_i|
+    (length⁻³)); zero where they are critical, whatever the chart (NaN for NaN points)."""
+    tangential = np.linalg.norm(tangential_potential_gradient(surface, points), axis=1)
+    scale = np.linalg.norm(point_potential_gradient(points), axis=1)
+    largest = float(np.max(tangential))
+    return largest / float(np.max(scale)), largest
+
+
 def relax(phi: np.ndarray, curve: Curve) -> np.ndarray:
     """The local minimum of G reached from the angles ``phi`` (rad): on a curve that is not a
     circle, the feasible set of c(φ) = 0 is a set of isolated points, and this picks the stable

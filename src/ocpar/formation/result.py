@@ -11,6 +11,7 @@ import numpy as np
 from ocpar.formation.obstacles import Clearance
 from ocpar.formation.potential import equidistance_error
 from ocpar.formation.separation import ClosestApproach
+from ocpar.formation.verify import Verification
 from ocpar.results import RunResult
 
 
@@ -25,7 +26,10 @@ class FormationResult(RunResult):
     control groups where the model names them (e.g. ``translational_cost``,
     ``rotational_cost``); ``coupling_residual``
     max_k |c_k(φ)|, the scaled coupling c = (ℓ²/n³) dG/dφ as the outer problem imposes it
-    (:mod:`ocpar.formation.potential`); ``on_circle`` whether the curve is a circle (the
+    (:mod:`ocpar.formation.potential`), at the parameters located from the returned end
+    points (``verification``: :class:`~ocpar.formation.verify.Verification`, whose checks
+    decide whether the run may say ``converged``; ``result.json`` carries it and
+    ``near_collision``); ``on_circle`` whether the curve is a circle (the
     equidistance error is NaN otherwise); ``separation`` the closest approach of any two
     agents on the continuous paths (:meth:`FormationProblem.closest_approach
     <ocpar.formation.FormationProblem.closest_approach>`); with a required minimum
@@ -44,6 +48,9 @@ class FormationResult(RunResult):
     """
 
     scheme: ClassVar[str] = "formation"
+    #: Null in ``result.json`` unless converged (with the cost parts, :meth:`headline_keys`).
+    headline_fields: ClassVar[tuple[str, ...]] = ("total_cost", "agent_costs",
+                                                  "unconstrained_cost")
 
     agents: int
     mode: str
@@ -64,6 +71,17 @@ class FormationResult(RunResult):
     obstacle_rounds: int = 0
     feasible_set: str = "continuous"
     critical_sets: list[dict] | None = None
+    verification: Verification | None = None
+
+    def headline_keys(self) -> tuple[str, ...]:
+        """:attr:`headline_fields` and the cost parts' keys."""
+        return self.headline_fields + tuple(self.cost_parts)
+
+    def title(self) -> str:
+        """The plot's headline: the total cost if converged, else the status and why."""
+        if self.converged:
+            return f"total cost {self.total_cost:.6e}"
+        return f"{self.status.replace('_', ' ')}: {self.message.split('; ')[0]}"
 
     @property
     def peak_thrust(self) -> np.ndarray:
@@ -100,8 +118,17 @@ class FormationResult(RunResult):
             **self._obstacle_fields(),
             "feasible_set": self.feasible_set,
             "critical_sets": self.critical_sets,
+            **self._verification_fields(),
             "trajectories": np.asarray(self.trajectories, float).tolist(),
         }
+
+    def _verification_fields(self) -> dict:
+        """``verification`` (:meth:`~ocpar.formation.verify.Verification.to_dict`) and
+        ``near_collision`` (None unless there is one); none without a verification."""
+        v = self.verification
+        if v is None:
+            return {}
+        return {"verification": v.to_dict(), "near_collision": v.near_collision}
 
     def _obstacle_fields(self) -> dict:
         """``min_obstacle_clearance`` and where it occurs, ``obstacle_rounds`` (none without
@@ -119,6 +146,8 @@ class FormationResult(RunResult):
         """The summary's words on a required separation ('' without one)."""
         if self.required_separation is None:
             return ""
+        if not self.converged:
+            return f"   required {self.required_separation:g}: {self.separation_rounds} round(s)"
         increase = self.total_cost / self.unconstrained_cost - 1
         return (f"   required {self.required_separation:g}: {self.separation_rounds} round(s), "
                 f"cost {increase * 100:+.3g}% over the unconstrained {self.unconstrained_cost:.6e}")
@@ -128,10 +157,14 @@ class FormationResult(RunResult):
         c = self.obstacle_clearance
         if c is None:
             return ""
-        increase = self.total_cost / self.unconstrained_cost - 1
+        cost = ""
+        if self.converged:
+            increase = self.total_cost / self.unconstrained_cost - 1
+            cost = (f", cost {increase * 100:+.3g}% over the obstacle-free "
+                    f"{self.unconstrained_cost:.6e}")
         return (f"min obstacle clearance {c.distance:.6g} (agent {c.agent}, obstacle "
-                f"{c.obstacle} at t = {c.time:.6g})   {self.obstacle_rounds} round(s), cost "
-                f"{increase * 100:+.3g}% over the obstacle-free {self.unconstrained_cost:.6e}\n")
+                f"{c.obstacle} at t = {c.time:.6g})   {self.obstacle_rounds} round(s)"
+                f"{cost}\n")
 
     def summary(self) -> str:
         """A few lines for people: the headline numbers of the run."""
@@ -139,9 +172,11 @@ class FormationResult(RunResult):
                         if self.on_circle else "")
         parts = "".join(f"{name.replace('_', ' ')} {value:.6e}   "
                         for name, value in self.cost_parts.items())
+        cost = (f"total cost {self.total_cost:.12e}   {parts}" if self.converged
+                else f"total cost — {self.not_reached()}\n")
         return (
             f"status {self.status} ({self.message})\n"
-            f"total cost {self.total_cost:.12e}   {parts}"
+            f"{cost}"
             f"{equidistance}coupling residual {self.coupling_residual:.1e}\n"
             f"min separation {self.separation.distance:.6g} (agents "
             f"{self.separation.agents[0]} and {self.separation.agents[1]} at t = "

@@ -61,7 +61,7 @@ class Slots:
         if not np.all(np.isfinite(points)):
             raise ValueError("curve: slots must be finite")
         if len(points) > 1:
-            gap, (i, j) = _closest_pair(points)
+            gap, (i, j) = closest_pair(points)
             if gap == 0:
                 raise ValueError(f"curve: slots {i} and {j} coincide")
         points.setflags(write=False)
@@ -81,8 +81,14 @@ class Slots:
         """The slots ``indices`` (n,) (integers, or floats holding them): shape (n, d)."""
         return self.points[np.asarray(indices).astype(np.intp)]
 
+    def locate(self, points: np.ndarray, hint: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The slots assigned, ``hint`` (n,), and the distances (n,) of ``points`` (n, d) from
+        them, length unit (a slot is not searched for: the assignment names it)."""
+        hint = np.asarray(hint, float).ravel()
+        return hint, np.linalg.norm(np.asarray(points, float) - self.at(hint), axis=1)
 
-def _closest_pair(points: np.ndarray) -> tuple[float, tuple[int, int]]:
+
+def closest_pair(points: np.ndarray) -> tuple[float, tuple[int, int]]:
     """The smallest distance between two of ``points`` (m, d), m ≥ 2, and the pair."""
     distance, index = cKDTree(points).query(points, k=2)
     i = int(np.argmin(distance[:, 1]))

@@ -32,13 +32,13 @@ from ocpar.formation.monolithic import solve_monolithic
 from ocpar.formation.obstacle_rounds import avoid_obstacles
 from ocpar.formation.obstacles import Clearance
 from ocpar.formation.ordering import ORDERINGS, optimal_ordering
-from ocpar.formation.potential import circle_coupling, within_expansion
 from ocpar.formation.problem import FormationProblem
 from ocpar.formation.result import FormationResult
 from ocpar.formation.separation import check_separation_feasible
 from ocpar.formation.slot_assignment import SlotChoice, assign_slots
 from ocpar.formation.slots import SLOT_CANDIDATES, Slots
 from ocpar.formation.surface import Surface
+from ocpar.formation.verify import Verification, near_collision_words, verify_formation
 from ocpar.ocp.batch import SOLVERS
 from ocpar.options import numbers, option
 
@@ -258,37 +258,6 @@ def check_applicable(problem: FormationProblem, options: FormationOptions) -> No
                                   options.min_separation)
 
 
-#: Up to this many agents the result's coupling residual is the direct O(n²) sum (~5 ms at
-#: 1000 agents); above it, on a circle, the O(n log n) expansion about equidistant angles
-#: (:func:`~ocpar.formation.potential.circle_coupling`: ~0.03 s at 100,000 agents) where
-#: it applies...
-DIRECT_COUPLING_MAX_AGENTS = 1_000
-#: ... and where it does not (angles far from equidistant ones), the direct sum up to this
-#: many agents on a circle and NaN above (3 s at 10,000 agents, ~5 min at 100,000); the
-#: equidistance error, zero exactly where c(φ) is, is reported too.
-COUPLING_CHECK_MAX_AGENTS = 20_000
-
-
-def coupling_residual(problem: FormationProblem, phi: np.ndarray) -> float:
-    """max_k |c_k(φ)|: the scaled coupling as the outer problem imposes it
-    (:meth:`~ocpar.formation.coupling.Coupling.residual`; the potential on a circle with
-    more than :data:`DIRECT_COUPLING_MAX_AGENTS` agents near equidistant angles
-    :func:`~ocpar.formation.potential.circle_coupling`); onto slots, how many agents share a
-    slot with another (0: the assignment's coupling holds); NaN if φ is not finite, or on a
-    circle with more than :data:`COUPLING_CHECK_MAX_AGENTS` agents far from equidistant."""
-    if isinstance(problem.curve, Slots):   # the coupling: no slot taken twice
-        return float(phi.size - np.unique(phi).size)
-    if not np.all(np.isfinite(phi)):
-        return float("nan")
-    if problem.on_circle and problem.coupling == PotentialCoupling() \
-            and phi.size > DIRECT_COUPLING_MAX_AGENTS:
-        if within_expansion(phi):
-            return float(np.max(np.abs(circle_coupling(phi))))
-        if phi.size > COUPLING_CHECK_MAX_AGENTS:
-            return float("nan")
-    return float(np.max(np.abs(problem.coupling.residual(phi, problem.curve))))
-
-
 def _obstacle_words(met: bool, closest: Clearance, rounds: int) -> tuple[str | None, str]:
     """After ``rounds`` keep-out rounds that reached the clearance ``closest``: the status
     ``obstacles_not_cleared`` unless ``met`` (None then), and the words on the obstacles."""
@@ -297,6 +266,33 @@ def _obstacle_words(met: bool, closest: Clearance, rounds: int) -> tuple[str | N
     return "obstacles_not_cleared", (
         f"obstacles not cleared after {rounds} round(s): agent {closest.agent} comes "
         f"{-closest.distance:.3g} inside obstacle {closest.obstacle} at t = {closest.time:.6g}")
+
+
+#: The verification's checks a status already reports (its message says by how much).
+KNOWN_FAILURES = {"separation_not_met": ("separation",), "obstacles_not_cleared": ("obstacles",)}
+
+
+def _verified(problem: FormationProblem, options: FormationOptions, trajectories: np.ndarray,
+              controls: np.ndarray, phi: np.ndarray, status: str, message: str
+              ) -> tuple[Verification, str, str]:
+    """The answer's verification (:func:`~ocpar.formation.verify.verify_formation`) and the
+    status and message it leaves: ``converged`` becomes ``failed`` if it fails (the message
+    then starts with the first failure), other statuses stay with the failures appended that
+    they do not already report (:data:`KNOWN_FAILURES`); a near-collision is said in the
+    message (the status stays)."""
+    verification = verify_formation(problem, trajectories, controls, phi,
+                                    options.min_separation)
+    if not verification.passed:
+        if status == "converged":
+            words = verification.failure_words()
+            return verification, "failed", (f"the returned formation fails verification: "
+                                            f"{words}; the solve said: {message}")
+        words = verification.failure_words(KNOWN_FAILURES.get(status, ()))
+        if words:
+            message += f"; the returned formation fails verification: {words}"
+    elif verification.near_collision is not None:
+        message += f"; {near_collision_words(verification.near_collision)}"
+    return verification, status, message
 
 
 def discrete_choice(problem: FormationProblem, choice: IsolatedChoice | SlotChoice | None,
@@ -417,10 +413,13 @@ def solve_formation(
                  if feasible else
                  f"{sol.status}; the returned point breaks the constraints by "
                  f"{sol.violation:.3g}: an infeasible iterate, no answer")
+        wall_time_s = time.perf_counter() - start  # before the checks below (reporting)
+        verification, status, message = _verified(
+            problem, options, sol.trajectories, sol.controls, sol.phi, status, words + note)
         return FormationResult(
             **common,
             status=status,
-            message=words + note,
+            message=message,
             total_cost=float(np.sum(sol.agent_costs)),
             phi=sol.phi,
             agent_costs=sol.agent_costs,
@@ -429,11 +428,12 @@ def solve_formation(
             outer_iterations=sol.iterations,
             inner_solves=ordering_solves,
             failed_solves=0,
-            wall_time_s=time.perf_counter() - start,  # before the checks below (reporting)
-            separation=problem.closest_approach(sol.trajectories),
+            wall_time_s=wall_time_s,
+            separation=verification.closest,
             trace=backend.traces[first_trace:],
-            coupling_residual=coupling_residual(problem, sol.phi),
+            coupling_residual=verification.coupling_residual,
             controls=sol.controls,
+            verification=verification,
             **discrete,
         )
 
@@ -454,7 +454,6 @@ def solve_formation(
     objective.close()  # the solutions are gathered: the workers need not keep them
     costs = np.asarray(sols.column("cost"), dtype=float)
     trajectories, controls = np.asarray(sols.column("q")), np.asarray(sols.column("u"))
-    separation = None  # the unconstrained paths' closest approach, once the solve is timed
     inner_solves = ordering_solves + objective.inner_solves
     failed_solves, retries = objective.failed_solves, objective.retries
     extra = {}
@@ -467,7 +466,6 @@ def solve_formation(
         if problem.obstacles:   # the same rounds kept the paths clear of them
             extra |= {"obstacle_rounds": rounds.rounds, "obstacle_clearance": rounds.clearance}
         costs, trajectories, controls = rounds.costs, rounds.q, rounds.u
-        separation = rounds.closest
         inner_solves += rounds.inner_solves
         failed_solves += rounds.failed_solves
         retries += rounds.retries
@@ -504,6 +502,8 @@ def solve_formation(
         else:
             message += f"; {words}"
     wall_time_s = time.perf_counter() - start
+    verification, status, message = _verified(problem, options, trajectories, controls, phi,
+                                               status, message)
     return FormationResult(
         **common,
         status=status,
@@ -514,15 +514,15 @@ def solve_formation(
         trajectories=trajectories,
         cost_parts=cost_parts(problem, controls),
         outer_iterations=iterations,
-        separation=(separation if separation is not None
-                    else problem.closest_approach(trajectories)),
+        separation=verification.closest,
         inner_solves=inner_solves,
         failed_solves=failed_solves,
         retries=retries,
         wall_time_s=wall_time_s,
         trace=backend.traces[first_trace:],
-        coupling_residual=coupling_residual(problem, phi),
+        coupling_residual=verification.coupling_residual,
         controls=controls,
+        verification=verification,
         **discrete,
         **extra,
     )

@@ -35,6 +35,8 @@ class MacsResult(RunResult):
     """
 
     scheme: ClassVar[str] = "macs"
+    #: The front's quality: null in ``result.json`` unless the run converged (a front).
+    headline_fields: ClassVar[tuple[str, ...]] = ("gd", "igd", "hv")
 
     seed: int
     front: np.ndarray

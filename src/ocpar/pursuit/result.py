@@ -75,6 +75,11 @@ class PursuitResult(RunResult):
         """Largest peak resident memory of any worker process during the run (MiB)."""
         return max((m for t in self.trace for m in t.worker_peak_rss_mb), default=0.0)
 
+    def headline_keys(self) -> tuple[str, ...]:
+        """The headline figure's and the cost's keys (null unless converged; the per-agent
+        figures stay: they are the train's history)."""
+        return (self.headline_key, self.cost_key)
+
     def scheme_fields(self) -> dict:
         """Pursuit's fields of ``result.json``, with trajectories and per-agent headlines. Keys
         named by the problem: ``headline`` gives the headline's key (e.g. ``final_mass_kg``),
@@ -119,10 +124,12 @@ class PursuitResult(RunResult):
         ref = ("" if self.reference_headline is None
                else f"   (full-horizon MS: {self.reference_headline:.6f}{unit})")
         checks = "".join(f", {name} {value:.4g}" for name, value in self.rk_checks.items())
+        figures = (f"{self.headline_name} {self.headline:.6f}{unit}, {self.cost_key} "
+                   f"{self.cost:.6f}" if self.converged
+                   else f"{self.headline_name} — {self.not_reached()}")
         return (
             f"status {self.status} ({self.message})\n"
-            f"{self.headline_name} {self.headline:.6f}{unit}, {self.cost_key} "
-            f"{self.cost:.6f}{ref}\n"
+            f"{figures}{ref}\n"
             f"agents {self.agents}   subproblem solves {self.subproblem_solves} "
             f"(failed {self.failed_solves}, retries {self.retries})   "
             f"supersteps {self.supersteps}   "

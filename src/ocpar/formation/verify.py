@@ -1,0 +1,408 @@
+"""Verification of a returned formation, independent of how it was found.
+
+:func:`verify_formation` reads only what a run returns, the node paths (n, N+1, nq), the
+interval controls (n, N, nu) and the parameters φ, and the problem's data. It checks:
+
+* ``target``: each returned end position lies on the target: its parameters are *located*
+  from the point itself (:meth:`~ocpar.formation.Curve.locate`: closed form on a circle,
+  Newton on other curves with φ only as the hint; a surface's inverse chart), within
+  :data:`TARGET_RTOL` of the target's size; onto slots, the distance to the assigned slot;
+* ``coupling``: the coupling residual max_k |c_k| at the *located* parameters
+  (:func:`coupling_residual`), ≤ :data:`COUPLING_TOL`; onto slots, no slot taken twice; the
+  potential on a surface in space, chart-free: max_i |tangential ∇G_i| / max_i |∇G_i| at the
+  end points (:func:`~ocpar.formation.potential.surface_criticality`);
+* ``start``, ``attitude``: the paths start at the start configurations and end in the final
+  attitude (the entries after the position);
+* ``momentum``: the start and end velocities, through DMOC's boundary equations (the
+  discrete Legendre transform, :mod:`ocpar.ocp.dmoc`): D2L(q_0, q̇_0) + D1L_d(q_0, q_1) +
+  f⁻_0 = 0 and −D2L(q_N, q̇_N) + D2L_d(q_{N−1}, q_N) + f⁺_{N−1} = 0 on the returned nodes and
+  controls with the problem's q̇_0, q̇_N (the holonomic reactions projected out), built
+  here from the model's Lagrangian and force;
+* ``control_bounds``, ``path_constraints``: every bound and path constraint of each agent's
+  shape at the points where DMOC imposes them: controls u_k; rows of ``q`` alone at the
+  inner nodes, rows of ``v``/``u`` at (q_{k+½}, (q_{k+1} − q_k)/h, u_k);
+* ``obstacles``: the clearance of the continuous paths from the problem's obstacles
+  (:func:`~ocpar.formation.obstacles.closest_obstacle`);
+* ``separation`` (with a required one): the closest approach of any two agents on the
+  continuous paths (:func:`~ocpar.formation.separation.closest_approach`, always measured).
+
+A check that does not apply (no constraint, no obstacle) is not made. Near-collisions are
+reported, not failed: a closest approach below :data:`NEAR_COLLISION_FRACTION` of the
+formation's spacing without a required separation (the answer is the optimum without one).
+Every check is vectorised over the agents (O(n), the closest approach O(n log n)).
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass
+from functools import lru_cache
+
+import casadi as ca
+import numpy as np
+
+from ocpar.formation.coupling import PotentialCoupling
+from ocpar.formation.keep_out import SEPARATION_RTOL
+from ocpar.formation.obstacles import CLEARANCE_TOL, Clearance, closest_obstacle
+from ocpar.formation.potential import circle_coupling, surface_criticality, within_expansion
+from ocpar.formation.problem import FormationProblem
+from ocpar.formation.separation import ClosestApproach
+from ocpar.formation.slots import Slots, closest_pair
+from ocpar.formation.surface import Surface
+from ocpar.ocp import DmocShape
+from ocpar.ocp.columns_eval import evaluate_columns
+
+#: An end position counts as on the target within this fraction of the target's size (a
+#: curve's or surface's length scale, the slots' extent): the inner problems take q_N as data,
+#: so a returned end point equals z(φ) to rounding (~1e-16); 1e-9 leaves room for the
+#: located parameters' rounding on any curve.
+TARGET_RTOL = 1e-9
+#: The coupling holds where max_k |c_k| ≤ this at the located parameters: c is scaled
+#: (ℓ²/n³ dG/dφ, O(1)), and this is the tolerance of the coupling's own projection
+#: (:data:`~ocpar.formation.coupling.PROJECTION_TOL`); converged runs reach ~1e-12 or less.
+COUPLING_TOL = 1e-8
+#: Start configuration and final attitude are every inner problem's data: equal to rounding,
+#: relative to 1 + |q| (1e-9 leaves room for a model's unit-quaternion normalisation).
+BOUNDARY_RTOL = 1e-9
+#: DMOC's boundary momentum equations hold to this, relative to 1 + the size of their terms:
+#: the inner solvers stop at a KKT residual of ~1e-10 (``kkt_tol``, IPOPT's tol 1e-12 scaled).
+MOMENTUM_RTOL = 1e-7
+#: Bounds and path rows hold to this, relative to max(1, |bound|): the solvers' accuracy
+#: (IPOPT's tol 1e-12 scaled, ``kkt_tol`` 1e-10) with room for the constraint's scaling.
+CONSTRAINT_RTOL = 1e-7
+#: A closest approach below this fraction of the formation's spacing (the smallest distance
+#: between two target points) is a near-collision: 1 %, i.e. two agents pass each other a
+#: hundred times closer than the formation will keep them (the 10,000-mass circle's
+#: 1.93e-6 against a spacing of 6.3e-3, 0.03 %, is one; crossing paths that miss each other
+#: by a tenth of the spacing are not).
+NEAR_COLLISION_FRACTION = 0.01
+
+#: Up to this many agents the coupling residual is the direct O(n²) sum (~5 ms at 1000
+#: agents); above it, on a circle, the O(n log n) expansion about equidistant angles
+#: (:func:`~ocpar.formation.potential.circle_coupling`: ~0.03 s at 100,000 agents) where
+#: it applies...
+DIRECT_COUPLING_MAX_AGENTS = 1_000
+#: ... and where it does not (angles far from equidistant ones), the direct sum up to this
+#: many agents on a circle and NaN above (3 s at 10,000 agents, ~5 min at 100,000); the
+#: equidistance error, zero exactly where c(φ) is, is reported too.
+COUPLING_CHECK_MAX_AGENTS = 20_000
+
+#: What each check says when it fails ({agent}, {value}, {tolerance}, {where}).
+FAILURE_WORDS = {
+    "target": "agent {agent}'s end point lies {value:.3g} (relative) off the target",
+    "coupling": "the coupling residual at the located end points is {value:.3g}",
+    "slots_shared": "{value:.0f} agent(s) share a slot with another",
+    "start": "agent {agent}'s path does not start at its start configuration "
+             "({value:.3g} relative)",
+    "attitude": "agent {agent}'s path does not end in the final attitude ({value:.3g} "
+                "relative)",
+    "momentum": "agent {agent}'s path misses its boundary velocities: DMOC's boundary "
+                "momentum residual {value:.3g} (relative)",
+    "control_bounds": "agent {agent}'s controls break control_bounds by {value:.3g} "
+                      "(relative)",
+    "path_constraints": "agent {agent}'s path breaks {where} by {value:.3g} (relative)",
+    "obstacles": "agent {agent}'s path enters {where} by {value:.3g}",
+    "separation": "agents {where} come {value:.3g} closer than the required separation",
+}
+
+
+@dataclass(frozen=True)
+class Check:
+    """One check's worst ``value`` over the agents (a violation: ≥ 0, relative where the
+    tolerance is), the ``agent`` where it occurs (−1: the formation as a whole), the
+    ``tolerance`` it must not exceed and ``where`` (which constraint or obstacle, '' if
+    none). NaN fails."""
+
+    value: float
+    agent: int
+    tolerance: float
+    where: str = ""
+
+    @property
+    def passed(self) -> bool:
+        return bool(self.value <= self.tolerance)
+
+    def to_dict(self) -> dict:
+        return {"worst": self.value if math.isfinite(self.value) else None,
+                "agent": self.agent if self.agent >= 0 else None,
+                "tolerance": self.tolerance, "passed": self.passed,
+                **({"where": self.where} if self.where else {})}
+
+
+@dataclass(frozen=True)
+class Verification:
+    """What :func:`verify_formation` found: ``checks`` by name (module docstring);
+    ``parameters`` the located parameters (the shape of φ); ``coupling_residual`` max_k
+    |c_k| at them (onto slots: agents sharing a slot); ``closest`` the closest approach of
+    any two agents; ``spacing`` the smallest distance between two target points (length
+    unit; inf with one agent); ``obstacle_clearance`` (None without obstacles);
+    ``near_collision`` (None, or where and how close, :data:`NEAR_COLLISION_FRACTION`);
+    ``time_s`` how long the checks took (s)."""
+
+    checks: dict[str, Check]
+    parameters: np.ndarray
+    coupling_residual: float
+    closest: ClosestApproach
+    spacing: float
+    obstacle_clearance: Clearance | None
+    near_collision: dict | None
+    time_s: float
+
+    @property
+    def passed(self) -> bool:
+        return all(check.passed for check in self.checks.values())
+
+    @property
+    def failures(self) -> list[str]:
+        """One line per failed check."""
+        return self.failures_except(())
+
+    def failures_except(self, known: tuple[str, ...]) -> list[str]:
+        """One line per failed check but those named in ``known``."""
+        return [FAILURE_WORDS[name].format(agent=c.agent, value=c.value, where=c.where)
+                + f" (tolerance {c.tolerance:.1e})"
+                for name, c in self.checks.items() if not c.passed and name not in known]
+
+    def failure_words(self, known: tuple[str, ...] = ()) -> str:
+        """'<first failure> (and k more)' ('' if none failed), leaving out the checks named in
+        ``known``."""
+        failures = self.failures_except(known)
+        if not failures:
+            return ""
+        more = f" (and {len(failures) - 1} more)" if len(failures) > 1 else ""
+        return failures[0] + more
+
+    def to_dict(self) -> dict:
+        """The ``verification`` block of ``result.json`` (without :attr:`time_s`: the file's
+        timings are its ``wall_time_s`` and ``trace``, and its other numbers do not depend on
+        where or how fast it ran)."""
+        return {"passed": self.passed, "failures": self.failures,
+                "checks": {name: c.to_dict() for name, c in self.checks.items()},
+                "spacing": self.spacing if math.isfinite(self.spacing) else None}
+
+
+def coupling_residual(problem: FormationProblem, phi: np.ndarray) -> float:
+    """max_k |c_k(φ)|: the scaled coupling as the outer problem imposes it
+    (:meth:`~ocpar.formation.coupling.Coupling.residual`; the potential on a circle with
+    more than :data:`DIRECT_COUPLING_MAX_AGENTS` agents near equidistant angles
+    :func:`~ocpar.formation.potential.circle_coupling`); onto slots, how many agents share a
+    slot with another (0: the assignment's coupling holds); NaN if φ is not finite, or on a
+    circle with more than :data:`COUPLING_CHECK_MAX_AGENTS` agents far from equidistant."""
+    if isinstance(problem.curve, Slots):   # the coupling: no slot taken twice
+        return float(phi.size - np.unique(phi).size)
+    if not np.all(np.isfinite(phi)):
+        return float("nan")
+    if problem.on_circle and problem.coupling == PotentialCoupling() \
+            and phi.size > DIRECT_COUPLING_MAX_AGENTS:
+        if within_expansion(phi):
+            return float(np.max(np.abs(circle_coupling(phi))))
+        if phi.size > COUPLING_CHECK_MAX_AGENTS:
+            return float("nan")
+    return float(np.max(np.abs(problem.coupling.residual(phi, problem.curve))))
+
+
+def _worst(values: np.ndarray, tolerance: float, agents: np.ndarray | None = None,
+           where: str = "") -> Check:
+    """The largest of per-agent ``values`` (n,) (NaN first), as a :class:`Check`; ``agents``
+    maps their positions to agent indices (default: the identity)."""
+    values = np.asarray(values, float)
+    if not values.size:
+        return Check(0.0, -1, tolerance, where)
+    k = int(np.argmax(np.where(np.isnan(values), np.inf, values)))
+    agent = int(k if agents is None else agents[k])
+    return Check(float(values[k]), agent, tolerance, where)
+
+
+def _relative(gap: np.ndarray, reference: np.ndarray) -> np.ndarray:
+    """max over the last axis of |gap| / (1 + |reference|): (n,) from (n, m)."""
+    if not gap.shape[-1]:
+        return np.zeros(gap.shape[0])
+    return np.max(np.abs(gap) / (1.0 + np.abs(reference)), axis=-1)
+
+
+@lru_cache(maxsize=64)
+def _boundary_terms(shape: DmocShape) -> ca.Function:
+    """(q_0, q_1, q_{N−1}, q_N, u_0, u_{N−1}, q̇_0, q̇_N) ↦ the terms of DMOC's first
+    equation, D2L(q_0, q̇_0), D1L_d(q_0, q_1), f⁻_0, and of its last, −D2L(q_N, q̇_N),
+    D2L_d(q_{N−1}, q_N), f⁺_{N−1} (nq each, without the reactions), and the holonomic
+    constraints' gradients ∇c(q_0)ᵀ, ∇c(q_N)ᵀ (nq × nc each, flattened), from the model's
+    Lagrangian and force (:mod:`ocpar.ocp.dmoc`)."""
+    model, n = shape.model, shape.intervals
+    nq, nu, h = model.nq, model.nu, shape.duration / shape.intervals
+    last = n - 1 if getattr(model, "time_dependent", False) else 0
+    q0, q1, qm, qn, v0, vn = (ca.SX.sym(name, nq) for name in ("q0", "q1", "qm", "qn",
+                                                                "v0", "vn"))
+    u0, um = ca.SX.sym("u0", nu), ca.SX.sym("um", nu)
+
+    def discrete_lagrangian(a: ca.SX, b: ca.SX, k: int) -> ca.SX:
+        return h * model.lagrangian((a + b) / 2, (b - a) / h, k)
+
+    terms = [ca.gradient(model.lagrangian(q0, v0, 0), v0),
+             ca.gradient(discrete_lagrangian(q0, q1, 0), q0),
+             0.5 * h * model.generalized_force((q0 + q1) / 2, u0),
+             -ca.gradient(model.lagrangian(qn, vn, last), vn),
+             ca.gradient(discrete_lagrangian(qm, qn, last), qn),
+             0.5 * h * model.generalized_force((qm + qn) / 2, um)]
+    nc = getattr(model, "n_constraints", 0)
+    grads = ([ca.vec(ca.jacobian(model.constraints(q), q).T) for q in (q0, qn)] if nc
+             else [ca.SX(0, 1), ca.SX(0, 1)])
+    return ca.Function("boundary", [q0, q1, qm, qn, u0, um, v0, vn], [*terms, *grads])
+
+
+def _momentum_residuals(shape: DmocShape, q: np.ndarray, u: np.ndarray, v0: np.ndarray,
+                        vn: np.ndarray) -> np.ndarray:
+    """Per agent (m,) the larger relative residual of DMOC's two boundary equations on node
+    paths ``q`` (m, N+1, nq) and controls ``u`` (m, N, nu) with boundary velocities ``v0``,
+    ``vn`` (m, nq): |r| / (1 + Σ |terms|), r the sum of the terms with its part in the range
+    of ∇c(q)ᵀ (the holonomic reactions, free multipliers) removed."""
+    m, nq = len(q), shape.model.nq
+    out = evaluate_columns(_boundary_terms(shape), q[:, 0], q[:, 1], q[:, -2], q[:, -1],
+                           u[:, 0], u[:, -1], v0, vn)
+    residuals = []
+    for terms, grad in ((out[0:3], out[6]), (out[3:6], out[7])):
+        r = terms[0] + terms[1] + terms[2]
+        if grad.size:   # least-squares reactions λ: r − G (GᵀG)⁻¹ Gᵀ r, G = ∇cᵀ (nq, nc)
+            g = grad.reshape(m, -1, nq).transpose(0, 2, 1)
+            ok = np.all(np.isfinite(g), axis=(1, 2)) & np.all(np.isfinite(r), axis=1)
+            r = np.where(ok[:, None], r, np.nan)   # a failed path's NaN stays NaN
+            g, gt = g[ok], g[ok].transpose(0, 2, 1)
+            r[ok] -= (g @ np.linalg.solve(gt @ g, gt @ r[ok][..., None]))[..., 0]
+        size = sum(np.sqrt(np.einsum("ij,ij->i", t, t)) for t in terms)
+        residuals.append(np.sqrt(np.einsum("ij,ij->i", r, r)) / (1.0 + size))
+    return np.maximum(*residuals)
+
+
+def _constraint_checks(problem: FormationProblem, q: np.ndarray, u: np.ndarray
+                       ) -> dict[str, Check]:
+    """``control_bounds`` and ``path_constraints`` checks of each agent's shape, where any
+    agent has them (module docstring)."""
+    bounds, path = [], []
+    for shape, agents in problem.agents_by_shape().items():
+        qs, us = q[agents], u[agents]
+        m, h = len(agents), shape.duration / shape.intervals
+        if shape.control_bounds is not None:
+            lo, hi = np.array(shape.control_bounds).T
+            gap = np.maximum(np.maximum(lo - us, us - hi), 0.0)
+            scale = np.maximum(1.0, np.where(np.isfinite([lo, hi]), np.abs([lo, hi]), 0.0)
+                               .max(axis=0))
+            bounds.append(_worst(np.max(gap / scale, axis=(1, 2)), CONSTRAINT_RTOL, agents))
+        for constraint in shape.path_constraints:
+            if constraint.depends_on("v", "u"):
+                values = {"q": (qs[:, :-1] + qs[:, 1:]) / 2, "v": (qs[:, 1:] - qs[:, :-1]) / h,
+                          "u": us}
+            else:
+                values = {"q": qs[:, 1:-1]}
+            values = {k: v.reshape(-1, v.shape[-1]) for k, v in values.items()}
+            finite = [abs(b) for b in constraint.lower + constraint.upper if math.isfinite(b)]
+            gap = constraint.violation(values).reshape(m, -1) / max([1.0, *finite])
+            path.append(_worst(np.max(gap, axis=1) if gap.size else np.zeros(m),
+                               CONSTRAINT_RTOL, agents, f"path constraint {constraint.name!r}"))
+    # per name the worst over shapes and constraints: a failed one first, NaN first
+    return {name: max(found, key=lambda c: (not c.passed, math.inf if math.isnan(c.value)
+                                            else c.value))
+            for name, found in (("control_bounds", bounds), ("path_constraints", path))
+            if found}
+
+
+def _target_size(problem: FormationProblem) -> float:
+    """The target's size (length unit): a curve's or surface's length scale, the slots'
+    largest distance from their centroid (at least 1e-300)."""
+    if isinstance(problem.curve, Slots):
+        points = problem.curve.points
+        return max(float(np.max(np.abs(points - points.mean(axis=0)))), 1e-300)
+    return float(problem.curve.length_scale)
+
+
+def _locate(problem: FormationProblem, ends: np.ndarray, phi: np.ndarray
+            ) -> tuple[np.ndarray, np.ndarray]:
+    """The parameters of the end positions ``ends`` (n, d) on the target (the shape of φ)
+    and their distances from it (n,), length unit: a curve's or slots' own ``locate`` (φ the
+    hint); a surface's inverse chart (:meth:`~ocpar.formation.surface.Surface.locate`, no
+    hint), NaN for a failed path's NaN point."""
+    if not isinstance(problem.curve, Surface):
+        located, distance = problem.curve.locate(ends, np.reshape(phi, problem.parameter_shape))
+        return np.reshape(located, problem.parameter_shape), distance
+    located = np.full(problem.parameter_shape, np.nan)
+    finite = np.all(np.isfinite(ends), axis=1)
+    if np.any(finite):
+        located[finite] = problem.curve.locate(ends[finite])
+    return located, np.linalg.norm(problem.curve.points(located) - ends, axis=1)
+
+
+def verify_formation(problem: FormationProblem, trajectories: np.ndarray,
+                     controls: np.ndarray, phi: np.ndarray,
+                     min_separation: float | None = None) -> Verification:
+    """Check a returned formation from its node paths ``trajectories`` (n, N+1, nq), interval
+    controls ``controls`` (n, N, nu) and parameters ``phi`` (the shape of φ; used only as the
+    hint where the end points are located, and onto slots as the assignment) against
+    ``problem`` (module docstring); ``min_separation`` D (length unit) if the run required
+    one (then the closest approach must be ≥ D (1 − :data:`SEPARATION_RTOL`))."""
+    start = time.perf_counter()
+    q, u = np.asarray(trajectories, float), np.asarray(controls, float)
+    n, d = problem.agents, problem.curve.dim
+    checks: dict[str, Check] = {}
+
+    ends = q[:, -1, :d]
+    located, distance = _locate(problem, ends, phi)
+    checks["target"] = _worst(distance / _target_size(problem), TARGET_RTOL)
+    if isinstance(problem.curve, Surface) and problem.coupling == PotentialCoupling():
+        residual = surface_criticality(problem.curve, ends)[0]   # in space, chart-free
+    else:
+        residual = coupling_residual(problem, located)
+    if isinstance(problem.curve, Slots):
+        checks["slots_shared"] = Check(residual, -1, 0.0)
+    else:
+        checks["coupling"] = Check(residual, -1, COUPLING_TOL)
+
+    checks["start"] = _worst(_relative(q[:, 0] - problem.starts, problem.starts),
+                             BOUNDARY_RTOL)
+    if len(problem.final_attitude):
+        checks["attitude"] = _worst(_relative(q[:, -1, d:] - problem.final_attitude,
+                                              problem.final_attitude[None]), BOUNDARY_RTOL)
+    momentum = np.empty(n)
+    for shape, agents in problem.agents_by_shape().items():
+        momentum[agents] = _momentum_residuals(shape, q[agents], u[agents],
+                                               problem.start_velocities[agents],
+                                               problem.final_velocities(agents))
+    checks["momentum"] = _worst(momentum, MOMENTUM_RTOL)
+    checks |= _constraint_checks(problem, q, u)
+
+    clearance = None
+    if problem.obstacles:
+        clearance = closest_obstacle(problem.positions(q), problem.obstacles,
+                                     problem.common_shape.duration)
+        where = (f"obstacles[{clearance.obstacle}] "
+                 f"({problem.obstacles[clearance.obstacle].name})"
+                 if clearance.obstacle >= 0 else "an obstacle")
+        checks["obstacles"] = Check(-clearance.distance, clearance.agent,
+                                    CLEARANCE_TOL * min(o.scale for o in problem.obstacles),
+                                    where)
+    closest = problem.closest_approach(q)
+    if min_separation is not None:
+        checks["separation"] = Check(min_separation - closest.distance, closest.agents[0],
+                                     min_separation * SEPARATION_RTOL,
+                                     f"{closest.agents[0]} and {closest.agents[1]}")
+    targets = problem.positions(q[:, -1:])[:, 0]
+    spacing = (closest_pair(targets)[0] if n > 1 and np.all(np.isfinite(targets))
+               else math.inf if n < 2 else math.nan)
+    near = None
+    if min_separation is None and closest.distance < NEAR_COLLISION_FRACTION * spacing:
+        near = {"distance": closest.distance, "agents": list(closest.agents),
+                "time": closest.time, "spacing": spacing,
+                "fraction": closest.distance / spacing,
+                "rule": f"closest approach below {100 * NEAR_COLLISION_FRACTION:g} % of the "
+                        f"formation's spacing (the smallest distance between two target "
+                        f"points)"}
+    return Verification(checks, located, residual, closest, spacing, clearance, near,
+                        time.perf_counter() - start)
+
+
+def near_collision_words(near: dict) -> str:
+    """The status line's words on a near-collision (:class:`Verification`)."""
+    i, j = near["agents"]
+    return (f"near-collision: agents {i} and {j} come within {near['distance']:.3g} at "
+            f"t = {near['time']:.3g}, {100 * near['fraction']:.2g} % of the formation's spacing "
+            f"{near['spacing']:.3g} (below {100 * NEAR_COLLISION_FRACTION:g} %); this is the "
+            f"optimum without a separation requirement: --min-separation D keeps every "
+            f"pair D apart")
