@@ -198,24 +198,19 @@ class FormationProblem:
 
     def _attach_obstacles(self) -> None:
         """Every agent's shape gets the problem's obstacles on its position entries (its
-        inner problem imposes them, :mod:`ocpar.ocp.obstacles`), solved by IPOPT (measured
-        on the mixed fleet's 12 agents with its ball: the whole solve 1.8 s, against 46 s
-        by ``sqpmethod``, whose mapped solves of the non-convex planes mostly fail their KKT
-        check slowly); a shape's own obstacles must be the problem's (ValueError naming the
-        field otherwise)."""
-        indices = self.position_indices
+        inner problem imposes them, :mod:`ocpar.ocp.obstacles`; a shape's own are replaced,
+        so that ``dataclasses.replace(problem, obstacles=...)`` changes them all), solved by
+        IPOPT (measured on the mixed fleet's 12 agents with its ball: the whole solve 1.8 s,
+        against 46 s by ``sqpmethod``, whose mapped solves of the non-convex planes mostly
+        fail their KKT check slowly)."""
+        indices = self.position_indices if self.obstacles else ()
         shapes = (self.shape,) if isinstance(self.shape, DmocShape) else self.shape
-        for i, shape in enumerate(shapes):
-            if shape.obstacles and (shape.obstacles, shape.obstacle_positions) != (
-                    self.obstacles, indices):
-                label = "shape" if isinstance(self.shape, DmocShape) else f"shape[{i}]"
-                raise ValueError(f"{label}.obstacles: a formation's obstacles are the "
-                                 "problem's obstacles; leave its shapes' empty")
-        if all(shape.obstacles for shape in shapes) or not self.obstacles:
+        if all((shape.obstacles, shape.obstacle_positions) == (self.obstacles, indices)
+               for shape in shapes):
             return   # attached already, or none
-        attached = {shape: shape if shape.obstacles else dataclasses.replace(
-            shape, obstacles=self.obstacles, obstacle_positions=indices, solver="ipopt")
-            for shape in set(shapes)}
+        attached = {shape: dataclasses.replace(
+            shape, obstacles=self.obstacles, obstacle_positions=indices,
+            solver="ipopt" if self.obstacles else shape.solver) for shape in set(shapes)}
         object.__setattr__(self, "shape", attached[self.shape] if isinstance(
             self.shape, DmocShape) else tuple(attached[shape] for shape in self.shape))
 

@@ -230,7 +230,7 @@ def coupling_residual(problem: FormationProblem, phi: np.ndarray) -> float:
     return float(np.max(np.abs(problem.coupling.residual(phi, problem.curve))))
 
 
-def _obstacle_check(problem: FormationProblem, trajectories: np.ndarray, status: str,
+def obstacle_check(problem: FormationProblem, trajectories: np.ndarray, status: str,
                     message: str) -> tuple[str, str, dict]:
     """The returned paths ``trajectories`` (n, N+1, nq) checked against ``problem``'s
     obstacles (:func:`~ocpar.formation.obstacles.closest_obstacle`, independently of the
@@ -346,7 +346,7 @@ def solve_formation(
 
     if options.mode == "monolithic":
         sol = solve_monolithic(problem, phi0, options.monolithic_tol, options.max_outer_iterations)
-        status, message, obstacle_fields = _obstacle_check(
+        status, message, obstacle_fields = obstacle_check(
             problem, sol.trajectories, "converged" if sol.success else "not_converged",
             sol.status + note)
         return FormationResult(
@@ -414,7 +414,7 @@ def solve_formation(
                        f"come within {rounds.closest.distance:.6g} (short by "
                        f"{distance - rounds.closest.distance:.3g}; {rounds.dropped} "
                        f"half-space(s) dropped for want of slots over the rounds)")
-    status, message, obstacle_fields = _obstacle_check(problem, trajectories, status, message)
+    status, message, obstacle_fields = obstacle_check(problem, trajectories, status, message)
     extra |= obstacle_fields
     wall_time_s = time.perf_counter() - start
     return FormationResult(
