@@ -198,8 +198,8 @@ def test_obstacles_no_formation_can_avoid_are_refused():
     """A ball over the whole target circle: no rotation of the formation clears it, one
     line before any solve."""
     problem = dataclasses.replace(make(), obstacles=(Sphere((0.0, 6.0), 4.5),))
-    with pytest.raises(ValueError, match=r"^obstacles: a target \(at the initial angles; no "
-                                         r"shift of the formation avoids them\): agent \d+ "
+    with pytest.raises(ValueError, match=r"^final positions \(at the initial angles; no shift "
+                                         r"of the formation avoids the obstacles\): agent \d+ "
                                          r"lies inside obstacles\[0\]"):
         solve_formation(problem)
 

@@ -201,8 +201,8 @@ def test_a_target_inside_an_obstacle_starts_the_formation_elsewhere(hierarchical
     assert result.total_cost == pytest.approx(hierarchical.total_cost, rel=1e-12)
     assert segment_distances(result.trajectories, target).min() >= 0.3
     everywhere = dataclasses.replace(problem, obstacles=(Sphere((0.0, 6.0), 2.5, "cloud"),))
-    with pytest.raises(ValueError, match=r"^obstacles: a target .*no shift of the formation "
-                                         r"avoids them\): agent 0 lies inside obstacles\[0\]"):
+    with pytest.raises(ValueError, match=r"^final positions .*no shift of the formation avoids "
+                                         r"the obstacles\): agent 0 lies inside obstacles\[0\]"):
         solve_formation(everywhere)
 
 

@@ -276,11 +276,12 @@ class FormationProblem:
                 if len(clear):
                     return members[clear[0]]
         nq = self.common_shape.model.nq
-        where = "" if family is None else "; no shift of the formation avoids them"
-        self.check_clear(f"obstacles: a target (at the initial angles{where})",
+        where = "" if family is None else "; no shift of the formation avoids the obstacles"
+        self.check_clear(f"final positions (at the initial angles{where})",
                          self.boundary_params_rows(np.arange(self.agents), phi0)[:, 2 * nq:3 * nq])
         if family is not None:
-            raise ValueError("obstacles: every shift of the formation puts a target inside one")
+            raise ValueError("final positions: every shift of the formation puts one inside an "
+                             "obstacle")
         return phi0
 
     def _targets_clear(self, phis: np.ndarray, margin: float) -> np.ndarray:

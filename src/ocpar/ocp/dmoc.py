@@ -56,8 +56,8 @@ The continuous path DMOC represents is linear between nodes with constant veloci
 control on each interval, so a constraint of ``v`` and ``u`` alone (a thrust limit |u| ≤
 u_max, a speed limit) holds at all times, and one convex in ``q`` (a half-space, a ball or
 an ellipsoid to stay *inside*, a corridor) holds on the whole path when it holds at the
-nodes; a non-convex one (staying *outside* an obstacle) can be broken between nodes, which
-only a check of the segments can rule out (the formation's obstacle rounds). They are
+nodes; a non-convex one (staying *outside* an obstacle) can be broken between nodes: that is
+what ``obstacles`` (below) impose exactly, a separating plane per interval. They are
 inequalities: the ``newton`` solver takes equalities only, so a shape with path constraints
 needs ``sqpmethod`` or ``ipopt``; ``end_hessian`` comes from the active set where a row is
 active (as at a control bound).
@@ -659,7 +659,7 @@ class DmocTranscription:
             return None
         params = np.asarray(params, float)
         tasks = len(params)
-        owner = np.arange(tasks)
+        owner = None   # the task of each candidate, where a task's sides make several
         if isinstance(multipliers, np.ndarray) and multipliers.shape == (len(params), self.ng):
             lam0 = multipliers.astype(float)
         else:
@@ -671,25 +671,26 @@ class DmocTranscription:
             x0 = guesses.astype(float)
         else:
             x0 = self.default_guesses(params)
-            defaults = [guess is None for guess in guesses]
             for k, guess in enumerate(guesses):
                 if guess is not None:
                     x0[k] = self.full_guess(guess, params[k])
-            if self.n_planes and any(defaults):   # each side of the obstacles entered
-                sides = [self.side_guesses(x, p) if default else x[None]
-                         for x, p, default in zip(x0, params, defaults, strict=True)]
-                owner = np.repeat(owner, [len(rows) for rows in sides])
+            if self.n_planes:   # each side of the obstacles a default guess enters
+                sides = [self.side_guesses(x, p) if guess is None else x[None]
+                         for x, p, guess in zip(x0, params, guesses, strict=True)]
+                owner = np.repeat(np.arange(tasks), [len(rows) for rows in sides])
                 x0 = np.concatenate(sides)
         try:
             if isinstance(self.batch_solver, KktNewton):
                 rounds = min(NEWTON_ROUNDS, self.shape.max_iter)
                 batch = self.batch_solver.solve(x0, params, lam0, self.lbx, self.ubx, rounds)
             else:
-                batch = self.batch_solver.solve(x0, params[owner], lam0[owner], self.lbg,
-                                                self.ubg, self.lbx, self.ubx)
+                batch = self.batch_solver.solve(
+                    x0, params if owner is None else params[owner],
+                    lam0 if owner is None else lam0[owner], self.lbg, self.ubg, self.lbx,
+                    self.ubx)
         except RuntimeError:
             return None
-        if len(owner) > tasks:   # each task's cheapest side
+        if owner is not None and len(owner) > tasks:   # each task's cheapest side
             starts = np.searchsorted(owner, np.arange(tasks + 1))
             success = np.asarray(batch.success, bool)
             pick = [a + _cheapest(success[a:b], batch.f[a:b])
