@@ -22,7 +22,7 @@ from ocpar.formation import FormationOptions, Sphere, solve_formation
 from ocpar.formation.hierarchical import OuterObjective
 from ocpar.formation.solve import obstacle_check
 from ocpar.models import PointMass
-from ocpar.ocp import DmocShape, dmoc_problem
+from ocpar.ocp import DmocShape, OcpTask, dmoc_problem, solve_tasks
 
 CENTRE_2D, RADIUS = np.array([1.0, 3.0]), 0.8
 
@@ -215,6 +215,32 @@ def test_a_returned_path_inside_an_obstacle_is_not_converged(free):
     c = fields["obstacle_clearance"]
     assert status == "obstacles_not_cleared" and c.distance == pytest.approx(-depth, abs=1e-12)
     assert message.startswith(f"obstacles not cleared: agent {c.agent} comes {depth:.3g} inside")
+
+
+@pytest.mark.parametrize("solver", ["ipopt", "sqpmethod"])
+def test_the_inner_solve_keeps_the_cheaper_side(solver):
+    """A disc just above the straight path from (0, 0) to (1, 0): the solve from the default
+    guess tries both sides and keeps the cheaper, below it, whose cost is the smaller of the
+    independent NLP's from either side (to 1e-9); a warm start above it keeps its side.
+    Both the one-task solver and the batch (``sqpmethod``'s mapped call)."""
+    centre, radius = np.array([0.5, 0.1]), 0.3
+    shape = DmocShape(PointMass(2), intervals=10, duration=1.0, solver=solver,
+                      obstacles=(Sphere(tuple(centre), radius),))
+    params = np.array([0.0, 0, 0, 0, 1, 0, 0, 0])
+    sides = {side: independent_cost(np.zeros(2), np.array([1.0, 0.0]), centre, radius, side)
+             for side in ("left", "right")}
+    assert sides["left"] < sides["right"] - 1   # centre on the left: the agent passes below
+    nlp = dmoc_problem(shape)
+    one = nlp.solve(params)
+    (batch,) = solve_tasks([OcpTask(shape, params)])
+    for solution in (one, batch):
+        assert solution.success and solution.cost == pytest.approx(sides["left"], rel=1e-9)
+        assert solution.q[1:-1, 1].max() < 0
+    above = np.column_stack([np.linspace(0, 1, 11), 0.5 * np.sin(np.linspace(0, np.pi, 11))])
+    warm = np.concatenate([above[1:-1].ravel(), np.zeros(20)])
+    kept = nlp.solve(params, warm)
+    assert kept.success and kept.cost == pytest.approx(sides["right"], rel=1e-9)
+    assert segment_distances(kept.q[None], centre).min() >= radius - 1e-9
 
 
 def test_without_obstacles_the_nlp_is_the_one_of_old():
