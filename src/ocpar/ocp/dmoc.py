@@ -576,7 +576,8 @@ class DmocTranscription:
         path = q0 + np.arange(1, self.n)[:, None] / self.n * (qn - q0)
         if self.nc:
             path = self.shape.model.project(path)
-        yield self.full_guess(path.ravel(), params)
+        yield self.full_guess(np.concatenate([path.ravel(), np.zeros(self.nu * self.n)]),
+                              params)
 
     def warm_start(self, solution: DmocSolution) -> np.ndarray:
         """The guess (inner nodes, controls; λ = 0) that re-solves from ``solution``."""
