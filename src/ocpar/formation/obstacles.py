@@ -3,9 +3,10 @@ checks and reports it on the returned paths.
 
 The obstacles (:class:`Ellipsoid`, :func:`Sphere`, :class:`HalfSpace`) and their exact
 formulation in each agent's DMOC NLP (one separating plane per interval and ellipsoid as
-inner variables) are :mod:`ocpar.ocp.obstacles`'; a :class:`~ocpar.formation.
-FormationProblem` attaches its obstacles to every agent's shape, so that each Ĵ_i and its
-sensitivities include them and the outer solver moves the formation for them.
+inner variables) are in :mod:`ocpar.ocp.obstacles`; a
+:class:`~ocpar.formation.FormationProblem` attaches its obstacles to every agent's shape, so
+that each Ĵ_i and its sensitivities include them and the outer solver moves the formation
+for them.
 
 DMOC's continuous path is linear between nodes, so a path is clear of an obstacle exactly
 when every segment is. :func:`segment_clearance` measures it on each segment, independently

@@ -71,10 +71,11 @@ ellipsoid), with the rows 1 − |n|² ≥ 0, n·A(r(q_k) − c) − 1 ≥ 0 and 
 whenever it is; on the first and last intervals the boundary node's row binds n); a
 half-space n·r(q_k) ≥ b at the free nodes. The rows come after the path rows. Which side a
 path passes an ellipsoid on is the guess's choice: from the default guess (a task without
-one), where its path enters an ellipsoid, every side of it (:func:`~ocpar.ocp.obstacles.
-side_guesses`) is solved and the cheapest solution kept (ties: the first, the side of the
-path's point nearest the centre), in the same solve; a guess without planes gets each
-interval's nearest-point direction (:func:`~ocpar.ocp.obstacles.guess_planes`).
+one), where its path enters an ellipsoid, every side of it
+(:func:`~ocpar.ocp.obstacles.side_guesses`) is solved and the cheapest solution kept (ties:
+the first, the side of the path's point nearest the centre), in the same solve; a guess
+without planes gets each interval's nearest-point direction
+(:func:`~ocpar.ocp.obstacles.guess_planes`).
 ``end_hessian`` comes from the active set with the planes made canonical
 (:func:`~ocpar.ocp.obstacles.canonical_planes`: unique where an obstacle binds; fixed, as at
 a bound, where none does, their variables being free there). Inequalities: ``sqpmethod``
@@ -155,8 +156,9 @@ class DmocShape:
     :class:`~ocpar.ocp.constraints.PathConstraint` objects of ``q``, ``v`` and ``u`` (module
     docstring), compiled when the shape is built. ``running_cost``: C(q, v, u) ≥ 0, a scalar
     function whose parameter names (among ``q``, ``v``, ``u``) pick its arguments (module
-    docstring; None: |u|², the NLP of old). ``obstacles``: :class:`~ocpar.ocp.obstacles.
-    Ellipsoid` and :class:`~ocpar.ocp.obstacles.HalfSpace` obstacles in position space, kept
+    docstring; None: |u|², the NLP of old). ``obstacles``:
+    :class:`~ocpar.ocp.obstacles.Ellipsoid` and :class:`~ocpar.ocp.obstacles.HalfSpace`
+    obstacles in position space, kept
     clear exactly on the continuous path (module docstring; none: the NLP of old), on the
     configuration entries ``obstacle_positions`` (default: the first d, d the obstacles'
     dimension).
