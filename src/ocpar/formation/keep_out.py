@@ -1,6 +1,7 @@
 """Collision-free reconfiguration: separation rounds of independent keep-out DMOC solves.
 
-After the unconstrained hierarchical solve (outer angles φ, inner DMOC paths), each round
+After the hierarchical solve without the separation (outer angles φ, inner DMOC paths with
+any obstacles), each round
 reads the latest continuous paths (piecewise linear between nodes,
 :mod:`ocpar.formation.separation`) and does two things:
 
@@ -365,7 +366,7 @@ def resolve_with_keep_outs(slotted: FormationProblem, backend: Backend, agents: 
 def separate(problem: FormationProblem, backend: Backend, phi: np.ndarray, base: Columns,
              distance: float, max_rounds: int,
              progress: Callable[[str], None] | None = None) -> Separation:
-    """Separation rounds (module docstring) from the unconstrained inner solutions ``base``
+    """Separation rounds (module docstring) from the inner solutions ``base`` without D
     (a :class:`~ocpar.bsp.columns.Columns` of :class:`~ocpar.ocp.DmocSolution`, one per
     agent, at angles ``phi`` (n,) rad) to a minimum separation ``distance`` D (length unit),
     at most ``max_rounds`` rounds; with ``problem``'s obstacles, clear of them too."""
