@@ -1,9 +1,8 @@
 """Collision-free reconfiguration: separation rounds of independent keep-out DMOC solves.
 
 After the hierarchical solve without the separation (outer angles φ, inner DMOC paths with
-any obstacles), each round
-reads the latest continuous paths (piecewise linear between nodes,
-:mod:`ocpar.formation.separation`) and does two things:
+any obstacles), each round reads the latest continuous paths (piecewise linear between
+nodes, :mod:`ocpar.formation.separation`) and does two things:
 
 1. **Spread** (:func:`spread`, on the coordinator, numpy only): the node positions are pushed
    apart until every pair is ≥ D apart on every interval, the first and last nodes fixed —
