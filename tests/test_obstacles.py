@@ -243,6 +243,39 @@ def test_the_inner_solve_keeps_the_cheaper_side(solver):
     assert segment_distances(kept.q[None], centre).min() >= radius - 1e-9
 
 
+@pytest.mark.parametrize(("solver", "dim"), [("ipopt", 2), ("ipopt", 3), ("sqpmethod", 2)])
+def test_end_gradient_and_hessian_with_a_binding_ball_match_finite_differences(solver, dim):
+    """One point mass past a ball its straight path crosses: dJ*/dq_N (multipliers) and
+    d²J*/dq_N² (the planes' active set) against central differences of J* and of dJ*/dq_N,
+    by ``solve_tasks`` (``sqpmethod``: the mapped batch, which solves the planar case; in
+    3-D its QPs meet the planes' free tangential directions and it falls back to IPOPT) and
+    by one IPOPT solve."""
+    centre = np.array([0.5, 0.1, 0.05][:dim])
+    shape = DmocShape(PointMass(dim), intervals=10, duration=1.0, solver=solver,
+                      obstacles=(Sphere(tuple(centre), 0.3),))
+    end = np.array([1.0, 0.0, 0.1][:dim])
+
+    def solve(q_end: np.ndarray):
+        params = np.concatenate([np.zeros(2 * dim), q_end, np.zeros(dim)])
+        (solution,) = solve_tasks([OcpTask(shape, params)])
+        assert solution.success
+        return solution
+
+    base = solve(end)
+    assert segment_distances(base.q[None], centre).min() == pytest.approx(0.3, abs=1e-9)
+    gradient, hessian = base.cost_gradient[2 * dim:3 * dim], base.end_hessian
+    alone = dmoc_problem(shape).solve(np.concatenate([np.zeros(2 * dim), end, np.zeros(dim)]))
+    np.testing.assert_allclose(alone.end_hessian, hessian, rtol=1e-7, atol=1e-7)
+    eps = 1e-5
+    for j in range(dim):
+        step = np.eye(dim)[j] * eps
+        up, down = solve(end + step), solve(end - step)
+        assert gradient[j] == pytest.approx((up.cost - down.cost) / (2 * eps), rel=1e-6)
+        np.testing.assert_allclose(
+            hessian[:, j], (up.cost_gradient - down.cost_gradient)[2 * dim:3 * dim] / (2 * eps),
+            rtol=1e-5, atol=1e-5 * np.abs(hessian).max())
+
+
 def test_without_obstacles_the_nlp_is_the_one_of_old():
     """No planes, no rows: a point mass's NLP is the N−1 inner nodes, the N controls and the
     DMOC equations alone."""

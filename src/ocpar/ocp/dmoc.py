@@ -461,12 +461,15 @@ class DmocTranscription:
         return (bool(self.shape.keep_out_slots) or self.shape.control_bounds is not None
                 or bool(self.n_rows))
 
-    def _activity(self, w: np.ndarray, params: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def _activity(self, w: np.ndarray, params: np.ndarray, lam_g: np.ndarray
+                  ) -> tuple[np.ndarray, np.ndarray]:
         """The activity mask (k, ng + nw) of solutions w (k, nw) with ``params``
-        (k, n_params): 1 for the equations, for path and obstacle rows and controls at a
-        bound (to within ``kkt_tol`` relative) and for the planes no obstacle row binds
-        (frozen), 0 elsewhere (:mod:`ocpar.ocp.sensitivity`); and w with its planes made
-        canonical (:func:`~ocpar.ocp.obstacles.canonical_planes`), where the mask holds."""
+        (k, n_params) and multipliers ``lam_g`` (k, ng): 1 for the equations, for path and
+        obstacle rows and controls at a bound (to within ``kkt_tol`` relative; an ellipsoid's
+        rows also where they carry a multiplier above ``kkt_tol`` of the largest) and for the
+        planes no obstacle row binds (frozen), 0 elsewhere (:mod:`ocpar.ocp.sensitivity`);
+        and w with its planes made canonical (:func:`~ocpar.ocp.obstacles.canonical_planes`),
+        where the mask holds."""
         k, n_eq, tol = len(w), self.ng - self.n_rows, self.shape.kkt_tol
         mask = np.zeros((k, self.ng + self.nw))
         mask[:, :n_eq] = 1.0
@@ -479,11 +482,15 @@ class DmocTranscription:
         if self.n_rows > self.n_path:
             w = w.copy()
             q, _ = self.unpack_many(w, params)
+            start = n_eq + self.n_path
+            ellipsoid_rows = lam_g[:, start:start + 3 * self.n_planes
+                                   // len(self.shape.obstacle_positions)]
+            loaded = np.abs(ellipsoid_rows) > tol * (1 + np.max(np.abs(lam_g), axis=1,
+                                                                  keepdims=True))
             planes, binding, frozen = canonical_planes(
-                self.shape.obstacles, q[..., list(self.shape.obstacle_positions)], tol)
+                self.shape.obstacles, q[..., list(self.shape.obstacle_positions)], tol, loaded)
             w[:, self.nw - self.n_planes:] = planes
             rows = np.asarray(self.obstacle_rows.map(k)(w.T, params.T)).reshape(-1, k).T
-            start = n_eq + self.n_path
             mask[:, start:self.ng] = _near(rows, 0.0, np.inf, tol)
             mask[:, start:start + binding.shape[1]] = binding
             mask[:, self.ng + self.nw - self.n_planes:] = frozen
@@ -496,7 +503,7 @@ class DmocTranscription:
         of the active set (:mod:`ocpar.ocp.sensitivity`)."""
         if self.active_hessian is None:
             return equality
-        mask, w = self._activity(w, params)
+        mask, w = self._activity(w, params, lam_g)
         finite = np.all(np.isfinite(w), axis=1) & np.all(np.isfinite(lam_g), axis=1)
         # with planes every solve's: their variables are free where no row binds them
         active = np.flatnonzero((mask[:, self.ng - self.n_rows:].any(axis=1)

@@ -263,29 +263,33 @@ def guess_planes(obstacles: Sequence[Obstacle], positions: np.ndarray) -> np.nda
     return planes.reshape(k, (nodes - 1) * len(balls) * d)
 
 
-def canonical_planes(obstacles: Sequence[Obstacle], positions: np.ndarray, tol: float
-                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """The planes the sensitivities use, for solved paths with node positions (k, N+1, d):
-    on an interval within ``tol`` (scaled) of an ellipsoid the unit direction n* of its
-    nearest point (unique there), else n* shrunk to (1 + 1/δ)/2 · n* (δ > 1 its scaled
-    distance: every row strictly inactive). Returns the plane block (k, N m_e d), the
-    activity of the rows of :func:`obstacle_rows`'s ellipsoid part (k, 3 N m_e: 1 − |n|²
-    where the interval binds, an end row within ``tol`` of 1) and the planes whose
-    variables are frozen, no row binding them (k, N m_e d)."""
+def canonical_planes(obstacles: Sequence[Obstacle], positions: np.ndarray, tol: float,
+                     loaded: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The planes the sensitivities use, for solved paths with node positions (k, N+1, d)
+    whose ellipsoid rows of :func:`obstacle_rows` (k, 3 N m_e) carry a multiplier where
+    ``loaded``: an interval binds where it comes within ``tol`` (scaled) of an ellipsoid or
+    a row of its carries a multiplier; there the plane is the unit direction n* of its point
+    nearest the centre (unique there), elsewhere n* shrunk to (1 + 1/δ)/2 · n* (δ > 1 its
+    scaled distance: every row strictly inactive). Returns the plane block (k, N m_e d), the
+    activity of those rows (k, 3 N m_e: 1 − |n|² where the interval binds, an end row where
+    it binds and the row is within ``tol`` of 1 or loaded) and the planes whose variables
+    are frozen, no row binding them (k, N m_e d)."""
     balls = ellipsoids(obstacles)
     k, d = positions.shape[0], positions.shape[2]
     if not balls:
         return np.zeros((k, 0)), np.zeros((k, 0), bool), np.zeros((k, 0), bool)
     planes, rows, frozen = [], [], []
-    for ball in balls:
+    loaded = np.asarray(loaded, bool).reshape(k, -1, len(balls), 3)
+    for e, ball in enumerate(balls):
         size, direction = _nearest_directions(ball, positions)
-        binds = size <= 1 + tol
+        binds = (size <= 1 + tol) | loaded[:, :, e].any(axis=-1)
         scale = np.where(binds, 1.0, (1 + 1 / np.maximum(size, 1.0)) / 2)
         n = direction * scale[..., None]
         y = ball.scaled(positions)
         ends = [np.einsum("kjd,kjd->kj", direction, y[:, :-1]) - 1,
                 np.einsum("kjd,kjd->kj", direction, y[:, 1:]) - 1]
-        rows.append(np.stack([binds] + [binds & (end <= tol) for end in ends], axis=-1))
+        rows.append(np.stack([binds] + [binds & ((end <= tol) | loaded[:, :, e, j + 1])
+                                        for j, end in enumerate(ends)], axis=-1))
         planes.append(n)
         frozen.append(np.repeat(~binds[..., None], d, axis=-1))
     return (np.stack(planes, axis=2).reshape(k, -1), np.stack(rows, axis=2).reshape(k, -1),
