@@ -12,8 +12,9 @@ Statuses (the same words in every scheme):
 * ``separation_not_met``: a formation run with a required minimum separation whose rounds
   ended (round limit) with two agents closer than required; its paths are returned, with
   by how much they miss;
-* ``obstacles_not_cleared``: a formation run with obstacles whose rounds ended (round limit)
-  with a path inside an obstacle; its paths are returned, with by how much;
+* ``obstacles_not_cleared``: a formation run with obstacles whose returned paths, checked
+  against them by exact segment distances, enter one (an inner solve accepted short of its
+  tolerance); its paths are returned, with where and by how much;
 * ``cancelled``: stopped by its stop file at a superstep boundary (``ocpar cancel``); such a
   run writes no result.json, its checkpoint resumes it.
 

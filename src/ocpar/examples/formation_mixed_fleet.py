@@ -8,7 +8,9 @@ constraint), or not at all (``limit=None``); with the default u_max = 2.7 (force
 limits of the heaviest agents bind at the optimum, which the free optimum breaks (peak
 3.23): the total cost rises from 63.0311 to 63.2814 (box) and 63.2996 (norm). With
 ``obstacle`` = R a ball of radius R about (0, 5), which the optimal paths cross, is kept
-clear on the continuous paths (:mod:`ocpar.formation.obstacle_rounds`). With ``unlimited`` = m
+clear on the continuous paths by every agent's inner problem (:mod:`ocpar.ocp.obstacles`), and
+the formation turns for it: with R = 2.5 the cost is 63.5748 (no limit), 63.9466 (box) and
+63.9941 (norm). With ``unlimited`` = m
 the last m agents have no thrust limit: a fleet listed by kind, whose solves' cost is skewed
 by agent order (a limited agent's solve, by ``sqpmethod``, ~0.24 ms; an unlimited one's, by
 the batched Newton kernel, ~0.05 ms), what resident agents' blocks are rebalanced for

@@ -1,8 +1,8 @@
 """Collision-free reconfiguration: separation rounds of independent keep-out DMOC solves.
 
-After the unconstrained hierarchical solve (outer angles φ, inner DMOC paths), each round
-reads the latest continuous paths (piecewise linear between nodes,
-:mod:`ocpar.formation.separation`) and does two things:
+After the hierarchical solve without the separation (outer angles φ, inner DMOC paths with
+any obstacles), each round reads the latest continuous paths (piecewise linear between
+nodes, :mod:`ocpar.formation.separation`) and does two things:
 
 1. **Spread** (:func:`spread`, on the coordinator, numpy only): the node positions are pushed
    apart until every pair is ≥ D apart on every interval, the first and last nodes fixed —
@@ -52,16 +52,14 @@ The half-spaces, moving linearly in time over each interval:
   half-spaces cannot all be met (its dynamics cannot follow the targets) moves as far as it
   can instead of failing.
 
-With obstacles (:mod:`ocpar.formation.obstacles`) the same rounds keep the paths clear of
-them too: the spreading also pushes every segment inside an obstacle out of it (along the
-tangent plane's normal at its point nearest the centre, :func:`_obstacle_pushes`), so that
-the targets are separated and clear; every interval of the targets near an obstacle gets
-its tangent plane (:func:`~ocpar.formation.obstacles.obstacle_half_spaces`, which the
-targets satisfy) in :data:`~ocpar.formation.obstacles.OBSTACLE_SLOTS` more slots after the
-trust region's; the agents near a partner or an obstacle re-solve, with the penalty per the
-smaller of D and the smallest obstacle scale (measured on the mixed fleet with its ball and
-D = 0.4: 21 rounds, the cost +1.69 % over the unconstrained optimum; the ball alone 2 rounds,
-D alone 11).
+With obstacles (:mod:`ocpar.formation.obstacles`) every agent's inner problem already keeps
+them clear exactly (its shape carries them, :mod:`ocpar.ocp.obstacles`), in the outer
+solve and in the rounds alike: the rounds add only the pairs' half-spaces (and the trust
+region), and an agent re-solving keeps the side of each obstacle its latest path passes
+(its warm start's planes). The spreading also pushes every segment of the targets inside
+an obstacle out of it (along the tangent plane's normal at its point nearest the centre,
+:func:`_obstacle_pushes`), so that the targets the half-spaces are built about are
+separated and clear; the penalty is per the smaller of D and the smallest obstacle scale.
 
 Each round is one superstep of independent inner problems. Rounds repeat until the exact
 closest approach (:func:`~ocpar.formation.separation.closest_approach`) is at least D (to a
@@ -71,8 +69,8 @@ relative :data:`SEPARATION_RTOL`), every obstacle clearance is ≥ 0
 limit. The returned paths' separation and clearance are computed, not assumed: a run that
 misses D or an obstacle says by how much.
 
-The final angles φ stay those of the unconstrained outer solve (the keep-outs move the paths,
-not the formation); the cost increase over the unconstrained optimum is reported. With
+The final angles φ stay those of the outer solve (with its obstacles; the keep-outs move the
+paths, not the formation); the cost increase over the outer solve's paths is reported. With
 ``ordering optimal`` the ordering comes first (fewer close passes to undo), then the outer
 solve, then the rounds.
 """
@@ -82,20 +80,12 @@ from __future__ import annotations
 import dataclasses
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
 
 import numpy as np
 
 from ocpar.bsp import Backend
 from ocpar.bsp.columns import Columns
-from ocpar.formation.obstacles import (
-    OBSTACLE_SLOTS,
-    Clearance,
-    Obstacle,
-    cleared,
-    closest_obstacle,
-    obstacle_half_spaces,
-)
+from ocpar.formation.obstacles import Clearance, Obstacle, cleared, closest_obstacle
 from ocpar.formation.problem import FormationProblem
 from ocpar.formation.separation import (
     ClosestApproach,
@@ -106,9 +96,6 @@ from ocpar.formation.separation import (
 )
 from ocpar.ocp import solve_tasks
 from ocpar.ocp.dmoc import UNUSED_OFFSET
-
-if TYPE_CHECKING:  # obstacle_rounds builds on this module
-    from ocpar.formation.obstacle_rounds import ObstacleRounds
 
 #: Partners' keep-out half-spaces per agent and interval (the DMOC shape has 2 d slots more:
 #: the trust region's).
@@ -159,13 +146,11 @@ class Separation:
 
 def keep_out_problem(problem: FormationProblem) -> FormationProblem:
     """The problem with every agent's DMOC shape given :data:`KEEP_OUT_SLOTS` + 2 d slots on
-    its d positions (partners' half-spaces, then the trust region's, :func:`trust_region`),
-    and with obstacles min(:data:`~ocpar.formation.obstacles.OBSTACLE_SLOTS`, their number)
-    more (their tangent planes), solved by IPOPT (measured on the 60 point masses' first
-    round: 18 ms per solve, all solved; ``sqpmethod``/``qrqp`` 110 ms per solve, 14 of 32
-    failing its KKT check)."""
-    slots = (KEEP_OUT_SLOTS + 2 * len(problem.position_indices)
-             + min(OBSTACLE_SLOTS, len(problem.obstacles)))
+    its d positions (partners' half-spaces, then the trust region's, :func:`trust_region`;
+    its obstacles, if any, stay in its shape), solved by IPOPT (measured on the 60 point
+    masses' first round: 18 ms per solve, all solved; ``sqpmethod``/``qrqp`` 110 ms per
+    solve, 14 of 32 failing its KKT check)."""
+    slots = KEEP_OUT_SLOTS + 2 * len(problem.position_indices)
     return problem.with_shapes(lambda shape: dataclasses.replace(
         shape, keep_out_slots=slots, keep_out_positions=problem.position_indices,
         solver="ipopt"))
@@ -353,7 +338,7 @@ def _boundary_normal(normal: np.ndarray, rel: np.ndarray, distance: float) -> np
 
 def resolve_with_keep_outs(slotted: FormationProblem, backend: Backend, agents: np.ndarray,
                            boundary: np.ndarray, data: np.ndarray, penalty: float,
-                           outcome: Separation | ObstacleRounds) -> None:
+                           outcome: Separation) -> None:
     """One round of keep-out solves, one superstep: ``agents`` re-solve on their keep-out
     shapes (``slotted``) with boundary data ``boundary`` (n, 4 nq), keep-out data ``data``
     (n, N, slots, d + 2) and the penalty ρ, warm-started from the ``outcome``'s latest paths
@@ -380,13 +365,12 @@ def resolve_with_keep_outs(slotted: FormationProblem, backend: Backend, agents: 
 def separate(problem: FormationProblem, backend: Backend, phi: np.ndarray, base: Columns,
              distance: float, max_rounds: int,
              progress: Callable[[str], None] | None = None) -> Separation:
-    """Separation rounds (module docstring) from the unconstrained inner solutions ``base``
+    """Separation rounds (module docstring) from the inner solutions ``base`` without D
     (a :class:`~ocpar.bsp.columns.Columns` of :class:`~ocpar.ocp.DmocSolution`, one per
     agent, at angles ``phi`` (n,) rad) to a minimum separation ``distance`` D (length unit),
     at most ``max_rounds`` rounds; with ``problem``'s obstacles, clear of them too."""
     slotted = keep_out_problem(problem)
     obstacles = problem.obstacles
-    obstacle_slots = min(OBSTACLE_SLOTS, len(obstacles))
     scale = min([distance, *(o.scale for o in obstacles)])
     n = problem.agents
     free_cost = np.asarray(base.column("cost"), float)
@@ -406,11 +390,7 @@ def separate(problem: FormationProblem, backend: Backend, phi: np.ndarray, base:
         partners, dropped = half_spaces(target, entries, distance, KEEP_OUT_SLOTS)
         data = [partners, trust_region(target, distance)]
         agents = np.unique(entries[:, 0])
-        if obstacles:
-            planes, near = obstacle_half_spaces(target, obstacles, obstacle_slots)
-            data.append(planes)
-            agents = np.union1d(agents, near)
-        if not len(agents):   # met, and no pair or obstacle within reach: no agent would move
+        if not len(agents):   # met, and no pair within reach: no agent would move
             outcome.change = 0.0
             break
         resolve_with_keep_outs(slotted, backend, agents, boundary, np.concatenate(data, axis=2),

@@ -3,7 +3,10 @@ coupling c(φ) = 0 in one CasADi NLP, solved by IPOPT in the coordinator process
 positions are the curve's symbolic z(φ_i), so any curve works.
 
 It is the reference for the paper's equivalence theorem (§IV-B): from the same initial guess it
-must reach the same optimum as the hierarchical scheme.
+must reach the same optimum as the hierarchical scheme. With obstacles, every agent's NLP
+carries them with the same planes (:mod:`ocpar.ocp.obstacles`), and the side each agent
+passes each obstacle on is the start's: each agent's path starts as its own inner optimum at
+the initial angles (the cheapest side, as in the hierarchical scheme's inner solves).
 """
 
 from __future__ import annotations
@@ -64,9 +67,8 @@ def solve_monolithic(
     exact = ({"bound_relax_factor": 0.0} if any(d.has_inequalities for d in dmocs) else {})
     solver = ca.nlpsol("formation", "ipopt", nlp, ipopt_options(tol, max_iterations, **exact))
 
-    x0 = np.concatenate(
-        [dmocs[i].default_guess(problem.boundary_params(i, phi0[i])) for i in range(n)] + [phi0]
-    )
+    x0 = np.concatenate([_start(dmocs[i], problem.boundary_params(i, phi0[i]))
+                         for i in range(n)] + [phi0])
     start = time.perf_counter()
     out = solver(x0=x0, **bounds)
     elapsed = time.perf_counter() - start
@@ -100,6 +102,16 @@ def violation(rows: np.ndarray, x: np.ndarray, bounds: dict) -> float:
                 for k, fill in (("lbx", -np.inf), ("ubx", np.inf)))
     return float(max(0.0, np.max(lbg - rows), np.max(rows - ubg), np.max(lbx - x),
                      np.max(x - ubx)))
+
+
+def _start(dmoc: DmocTranscription, params: np.ndarray) -> np.ndarray:
+    """Agent's start: the default guess; with obstacle planes its inner optimum at ``params``
+    (its side of each obstacle; the default guess if that solve fails)."""
+    guess = dmoc.default_guess(params)
+    if not dmoc.n_planes:
+        return guess
+    solution = dmoc.solve(params)
+    return dmoc.full_guess(dmoc.warm_start(solution), params) if solution.success else guess
 
 
 def _bounds(dmocs: list[DmocTranscription], n_coupling: int, n_angles: int

@@ -39,6 +39,12 @@ CONSTRAINT_TOL = 1e-8
 #: Points of the curve sampled (uniform in φ) to find each start's nearest target
 #: (:meth:`FormationProblem._check_thrust_reach`), and agents per block of that search.
 REACH_SAMPLES, REACH_BLOCK = 2048, 256
+#: A start moved for obstacles (:meth:`FormationProblem.clear_start`) has every target at
+#: least this · the obstacle's scale clear of it (scaled: |A (r − c)| ≥ 1 + this) ...
+START_MARGIN = 0.1
+#: ... at the smallest of this many shifts of the formation's family (2π/this apart) that
+#: does.
+START_SHIFTS = 4096
 
 
 def _array(name: str, value: object, shape: tuple[int, ...]) -> np.ndarray:
@@ -143,6 +149,7 @@ class FormationProblem:
             raise ValueError(f"shape: the model's position_indices must be distinct entries "
                              f"of its {nq} configuration entries, got {indices}")
         object.__setattr__(self, "obstacles", check_obstacles(self.obstacles, len(indices)))
+        self._attach_obstacles()
         self.check_clear("starts", self.starts)
         self._check_path_constraints()
         self._check_thrust_reach()
@@ -206,6 +213,24 @@ class FormationProblem:
                         f"from rest to rest in T = {self.shapes[i].duration:g}: the nearest "
                         f"needs {need[k]:.4g} times the thrust its limit allows")
 
+    def _attach_obstacles(self) -> None:
+        """Every agent's shape gets the problem's obstacles on its position entries (its
+        inner problem imposes them, :mod:`ocpar.ocp.obstacles`; a shape's own are replaced,
+        so that ``dataclasses.replace(problem, obstacles=...)`` changes them all), solved by
+        IPOPT (measured on the mixed fleet's 12 agents with its ball: the whole solve 1.8 s,
+        against 46 s by ``sqpmethod``, whose mapped solves of the non-convex planes mostly
+        fail their KKT check slowly)."""
+        indices = self.position_indices if self.obstacles else ()
+        shapes = (self.shape,) if isinstance(self.shape, DmocShape) else self.shape
+        if all((shape.obstacles, shape.obstacle_positions) == (self.obstacles, indices)
+               for shape in shapes):
+            return   # attached already, or none
+        attached = {shape: dataclasses.replace(
+            shape, obstacles=self.obstacles, obstacle_positions=indices,
+            solver="ipopt" if self.obstacles else shape.solver) for shape in set(shapes)}
+        object.__setattr__(self, "shape", attached[self.shape] if isinstance(
+            self.shape, DmocShape) else tuple(attached[shape] for shape in self.shape))
+
     def _check_path_constraints(self) -> None:
         """Each agent's path constraints must be finite at its start (q_0, q̇_0, u = 0) and
         those of q alone met there (the nodes next to the start must meet them); one
@@ -244,6 +269,47 @@ class FormationProblem:
                 i = int(np.argmin(gap))
                 raise ValueError(f"{name}: agent {i} lies inside obstacles[{o}] "
                                  f"({obstacle.name}) by {-gap[i]:.3g}")
+
+    def clear_start(self, phi0: np.ndarray) -> np.ndarray:
+        """A start for the outer problem whose targets clear the obstacles: ``phi0`` (flat)
+        if every target of it does by :data:`START_MARGIN`; else, where the coupling's
+        solutions through it form a family (a circle's rotation, equal arc length's shift,
+        :meth:`~ocpar.formation.coupling.Coupling.family`), the member with the smallest
+        shift |θ| (of :data:`START_SHIFTS`) whose targets do (by the margin if one does,
+        else just); else ``phi0`` if its targets are inside none. ValueError (one line,
+        naming ``obstacles``) only when no member can avoid them."""
+        phi0 = np.asarray(phi0, float).ravel()
+        if not self.obstacles or self._targets_clear(phi0[None], START_MARGIN)[0]:
+            return phi0
+        family = (None if isinstance(self.curve, Slots | Surface)
+                  else self.coupling.family(phi0, self.curve))
+        if family is not None:
+            k = np.arange(1, START_SHIFTS // 2 + 1)
+            shifts = 2 * np.pi / START_SHIFTS * np.concatenate([[0], np.column_stack(
+                [k, -k]).ravel()])
+            members = np.array([family.angles(theta)[0] for theta in shifts])
+            for margin in (START_MARGIN, 0.0):
+                clear = np.flatnonzero(self._targets_clear(members, margin))
+                if len(clear):
+                    return members[clear[0]]
+        nq = self.common_shape.model.nq
+        where = "" if family is None else "; no shift of the formation avoids the obstacles"
+        self.check_clear(f"final positions (at the initial angles{where})",
+                         self.boundary_params_rows(np.arange(self.agents), phi0)[:, 2 * nq:3 * nq])
+        if family is not None:
+            raise ValueError("final positions: every shift of the formation puts one inside an "
+                             "obstacle")
+        return phi0
+
+    def _targets_clear(self, phis: np.ndarray, margin: float) -> np.ndarray:
+        """Whether every target z(φ) of each row of ``phis`` (m, n k) clears every obstacle
+        by ``margin`` · its scale: (m,)."""
+        points = self.final_positions(phis.reshape(-1, *self.parameter_shape[1:]))
+        ok = np.ones(len(points), bool)
+        for obstacle in self.obstacles:
+            gap, _ = obstacle.clearance(points, points)
+            ok &= gap >= margin * obstacle.scale
+        return ok.reshape(len(phis), -1).all(axis=1)
 
     def _check_shapes(self) -> None:
         """``shape`` must be a DmocShape of a MechanicalSystem or a non-empty sequence of

@@ -35,15 +35,16 @@ class FormationResult(RunResult):
     <ocpar.formation.FormationProblem.closest_approach>`); with a required minimum
     separation (:mod:`ocpar.formation.keep_out`): ``required_separation`` D,
     ``separation_rounds`` the keep-out rounds run and ``unconstrained_cost`` the total cost
-    before them (NaN/None/0 without); with obstacles (:mod:`ocpar.formation.obstacles`):
-    ``obstacle_clearance`` the smallest clearance of any agent from any obstacle on the
-    continuous paths (which agent, obstacle, when), ``obstacle_rounds`` the rounds run, and
-    ``unconstrained_cost`` the cost before them (with both, the same rounds impose both:
-    ``separation_rounds`` = ``obstacle_rounds``); ``feasible_set`` ``continuous`` on a circle
-    (a common rotation), ``discrete`` elsewhere (the potential's isolated critical points),
-    with ``critical_sets`` the candidates searched by ``--ordering optimal``
-    (:meth:`~ocpar.formation.critical_sets.CriticalSet.to_dict`, cheapest first; None when
-    none were).
+    before them (NaN/None/0 without); with obstacles (:mod:`ocpar.formation.obstacles`, in
+    every inner problem): ``obstacle_clearance`` the smallest clearance of any agent from
+    any obstacle on the returned continuous paths (which agent, obstacle, when) and
+    ``obstacle_sides`` on which side each agent passes each obstacle
+    (:func:`~ocpar.formation.obstacles.passing_sides`: per agent, per obstacle ``left`` or
+    ``right`` in 2-D, a unit vector in 3-D, None for a half-space); ``feasible_set``
+    ``continuous`` on a circle (a common rotation), ``discrete`` elsewhere (the potential's
+    isolated critical points), with ``critical_sets`` the candidates searched by
+    ``--ordering optimal`` (:meth:`~ocpar.formation.critical_sets.CriticalSet.to_dict`,
+    cheapest first; None when none were).
     The common fields are :class:`ocpar.results.RunResult`'s.
     """
 
@@ -68,7 +69,7 @@ class FormationResult(RunResult):
     unconstrained_cost: float = math.nan
     controls: np.ndarray | None = None
     obstacle_clearance: Clearance | None = None
-    obstacle_rounds: int = 0
+    obstacle_sides: list[list[str | list[float] | None]] | None = None
     feasible_set: str = "continuous"
     critical_sets: list[dict] | None = None
     verification: Verification | None = None
@@ -131,7 +132,7 @@ class FormationResult(RunResult):
         return {"verification": v.to_dict(), "near_collision": v.near_collision}
 
     def _obstacle_fields(self) -> dict:
-        """``min_obstacle_clearance`` and where it occurs, ``obstacle_rounds`` (none without
+        """``min_obstacle_clearance`` and where it occurs, ``obstacle_sides`` (none without
         obstacles)."""
         c = self.obstacle_clearance
         if c is None:
@@ -140,7 +141,7 @@ class FormationResult(RunResult):
                 "obstacle_agent": c.agent if c.agent >= 0 else None,
                 "obstacle_index": c.obstacle if c.obstacle >= 0 else None,
                 "obstacle_time": _finite_or_none(c.time),
-                "obstacle_rounds": self.obstacle_rounds}
+                "obstacle_sides": self.obstacle_sides}
 
     def _required_summary(self) -> str:
         """The summary's words on a required separation ('' without one)."""
@@ -157,14 +158,8 @@ class FormationResult(RunResult):
         c = self.obstacle_clearance
         if c is None:
             return ""
-        cost = ""
-        if self.converged:
-            increase = self.total_cost / self.unconstrained_cost - 1
-            cost = (f", cost {increase * 100:+.3g}% over the obstacle-free "
-                    f"{self.unconstrained_cost:.6e}")
         return (f"min obstacle clearance {c.distance:.6g} (agent {c.agent}, obstacle "
-                f"{c.obstacle} at t = {c.time:.6g})   {self.obstacle_rounds} round(s)"
-                f"{cost}\n")
+                f"{c.obstacle} at t = {c.time:.6g}; obstacles in the inner problems)\n")
 
     def summary(self) -> str:
         """A few lines for people: the headline numbers of the run."""

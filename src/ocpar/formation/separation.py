@@ -31,6 +31,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ocpar.ocp.obstacles import segment_closest
+
 #: Agents per leaf of the tree over one interval's segments (see :func:`_interval_within`).
 LEAF = 2
 #: Bits per coordinate of the Z-order key that sorts agents into the tree (at most 62/dim).
@@ -61,19 +63,6 @@ def _check_positions(positions: np.ndarray) -> np.ndarray:
     if not np.all(np.isfinite(array)):
         raise ValueError("positions must be finite")
     return array
-
-
-def segment_closest(start: np.ndarray, end: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Minimum of |(1 − s) d0 + s d1| over s ∈ [0, 1] for relative positions ``start`` d0
-    and ``end`` d1 (..., dim): the distance (...) and the first s (...) where it occurs."""
-    step = end - start
-    step_sq = np.einsum("...d,...d->...", step, step)
-    toward = -np.einsum("...d,...d->...", start, step)
-    s = np.divide(toward, step_sq, out=np.zeros_like(toward), where=step_sq > 0)
-    np.clip(s, 0.0, 1.0, out=s)
-    # (1 − s) d0 + s d1: exactly the node values at s = 0 and s = 1
-    point = (1.0 - s)[..., None] * start + s[..., None] * end
-    return np.linalg.norm(point, axis=-1), s
 
 
 def interval_closest(positions: np.ndarray, pairs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

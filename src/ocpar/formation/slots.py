@@ -4,7 +4,7 @@ A :class:`Slots` target has no parameters per agent (k = 0): agent i ends at the
 σ(i), and the outer problem is the assignment σ that minimises Σ_i Ĵ_i(σ(i)), the problem
 that concurrent assignment and planning (CAPT) solves. The angle vector φ of the other
 targets carries the slot indices here (exact integers as floats), so that the inner tasks,
-the separation and obstacle rounds and the result work unchanged.
+the separation rounds, the obstacles and the result work unchanged.
 
 :func:`~ocpar.formation.slot_assignment.assign_slots` solves it, on
 :func:`assign_over_candidates`:

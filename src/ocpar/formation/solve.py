@@ -29,8 +29,7 @@ from ocpar.formation.hierarchical import (
 )
 from ocpar.formation.keep_out import separate
 from ocpar.formation.monolithic import solve_monolithic
-from ocpar.formation.obstacle_rounds import avoid_obstacles
-from ocpar.formation.obstacles import Clearance
+from ocpar.formation.obstacles import cleared, closest_obstacle, passing_sides
 from ocpar.formation.ordering import ORDERINGS, optimal_ordering
 from ocpar.formation.problem import FormationProblem
 from ocpar.formation.result import FormationResult
@@ -80,9 +79,9 @@ class FormationOptions:
     solves (:mod:`ocpar.formation.keep_out`, at most ``separation_rounds`` supersteps) keep
     every pair ≥ D apart on the continuous paths, or the result's status is
     ``separation_not_met``; None: no constraint (the paths may cross). A problem's obstacles
-    are kept clear by ``obstacle_rounds`` obstacle rounds
-    (:mod:`ocpar.formation.obstacle_rounds`), or with ``min_separation`` by the same
-    separation rounds (``obstacles_not_cleared`` if they end inside one).
+    are in every agent's inner problem (:mod:`ocpar.formation.obstacles`), in both modes;
+    the returned paths are checked against them (``obstacles_not_cleared`` if one is inside
+    one).
     """
 
     mode: str = option("hierarchical", "hierarchical, or monolithic (one NLP, for reference)",
@@ -125,9 +124,6 @@ class FormationOptions:
         "refused", above=0, metavar="D")
     separation_rounds: int = option(30, "separation rounds (supersteps of keep-out solves) "
                                     "at most, with --min-separation", low=1)
-    obstacle_rounds: int = option(30, "obstacle rounds (supersteps of keep-out solves) at "
-                                  "most, for a problem with obstacles (with --min-separation "
-                                  "the separation rounds keep them clear too)", low=1)
     initial_angles: tuple[float, ...] | None = option(
         None, "the start: the final angles (rad), one per agent (on a surface two per agent, "
         "agent i's at 2i, 2i+1), numbers separated by commas; default: the documented "
@@ -156,7 +152,7 @@ class FormationOptions:
         if self.critical not in CRITICAL_READINGS:
             raise ValueError(f"unknown critical {self.critical!r}; choose one of "
                              f"{', '.join(CRITICAL_READINGS)}")
-        for name in ("separation_rounds", "obstacle_rounds", "critical_starts",
+        for name in ("separation_rounds", "critical_starts",
                      "slot_candidates"):
             if getattr(self, name) < 1:
                 raise ValueError(f"{name} must be at least 1")
@@ -213,21 +209,16 @@ def check_applicable(problem: FormationProblem, options: FormationOptions) -> No
     positions already violate (the final positions of the initial angles: on a circle every
     formation has the same spacings, elsewhere the formation is the initial one), or a
     coupling other than the potential that has no solution near the initial guess; a driver
-    calls it before starting workers (:func:`solve_formation` calls it too). Obstacles need
-    the hierarchical mode and final positions (of the initial angles) clear of them; with
-    ``min_separation`` too, the separation rounds keep the paths clear of them as well."""
+    calls it before starting workers (:func:`solve_formation` calls it too). With obstacles,
+    a formation whose targets clear them must exist among the initial angles' family
+    (:meth:`~ocpar.formation.FormationProblem.clear_start`: a rotation on a circle)."""
     if isinstance(problem.curve, Surface) and options.mode != "hierarchical":
         raise ValueError("surfaces apply to the hierarchical mode only")
     if isinstance(problem.curve, Slots) and options.mode != "hierarchical":
         raise ValueError("slots apply to the hierarchical mode only (the assignment is the "
                          "outer problem)")
-    if problem.obstacles:
-        if options.mode != "hierarchical":
-            raise ValueError("obstacles apply to the hierarchical mode only")
-        nq = problem.common_shape.model.nq
-        problem.check_clear("final positions (at the initial angles)",
-                            problem.boundary_params_rows(np.arange(problem.agents),
-                                                         problem.initial_phi())[:, 2 * nq:3 * nq])
+    if problem.obstacles and not isinstance(problem.curve, Slots):
+        problem.clear_start(problem.initial_phi())
     if options.mode == "hierarchical" and options.outer == "offset":
         problem.require_circle("outer 'offset'")
     if options.ordering == "optimal" and not problem.on_circle \
@@ -258,14 +249,29 @@ def check_applicable(problem: FormationProblem, options: FormationOptions) -> No
                                   options.min_separation)
 
 
-def _obstacle_words(met: bool, closest: Clearance, rounds: int) -> tuple[str | None, str]:
-    """After ``rounds`` keep-out rounds that reached the clearance ``closest``: the status
-    ``obstacles_not_cleared`` unless ``met`` (None then), and the words on the obstacles."""
-    if met:
-        return None, f"obstacles cleared after {rounds} round(s) (clearance {closest.distance:.3g})"
-    return "obstacles_not_cleared", (
-        f"obstacles not cleared after {rounds} round(s): agent {closest.agent} comes "
-        f"{-closest.distance:.3g} inside obstacle {closest.obstacle} at t = {closest.time:.6g}")
+def obstacle_check(problem: FormationProblem, trajectories: np.ndarray, status: str,
+                    message: str) -> tuple[str, str, dict]:
+    """The returned paths ``trajectories`` (n, N+1, nq) checked against ``problem``'s
+    obstacles (:func:`~ocpar.formation.obstacles.closest_obstacle`, independently of the
+    inner planes): the status (``obstacles_not_cleared`` if a path of a run that reached its
+    answer is inside one), the message and the result's obstacle fields (clearance, each
+    agent's sides); unchanged and none without obstacles."""
+    if not problem.obstacles:
+        return status, message, {}
+    positions = problem.positions(trajectories)
+    closest = closest_obstacle(positions, problem.obstacles, problem.common_shape.duration)
+    fields = {"obstacle_clearance": closest,
+              "obstacle_sides": passing_sides(positions, problem.obstacles)}
+    if not np.isfinite(closest.distance):
+        return status, message, fields
+    if cleared(closest, problem.obstacles):
+        return status, message + f"; obstacles cleared (min clearance {closest.distance:.3g})", \
+            fields
+    words = (f"agent {closest.agent} comes {-closest.distance:.3g} inside obstacle "
+             f"{closest.obstacle} at t = {closest.time:.6g}")
+    if status in ("converged", "not_converged"):
+        return "obstacles_not_cleared", f"obstacles not cleared: {words}", fields
+    return status, message + f"; {words}", fields
 
 
 #: The verification's checks a status already reports (its message says by how much).
@@ -373,6 +379,8 @@ def solve_formation(
         raise ValueError(f"phi0 must have shape {problem.parameter_shape}, got {phi0.shape}")
     if phi0 is not None:
         phi0 = phi0.ravel()   # the outer solvers see a vector (on a surface agent i's at 2i, 2i+1)
+    if phi0 is not None and problem.obstacles and not slots:
+        phi0 = problem.clear_start(phi0)   # a target inside an obstacle: start elsewhere
     first_trace = len(backend.traces)
     start = time.perf_counter()
     common = {"problem": problem.name, "agents": problem.agents, "backend": backend.name,
@@ -414,8 +422,10 @@ def solve_formation(
                  f"{sol.status}; the returned point breaks the constraints by "
                  f"{sol.violation:.3g}: an infeasible iterate, no answer")
         wall_time_s = time.perf_counter() - start  # before the checks below (reporting)
+        status, message, obstacle_fields = obstacle_check(problem, sol.trajectories, status,
+                                                          words + note)
         verification, status, message = _verified(
-            problem, options, sol.trajectories, sol.controls, sol.phi, status, words + note)
+            problem, options, sol.trajectories, sol.controls, sol.phi, status, message)
         return FormationResult(
             **common,
             status=status,
@@ -435,6 +445,7 @@ def solve_formation(
             controls=sol.controls,
             verification=verification,
             **discrete,
+            **obstacle_fields,
         )
 
     objective = OuterObjective(problem, backend, progress)
@@ -463,8 +474,6 @@ def solve_formation(
                           progress)
         extra = {"required_separation": distance, "separation_rounds": rounds.rounds,
                  "unconstrained_cost": float(np.sum(costs))}
-        if problem.obstacles:   # the same rounds kept the paths clear of them
-            extra |= {"obstacle_rounds": rounds.rounds, "obstacle_clearance": rounds.clearance}
         costs, trajectories, controls = rounds.costs, rounds.q, rounds.u
         inner_solves += rounds.inner_solves
         failed_solves += rounds.failed_solves
@@ -481,26 +490,8 @@ def solve_formation(
                        f"come within {rounds.closest.distance:.6g} (short by "
                        f"{distance - rounds.closest.distance:.3g}; {rounds.dropped} "
                        f"half-space(s) dropped for want of slots over the rounds)")
-        if problem.obstacles:
-            not_cleared, words = _obstacle_words(rounds.cleared, rounds.clearance, rounds.rounds)
-            if not_cleared and rounds.met:
-                status, message = not_cleared, words
-            else:
-                message += f"; {words}"
-    elif problem.obstacles and status != "failed":
-        avoided = avoid_obstacles(problem, backend, phi, sols, options.obstacle_rounds,
-                                  progress)
-        extra = {"obstacle_rounds": avoided.rounds, "obstacle_clearance": avoided.closest,
-                 "unconstrained_cost": float(np.sum(costs))}
-        costs, trajectories, controls = avoided.costs, avoided.q, avoided.u
-        inner_solves += avoided.inner_solves
-        failed_solves += avoided.failed_solves
-        retries += avoided.retries
-        not_cleared, words = _obstacle_words(avoided.met, avoided.closest, avoided.rounds)
-        if not_cleared:
-            status, message = not_cleared, words
-        else:
-            message += f"; {words}"
+    status, message, obstacle_fields = obstacle_check(problem, trajectories, status, message)
+    extra |= obstacle_fields
     wall_time_s = time.perf_counter() - start
     verification, status, message = _verified(problem, options, trajectories, controls, phi,
                                                status, message)

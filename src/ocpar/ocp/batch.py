@@ -86,11 +86,7 @@ class MappedNlp:
         self.nx, self.ng = x.numel(), g.numel()
         self.solver = ca.nlpsol(name, "sqpmethod", {"x": x, "p": p, "f": f, "g": g},
                                 sqp_options(tol, max_iter))
-        lam_g, lam_x = ca.SX.sym("lam_g", self.ng), ca.SX.sym("lam_x", self.nx)
-        stationarity = ca.gradient(f + ca.dot(lam_g, g), x) + lam_x
-        self.residuals = ca.Function(
-            f"{name}_kkt", [x, p, lam_g, lam_x],
-            [g, ca.norm_inf(stationarity), ca.norm_inf(ca.gradient(f, x))])
+        self.residuals = kkt_residuals(name, x, p, f, g)
         self._mapped = lru_cache(maxsize=16)(self._map)
 
     def _map(self, columns: int) -> tuple[ca.Function, ca.Function, ca.Function | None]:
@@ -119,17 +115,8 @@ class MappedNlp:
         x, lam_g, lam_x = (np.asarray(out[k]).T for k in ("x", "lam_g", "lam_x"))
         g, stationarity, gradient = (np.asarray(r) for r in residuals(x.T, p.T, lam_g.T,
                                                                       lam_x.T))
-        g = g.T
-        tol = self.kkt_tol
-        primal = np.maximum(np.max(np.maximum(lbg - g, g - ubg), axis=1, initial=0.0),
-                            np.max(np.maximum(lbx - x, x - ubx), axis=1, initial=0.0))
-        complementarity = np.maximum(
-            _complementarity(lam_g, g, lbg, ubg), _complementarity(lam_x, x, lbx, ubx))
-        scale = 1.0 + np.abs(gradient.ravel())
-        ok = ((primal <= tol * (1.0 + np.max(np.abs(p), axis=1)))
-              & (stationarity.ravel() <= tol * scale)
-              & (complementarity <= tol * scale)
-              & np.all(np.isfinite(x), axis=1))
+        ok = kkt_met(x, p, lam_g, lam_x, g.T, stationarity.ravel(), gradient.ravel(),
+                     (lbg, ubg, lbx, ubx), self.kkt_tol)
         if post is None:
             extra = np.zeros((len(p), 0))
         else:  # the map stacks the (r, c) outputs side by side: (r, k c) -> (k, r c)
@@ -137,6 +124,34 @@ class MappedNlp:
             extra = value.reshape(value.shape[0], len(p), -1).transpose(1, 2, 0).reshape(
                 len(p), -1)
         return x, np.asarray(out["f"]).ravel(), lam_g, np.asarray(out["lam_p"]).T, ok, extra
+
+
+def kkt_residuals(name: str, x: ca.SX, p: ca.SX, f: ca.SX, g: ca.SX) -> ca.Function:
+    """(x, p, λ_g, λ_x) ↦ (g, |∇_x L|_∞, |∇f|_∞) of the NLP min f(x, p) s.t. g(x, p) in its
+    bounds, L = f + λ_gᵀg + λ_xᵀx: what :func:`kkt_met` checks a returned point with."""
+    lam_g, lam_x = ca.SX.sym("lam_g", g.numel()), ca.SX.sym("lam_x", x.numel())
+    stationarity = ca.gradient(f + ca.dot(lam_g, g), x) + lam_x
+    return ca.Function(f"{name}_kkt", [x, p, lam_g, lam_x],
+                       [g, ca.norm_inf(stationarity), ca.norm_inf(ca.gradient(f, x))])
+
+
+def kkt_met(x: np.ndarray, p: np.ndarray, lam_g: np.ndarray, lam_x: np.ndarray,
+            g: np.ndarray, stationarity: np.ndarray, gradient: np.ndarray,
+            bounds: tuple[np.ndarray, ...], tol: float) -> np.ndarray:
+    """Whether each of k returned points (rows of x (k, nx), p, λ_g, λ_x, g (k, ng), and the
+    residuals (k,) of :func:`kkt_residuals`) meets the KKT conditions to ``tol``: primal
+    infeasibility under ``bounds`` (lbg, ubg, lbx, ubx) at most ``tol`` (1 + max |p|),
+    stationarity and complementarity at most ``tol`` (1 + |∇f|_∞), x finite. (k,) bool."""
+    lbg, ubg, lbx, ubx = bounds
+    primal = np.maximum(np.max(np.maximum(lbg - g, g - ubg), axis=1, initial=0.0),
+                        np.max(np.maximum(lbx - x, x - ubx), axis=1, initial=0.0))
+    complementarity = np.maximum(
+        _complementarity(lam_g, g, lbg, ubg), _complementarity(lam_x, x, lbx, ubx))
+    scale = 1.0 + np.abs(gradient)
+    return ((primal <= tol * (1.0 + np.max(np.abs(p), axis=1)))
+            & (stationarity <= tol * scale)
+            & (complementarity <= tol * scale)
+            & np.all(np.isfinite(x), axis=1))
 
 
 def _blocks(rows: np.ndarray) -> list[np.ndarray]:

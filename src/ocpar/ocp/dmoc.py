@@ -56,11 +56,30 @@ The continuous path DMOC represents is linear between nodes with constant veloci
 control on each interval, so a constraint of ``v`` and ``u`` alone (a thrust limit |u| ≤
 u_max, a speed limit) holds at all times, and one convex in ``q`` (a half-space, a ball or
 an ellipsoid to stay *inside*, a corridor) holds on the whole path when it holds at the
-nodes; a non-convex one (staying *outside* an obstacle) can be broken between nodes, which
-only a check of the segments can rule out (the formation's obstacle rounds). They are
+nodes; a non-convex one (staying *outside* an obstacle) can be broken between nodes: that is
+what ``obstacles`` (below) impose exactly, a separating plane per interval. They are
 inequalities: the ``newton`` solver takes equalities only, so a shape with path constraints
 needs ``sqpmethod`` or ``ipopt``; ``end_hessian`` comes from the active set where a row is
 active (as at a control bound).
+
+Obstacles (optional, ``DmocShape.obstacles``, :mod:`ocpar.ocp.obstacles`): ellipsoids
+(spheres) and half-spaces the positions r(q) (the d entries ``obstacle_positions``) stay out
+of at all times of the continuous path. Each interval gets one separating plane n ∈ R^d per
+ellipsoid as decision variables (appended to w, interval by interval, ellipsoid by
+ellipsoid), with the rows 1 − |n|² ≥ 0, n·A(r(q_k) − c) − 1 ≥ 0 and n·A(r(q_{k+1}) − c) − 1 ≥ 0
+(exact: the segment is then at scaled distance ≥ 1 from the centre, and such a plane exists
+whenever it is; on the first and last intervals the boundary node's row binds n); a
+half-space n·r(q_k) ≥ b at the free nodes. The rows come after the path rows. Which side a
+path passes an ellipsoid on is the guess's choice: from the default guess (a task without
+one), where its path enters an ellipsoid, every side of it
+(:func:`~ocpar.ocp.obstacles.side_guesses`) is solved and the cheapest solution kept (ties:
+the first, the side of the path's point nearest the centre), in the same solve; a guess
+without planes gets each interval's nearest-point direction
+(:func:`~ocpar.ocp.obstacles.guess_planes`).
+``end_hessian`` comes from the active set with the planes made canonical
+(:func:`~ocpar.ocp.obstacles.canonical_planes`: unique where an obstacle binds; fixed, as at
+a bound, where none does, their variables being free there). Inequalities: ``sqpmethod``
+or ``ipopt``.
 
 A time-dependent Lagrangian gives each interval its own L_d (see
 :class:`~ocpar.models.MechanicalSystem`). Holonomic constraints c(q) = 0 (e.g. a unit
@@ -71,7 +90,9 @@ c(q_k) = 0 at the inner nodes (the boundary nodes are data); λ is empty otherwi
 
 from __future__ import annotations
 
-from collections.abc import Callable, Iterator
+import dataclasses
+import itertools
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
 from functools import cached_property
 from typing import Any
@@ -81,7 +102,7 @@ import numpy as np
 
 from ocpar.bsp.columns import LISTED, SHARED, STACKED, VALUES, Columns
 from ocpar.models.mechanical import MechanicalSystem
-from ocpar.ocp.batch import SOLVERS, KktNewton, MappedNlp
+from ocpar.ocp.batch import SOLVERS, KktNewton, MappedNlp, kkt_met, kkt_residuals
 from ocpar.ocp.constraints import (
     CompiledConstraint,
     CompiledFunction,
@@ -90,8 +111,23 @@ from ocpar.ocp.constraints import (
     compile_constraints,
     compile_function,
 )
-from ocpar.ocp.contract import InnerSolution, call_nlpsol, check_params, transcription
+from ocpar.ocp.contract import (
+    InnerSolution,
+    NlpCall,
+    call_nlpsol,
+    check_params,
+    transcription,
+)
 from ocpar.ocp.ipopt import ipopt_options
+from ocpar.ocp.obstacles import (
+    Obstacle,
+    canonical_planes,
+    check_obstacles,
+    ellipsoids,
+    guess_planes,
+    obstacle_rows,
+    side_guesses,
+)
 from ocpar.ocp.sensitivity import cost_hessian_function
 
 #: Newton steps the ``newton`` solver takes on a batch at most (one per call: a QP such as
@@ -101,6 +137,10 @@ NEWTON_ROUNDS = 8
 
 #: Offset b of an unused keep-out slot (with normal 0: the row 0 ≥ b is never active).
 UNUSED_OFFSET = -1.0
+
+#: IPOPT statuses of a solve that stopped where rounding stops progress: a success if the
+#: returned point meets the KKT check (:meth:`DmocTranscription._checked`).
+ROUNDING_STOPS = ("Search_Direction_Becomes_Too_Small", "Solved_To_Acceptable_Level")
 
 #: Status of a batched solve, by the outcome of its KKT check.
 BATCH_STATUS = {True: "Solve_Succeeded", False: "KKT_Check_Failed"}
@@ -126,7 +166,12 @@ class DmocShape:
     :class:`~ocpar.ocp.constraints.PathConstraint` objects of ``q``, ``v`` and ``u`` (module
     docstring), compiled when the shape is built. ``running_cost``: C(q, v, u) ≥ 0, a scalar
     function whose parameter names (among ``q``, ``v``, ``u``) pick its arguments (module
-    docstring; None: |u|², the NLP of old).
+    docstring; None: |u|², the NLP of old). ``obstacles``:
+    :class:`~ocpar.ocp.obstacles.Ellipsoid` and :class:`~ocpar.ocp.obstacles.HalfSpace`
+    obstacles in position space, kept
+    clear exactly on the continuous path (module docstring; none: the NLP of old), on the
+    configuration entries ``obstacle_positions`` (default: the first d, d the obstacles'
+    dimension).
     """
 
     model: MechanicalSystem
@@ -141,6 +186,8 @@ class DmocShape:
     control_bounds: tuple[tuple[float, float], ...] | None = None
     path_constraints: tuple[PathConstraint | CompiledConstraint, ...] = ()
     running_cost: Callable[..., Any] | CompiledFunction | None = None
+    obstacles: tuple[Obstacle, ...] = ()
+    obstacle_positions: tuple[int, ...] = ()
 
     def __post_init__(self) -> None:
         nq, nu = self.model.nq, self.model.nu
@@ -176,10 +223,33 @@ class DmocShape:
         if self.path_constraints and self.solver == "newton":
             raise ValueError("solver: path constraints are inequalities and the newton solver "
                              "takes equalities only; choose sqpmethod or ipopt")
+        self._check_obstacles()
         model_intervals = getattr(self.model, "intervals", None)
         if model_intervals is not None and model_intervals != self.intervals:
             raise ValueError(f"the model is tabulated on {model_intervals} intervals, the "
                              f"DMOC shape has {self.intervals}")
+
+    def _check_obstacles(self) -> None:
+        """``obstacles`` (a tuple of obstacles of one dimension d ≤ nq) and
+        ``obstacle_positions`` (d distinct configuration entries, default the first d), or
+        ValueError naming the field."""
+        if not self.obstacles:
+            if self.obstacle_positions:
+                raise ValueError("obstacle_positions needs obstacles")
+            return
+        first = self.obstacles[0] if isinstance(self.obstacles, tuple | list) else None
+        dim = getattr(first, "dim", 0)
+        object.__setattr__(self, "obstacles", check_obstacles(self.obstacles, dim))
+        positions = tuple(self.obstacle_positions) or tuple(range(dim))
+        if not (len(positions) == dim <= self.model.nq and len(set(positions)) == dim
+                and all(isinstance(i, int | np.integer) and 0 <= i < self.model.nq
+                        for i in positions)):
+            raise ValueError(f"obstacle_positions: must be {dim} distinct entries of the "
+                             f"{self.model.nq} configuration entries, got {positions}")
+        object.__setattr__(self, "obstacle_positions", tuple(int(i) for i in positions))
+        if self.solver == "newton":
+            raise ValueError("solver: obstacles are inequalities and the newton solver takes "
+                             "equalities only; choose sqpmethod or ipopt")
 
     @property
     def n_keep_out(self) -> int:
@@ -303,40 +373,61 @@ class DmocTranscription:
         self.control_cost = ca.Function("Jd", [ca.vertcat(q_inner, u_all), p], [control_cost])
         penalty = p[-1] * ca.sum1(slack) if shape.keep_out_slots else 0
 
-        w = ca.vertcat(q_inner, u_all, lam, slack)
+        #: The obstacles' planes (N m_e d: interval by interval, ellipsoid by ellipsoid).
+        balls = ellipsoids(shape.obstacles)
+        planes = ca.SX.sym("planes", n * len(balls) * len(shape.obstacle_positions))
+        obstacle = obstacle_rows(shape.obstacles, [q[list(shape.obstacle_positions)]
+                                                   for q in qs], planes)
+        w = ca.vertcat(q_inner, u_all, lam, slack, planes)
         self.nw = w.numel()
         self.n_params = shape.n_params
         n_eq = nq * (n + 1) + nc * (n - 1)
         self.n_path = path.count
-        self.ng = n_eq + len(keep_out) + path.count
-        #: Constraint bounds: the equations = 0, the keep-out rows ≥ 0, then the path rows'.
-        self.lbg = np.concatenate([np.zeros(n_eq + len(keep_out)), path.lower])
-        self.ubg = np.concatenate([np.zeros(n_eq), np.full(len(keep_out), np.inf), path.upper])
+        #: Inequality rows after the equations and keep-outs: the path rows, the obstacles'.
+        self.n_rows = path.count + len(obstacle)
+        self.n_planes = planes.numel()
+        self.ng = n_eq + len(keep_out) + self.n_rows
+        #: Constraint bounds: the equations = 0, the keep-out rows ≥ 0, the path rows',
+        #: the obstacle rows ≥ 0.
+        self.lbg = np.concatenate([np.zeros(n_eq + len(keep_out)), path.lower,
+                                   np.zeros(len(obstacle))])
+        self.ubg = np.concatenate([np.zeros(n_eq), np.full(len(keep_out), np.inf), path.upper,
+                                   np.full(len(obstacle), np.inf)])
         #: Variable bounds: the controls within ``control_bounds``, the slacks ≥ 0, the rest
         #: free.
         self.u_lower, self.u_upper = (np.array(bound) for bound in zip(
             *(shape.control_bounds or [(-np.inf, np.inf)] * nu), strict=True))
         n_path = q_inner.numel()
         self.lbx = np.concatenate([np.full(n_path, -np.inf), np.tile(self.u_lower, n),
-                                   np.full(lam.numel(), -np.inf), np.zeros(slack.numel())])
+                                   np.full(lam.numel(), -np.inf), np.zeros(slack.numel()),
+                                   np.full(planes.numel(), -np.inf)])
         self.ubx = np.concatenate([np.full(n_path, np.inf), np.tile(self.u_upper, n),
-                                   np.full(lam.numel() + slack.numel(), np.inf)])
+                                   np.full(lam.numel() + slack.numel() + planes.numel(),
+                                           np.inf)])
         self.cost = ca.Function("J", [w, p], [control_cost + penalty], ["w", "p"], ["J"])
-        self.constraints = ca.Function("g", [w, p], [ca.vertcat(*eqs, *keep_out, path.expr)],
+        self.constraints = ca.Function("g", [w, p], [ca.vertcat(*eqs, *keep_out, path.expr,
+                                                                *obstacle)],
                                        ["w", "p"], ["g"])
         self._w, self._p = w, p
         # d²J*/dq_N² from the KKT system holds for equalities only: none with keep-outs; with
         # path constraints that of the equations, valid while no path row is active
         # (the equations through a Function call, as the rows of g: the evaluation graph of
         # old, ~25 % faster to evaluate than the bare expressions)
+        # (the planes' variables are free where no row binds them: that of the equations is
+        # singular there, every solve's comes from the active set, NaN until then)
         equations = ca.Function("g_eq", [w, p], [ca.vertcat(*eqs)])
-        self.end_hessian = None if shape.keep_out_slots else _on_equations(cost_hessian_function(
-            "dmoc", w, p, self.cost(w, p), equations(w, p), slice(2 * nq, 3 * nq)), self.ng)
+        self.end_hessian = None if shape.keep_out_slots else ca.Function(
+            "dmoc_no_hessian", [w, ca.SX.sym("lam_g", self.ng), p],
+            [ca.DM(np.full((nq, nq), np.nan))]) if self.n_planes else \
+            _on_equations(cost_hessian_function(
+                "dmoc", w, p, self.cost(w, p), equations(w, p), slice(2 * nq, 3 * nq)), self.ng)
         # with control bounds or path rows, that of the active set where one is active
         self.active_hessian = None if shape.keep_out_slots or not self.has_inequalities else \
             cost_hessian_function("dmoc", w, p, self.cost(w, p), self.constraints(w, p),
                                   slice(2 * nq, 3 * nq), active_set=True)
         self.path_rows = ca.Function("path", [w, p], [path.expr], ["w", "p"], ["c"])
+        self.obstacle_rows = ca.Function("obstacle", [w, p], [ca.vertcat(*obstacle)],
+                                         ["w", "p"], ["c"])
 
     def _keep_out_rows(self, data: ca.SX, qs: list[ca.SX], slack: ca.SX) -> list[ca.SX]:
         """n·r(q) − b + σ at the free nodes q of each interval k, slot s (b the slot's offset
@@ -374,25 +465,70 @@ class DmocTranscription:
         return ca.nlpsol("dmoc", "ipopt", nlp,
                          ipopt_options(self.shape.tol, self.shape.max_iter, **exact))
 
+    @cached_property
+    def kkt_residuals(self) -> ca.Function:
+        """(w, p, λ_g, λ_x) ↦ the KKT residuals (:func:`~ocpar.ocp.batch.kkt_residuals`)."""
+        w, p = self._w, self._p
+        return kkt_residuals("dmoc", w, p, self.cost(w, p), self.constraints(w, p))
+
+    def _checked(self, call: NlpCall, params: np.ndarray) -> NlpCall:
+        """``call`` (an IPOPT solve at ``params``), counted a success where IPOPT stopped at
+        rounding (:data:`ROUNDING_STOPS`: its scaled tolerance out of reach, e.g. costs of
+        1e5 at ``tol`` 1e-12) and the returned point meets the KKT conditions to ``kkt_tol``,
+        the batched solvers' own test (:func:`~ocpar.ocp.batch.kkt_met`)."""
+        if call.success or call.out is None or call.status not in ROUNDING_STOPS:
+            return call
+        w, lam_g, lam_x = (np.asarray(call.out[k]).ravel() for k in ("x", "lam_g", "lam_x"))
+        g, stationarity, gradient = (np.asarray(r).ravel()
+                                     for r in self.kkt_residuals(w, params, lam_g, lam_x))
+        bounds = (self.lbg, self.ubg, *((self.lbx, self.ubx) if self.has_inequalities
+                                       else (-np.inf, np.inf)))
+        if kkt_met(w[None], params[None], lam_g[None], lam_x[None], g[None], stationarity,
+                   gradient, bounds, self.shape.kkt_tol)[0]:
+            call.success = True
+            call.status += " (KKT check met)"
+        return call
+
     @property
     def has_inequalities(self) -> bool:
         """Whether the NLP has inequalities (keep-out rows, control bounds, path rows)."""
         return (bool(self.shape.keep_out_slots) or self.shape.control_bounds is not None
-                or bool(self.n_path))
+                or bool(self.n_rows))
 
-    def _activity(self, w: np.ndarray, params: np.ndarray) -> np.ndarray:
+    def _activity(self, w: np.ndarray, params: np.ndarray, lam_g: np.ndarray
+                  ) -> tuple[np.ndarray, np.ndarray]:
         """The activity mask (k, ng + nw) of solutions w (k, nw) with ``params``
-        (k, n_params): 1 for the equations, for path rows and controls at a bound (to within
-        ``kkt_tol`` relative), 0 elsewhere (:mod:`ocpar.ocp.sensitivity`)."""
-        k, n_eq, tol = len(w), self.ng - self.n_path, self.shape.kkt_tol
+        (k, n_params) and multipliers ``lam_g`` (k, ng): 1 for the equations, for path and
+        obstacle rows and controls at a bound (to within ``kkt_tol`` relative; an ellipsoid's
+        rows also where they carry a multiplier above ``kkt_tol`` of the largest) and for the
+        planes no obstacle row binds (frozen), 0 elsewhere (:mod:`ocpar.ocp.sensitivity`);
+        and w with its planes made canonical (:func:`~ocpar.ocp.obstacles.canonical_planes`),
+        where the mask holds."""
+        k, n_eq, tol = len(w), self.ng - self.n_rows, self.shape.kkt_tol
         mask = np.zeros((k, self.ng + self.nw))
         mask[:, :n_eq] = 1.0
         if self.n_path:
             rows = np.asarray(self.path_rows.map(k)(w.T, params.T)).reshape(self.n_path, k).T
-            mask[:, n_eq:self.ng] = _near(rows, self.lbg[n_eq:], self.ubg[n_eq:], tol)
+            end = n_eq + self.n_path
+            mask[:, n_eq:end] = _near(rows, self.lbg[n_eq:end], self.ubg[n_eq:end], tol)
         if self.shape.control_bounds is not None:
             mask[:, self.ng:] = _near(w, self.lbx, self.ubx, tol)
-        return mask
+        if self.n_rows > self.n_path:
+            w = w.copy()
+            q, _ = self.unpack_many(w, params)
+            start = n_eq + self.n_path
+            ellipsoid_rows = lam_g[:, start:start + 3 * self.n_planes
+                                   // len(self.shape.obstacle_positions)]
+            loaded = np.abs(ellipsoid_rows) > tol * (1 + np.max(np.abs(lam_g), axis=1,
+                                                                  keepdims=True))
+            planes, binding, frozen = canonical_planes(
+                self.shape.obstacles, q[..., list(self.shape.obstacle_positions)], tol, loaded)
+            w[:, self.nw - self.n_planes:] = planes
+            rows = np.asarray(self.obstacle_rows.map(k)(w.T, params.T)).reshape(-1, k).T
+            mask[:, start:self.ng] = _near(rows, 0.0, np.inf, tol)
+            mask[:, start:start + binding.shape[1]] = binding
+            mask[:, self.ng + self.nw - self.n_planes:] = frozen
+        return mask, w
 
     def _hessians(self, w: np.ndarray, lam_g: np.ndarray, params: np.ndarray,
                   equality: np.ndarray) -> np.ndarray:
@@ -401,9 +537,11 @@ class DmocTranscription:
         of the active set (:mod:`ocpar.ocp.sensitivity`)."""
         if self.active_hessian is None:
             return equality
-        mask = self._activity(w, params)
+        mask, w = self._activity(w, params, lam_g)
         finite = np.all(np.isfinite(w), axis=1) & np.all(np.isfinite(lam_g), axis=1)
-        active = np.flatnonzero(mask[:, self.ng - self.n_path:].any(axis=1) & finite)
+        # with planes every solve's: their variables are free where no row binds them
+        active = np.flatnonzero((mask[:, self.ng - self.n_rows:].any(axis=1)
+                                 | bool(self.n_planes)) & finite)
         hessians = equality.copy()
         hessians[~finite] = np.nan
         for k in active:  # one call each: a singular active set fails alone (NaN)
@@ -443,16 +581,46 @@ class DmocTranscription:
         path = (h00 * q0 + h10 * t * v0 + h01 * qn + h11 * t * vn).reshape(-1, nq)
         if self.nc:
             path = self.shape.model.project(path)
-        return np.hstack([path.reshape(k, -1), np.zeros((k, self.nw - path.size // k))])
+        guesses = np.hstack([path.reshape(k, -1), np.zeros((k, self.nw - path.size // k))])
+        return self._with_planes(guesses, params)
+
+    def _with_planes(self, guesses: np.ndarray, params: np.ndarray) -> np.ndarray:
+        """``guesses`` (k, nw) with each interval's planes the nearest-point directions of
+        their paths (:func:`~ocpar.ocp.obstacles.guess_planes`; none without ellipsoids)."""
+        if self.n_planes:
+            q, _ = self.unpack_many(guesses, params)
+            guesses[:, self.nw - self.n_planes:] = guess_planes(
+                self.shape.obstacles, q[..., list(self.shape.obstacle_positions)])
+        return guesses
+
+    def side_guesses(self, guess: np.ndarray, params: np.ndarray) -> np.ndarray:
+        """The guesses (m, nw) of each side of the ellipsoids the path of ``guess`` (nw,)
+        enters, with ``params`` (n_params,) (:func:`~ocpar.ocp.obstacles.side_guesses`; the
+        guess alone if it enters none or the shape has no planes)."""
+        if not self.n_planes:
+            return guess[None]
+        q, _ = self.unpack(guess, params)
+        positions = list(self.shape.obstacle_positions)
+        rows = []
+        for path, planes in side_guesses(self.shape.obstacles, q[:, positions]):
+            row = guess.copy()
+            inner = q[1:-1].copy()
+            inner[:, positions] = path[1:-1]
+            row[:inner.size] = inner.ravel()
+            row[self.nw - self.n_planes:] = planes
+            rows.append(row)
+        return np.array(rows)
 
     def fallback_guesses(self, params: np.ndarray) -> Iterator[np.ndarray]:
         """The straight line from q_0 to q_N (projected onto the constraints, if any), zero
         controls and multipliers."""
-        q0, _, qn, _ = np.asarray(params, float)[:4 * self.nq].reshape(4, self.nq)
+        params = np.asarray(params, float)
+        q0, _, qn, _ = params[:4 * self.nq].reshape(4, self.nq)
         path = q0 + np.arange(1, self.n)[:, None] / self.n * (qn - q0)
         if self.nc:
             path = self.shape.model.project(path)
-        yield np.concatenate([path.ravel(), np.zeros(self.nw - path.size)])
+        yield self.full_guess(np.concatenate([path.ravel(), np.zeros(self.nu * self.n)]),
+                              params)
 
     def warm_start(self, solution: DmocSolution) -> np.ndarray:
         """The guess (inner nodes, controls; λ = 0) that re-solves from ``solution``."""
@@ -491,11 +659,17 @@ class DmocTranscription:
         """Solve for boundary data ``params`` from ``guess`` (default :meth:`default_guess`)
         and constraint multipliers (default 0); a failed solve is returned, not raised."""
         params = check_params(params, self.n_params, "DMOC")
-        x0 = self.default_guess(params) if guess is None else self._full_guess(guess)
+        x0 = self.side_guesses(self.default_guess(params), params) if guess is None \
+            else self.full_guess(guess, params)[None]
         extra = {} if multipliers is None else {"lam_g0": multipliers}
         bounds = {"lbx": self.lbx, "ubx": self.ubx} if self.has_inequalities else {}
-        call = call_nlpsol(self.solver, x0=x0, p=params, lbg=self.lbg, ubg=self.ubg, **bounds,
-                           **extra)
+        calls = [self._checked(call_nlpsol(self.solver, x0=x, p=params, lbg=self.lbg,
+                                           ubg=self.ubg, **bounds, **extra), params)
+                 for x in x0]
+        call = calls[_cheapest([c.out is not None and c.success for c in calls],
+                               [float(c.out["f"]) if c.out is not None else np.nan
+                                for c in calls])]
+        call.solve_time_s = sum(c.solve_time_s for c in calls)
         if call.out is None:
             return self.failure(params, call.status, call.solve_time_s)
         w, lam_g = (np.asarray(call.out[k]).ravel() for k in ("x", "lam_g"))
@@ -509,11 +683,13 @@ class DmocTranscription:
         return DmocSolution(**call.common, cost_gradient=call.cost_gradient,
                             end_hessian=hessian, q=q, u=u)
 
-    def _full_guess(self, guess: np.ndarray) -> np.ndarray:
-        """``guess`` with λ = 0 (and slacks σ = 0) appended if it has none."""
+    def full_guess(self, guess: np.ndarray, params: np.ndarray) -> np.ndarray:
+        """``guess`` with λ = 0, slacks σ = 0 and the planes of its path
+        (:meth:`_with_planes`) appended if it has none (p = ``params``)."""
         x0 = np.asarray(guess, float)
         if x0.size == self.nq * (self.n - 1) + self.nu * self.n:
-            x0 = np.concatenate([x0, np.zeros(self.nw - x0.size)])
+            x0 = self._with_planes(np.concatenate([x0, np.zeros(self.nw - x0.size)])[None],
+                                   np.asarray(params, float)[None])[0]
         return x0
 
     def solve_batch(self, params: np.ndarray, guesses: np.ndarray | list[np.ndarray | None],
@@ -527,13 +703,8 @@ class DmocTranscription:
         if self.batch_solver is None:
             return None
         params = np.asarray(params, float)
-        if isinstance(guesses, np.ndarray) and guesses.shape == (len(params), self.nw):
-            x0 = guesses.astype(float)
-        else:
-            x0 = self.default_guesses(params)
-            for k, guess in enumerate(guesses):
-                if guess is not None:
-                    x0[k] = self._full_guess(guess)
+        tasks = len(params)
+        owner = None   # the task of each candidate, where a task's sides make several
         if isinstance(multipliers, np.ndarray) and multipliers.shape == (len(params), self.ng):
             lam0 = multipliers.astype(float)
         else:
@@ -541,15 +712,38 @@ class DmocTranscription:
             for k, lam in enumerate(multipliers):
                 if lam is not None:
                     lam0[k] = lam
+        if isinstance(guesses, np.ndarray) and guesses.shape == (len(params), self.nw):
+            x0 = guesses.astype(float)
+        else:
+            x0 = self.default_guesses(params)
+            for k, guess in enumerate(guesses):
+                if guess is not None:
+                    x0[k] = self.full_guess(guess, params[k])
+            if self.n_planes:   # each side of the obstacles a default guess enters
+                sides = [self.side_guesses(x, p) if guess is None else x[None]
+                         for x, p, guess in zip(x0, params, guesses, strict=True)]
+                owner = np.repeat(np.arange(tasks), [len(rows) for rows in sides])
+                x0 = np.concatenate(sides)
         try:
             if isinstance(self.batch_solver, KktNewton):
                 rounds = min(NEWTON_ROUNDS, self.shape.max_iter)
                 batch = self.batch_solver.solve(x0, params, lam0, self.lbx, self.ubx, rounds)
             else:
-                batch = self.batch_solver.solve(x0, params, lam0, self.lbg, self.ubg, self.lbx,
-                                                self.ubx)
+                batch = self.batch_solver.solve(
+                    x0, params if owner is None else params[owner],
+                    lam0 if owner is None else lam0[owner], self.lbg, self.ubg, self.lbx,
+                    self.ubx)
         except RuntimeError:
             return None
+        if owner is not None and len(owner) > tasks:   # each task's cheapest side
+            starts = np.searchsorted(owner, np.arange(tasks + 1))
+            success = np.asarray(batch.success, bool)
+            pick = [a + _cheapest(success[a:b], batch.f[a:b])
+                    for a, b in itertools.pairwise(starts.tolist())]
+            batch = dataclasses.replace(
+                batch, x=batch.x[pick], f=batch.f[pick], lam_g=batch.lam_g[pick],
+                lam_p=batch.lam_p[pick], success=batch.success[pick], extra=batch.extra[pick],
+                iterations=None if batch.iterations is None else batch.iterations[pick])
         k = len(params)
         q, u = self.unpack_many(batch.x, params)
         iterations = np.full(k, -1) if batch.iterations is None else batch.iterations
@@ -575,6 +769,14 @@ class DmocTranscription:
             "q": (STACKED, q),
             "u": (STACKED, u),
         })
+
+
+def _cheapest(success: Sequence[bool] | np.ndarray, costs: Sequence[float] | np.ndarray
+              ) -> int:
+    """The index of the cheapest successful solve among candidates with ``success`` and
+    ``costs`` (the first of equal costs; 0 if none succeeded)."""
+    ok = np.flatnonzero(np.asarray(success, bool))
+    return int(ok[np.argmin(np.asarray(costs, float)[ok])]) if len(ok) else 0
 
 
 def _near(values: np.ndarray, lower: np.ndarray, upper: np.ndarray, tol: float) -> np.ndarray:
