@@ -1,5 +1,6 @@
 #!/usr/bin/env python
-"""Cost of the closest approach (``ocpar.formation.separation``) against the number of agents.
+"""Cost of the closest approach (``ocpar.formation.keep_out.separation``) against the number of
+agents.
 
     python scripts/separation_bench.py --output runs/separation-bench
 
@@ -24,7 +25,7 @@ from pathlib import Path
 import numpy as np
 
 from ocpar.examples import formation_point_masses
-from ocpar.formation.separation import closest_approach, interval_closest
+from ocpar.formation.keep_out.separation import closest_approach, interval_closest
 from ocpar.plotting import pyplot, save
 
 INTERVALS = 10

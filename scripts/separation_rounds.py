@@ -8,7 +8,8 @@ For each ordering: the unconstrained solve (its cost, closest approach and the n
 pairs closer than D on the continuous paths), then the same with ``min_separation`` D (cost,
 increase, separation rounds, closest approach, wall time), serially. Writes
 ``separation.json`` and ``separation.png``: the distance of the closest pair over time, all
-pairs (exact on the piecewise-linear paths: :func:`~ocpar.formation.separation.interval_closest`
+pairs (exact on the piecewise-linear paths:
+:func:`~ocpar.formation.keep_out.separation.interval_closest`
 per interval), before and after, against D.
 """
 
@@ -24,7 +25,7 @@ import numpy as np
 
 from ocpar.formation import FormationOptions, solve_formation
 from ocpar.formation.examples import make_example
-from ocpar.formation.separation import close_pairs, interval_closest
+from ocpar.formation.keep_out.separation import close_pairs, interval_closest
 from ocpar.plotting import pyplot, save
 
 

@@ -25,7 +25,7 @@ FACTORIES = textwrap.dedent('''
     import numpy as np
 
     from ocpar.formation import Circle, DmocShape, FormationProblem
-    from ocpar.formation.obstacles import HalfSpace, Sphere
+    from ocpar.formation.keep_out.obstacles import HalfSpace, Sphere
     from ocpar.macs import MacsProblem, Objective
     from ocpar.models import PointMass
     from ocpar.ocp.constraints import PathConstraint

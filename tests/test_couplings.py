@@ -1,4 +1,5 @@
-"""Couplings as objects (:mod:`ocpar.formation.coupling`): equal arc length with a free shift
+"""Couplings as objects (:mod:`ocpar.formation.couplings.coupling`): equal arc length with a free
+shift
 and a user's g(φ) = 0, hierarchical against monolithic, against independent references, the
 same on every backend, and bad couplings refused before anything runs."""
 

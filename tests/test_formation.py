@@ -10,8 +10,7 @@ from conftest import golden
 from ocpar.bsp import open_backend
 from ocpar.examples.formation_point_masses import make as paper_example
 from ocpar.formation import Circle, FormationOptions, solve_formation
-from ocpar.formation.hierarchical import OuterObjective
-from ocpar.formation.potential import (
+from ocpar.formation.couplings.potential import (
     EXPANSION_RATIO,
     circle_coupling,
     coupling,
@@ -21,6 +20,7 @@ from ocpar.formation.potential import (
     respace,
     within_expansion,
 )
+from ocpar.formation.hierarchical import OuterObjective
 from ocpar.formation.verify import DIRECT_COUPLING_MAX_AGENTS, coupling_residual
 
 

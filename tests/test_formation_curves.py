@@ -22,18 +22,18 @@ from ocpar.formation import (
     FormationProblem,
     ParametricCurve,
     PlaneCurve,
-    potential,
     solve_formation,
 )
-from ocpar.formation.hierarchical import OuterObjective, solve_outer_offset
-from ocpar.formation.ordering import optimal_ordering
-from ocpar.formation.potential import (
+from ocpar.formation.couplings import potential
+from ocpar.formation.couplings.potential import (
     coupling,
     coupling_expr,
     coupling_hessp,
     coupling_jacobian,
     relax,
 )
+from ocpar.formation.hierarchical import OuterObjective, solve_outer_offset
+from ocpar.formation.ordering import optimal_ordering
 from ocpar.formation.solve import check_applicable
 from ocpar.models import PointMass
 
@@ -380,7 +380,7 @@ def test_a_users_own_model_on_a_tilted_ellipse():
 def test_circle_closed_form_matches_the_generic_curve_evaluation():
     """The circle's numpy z, z′, z″ against the compiled CasADi derivatives every curve has,
     on a tilted circle in 3-D."""
-    from ocpar.formation.curve import Curve
+    from ocpar.formation.targets.curve import Curve
 
     circle = Circle(radius=3.0, center=np.array([1.0, 2.0, 0.5]),
                     axes=np.array([[1.0, 0.0, 0.0], [0.0, 0.6, 0.8]]))

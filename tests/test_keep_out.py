@@ -13,7 +13,8 @@ from ocpar.__main__ import main
 from ocpar.bsp import open_backend
 from ocpar.examples import formation_halo
 from ocpar.examples.formation_point_masses import make as point_masses
-from ocpar.formation import FormationOptions, keep_out, solve_formation
+from ocpar.formation import FormationOptions, solve_formation
+from ocpar.formation.keep_out import rounds as keep_out
 from ocpar.models import PointMass
 from ocpar.ocp import DmocShape, transcription
 from ocpar.ocp.dmoc import UNUSED_OFFSET

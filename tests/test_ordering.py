@@ -12,6 +12,7 @@ from ocpar.bsp.serial import SerialBackend
 from ocpar.examples import formation_halo
 from ocpar.examples.formation_point_masses import make as paper_example
 from ocpar.formation import Circle, FormationOptions, FormationProblem, solve_formation
+from ocpar.formation.couplings.potential import equidistance_error
 from ocpar.formation.hierarchical import InnerSolveFailed, OuterObjective, solve_outer_offset
 from ocpar.formation.ordering import (
     ORDERINGS,
@@ -22,7 +23,6 @@ from ocpar.formation.ordering import (
     optimal_ordering,
     slot_base,
 )
-from ocpar.formation.potential import equidistance_error
 from ocpar.models import PointMass
 from ocpar.ocp import DmocShape, solve_task, solve_tasks
 

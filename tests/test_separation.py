@@ -1,4 +1,4 @@
-"""Closest approach between agents on continuous paths (ocpar.formation.separation)."""
+"""Closest approach between agents on continuous paths (ocpar.formation.keep_out.separation)."""
 
 from __future__ import annotations
 
@@ -11,7 +11,7 @@ import pytest
 from ocpar.examples import formation_halo
 from ocpar.examples.formation_point_masses import make as paper_example
 from ocpar.formation import solve_formation
-from ocpar.formation.separation import (
+from ocpar.formation.keep_out.separation import (
     check_separation_feasible,
     close_pairs,
     closest_approach,

@@ -1,4 +1,4 @@
-"""Formations on surfaces (two parameters per agent, :mod:`ocpar.formation.surface`): the
+"""Formations on surfaces (two parameters per agent, :mod:`ocpar.formation.targets.surface`): the
 geometry and the outer derivatives against finite differences, 8 agents onto a sphere with
 the potential coupling in both readings against an independent enumeration and an exact
 global optimum over rotations and assignments, the same result on every backend, and bad
@@ -28,12 +28,12 @@ from ocpar.formation import (
     FormationProblem,
     ParametricSurface,
     SphereSurface,
-    critical_sets,
     solve_formation,
 )
-from ocpar.formation.critical_sets import CriticalSet, _verify
+from ocpar.formation.couplings import critical_sets
+from ocpar.formation.couplings.critical_sets import CriticalSet, _verify
+from ocpar.formation.couplings.potential import tangential_potential_gradient
 from ocpar.formation.hierarchical import OuterObjective
-from ocpar.formation.potential import tangential_potential_gradient
 from ocpar.models import PointMass
 
 N_AGENTS = 8

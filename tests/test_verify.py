@@ -26,7 +26,7 @@ from ocpar.formation import (
 )
 from ocpar.formation.plot import plot_formation
 from ocpar.formation.solve import _verified
-from ocpar.formation.surface import SphereSurface
+from ocpar.formation.targets.surface import SphereSurface
 from ocpar.formation.verify import NEAR_COLLISION_FRACTION, verify_formation
 from ocpar.models import PointMass
 from ocpar.ocp.columns_eval import evaluate_columns

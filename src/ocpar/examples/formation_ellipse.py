@@ -8,7 +8,7 @@ formations) or equal spacing in arc length with a free common shift (``equal-arc
 import numpy as np
 
 from ocpar.formation import DmocShape, Ellipse, FormationProblem
-from ocpar.formation.coupling import EqualArcLength, PotentialCoupling
+from ocpar.formation.couplings.coupling import EqualArcLength, PotentialCoupling
 from ocpar.models import PointMass
 
 #: The couplings this example offers, by name.

@@ -1,5 +1,5 @@
 """A new worked example (in none of the papers): point masses in 3-D onto a sphere or an
-ellipsoid, each agent with two parameters (:mod:`ocpar.formation.surface`). ``agents`` unit
+ellipsoid, each agent with two parameters (:mod:`ocpar.formation.targets.surface`). ``agents`` unit
 point masses start at rest on a slanted line below the target and end at rest on it after
 t = 2 (N = 10 DMOC intervals), minimising Σ∫|u|² dt, their final points coupled by the
 formation paper's potential G = Σ 1/|z_i − z_j|² on the surface: ``surface`` ``sphere``
@@ -9,7 +9,7 @@ cost chooses) or ``ellipsoid`` (semi-axes 4, 3, 2 about the origin: isolated set
 import numpy as np
 
 from ocpar.formation import DmocShape, FormationProblem
-from ocpar.formation.surface import EllipsoidSurface, SphereSurface
+from ocpar.formation.targets.surface import EllipsoidSurface, SphereSurface
 from ocpar.models import PointMass
 
 #: The targets this example offers, by name.

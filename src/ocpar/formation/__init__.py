@@ -25,14 +25,24 @@ The paper's examples are built the same way in :mod:`ocpar.examples`
 (``formation_point_masses``, ``formation_halo``; ``formation_ellipse`` is a new one).
 """
 
-from ocpar.formation.coupling import Coupling, EqualArcLength, PotentialCoupling, UserCoupling
-from ocpar.formation.curve import Circle, Curve, Ellipse, ParametricCurve, PlaneCurve
-from ocpar.formation.obstacles import Ellipsoid, HalfSpace, Sphere
+from ocpar.formation.couplings.coupling import (
+    Coupling,
+    EqualArcLength,
+    PotentialCoupling,
+    UserCoupling,
+)
+from ocpar.formation.keep_out.obstacles import Ellipsoid, HalfSpace, Sphere
 from ocpar.formation.problem import FormationProblem
 from ocpar.formation.result import FormationResult
-from ocpar.formation.slots import Slots
 from ocpar.formation.solve import MODES, FormationOptions, solve_formation
-from ocpar.formation.surface import EllipsoidSurface, ParametricSurface, SphereSurface, Surface
+from ocpar.formation.targets.curve import Circle, Curve, Ellipse, ParametricCurve, PlaneCurve
+from ocpar.formation.targets.slots import Slots
+from ocpar.formation.targets.surface import (
+    EllipsoidSurface,
+    ParametricSurface,
+    SphereSurface,
+    Surface,
+)
 from ocpar.formation.verify import Verification, verify_formation
 from ocpar.ocp import DmocShape
 

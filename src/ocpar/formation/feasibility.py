@@ -4,7 +4,8 @@ Two mechanisms, one per kind of knowledge:
 
 * **Exact reach sets** (box- or norm-limited point masses at rest at both ends,
   :mod:`ocpar.ocp.reach`): along a family of formations φ(θ) (a circle's common rotation,
-  equal arc length's shift: :class:`~ocpar.formation.coupling.ShiftFamily`) agent i's target
+  equal arc length's shift: :class:`~ocpar.formation.couplings.coupling.ShiftFamily`) agent i's
+  target
   is reachable where e_i(θ) = excess of z(φ_i(θ)) − start_i over its reach set is ≤ 0;
   the feasible shifts are where E(θ) = max_i e_i(θ) ≤ 0 (:func:`feasible_window`: E on a
   grid of :data:`WINDOW_GRID` shifts over one period, the interval's ends by bisection).
@@ -28,10 +29,10 @@ import numpy as np
 from scipy.optimize import brentq, minimize_scalar
 
 from ocpar.bsp import Backend
-from ocpar.formation.coupling import ShiftFamily
+from ocpar.formation.couplings.coupling import ShiftFamily
 from ocpar.formation.problem import FormationProblem
-from ocpar.formation.slots import Slots
-from ocpar.formation.surface import Surface
+from ocpar.formation.targets.slots import Slots
+from ocpar.formation.targets.surface import Surface
 from ocpar.ocp import solve_tasks
 
 #: Shifts (per period 2π) at which the largest reach excess E(θ) is evaluated.
@@ -153,7 +154,7 @@ def _end(at, centre: float, direction: float, spacing: float, grid: np.ndarray,
 
 
 def feasible_start(problem: FormationProblem, phi0: np.ndarray) -> np.ndarray:
-    """``phi0`` moved along its family (:meth:`~ocpar.formation.coupling.Coupling.family`)
+    """``phi0`` moved along its family (:meth:`~ocpar.formation.couplings.coupling.Coupling.family`)
     to the feasible start of :func:`feasible_window`; ``phi0`` itself where there is no
     family or no exact reach set. Raises ValueError if no formation of the family is
     feasible."""

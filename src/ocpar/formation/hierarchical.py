@@ -2,7 +2,7 @@
 DMOC solves per outer evaluation.
 
 Outer problem: min_φ Σ_i Ĵ_i(φ_i) s.t. c(φ) = 0 (the problem's coupling,
-:mod:`ocpar.formation.coupling`; by default the scaled g = dG/dφ of the paper's
+:mod:`ocpar.formation.couplings.coupling`; by default the scaled g = dG/dφ of the paper's
 potential). The outer gradient comes from the inner sensitivities (envelope theorem):
 dĴ_i/dφ_i = (dJ*_i/dq_N) · dq_N/dφ_i, dq_N/dφ_i = z′(φ_i) in the position entries, for any
 curve z. Each Ĵ_i depends on φ_i alone, so the Hessian of J is diagonal,
@@ -30,17 +30,17 @@ from scipy.spatial.transform import Rotation
 
 from ocpar.bsp import Backend
 from ocpar.bsp.columns import Columns
-from ocpar.formation.coupling import (
+from ocpar.formation.couplings.coupling import (
     PROJECTION_TOL,
     RANK_RTOL,
     PotentialCoupling,
     ShiftFamily,
 )
+from ocpar.formation.couplings.potential import equidistance_error
 from ocpar.formation.feasibility import feasible_window, inner_costs
-from ocpar.formation.potential import equidistance_error
 from ocpar.formation.problem import FormationProblem
-from ocpar.formation.slots import Slots
-from ocpar.formation.surface import EllipsoidSurface, Surface
+from ocpar.formation.targets.slots import Slots
+from ocpar.formation.targets.surface import EllipsoidSurface, Surface
 from ocpar.ocp.endpoint_agents import agent_tasks, solve_agents
 
 #: Second iterate of the offset search (rad): 1/60 of a slot for the paper's 60 agents.
@@ -259,7 +259,7 @@ def solve_outer_newton(
     objective: OuterObjective, phi0: np.ndarray, tol: float, max_iterations: int
 ) -> tuple[np.ndarray, int, bool, str]:
     """Projected Newton on the feasible manifold c(φ) = 0 of the problem's coupling
-    (:mod:`ocpar.formation.coupling`), with the diagonal Hessian
+    (:mod:`ocpar.formation.couplings.coupling`), with the diagonal Hessian
     (:meth:`OuterObjective.hessian_diagonal`). Returns (φ, iterations, success, message); one
     superstep per iterate gives J, its gradient g and Hessian diagonal h.
 
@@ -268,7 +268,7 @@ def solve_outer_newton(
       θ alone (:func:`_shift_newton`): a handful of supersteps at any n.
     * Where they are isolated (the potential off a circle: dc/dφ, the scaled Hessian of the
       potential, is nonsingular at its minima, if nearly singular for many agents: see
-      :func:`~ocpar.formation.potential.relax`), the projection of φ0 is the answer: one
+      :func:`~ocpar.formation.couplings.potential.relax`), the projection of φ0 is the answer: one
       evaluation (0 iterations), converged if it reached max |c_k| ≤ :data:`PROJECTION_TOL`.
     * On a surface with rotational symmetry (a sphere, an ellipsoid of revolution) the
       potential coupling's solutions are isolated up to its rotations: Newton's method over them,
@@ -402,7 +402,7 @@ def tangent_newton(objective: OuterObjective, phi: np.ndarray, tol: float,
     W = blockdiag(:meth:`OuterObjective.hessian_blocks`) − d²(λᵀc)/dφ² the Lagrangian's
     Hessian, the step −Z (ZᵀWZ)⁻¹ Zᵀg (the reduced Hessian's eigenvalues taken in absolute
     value, its step no longer than :data:`MAX_OFFSET_STEP`), retracted onto c = 0
-    (:meth:`~ocpar.formation.coupling.Coupling.retract`); a step that raises J beyond
+    (:meth:`~ocpar.formation.couplings.coupling.Coupling.retract`); a step that raises J beyond
     rounding, whose inner solves fail, or from which the retraction does not reach
     max |c_k| ≤ :data:`PROJECTION_TOL`, is halved. Converged when |Zᵀg|_∞ ≤ ``tol`` Σ|g_i|
     with ZᵀWZ positive definite, or a step was at most ``tol``·(1 + |φ|_∞)."""
@@ -451,10 +451,10 @@ def tangent_newton(objective: OuterObjective, phi: np.ndarray, tol: float,
 def rotation_newton(objective: OuterObjective, phi: np.ndarray, tol: float,
                     max_iterations: int) -> tuple[np.ndarray, int, bool, str]:
     """Newton's method on J over the rotations that map the problem's ellipsoid onto itself
-    (:attr:`~ocpar.formation.surface.EllipsoidSurface.symmetry_axes` A (k, 3) about its
+    (:attr:`~ocpar.formation.targets.surface.EllipsoidSurface.symmetry_axes` A (k, 3) about its
     centre c), applied rigidly in space to the points of ``phi`` (2n,): x_i(ω) =
     c + exp(Σ_a ω_a [A_a]×) r_i, r_i = x_i − c, each iterate re-charted
-    (:meth:`~ocpar.formation.surface.Surface.locate`) for its superstep, so that the chart's
+    (:meth:`~ocpar.formation.targets.surface.Surface.locate`) for its superstep, so that the chart's
     poles play no part. With v_i = ∇_pos J*_i and H_i its position block: the gradient
     g_a = A_a · Σ_i r_i × v_i and the Hessian H_ab = Σ_i (A_a × r_i)ᵀ H_i (A_b × r_i)
     + A_aᵀ M A_b, M = Σ_i ½ (r_i v_iᵀ + v_i r_iᵀ) − (r_i · v_i) I. The step −H⁺g takes the

@@ -8,12 +8,12 @@ from pathlib import Path
 
 import numpy as np
 
-from ocpar.formation.obstacles import Ellipsoid
+from ocpar.formation.keep_out.obstacles import Ellipsoid
+from ocpar.formation.keep_out.separation import positions_at
 from ocpar.formation.problem import FormationProblem
 from ocpar.formation.result import FormationResult
-from ocpar.formation.separation import positions_at
-from ocpar.formation.slots import Slots
-from ocpar.formation.surface import Surface, fibonacci_directions
+from ocpar.formation.targets.slots import Slots
+from ocpar.formation.targets.surface import Surface, fibonacci_directions
 from ocpar.plotting import pyplot, save
 
 #: Most agents a picture draws (trajectory, start and final position): above it every k-th,

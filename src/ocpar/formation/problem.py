@@ -10,7 +10,7 @@ velocity ``start_velocities[i]`` and must end, after T, with its position (the f
 d = ``curve.dim`` entries of its configuration) at z(φ_i) on the closed curve z, the rest of
 its configuration equal to ``final_attitude`` and its velocity ``final_velocity``, minimising
 ∫|u|² dt. The angles φ are chosen by the outer problem subject to the coupling g(φ) = 0
-(:mod:`ocpar.formation.coupling`: the paper's potential by default).
+(:mod:`ocpar.formation.couplings.coupling`: the paper's potential by default).
 """
 
 from __future__ import annotations
@@ -24,12 +24,12 @@ import casadi as ca
 import numpy as np
 
 from ocpar.bsp.columns import LISTED, Columns
-from ocpar.formation.coupling import Coupling, PotentialCoupling
-from ocpar.formation.curve import Circle, Curve
-from ocpar.formation.obstacles import Obstacle, check_obstacles
-from ocpar.formation.separation import ClosestApproach, closest_approach
-from ocpar.formation.slots import Slots, nearest_assignment
-from ocpar.formation.surface import PARAMETERS, Surface, fibonacci_directions
+from ocpar.formation.couplings.coupling import Coupling, PotentialCoupling
+from ocpar.formation.keep_out.obstacles import Obstacle, check_obstacles
+from ocpar.formation.keep_out.separation import ClosestApproach, closest_approach
+from ocpar.formation.targets.curve import Circle, Curve
+from ocpar.formation.targets.slots import Slots, nearest_assignment
+from ocpar.formation.targets.surface import PARAMETERS, Surface, fibonacci_directions
 from ocpar.models import MechanicalSystem
 from ocpar.ocp import DmocShape, OcpTask
 from ocpar.ocp.reach import Reach, rest_to_rest_reach
@@ -71,19 +71,20 @@ class FormationProblem:
     :class:`~ocpar.formation.Ellipse`, :class:`~ocpar.formation.PlaneCurve`,
     :class:`~ocpar.formation.ParametricCurve`, or a user's :class:`~ocpar.formation.Curve`),
     or :class:`~ocpar.formation.Slots`, m ≥ n given points of which the agents take n (then
-    φ_i is agent i's slot index and only the assignment is free: :mod:`ocpar.formation.slots`).
+    φ_i is agent i's slot index and only the assignment is free:
+    :mod:`ocpar.formation.targets.slots`).
     Shapes, with n agents (n ≥ 2), nq the model's configuration size and d = ``curve.dim``
     ≤ nq: ``starts`` (n, nq); ``start_velocities`` (n, nq), default at rest;
     ``final_velocity`` (nq,) common to all or (n, nq) per agent, default at rest;
     ``final_attitude`` (nq − d,) the configuration entries after the position (none for
     point masses, e.g. a unit quaternion for rigid bodies). Units are the model's.
-    ``obstacles``: static :class:`~ocpar.formation.obstacles.Ellipsoid` (or ``Sphere``) and
-    :class:`~ocpar.formation.obstacles.HalfSpace` obstacles in position space that every
-    path keeps clear of at all times (:mod:`ocpar.formation.obstacles`); the starts must be
+    ``obstacles``: static :class:`~ocpar.formation.keep_out.obstacles.Ellipsoid` (or ``Sphere``) and
+    :class:`~ocpar.formation.keep_out.obstacles.HalfSpace` obstacles in position space that every
+    path keeps clear of at all times (:mod:`ocpar.formation.keep_out.obstacles`); the starts must be
     clear of them. ``coupling``: what the final angles satisfy on a curve
-    (:mod:`ocpar.formation.coupling`): the paper's potential (default),
-    :class:`~ocpar.formation.coupling.EqualArcLength` or a user's
-    :class:`~ocpar.formation.coupling.UserCoupling`; onto slots only the default.
+    (:mod:`ocpar.formation.couplings.coupling`): the paper's potential (default),
+    :class:`~ocpar.formation.couplings.coupling.EqualArcLength` or a user's
+    :class:`~ocpar.formation.couplings.coupling.UserCoupling`; onto slots only the default.
     """
 
     name: str
@@ -274,7 +275,7 @@ class FormationProblem:
         """A start for the outer problem whose targets clear the obstacles: ``phi0`` (flat)
         if every target of it does by :data:`START_MARGIN`; else, where the coupling's
         solutions through it form a family (a circle's rotation, equal arc length's shift,
-        :meth:`~ocpar.formation.coupling.Coupling.family`), the member with the smallest
+        :meth:`~ocpar.formation.couplings.coupling.Coupling.family`), the member with the smallest
         shift |θ| (of :data:`START_SHIFTS`) whose targets do (by the margin if one does,
         else just); else ``phi0`` if its targets are inside none. ValueError (one line,
         naming ``obstacles``) only when no member can avoid them."""
@@ -411,7 +412,8 @@ class FormationProblem:
 
     def closest_approach(self, trajectories: np.ndarray) -> ClosestApproach:
         """The closest approach of any two agents on node paths ``trajectories`` (n, N+1, nq),
-        on their piecewise-linear positions over [0, T] (:mod:`ocpar.formation.separation`);
+        on their piecewise-linear positions over [0, T]
+        (:mod:`ocpar.formation.keep_out.separation`);
         distance and time NaN, pair (−1, −1) if a path is not finite (a failed run)."""
         positions = self.positions(trajectories)
         if not np.all(np.isfinite(positions)):
@@ -512,7 +514,7 @@ class FormationProblem:
 
     def initial_phi(self) -> np.ndarray:
         """The documented initial guess for φ (rad); onto slots, the slot indices minimising
-        Σ_i |start position_i − slot|² (:func:`~ocpar.formation.slots.nearest_assignment`);
+        Σ_i |start position_i − slot|² (:func:`~ocpar.formation.targets.slots.nearest_assignment`);
         on a surface (n, 2), see :meth:`_initial_on_surface`.
 
         With the start positions projected into the curve's plane (coordinates along the
@@ -525,8 +527,8 @@ class FormationProblem:
         (:meth:`~ocpar.formation.Curve.spread`). On a circle φ_c = θ_c and
         φ_i = θ_c + 2π (rank_i − (n−1)/2) / n, which satisfies g(φ) = 0. On any other curve
         these angles are then projected onto the coupling
-        (:meth:`~ocpar.formation.coupling.Coupling.project`; for the potential the local
-        minimum of G they lead to, :func:`~ocpar.formation.potential.relax`: g(φ) = 0 has
+        (:meth:`~ocpar.formation.couplings.coupling.Coupling.project`; for the potential the local
+        minimum of G they lead to, :func:`~ocpar.formation.couplings.potential.relax`: g(φ) = 0 has
         isolated solutions there, so the guess is the formation itself), and the hierarchical
         and the monolithic mode start from the same feasible point. In the paper's example
         θ_c = −3π/4 and the tangent points along +x, so agents sorted by x go
@@ -550,7 +552,8 @@ class FormationProblem:
 
     def _initial_on_surface(self) -> np.ndarray:
         """On a surface (n, 2): the points seen from its centre along n evenly spread
-        directions (:func:`~ocpar.formation.surface.fibonacci_directions`), each agent taking
+        directions (:func:`~ocpar.formation.targets.surface.fibonacci_directions`), each agent
+        taking
         one by CAPT's assignment (Σ_i |start_i − point|² minimal), then projected onto the
         coupling (for the potential, relaxed to the local minimum of G it leads to)."""
         n = self.agents

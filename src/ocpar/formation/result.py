@@ -8,9 +8,9 @@ from typing import ClassVar
 
 import numpy as np
 
-from ocpar.formation.obstacles import Clearance
-from ocpar.formation.potential import equidistance_error
-from ocpar.formation.separation import ClosestApproach
+from ocpar.formation.couplings.potential import equidistance_error
+from ocpar.formation.keep_out.obstacles import Clearance
+from ocpar.formation.keep_out.separation import ClosestApproach
 from ocpar.formation.verify import Verification
 from ocpar.results import RunResult
 
@@ -26,24 +26,24 @@ class FormationResult(RunResult):
     control groups where the model names them (e.g. ``translational_cost``,
     ``rotational_cost``); ``coupling_residual``
     max_k |c_k(φ)|, the scaled coupling c = (ℓ²/n³) dG/dφ as the outer problem imposes it
-    (:mod:`ocpar.formation.potential`), at the parameters located from the returned end
+    (:mod:`ocpar.formation.couplings.potential`), at the parameters located from the returned end
     points (``verification``: :class:`~ocpar.formation.verify.Verification`, whose checks
     decide whether the run may say ``converged``; ``result.json`` carries it and
     ``near_collision``); ``on_circle`` whether the curve is a circle (the
     equidistance error is NaN otherwise); ``separation`` the closest approach of any two
     agents on the continuous paths (:meth:`FormationProblem.closest_approach
     <ocpar.formation.FormationProblem.closest_approach>`); with a required minimum
-    separation (:mod:`ocpar.formation.keep_out`): ``required_separation`` D,
+    separation (:mod:`ocpar.formation.keep_out.rounds`): ``required_separation`` D,
     ``separation_rounds`` the keep-out rounds run and ``unconstrained_cost`` the total cost
-    before them (NaN/None/0 without); with obstacles (:mod:`ocpar.formation.obstacles`, in
+    before them (NaN/None/0 without); with obstacles (:mod:`ocpar.formation.keep_out.obstacles`, in
     every inner problem): ``obstacle_clearance`` the smallest clearance of any agent from
     any obstacle on the returned continuous paths (which agent, obstacle, when) and
     ``obstacle_sides`` on which side each agent passes each obstacle
-    (:func:`~ocpar.formation.obstacles.passing_sides`: per agent, per obstacle ``left`` or
+    (:func:`~ocpar.formation.keep_out.obstacles.passing_sides`: per agent, per obstacle ``left`` or
     ``right`` in 2-D, a unit vector in 3-D, None for a half-space); ``feasible_set``
     ``continuous`` on a circle (a common rotation), ``discrete`` elsewhere (the potential's
     isolated critical points), with ``critical_sets`` the candidates searched by
-    ``--ordering optimal`` (:meth:`~ocpar.formation.critical_sets.CriticalSet.to_dict`,
+    ``--ordering optimal`` (:meth:`~ocpar.formation.couplings.critical_sets.CriticalSet.to_dict`,
     cheapest first; None when none were).
     The common fields are :class:`ocpar.results.RunResult`'s.
     """

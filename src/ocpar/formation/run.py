@@ -13,8 +13,8 @@ from ocpar.driver import PROBLEM_GROUP, SchemeRun
 from ocpar.formation.examples import EXAMPLES, make_example
 from ocpar.formation.problem import FormationProblem
 from ocpar.formation.result import FormationResult
-from ocpar.formation.slots import Slots
 from ocpar.formation.solve import FormationOptions, check_applicable, solve_formation
+from ocpar.formation.targets.slots import Slots
 from ocpar.options import option, project
 from ocpar.references import is_reference
 

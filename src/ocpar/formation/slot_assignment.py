@@ -1,6 +1,6 @@
-"""The outer solve of a formation onto :class:`~ocpar.formation.slots.Slots`: the assignment
+"""The outer solve of a formation onto :class:`~ocpar.formation.targets.slots.Slots`: the assignment
 of agents to slots minimising the total inner cost, its pair costs solved in supersteps
-(:mod:`ocpar.formation.slots`)."""
+(:mod:`ocpar.formation.targets.slots`)."""
 
 from __future__ import annotations
 
@@ -13,7 +13,7 @@ from ocpar.bsp import Backend
 from ocpar.formation.hierarchical import InnerSolveFailed
 from ocpar.formation.ordering import pair_costs
 from ocpar.formation.problem import FormationProblem
-from ocpar.formation.slots import SLOT_CANDIDATES, assign_over_candidates
+from ocpar.formation.targets.slots import SLOT_CANDIDATES, assign_over_candidates
 
 
 @dataclass

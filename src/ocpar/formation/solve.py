@@ -12,8 +12,8 @@ import numpy as np
 
 from ocpar.bsp import Backend
 from ocpar.bsp.serial import SerialBackend
-from ocpar.formation.coupling import PROJECTION_TOL, PotentialCoupling
-from ocpar.formation.critical_sets import (
+from ocpar.formation.couplings.coupling import PROJECTION_TOL, PotentialCoupling
+from ocpar.formation.couplings.critical_sets import (
     CRITICAL_READINGS,
     CRITICAL_STARTS,
     IsolatedChoice,
@@ -27,16 +27,16 @@ from ocpar.formation.hierarchical import (
     solve_outer_newton,
     solve_outer_offset,
 )
-from ocpar.formation.keep_out import separate
+from ocpar.formation.keep_out.obstacles import cleared, closest_obstacle, passing_sides
+from ocpar.formation.keep_out.rounds import separate
+from ocpar.formation.keep_out.separation import check_separation_feasible
 from ocpar.formation.monolithic import solve_monolithic
-from ocpar.formation.obstacles import cleared, closest_obstacle, passing_sides
 from ocpar.formation.ordering import ORDERINGS, optimal_ordering
 from ocpar.formation.problem import FormationProblem
 from ocpar.formation.result import FormationResult
-from ocpar.formation.separation import check_separation_feasible
 from ocpar.formation.slot_assignment import SlotChoice, assign_slots
-from ocpar.formation.slots import SLOT_CANDIDATES, Slots
-from ocpar.formation.surface import Surface
+from ocpar.formation.targets.slots import SLOT_CANDIDATES, Slots
+from ocpar.formation.targets.surface import Surface
 from ocpar.formation.verify import Verification, near_collision_words, verify_formation
 from ocpar.ocp.batch import SOLVERS
 from ocpar.options import numbers, option
@@ -67,19 +67,19 @@ class FormationOptions:
     initial angles' order, the paper's) or ``optimal``: on a circle
     :func:`ocpar.formation.ordering.optimal_ordering` (run on the backend first; its angles
     start the chosen mode), on any other curve
-    :func:`ocpar.formation.critical_sets.best_isolated_formation` with ``critical`` and
+    :func:`ocpar.formation.couplings.critical_sets.best_isolated_formation` with ``critical`` and
     ``critical_starts`` (its choice is the outer solve). Onto
-    :class:`~ocpar.formation.slots.Slots` the outer solve is always the assignment
+    :class:`~ocpar.formation.targets.slots.Slots` the outer solve is always the assignment
     (:func:`ocpar.formation.slot_assignment.assign_slots`, ``slot_candidates``). ``offset``
     relies on the circle's symmetry: :func:`solve_formation` refuses it (ValueError) on other
     curves. ``inner_solver``
     (``sqpmethod`` or ``ipopt``, see :mod:`ocpar.ocp.batch`) replaces the problem's
     ``DmocShape.solver`` for this solve; None keeps it. ``min_separation`` D (length unit,
     hierarchical mode only): after the outer solve, separation rounds of keep-out DMOC
-    solves (:mod:`ocpar.formation.keep_out`, at most ``separation_rounds`` supersteps) keep
+    solves (:mod:`ocpar.formation.keep_out.rounds`, at most ``separation_rounds`` supersteps) keep
     every pair ≥ D apart on the continuous paths, or the result's status is
     ``separation_not_met``; None: no constraint (the paths may cross). A problem's obstacles
-    are in every agent's inner problem (:mod:`ocpar.formation.obstacles`), in both modes;
+    are in every agent's inner problem (:mod:`ocpar.formation.keep_out.obstacles`), in both modes;
     the returned paths are checked against them (``obstacles_not_cleared`` if one is inside
     one).
     """
@@ -252,7 +252,7 @@ def check_applicable(problem: FormationProblem, options: FormationOptions) -> No
 def obstacle_check(problem: FormationProblem, trajectories: np.ndarray, status: str,
                     message: str) -> tuple[str, str, dict]:
     """The returned paths ``trajectories`` (n, N+1, nq) checked against ``problem``'s
-    obstacles (:func:`~ocpar.formation.obstacles.closest_obstacle`, independently of the
+    obstacles (:func:`~ocpar.formation.keep_out.obstacles.closest_obstacle`, independently of the
     inner planes): the status (``obstacles_not_cleared`` if a path of a run that reached its
     answer is inside one), the message and the result's obstacle fields (clearance, each
     agent's sides); unchanged and none without obstacles."""
@@ -308,7 +308,7 @@ def discrete_choice(problem: FormationProblem, choice: IsolatedChoice | SlotChoi
     equal arc length's shift, a sphere's rotations); elsewhere ``discrete``: the coupling's
     isolated solutions. Off a circle the potential's critical sets are a discrete choice
     either way: ``critical_sets`` lists the candidates searched
-    (:mod:`ocpar.formation.critical_sets`), None when none were; onto slots the
+    (:mod:`ocpar.formation.couplings.critical_sets`), None when none were; onto slots the
     assignments. The status line's words on it are in ``note``."""
     if isinstance(choice, SlotChoice):
         every = choice.candidates == problem.curve.count

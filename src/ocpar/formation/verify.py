@@ -10,7 +10,7 @@ interval controls (n, N, nu) and the parameters φ, and the problem's data. It c
 * ``coupling``: the coupling residual max_k |c_k| at the *located* parameters
   (:func:`coupling_residual`), ≤ :data:`COUPLING_TOL`; onto slots, no slot taken twice; the
   potential on a surface in space, chart-free: max_i |tangential ∇G_i| / max_i |∇G_i| at the
-  end points (:func:`~ocpar.formation.potential.surface_criticality`);
+  end points (:func:`~ocpar.formation.couplings.potential.surface_criticality`);
 * ``start``, ``attitude``: the paths start at the start configurations and end in the final
   attitude (the entries after the position);
 * ``momentum``: the start and end velocities, through DMOC's boundary equations (the
@@ -22,9 +22,9 @@ interval controls (n, N, nu) and the parameters φ, and the problem's data. It c
   shape at the points where DMOC imposes them: controls u_k; rows of ``q`` alone at the
   inner nodes, rows of ``v``/``u`` at (q_{k+½}, (q_{k+1} − q_k)/h, u_k);
 * ``obstacles``: the clearance of the continuous paths from the problem's obstacles
-  (:func:`~ocpar.formation.obstacles.closest_obstacle`);
+  (:func:`~ocpar.formation.keep_out.obstacles.closest_obstacle`);
 * ``separation`` (with a required one): the closest approach of any two agents on the
-  continuous paths (:func:`~ocpar.formation.separation.closest_approach`, always measured).
+  continuous paths (:func:`~ocpar.formation.keep_out.separation.closest_approach`, always measured).
 
 A check that does not apply (no constraint, no obstacle) is not made. Near-collisions are
 reported, not failed: a closest approach below :data:`NEAR_COLLISION_FRACTION` of the
@@ -42,14 +42,18 @@ from functools import lru_cache
 import casadi as ca
 import numpy as np
 
-from ocpar.formation.coupling import PotentialCoupling
-from ocpar.formation.keep_out import SEPARATION_RTOL
-from ocpar.formation.obstacles import CLEARANCE_TOL, Clearance, closest_obstacle
-from ocpar.formation.potential import circle_coupling, surface_criticality, within_expansion
+from ocpar.formation.couplings.coupling import PotentialCoupling
+from ocpar.formation.couplings.potential import (
+    circle_coupling,
+    surface_criticality,
+    within_expansion,
+)
+from ocpar.formation.keep_out.obstacles import CLEARANCE_TOL, Clearance, closest_obstacle
+from ocpar.formation.keep_out.rounds import SEPARATION_RTOL
+from ocpar.formation.keep_out.separation import ClosestApproach
 from ocpar.formation.problem import FormationProblem
-from ocpar.formation.separation import ClosestApproach
-from ocpar.formation.slots import Slots, closest_pair
-from ocpar.formation.surface import Surface
+from ocpar.formation.targets.slots import Slots, closest_pair
+from ocpar.formation.targets.surface import Surface
 from ocpar.ocp import DmocShape
 from ocpar.ocp.columns_eval import evaluate_columns
 
@@ -60,7 +64,8 @@ from ocpar.ocp.columns_eval import evaluate_columns
 TARGET_RTOL = 1e-9
 #: The coupling holds where max_k |c_k| ≤ this at the located parameters: c is scaled
 #: (ℓ²/n³ dG/dφ, O(1)), and this is the tolerance of the coupling's own projection
-#: (:data:`~ocpar.formation.coupling.PROJECTION_TOL`); converged runs reach ~1e-12 or less.
+#: (:data:`~ocpar.formation.couplings.coupling.PROJECTION_TOL`); converged runs reach ~1e-12 or
+#: less.
 COUPLING_TOL = 1e-8
 #: Start configuration and final attitude are every inner problem's data: equal to rounding,
 #: relative to 1 + |q| (1e-9 leaves room for a model's unit-quaternion normalisation).
@@ -80,7 +85,7 @@ NEAR_COLLISION_FRACTION = 0.01
 
 #: Up to this many agents the coupling residual is the direct O(n²) sum (~5 ms at 1000
 #: agents); above it, on a circle, the O(n log n) expansion about equidistant angles
-#: (:func:`~ocpar.formation.potential.circle_coupling`: ~0.03 s at 100,000 agents) where
+#: (:func:`~ocpar.formation.couplings.potential.circle_coupling`: ~0.03 s at 100,000 agents) where
 #: it applies...
 DIRECT_COUPLING_MAX_AGENTS = 1_000
 #: ... and where it does not (angles far from equidistant ones), the direct sum up to this
@@ -184,9 +189,10 @@ class Verification:
 
 def coupling_residual(problem: FormationProblem, phi: np.ndarray) -> float:
     """max_k |c_k(φ)|: the scaled coupling as the outer problem imposes it
-    (:meth:`~ocpar.formation.coupling.Coupling.residual`; the potential on a circle with
+    (:meth:`~ocpar.formation.couplings.coupling.Coupling.residual`; the potential on a circle with
     more than :data:`DIRECT_COUPLING_MAX_AGENTS` agents near equidistant angles
-    :func:`~ocpar.formation.potential.circle_coupling`); onto slots, how many agents share a
+    :func:`~ocpar.formation.couplings.potential.circle_coupling`); onto slots, how many agents
+    share a
     slot with another (0: the assignment's coupling holds); NaN if φ is not finite, or on a
     circle with more than :data:`COUPLING_CHECK_MAX_AGENTS` agents far from equidistant."""
     if isinstance(problem.curve, Slots):   # the coupling: no slot taken twice
@@ -318,7 +324,7 @@ def _locate(problem: FormationProblem, ends: np.ndarray, phi: np.ndarray
             ) -> tuple[np.ndarray, np.ndarray]:
     """The parameters of the end positions ``ends`` (n, d) on the target (the shape of φ)
     and their distances from it (n,), length unit: a curve's or slots' own ``locate`` (φ the
-    hint); a surface's inverse chart (:meth:`~ocpar.formation.surface.Surface.locate`, no
+    hint); a surface's inverse chart (:meth:`~ocpar.formation.targets.surface.Surface.locate`, no
     hint), NaN for a failed path's NaN point."""
     if not isinstance(problem.curve, Surface):
         located, distance = problem.curve.locate(ends, np.reshape(phi, problem.parameter_shape))

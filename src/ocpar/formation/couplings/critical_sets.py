@@ -1,6 +1,7 @@
 """The best formation where the coupling's solutions are isolated: every curve but a circle.
 
-Off a circle the coupling g(φ) = ∂G/∂φ = 0 (:mod:`ocpar.formation.potential`) admits only the
+Off a circle the coupling g(φ) = ∂G/∂φ = 0 (:mod:`ocpar.formation.couplings.potential`) admits only
+the
 critical configurations of the potential G on the curve: a discrete set, which the initial
 guess selects from (the default, the paper's method). G is symmetric in the agents, so each
 critical configuration is a *set* of n points on the curve, and every assignment of the
@@ -21,7 +22,7 @@ On a surface the search runs in the surface's chart, except that a set found wit
 near a chart pole (where the azimuth does not move the point and c = 0 does not make it
 critical) that is not critical in space, or not regular in the chart, is solved again in a
 chart whose pole is far from every point
-(:meth:`~ocpar.formation.surface.EllipsoidSurface.charted_away`). Where the surface has
+(:meth:`~ocpar.formation.targets.surface.EllipsoidSurface.charted_away`). Where the surface has
 rotational symmetry (a sphere, an ellipsoid of revolution) the sets are isolated up to its
 rotations, and each set's best rotation is searched by rotating its points rigidly in space
 (:func:`~ocpar.formation.hierarchical.rotation_newton`), then re-charting them. Every
@@ -47,7 +48,12 @@ from scipy.spatial.distance import cdist, pdist
 from scipy.spatial.transform import Rotation
 
 from ocpar.bsp import Backend
-from ocpar.formation.curve import Curve
+from ocpar.formation.couplings.potential import (
+    coupling_scale,
+    point_potential,
+    potential,
+    surface_criticality,
+)
 from ocpar.formation.hierarchical import (
     ROUNDING_RTOL,
     InnerSolveFailed,
@@ -56,14 +62,9 @@ from ocpar.formation.hierarchical import (
     tangent_newton,
 )
 from ocpar.formation.ordering import assignment_cost, cheapest_assignment, cost_tables
-from ocpar.formation.potential import (
-    coupling_scale,
-    point_potential,
-    potential,
-    surface_criticality,
-)
 from ocpar.formation.problem import FormationProblem
-from ocpar.formation.surface import EllipsoidSurface, Surface
+from ocpar.formation.targets.curve import Curve
+from ocpar.formation.targets.surface import EllipsoidSurface, Surface
 
 #: Random starts of the search besides the initial guess (default).
 CRITICAL_STARTS = 32
@@ -72,7 +73,7 @@ CRITICAL_READINGS = ("stable", "any")
 #: Two sets of sorted angles agreeing to this (rad), up to a cyclic shift, are one set.
 SAME_SET_TOL = 1e-6
 #: Newton's method on g = 0 (``any``) has converged at max |c_k| ≤ this (c scaled as
-#: :func:`~ocpar.formation.potential.coupling`).
+#: :func:`~ocpar.formation.couplings.potential.coupling`).
 ROOT_TOL = 1e-10
 #: A critical set on a surface counts only with every agent's ∂z/∂φ_i of rank 2, its smaller
 #: singular value at least this times the length scale.
@@ -85,7 +86,7 @@ ROTATION_ROUNDS, MAX_ROTATION_ITERATIONS = 5, 50
 ROTATION_STARTS, ROTATION_SEED = 32, 0
 #: A candidate is critical, checked from its returned points, when max_i |tangential ∇G_i|
 #: ≤ this times max_i |∇G_i| (the gradient of G in the 3-D positions at the same points,
-#: :func:`~ocpar.formation.potential.tangential_potential_gradient`).
+#: :func:`~ocpar.formation.couplings.potential.tangential_potential_gradient`).
 CRITICAL_RTOL = 1e-8
 #: ... and its reported potential (at the set as found) equals its points' to this, relative.
 POTENTIAL_RTOL = 1e-9
@@ -207,7 +208,8 @@ def critical_sets(problem: FormationProblem, critical: str = "stable",
 def _solve(problem: FormationProblem, guess: np.ndarray, critical: str,
            curve: Curve | Surface) -> np.ndarray:
     """The solution of c = 0 on ``curve`` (the problem's, or its surface in another chart)
-    that ``guess`` leads to: :meth:`~ocpar.formation.coupling.Coupling.project` (``stable``),
+    that ``guess`` leads to: :meth:`~ocpar.formation.couplings.coupling.Coupling.project`
+    (``stable``),
     else Levenberg–Marquardt on a surface (c = 0 is rank-deficient there where the surface
     has symmetries) or Newton's method (SciPy's ``root``) on a curve."""
     coupling = problem.coupling
@@ -244,7 +246,7 @@ def _smallest_eigenvalue(problem: FormationProblem, phi: np.ndarray,
 
 def _rotations(problem: FormationProblem) -> np.ndarray | None:
     """The axes (k, 3) of the rotations that map the problem's surface onto itself where
-    known (an ellipsoid's :attr:`~ocpar.formation.surface.EllipsoidSurface.symmetry_axes`),
+    known (an ellipsoid's :attr:`~ocpar.formation.targets.surface.EllipsoidSurface.symmetry_axes`),
     else None (a parametric surface: its free directions come from dc/dφ)."""
     curve = problem.curve
     return curve.symmetry_axes if isinstance(curve, EllipsoidSurface) else None
@@ -275,7 +277,7 @@ def _verify(problem: FormationProblem, candidate: CriticalSet) -> bool:
 def _critical_points(surface: Surface, points: np.ndarray) -> tuple[bool, float]:
     """Whether ``points`` (n, 3) on ``surface`` are a critical configuration of G, checked in
     space (max_i |tangential ∇G_i| ≤ :data:`CRITICAL_RTOL` max_i |∇G_i|:
-    :func:`~ocpar.formation.potential.surface_criticality`), and that largest tangential
+    :func:`~ocpar.formation.couplings.potential.surface_criticality`), and that largest tangential
     |∇G_i| (length⁻³)."""
     relative, tangential = surface_criticality(surface, points)
     return relative <= CRITICAL_RTOL, tangential

@@ -1,11 +1,11 @@
 """The paper's artificial potential on the formation curve and its coupling g(φ) = dG/dφ = 0.
 
-G(φ) = Σ_{i≠j} 1/|z(φ_i) − z(φ_j)|² for the curve z (:mod:`ocpar.formation.curve`). With
+G(φ) = Σ_{i≠j} 1/|z(φ_i) − z(φ_j)|² for the curve z (:mod:`ocpar.formation.targets.curve`). With
 D_kj = z(φ_k) − z(φ_j), s_kj = |D_kj|², t_k = z′(φ_k) and a_k = z″(φ_k):
 
     g_k = ∂G/∂φ_k = −4 Σ_{j≠k} (D_kj · t_k) / s_kj²,
 
-entries that grow like n³/ℓ² (ℓ = :attr:`~ocpar.formation.curve.Curve.length_scale`, the
+entries that grow like n³/ℓ² (ℓ = :attr:`~ocpar.formation.targets.curve.Curve.length_scale`, the
 radius of a circle). The constraint imposed is the scaled c(φ) = (ℓ²/n³) g(φ), on a circle
 reduced to its first n−1 entries: there a common rotation changes nothing, Σ_k g_k = 0 and
 one equation is redundant (the feasible set is the one-parameter family of equidistant
@@ -29,8 +29,8 @@ from scipy.optimize import minimize
 from scipy.sparse import csc_matrix
 from scipy.sparse.linalg import LinearOperator, cg, splu
 
-from ocpar.formation.curve import Curve
-from ocpar.formation.surface import Surface
+from ocpar.formation.targets.curve import Curve
+from ocpar.formation.targets.surface import Surface
 
 #: Rows of the coupling evaluated at once by :func:`coupling`: its temporaries (BLOCK, n)
 #: stay in cache (10,000 agents: ~2 s on this machine, loaded; in one piece 2.4 GB).
@@ -127,7 +127,7 @@ def point_potential_gradient(points: np.ndarray) -> np.ndarray:
 def tangential_potential_gradient(surface: Surface, points: np.ndarray) -> np.ndarray:
     """The part of ∇G along the surface (n, 3), length⁻³, at ``points`` (n, 3) on it:
     :func:`point_potential_gradient` less its component along each point's unit normal
-    (:meth:`~ocpar.formation.surface.Surface.normals`). Zero exactly where the points are a
+    (:meth:`~ocpar.formation.targets.surface.Surface.normals`). Zero exactly where the points are a
     critical configuration of G on the surface, whatever the chart: the check of a formation
     from its returned end points."""
     points = np.asarray(points, float).reshape(-1, 3)

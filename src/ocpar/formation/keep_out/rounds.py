@@ -2,7 +2,7 @@
 
 After the hierarchical solve without the separation (outer angles φ, inner DMOC paths with
 any obstacles), each round reads the latest continuous paths (piecewise linear between
-nodes, :mod:`ocpar.formation.separation`) and does two things:
+nodes, :mod:`ocpar.formation.keep_out.separation`) and does two things:
 
 1. **Spread** (:func:`spread`, on the coordinator, numpy only): the node positions are pushed
    apart until every pair is ≥ D apart on every interval, the first and last nodes fixed —
@@ -22,7 +22,7 @@ The half-spaces, moving linearly in time over each interval:
 * for each pair (i, j) whose target paths come within (1 + :data:`NEIGHBOUR_MARGIN`) D, and
   each interval k on which they do (:func:`conflicts`): the normal n is the direction of
   r_i − r_j on the targets at the interval's closest time
-  (:func:`~ocpar.formation.separation.interval_closest`; where they meet, perpendicular to
+  (:func:`~ocpar.formation.keep_out.separation.interval_closest`; where they meet, perpendicular to
   their relative velocity), and the plane follows the targets' centre
   c(t) = (r_i + r_j)/2, linear in t on the interval: agent i keeps n·r ≥ n·c(t) + D/2 and
   agent j −n·r ≥ −n·c(t) + D/2 (rows at the interval's two nodes, with c at those nodes).
@@ -52,7 +52,7 @@ The half-spaces, moving linearly in time over each interval:
   half-spaces cannot all be met (its dynamics cannot follow the targets) moves as far as it
   can instead of failing.
 
-With obstacles (:mod:`ocpar.formation.obstacles`) every agent's inner problem already keeps
+With obstacles (:mod:`ocpar.formation.keep_out.obstacles`) every agent's inner problem already keeps
 them clear exactly (its shape carries them, :mod:`ocpar.ocp.obstacles`), in the outer
 solve and in the rounds alike: the rounds add only the pairs' half-spaces (and the trust
 region), and an agent re-solving keeps the side of each obstacle its latest path passes
@@ -62,9 +62,9 @@ an obstacle out of it (along the tangent plane's normal at its point nearest the
 separated and clear; the penalty is per the smaller of D and the smallest obstacle scale.
 
 Each round is one superstep of independent inner problems. Rounds repeat until the exact
-closest approach (:func:`~ocpar.formation.separation.closest_approach`) is at least D (to a
+closest approach (:func:`~ocpar.formation.keep_out.separation.closest_approach`) is at least D (to a
 relative :data:`SEPARATION_RTOL`), every obstacle clearance is ≥ 0
-(:func:`~ocpar.formation.obstacles.cleared`) and no node moved by more than
+(:func:`~ocpar.formation.keep_out.obstacles.cleared`) and no node moved by more than
 :data:`CHANGE_RTOL` · min(D, the smallest obstacle scale) in the last round, or the round
 limit. The returned paths' separation and clearance are computed, not assumed: a run that
 misses D or an obstacle says by how much.
@@ -85,15 +85,15 @@ import numpy as np
 
 from ocpar.bsp import Backend
 from ocpar.bsp.columns import Columns
-from ocpar.formation.obstacles import Clearance, Obstacle, cleared, closest_obstacle
-from ocpar.formation.problem import FormationProblem
-from ocpar.formation.separation import (
+from ocpar.formation.keep_out.obstacles import Clearance, Obstacle, cleared, closest_obstacle
+from ocpar.formation.keep_out.separation import (
     ClosestApproach,
     close_pairs,
     closest_approach,
     interval_closest,
     segment_closest,
 )
+from ocpar.formation.problem import FormationProblem
 from ocpar.ocp import solve_tasks
 from ocpar.ocp.dmoc import UNUSED_OFFSET
 

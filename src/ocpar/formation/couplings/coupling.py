@@ -3,7 +3,8 @@
 One protocol, :class:`Coupling`, three kinds:
 
 * :class:`PotentialCoupling` (the default, the paper's): c = (ℓ²/n³) dG/dφ of the artificial
-  potential (:mod:`ocpar.formation.potential`). On a circle its solutions are the equidistant
+  potential (:mod:`ocpar.formation.couplings.potential`). On a circle its solutions are the
+  equidistant
   angles, a one-parameter family (a free common rotation, chosen by the cost); on any other
   curve they are isolated (the critical points of G).
 * :class:`EqualArcLength`: the agents equally spaced in arc length along any closed curve,
@@ -30,15 +31,15 @@ import numpy as np
 from scipy.linalg import null_space
 from scipy.optimize import minimize
 
-from ocpar.formation.curve import Circle, Curve
-from ocpar.formation.potential import (
+from ocpar.formation.couplings.potential import (
     coupling,
     coupling_expr,
     coupling_jacobian,
     relax,
     respace,
 )
-from ocpar.formation.surface import Surface
+from ocpar.formation.targets.curve import Circle, Curve
+from ocpar.formation.targets.surface import Surface
 
 #: A projection onto c(φ) = 0 (and a solution found from the start guess) must reach
 #: max |c_k| ≤ this.
@@ -157,9 +158,9 @@ class Coupling(ABC):
 
 @dataclass(frozen=True)
 class PotentialCoupling(Coupling):
-    """The paper's c(φ) = (ℓ²/n³) dG/dφ = 0 (:mod:`ocpar.formation.potential`), G the sum
+    """The paper's c(φ) = (ℓ²/n³) dG/dφ = 0 (:mod:`ocpar.formation.couplings.potential`), G the sum
     of 1/|z_i − z_j|² over pairs. On a curve in closed form, on a circle its first n − 1 rows
-    (the free rotation is the family). On a :class:`~ocpar.formation.surface.Surface` all 2n
+    (the free rotation is the family). On a :class:`~ocpar.formation.targets.surface.Surface` all 2n
     rows by CasADi (ℓ its length scale); on a sphere its solutions come with three free
     directions, the rotations, which the outer solver searches."""
 

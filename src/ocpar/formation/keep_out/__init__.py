@@ -1,0 +1,1 @@
+"""Keeping agents apart and clear of obstacles: closest approach, obstacles, separation rounds."""

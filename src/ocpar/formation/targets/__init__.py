@@ -1,0 +1,1 @@
+"""Formation targets: closed curves, surfaces with two parameters per agent, and slots."""
