@@ -9,7 +9,7 @@ it at rest, coupled by the formation paper's potential (the 6 masses' agents 2 a
 within 0.10). For each D:
 
 (a) ocpar's hierarchical run with ``min_separation`` D: the outer solve without separation,
-    then the separation rounds (:mod:`ocpar.formation.keep_out`; φ is not re-optimised);
+    then the separation rounds (:mod:`ocpar.formation.keep_out.rounds`; φ is not re-optimised);
 (b) the exact monolithic NLP, built here: every agent's DMOC NLP
     (:func:`ocpar.ocp.dmoc_problem` of its shape, its ``constraints`` and ``cost``), the final
     angles free under the coupling rows, and for every pair (i, j) and interval k a plane
