@@ -21,7 +21,12 @@ The train stops when the headline's improvement still to come is below ε, or af
 horizon fits one worker (N ≤ ``certify_samples``), the full-horizon MS problem is solved once
 from the last agent's trajectory (:func:`full_horizon_task`, one superstep) and what is still
 to come is measured against its optimum from then on: the train stops when it is within ε of
-it (the stop reason says which rule fired; :data:`STOP_REASONS`).
+it (the stop reason says which rule fired; :data:`STOP_REASONS`). With ``finish=
+"full_horizon"`` (the default) the certificate is solved as soon as the train's first agent
+has finished, and the run ends there. Either way the run returns the better of the train's
+last agent and the certificate (:func:`conclude`, :data:`RESULT_SOURCES`), certifies a budget
+stop too, and widens the windows of a train that has stalled (:data:`STALL_RATIO`,
+:func:`widen`).
 With ``levels`` L > 1 the train runs first on a grid 2^(L−1) times coarser, then on grids
 twice as fine, each from the coarser result (:func:`run_levels`).
 
@@ -60,7 +65,8 @@ class PursuitSettings:
     coarse-to-fine levels (:func:`run_levels`; 1: the paper's scheme), ``certify_samples``
     the largest N whose stop is certified by a full-horizon MS solve (module docstring; 0:
     never), ``local_solver`` the subproblems' solver from the leader's plan (IPOPT if it
-    fails; see :class:`~ocpar.ocp.MsShape`)."""
+    fails; see :class:`~ocpar.ocp.MsShape`), ``finish`` how a run whose horizon fits ends
+    (:data:`FINISHES`: the full-horizon MS after the first agent, or the paper's train)."""
 
     window: int = option(60, "samples per catch-up problem N_Δ (Δ = (N_Δ-1)h)", low=2,
                          metavar="N_DELTA")
@@ -71,7 +77,10 @@ class PursuitSettings:
                             "recent rate) is below EPS (in the headline's unit, kg for the "
                             "orbit transfer)",
                             above=0, metavar="EPS")
-    max_agents: int = option(100_000, "stop after this many agents", low=2)
+    max_agents: int = option(100_000, "stop after this many agents (per level, widened "
+                             "windows included); where N <= --certify-samples the stop is "
+                             "certified and the better answer returned, otherwise it exits 1",
+                             low=2)
     levels: int = option(1, "coarse-to-fine levels L: PBMS first on (N-1)/2^(L-1)+1 samples, "
                          "then on grids twice as fine, each starting from the coarser result "
                          "(agent 0); 1: the paper's scheme", low=1)
