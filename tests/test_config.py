@@ -42,10 +42,12 @@ EXAMPLES = {
         "--output", "runs/formation-60-optimal-ordering"]),
     "pursuit-case1": ("pursuit", [
         "--case", "1", "--samples", "301", "--window", "60", "--update", "32",
-        "--mode", "pbms", "--epsilon", "0.001", "--output", "runs/pursuit-case1"]),
+        "--mode", "pbms", "--epsilon", "0.001", "--finish", "train",
+        "--output", "runs/pursuit-case1"]),
     "pursuit-case2": ("pursuit", [
         "--case", "2", "--samples", "501", "--window", "60", "--update", "32",
-        "--mode", "pbms", "--epsilon", "0.001", "--output", "runs/pursuit-case2"]),
+        "--mode", "pbms", "--epsilon", "0.001", "--finish", "train",
+        "--output", "runs/pursuit-case2"]),
     "macs-goddard": ("macs", [
         "--problem", "goddard", "--seed", "0", "--max-evals", "10000", "--population", "10",
         "--archive", "10", "--output", "runs/macs-goddard"]),
