@@ -53,7 +53,8 @@ CLOSE_KG = 0.05
 
 def run(args: list[str], out: Path, backend: str, workers: int) -> dict:
     """One ``python -m ocpar.pursuit`` run; returns its result.json (without bulky fields)."""
-    reference = [] if "ms" in args else ["--no-reference"]  # --mode ms has none to skip
+    # --mode ms has no reference to skip; PBMS times the paper's train (--finish train)
+    reference = [] if "ms" in args else ["--no-reference", "--finish", "train"]
     cmd = [sys.executable, "-m", "ocpar.pursuit", *args, "--quiet", *reference,
            "--output", str(out)]
     if backend == "mpi":
@@ -70,7 +71,8 @@ def run(args: list[str], out: Path, backend: str, workers: int) -> dict:
             "peak_rss_mb_per_worker", "rk_final_altitude_error_m")
     row = {k: data[k] for k in keep} | trace_summary(data["trace"], data["wall_time_s"])
     if data["mode"] == "pbms":
-        row |= {k: data[k] for k in ("stop_reason", "estimated_remaining_final_mass_kg")}
+        row |= {k: data[k] for k in ("stop_reason", "estimated_remaining_final_mass_kg",
+                                     "result_source", "train_final_mass_kg")}
     print(json.dumps(row), flush=True)
     return row
 

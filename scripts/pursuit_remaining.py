@@ -65,13 +65,14 @@ def build(name: str, workdir: Path) -> PursuitProblem:
 
 def measure(problem: PursuitProblem, settings: PursuitSettings) -> dict:
     result = solve_pursuit(problem, settings)
-    actual = problem.improvement(result.headline, result.reference_headline)
-    reported = result.estimated_remaining
+    # the paper's train (finish="train"): its own last headline and what it reported left
+    actual = problem.improvement(result.train_headline, result.reference_headline)
+    reported = result.train_remaining
     return {"problem": problem.name, "samples": problem.samples, "epsilon": settings.epsilon,
             "certify_samples": settings.certify_samples, "reported": reported,
-            "method": result.remaining_method, "actual": actual,
+            "method": result.train_remaining_method, "actual": actual,
             "ratio": actual / reported if reported else None, "agents": result.agents,
-            "stop_reason": result.stop_reason, "headline": result.headline,
+            "stop_reason": result.stop_reason, "headline": result.train_headline,
             "reference": result.reference_headline, "certificate": result.certificate_headline,
             "solves": result.subproblem_solves,
             "wall_s": result.wall_time_s}
@@ -92,7 +93,7 @@ def main() -> int:
             problem = build(name, Path(workdir))
             for epsilon in epsilons:
                 settings = PursuitSettings(window=window, update=update, epsilon=epsilon,
-                                           max_agents=max_agents)
+                                           max_agents=max_agents, finish="train")
                 variants = [settings] + ([dataclasses.replace(settings, certify_samples=0)]
                                          if args.extrapolated else [])
                 for variant in variants:

@@ -216,7 +216,8 @@ def test_pursuit_resumes_across_its_full_horizon_certificate(tmp_path):
     from ocpar.examples.pursuit_van_der_pol import make
     from ocpar.pursuit import PursuitSettings, solve_pursuit
 
-    problem, settings = make(), PursuitSettings(window=21, update=10, epsilon=1e-4)
+    problem = make()
+    settings = PursuitSettings(window=21, update=10, epsilon=1e-4, finish="train")
     expected = solve_pursuit(problem, settings, reference=False)
     assert expected.stop_reason == "certified_within_epsilon"
     backend = SerialBackend()

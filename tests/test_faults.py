@@ -96,7 +96,7 @@ def test_formation_faults_are_the_same_on_dask_workers(inject):
 
 def test_pursuit_retries_from_the_leaders_trajectory(inject):
     problem = orbit_transfer(case=1, samples=101)
-    settings = PursuitSettings(window=32, update=16, max_agents=12)
+    settings = PursuitSettings(window=32, update=16, max_agents=12, certify_samples=0)
     clean = solve_pursuit(problem, settings, reference=False)
     inject("0.3:2")
     faulty = solve_pursuit(problem, settings, reference=False)

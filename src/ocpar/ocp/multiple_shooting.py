@@ -22,7 +22,7 @@ segment, so a constraint met at the samples can be broken in between by O(h²) (
 constraint of an Euler path, linear between samples, holds on the whole path when it is
 convex in x). They are inequalities: the Newton local solver takes equalities only, so a
 shape with path constraints re-solves from a guess with ``sqpmethod`` (then IPOPT), and
-IPOPT imposes them exactly (no bound relaxation).
+IPOPT imposes them and the bounds exactly (no bound relaxation).
 
 Re-solves from a nearby solution (a ``warm_start`` shape with a guess) first run a local
 solver, IPOPT only if it fails: ``local_solver="newton"`` (default) takes full Newton steps on
@@ -209,8 +209,9 @@ class MsTranscription:
         """IPOPT solver of this shape, built on first use and then reused."""
         nlp = {"x": self.w, "p": self.p, "f": self.cost, "g": self.g}
         extra = WARM_START_OPTIONS if self.shape.warm_start else {}
-        if self.n_path:  # IPOPT relaxes inequalities by 1e-8 (relative) unless told not to
-            extra = extra | {"bound_relax_factor": 0.0}
+        # IPOPT relaxes bounds and inequalities by 1e-8 (relative) unless told not to: a
+        # solution would break |u| <= 1 by 5e-9
+        extra = extra | {"bound_relax_factor": 0.0}
         return ca.nlpsol("ms", "ipopt", nlp,
                          ipopt_options(self.shape.tol, self.shape.max_iter, **extra))
 

@@ -28,7 +28,11 @@ class PursuitResult(RunResult):
     and ``u`` (N−1, nu) are the result trajectory, ``initial_x`` agent 0's, ``reference_x``
     the full-horizon MS solution's. ``agents`` counts every level's agents,
     ``agents_per_level`` coarsest first (:func:`~ocpar.pursuit.slp.run_levels`); ``headlines``
-    are the finest level's.
+    are the finest level's. The answer (``x``, ``u``, the headline, the cost) comes from
+    ``result_source``: ``train`` (its last agent) or ``full_horizon`` (the certificate, when it
+    is at least as good); the train's own figures are kept beside it (``train_headline``,
+    ``train_cost``, ``train_remaining`` and ``train_remaining_method``; its agents are
+    ``agents``), with ``windows`` the (N_Δ, N_δ) it ran with, widened after each stall.
     Times in s.
     """
 
@@ -63,6 +67,12 @@ class PursuitResult(RunResult):
     remaining_method: str | None = None
     certificate_headline: float | None = None
     agents_per_level: list[int] = field(default_factory=list)
+    result_source: str | None = None
+    train_headline: float | None = None
+    train_cost: float | None = None
+    train_remaining: float | None = None
+    train_remaining_method: str | None = None
+    windows: list[tuple[int, int]] = field(default_factory=list)
     #: the common count of inner solves is the catch-up (and full-horizon) solves
     inner_solves: int = field(init=False)
 
@@ -111,9 +121,14 @@ class PursuitResult(RunResult):
             "remaining_method": self.remaining_method,
             f"certificate_ms_{key}": self.certificate_headline,
             # JSON has no infinity: null while the gains do not shrink
-            f"estimated_remaining_{key}": (None if self.estimated_remaining is None
-                                           or np.isinf(self.estimated_remaining)
-                                           else self.estimated_remaining),
+            f"estimated_remaining_{key}": finite_or_none(self.estimated_remaining),
+            "result_source": self.result_source,
+            f"train_{self.cost_key}": self.train_cost,
+            f"train_{key}": self.train_headline,
+            "train_agents": self.agents if self.mode == "pbms" else None,
+            f"train_remaining_{key}": finite_or_none(self.train_remaining),
+            "train_remaining_method": self.train_remaining_method,
+            "windows": [list(w) for w in self.windows],
             f"{key}_per_agent": self.headlines,
             "states": np.asarray(self.x).tolist(),
             "controls": np.asarray(self.u).tolist(),
@@ -127,6 +142,9 @@ class PursuitResult(RunResult):
         figures = (f"{self.headline_name} {self.headline:.6f}{unit}, {self.cost_key} "
                    f"{self.cost:.6f}" if self.converged
                    else f"{self.headline_name} — {self.not_reached()}")
+        if self.result_source == "full_horizon":
+            ref += (f"\nreturned: the full-horizon MS from the train's trajectory; the train's "
+                    f"last agent {self.train_headline:.6f}{unit}")
         return (
             f"status {self.status} ({self.message})\n"
             f"{figures}{ref}\n"
@@ -139,3 +157,8 @@ class PursuitResult(RunResult):
             f"wall time {self.wall_time_s:.2f} s on {self.workers} {self.backend} worker(s), "
             f"peak memory per worker {self.peak_rss_mb_per_worker:.0f} MiB"
         )
+
+
+def finite_or_none(value: float | None) -> float | None:
+    """``value``, or None (JSON null) if it is None or infinite (JSON has no infinity)."""
+    return None if value is None or np.isinf(value) else value

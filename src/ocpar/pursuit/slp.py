@@ -21,7 +21,12 @@ The train stops when the headline's improvement still to come is below ε, or af
 horizon fits one worker (N ≤ ``certify_samples``), the full-horizon MS problem is solved once
 from the last agent's trajectory (:func:`full_horizon_task`, one superstep) and what is still
 to come is measured against its optimum from then on: the train stops when it is within ε of
-it (the stop reason says which rule fired; :data:`STOP_REASONS`).
+it (the stop reason says which rule fired; :data:`STOP_REASONS`). With ``finish=
+"full_horizon"`` (the default) the certificate is solved as soon as the train's first agent
+has finished, and the run ends there. Either way the run returns the better of the train's
+last agent and the certificate (:func:`conclude`, :data:`RESULT_SOURCES`), certifies a budget
+stop too, and widens the windows of a train that has stalled (:data:`STALL_RATIO`,
+:func:`widen`).
 With ``levels`` L > 1 the train runs first on a grid 2^(L−1) times coarser, then on grids
 twice as fine, each from the coarser result (:func:`run_levels`).
 
@@ -45,6 +50,10 @@ from ocpar.ocp import MsShape, MsSolution, OcpTask, solve_task, solve_tasks
 from ocpar.ocp.multiple_shooting import LOCAL_SOLVERS
 from ocpar.options import option
 from ocpar.pursuit.problem import PursuitProblem, SampledPlan
+from ocpar.pursuit.validate import discrete_residual
+
+#: How a run whose horizon fits (N ≤ ``certify_samples``) finishes (``PursuitSettings.finish``).
+FINISHES = ("full_horizon", "train")
 
 
 @dataclass(frozen=True)
@@ -56,7 +65,8 @@ class PursuitSettings:
     coarse-to-fine levels (:func:`run_levels`; 1: the paper's scheme), ``certify_samples``
     the largest N whose stop is certified by a full-horizon MS solve (module docstring; 0:
     never), ``local_solver`` the subproblems' solver from the leader's plan (IPOPT if it
-    fails; see :class:`~ocpar.ocp.MsShape`)."""
+    fails; see :class:`~ocpar.ocp.MsShape`), ``finish`` how a run whose horizon fits ends
+    (:data:`FINISHES`: the full-horizon MS after the first agent, or the paper's train)."""
 
     window: int = option(60, "samples per catch-up problem N_Δ (Δ = (N_Δ-1)h)", low=2,
                          metavar="N_DELTA")
@@ -67,7 +77,10 @@ class PursuitSettings:
                             "recent rate) is below EPS (in the headline's unit, kg for the "
                             "orbit transfer)",
                             above=0, metavar="EPS")
-    max_agents: int = option(100_000, "stop after this many agents", low=2)
+    max_agents: int = option(100_000, "stop after this many agents (per level, widened "
+                             "windows included); where N <= --certify-samples the stop is "
+                             "certified and the better answer returned, otherwise it exits 1",
+                             low=2)
     levels: int = option(1, "coarse-to-fine levels L: PBMS first on (N-1)/2^(L-1)+1 samples, "
                          "then on grids twice as fine, each starting from the coarser result "
                          "(agent 0); 1: the paper's scheme", low=1)
@@ -79,6 +92,12 @@ class PursuitSettings:
     local_solver: str = option("newton", "subproblems' solver from the leader's plan: newton "
                                "(Newton steps on the KKT system) or sqp (CasADi sqpmethod, "
                                "qrqp); IPOPT if it fails", choices=LOCAL_SOLVERS)
+    finish: str = option("full_horizon", "where N <= --certify-samples: full_horizon: stop once "
+                         "the full-horizon MS solved from the train's trajectory (first tried "
+                         "after agent 1) succeeds, and return it; train: the train goes on "
+                         "until it is itself within EPS of that optimum (the paper's scheme, "
+                         "certified); either way the better answer is returned",
+                         choices=FINISHES)
 
     def check(self, samples: int) -> None:
         """Raise ValueError unless 1 ≤ N_δ < N_Δ < N."""
@@ -103,14 +122,32 @@ class PursuitSettings:
         if self.local_solver not in LOCAL_SOLVERS:
             raise ValueError(f"local_solver must be one of {LOCAL_SOLVERS}, got "
                              f"{self.local_solver!r}")
+        if self.finish not in FINISHES:
+            raise ValueError(f"finish must be one of {FINISHES}, got {self.finish!r}")
 
 
 #: Fewest agent-to-agent improvements :func:`remaining_improvement` estimates from.
 MIN_GAINS = 8
-#: Why a run stopped (``result.json``'s ``stop_reason``): within ε of the certificate's
-#: optimum, the extrapolated estimate below ε (no certificate: N > ``certify_samples``, or it
-#: failed), or the agent budget spent.
+#: Why a run stopped (``result.json``'s ``stop_reason``), said of the answer it returns:
+#: within ε of the certificate's optimum (the answer is the certificate itself, or the train
+#: came within ε of it), the extrapolated estimate below ε (no certificate: N >
+#: ``certify_samples``, or every attempt failed), or the agent budget spent without either.
 STOP_REASONS = ("certified_within_epsilon", "estimate_below_epsilon", "max_agents")
+#: Where the returned answer comes from (``result.json``'s ``result_source``): the train's last
+#: agent, or the full-horizon MS solved from the train's trajectory (the certificate).
+RESULT_SOURCES = ("train", "full_horizon")
+#: A train has stalled when the certificate's improvement still to come is more than
+#: STALL_RATIO times what its recent gains, continued as a geometric series
+#: (:func:`remaining_improvement`), can still close: a train whose windows are shorter than an
+#: arc where a constraint is active converges to a point above the optimum, its gains
+#: shrinking geometrically (van der Pol with x2 ≥ −0.41 on a 0.75 s arc and 0.5 s windows:
+#: 1.05e-2 left when the estimate says 1e-4, a ratio that only grows), while a slow but
+#: converging train stays within a few times its estimate (the paper's case 2 at N = 501:
+#: 3.5). A stalled train widens its windows (:func:`widen`) and goes on.
+STALL_RATIO = 10.0
+#: Largest discrete residual (continuity, target set, path constraints' excess; each in its
+#: own unit) a certificate may have to be accepted, and a returned answer to be converged.
+FEASIBILITY_TOL = 1e-8
 #: How the reported improvement still to come was obtained (``remaining_method``).
 REMAINING_METHODS = ("extrapolated", "certified")
 
@@ -175,18 +212,39 @@ class Agent:
         return self.position == len(self.x) - 1
 
 
+@dataclass(frozen=True)
+class Certificate:
+    """The full-horizon MS problem solved from agent ``agent``'s trajectory (the train's index
+    over all its stages): its ``headline``, states ``x`` (N, nx) and controls ``u`` (N−1, nu)."""
+
+    agent: int
+    headline: float
+    x: np.ndarray
+    u: np.ndarray
+
+
 @dataclass
 class PursuitOutcome:
-    """What the pursuit loop returns: the last finished agent (the result), every finished
-    agent's headline (agent 0 first), counters (``subproblem_solves`` with the certificate)
-    and status: why it stopped (one of :data:`STOP_REASONS`), the improvement still to come
-    (``remaining``, in the headline's unit), how it was obtained (``remaining_method``, one of
-    :data:`REMAINING_METHODS`) and the certificate's full-horizon optimum (``certificate``,
-    None without one)."""
+    """What the pursuit loop returns: the answer, states ``x`` (N, nx) and controls ``u``
+    (N−1, nu), taken from ``result_source`` (one of :data:`RESULT_SOURCES`: the train's last
+    agent ``best``, or the certificate when it is better); every finished agent's headline
+    (agent 0 first, every stage); the train's own last headline ``train_headline`` and its
+    improvement still to come ``train_remaining`` (``train_remaining_method``); counters
+    (``subproblem_solves`` with the certificates) and status: whether the answer is within ε
+    (``converged``), why the run stopped (one of :data:`STOP_REASONS`, said of the answer), the
+    answer's improvement still to come (``remaining``, in the headline's unit; 0 for the
+    certificate itself), how it was obtained (``remaining_method``, one of
+    :data:`REMAINING_METHODS`) and the certificate (None without one). ``windows`` the
+    (N_Δ, N_δ) of each stage, widened after a stall (:func:`widen`)."""
 
     best: Agent
-    initial: Agent
+    x: np.ndarray
+    u: np.ndarray
+    result_source: str
     headlines: list[float]
+    train_headline: float
+    train_remaining: float
+    train_remaining_method: str
     subproblem_solves: int
     failed_solves: int
     retries: int
@@ -196,25 +254,30 @@ class PursuitOutcome:
     stop_reason: str
     remaining: float
     remaining_method: str
-    certificate: float | None
+    certificate: Certificate | None
     failures: list[str] = field(default_factory=list)
     #: agents of each level, coarsest first (:func:`run_levels`)
     agents_per_level: list[int] = field(default_factory=list)
+    windows: list[tuple[int, int]] = field(default_factory=list)
 
 
 class PursuitTrain:
     """The coordinator's state: agents in flight, each one's leader, the finished agents'
-    headlines."""
+    headlines. A train widened after a stall (:func:`run_pursuit`) starts from the stalled
+    train's last agent with ``agents_before`` agents already run and its ``certificate``."""
 
-    def __init__(self, problem: PursuitProblem, settings: PursuitSettings) -> None:
+    def __init__(self, problem: PursuitProblem, settings: PursuitSettings,
+                 certificate: Certificate | None = None, agents_before: int = 0) -> None:
         settings.check(problem.samples)
         #: Fewest intervals a problem to the target set needs: as many controls as fixed
         #: components (⌈|S| / nu⌉).
         self.min_intervals = -(-len(problem.target_components) // problem.model.nu)
         self.problem, self.settings = problem, settings
+        self.agents_before = agents_before
         n = problem.samples
         x0, u0 = problem.feasible_trajectory()
         self.initial = Agent(0, x0, u0, position=n - 1)
+        self.best = self.initial
         self._shapes: dict[int, MsShape] = {}
         self._target_index = np.array(problem.target_components)
         self.leaders: dict[int, Agent] = {0: self.initial}
@@ -229,10 +292,20 @@ class PursuitTrain:
         self.progress: list[float] = []
         #: the improvement still to come, and how it was obtained (:data:`REMAINING_METHODS`)
         self.remaining, self.remaining_method = float("inf"), REMAINING_METHODS[0]
-        #: the full-horizon optimum from the train's trajectory, once solved; None before
-        self.certificate: float | None = None
-        #: whether the certificate was solved (or tried), and why it failed ("" if it did not)
-        self._certified, self._certificate_failure = False, ""
+        #: the extrapolated estimate after the last finished agent
+        self.estimate = float("inf")
+        #: the full-horizon MS solved from the train's trajectory, once solved; None before
+        self.certificate = certificate
+        #: whether the train stopped on a stall (its windows to be widened)
+        self.stalled = False
+        #: certificate attempts made (by trigger), and why the last one failed ("" if none)
+        self._tried: set[str] = set()
+        self._certificate_failure = ""
+
+    @property
+    def _fits(self) -> bool:
+        """Whether the full horizon fits one worker (N ≤ ``certify_samples``)."""
+        return self.problem.samples <= self.settings.certify_samples
 
     def _shape(self, intervals: int) -> MsShape:
         """The subproblem shape with ``intervals`` intervals (made once per train)."""
@@ -257,7 +330,8 @@ class PursuitTrain:
         new agent when the last one has gone far enough for it to start."""
         n, window = self.problem.samples, self.settings.window
         last = self.in_flight[-1] if self.in_flight else self.initial
-        if self.launched < self.settings.max_agents and last.position >= window - 1:
+        if (self.agents_before + self.launched < self.settings.max_agents
+                and last.position >= window - 1):
             agent = self._new_agent()
             self.leaders[agent.index] = last
             self.in_flight.append(agent)
@@ -311,12 +385,15 @@ class PursuitTrain:
             agent.u[j : j + steps] = leader.u[j : j + steps]
         agent.position = j + steps
 
-    def retire_finished(self, solve: Callable[[OcpTask], MsSolution]
-                        ) -> tuple[bool, str, str] | None:
-        """Take finished agents off the train in order; return (converged, stop reason,
-        message) when the improvement still to come (:attr:`remaining`) falls below ε or the
-        agent budget is spent, else None. ``solve`` solves the full-horizon certificate
-        (:meth:`certify`) when it falls due."""
+    def retire_finished(self, solve: Callable[[OcpTask], MsSolution]) -> str | None:
+        """Take finished agents off the train in order; return the train's stop message when
+        it stops (within ε of the certificate, or of the estimate without one; the
+        certificate solved with ``finish="full_horizon"``; a stall, :attr:`stalled`; the agent
+        budget spent), else None. ``solve`` solves the full-horizon certificate
+        (:meth:`certify`) when it falls due: after the train's first agent with
+        ``finish="full_horizon"``, when the estimate first falls below ε (the paper's train,
+        ``finish="train"``: so that the certificate does not change where it stops) and at a
+        budget stop without one, wherever the horizon fits."""
         while self.in_flight and self.in_flight[0].done:
             agent = self.in_flight.pop(0)
             self.headlines.append(self.problem.headline_value(agent.x, agent.u))
@@ -325,56 +402,97 @@ class PursuitTrain:
             if agent.index >= 1:  # agent 0 does not end on S_Q: progress from agent 1 on
                 self.progress.append(self.problem.improvement(self.headlines[1],
                                                               self.headlines[-1]))
-                self._update_remaining(agent, solve)
-            unit = f" {self.problem.headline_unit}".rstrip()
-            eps = f"epsilon {self.settings.epsilon:g}{unit}"
-            name = self.problem.headline_name
-            if self.remaining < self.settings.epsilon:
-                if self.certificate is not None:
-                    return True, STOP_REASONS[0], (
-                        f"{name} {self.remaining:.2e}{unit} short of the full-horizon MS "
-                        f"optimum {self.certificate:.6f}{unit} < {eps} after agent "
-                        f"{agent.index}")
-                return True, STOP_REASONS[1], (
-                    f"estimated {name} improvement still to come {self.remaining:.2e}{unit} "
-                    f"< {eps} after agent {agent.index}{self._certificate_failure}")
-            if agent.index >= self.settings.max_agents:
-                return False, STOP_REASONS[2], (
-                    f"max_agents {self.settings.max_agents} reached; {self.remaining_method} "
-                    f"{name} improvement still to come {self.remaining:.2e}{unit}")
+                stop = self._judge(agent, solve)
+                if stop is not None:
+                    return stop
         return None
 
-    def _update_remaining(self, agent: Agent, solve: Callable[[OcpTask], MsSolution]) -> None:
-        """:attr:`remaining` after ``agent``: extrapolated from the gains until the estimate
-        first falls below ε, then (N ≤ ``certify_samples``) measured against the
-        certificate."""
-        estimate = remaining_improvement(self.progress)
-        if (estimate < self.settings.epsilon and not self._certified
-                and self.problem.samples <= self.settings.certify_samples):
-            self.certify(agent, solve)
+    def _judge(self, agent: Agent, solve: Callable[[OcpTask], MsSolution]) -> str | None:
+        """Update :attr:`remaining` after ``agent`` (certifying when due) and return the
+        train's stop message if it stops there."""
+        settings, eps = self.settings, self.settings.epsilon
+        self.estimate = remaining_improvement(self.progress)
+        full_horizon = settings.finish == FINISHES[0]
+        if full_horizon:
+            self._try_certificate("first", agent, solve)
+        if self.estimate < eps:
+            self._try_certificate("estimate", agent, solve)
+        self._measure()
+        total = self.agents_before + agent.index
+        unit = f" {self.problem.headline_unit}".rstrip()
+        name = self.problem.headline_name
+        if full_horizon and self.certificate is not None:
+            return f"full-horizon finish after agent {total}"
+        if self.remaining < eps:
+            if self.certificate is not None:
+                return (f"the train came within {self.remaining:.2e}{unit} of the full-horizon "
+                        f"MS optimum after agent {total}")
+            return (f"estimated {name} improvement still to come {self.remaining:.2e}{unit} "
+                    f"after agent {total}{self._certificate_failure}")
+        if total >= settings.max_agents:
+            self._try_certificate("budget", agent, solve)
+            self._measure()
+            return (f"max_agents {settings.max_agents} reached; the train's "
+                    f"{self.remaining_method} {name} improvement still to come "
+                    f"{self.remaining:.2e}{unit}{self._certificate_failure}")
+        if self.certificate is not None and self.remaining > STALL_RATIO * self.estimate:
+            self.stalled = True
+            return (f"stalled after agent {total} with windows N_Δ = {settings.window}, "
+                    f"N_δ = {settings.update}: {self.remaining:.2e}{unit} short of the "
+                    f"full-horizon MS optimum, its gains estimated to close "
+                    f"{self.estimate:.2e}{unit}")
+        return None
+
+    def _measure(self) -> None:
+        """:attr:`remaining`: the distance of the last finished agent's headline to the
+        certificate's (0 once it passes it), or the extrapolated estimate without one."""
         if self.certificate is None:
-            self.remaining, self.remaining_method = estimate, REMAINING_METHODS[0]
+            self.remaining, self.remaining_method = self.estimate, REMAINING_METHODS[0]
         else:
-            to_come = self.problem.improvement(self.headlines[-1], self.certificate)
+            to_come = self.problem.improvement(self.headlines[-1], self.certificate.headline)
             self.remaining, self.remaining_method = max(0.0, to_come), REMAINING_METHODS[1]
+
+    def _try_certificate(self, trigger: str, agent: Agent,
+                         solve: Callable[[OcpTask], MsSolution]) -> None:
+        """:meth:`certify` from ``agent`` once per ``trigger``, unless the train has a
+        certificate or the horizon does not fit."""
+        if self.certificate is None and self._fits and trigger not in self._tried:
+            self._tried.add(trigger)
+            self.certify(agent, solve)
 
     def certify(self, agent: Agent, solve: Callable[[OcpTask], MsSolution]) -> None:
         """Solve the full-horizon MS problem from ``agent``'s trajectory (agent 0's if that
-        fails) with ``solve``; its headline becomes :attr:`certificate`, the optimum the
-        train's improvement still to come is measured against. A failure is noted and
-        leaves the extrapolated estimate in charge."""
+        fails) with ``solve``; accepted as :attr:`certificate` if it succeeds and its
+        trajectory, as returned, meets the dynamics, the target set and the path constraints
+        to :data:`FEASIBILITY_TOL` (:func:`~ocpar.pursuit.validate.discrete_residual`). A
+        failure is noted and leaves the extrapolated estimate in charge."""
         sol = solve(full_horizon_task(self.problem, agent.x, agent.u,
                                       fallback=(self.initial.x, self.initial.u)))
-        self._certified = True
         self.solves += 1
         self.retries += sol.attempts - 1
+        total = self.agents_before + agent.index
+        status = sol.status
         if sol.success:
-            self.certificate = self.problem.headline_value(sol.x, sol.u)
-        else:
-            self.failed += 1
-            self.failures.append(f"full-horizon certificate after agent {agent.index}: "
-                                 f"{sol.status}")
-            self._certificate_failure = f" (the full-horizon certificate failed: {sol.status})"
+            residual = discrete_residual(self.problem, sol.x, sol.u)
+            if residual <= FEASIBILITY_TOL:
+                self.certificate = Certificate(total, self.problem.headline_value(sol.x, sol.u),
+                                               sol.x, sol.u)
+                self._certificate_failure = ""
+                return
+            status = f"its trajectory breaks the constraints by {residual:.2e}"
+        self.failed += 1
+        self.failures.append(f"full-horizon certificate after agent {total}: {status}")
+        self._certificate_failure = f" (the full-horizon certificate failed: {status})"
+
+
+def widen(settings: PursuitSettings, samples: int) -> PursuitSettings | None:
+    """``settings`` with windows spanning twice the time, as a level twice as coarse has:
+    N_Δ → 2N_Δ − 1 and N_δ → 2N_δ, at most N − 1 and N_Δ − 1; None if N_Δ is N − 1 already."""
+    if settings.window >= samples - 1:
+        return None
+    window = min(2 * settings.window - 1, samples - 1)
+    return dataclasses.replace(settings, window=window,
+                               update=min(2 * settings.update, window - 1))
 
 
 def run_pursuit(
@@ -383,49 +501,93 @@ def run_pursuit(
     backend: Backend,
     progress: Callable[[str], None] | None = None,
 ) -> PursuitOutcome:
-    """Run PBMS until the stopping test; one superstep per wave of ready updates."""
-    train = PursuitTrain(problem, settings)
-    max_in_flight = 0
+    """Run PBMS until the stopping test; one superstep per wave of ready updates. A train
+    that stalls (:data:`STALL_RATIO`) starts again from its last agent with windows twice as
+    long (:func:`widen`), keeping its certificate and agent count; the answer is the train's
+    last agent or the certificate, whichever is better (:func:`conclude`)."""
+    trains: list[PursuitTrain] = []
+    stage_problem, stage_settings = problem, settings
+    max_in_flight, certificate, agents = 0, None, 0
     while True:
-        work = train.ready()
-        if not work:
-            raise RuntimeError("pursuit schedule stalled: no agent can move")  # a bug if seen
-        max_in_flight = max(max_in_flight, len(work))
-        # cost estimate: a subproblem's size, its number of intervals (free-running ones are
-        # shorter); longest-first keeps the two or three catch-ups of a wave on different workers
-        sols = backend.superstep(solve_tasks, [task for _, task in work],
-                                 costs=[task.shape.intervals for _, task in work])
-        for (agent, _), sol in zip(work, sols, strict=True):
-            train.apply(agent, sol)
-        trace = backend.traces[-1]  # the wave's, not the certificate's
-        verdict = train.retire_finished(
-            lambda task: backend.superstep(solve_task, [task])[0])
+        train = PursuitTrain(stage_problem, stage_settings, certificate, agents)
+        trains.append(train)
+        while True:
+            work = train.ready()
+            if not work:
+                raise RuntimeError("pursuit schedule stalled: no agent can move")  # a bug if seen
+            max_in_flight = max(max_in_flight, len(work))
+            # cost estimate: a subproblem's size, its number of intervals (free-running ones
+            # are shorter); longest-first keeps the two or three catch-ups of a wave on
+            # different workers
+            sols = backend.superstep(solve_tasks, [task for _, task in work],
+                                     costs=[task.shape.intervals for _, task in work])
+            for (agent, _), sol in zip(work, sols, strict=True):
+                train.apply(agent, sol)
+            trace = backend.traces[-1]  # the wave's, not the certificate's
+            note = train.retire_finished(
+                lambda task: backend.superstep(solve_task, [task])[0])
+            if progress is not None:
+                progress(
+                    f"superstep {trace.index:5d}  agents in flight {len(work):3d}  "
+                    f"finished {agents + len(train.headlines) - 1:5d}  last "
+                    f"{problem.headline_name} {train.headlines[-1]:.6f} "
+                    f"{problem.headline_unit}  wall {trace.wall_s * 1e3:6.1f} ms"
+                )
+            if note is not None:
+                break
+        agents += train.best.index
+        certificate = train.certificate
+        wider = widen(stage_settings, problem.samples) if train.stalled else None
+        if wider is None:
+            return conclude(problem, settings, trains, note, max_in_flight)
         if progress is not None:
-            progress(
-                f"superstep {trace.index:5d}  agents in flight {len(work):3d}  "
-                f"finished {len(train.headlines) - 1:5d}  last {problem.headline_name} "
-                f"{train.headlines[-1]:.6f} {problem.headline_unit}  "
-                f"wall {trace.wall_s * 1e3:6.1f} ms"
-            )
-        if verdict is not None:
-            converged, stop_reason, message = verdict
-            return PursuitOutcome(
-                best=train.best,
-                initial=train.initial,
-                headlines=train.headlines,
-                subproblem_solves=train.solves,
-                failed_solves=train.failed,
-                retries=train.retries,
-                max_in_flight=max_in_flight,
-                converged=converged,
-                message=message,
-                stop_reason=stop_reason,
-                remaining=train.remaining,
-                remaining_method=train.remaining_method,
-                certificate=train.certificate,
-                failures=train.failures[:20],
-                agents_per_level=[train.best.index],
-            )
+            progress(f"{note}; windows widened to N_Δ = {wider.window}, N_δ = {wider.update}")
+        x, u = train.best.x, train.best.u
+        stage_problem = dataclasses.replace(problem, plan=SampledPlan(
+            np.clip(x, *problem.model.state_bounds()), np.clip(u, *control_bounds(problem.model))))
+        stage_settings = wider
+
+
+def conclude(problem: PursuitProblem, settings: PursuitSettings, trains: list[PursuitTrain],
+             note: str, max_in_flight: int) -> PursuitOutcome:
+    """The outcome of the ``trains`` of one run (a stalled train, then each widened one;
+    ``note`` the last one's stop): the certificate if it is at least as good as the last
+    agent, else the last agent, and whether that answer is within ε (certified, or estimated
+    where there is no certificate)."""
+    train, eps = trains[-1], settings.epsilon
+    unit = f" {problem.headline_unit}".rstrip()
+    certificate, best = train.certificate, train.best
+    train_headline = train.headlines[-1]
+    if certificate is not None and problem.improvement(train_headline,
+                                                       certificate.headline) >= 0:
+        source, x, u, remaining = RESULT_SOURCES[1], certificate.x, certificate.u, 0.0
+        answer = (f"; returned: the full-horizon MS solved from agent {certificate.agent}'s "
+                  f"trajectory, {problem.headline_name} {certificate.headline:.6f}{unit}")
+    else:
+        source, x, u, remaining = RESULT_SOURCES[0], best.x, best.u, train.remaining
+        answer = ""
+    if certificate is not None and remaining < eps:
+        stop_reason, method = STOP_REASONS[0], REMAINING_METHODS[1]
+    elif certificate is None and remaining < eps:
+        stop_reason, method = STOP_REASONS[1], REMAINING_METHODS[0]
+    else:
+        stop_reason, method = STOP_REASONS[2], train.remaining_method
+    headlines = train.headlines
+    if len(trains) > 1:
+        headlines = trains[0].headlines + [h for t in trains[1:] for h in t.headlines[1:]]
+    return PursuitOutcome(
+        best=best, x=x, u=u, result_source=source, headlines=headlines,
+        train_headline=train_headline, train_remaining=train.remaining,
+        train_remaining_method=train.remaining_method,
+        subproblem_solves=sum(t.solves for t in trains),
+        failed_solves=sum(t.failed for t in trains),
+        retries=sum(t.retries for t in trains),
+        max_in_flight=max_in_flight, converged=remaining < eps,
+        message=note + answer, stop_reason=stop_reason, remaining=remaining,
+        remaining_method=method, certificate=certificate,
+        failures=[f for t in trains for f in t.failures][:20],
+        agents_per_level=[train.agents_before + best.index],
+        windows=[(t.settings.window, t.settings.update) for t in trains])
 
 
 def run_levels(
@@ -437,7 +599,7 @@ def run_levels(
     """PBMS coarse to fine (``settings.levels`` L > 1): :func:`run_pursuit` on
     (N−1)/2^(L−1)+1 samples from the problem's agent 0, then on each grid twice as fine with
     the same N_Δ, N_δ (so a coarse level's windows span more time, and its train converges in
-    fewer agents) and the coarser level's result as agent 0 (:func:`refine`). The outcome is
+    fewer agents) and the coarser level's answer as agent 0 (:func:`refine`). The outcome is
     the finest level's (its headlines, stop reason), with the solves and agents of all
     levels. L = 1 is :func:`run_pursuit`."""
     levels: list[PursuitOutcome] = []
@@ -448,7 +610,7 @@ def run_levels(
             grid = coarsen(problem, samples)
         else:
             # within the bounds, which a subproblem's solution may overstep by its tolerance
-            x, u = refine(levels[-1].best.x, levels[-1].best.u)
+            x, u = refine(levels[-1].x, levels[-1].u)
             x = np.clip(x, *problem.model.state_bounds())
             grid = dataclasses.replace(problem, samples=samples, plan=SampledPlan(
                 x, np.clip(u, *control_bounds(problem.model))))
@@ -460,7 +622,7 @@ def run_levels(
         retries=sum(o.retries for o in levels),
         max_in_flight=max(o.max_in_flight for o in levels),
         failures=[f for o in levels for f in o.failures][:20],
-        agents_per_level=[o.best.index for o in levels])
+        agents_per_level=[o.agents_per_level[0] for o in levels])
 
 
 def coarsen(problem: PursuitProblem, samples: int) -> PursuitProblem:

@@ -10,7 +10,12 @@ from ocpar.bsp.serial import SerialBackend
 from ocpar.ocp import MsSolution, solve_task
 from ocpar.pursuit.problem import PursuitProblem
 from ocpar.pursuit.result import PursuitResult
-from ocpar.pursuit.slp import PursuitSettings, full_horizon_task, run_levels
+from ocpar.pursuit.slp import (
+    FEASIBILITY_TOL,
+    PursuitSettings,
+    full_horizon_task,
+    run_levels,
+)
 from ocpar.pursuit.validate import discrete_residual, rk_check
 
 MODES = ("pbms", "ms")
@@ -37,7 +42,9 @@ def solve_pursuit(
     multiple shooting over the whole horizon (``mode="ms"``).
 
     With ``reference`` (and N ≤ 1001) a PBMS run also solves the full-horizon MS problem
-    afterwards, for comparison. ``progress`` gets one line per superstep.
+    afterwards, for comparison. ``progress`` gets one line per superstep. The returned
+    trajectory is checked as returned: a run is converged only if it meets the dynamics, the
+    target set and the path constraints to :data:`~ocpar.pursuit.slp.FEASIBILITY_TOL`.
     """
     if mode not in MODES:
         raise ValueError(f"unknown mode {mode!r}; choose one of {', '.join(MODES)}")
@@ -57,10 +64,10 @@ def solve_pursuit(
         failed, in_flight, headlines = int(not sol.success), 1, []
         retries = sol.attempts - 1
         stop_reason, remaining, agents_per_level = None, None, []
-        remaining_method, certificate = None, None
+        remaining_method, certificate, train = None, None, {}
     else:
         outcome = run_levels(problem, settings, backend, progress)
-        x, u = outcome.best.x, outcome.best.u
+        x, u = outcome.x, outcome.u
         status = "converged" if outcome.converged else "not_converged"
         message, agents = outcome.message, sum(outcome.agents_per_level)
         solves = outcome.subproblem_solves
@@ -68,8 +75,15 @@ def solve_pursuit(
                                         outcome.headlines)
         retries = outcome.retries
         stop_reason, remaining = outcome.stop_reason, outcome.remaining
-        remaining_method, certificate = outcome.remaining_method, outcome.certificate
+        remaining_method = outcome.remaining_method
+        certificate = None if outcome.certificate is None else outcome.certificate.headline
         agents_per_level = outcome.agents_per_level
+        train = {"result_source": outcome.result_source,
+                 "train_headline": outcome.train_headline,
+                 "train_cost": problem.cost(outcome.best.x, outcome.best.u),
+                 "train_remaining": outcome.train_remaining,
+                 "train_remaining_method": outcome.train_remaining_method,
+                 "windows": outcome.windows}
     trace = backend.traces[first_trace:]
     wall = time.perf_counter() - start
     if mode == "pbms" and reference and problem.samples <= REFERENCE_MAX_SAMPLES:
@@ -77,6 +91,11 @@ def solve_pursuit(
         if ref.success:
             reference_headline, reference_x = problem.headline_value(ref.x, ref.u), ref.x
     check = rk_check(problem, u)
+    violation = discrete_residual(problem, x, u)
+    if status == "converged" and not violation <= FEASIBILITY_TOL:
+        status = "not_converged"
+        message += (f"; the returned trajectory breaks the dynamics, target set or path "
+                    f"constraints by {violation:.2e} > {FEASIBILITY_TOL:g}")
     return PursuitResult(
         problem=problem.name, samples=problem.samples, mode=mode,
         window=settings.window, update=settings.update, epsilon=settings.epsilon,
@@ -87,11 +106,11 @@ def solve_pursuit(
         cost_key=problem.cost_key, cost=problem.cost(x, u),
         agents=agents, subproblem_solves=solves, failed_solves=failed, retries=retries,
         max_agents_in_flight=in_flight,
-        constraint_violation=discrete_residual(problem, x, u),
+        constraint_violation=violation,
         rk_terminal_error=check.terminal_error, rk_checks=check.values,
         wall_time_s=wall, x=x, u=u, initial_x=initial_x, headlines=headlines,
         reference_headline=reference_headline, reference_x=reference_x, trace=trace,
         stop_reason=stop_reason, estimated_remaining=remaining,
         remaining_method=remaining_method, certificate_headline=certificate,
-        agents_per_level=agents_per_level,
+        agents_per_level=agents_per_level, **train,
     )
