@@ -346,7 +346,8 @@ class Macs:
         out. The next round checks the members that moved and their neighbours (and members
         whose neighbours changed), until none is due or after :data:`REFINEMENT_ROUNDS`; a
         member that moved in its last check stays unsettled. A last superstep measures every
-        member's Pareto stationarity. Returns the refinement's evaluations."""
+        member's Pareto stationarity (NaN if its task failed). Returns the refinement's
+        evaluations."""
         span = self._span()
         before = self.evaluations
         # which first-round member each current one descends from, and at its last check
@@ -376,8 +377,10 @@ class Macs:
                 best = int(np.argmax(gains)) if others else -1
                 beaten = best >= 0 and gains[best] > STATIONARITY_TOL
                 chosen, member = others[best] if beaten else own, members[i]
+                kept = (chosen.z, chosen.objectives) if chosen.refined else (member.z,
+                                                                             member.objectives)
                 candidates[i] = Member(
-                    chosen.z, chosen.objectives, member.optimised,
+                    *kept, member.optimised,
                     refined=bool(member.refined) or own.refined or beaten,
                     moved=bool(member.moved) or beaten,
                     improvement=(member.improvement or 0.0) + (gains[best] if beaten else 0.0),
@@ -392,7 +395,9 @@ class Macs:
         measured = self._superstep([SearchTask(self.problem, "stationarity", z0=member.z,
                                                span=span) for member in members])
         for member, result in zip(members, measured, strict=True):
-            member.stationarity, member.tradeoff = result.stationarity, result.tradeoff
+            failed = result.stationarity is None  # a failed task: the residual is unknown
+            member.stationarity = np.nan if failed else result.stationarity
+            member.tradeoff = np.full(self.m, np.nan) if failed else result.tradeoff
         return self.evaluations - before
 
     def _move(self, agent: Agent, result: SearchResult) -> None:
