@@ -372,11 +372,13 @@ class Macs:
             candidates = list(members)
             for i in due:
                 own, *others = [next(results) for _ in range(1 + len(neighbours[i]))]
-                gains = [float(np.sum((own.objectives - r.objectives) / span)) if r.refined
+                member = members[i]
+                base = own.objectives if own.refined else member.objectives
+                gains = [float(np.sum((base - r.objectives) / span)) if r.refined
                          else -np.inf for r in others]
                 best = int(np.argmax(gains)) if others else -1
                 beaten = best >= 0 and gains[best] > STATIONARITY_TOL
-                chosen, member = others[best] if beaten else own, members[i]
+                chosen = others[best] if beaten else own
                 kept = (chosen.z, chosen.objectives) if chosen.refined else (member.z,
                                                                              member.objectives)
                 candidates[i] = Member(
