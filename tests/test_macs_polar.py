@@ -17,11 +17,11 @@ import pytest
 
 from ocpar.bsp.serial import SerialBackend
 from ocpar.examples import macs_polar
-from ocpar.macs import MacsSettings, solve_macs
+from ocpar.macs import MacsSettings, algorithm, solve_macs
 from ocpar.macs.algorithm import Macs, front_neighbours
 from ocpar.macs.archive import Member
 from ocpar.macs.local_search import STATIONARITY_TOL, SearchTask, run_search
-from ocpar.macs.solve import resimulated_objectives
+from ocpar.macs.solve import refinement_fields, resimulated_objectives
 from ocpar.ocp import dfet_problem
 
 DISTANCE = 1.0
@@ -70,15 +70,25 @@ def member_from(problem, t_f: float, idle: int | None = None) -> Member:
     return Member(result.z, result.objectives)
 
 
-def test_a_stationary_member_off_the_front_moves_onto_it_from_a_neighbours_start():
+@pytest.fixture(scope="module")
+def stuck_between_neighbours():
+    """The problem, and three members: on the front at t_f = 2.8 and 3.2, and between them at
+    t_f = 3 one that idles its fifth element."""
+    problem = macs_polar.make()
+    return problem, [member_from(problem, 2.8), member_from(problem, 3.0, idle=4),
+                     member_from(problem, 3.2)]
+
+
+def test_a_stationary_member_off_the_front_moves_onto_it_from_a_neighbours_start(
+        stuck_between_neighbours):
     """A member at t_f = 3 idling its fifth element (heading along the move, where the optimal
     thrust points against it) lies 0.87 % above the front and is Pareto stationary to 1e-9
     (the old refinement refined it from its own point, left it there and called it
     converged). Between two members on the front (t_f = 2.8, 3.2), the refinement's start from
     a neighbour beats it: it moves onto the front (1e-6, also re-simulated), reported moved
     by the improvement it made, settled and stationary; the neighbours do not move."""
-    problem = macs_polar.make()
-    stuck = member_from(problem, 3.0, idle=4)
+    problem, members = stuck_between_neighbours
+    stuck = members[1]
     span = np.array([0.4, least_energy(2.8) - least_energy(3.2)])
     own = run_search(SearchTask(problem, "refine", z0=stuck.z, span=span))
     measured = run_search(SearchTask(problem, "stationarity", z0=own.z, span=span))
@@ -86,7 +96,7 @@ def test_a_stationary_member_off_the_front_moves_onto_it_from_a_neighbours_start
     assert measured.stationarity <= 1e-8
 
     macs = Macs(problem, MacsSettings(seed=0), SerialBackend())
-    macs.archive.add([member_from(problem, 2.8), stuck, member_from(problem, 3.2)])
+    macs.archive.add(members)
     assert np.abs(excess(macs.archive.objectives())[[0, 2]]).max() <= 1e-7
     evaluations = macs.refine()
     assert evaluations == macs.evaluations > 0
@@ -131,3 +141,22 @@ def test_polar_front_over_five_seeds():
     problem = macs_polar.make()
     for seed in range(5):
         check_on_the_front(solve_macs(problem, MacsSettings(archive_size=20, seed=seed)))
+
+
+def test_a_member_that_moves_in_the_last_round_is_not_converged(stuck_between_neighbours,
+                                                                monkeypatch):
+    """With one round of checks the stuck member moves onto the front but is not checked again
+    from there: it is reported moved and not settled, so not converged, although its residual
+    is ~0."""
+    problem, members = stuck_between_neighbours
+    monkeypatch.setattr(algorithm, "REFINEMENT_ROUNDS", 1)
+    macs = Macs(problem, MacsSettings(seed=0), SerialBackend())
+    macs.archive.add(members)
+    macs.refine()
+    after = sorted(macs.archive.members, key=lambda mb: mb.objectives[0])
+    assert [mb.moved for mb in after] == [False, True, False]
+    assert [mb.settled for mb in after] == [True, False, True]
+    assert after[1].stationarity <= 1e-8  # stationary, yet not converged
+    converged = refinement_fields(after, 0)
+    assert (converged["settled"] & (converged["stationarity"] <= STATIONARITY_TOL)).tolist() == [
+        True, False, True]
