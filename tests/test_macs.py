@@ -201,7 +201,8 @@ def test_refinement_frees_a_member_stuck_on_the_seam(monkeypatch):
     span = np.array([60.0, 0.35])
     assert local_search.inner_solvers(problem).stationarity(stuck.z, span)[0] > 1e-5
     refined = run_search(SearchTask(problem, "refine", z0=stuck.z, span=span))
-    assert refined.refined and refined.stationarity <= local_search.STATIONARITY_TOL
+    measured = run_search(SearchTask(problem, "stationarity", z0=refined.z, span=span))
+    assert refined.refined and measured.stationarity <= local_search.STATIONARITY_TOL
     assert np.all(refined.objectives <= stuck.objectives + 1e-7 * (1 + np.abs(stuck.objectives)))
     reference = reference_front(problem.name)
 
@@ -239,10 +240,12 @@ def short_serial():
 
 def test_short_goddard_run_approaches_the_front(short_serial):
     result = short_serial
-    # the budget is spent by the loop; the refinement's superstep and evaluations come after
+    # the budget is spent by the loop; the refinement's supersteps and evaluations come after:
+    # its rounds (own and neighbours' starts: about three solves per member) and the
+    # stationarity measure
     assert result.evaluations - result.refinement_evaluations >= 1500
-    assert 0 < result.refinement_evaluations < 500
-    assert result.supersteps == 1 + 2 * result.iterations + 1
+    assert 0 < result.refinement_evaluations < 1500
+    assert 1 + 2 * result.iterations + 2 <= result.supersteps <= 1 + 2 * result.iterations + 4
     assert len(result.front) >= 5
     assert result.gd < 0.05 and result.hv > 0.7
 
@@ -302,8 +305,8 @@ def test_unknown_problem_in_the_api():
 @pytest.mark.parametrize("problem", ["goddard", "orbit-raising"])
 def test_ten_seeds_quality(problem):
     """The issue's target over 10 seeds, 10,000 evaluations, archive 20: mean GD ≤ 5e-3 and
-    mean IGD ≤ 0.025 (measured with the final refinement: Goddard 1.35e-5 and 0.0200, orbit
-    raising 4.8e-4 and 0.0247; docs/schemes/macs.md)."""
+    mean IGD ≤ 0.025 (measured with the final refinement from own and neighbours' starts:
+    Goddard 1.36e-5 and 0.0201, orbit raising 2.4e-6 and 0.0238; docs/schemes/macs.md)."""
     results = [solve_macs(make_problem(problem), MacsSettings(archive_size=20, seed=s))
                for s in range(10)]
     assert np.mean([r.igd for r in results]) <= golden(f"macs-{problem}.mean_igd_10_seeds").at_most

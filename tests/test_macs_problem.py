@@ -117,13 +117,16 @@ def test_double_integrator_front_short_run(short_runs):
 def test_refinement_puts_every_member_on_the_front_and_reports_it(short_runs, tmp_path):
     """Without the refinement two members of this run lie 1.5e-4 and 2e-4 above the closed-form
     front; with it every one is on it to 1e-7 and is stationary, each member of the archive
-    refined, in one more superstep; its evaluations are reported and counted in the total.
-    result.json carries the flags, residuals and weights (null without the refinement)."""
+    refined from its own point (no neighbour's start beat one: none moved), in two more
+    supersteps (one round of starts, the stationarity measure); its evaluations (three starts
+    per inner member, two per end) are reported and counted in the total. result.json
+    carries the flags, residuals and weights (null without the refinement)."""
     plain, refined = short_runs
     assert excess(plain.front).max() > 1e-4 and plain.stationarity is None
-    assert refined.supersteps == plain.supersteps + 1
+    assert refined.supersteps == plain.supersteps + 2
     assert refined.evaluations == plain.evaluations + refined.refinement_evaluations
-    assert 0 < refined.refinement_evaluations <= 20 * len(refined.front)
+    assert 0 < refined.refinement_evaluations <= 3 * 20 * len(refined.front)
+    assert not refined.moved.any() and refined.settled.all() and not refined.improvement.any()
     assert np.abs(excess(refined.front)).max() <= 1e-7
     assert refined.refined.all() and refined.converged.all()
     assert refined.stationarity.max() <= 1e-8 and refined.tradeoff.shape == (len(refined.front), 2)
@@ -145,11 +148,13 @@ def test_stationarity_measures_the_fronts_slope_and_its_distance():
     solvers = inner_solvers(problem)
     assert solvers.stationarity(start.z, span)[0] > 1e-4
     result = run_search(SearchTask(problem, "refine", z0=start.z, span=span))
-    assert result.refined and result.feasible and result.stationarity <= 1e-8
+    measured = run_search(SearchTask(problem, "stationarity", z0=result.z, span=span))
+    assert result.refined and result.feasible and measured.stationarity <= 1e-8
+    assert measured.evaluations == 0 and np.array_equal(measured.z, result.z)
     assert dominates(result.objectives, start.objectives)
     j1 = result.objectives[0]
     assert result.objectives[1] == pytest.approx(12 * DISTANCE**2 / j1**3, rel=1e-8)
-    w1, w2 = result.tradeoff
+    w1, w2 = measured.tradeoff
     assert w1 + w2 == pytest.approx(1.0) and w1 / w2 == pytest.approx(
         36 * DISTANCE**2 / j1**4 * span[0] / span[1], rel=1e-5)
 

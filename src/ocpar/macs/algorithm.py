@@ -12,19 +12,42 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from itertools import pairwise
 
 import numpy as np
 from scipy.stats import qmc
 
 from ocpar.bsp import Backend
 from ocpar.macs.archive import Archive, Member, dominates
-from ocpar.macs.local_search import RESTORATIONS, SearchResult, SearchTask, run_search
+from ocpar.macs.local_search import (
+    RESTORATIONS,
+    STATIONARITY_TOL,
+    SearchResult,
+    SearchTask,
+    run_search,
+)
 from ocpar.macs.problem import MacsProblem
 from ocpar.ocp import dfet_problem
 from ocpar.options import option
 
 #: Most agents: each runs one local search per superstep (the paper used 10).
 MAX_POPULATION = 10_000
+#: Most rounds (supersteps) of the final refinement's checks: a round after the first
+#: re-checks only the members that a neighbour's start moved, or whose neighbours it moved.
+REFINEMENT_ROUNDS = 3
+
+
+def front_neighbours(objectives: np.ndarray) -> list[list[int]]:
+    """Each member's neighbours on the front, from the members' objectives (k, m): the members
+    just before and just after it in the order of each objective (with two objectives, the
+    members on either side of it along the front), as ascending indices."""
+    neighbours: list[set[int]] = [set() for _ in range(len(objectives))]
+    for column in np.asarray(objectives).T:
+        order = np.argsort(column, kind="stable")
+        for a, b in pairwise(order):
+            neighbours[a].add(int(b))
+            neighbours[b].add(int(a))
+    return [sorted(n) for n in neighbours]
 
 
 def subproblem_weights(m: int) -> list[np.ndarray]:
@@ -312,23 +335,71 @@ class Macs:
             agent.moved = False
 
     def refine(self) -> int:
-        """The final refinement, one superstep: every archive member re-solved by the
-        ε-constraint NLP from its own point (objectives scaled by the archive's span); a
-        member takes the refined point only if it dominates or equals its own, and gets its
-        stationarity either way (NaN if the task failed). Members that now dominate or repeat
-        others drop out. Returns the refinement's evaluations."""
+        """The final refinement. Each round is one superstep: every member due a check is
+        re-solved by the ε-constraint NLP (ε = its objectives, scaled by the archive's span s)
+        from its own point and from each neighbour's on the front (:func:`front_neighbours`).
+        The member takes what its own start reached if that dominates or equals it (as
+        before); but if a neighbour's start reached a point that dominates or equals the member
+        and beats the own start's by more than the tolerance (Σ_i ΔJ_i/s_i >
+        :data:`~ocpar.macs.local_search.STATIONARITY_TOL`), the member moves there (the best
+        such point) and is not ``settled``. Members that now dominate or repeat others drop
+        out. The next round checks the members that moved and their neighbours (and members
+        whose neighbours changed), until none is due or after :data:`REFINEMENT_ROUNDS`; a
+        member that moved in its last check stays unsettled. A last superstep measures every
+        member's Pareto stationarity (NaN if its task failed). Returns the refinement's
+        evaluations."""
         span = self._span()
-        members = self.archive.members
-        tasks = [SearchTask(self.problem, "refine", z0=member.z, span=span) for member in members]
         before = self.evaluations
-        results = self._superstep(tasks)
-        refined = [Member(r.z, r.objectives, refined=r.refined, stationarity=r.stationarity,
-                          tradeoff=r.tradeoff) if r.feasible else
-                   Member(member.z, member.objectives, member.optimised, refined=False,
-                          stationarity=np.nan, tradeoff=np.full(self.m, np.nan))
-                   for member, r in zip(members, results, strict=True)]
-        self.archive.members = []
-        self.archive.add(refined)
+        # which first-round member each current one descends from, and at its last check
+        # the lineages of its neighbours; lineages moved in the round before
+        lineage = {id(member): n for n, member in enumerate(self.archive.members)}
+        checked: dict[int, tuple[int, ...]] = {}
+        moved: set[int] = set()
+        for _ in range(REFINEMENT_ROUNDS):
+            members = self.archive.members
+            lines = [lineage[id(member)] for member in members]
+            neighbours = front_neighbours(self.archive.objectives())
+            keys = [tuple(lines[j] for j in around) for around in neighbours]
+            due = [i for i, key in enumerate(keys)
+                   if checked.get(lines[i]) != key or moved.intersection((lines[i], *key))]
+            if not due:
+                break
+            tasks = [SearchTask(self.problem, "refine", z0=members[j].z, span=span,
+                                epsilon=members[i].objectives)
+                     for i in due for j in (i, *neighbours[i])]
+            results = iter(self._superstep(tasks))
+            moved = set()
+            candidates = list(members)
+            for i in due:
+                own, *others = [next(results) for _ in range(1 + len(neighbours[i]))]
+                member = members[i]
+                base = own.objectives if own.refined else member.objectives
+                gains = [float(np.sum((base - r.objectives) / span)) if r.refined
+                         else -np.inf for r in others]
+                best = int(np.argmax(gains)) if others else -1
+                beaten = best >= 0 and gains[best] > STATIONARITY_TOL
+                chosen = others[best] if beaten else own
+                kept = (chosen.z, chosen.objectives) if chosen.refined else (member.z,
+                                                                             member.objectives)
+                candidates[i] = Member(
+                    *kept, member.optimised,
+                    refined=bool(member.refined) or own.refined or beaten,
+                    moved=bool(member.moved) or beaten,
+                    improvement=(member.improvement or 0.0) + (gains[best] if beaten else 0.0),
+                    settled=not beaten)
+                lineage[id(candidates[i])] = lines[i]
+                checked[lines[i]] = keys[i]
+                if beaten:
+                    moved.add(lines[i])
+            self.archive.members = []
+            self.archive.add(candidates)
+        members = self.archive.members
+        measured = self._superstep([SearchTask(self.problem, "stationarity", z0=member.z,
+                                               span=span) for member in members])
+        for member, result in zip(members, measured, strict=True):
+            failed = result.stationarity is None  # a failed task: the residual is unknown
+            member.stationarity = np.nan if failed else result.stationarity
+            member.tradeoff = np.full(self.m, np.nan) if failed else result.tradeoff
         return self.evaluations - before
 
     def _move(self, agent: Agent, result: SearchResult) -> None:
@@ -365,6 +436,7 @@ class Macs:
             if self.progress:
                 members = self.archive.members
                 self.progress(f"refinement: {sum(m.refined for m in members)} of "
-                              f"{len(members)} members refined, {refinement} evaluations")
+                              f"{len(members)} members refined, {sum(m.moved for m in members)} "
+                              f"moved by a neighbour's start, {refinement} evaluations")
         return MacsOutcome(self.archive, self.evaluations, iteration, self.failed, history,
                            fronts, refinement)

@@ -21,13 +21,20 @@ TIE_TOL = 1e-7
 class Member:
     """One archived solution: its NLP vector ``z``, objectives ``objectives`` (m,), and
     whether a scalarised local search produced it (``optimised``) or only restoration. After
-    the final refinement: whether its refinement was kept (``refined``), its Pareto-stationarity
-    residual ``stationarity`` and trade-off weights ``tradeoff`` (m,) (None before)."""
+    the final refinement (None before): whether its refinement was kept (``refined``), whether
+    its point is one a neighbour's start reached (``moved``) and by how much that dominates
+    what its own start reached (``improvement``, Σ_i ΔJ_i/s_i over the archive's span s),
+    whether none of the starts of its last check beat it by more than the tolerance
+    (``settled``), its Pareto-stationarity residual ``stationarity`` and trade-off weights
+    ``tradeoff`` (m,)."""
 
     z: np.ndarray
     objectives: np.ndarray
     optimised: bool = True
     refined: bool | None = None
+    moved: bool | None = None
+    improvement: float | None = None
+    settled: bool | None = None
     stationarity: float | None = None
     tradeoff: np.ndarray | None = None
 

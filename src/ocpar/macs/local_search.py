@@ -8,14 +8,15 @@ that runs one of them.
   constraints and bounds, from a candidate.
 * **ε-constraint refinement** (the final refinement of the archive, our addition): variables
   z, min J_k(z)/s_k s.t. (J_i(z) − ε_i)/s_i ≤ 0 for i ≠ k, the DFET constraints and bounds,
-  with ε = J(z₀) of the member it starts from and k = :data:`REFINED_OBJECTIVE`. Parameters:
-  ε (m), s (m) the archive's span. The member's first-order Pareto-stationarity residual is
-  measured afterwards (:meth:`InnerSolvers.stationarity`).
+  with ε = J of the member it refines (started from the member's own NLP vector or from a
+  neighbour's) and k = :data:`REFINED_OBJECTIVE`. Parameters: ε (m), s (m) the archive's span.
+* **Pareto stationarity** of a refined member (kind "stationarity", no NLP): its first-order
+  residual (:meth:`InnerSolvers.stationarity`).
 
 Counting evaluations: a local search counts one objective evaluation per evaluation of its
 constraint function (each one evaluates J(z)) plus one for the start point, summed over its
 seam hops (below); a restoration counts one (the objectives of the point it returns); a
-refinement counts like a local search.
+refinement counts like a local search; a stationarity measure counts none.
 """
 
 from __future__ import annotations
@@ -49,7 +50,7 @@ CONSISTENCY_TOL = 1e-2
 INTEGRATION_RTOL = 1e-5
 #: IPOPT iteration limit of one local search (the paper gave fmincon 100 evaluations).
 MAX_ITER = 100
-KINDS = ("scalarised", "restore", "refine")
+KINDS = ("scalarised", "restore", "refine", "stationarity")
 #: The objective a refinement minimises (the last: t_f is the first of every example, so a
 #: member keeps its final time and gets the least J_m for it); the others are bounded.
 REFINED_OBJECTIVE = -1
@@ -85,8 +86,10 @@ FEASIBLE_RESTORATION_OPTIONS = {"constr_viol_tol": 1e-8, "dual_inf_tol": 1.0,
 @dataclass(frozen=True)
 class SearchTask:
     """One inner solve: ``kind`` "scalarised" (Pascoletti–Serafini, needs ``weights`` λ,
-    ``utopia`` z̃), "restore", or "refine" (ε-constraint, needs ``span`` s (m,), the scale of
-    each objective); the start is ``z0`` (full NLP vector) or, if None, the
+    ``utopia`` z̃), "restore", "refine" (ε-constraint, needs ``span`` s (m,), the scale of
+    each objective, and takes ``epsilon`` (m,), the objectives of the member it refines, which
+    its point must dominate or equal; None: those of its start) or "stationarity" (of the
+    point ``z0``, with ``span``); the start is ``z0`` (full NLP vector) or, if None, the
     decision vector ``p0`` (controls and t_f) from which the states are integrated. The
     result is clipped to the bounds (IPOPT relaxes them by ~1e-8)."""
 
@@ -98,6 +101,7 @@ class SearchTask:
     utopia: np.ndarray | None = None
     restoration: str = "centred"
     span: np.ndarray | None = None
+    epsilon: np.ndarray | None = None
 
 
 @dataclass
@@ -105,8 +109,8 @@ class SearchResult:
     """``z`` the NLP vector reached, ``objectives`` J(z) (m,), ``feasible``, ``evaluations``
     counted as in the module docstring, IPOPT ``status`` and ``iterations``. A refinement
     also returns whether its solve was kept (``refined``: feasible and dominating or equal to
-    its start; else ``z`` is the start), and for the point returned the Pareto-stationarity
-    residual ``stationarity`` and the trade-off weights ``tradeoff`` (m,)
+    its ε; else ``z`` is the start); a stationarity task the Pareto-stationarity residual
+    ``stationarity`` of its point and the trade-off weights ``tradeoff`` (m,)
     (:meth:`InnerSolvers.stationarity`)."""
 
     z: np.ndarray
@@ -195,11 +199,18 @@ class InnerSolvers:
         those nodes to the opposite bound (the same angle) and solves again, up to
         :data:`MAX_SEAM_HOPS` times: the bound is where the angle wraps, not a limit, and a
         node resting on it is a spurious local optimum. Evaluations and time of every solve
-        are summed; a refinement's point then gets its stationarity."""
+        are summed. A stationarity task only measures its point."""
         t0 = time.perf_counter()
         z0 = self.start_point(task)
+        if task.kind == "stationarity":
+            residual, weights = self.stationarity(z0, task.span)
+            return SearchResult(z=z0, objectives=self.objectives(z0), feasible=True,
+                                evaluations=0, status="measured", iterations=0,
+                                solve_time_s=time.perf_counter() - t0,
+                                stationarity=residual, tradeoff=weights)
         if task.kind == "refine":
-            start = self.objectives(z0)  # every re-solve must dominate or equal the member
+            # every re-solve must dominate or equal the member refined
+            start = self.objectives(z0) if task.epsilon is None else np.asarray(task.epsilon)
 
             def solve(z: np.ndarray) -> SearchResult:
                 return self._refine(task, z, start)
@@ -225,8 +236,6 @@ class InnerSolvers:
                 break
             result = retry
         result.evaluations = evaluations
-        if task.kind == "refine":
-            result.stationarity, result.tradeoff = self.stationarity(result.z, task.span)
         result.solve_time_s = time.perf_counter() - t0
         return result
 
@@ -256,7 +265,8 @@ class InnerSolvers:
     def _refine(self, task: SearchTask, z0: np.ndarray, start: np.ndarray) -> SearchResult:
         """The ε-constraint NLP from z0 with ε = ``start``, the member's objectives (m,); its
         point is kept if it is feasible and dominates or equals them (ties to
-        :data:`~ocpar.macs.archive.TIE_TOL`), else z0 is returned (``refined`` False)."""
+        :data:`~ocpar.macs.archive.TIE_TOL`), else z0 is returned (``refined`` False; from a
+        neighbour's start, a point that need not dominate the member)."""
         free = np.arange(start.size) == start.size + REFINED_OBJECTIVE  # the minimised one
         out = self.epsilon(
             x0=z0, p=np.concatenate([start, task.span]), lbx=self.dfet.lbz, ubx=self.dfet.ubz,

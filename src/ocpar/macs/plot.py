@@ -18,8 +18,8 @@ from ocpar.plotting import pyplot, save
 def plot_front(result: MacsResult, path: Path) -> Path:
     """Archive (re-simulated objectives) over the reference front: the front itself for two
     objectives, every pairwise projection (J_a, J_b) for more. After the final refinement
-    the members whose stationarity residual is within the tolerance are filled, those whose
-    refinement was not kept crossed."""
+    the converged members (settled and stationary) are filled, those whose refinement was
+    not kept crossed."""
     plt = pyplot()
     names, reference = result.objective_names, result.reference_front
     pairs = list(combinations(range(len(names)), 2))
@@ -36,7 +36,7 @@ def plot_front(result: MacsResult, path: Path) -> Path:
         if result.converged is not None:
             for members, style, label in (
                     (result.converged, dict(marker="o", color="tab:blue"),
-                     f"stationary to {STATIONARITY_TOL:g}"),
+                     f"converged (stationary to {STATIONARITY_TOL:g})"),
                     (~np.asarray(result.refined, dtype=bool),
                      dict(marker="x", color="tab:red"), "refinement not kept")):
                 if np.any(members):

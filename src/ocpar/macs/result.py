@@ -28,10 +28,14 @@ class MacsResult(RunResult):
     has no extent); ``decisions`` the members' decision vectors (controls and t_f);
     ``objective_names`` m labels; ``reference_front`` the problem's (not written to JSON).
     After the final refinement (else None): per member whether its refinement was kept
-    (``refined``, k), its Pareto-stationarity residual (``stationarity``, k; converged when
-    ≤ :data:`~ocpar.macs.local_search.STATIONARITY_TOL`) and trade-off weights (``tradeoff``,
-    (k, m); NaN where the refinement's task failed); ``refinement_evaluations`` are included
-    in ``evaluations``.
+    (``refined``, k), whether its point is one a neighbour's start reached (``moved``, k) and
+    by how much that point dominates its own start's (``improvement``, k, Σ_i ΔJ_i/s_i in
+    units of the archive's span), whether none of the starts of its last check beat it by
+    more than the tolerance (``settled``, k), its Pareto-stationarity residual
+    (``stationarity``, k) and trade-off weights (``tradeoff``, (k, m)); a member is
+    :attr:`converged` when it is settled and its residual is ≤
+    :data:`~ocpar.macs.local_search.STATIONARITY_TOL`; ``refinement_evaluations`` are
+    included in ``evaluations``.
     """
 
     scheme: ClassVar[str] = "macs"
@@ -53,6 +57,9 @@ class MacsResult(RunResult):
     reference_front: np.ndarray | None = None
     history: list[dict] = field(default_factory=list)
     refined: np.ndarray | None = None
+    moved: np.ndarray | None = None
+    improvement: np.ndarray | None = None
+    settled: np.ndarray | None = None
     stationarity: np.ndarray | None = None
     tradeoff: np.ndarray | None = None
     refinement_evaluations: int = 0
@@ -86,6 +93,9 @@ class MacsResult(RunResult):
                 "evaluations": self.refinement_evaluations,
                 "tolerance": STATIONARITY_TOL,
                 "refined": np.asarray(self.refined).tolist(),
+                "moved": np.asarray(self.moved).tolist(),
+                "improvement": finite_or_none(self.improvement),
+                "settled": np.asarray(self.settled).tolist(),
                 "stationarity": finite_or_none(self.stationarity),
                 "converged": self.converged.tolist(),
                 "tradeoff": [finite_or_none(w) for w in self.tradeoff],
@@ -94,11 +104,12 @@ class MacsResult(RunResult):
 
     @property
     def converged(self) -> np.ndarray | None:
-        """Per member (k,): its stationarity residual is within the tolerance (None without
-        the refinement)."""
+        """Per member (k,): settled (no neighbour's start beat it) and its stationarity
+        residual within the tolerance (None without the refinement)."""
         if self.stationarity is None:
             return None
-        return np.asarray(self.stationarity) <= STATIONARITY_TOL
+        return np.asarray(self.settled, dtype=bool) & (np.asarray(self.stationarity)
+                                                       <= STATIONARITY_TOL)
 
     def summary(self) -> str:
         return (
@@ -114,9 +125,14 @@ class MacsResult(RunResult):
         """The final refinement as one line (empty without it)."""
         if self.stationarity is None:
             return ""
+        moved = np.asarray(self.moved, dtype=bool)
+        by = (f" (by {np.min(self.improvement[moved]):.1e} to "
+              f"{np.max(self.improvement[moved]):.1e} of the span)" if moved.any() else "")
         return (f"refinement: {int(np.sum(self.refined))} of {len(self.front)} members refined, "
-                f"{int(np.sum(self.converged))} stationary to {STATIONARITY_TOL:g} (largest "
-                f"residual {np.max(self.stationarity, initial=0.0):.1e}), "
+                f"{int(moved.sum())} moved by a neighbour's start{by}, "
+                f"{int(np.sum(self.converged))} converged (settled, stationary to "
+                f"{STATIONARITY_TOL:g}; largest residual "
+                f"{np.max(self.stationarity, initial=0.0):.1e}), "
                 f"{self.refinement_evaluations} of the evaluations\n")
 
     def quality(self) -> str:

@@ -39,6 +39,9 @@ def refinement_fields(members: list[Member], evaluations: int) -> dict:
     if not members or members[0].stationarity is None:
         return {}
     return {"refined": np.array([mb.refined for mb in members]),
+            "moved": np.array([mb.moved for mb in members]),
+            "improvement": np.array([mb.improvement for mb in members]),
+            "settled": np.array([mb.settled for mb in members]),
             "stationarity": np.array([mb.stationarity for mb in members]),
             "tradeoff": np.array([mb.tradeoff for mb in members]),
             "refinement_evaluations": evaluations}
