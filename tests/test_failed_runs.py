@@ -16,6 +16,7 @@ import ocpar.macs.plot
 import ocpar.pursuit.plot
 from ocpar.examples import macs_double_integrator, pursuit_van_der_pol
 from ocpar.macs import MacsSettings, solve_macs
+from ocpar.macs.run import MacsRun
 from ocpar.pursuit import PursuitSettings, solve_pursuit
 
 
@@ -80,7 +81,9 @@ def test_a_macs_run_with_no_feasible_point_reports_no_front_metrics(tmp_path, mo
     assert result.failed_searches > 0 and result.message == why
     assert result.title() == f"failed: {why}"
     titles = record_titles(monkeypatch, ocpar.macs.plot)
-    assert ocpar.macs.plot.plot_front(result, tmp_path / "front.png").stat().st_size > 0
+    # the driver's plots: the (empty) front titled failed and why, no members' controls
+    assert MacsRun().plot(problem, result, tmp_path) == [tmp_path / "front.png"]
+    assert (tmp_path / "front.png").stat().st_size > 0
     (suptitle,) = [t for t in titles if t]
     assert "failed: no feasible archive member" in suptitle.replace("\n", " ")
     assert "HV" not in suptitle
