@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import textwrap
 from pathlib import Path
 from types import ModuleType
 
@@ -22,3 +23,8 @@ def save(fig, path: Path) -> Path:
     fig.savefig(path, dpi=120)
     pyplot().close(fig)
     return Path(path)
+
+
+def wrapped(title: str, width: int = 70) -> str:
+    """``title`` broken into lines of at most ``width`` characters (a failure's reason)."""
+    return "\n".join(textwrap.wrap(title, width))

@@ -19,7 +19,8 @@ Statuses (the same words in every scheme):
   run writes no result.json, its checkpoint resumes it.
 
 Unless the status is ``converged``, a result reports none of its scheme's headline figures
-(:attr:`RunResult.headline_fields`: null in ``result.json``, "not reached" in the summary).
+(:attr:`RunResult.headline_fields`: null in ``result.json``, "not reached" in the summary), and
+its plots' titles say its status and why (:meth:`RunResult.title`).
 """
 
 from __future__ import annotations
@@ -84,11 +85,25 @@ class RunResult:
         """The keys of :attr:`headline_fields` (a scheme may add keys only known per run)."""
         return self.headline_fields
 
+    def why(self) -> str:
+        """Why the run ended as it did: the first clause of its message ('' without one)."""
+        return self.message.splitlines()[0].split("; ")[0] if self.message else ""
+
     def not_reached(self) -> str:
         """What a summary line says instead of a headline figure the run did not reach:
-        'not reached (<status>: <the message's first clause>)'."""
-        first = self.message.splitlines()[0].split("; ")[0] if self.message else ""
-        return f"not reached ({self.status}: {first})"
+        'not reached (<status>: <why>)'."""
+        return f"not reached ({self.status}: {self.why()})"
+
+    def headline_title(self) -> str:  # pragma: no cover - provided by each scheme
+        """The scheme's headline figures as a plot title (of a converged run)."""
+        raise NotImplementedError
+
+    def title(self) -> str:
+        """Every plot's headline: :meth:`headline_title` if the status is ``converged``, else
+        '<status>: <why>' (no figure the run did not reach)."""
+        if self.status == "converged":   # (a scheme may give ``converged`` its own meaning)
+            return self.headline_title()
+        return f"{self.status.replace('_', ' ')}: {self.why()}"
 
     def scheme_fields(self) -> dict:  # pragma: no cover - provided by each scheme
         """The scheme's own fields of ``result.json`` (JSON values)."""

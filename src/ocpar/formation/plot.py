@@ -3,7 +3,6 @@ curve) and Fig. 5 (3-D: initial grid, trajectories, final curve)."""
 
 from __future__ import annotations
 
-import textwrap
 from pathlib import Path
 
 import numpy as np
@@ -14,7 +13,7 @@ from ocpar.formation.problem import FormationProblem
 from ocpar.formation.result import FormationResult
 from ocpar.formation.targets.slots import Slots
 from ocpar.formation.targets.surface import Surface, fibonacci_directions
-from ocpar.plotting import pyplot, save
+from ocpar.plotting import pyplot, save, wrapped
 
 #: Most agents a picture draws (trajectory, start and final position): above it every k-th,
 #: said in the title (drawing and writing the planar picture: 10,000 paths 0.9 s, 2000 0.3 s,
@@ -78,7 +77,7 @@ def plot_formation(problem: FormationProblem, result: FormationResult, path: Pat
     for ax in (ax_all, ax_end):
         _draw_obstacles(ax, problem)
     _mark_closest(ax_all, problem, result)
-    ax_all.set_title(f"{result.agents} agents, {_wrapped(result.title())}"
+    ax_all.set_title(f"{result.agents} agents, {wrapped(result.title())}"
                      f"{_drawn_note(result.agents)}")
     ax_all.legend(loc="upper left", fontsize=8)
     low, high = circle.min(axis=0), circle.max(axis=0)
@@ -110,15 +109,10 @@ def _plot_3d(problem: FormationProblem, result: FormationResult, path: Path) -> 
     ax.set_ylabel("$x_2$")
     ax.set_zlabel("$x_3$")
     _mark_closest(ax, problem, result)
-    ax.set_title(f"{problem.name}: {result.agents} agents, {_wrapped(result.title())}"
+    ax.set_title(f"{problem.name}: {result.agents} agents, {wrapped(result.title())}"
                  f"{_drawn_note(result.agents)}")
     ax.legend(loc="upper left", fontsize=8)
     return save(fig, path)
-
-
-def _wrapped(title: str, width: int = 70) -> str:
-    """``title`` broken into lines of at most ``width`` characters (a failure's reason)."""
-    return "\n".join(textwrap.wrap(title, width))
 
 
 def _draw_obstacles(ax, problem: FormationProblem) -> None:

@@ -78,11 +78,9 @@ class FormationResult(RunResult):
         """:attr:`headline_fields` and the cost parts' keys."""
         return self.headline_fields + tuple(self.cost_parts)
 
-    def title(self) -> str:
-        """The plot's headline: the total cost if converged, else the status and why."""
-        if self.converged:
-            return f"total cost {self.total_cost:.6e}"
-        return f"{self.status.replace('_', ' ')}: {self.message.split('; ')[0]}"
+    def headline_title(self) -> str:
+        """The total cost, for the plot's title (:meth:`~ocpar.results.RunResult.title`)."""
+        return f"total cost {self.total_cost:.6e}"
 
     @property
     def peak_thrust(self) -> np.ndarray:

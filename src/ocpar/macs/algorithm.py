@@ -167,6 +167,8 @@ class MacsOutcome:
     history: list[dict] = field(default_factory=list)
     fronts: list[np.ndarray] = field(default_factory=list)
     refinement_evaluations: int = 0
+    #: the first failed search's IPOPT status ('' if none failed)
+    first_failure: str = ""
 
 
 class Macs:
@@ -191,6 +193,7 @@ class Macs:
         self.archive = Archive(settings.archive_size, self.m)
         self.evaluations = 0
         self.failed = 0
+        self.first_failure = ""
         self.costs = TaskCosts()
         seeds = np.random.SeedSequence(settings.seed).spawn(settings.population + 1)
         sample = qmc.LatinHypercube(d=len(self.lower), seed=np.random.default_rng(seeds[-1]))
@@ -209,6 +212,8 @@ class Macs:
         self.costs.update(kinds, self.backend.traces[-1].task_wall_s)
         self.evaluations += sum(r.evaluations for r in results)
         self.failed += sum(not r.feasible for r in results)
+        if not self.first_failure:
+            self.first_failure = next((r.status for r in results if not r.feasible), "")
         return results
 
     def _archive(self, results: list[SearchResult], optimised: bool) -> None:
@@ -439,4 +444,4 @@ class Macs:
                               f"{len(members)} members refined, {sum(m.moved for m in members)} "
                               f"moved by a neighbour's start, {refinement} evaluations")
         return MacsOutcome(self.archive, self.evaluations, iteration, self.failed, history,
-                           fronts, refinement)
+                           fronts, refinement, self.first_failure)

@@ -66,6 +66,8 @@ class Archive:
         """Insert the non-dominated candidates, drop what they dominate, filter to ``size``.
         Returns how many candidates are in the archive afterwards."""
         pool = self.members + candidates
+        if not pool:  # nothing feasible yet (every search so far failed)
+            return 0
         f = np.array([m.objectives for m in pool], dtype=float).reshape(len(pool), -1)
         a, b = f[:, None, :], f[None, :, :]  # [i, k]: does pool[i] dominate / repeat pool[k]?
         tol = TIE_TOL * (1 + np.abs(b))

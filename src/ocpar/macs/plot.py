@@ -12,14 +12,15 @@ from ocpar.macs.local_search import STATIONARITY_TOL
 from ocpar.macs.problem import MacsProblem
 from ocpar.macs.result import MacsResult
 from ocpar.ocp import dfet_problem
-from ocpar.plotting import pyplot, save
+from ocpar.plotting import pyplot, save, wrapped
 
 
 def plot_front(result: MacsResult, path: Path) -> Path:
     """Archive (re-simulated objectives) over the reference front: the front itself for two
     objectives, every pairwise projection (J_a, J_b) for more. After the final refinement
     the converged members (settled and stationary) are filled, those whose refinement was
-    not kept crossed."""
+    not kept crossed. Titled by the front's quality, or the run's status and why if it did
+    not converge (:meth:`~ocpar.results.RunResult.title`)."""
     plt = pyplot()
     names, reference = result.objective_names, result.reference_front
     pairs = list(combinations(range(len(names)), 2))
@@ -50,8 +51,8 @@ def plot_front(result: MacsResult, path: Path) -> Path:
         ax.set_visible(False)
     refining = (f", {result.refinement_evaluations} of them refining"
                 if result.stationarity is not None else "")
-    fig.suptitle(f"{result.problem}: {result.quality()} ({result.evaluations} evaluations"
-                 f"{refining})", fontsize=10)
+    fig.suptitle(wrapped(f"{result.problem}: {result.title()} ({result.evaluations} "
+                         f"evaluations{refining})", 100), fontsize=10)
     return save(fig, path)
 
 

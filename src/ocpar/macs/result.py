@@ -113,7 +113,8 @@ class MacsResult(RunResult):
 
     def summary(self) -> str:
         return (
-            f"status {self.status}: {len(self.front)} archive members after {self.evaluations} "
+            f"status {self.status}{f' ({self.message})' if self.message else ''}: "
+            f"{len(self.front)} archive members after {self.evaluations} "
             f"evaluations, {self.iterations} iterations, {self.supersteps} supersteps "
             f"({self.failed_searches} infeasible searches rejected)\n"
             f"{self.refinement()}"
@@ -135,8 +136,14 @@ class MacsResult(RunResult):
                 f"{np.max(self.stationarity, initial=0.0):.1e}), "
                 f"{self.refinement_evaluations} of the evaluations\n")
 
+    def headline_title(self) -> str:
+        """The front's quality, for the plots' titles (:meth:`~ocpar.results.RunResult.title`)."""
+        return self.quality()
+
     def quality(self) -> str:
-        """GD, IGD (when known) and HV as one line."""
+        """GD, IGD (when known) and HV as one line; 'not reached (…)' unless converged."""
+        if self.status != "converged":
+            return f"GD, IGD, HV {self.not_reached()}"
         figures = [f"{name} {value:{fmt}}" for name, value, fmt in
                    (("GD", self.gd, ".3e"), ("IGD", self.igd, ".3e"), ("HV", self.hv, ".6f"))
                    if value is not None]

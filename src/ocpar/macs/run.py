@@ -59,9 +59,11 @@ class MacsRun(SchemeRun, MacsSettings):
         return solve_macs(problem, project(self, MacsSettings), backend, progress=progress)
 
     def plot(self, problem: MacsProblem, result: MacsResult, out: Path) -> list[Path]:
-        if not len(result.front):
-            return []
+        """front.png (titled failed and why when the archive is empty), and controls.png of
+        a few members if there are any."""
         from ocpar.macs.plot import plot_controls, plot_front
 
-        return [plot_front(result, out / "front.png"),
-                plot_controls(problem, result, out / "controls.png")]
+        written = [plot_front(result, out / "front.png")]
+        if len(result.front):
+            written.append(plot_controls(problem, result, out / "controls.png"))
+        return written

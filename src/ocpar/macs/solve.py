@@ -10,7 +10,7 @@ import numpy as np
 
 from ocpar.bsp import Backend
 from ocpar.bsp.serial import SerialBackend
-from ocpar.macs.algorithm import Macs, MacsSettings
+from ocpar.macs.algorithm import Macs, MacsOutcome, MacsSettings
 from ocpar.macs.archive import Member
 from ocpar.macs.metrics import generational_distance, hypervolume, inverted_generational_distance
 from ocpar.macs.objectives import objective_functions
@@ -45,6 +45,13 @@ def refinement_fields(members: list[Member], evaluations: int) -> dict:
             "stationarity": np.array([mb.stationarity for mb in members]),
             "tradeoff": np.array([mb.tradeoff for mb in members]),
             "refinement_evaluations": evaluations}
+
+
+def failure_message(outcome: MacsOutcome) -> str:
+    """The status line of a run with no feasible archive member: how many searches failed
+    (all of them) and the first one's IPOPT status."""
+    return (f"no feasible archive member: all {outcome.failed_searches} searches failed "
+            f"({outcome.evaluations} evaluations), the first {outcome.first_failure}")
 
 
 def solve_macs(
@@ -82,7 +89,7 @@ def solve_macs(
         backend=backend.name,
         workers=backend.workers,
         status="converged" if len(front) else "failed",
-        message="" if len(front) else "no feasible archive member",
+        message="" if len(front) else failure_message(outcome),
         front=front,
         front_transcribed=np.array([mb.objectives for mb in members]).reshape(-1, m),
         decisions=np.array([mb.z[dfet.decision_slice] for mb in members]),

@@ -118,7 +118,7 @@ def _axis_reach(mass: float, intervals: int, duration: float, lo: float, hi: flo
                 ) -> tuple[float, float]:
     """(min, max) of q_N − q_0 of a one-axis point mass of ``mass`` at rest at both ends of
     its DMOC transcription (N = ``intervals`` over T = ``duration``) under lo ≤ u_k ≤ hi:
-    two linear programmes on the transcription's equations."""
+    two linear programmes on the transcription's equations (±inf on an unbounded side)."""
     if not lo <= 0 <= hi:
         raise ValueError(f"control bounds ({lo:g}, {hi:g}) exclude 0: the agent cannot stay "
                          "at rest")
@@ -132,7 +132,10 @@ def _axis_reach(mass: float, intervals: int, duration: float, lo: float, hi: flo
     n = intervals
     bounds = [(None, None)] * (n - 1) + [(lo, hi)] * n + [(None, None)]
     ends = []
-    for sign in (1.0, -1.0):
+    for sign, limit in ((1.0, lo), (-1.0, hi)):
+        if math.isinf(limit):   # unbounded on that side: the reach is too
+            ends.append(-sign * math.inf)
+            continue
         cost = np.zeros(z.numel())
         cost[-1] = sign
         result = linprog(cost, A_eq=a_eq, b_eq=b_eq, bounds=bounds, method="highs")

@@ -85,6 +85,15 @@ class PursuitResult(RunResult):
         """Largest peak resident memory of any worker process during the run (MiB)."""
         return max((m for t in self.trace for m in t.worker_peak_rss_mb), default=0.0)
 
+    def label(self, value: float) -> str:
+        """``value`` of the headline with its name and unit, e.g. 'final mass 0.47 kg'."""
+        unit = f" {self.headline_unit}" if self.headline_unit else ""
+        return f"{self.headline_name} {value:.6f}{unit}"
+
+    def headline_title(self) -> str:
+        """The returned headline, for the plots' titles (:meth:`~ocpar.results.RunResult.title`)."""
+        return self.label(self.headline)
+
     def headline_keys(self) -> tuple[str, ...]:
         """The headline figure's and the cost's keys (null unless converged; the per-agent
         figures stay: they are the train's history)."""

@@ -96,6 +96,12 @@ def solve_pursuit(
         status = "not_converged"
         message += (f"; the returned trajectory breaks the dynamics, target set or path "
                     f"constraints by {violation:.2e} > {FEASIBILITY_TOL:g}")
+    if failed and mode == "pbms":
+        failures = (f"{failed} of {solves} subproblem solves failed, the first "
+                    f"{outcome.failures[0]}")
+        # the status line leads with them when the run did not converge
+        message = (f"{message}; {failures}" if status == "converged"
+                   else f"{failures}; {message}")
     return PursuitResult(
         problem=problem.name, samples=problem.samples, mode=mode,
         window=settings.window, update=settings.update, epsilon=settings.epsilon,
