@@ -118,7 +118,7 @@ def _axis_reach(mass: float, intervals: int, duration: float, lo: float, hi: flo
                 ) -> tuple[float, float]:
     """(min, max) of q_N − q_0 of a one-axis point mass of ``mass`` at rest at both ends of
     its DMOC transcription (N = ``intervals`` over T = ``duration``) under lo ≤ u_k ≤ hi:
-    two linear programmes on the transcription's equations."""
+    two linear programmes on the transcription's equations (±inf where unbounded)."""
     if not lo <= 0 <= hi:
         raise ValueError(f"control bounds ({lo:g}, {hi:g}) exclude 0: the agent cannot stay "
                          "at rest")
@@ -136,6 +136,9 @@ def _axis_reach(mass: float, intervals: int, duration: float, lo: float, hi: flo
         cost = np.zeros(z.numel())
         cost[-1] = sign
         result = linprog(cost, A_eq=a_eq, b_eq=b_eq, bounds=bounds, method="highs")
+        if result.status == 3:   # unbounded: an unlimited axis (lo = −inf and hi = inf)
+            ends.append(-sign * math.inf)
+            continue
         if result.status != 0:
             raise ValueError(f"the reach of a point mass (mass {mass:g}) under control "
                              f"bounds ({lo:g}, {hi:g}): {result.message}")
