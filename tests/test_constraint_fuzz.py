@@ -98,9 +98,9 @@ FUNCTIONS = {
                                "macs": (1, False)},
     "lambda u: u": {"formation": (2, False), "pursuit": (1, True), "macs": (1, False)},
     "lambda u: ca.norm_2(u)": {"formation": (1, False, True), "pursuit": (1, True),
-                               "macs": (1, False, True)},
+                               "macs": (1, False)},   # of one entry: |u|, derivative 0 at 0
     "lambda u: np.linalg.norm(u)": {"formation": (1, False, True), "pursuit": (1, True),
-                                    "macs": (1, False, True)},
+                                    "macs": (1, False)},
     "lambda u: ca.sqrt(u[0] ** 2 + ca.sumsqr(u))": {"formation": (1, False, True),
                                                     "pursuit": (1, True),
                                                     "macs": (1, False, True)},

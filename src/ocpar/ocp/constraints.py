@@ -22,7 +22,8 @@ depends on none of its arguments, or bounds of the wrong length or with lower > 
 are one ``ValueError``.
 
 A row that is a norm, sqrt(s) + c with s a sum of squares (``ca.norm_2``,
-``np.linalg.norm``, ``ca.sqrt(ca.sumsqr(·))``, found in the CasADi expression), is compiled
+``np.linalg.norm``, ``ca.sqrt(ca.sumsqr(·))``, found in the CasADi expression) or |e| + c
+(s = e²: ``ca.fabs``, the norm of one entry), is compiled
 as its smooth square: lower ≤ sqrt(s) + c ≤ upper is s ≤ (upper − c)² (and s ≥ (lower − c)²
 where lower − c > 0), the same set since sqrt is increasing on s ≥ 0, but with a derivative at
 s = 0, where the solves start (zero controls); a :class:`NormSquared` warning says so once.
@@ -197,15 +198,17 @@ def _square_norms(compiled: CompiledFunction, lower: tuple[float, ...],
 
 def _norm_row(row: ca.SX) -> tuple[ca.SX, float] | None:
     """(s, c) if the scalar ``row`` is sqrt(s) + c (or c + sqrt(s), sqrt(s) − c) with s a
-    sum of squares and c a constant; else None."""
+    sum of squares, or |e| + c (s = e²), and c a constant; else None."""
     c = 0.0
     if row.op() in (ca.OP_ADD, ca.OP_SUB):
         a, b = row.dep(0), row.dep(1)
         sign = 1.0 if row.op() == ca.OP_ADD else -1.0
-        if b.is_constant() and a.op() == ca.OP_SQRT:
+        if b.is_constant() and a.op() in (ca.OP_SQRT, ca.OP_FABS):
             row, c = a, sign * float(b)
-        elif a.is_constant() and b.op() == ca.OP_SQRT and sign > 0:
+        elif a.is_constant() and b.op() in (ca.OP_SQRT, ca.OP_FABS) and sign > 0:
             row, c = b, float(a)
+    if row.op() == ca.OP_FABS:   # a norm of one entry: |e| = sqrt(e²)
+        return row.dep(0) ** 2, c
     if row.op() != ca.OP_SQRT or not _sum_of_squares(row.dep(0)):
         return None
     return row.dep(0), c
