@@ -23,7 +23,7 @@ from ocpar.macs.metrics import inverted_generational_distance, normalise
 from ocpar.macs.objectives import objective_functions
 from ocpar.macs.plot import plot_controls, plot_front
 from ocpar.ocp import dfet_problem
-from ocpar.ocp.constraints import PathConstraint
+from ocpar.ocp.constraints import NormSquared, PathConstraint
 
 DISTANCE, U_MAX = 1.0, 1.0
 
@@ -360,3 +360,18 @@ def test_malformed_path_constraints_are_one_error_naming_the_field(constraints, 
     with pytest.raises(ValueError, match=r"^MacsProblem\.path_constraints") as info:
         build()
     assert message in str(info.value) and "\n" not in str(info.value)
+
+
+def test_a_thrust_limit_written_with_norm_2_gives_the_squared_forms_front():
+    """``ca.norm_2(u) <= 1`` (no derivative at u = 0, the DFET's default guess) is compiled as
+    |u|² ≤ 1 with a NormSquared warning: a short run (400 evaluations, seed 0) returns the
+    squared form's front to 1e-8, with members where the limit binds (t_f < √6)."""
+    squared = macs_thrust_limited.make()
+    with pytest.warns(NormSquared, match="thrust"):
+        written = dataclasses.replace(squared, path_constraints=(
+            PathConstraint(lambda u: ca.norm_2(u), upper=1.0, name="thrust"),))
+    settings = MacsSettings(max_evaluations=400, archive_size=10, seed=0)
+    a, b = solve_macs(written, settings), solve_macs(squared, settings)
+    assert a.status == b.status == "converged"
+    np.testing.assert_allclose(a.front, b.front, rtol=0, atol=1e-8)
+    assert np.any(np.asarray(a.front)[:, 0] < math.sqrt(6))

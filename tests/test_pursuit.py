@@ -13,6 +13,7 @@ from conftest import assert_result_contract, golden, run_cli
 from ocpar.bsp import open_backend
 from ocpar.examples import pursuit_van_der_pol as van_der_pol
 from ocpar.examples.pursuit_orbit_transfer import make
+from ocpar.ocp.constraints import NormSquared, PathConstraint
 from ocpar.pursuit import ControlLaw, FinalValue, PursuitSettings, SampledPlan, solve_pursuit
 from ocpar.pursuit.slp import PursuitTrain, coarsen, refine, remaining_improvement
 
@@ -490,3 +491,22 @@ def test_the_orbit_transfer_names_its_headline_and_checks():
     # the running cost is the burn rate: the Euler cost is the mass an Euler plan loses
     assert [c.key for c in problem.checks] == ["final_altitude_error_m",
                                                 "final_radial_velocity_mps"]
+
+
+def test_a_thrust_limit_written_with_norm_2_runs_the_squared_forms_train():
+    """van der Pol with |u| ≤ 0.8 written ``ca.norm_2(u) <= 0.8`` (compiled as u² ≤ 0.64, with
+    a NormSquared warning) runs the squared form's train: after 6 agents the same trajectory
+    and cost to 1e-8, the limit reached (before, every window's solve failed on NaN
+    Jacobians at u = 0)."""
+    settings = PursuitSettings(window=21, update=10, max_agents=6)
+    with pytest.warns(NormSquared, match="thrust"):
+        written = dataclasses.replace(van_der_pol.make(), path_constraints=(
+            PathConstraint(lambda u: ca.norm_2(u), upper=0.8, name="thrust"),))
+    squared = dataclasses.replace(van_der_pol.make(), path_constraints=(
+        PathConstraint(lambda u: ca.sumsqr(u), upper=0.64, name="thrust"),))
+    a = solve_pursuit(written, settings, reference=False)
+    b = solve_pursuit(squared, settings, reference=False)
+    assert a.failed_solves == b.failed_solves == 0
+    assert a.cost == pytest.approx(b.cost, abs=1e-8)
+    np.testing.assert_allclose(a.u, b.u, rtol=0, atol=1e-8)
+    assert np.max(np.abs(a.u)) == pytest.approx(0.8, abs=1e-8)

@@ -32,7 +32,7 @@ from ocpar.ocp import (
     solve_task,
     transcription,
 )
-from ocpar.ocp.constraints import PathConstraint
+from ocpar.ocp.constraints import NormSquared, PathConstraint
 
 DURATION = 2.0
 
@@ -252,6 +252,9 @@ def test_path_constraints_keep_shapes_hashable_and_picklable(case):
     (PathConstraint(lambda u: u, lower=1.0, upper=0.0), "needs lower <= upper"),
     (PathConstraint(lambda u: u, upper=float("nan")), "upper: NaN"),
     (PathConstraint(lambda u: ca.SX(2, 2)), "must return a number or a column"),
+    (PathConstraint(lambda u: ca.horzcat(u[0], u[0])), "got a row of shape (1, 2)"),
+    (PathConstraint(lambda u: 0 * u[0] + 1.0), "depends on none of its arguments"),
+    (PathConstraint(lambda u: ca.vertcat(u[0], 2.0)), "row 1 depends on none"),
     (PathConstraint(lambda u: u, name=""), "name must be a non-empty string"),
     (PathConstraint("u <= 1"), "function must be callable"),
     (lambda u: u, "must be a PathConstraint"),
@@ -261,3 +264,41 @@ def test_a_malformed_path_constraint_is_one_error_naming_the_field(case, constra
     with pytest.raises(ValueError, match="path_constraints\\[0\\]") as error:
         dataclasses.replace(shape, path_constraints=(constraint,))
     assert message in str(error.value) and "\n" not in str(error.value)
+
+
+def norm_shapes(name: str, n: int):
+    """The thrust limit |u| ≤ U_MAX written with ``ca.norm_2`` and as its square, on
+    transcription ``name`` (DMOC: in the plane along the diagonal; else on the line)."""
+    norm = PathConstraint(lambda u: ca.norm_2(u), upper=U_MAX, name="thrust")
+    square = PathConstraint(lambda u: ca.sumsqr(u), upper=U_MAX**2, name="thrust")
+    shape, params = constrained_shape(name, "thrust", n)
+    with pytest.warns(NormSquared, match="thrust"):
+        with_norm = dataclasses.replace(shape, path_constraints=(norm,))
+    return with_norm, dataclasses.replace(shape, path_constraints=(square,)), params
+
+
+def test_a_norm_thrust_limit_is_solved_exactly_as_its_square(case):
+    """|u|₂ ≤ U written with norm_2 (no derivative at u = 0, where every solve starts) is
+    compiled as |u|² ≤ U², with a NormSquared warning: the same optimum as the squared form
+    to 1e-8 on every transcription (formation: DMOC; pursuit: multiple shooting; MACS: DFET),
+    with the limit active (the cost within 1e-2 of the closed form 1.5224, above the free
+    1.5)."""
+    with_norm, square, params = norm_shapes(case.name, 20)
+    a, b = solve_task(OcpTask(with_norm, params)), solve_task(OcpTask(square, params))
+    assert a.success and b.success, (a.status, b.status)
+    assert a.cost == pytest.approx(b.cost, abs=1e-8)
+    assert a.cost == pytest.approx(THRUST_EXACT, abs=1e-2) and a.cost > 1.5 + 1e-3
+
+
+def test_a_norm_that_is_not_a_bound_is_refused_where_the_solves_start():
+    """|u| + u_0 ≤ 1 is no norm bound (not squared): it has no derivative at u = 0, where the
+    formation's inner solves start, and the problem is refused with one line naming it."""
+    from ocpar.formation import Circle, FormationProblem
+
+    shape = DmocShape(PointMass(dim=2), 10, 1.0, solver="sqpmethod", path_constraints=(
+        PathConstraint(lambda u: ca.norm_2(u) + u[0], upper=1.0, name="thrust"),))
+    with pytest.raises(ValueError, match=r"shape.path_constraints\[0\] \(thrust\): not "
+                       r"differentiable at u = \[0.0, 0.0\] \(agent 0's start\)") as error:
+        FormationProblem(name="t", starts=np.array([[0.0, -3.0], [1.0, -3.0]]), shape=shape,
+                         curve=Circle(radius=2.0, center=np.zeros(2)))
+    assert "sumsqr" in str(error.value) and "\n" not in str(error.value)

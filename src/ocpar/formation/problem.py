@@ -32,6 +32,7 @@ from ocpar.formation.targets.slots import Slots, nearest_assignment
 from ocpar.formation.targets.surface import PARAMETERS, Surface, fibonacci_directions
 from ocpar.models import MechanicalSystem
 from ocpar.ocp import DmocShape, OcpTask
+from ocpar.ocp.constraints import check_smooth
 from ocpar.ocp.reach import Reach, rest_to_rest_reach
 
 #: Boundary configurations must satisfy the model's holonomic constraints to this tolerance.
@@ -233,19 +234,21 @@ class FormationProblem:
             self.shape, DmocShape) else tuple(attached[shape] for shape in self.shape))
 
     def _check_path_constraints(self) -> None:
-        """Each agent's path constraints must be finite at its start (q_0, q̇_0, u = 0) and
-        those of q alone met there (the nodes next to the start must meet them); one
-        evaluation per distinct shape."""
+        """Each agent's path constraints and running cost must be finite, with their
+        Jacobians, at its start (q_0, q̇_0, u = 0: the inner solves start from zero
+        controls), and the constraints of q alone met there (the nodes next to the start
+        must meet them); one evaluation per distinct shape."""
         for shape, agents in self.agents_by_shape().items():
+            point = {"q": self.starts[agents], "v": self.start_velocities[agents],
+                     "u": np.zeros((len(agents), shape.model.nu))}
+            where = [f"agent {i}'s start" for i in agents]
+            prefix = f"shape{'' if isinstance(self.shape, DmocShape) else f'[{agents[0]}]'}"
+            if shape.running_cost is not None:
+                check_smooth(shape.running_cost, point, f"{prefix}.running_cost", where)
             for j, constraint in enumerate(shape.path_constraints):
-                point = {"q": self.starts[agents], "v": self.start_velocities[agents],
-                         "u": np.zeros((len(agents), shape.model.nu))}
+                label = f"{prefix}.path_constraints[{j}] ({constraint.name})"
+                check_smooth(constraint, point, label, where)
                 excess = constraint.violation(point)
-                label = (f"shape{'' if isinstance(self.shape, DmocShape) else f'[{agents[0]}]'}"
-                         f".path_constraints[{j}] ({constraint.name})")
-                if np.isnan(excess).any():
-                    i = agents[np.flatnonzero(np.isnan(excess))[0]]
-                    raise ValueError(f"{label}: not finite at agent {i}'s start")
                 if not constraint.depends_on("v", "u") and np.max(excess) > CONSTRAINT_TOL:
                     k = int(np.argmax(excess))
                     raise ValueError(f"starts: agent {agents[k]} breaks {label} by "

@@ -23,7 +23,13 @@ import numpy as np
 
 from ocpar.models.ode import OdeModel
 from ocpar.ocp import DfetShape
-from ocpar.ocp.constraints import CompiledConstraint, PathConstraint, compile_constraints
+from ocpar.ocp.constraints import (
+    CompiledConstraint,
+    PathConstraint,
+    check_smooth,
+    compile_constraints,
+    nonfinite,
+)
 
 #: φ(x_f (nx,), t_f) or L(x (nx,), u (nu,)): a scalar CasADi expression of CasADi symbols.
 Term = Callable[[ca.SX, ca.SX], ca.SX]
@@ -139,7 +145,7 @@ def _integer(value, field_name: str, minimum: int) -> int:
 def _compile(term: Term, field_name: str, first: ca.SX, second: ca.SX,
              sample: tuple[np.ndarray, np.ndarray]) -> ca.Function:
     """``term`` as a CasADi function of (first, second) → scalar, evaluated once at
-    ``sample`` to check that it gives a finite number."""
+    ``sample`` to check that it gives a finite number with a finite gradient."""
     if not callable(term):
         raise _fail(field_name, f"must be callable, got {term!r}")
     try:
@@ -154,6 +160,9 @@ def _compile(term: Term, field_name: str, first: ca.SX, second: ca.SX,
     value = float(function(*sample))
     if not math.isfinite(value):
         raise _fail(field_name, f"is not finite at the boundary data ({value})")
+    if nonfinite(function, [np.asarray(a, float)[None] for a in sample]) is not None:
+        raise _fail(field_name, "is not differentiable at the boundary data, where the "
+                    "solves start")
     return function
 
 
@@ -243,7 +252,9 @@ def _check(problem: MacsProblem) -> dict:
         compiled.append(Objective(mayer, running, str(objective.name)))
     out["objectives"] = tuple(compiled)
 
-    out["path_constraints"] = _path_constraints(problem.path_constraints, nx, nu, x0, u_mid)
+    u_start = np.clip(0.0, bounds[:, 0], bounds[:, 1])   # the DFET's default guess
+    out["path_constraints"] = _path_constraints(problem.path_constraints, nx, nu, x0,
+                                                np.vstack([u_mid, u_start]))
 
     if problem.reference_front is not None:
         front = np.array(problem.reference_front, dtype=float)
@@ -259,17 +270,18 @@ def _check(problem: MacsProblem) -> dict:
     return out
 
 
-def _path_constraints(constraints, nx: int, nu: int, x0: np.ndarray, u_mid: np.ndarray
+def _path_constraints(constraints, nx: int, nu: int, x0: np.ndarray, controls: np.ndarray
                       ) -> tuple[CompiledConstraint, ...]:
-    """The path constraints compiled; finite at (x_0, mid-range u), and those of x alone met
-    at x_0; one ValueError naming the field otherwise."""
+    """The path constraints compiled; finite with their Jacobians at x_0 and ``controls``
+    (mid-range, the DFET's default guess: (2, nu)), and those of x alone met at x_0; one
+    ValueError naming the field otherwise."""
     compiled = compile_constraints(constraints, {"x": nx, "u": nu},
                                    "MacsProblem.path_constraints")
     for i, constraint in enumerate(compiled):
         where = f"path_constraints[{i}] ({constraint.name})"
-        gap = constraint.violation({"x": x0[None, :], "u": u_mid[None, :]})[0]
-        if not np.isfinite(gap):
-            raise _fail(where, "is not finite at the initial state and mid-range controls")
+        check_smooth(constraint, {"x": np.vstack([x0, x0]), "u": controls},
+                     f"MacsProblem.{where}", ["mid-range controls", "the DFET's default guess"])
+        gap = constraint.violation({"x": x0[None, :], "u": controls[:1]})[0]
         if not constraint.depends_on("u") and gap > 0:
             raise _fail(where, f"is broken by {gap:.3g} at the initial state {x0.tolist()}")
     return compiled

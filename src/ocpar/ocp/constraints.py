@@ -17,14 +17,25 @@ the rows is its own docstring's business: DMOC at nodes and interval midpoints, 
 shooting at the samples, DFET at the quadrature points.
 
 Errors name the field and the constraint: a function that does not evaluate, names a
-variable the transcription lacks, returns no rows or a matrix, or bounds of the wrong length
-or with lower > upper or NaN, are one ``ValueError``.
+variable the transcription lacks, returns no rows, a row vector or a matrix, has a row that
+depends on none of its arguments, or bounds of the wrong length or with lower > upper or NaN,
+are one ``ValueError``.
+
+A row that is a norm, sqrt(s) + c with s a sum of squares (``ca.norm_2``,
+``np.linalg.norm``, ``ca.sqrt(ca.sumsqr(·))``, found in the CasADi expression) or |e| + c
+(s = e²: ``ca.fabs``, the norm of one entry), is compiled
+as its smooth square: lower ≤ sqrt(s) + c ≤ upper is s ≤ (upper − c)² (and s ≥ (lower − c)²
+where lower − c > 0), the same set since sqrt is increasing on s ≥ 0, but with a derivative at
+s = 0, where the solves start (zero controls); a :class:`NormSquared` warning says so once.
+Its ``violation`` is then in the squared form's units. Anything else must be finite with its
+Jacobian where the solves start: each scheme checks that with :func:`check_smooth`.
 """
 
 from __future__ import annotations
 
 import inspect
 import math
+import warnings
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from functools import lru_cache
@@ -32,6 +43,11 @@ from typing import Any
 
 import casadi as ca
 import numpy as np
+
+
+class NormSquared(UserWarning):
+    """A norm row of a path constraint compiled as its smooth square (module docstring)."""
+
 
 #: What a constraint's parameter names may be, and what each is.
 ARGUMENTS = {"x": "the state", "q": "the configuration", "v": "the velocity",
@@ -78,6 +94,11 @@ class CompiledFunction:
         """The rows at ``values`` (a symbol or number per argument name; extra names are
         ignored)."""
         return self.function(*(values[name] for name in self.arguments))
+
+    def nonfinite(self, values: Mapping[str, np.ndarray]) -> tuple[int, str] | None:
+        """The first of k points (values per argument name, (k, size)) where the rows or
+        their Jacobian are not finite, as (index, "value" or "derivative"); None if none."""
+        return nonfinite(self.function, [np.asarray(values[a], float) for a in self.arguments])
 
 
 @dataclass(frozen=True)
@@ -142,8 +163,107 @@ def _compile(constraint: object, sizes: Mapping[str, int], label: str) -> Compil
            for lo, hi in zip(lower, upper, strict=True)):
         raise ValueError(f"{label}: needs lower <= upper, lower < inf and upper > -inf in "
                          f"every row, got {lower} and {upper}")
-    return CompiledConstraint(name, compiled.arguments, compiled.sizes, compiled.serialized,
+    serialized, lower, upper = _square_norms(compiled, lower, upper, label)
+    return CompiledConstraint(name, compiled.arguments, compiled.sizes, serialized,
                               lower, upper)
+
+
+def _square_norms(compiled: CompiledFunction, lower: tuple[float, ...],
+                  upper: tuple[float, ...], label: str
+                  ) -> tuple[str, tuple[float, ...], tuple[float, ...]]:
+    """The serialised function and bounds with each norm row sqrt(s) + c (s a sum of
+    squares, upper − c ≥ 0) replaced by s in [(lower − c)² if lower − c > 0 else −inf,
+    (upper − c)²] (module docstring); a :class:`NormSquared` warning if any was."""
+    function = compiled.function
+    symbols = function.sx_in()
+    rows = ca.vertsplit(function.call(symbols)[0])
+    lower, upper, squared = list(lower), list(upper), []
+    for i, row in enumerate(rows):
+        found = _norm_row(row)
+        if found is None or upper[i] - found[1] < 0:
+            continue
+        s, c = found
+        rows[i] = s
+        lo, hi = lower[i] - c, upper[i] - c
+        lower[i], upper[i] = (lo * lo if lo > 0 else -math.inf), hi * hi
+        squared.append(f"row {i}: {s} in [{lower[i]:.6g}, {upper[i]:.6g}]")
+    if not squared:
+        return compiled.serialized, tuple(lower), tuple(upper)
+    warnings.warn(f"{label}: a norm is not differentiable at 0; solved exactly as its "
+                  f"square ({'; '.join(squared)})", NormSquared, stacklevel=4)
+    serialized = ca.Function("c", symbols, [ca.vertcat(*rows)], list(compiled.arguments),
+                             ["c"]).serialize()
+    return serialized, tuple(lower), tuple(upper)
+
+
+def _norm_row(row: ca.SX) -> tuple[ca.SX, float] | None:
+    """(s, c) if the scalar ``row`` is sqrt(s) + c (or c + sqrt(s), sqrt(s) − c) with s a
+    sum of squares, or |e| + c (s = e²), and c a constant; else None."""
+    c = 0.0
+    if row.op() in (ca.OP_ADD, ca.OP_SUB):
+        a, b = row.dep(0), row.dep(1)
+        sign = 1.0 if row.op() == ca.OP_ADD else -1.0
+        if b.is_constant() and a.op() in (ca.OP_SQRT, ca.OP_FABS):
+            row, c = a, sign * float(b)
+        elif a.is_constant() and b.op() in (ca.OP_SQRT, ca.OP_FABS) and sign > 0:
+            row, c = b, float(a)
+    if row.op() == ca.OP_FABS:   # a norm of one entry: |e| = sqrt(e²)
+        return row.dep(0) ** 2, c
+    if row.op() != ca.OP_SQRT or not _sum_of_squares(row.dep(0)):
+        return None
+    return row.dep(0), c
+
+
+def _sum_of_squares(e: ca.SX) -> bool:
+    """Whether ``e`` is, structurally, a sum of squares (or non-negative constants, norms)."""
+    op = e.op()
+    if e.is_constant():
+        return float(e) >= 0
+    if op in (ca.OP_SQ, ca.OP_SQRT, ca.OP_FABS):
+        return True
+    if op == ca.OP_MUL:
+        return bool(ca.is_equal(e.dep(0), e.dep(1), 2)) or (
+            _sum_of_squares(e.dep(0)) and _sum_of_squares(e.dep(1)))
+    if op == ca.OP_ADD:
+        return _sum_of_squares(e.dep(0)) and _sum_of_squares(e.dep(1))
+    if op == ca.OP_TWICE:
+        return _sum_of_squares(e.dep(0))
+    return False
+
+
+def nonfinite(function: ca.Function, inputs: Sequence[np.ndarray]) -> tuple[int, str] | None:
+    """The first of k points (``inputs``: one (k, size) array per input of ``function``)
+    where its first output or that output's Jacobian in all inputs is not finite, as
+    (index, "value" or "derivative"); None if none."""
+    symbols = function.sx_in()
+    out = function.call(symbols)[0]
+    both = ca.Function("v", symbols, [out, ca.jacobian(out, ca.veccat(*symbols))])
+    k = len(inputs[0])
+    value, jac = both.map(k)(*(np.asarray(a, float).reshape(k, -1).T for a in inputs))
+    bad_value = ~np.all(np.isfinite(np.asarray(value).reshape(-1, k)), axis=0)
+    bad_jac = ~np.all(np.isfinite(np.asarray(jac).reshape(out.numel(), k, -1)), axis=(0, 2))
+    bad = np.flatnonzero(bad_value | bad_jac)
+    if not len(bad):
+        return None
+    i = int(bad[0])
+    return i, "value" if bad_value[i] else "derivative"
+
+
+def check_smooth(compiled: CompiledFunction, values: Mapping[str, np.ndarray], label: str,
+                 where: Sequence[str]) -> None:
+    """ValueError naming ``label`` unless ``compiled`` and its Jacobian are finite at the k
+    points ``values`` (per argument name, (k, size)) where the solves start; ``where`` (k
+    descriptions, e.g. "agent 3's start") says which point failed."""
+    found = compiled.nonfinite(values)
+    if found is None:
+        return
+    i, what = found
+    at = ", ".join(f"{a} = {np.round(np.asarray(values[a], float)[i], 6).tolist()}"
+                   for a in compiled.arguments)
+    if what == "value":
+        raise ValueError(f"{label}: not finite at {at} ({where[i]}), where the solves start")
+    raise ValueError(f"{label}: not differentiable at {at} ({where[i]}), where the solves "
+                     f"start: write a bound |e| <= U as sumsqr(e) <= U**2")
 
 
 def _check_sizes(compiled: CompiledFunction, sizes: Mapping[str, int], label: str) -> None:
@@ -172,14 +292,22 @@ def compile_function(function: object, sizes: Mapping[str, int], label: str,
                          f"{type(exc).__name__}: {exc}".splitlines()[0]) from None
     if scalar and expr.shape != (1, 1):
         raise ValueError(f"{label}: must return a scalar, got shape {expr.shape}")
-    if expr.is_empty() or min(expr.shape) != 1:
-        raise ValueError(f"{label}: must return a number or a column, got shape {expr.shape}")
-    expr = ca.vec(expr)
+    if expr.is_empty() or expr.shape[1] != 1:
+        what = "a row" if expr.shape[0] == 1 else "a matrix"
+        raise ValueError(f"{label}: must return a number or a column, got {what} of shape "
+                         f"{expr.shape}")
     inputs = [symbols[a] for a in arguments]
     strays = set(map(str, ca.symvar(expr))) - {str(s) for v in inputs for s in ca.symvar(v)}
     if strays:
         raise ValueError(f"{label}: depends on symbols other than its arguments: "
                          f"{', '.join(sorted(strays))}")
+    expr = ca.densify(expr)
+    variables = ca.veccat(*inputs)
+    constant = [i for i in range(expr.numel()) if not ca.depends_on(expr[i], variables)]
+    if constant:
+        row = "" if expr.numel() == 1 else f"row {constant[0]} "
+        raise ValueError(f"{label}: {row}depends on none of its arguments "
+                         f"({', '.join(arguments)}): a constant is no constraint or cost")
     serialized = ca.Function("c", inputs, [expr], list(arguments), ["c"]).serialize()
     return CompiledFunction(name, arguments, tuple(sizes[a] for a in arguments), serialized)
 

@@ -22,7 +22,12 @@ from scipy.integrate import solve_ivp
 
 from ocpar.models.ode import OdeModel, check_ode_model, control_bounds, ode_functions
 from ocpar.ocp.batch import BufferedFunction
-from ocpar.ocp.constraints import CompiledConstraint, PathConstraint, compile_constraints
+from ocpar.ocp.constraints import (
+    CompiledConstraint,
+    PathConstraint,
+    check_smooth,
+    compile_constraints,
+)
 from ocpar.ocp.multiple_shooting import INTEGRATORS, step_function
 
 #: Accuracy of the integration of a control law for agent 0 (scipy's RK45).
@@ -266,9 +271,12 @@ class PursuitProblem:
 
     def check_path_constraints(self, label: str, x: np.ndarray, u: np.ndarray) -> None:
         """ValueError naming ``label`` and the constraint unless the trajectory x (N, nx),
-        u (N−1, nu) meets every path constraint (to 1e-9) and the initial state those of x
-        alone."""
+        u (N−1, nu) meets every path constraint (to 1e-9), with finite values and Jacobians
+        (the first window's solve starts there), and the initial state those of x alone."""
         for i, constraint in enumerate(self.path_constraints):
+            check_smooth(constraint, {"x": x[:-1], "u": u},
+                         f"path_constraints[{i}] ({constraint.name})",
+                         [f"{label} sample {j}" for j in range(len(u))])
             if not constraint.depends_on("u"):
                 at_start = constraint.violation({"x": x[:1]})[0]
                 if not at_start <= PATH_TOLERANCE:
