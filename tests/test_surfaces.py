@@ -141,6 +141,7 @@ def cost_factor(problem: FormationProblem, result) -> float:
     return float(k.mean())
 
 
+@pytest.mark.slow
 def test_eight_agents_onto_a_sphere_stable_reading_is_the_global_optimum():
     """The stable reading (the default): the critical sets found are those of an independent
     multi-start (one, the minimum of G for 8 points), and the best formation over its
@@ -183,6 +184,7 @@ def test_eight_agents_onto_a_sphere_any_reading_matches_independent_solves():
         min(global_optimum(x, problem, k) for x in reference), rel=1e-8)
 
 
+@pytest.mark.slow
 def test_the_sphere_formation_is_the_same_on_every_backend(tmp_path):
     """8 masses onto the sphere, best stable set: serial, 2 Dask workers and mpirun -n 2
     (through the command line) bit for bit."""
