@@ -37,7 +37,8 @@ CONFIGS = [
     {"config": {"scheme": "formation", "agents": 10, "radius": 5.0, "outer": "sqp"}},
     {"config": "formation-60", "set": {"agents": 12, "ordering": "keep"}},
     {"config": "macs-goddard", "set": {"max_evals": 300, "seed": 1}},
-    {"config": "pursuit-case1", "set": {"samples": 61, "window": 20, "update": 10}},
+    {"config": "pursuit-case1", "set": {"samples": 61, "window": 20, "update": 10,
+                                       "max_agents": 20}},
 ]
 #: A job long enough to cancel, kill and time out (25 supersteps, ~0.3 s each serially).
 LONG = {"config": "macs-goddard", "set": {"max_evals": 1500, "seed": 7}}
@@ -181,7 +182,7 @@ def test_twenty_jobs_from_four_tokens_equal_their_direct_runs(server, tmp_path):
     for thread in threads:
         thread.join()
     assert not errors
-    assert all(record["state"] == "queued" for jobs in submitted.values()
+    assert all(record["state"] in ("queued", "running") for jobs in submitted.values()
                for _, record in jobs)
 
     expected = [computed(run_direct(config, tmp_path / f"direct-{k}"))
@@ -198,7 +199,7 @@ def test_twenty_jobs_from_four_tokens_equal_their_direct_runs(server, tmp_path):
                 assert "result.json" in final["files"]
                 result = fetch_result(client, record["id"])
                 assert computed(result) == expected[index], (name, index)
-                assert result["supersteps"] == final["supersteps"]
+                assert final["supersteps"] >= result["supersteps"] > 0  # checkpointed ones
                 # TODO(issue 36, A's array file): once runs write result.json's "arrays"
                 # file, compare GET /jobs/{id}/files/<arrays> bytewise with the direct run's.
                 finals.append((name, final))
