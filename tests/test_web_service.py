@@ -27,6 +27,7 @@ from hypothesis import strategies as st
 from ocpar.__main__ import main as ocpar_main
 from ocpar.config import scheme_options
 from ocpar.service.web.app import SERVER_KEYS
+from ocpar.service.web.events import parse_progress
 from ocpar.service.web.serve import openapi_schema
 from ocpar.service.web.store import FINAL, Store, Token
 from ocpar.service.web.tokens import issue
@@ -211,11 +212,57 @@ def test_twenty_jobs_from_four_tokens_equal_their_direct_runs(server, tmp_path):
                 # TODO(issue 36, A's array file): once runs write result.json's "arrays"
                 # file, compare GET /jobs/{id}/files/<arrays> bytewise with the direct run's.
                 finals.append((name, final))
+                if index in (0, 4):  # the events of a formation and a pursuit job
+                    check_events(client, record["id"], result)
     intervals = [(name, _epoch(f["started"]), _epoch(f["finished"])) for name, f in finals]
     for _, start, _ in intervals:
         running = [name for name, s, e in intervals if s <= start < e]
         assert len(running) <= 4
         assert all(running.count(name) <= 2 for name in running)
+
+
+def read_events(client: httpx.Client, job_id: str) -> list[tuple[str, dict]]:
+    """The server-sent events of a job (read until the stream ends)."""
+    text = client.get(f"/jobs/{job_id}/events", timeout=60).text
+    events = []
+    for block in filter(None, text.strip().split("\n\n")):
+        name, data = block.split("\n")
+        events.append((name.removeprefix("event: "), json.loads(data.removeprefix("data: "))))
+    return events
+
+
+def check_events(client: httpx.Client, job_id: str, result: dict) -> None:
+    """A finished job's events: its progress lines in order, supersteps counting from 0,
+    the last figure equal to the result (to the printed digits), one end event last."""
+    events = read_events(client, job_id)
+    assert [name for name, _ in events][-1] == "end" and events[-1][1]["state"] == "succeeded"
+    progress = [data for name, data in events if name == "progress"]
+    steps = [p["superstep"] for p in progress if p["superstep"] is not None]
+    assert steps == list(range(len(steps))) and len(steps) >= result["supersteps"] - 1
+    log = client.get(f"/jobs/{job_id}/log").json()["text"]
+    assert [p["line"] for p in progress] == [line for line in log.splitlines() if line.strip()]
+    if result["scheme"] == "formation":
+        last = [p["figures"]["cost"] for p in progress if "cost" in p["figures"]][-1]
+        assert last == pytest.approx(result["total_cost"], rel=1e-12)
+    else:
+        masses = [p["figures"]["last final mass"] for p in progress
+                  if "last final mass" in p["figures"]]
+        assert masses[-1] == pytest.approx(result["train_final_mass_kg"], abs=1e-6)
+
+
+@pytest.mark.parametrize(("line", "superstep", "figures"), [
+    ("superstep    3  cost 1.470244198995e+07  equidistance 7.4e-16 rad  wall     1.5 ms  "
+     "overhead    0.3 ms", 3, {"cost": 1.470244198995e+07, "equidistance": 7.4e-16,
+                               "wall": 1.5, "overhead": 0.3}),
+    ("superstep     5  agents in flight   3  finished     1  last final mass 512.795059 kg  "
+     "wall   11.1 ms", 5, {"agents in flight": 3, "finished": 1, "last final mass": 512.795059,
+                           "wall": 11.1}),
+    ("iteration    2  evaluations    218  archive  10  hypervolume 0.763327", None,
+     {"iteration": 2, "evaluations": 218, "archive": 10, "hypervolume": 0.763327}),
+    ("status converged (|sum of dJ/dphi_i| below tolerance)", None, {}),
+])
+def test_progress_lines_of_the_three_schemes_give_their_figures(line, superstep, figures):
+    assert parse_progress(line) == (superstep, figures)
 
 
 def _epoch(text: str) -> float:
