@@ -10,6 +10,7 @@ from __future__ import annotations
 import json
 import os
 import signal
+import ssl
 import subprocess
 import sys
 import threading
@@ -49,11 +50,13 @@ class Server:
     """``python -m ocpar serve`` on a free port of 127.0.0.1 with its state in
     ``state_dir``."""
 
-    def __init__(self, state_dir: Path, *options: str, env: dict | None = None) -> None:
+    def __init__(self, state_dir: Path, *options: str, env: dict | None = None,
+                 verify: ssl.SSLContext | bool = True) -> None:
         self.state_dir, self.options = state_dir, options
         self.env = dict(env or os.environ, OMP_NUM_THREADS="1")
         self.port = free_port()
-        self.url = f"http://127.0.0.1:{self.port}"
+        self.verify = verify
+        self.url = f"{'https' if '--ssl-certfile' in options else 'http'}://127.0.0.1:{self.port}"
         self.proc: subprocess.Popen | None = None
 
     def start(self, timeout: float = 120) -> Server:
@@ -65,7 +68,8 @@ class Server:
         deadline = time.monotonic() + timeout
         while True:
             try:
-                if httpx.get(self.url + "/openapi.json", timeout=2).status_code == 200:
+                if httpx.get(self.url + "/openapi.json", timeout=2,
+                             verify=self.verify).status_code == 200:
                     return self
             except httpx.HTTPError:
                 pass
@@ -87,7 +91,7 @@ class Server:
 
     def client(self, token: str | None) -> httpx.Client:
         headers = {"Authorization": f"Bearer {token}"} if token else {}
-        return httpx.Client(base_url=self.url, headers=headers, timeout=60)
+        return httpx.Client(base_url=self.url, headers=headers, timeout=60, verify=self.verify)
 
 
 def add_token(state_dir: Path, name: str, **limits) -> str:
@@ -520,6 +524,30 @@ def test_embedded_dask_cluster_runs_a_job_as_ocpar_run_does(tmp_path):
         srv.stop()
     cluster = state / "cluster.log"
     assert cluster.exists()
+
+
+def test_https_with_the_operators_certificate(tmp_path):
+    """--ssl-certfile/--ssl-keyfile: the API over TLS (a client trusting the CA gets in with
+    its token; plain HTTP gets no answer)."""
+    from test_tls import make_certificates
+
+    certs = make_certificates(tmp_path / "certs", ("server",))
+    trust = ssl.create_default_context(cafile=str(certs / "ca.pem"))
+    trust.check_hostname = False  # the test CA's certificate names no host
+    state = tmp_path / "state"
+    state.mkdir()
+    token = add_token(state, "t")
+    srv = Server(state, "--backend", "serial", "--ssl-certfile", str(certs / "server.pem"),
+                 "--ssl-keyfile", str(certs / "server.key"), verify=trust).start()
+    try:
+        assert srv.client(token).get("/jobs").json() == {"jobs": []}
+        assert srv.client(None).get("/jobs").status_code == 401
+        with pytest.raises(httpx.HTTPError):
+            httpx.get(srv.url.replace("https", "http") + "/jobs", timeout=5)
+        with pytest.raises(httpx.HTTPError):  # nor with a client that does not trust it
+            httpx.get(srv.url + "/jobs", timeout=5)
+    finally:
+        srv.stop()
 
 
 def test_the_published_openapi_schema_is_the_servers():

@@ -27,6 +27,8 @@ PROG = "ocpar serve"
 #: The state directory (database and jobs) unless --state-dir or $OCPAR_SERVER_DIR says.
 DEFAULT_STATE_DIR = "~/.ocpar/server"
 STATE_DIR_ENV = "OCPAR_SERVER_DIR"
+#: Seconds a stopping server waits for open connections (event streams) to end.
+SHUTDOWN_GRACE = 3
 
 
 def positive_float(text: str) -> float:
@@ -144,8 +146,10 @@ def serve(args: argparse.Namespace) -> int:
     print(f"{PROG}: {scheme}://{host}:{args.port}/ (jobs in {app.state.store.state_dir}, "
           f"backend {args.backend}{' ' + args.scheduler if args.scheduler else ''})",
           flush=True)
+    # open event streams and half-open connections do not hold a stopping server for long
     uvicorn.run(app, host=args.host, port=args.port, ssl_certfile=args.ssl_certfile,
-                ssl_keyfile=args.ssl_keyfile, log_level="warning")
+                ssl_keyfile=args.ssl_keyfile, log_level="warning",
+                timeout_graceful_shutdown=SHUTDOWN_GRACE)
     return 0
 
 
