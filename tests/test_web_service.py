@@ -3,7 +3,8 @@
 
 Most servers here run each job as one serial process (fast); one test uses the default
 backend, the embedded Dask cluster. Results are compared with ``ocpar run`` of the same
-configuration, run here in this process."""
+configuration, run here in this process. The 20 concurrent jobs and the embedded cluster are
+``slow`` (about 65 s together on 2 cores); the rest take about 60 s."""
 
 from __future__ import annotations
 
@@ -170,6 +171,7 @@ def fetch_result(client: httpx.Client, job_id: str) -> dict:
     return response.json()
 
 
+@pytest.mark.slow  # 50 s on 2 cores: 20 job processes; the default run is near its 10 minutes
 def test_twenty_jobs_from_four_tokens_equal_their_direct_runs(server, tmp_path):
     """Each of 4 tokens submits the 5 configurations at once (20 concurrent requests): every
     job succeeds with the result of ``ocpar run`` of its configuration; no token had more
@@ -506,6 +508,7 @@ def test_a_job_over_its_wall_time_is_cancelled_and_marked(server):
     assert 3.0 <= ran < 20.0  # stopped at a superstep boundary, not killed after the grace
 
 
+@pytest.mark.slow  # 14 s: the cluster's start
 def test_embedded_dask_cluster_runs_a_job_as_ocpar_run_does(tmp_path):
     """The default backend: the server's own Dask cluster of 2 workers."""
     state = tmp_path / "state"
