@@ -3,8 +3,8 @@
 
 Most servers here run each job as one serial process (fast); one test uses the default
 backend, the embedded Dask cluster. Results are compared with ``ocpar run`` of the same
-configuration, run here in this process. The 20 concurrent jobs and the embedded cluster are
-``slow`` (about 65 s together on 2 cores); the rest take about 60 s."""
+configuration, run here in this process. The embedded cluster's test is ``slow`` (14 s, most
+of it the cluster's start); the 20 concurrent jobs take about 50 s on 2 shared cores."""
 
 from __future__ import annotations
 
@@ -171,7 +171,6 @@ def fetch_result(client: httpx.Client, job_id: str) -> dict:
     return response.json()
 
 
-@pytest.mark.slow  # 50 s on 2 cores: 20 job processes; the default run is near its 10 minutes
 def test_twenty_jobs_from_four_tokens_equal_their_direct_runs(server, tmp_path):
     """Each of 4 tokens submits the 5 configurations at once (20 concurrent requests): every
     job succeeds with the result of ``ocpar run`` of its configuration; no token had more
