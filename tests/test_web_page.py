@@ -1,0 +1,193 @@
+"""The live page of jobs in a real browser: headless Chromium (Debian's chromium and
+chromium-driver, which `.ci/run` installs) driven by Selenium against a real `ocpar serve`
+on 127.0.0.1 with the serial backend.
+
+A formation job submitted through the API is followed on the page until `succeeded`; its
+convergence plot must hold the cost of every progress line of the job's log (read
+separately through `GET /jobs/{id}/log`), its result plot must load (at the PNG's own width)
+and its result.json link must download the server's bytes. A second job, queued behind the
+first (`--max-running 1`), is cancelled with its button.
+"""
+
+from __future__ import annotations
+
+import os
+import re
+import socket
+import struct
+import subprocess
+import sys
+import time
+from collections.abc import Iterator
+from pathlib import Path
+
+import httpx
+import pytest
+
+CHROMIUM = Path("/usr/bin/chromium")
+CHROMEDRIVER = Path("/usr/bin/chromedriver")
+
+pytestmark = pytest.mark.skipif(
+    not CHROMIUM.exists() or not CHROMEDRIVER.exists(),
+    reason="no /usr/bin/chromium or /usr/bin/chromedriver (Debian: apt-get install -y "
+           "chromium chromium-driver; .ci/run does it as root)")
+
+COST_LINE = re.compile(r"^superstep\s+(\d+)\s+cost\s+(\S+)", re.MULTILINE)
+
+
+def ocpar(*args: str, **kwargs) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "ocpar", *args], capture_output=True,
+                          text=True, check=True, timeout=60, **kwargs)
+
+
+def free_port() -> int:
+    with socket.socket() as sock:
+        sock.bind(("127.0.0.1", 0))
+        return sock.getsockname()[1]
+
+
+@pytest.fixture(scope="module")
+def server(tmp_path_factory: pytest.TempPathFactory) -> Iterator[tuple[str, str]]:
+    """A real `ocpar serve` (serial backend, one job at a time) and a token: (URL, token)."""
+    state = tmp_path_factory.mktemp("server")
+    env = {**os.environ, "OMP_NUM_THREADS": "1"}
+    token = ocpar("serve", "token", "add", "page", "--state-dir", str(state),
+                  env=env).stdout.split()[-1]
+    port = free_port()
+    log = (state / "serve.log").open("w")
+    process = subprocess.Popen(
+        [sys.executable, "-m", "ocpar", "serve", "--host", "127.0.0.1", "--port", str(port),
+         "--state-dir", str(state), "--backend", "serial", "--max-running", "1"],
+        stdout=log, stderr=subprocess.STDOUT, env=env)
+    url = f"http://127.0.0.1:{port}"
+    try:
+        deadline = time.monotonic() + 30
+        while True:
+            assert process.poll() is None, (state / "serve.log").read_text()
+            try:
+                if httpx.get(f"{url}/openapi.json", timeout=2).status_code == 200:
+                    break
+            except httpx.TransportError:
+                pass
+            assert time.monotonic() < deadline, "ocpar serve did not answer within 30 s"
+            time.sleep(0.2)
+        yield url, token
+    finally:
+        process.terminate()
+        try:
+            process.wait(timeout=15)
+        except subprocess.TimeoutExpired:
+            process.kill()
+            process.wait()
+        log.close()
+
+
+@pytest.fixture(scope="module")
+def browser(tmp_path_factory: pytest.TempPathFactory):
+    """Headless Chromium through the system chromedriver; downloads go to
+    ``browser.download_dir``."""
+    from selenium import webdriver
+
+    downloads = tmp_path_factory.mktemp("downloads")
+    options = webdriver.ChromeOptions()
+    options.binary_location = str(CHROMIUM)
+    for argument in ("--headless=new", "--no-sandbox", "--disable-gpu",
+                     "--disable-dev-shm-usage", "--disable-background-networking",
+                     "--disable-component-update", "--disable-sync", "--no-first-run",
+                     "--window-size=1400,1400",
+                     f"--user-data-dir={tmp_path_factory.mktemp('chromium')}"):
+        options.add_argument(argument)
+    options.add_experimental_option("prefs", {
+        "download.default_directory": str(downloads), "download.prompt_for_download": False})
+    driver = webdriver.Chrome(
+        service=webdriver.ChromeService(executable_path=str(CHROMEDRIVER)), options=options)
+    driver.download_dir = downloads
+    try:
+        yield driver
+    finally:
+        driver.quit()
+
+
+def png_width(data: bytes) -> int:
+    """The width of a PNG from its IHDR chunk (bytes 16-20, big-endian)."""
+    assert data[:8] == b"\x89PNG\r\n\x1a\n"
+    return struct.unpack(">I", data[16:20])[0]
+
+
+def test_page_follows_a_job_to_its_result_and_cancels_a_queued_one(server, browser):
+    from selenium.webdriver.common.by import By
+    from selenium.webdriver.support.ui import WebDriverWait
+
+    url, token = server
+    api = httpx.Client(base_url=url, headers={"Authorization": f"Bearer {token}"},
+                       timeout=30)
+    followed = api.post("/jobs", json={"config": "formation-60", "set": {"agents": 8}})
+    assert followed.status_code == 201, followed.text
+    job = followed.json()["id"]
+    queued = api.post("/jobs", json={"config": "formation-60", "set": {"agents": 6}})
+    assert queued.status_code == 201, queued.text
+    waiting = queued.json()["id"]
+
+    browser.get(url)
+    browser.find_element(By.ID, "token").send_keys(token)
+    browser.find_element(By.ID, "save-token").click()
+    row = f'#job-rows tr[data-job-id="{job}"]'
+    other = f'#job-rows tr[data-job-id="{waiting}"]'
+    wait = WebDriverWait(browser, 60, poll_frequency=0.1)
+
+    # the queued job (one job at a time) is cancelled from its row's button
+    wait.until(lambda d: d.find_elements(By.CSS_SELECTOR, other))
+    assert browser.find_element(By.CSS_SELECTOR, other).get_attribute("data-state") == "queued"
+    browser.find_element(By.CSS_SELECTOR, f'{other} button[data-action="cancel"]').click()
+    wait.until(lambda d: d.find_element(By.CSS_SELECTOR, other)
+               .get_attribute("data-state") == "cancelled")
+    assert api.get(f"/jobs/{waiting}").json()["state"] == "cancelled"
+    assert browser.find_element(By.CSS_SELECTOR, f"{other} td.state").text == "cancelled"
+    assert not browser.find_element(
+        By.CSS_SELECTOR, f'{other} button[data-action="cancel"]').is_enabled()
+
+    # the followed job, shown in the detail panel, reaches succeeded on the page
+    browser.find_element(By.CSS_SELECTOR, f'{row} button[data-action="show"]').click()
+    wait.until(lambda d: d.find_element(By.CSS_SELECTOR, row)
+               .get_attribute("data-state") == "succeeded")
+    record = api.get(f"/jobs/{job}").json()
+    assert record["state"] == "succeeded" and record["result_status"] == "converged"
+    assert browser.find_element(By.CSS_SELECTOR, f"{row} td.state").text == "succeeded"
+    assert browser.find_element(By.ID, "detail-state").text == "succeeded"
+    assert browser.find_element(By.CSS_SELECTOR, f"{row} td.headline").text == \
+        record["headline"]
+    assert int(browser.find_element(By.CSS_SELECTOR, row).get_attribute("data-supersteps")) \
+        == record["supersteps"]
+    assert browser.execute_script(  # a final job's bar is full
+        f"const p = document.querySelector('{row} progress'); return p.value === p.max")
+
+    # the convergence plot holds one point per cost line of the job's log, at its superstep
+    log = api.get(f"/jobs/{job}/log").json()["text"]
+    costs = [(int(step), float(cost)) for step, cost in COST_LINE.findall(log)]
+    assert len(costs) >= 3
+    wait.until(lambda d: d.find_element(By.ID, "convergence-plot")
+               .get_attribute("data-points") == str(len(costs)))
+    plot = browser.find_element(By.ID, "convergence-plot")
+    assert plot.get_attribute("data-figure") == "cost"
+    points = [(int(p.get_attribute("data-x")), float(p.get_attribute("data-y")))
+              for p in plot.find_elements(By.CSS_SELECTOR, "circle.pt")]
+    assert points == costs
+    summary = api.get(f"/jobs/{job}/files/result.json").json()
+    assert costs[-1][1] == pytest.approx(summary["total_cost"], rel=1e-11)
+
+    # the result's plot loads at the PNG's width; result.json downloads the server's bytes
+    files = {f["name"] for f in api.get(f"/jobs/{job}/files").json()["files"]}
+    png = sorted(name for name in files if name.endswith(".png"))[0]
+    image = f'img.result-plot[data-file="{png}"]'
+    wait.until(lambda d: d.execute_script(
+        f"const i = document.querySelector('{image}'); return i !== null && i.complete "
+        "&& i.naturalWidth > 0"))
+    width = browser.execute_script(f"return document.querySelector('{image}').naturalWidth")
+    assert width == png_width(api.get(f"/jobs/{job}/files/{png}").content)
+    shown = {link.get_attribute("data-file")
+             for link in browser.find_elements(By.CSS_SELECTOR, "#files a.file-link")}
+    assert shown == files
+    browser.find_element(By.CSS_SELECTOR, '#files a.file-link[data-file="result.json"]').click()
+    saved = browser.download_dir / "result.json"
+    wait.until(lambda d: saved.exists() and saved.stat().st_size > 0)
+    assert saved.read_bytes() == api.get(f"/jobs/{job}/files/result.json").content
