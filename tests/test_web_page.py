@@ -47,14 +47,16 @@ def free_port() -> int:
 
 
 @pytest.fixture(scope="module")
-def server(tmp_path_factory: pytest.TempPathFactory) -> Iterator[tuple[str, str]]:
-    """A real `ocpar serve` (serial backend, one job at a time) and a token: (URL, token)."""
+def server(tmp_path_factory: pytest.TempPathFactory) -> Iterator[tuple[str, str, Path]]:
+    """A real `ocpar serve` (serial backend, one job at a time), a token and the server's
+    output: (URL, token, log file)."""
     state = tmp_path_factory.mktemp("server")
     env = {**os.environ, "OMP_NUM_THREADS": "1"}
     token = ocpar("serve", "token", "add", "page", "--state-dir", str(state),
                   env=env).stdout.split()[-1]
     port = free_port()
-    log = (state / "serve.log").open("w")
+    output = state / "serve.log"
+    log = output.open("w")
     process = subprocess.Popen(
         [sys.executable, "-m", "ocpar", "serve", "--host", "127.0.0.1", "--port", str(port),
          "--state-dir", str(state), "--backend", "serial", "--max-running", "1"],
@@ -63,7 +65,7 @@ def server(tmp_path_factory: pytest.TempPathFactory) -> Iterator[tuple[str, str]
     try:
         deadline = time.monotonic() + 30
         while True:
-            assert process.poll() is None, (state / "serve.log").read_text()
+            assert process.poll() is None, output.read_text()
             try:
                 if httpx.get(f"{url}/openapi.json", timeout=2).status_code == 200:
                     break
@@ -71,7 +73,7 @@ def server(tmp_path_factory: pytest.TempPathFactory) -> Iterator[tuple[str, str]
                 pass
             assert time.monotonic() < deadline, "ocpar serve did not answer within 30 s"
             time.sleep(0.2)
-        yield url, token
+        yield url, token, output
     finally:
         process.terminate()
         try:
@@ -118,14 +120,14 @@ def test_page_follows_a_job_to_its_result_and_cancels_a_queued_one(server, brows
     from selenium.webdriver.common.by import By
     from selenium.webdriver.support.ui import WebDriverWait
 
-    url, token = server
+    url, token, output = server
     api = httpx.Client(base_url=url, headers={"Authorization": f"Bearer {token}"},
                        timeout=30)
     followed = api.post("/jobs", json={"config": "formation-60", "set": {"agents": 8}})
-    assert followed.status_code == 201, followed.text
+    assert followed.status_code == 201, f"{followed.text}\n{output.read_text()}"
     job = followed.json()["id"]
     queued = api.post("/jobs", json={"config": "formation-60", "set": {"agents": 6}})
-    assert queued.status_code == 201, queued.text
+    assert queued.status_code == 201, f"{queued.text}\n{output.read_text()}"
     waiting = queued.json()["id"]
 
     browser.get(url)
