@@ -27,6 +27,7 @@ from ocpar import driver
 from ocpar.cli import OneLineParser, add_tls_arguments, check_tls_arguments, client_security, fail
 from ocpar.config import ConfigError, examples, load_config, parse_overrides, scheme_class
 from ocpar.service.client import SERVICE_OPTIONS
+from ocpar.service.web import serve
 
 #: Keys of a configuration that a submitted job sets itself: where it runs and writes.
 SERVICE_KEYS = tuple(option[2:].replace("-", "_") for option in SERVICE_OPTIONS)
@@ -218,6 +219,7 @@ def build_parser() -> OneLineParser:
             sub.add_argument("--output", required=True, metavar="DIR",
                              help="where to write result.json and the plots")
         sub.set_defaults(handler=handler)
+    serve.register(commands)
     return parser
 
 
