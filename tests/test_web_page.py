@@ -11,6 +11,7 @@ first (`--max-running 1`), is cancelled with its button.
 
 from __future__ import annotations
 
+import itertools
 import os
 import re
 import socket
@@ -110,6 +111,17 @@ def browser(tmp_path_factory: pytest.TempPathFactory):
         driver.quit()
 
 
+def open_page(browser, url: str, token: str) -> None:
+    """Load the page and give it the token."""
+    from selenium.webdriver.common.by import By
+
+    browser.get(url)
+    field = browser.find_element(By.ID, "token")
+    field.clear()
+    field.send_keys(token)
+    browser.find_element(By.ID, "save-token").click()
+
+
 def png_width(data: bytes) -> int:
     """The width of a PNG from its IHDR chunk (bytes 16-20, big-endian)."""
     assert data[:8] == b"\x89PNG\r\n\x1a\n"
@@ -130,9 +142,7 @@ def test_page_follows_a_job_to_its_result_and_cancels_a_queued_one(server, brows
     assert queued.status_code == 201, f"{queued.text}\n{output.read_text()}"
     waiting = queued.json()["id"]
 
-    browser.get(url)
-    browser.find_element(By.ID, "token").send_keys(token)
-    browser.find_element(By.ID, "save-token").click()
+    open_page(browser, url, token)
     row = f'#job-rows tr[data-job-id="{job}"]'
     other = f'#job-rows tr[data-job-id="{waiting}"]'
     wait = WebDriverWait(browser, 60, poll_frequency=0.1)
@@ -157,7 +167,7 @@ def test_page_follows_a_job_to_its_result_and_cancels_a_queued_one(server, brows
     assert browser.find_element(By.CSS_SELECTOR, f"{row} td.state").text == "succeeded"
     assert browser.find_element(By.ID, "detail-state").text == "succeeded"
     assert browser.find_element(By.CSS_SELECTOR, f"{row} td.headline").text == \
-        record["headline"]
+        (record["headline"] or record["result_status"])  # the title, when the result has one
     assert int(browser.find_element(By.CSS_SELECTOR, row).get_attribute("data-supersteps")) \
         == record["supersteps"]
     assert browser.execute_script(  # a final job's bar is full
@@ -193,3 +203,75 @@ def test_page_follows_a_job_to_its_result_and_cancels_a_queued_one(server, brows
     saved = browser.download_dir / "result.json"
     wait.until(lambda d: saved.exists() and saved.stat().st_size > 0)
     assert saved.read_bytes() == api.get(f"/jobs/{job}/files/result.json").content
+
+
+def test_page_plots_a_running_job_cancels_and_resumes_it(server, browser):
+    from selenium.webdriver.common.by import By
+    from selenium.webdriver.support.ui import WebDriverWait
+
+    url, token, output = server
+    api = httpx.Client(base_url=url, headers={"Authorization": f"Bearer {token}"},
+                       timeout=30)
+    submitted = api.post("/jobs", json={"config": "pursuit-case1"})  # minutes of supersteps
+    assert submitted.status_code == 201, f"{submitted.text}\n{output.read_text()}"
+    job = submitted.json()["id"]
+    open_page(browser, url, token)
+    row = f'#job-rows tr[data-job-id="{job}"]'
+    wait = WebDriverWait(browser, 60, poll_frequency=0.1)
+    wait.until(lambda d: d.find_elements(By.CSS_SELECTOR, row))
+    browser.find_element(By.CSS_SELECTOR, f'{row} button[data-action="show"]').click()
+
+    def points() -> int:
+        return int(browser.find_element(By.ID, "convergence-plot").get_attribute("data-points"))
+
+    # while it runs, the plot grows (pursuit's figure: the last agent's final mass) and the
+    # progress bar is indeterminate
+    wait.until(lambda d: points() >= 5)
+    assert browser.find_element(By.CSS_SELECTOR, row).get_attribute("data-state") == "running"
+    assert browser.execute_script(
+        f"return !document.querySelector('{row} progress').hasAttribute('value')")
+    assert browser.find_element(By.ID, "convergence-plot").get_attribute("data-figure") == \
+        "last final mass"
+    before = points()
+    wait.until(lambda d: points() > before)
+
+    # Cancel stops it at a superstep boundary; Resume runs it on from its checkpoint
+    browser.find_element(By.CSS_SELECTOR, f'{row} button[data-action="cancel"]').click()
+    wait.until(lambda d: d.find_element(By.CSS_SELECTOR, row)
+               .get_attribute("data-state") == "cancelled")
+    cancelled = api.get(f"/jobs/{job}").json()
+    assert cancelled["state"] == "cancelled"
+    resume = browser.find_element(By.CSS_SELECTOR, f'{row} button[data-action="resume"]')
+    assert resume.is_enabled()
+    resume.click()
+    wait.until(lambda d: d.find_element(By.CSS_SELECTOR, row)
+               .get_attribute("data-state") == "running")
+    wait.until(lambda d: int(d.find_element(By.CSS_SELECTOR, row)
+                             .get_attribute("data-supersteps")) > cancelled["supersteps"])
+    assert browser.find_element(By.ID, "detail-state").text == "running"
+    before = points()
+    wait.until(lambda d: points() > before)  # the stream, opened again, feeds the plot
+    assert api.delete(f"/jobs/{job}").status_code == 204
+    wait.until(lambda d: d.find_element(By.CSS_SELECTOR, row)
+               .get_attribute("data-state") == "cancelled")
+
+
+def test_plot_turns_logarithmic_across_decades(server, browser):
+    """Values spanning decades go on a log axis: 10^0 .. 10^-6 at equal heights apart;
+    values within a decade stay linear: equal differences at equal heights apart."""
+    browser.get(server[0])
+    draw = """
+        const box = document.createElement("div"), caption = document.createElement("p");
+        const plot = new ConvergencePlot(box, caption);
+        arguments[0].forEach((y, i) => plot.add(i, y, "cost", "superstep"));
+        plot.render();
+        const svg = box.querySelector("svg");
+        return [svg.dataset.scale, [...svg.querySelectorAll("circle.pt")].map(
+            (c) => Number(c.getAttribute("cy")))];"""
+    scale, heights = browser.execute_script(draw, [10.0 ** -k for k in range(7)])
+    assert scale == "log"
+    steps = [b - a for a, b in itertools.pairwise(heights)]
+    assert min(steps) > 0 and max(steps) == pytest.approx(min(steps), rel=1e-9)
+    scale, heights = browser.execute_script(draw, [5.0, 4.0, 3.0, 1.0])
+    assert scale == "linear"
+    assert heights[3] - heights[2] == pytest.approx(2 * (heights[1] - heights[0]), rel=1e-9)

@@ -144,7 +144,10 @@ async function refreshJobs() {
     const response = await api("/jobs");
     const { jobs } = await response.json();
     renderJobs(jobs);
-    if (state.selected === null && jobs.length > 0) selectJob(jobs[0].id);
+    if (state.selected === null && jobs.length > 0) {
+      // the newest running job, else the newest
+      selectJob((jobs.find((job) => job.state === "running") || jobs[0]).id);
+    }
     else if (state.selected !== null && state.jobs.has(state.selected)) {
       showRecord(state.jobs.get(state.selected));
     }
@@ -231,12 +234,25 @@ function mainFigure(scheme, figures, chosen) {
   return names.find((name) => !name.split(/[\s_]+/).some((word) => COUNTERS.has(word)));
 }
 
+// the job's progress lines, the last LOG_LINES of them shown (written every 150 ms at most)
+const log = { lines: [], pending: false };
+
 function appendLog(line) {
-  const log = $("log");
-  const lines = log.textContent ? log.textContent.split("\n") : [];
-  lines.push(line);
-  log.textContent = lines.slice(-LOG_LINES).join("\n");
-  log.scrollTop = log.scrollHeight;
+  log.lines.push(line);
+  if (log.lines.length > 2 * LOG_LINES) log.lines = log.lines.slice(-LOG_LINES);
+  if (log.pending) return;
+  log.pending = true;
+  setTimeout(() => {
+    log.pending = false;
+    const element = $("log");
+    element.textContent = log.lines.slice(-LOG_LINES).join("\n");
+    element.scrollTop = element.scrollHeight;
+  }, 150);
+}
+
+function clearLog() {
+  log.lines = [];
+  $("log").textContent = "";
 }
 
 function onEvent(id, name, data) {
@@ -301,7 +317,7 @@ function openStream(id) {
   const controller = new AbortController();
   state.stream = controller;
   plot.reset("");
-  $("log").textContent = "";
+  clearLog();
   readStream(id, controller.signal).then((ended) => {
     // the connection dropped before the job ended: read it again from the start
     if (!ended && !controller.signal.aborted) setTimeout(() => reopen(id, controller), 2000);

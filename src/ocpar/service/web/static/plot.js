@@ -3,6 +3,9 @@
 "use strict";
 
 const SVG_NS = "http://www.w3.org/2000/svg";
+const RENDER_MS = 150;
+// points drawn as markers (each with its value) up to this many; beyond, the line only
+const MAX_MARKERS = 600;
 
 function svgElement(name, attributes, text) {
   const element = document.createElementNS(SVG_NS, name);
@@ -57,8 +60,8 @@ class ConvergencePlot {
     this.render();
   }
 
-  // Add one point (x: superstep or iteration, named xLabel; y: the figure); drawn at the
-  // next frame.
+  // Add one point (x: superstep or iteration, named xLabel; y: the figure); drawn at most
+  // every RENDER_MS (a replayed stream brings thousands of points at once).
   add(x, y, figure, xLabel) {
     if (!Number.isFinite(x) || !Number.isFinite(y)) return;
     if (figure) this.figure = figure;
@@ -66,10 +69,10 @@ class ConvergencePlot {
     this.points.push([x, y]);
     if (!this.pending) {
       this.pending = true;
-      requestAnimationFrame(() => {
+      setTimeout(() => {
         this.pending = false;
         this.render();
-      });
+      }, RENDER_MS);
     }
   }
 
@@ -92,11 +95,14 @@ class ConvergencePlot {
         ? `No ${this.figure} values yet.` : "Waiting for progress lines.";
       return;
     }
-    const xs = points.map((p) => p[0]);
-    const ys = points.map((p) => p[1]);
-    let xLow = Math.min(...xs), xHigh = Math.max(...xs);
+    let xLow = Infinity, xHigh = -Infinity, yLow = Infinity, yHigh = -Infinity;
+    let integerX = true;
+    for (const [x, y] of points) {
+      xLow = Math.min(xLow, x); xHigh = Math.max(xHigh, x);
+      yLow = Math.min(yLow, y); yHigh = Math.max(yHigh, y);
+      integerX = integerX && Number.isInteger(x);
+    }
     if (xHigh === xLow) { xLow -= 1; xHigh += 1; }
-    let yLow = Math.min(...ys), yHigh = Math.max(...ys);
     const log = yLow > 0 && yHigh / yLow >= 100;
     svg.setAttribute("data-scale", log ? "log" : "linear");
     const f = log ? Math.log10 : (v) => v;
@@ -131,7 +137,7 @@ class ConvergencePlot {
         class: "tick", x: margin.left - 6, y: y + 4, "text-anchor": "end",
       }, label));
     }
-    const xStep = linearTicks(xLow, xHigh, 8, xs.every(Number.isInteger) ? 1 : 0);
+    const xStep = linearTicks(xLow, xHigh, 8, integerX ? 1 : 0);
     for (const value of xStep.ticks) {
       const x = px(value);
       axes.appendChild(svgElement("line", {
@@ -151,10 +157,11 @@ class ConvergencePlot {
     svg.appendChild(axes);
 
     svg.appendChild(svgElement("polyline", {
-      class: "line", points: points.map(([x, y]) => `${px(x)},${py(y)}`).join(" "),
+      class: "line",
+      points: points.map(([x, y]) => `${px(x).toFixed(1)},${py(y).toFixed(1)}`).join(" "),
     }));
     const dots = svgElement("g", { class: "points" });
-    for (const [x, y] of points) {
+    for (const [x, y] of points.length <= MAX_MARKERS ? points : []) {
       const dot = svgElement("circle", {
         class: "pt", cx: px(x), cy: py(y), r: 3, "data-x": x, "data-y": y,
       });
@@ -165,7 +172,7 @@ class ConvergencePlot {
     this.container.replaceChildren(svg);
     const [lastX, lastY] = points[points.length - 1];
     this.caption.textContent = `${this.figure}: ${points.length} points` +
-      `${log ? " (log scale)" : ""}; latest (${this.xLabel} ${lastX}): ${lastY.toPrecision(12)}`;
+      `${log ? " (log scale)" : ""}; latest (${this.xLabel} ${lastX}): ${lastY}`;
   }
 }
 
