@@ -22,6 +22,7 @@ const state = {
   resultsShown: null, // "id state" whose plots and files are shown
   objectUrls: [],
   pollTimer: null,
+  pollFailed: false, // the message shows the last GET /jobs error
 };
 let plot = null;
 
@@ -151,10 +152,10 @@ async function refreshJobs() {
     else if (state.selected !== null && state.jobs.has(state.selected)) {
       showRecord(state.jobs.get(state.selected));
     }
-    if ($("message").classList.contains("error") && /\/jobs: /.test($("message").textContent)) {
-      say("");
-    }
+    if (state.pollFailed) say(""); // the list's own error is over
+    state.pollFailed = false;
   } catch (error) {
+    state.pollFailed = true;
     say(error.message, true);
   }
 }
