@@ -167,7 +167,7 @@ def test_page_follows_a_job_to_its_result_and_cancels_a_queued_one(server, brows
     assert browser.find_element(By.CSS_SELECTOR, f"{row} td.state").text == "succeeded"
     assert browser.find_element(By.ID, "detail-state").text == "succeeded"
     assert browser.find_element(By.CSS_SELECTOR, f"{row} td.headline").text == \
-        (record["headline"] or record["result_status"])  # the title, when the result has one
+        (record["headline"] or record["reason"] or record["result_status"])
     assert int(browser.find_element(By.CSS_SELECTOR, row).get_attribute("data-supersteps")) \
         == record["supersteps"]
     assert browser.execute_script(  # a final job's bar is full
@@ -240,7 +240,9 @@ def test_page_plots_a_running_job_cancels_and_resumes_it(server, browser):
     wait.until(lambda d: d.find_element(By.CSS_SELECTOR, row)
                .get_attribute("data-state") == "cancelled")
     cancelled = api.get(f"/jobs/{job}").json()
-    assert cancelled["state"] == "cancelled"
+    assert cancelled["state"] == "cancelled" and cancelled["reason"]
+    wait.until(lambda d: d.find_element(By.CSS_SELECTOR, f"{row} td.headline").text
+               == cancelled["reason"])  # why it stopped, in words
     resume = browser.find_element(By.CSS_SELECTOR, f'{row} button[data-action="resume"]')
     assert resume.is_enabled()
     resume.click()

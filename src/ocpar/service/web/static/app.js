@@ -117,7 +117,9 @@ function updateRow(row, job) {
   const finished = row.querySelector(".finished");
   finished.textContent = formatTime(job.finished);
   finished.title = job.finished || "";
-  row.querySelector(".headline").textContent = job.headline || job.result_status || "";
+  // the result's title, else why the job ended so (failed, cancelled), else its status
+  row.querySelector(".headline").textContent =
+    job.headline || job.reason || job.result_status || "";
   row.querySelector('[data-action="cancel"]').disabled = FINAL.has(job.state);
   row.querySelector('[data-action="resume"]').disabled =
     !(job.state === "cancelled" || job.state === "failed");
