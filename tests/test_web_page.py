@@ -6,7 +6,9 @@ A formation job submitted through the API is followed on the page until `succeed
 convergence plot must hold the cost of every progress line of the job's log (read
 separately through `GET /jobs/{id}/log`), its result plot must load (at the PNG's own width)
 and its result.json link must download the server's bytes. A second job, queued behind the
-first (`--max-running 1`), is cancelled with its button.
+first (`--max-running 1`), is cancelled with its button. A pursuit job's plot grows while it
+runs; its Cancel and Resume buttons stop it and run it on. The plot's y axis is checked apart:
+logarithmic across decades, linear within one.
 """
 
 from __future__ import annotations
