@@ -5,10 +5,10 @@ on 127.0.0.1 with the serial backend.
 A formation job submitted through the API is followed on the page until `succeeded`; its
 convergence plot must hold the cost of every progress line of the job's log (read
 separately through `GET /jobs/{id}/log`), its result plot must load (at the PNG's own width)
-and its result.json link must download the server's bytes. A second job, queued behind the
-first (`--max-running 1`), is cancelled with its button. A pursuit job's plot grows while it
-runs; its Cancel and Resume buttons stop it and run it on. The plot's y axis is checked apart:
-logarithmic across decades, linear within one.
+and its result.json link must download the server's bytes. A pursuit job's plot grows while
+it runs; a job queued behind it (`--max-running 1`) is cancelled with its button, and the
+pursuit job's Cancel and Resume buttons stop it and run it on. The plot's y axis is checked
+apart: logarithmic across decades, linear within one.
 """
 
 from __future__ import annotations
@@ -124,13 +124,25 @@ def open_page(browser, url: str, token: str) -> None:
     browser.find_element(By.ID, "save-token").click()
 
 
+PLOT = """const svg = document.getElementById("convergence-plot");
+    return [svg.dataset.figure, [...svg.querySelectorAll("circle.pt")].map(
+        (c) => [Number(c.dataset.x), Number(c.dataset.y)]), Number(svg.dataset.points)];"""
+
+
+def plotted(browser) -> tuple[str, list[tuple[float, float]], int]:
+    """The convergence plot's figure, its markers' (x, y) and its number of points, read
+    at once (the SVG is redrawn as points arrive)."""
+    figure, markers, count = browser.execute_script(PLOT)
+    return figure, [tuple(marker) for marker in markers], count
+
+
 def png_width(data: bytes) -> int:
     """The width of a PNG from its IHDR chunk (bytes 16-20, big-endian)."""
     assert data[:8] == b"\x89PNG\r\n\x1a\n"
     return struct.unpack(">I", data[16:20])[0]
 
 
-def test_page_follows_a_job_to_its_result_and_cancels_a_queued_one(server, browser):
+def test_page_follows_a_job_to_its_result(server, browser):
     from selenium.webdriver.common.by import By
     from selenium.webdriver.support.ui import WebDriverWait
 
@@ -140,25 +152,11 @@ def test_page_follows_a_job_to_its_result_and_cancels_a_queued_one(server, brows
     followed = api.post("/jobs", json={"config": "formation-60", "set": {"agents": 8}})
     assert followed.status_code == 201, f"{followed.text}\n{output.read_text()}"
     job = followed.json()["id"]
-    queued = api.post("/jobs", json={"config": "formation-60", "set": {"agents": 6}})
-    assert queued.status_code == 201, f"{queued.text}\n{output.read_text()}"
-    waiting = queued.json()["id"]
 
     open_page(browser, url, token)
     row = f'#job-rows tr[data-job-id="{job}"]'
-    other = f'#job-rows tr[data-job-id="{waiting}"]'
     wait = WebDriverWait(browser, 60, poll_frequency=0.1)
-
-    # the queued job (one job at a time) is cancelled from its row's button
-    wait.until(lambda d: d.find_elements(By.CSS_SELECTOR, other))
-    assert browser.find_element(By.CSS_SELECTOR, other).get_attribute("data-state") == "queued"
-    browser.find_element(By.CSS_SELECTOR, f'{other} button[data-action="cancel"]').click()
-    wait.until(lambda d: d.find_element(By.CSS_SELECTOR, other)
-               .get_attribute("data-state") == "cancelled")
-    assert api.get(f"/jobs/{waiting}").json()["state"] == "cancelled"
-    assert browser.find_element(By.CSS_SELECTOR, f"{other} td.state").text == "cancelled"
-    assert not browser.find_element(
-        By.CSS_SELECTOR, f'{other} button[data-action="cancel"]').is_enabled()
+    wait.until(lambda d: d.find_elements(By.CSS_SELECTOR, row))
 
     # the followed job, shown in the detail panel, reaches succeeded on the page
     browser.find_element(By.CSS_SELECTOR, f'{row} button[data-action="show"]').click()
@@ -179,12 +177,9 @@ def test_page_follows_a_job_to_its_result_and_cancels_a_queued_one(server, brows
     log = api.get(f"/jobs/{job}/log").json()["text"]
     costs = [(int(step), float(cost)) for step, cost in COST_LINE.findall(log)]
     assert len(costs) >= 3
-    wait.until(lambda d: d.find_element(By.ID, "convergence-plot")
-               .get_attribute("data-points") == str(len(costs)))
-    plot = browser.find_element(By.ID, "convergence-plot")
-    assert plot.get_attribute("data-figure") == "cost"
-    points = [(int(p.get_attribute("data-x")), float(p.get_attribute("data-y")))
-              for p in plot.find_elements(By.CSS_SELECTOR, "circle.pt")]
+    wait.until(lambda d: plotted(d)[2] == len(costs))
+    figure, points, _ = plotted(browser)
+    assert figure == "cost"
     assert points == costs
     summary = api.get(f"/jobs/{job}/files/result.json").json()
     assert costs[-1][1] == pytest.approx(summary["total_cost"], rel=1e-11)
@@ -207,7 +202,7 @@ def test_page_follows_a_job_to_its_result_and_cancels_a_queued_one(server, brows
     assert saved.read_bytes() == api.get(f"/jobs/{job}/files/result.json").content
 
 
-def test_page_plots_a_running_job_cancels_and_resumes_it(server, browser):
+def test_page_cancels_queued_and_running_jobs_and_resumes_one(server, browser):
     from selenium.webdriver.common.by import By
     from selenium.webdriver.support.ui import WebDriverWait
 
@@ -224,7 +219,7 @@ def test_page_plots_a_running_job_cancels_and_resumes_it(server, browser):
     browser.find_element(By.CSS_SELECTOR, f'{row} button[data-action="show"]').click()
 
     def points() -> int:
-        return int(browser.find_element(By.ID, "convergence-plot").get_attribute("data-points"))
+        return plotted(browser)[2]
 
     # while it runs, the plot grows (pursuit's figure: the last agent's final mass) and the
     # progress bar is indeterminate
@@ -232,12 +227,27 @@ def test_page_plots_a_running_job_cancels_and_resumes_it(server, browser):
     assert browser.find_element(By.CSS_SELECTOR, row).get_attribute("data-state") == "running"
     assert browser.execute_script(
         f"return !document.querySelector('{row} progress').hasAttribute('value')")
-    assert browser.find_element(By.ID, "convergence-plot").get_attribute("data-figure") == \
-        "last final mass"
+    assert plotted(browser)[0] == "last final mass"
     before = points()
     wait.until(lambda d: points() > before)
 
-    # Cancel stops it at a superstep boundary; Resume runs it on from its checkpoint
+    # a job queued behind it (one job at a time) is cancelled from its row's button
+    queued = api.post("/jobs", json={"config": "formation-60", "set": {"agents": 6}})
+    assert queued.status_code == 201, f"{queued.text}\n{output.read_text()}"
+    other = f'#job-rows tr[data-job-id="{queued.json()["id"]}"]'
+    wait.until(lambda d: d.find_elements(By.CSS_SELECTOR, other))
+    assert browser.find_element(By.CSS_SELECTOR, other).get_attribute("data-state") == "queued"
+    browser.find_element(By.CSS_SELECTOR, f'{other} button[data-action="cancel"]').click()
+    wait.until(lambda d: d.find_element(By.CSS_SELECTOR, other)
+               .get_attribute("data-state") == "cancelled")
+    record = api.get(f"/jobs/{queued.json()['id']}").json()
+    assert record["state"] == "cancelled" and record["started"] is None
+    assert browser.find_element(By.CSS_SELECTOR, f"{other} td.state").text == "cancelled"
+    assert not browser.find_element(
+        By.CSS_SELECTOR, f'{other} button[data-action="cancel"]').is_enabled()
+    assert browser.find_element(By.CSS_SELECTOR, row).get_attribute("data-state") == "running"
+
+    # Cancel stops the running job at a superstep boundary; Resume runs it on from its checkpoint
     browser.find_element(By.CSS_SELECTOR, f'{row} button[data-action="cancel"]').click()
     wait.until(lambda d: d.find_element(By.CSS_SELECTOR, row)
                .get_attribute("data-state") == "cancelled")
