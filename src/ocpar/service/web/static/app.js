@@ -346,7 +346,7 @@ async function blobUrl(id, name) {
   return url;
 }
 
-async function download(link, id, name) {
+async function download(id, name) {
   try {
     const url = await blobUrl(id, name);
     const save = document.createElement("a");
@@ -355,7 +355,6 @@ async function download(link, id, name) {
     document.body.appendChild(save);
     save.click();
     save.remove();
-    link.dataset.downloaded = "true";
   } catch (error) {
     say(error.message, true);
   }
@@ -382,7 +381,7 @@ async function loadResults(id) {
     link.setAttribute("aria-label", `download ${file.name}`);
     link.addEventListener("click", (event) => {
       event.preventDefault();
-      download(link, id, file.name);
+      download(id, file.name);
     });
     item.append(link, ` (${file.size} bytes)`);
     list.appendChild(item);
