@@ -23,6 +23,7 @@ const state = {
   objectUrls: [],
   pollTimer: null,
   pollFailed: false, // the message shows the last GET /jobs error
+  streamed: null, // {job, at}: the last record of the selected job's stream, and when
 };
 let plot = null;
 
@@ -144,8 +145,14 @@ function renderJobs(jobs) {
 async function refreshJobs() {
   if (!state.token) return;
   try {
+    const asked = performance.now();
     const response = await api("/jobs");
-    const { jobs } = await response.json();
+    let { jobs } = await response.json();
+    // a record the event stream brought after this request left is newer than the list's
+    const streamed = state.streamed;
+    if (streamed !== null && streamed.at > asked) {
+      jobs = jobs.map((job) => (job.id === streamed.job.id ? streamed.job : job));
+    }
     renderJobs(jobs);
     if (state.selected === null && jobs.length > 0) {
       // the newest running job, else the newest
@@ -273,6 +280,7 @@ function onEvent(id, name, data) {
       : iteration !== null ? "iteration" : "line";
     plot.add(x, figures[figure], figure, xLabel);
   } else if (name === "state" || name === "end") {
+    state.streamed = { job: data, at: performance.now() };
     showRecord(data);
   }
 }
