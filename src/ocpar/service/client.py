@@ -18,6 +18,7 @@ from ocpar import driver
 from ocpar.config import SCHEMES, scheme_class
 from ocpar.references import is_reference
 from ocpar.service import jobs
+from ocpar.service.check import check_and_start
 
 #: Options of a scheme's command line that the service sets for a submitted job.
 SERVICE_OPTIONS = ("--backend", "--scheduler", "--output", "--checkpoint", "--resume",
@@ -77,10 +78,10 @@ def submit(scheme: str, argv: list[str], scheduler: str, security: Any = None) -
     ``scheduler`` (its coordinator runs on the scheduler's host, and on a ``tls://`` cluster
     presents the scheduler's certificate); returns the job id at once. A
     ``package.module:factory`` problem is loaded on the scheduler's host first, where the
-    job's coordinator loads it (:func:`ocpar.service.jobs.check_and_start`): one that does not
+    job's coordinator loads it (:func:`ocpar.service.check.check_and_start`): one that does not
     load is a ServiceError and no job."""
     options = check_run(scheme, argv)
-    start = jobs.check_and_start if is_reference(options.problem) else jobs.create_and_start
+    start = check_and_start if is_reference(options.problem) else jobs.create_and_start
     return on_scheduler(scheduler, start, scheme, list(argv), scheduler, security=security)
 
 

@@ -1,9 +1,5 @@
 """The detached coordinator of one job: ``python -m ocpar.service.coordinator JOB_DIR``.
 
-``python -m ocpar.service.coordinator --check SCHEME ARGV...`` only loads the problem of the
-scheme's command line ARGV, as the job will (one line on stderr and exit status 2 if it does
-not load): :func:`ocpar.service.jobs.check_problem` runs it when a job is submitted.
-
 Runs ``python -m ocpar.<scheme>`` with the job's options against the cluster's scheduler,
 checkpointing into ``JOB_DIR/checkpoint``, writing ``JOB_DIR/output``, stopping at a
 superstep boundary once ``JOB_DIR/cancel`` exists, its tasks named after the job on the
@@ -18,9 +14,7 @@ import subprocess
 import sys
 from pathlib import Path
 
-from ocpar import driver
-from ocpar.cli import EXIT_CANCELLED, fail
-from ocpar.config import scheme_class
+from ocpar.cli import EXIT_CANCELLED
 from ocpar.results import EXIT_STATUS
 from ocpar.service.jobs import write_state
 
@@ -39,22 +33,8 @@ def command(path: Path, job: dict) -> list[str]:
               for arg in ("--" + name.replace("_", "-"), path))]
 
 
-def check(scheme: str, argv: list[str]) -> int:
-    """Load the problem of ``python -m ocpar.<scheme> argv`` (one line and exit status 2 if it
-    does not load); 0."""
-    options, _ = driver.parse_options(scheme_class(scheme), argv)
-    try:
-        driver.checked_problem(options)
-    except ValueError as exc:
-        fail(options.prog, str(exc))
-    return 0
-
-
 def main(argv: list[str] | None = None) -> int:
-    argv = sys.argv[1:] if argv is None else argv
-    if argv[:1] == ["--check"]:
-        return check(argv[1], argv[2:])
-    path = Path(argv[0]).resolve()
+    path = Path((argv if argv is not None else sys.argv[1:])[0]).resolve()
     job = json.loads((path / "job.json").read_text())
     write_state(path, "running", pid=os.getpid())
     with open(path / "log.txt", "ab") as log:

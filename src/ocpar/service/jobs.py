@@ -23,7 +23,6 @@ certificate must be good for both ends, as workers/tls.md makes them).
 
 from __future__ import annotations
 
-import asyncio
 import json
 import os
 import re
@@ -41,8 +40,6 @@ JOBS_DIR_ENV = "OCPAR_JOBS_DIR"
 JOB_ID = re.compile(r"(?:formation|pursuit|macs)-[0-9]{8}-[0-9]{6}-[0-9a-f]{6}", re.ASCII)
 #: Files of a finished job that ``ocpar result`` fetches (from ``output/``).
 RESULT_SUFFIXES = (".json", ".png")
-#: Seconds a submitted job's problem may take to load on the scheduler's host.
-CHECK_TIMEOUT_S = 120.0
 
 
 class JobError(ValueError):
@@ -120,37 +117,6 @@ def create_and_start(scheme: str, argv: list[str], scheduler: str,
                          stdin=subprocess.DEVNULL, stdout=log, stderr=log,
                          start_new_session=True, cwd=path)
     return job_id
-
-
-async def check_problem(scheme: str, argv: list[str]) -> None:
-    """Load the problem of ``python -m ocpar.<scheme> argv`` in a separate process on this
-    host (the scheduler's, where the job's coordinator will load it; the scheduler's event
-    loop runs on meanwhile); a JobError with its one-line cause if it does not load within
-    :data:`CHECK_TIMEOUT_S`."""
-    proc = await asyncio.create_subprocess_exec(
-        sys.executable, "-m", "ocpar.service.coordinator", "--check", scheme, *argv,
-        stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
-        cwd=jobs_root())
-    try:
-        _, err = await asyncio.wait_for(proc.communicate(), CHECK_TIMEOUT_S)
-    except TimeoutError:
-        proc.kill()
-        await proc.wait()
-        raise JobError(f"the problem did not load within {CHECK_TIMEOUT_S:g} s on the "
-                       "scheduler's host") from None
-    if proc.returncode != 0:
-        lines = err.decode(errors="replace").strip().splitlines() or [
-            f"exit status {proc.returncode}"]
-        cause = lines[-1].partition(": error: ")[2] or lines[-1]  # without the "prog: error: "
-        raise JobError(f"on the scheduler's host: {cause}")
-
-
-async def check_and_start(scheme: str, argv: list[str], scheduler: str,
-                          dask_scheduler: Any = None) -> str:
-    """:func:`check_problem`, then :func:`create_and_start` (runs in the scheduler's
-    process)."""
-    await check_problem(scheme, argv)
-    return create_and_start(scheme, argv, scheduler, dask_scheduler)
 
 
 def job_status(job_id: str) -> dict:
