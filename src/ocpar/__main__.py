@@ -99,14 +99,18 @@ def submit(args: argparse.Namespace) -> int:
 
 
 def _submit_http(args: argparse.Namespace, prog: str) -> int:
-    """``ocpar submit`` to a server: a configuration file is sent as its keys, anything else
-    as an example's name; the server checks it (HTTP 422: one line, exit 2)."""
+    """``ocpar submit`` to a server: a configuration file is sent as its keys (without those
+    the service sets, as on the Dask path), anything else as an example's name; the server
+    checks it (HTTP 422: one line, exit 2)."""
     if args.scheme_flags:
         fail(prog, f"unrecognized arguments: {' '.join(args.scheme_flags)} (a server takes the "
                    "configuration's keys: --set KEY=VALUE)")
     try:
         overrides = parse_overrides(args.overrides)
-        config = read_config_data(args.config) if Path(args.config).is_file() else args.config
+        config: str | dict = args.config
+        if Path(args.config).is_file():
+            config = {key: value for key, value in read_config_data(args.config).items()
+                      if key not in SERVICE_KEYS}
     except ConfigError as exc:
         fail(prog, str(exc))
     record = _http_call(args, "submit", lambda server: server.submit(
