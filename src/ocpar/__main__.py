@@ -40,6 +40,7 @@ from ocpar.config import (
     scheme_class,
 )
 from ocpar.service.client import SERVICE_OPTIONS, ServiceError
+from ocpar.service.web import serve
 
 #: Keys of a configuration that a submitted job sets itself: where it runs and writes.
 SERVICE_KEYS = tuple(option[2:].replace("-", "_") for option in SERVICE_OPTIONS)
@@ -402,6 +403,7 @@ def build_parser() -> OneLineParser:
             sub.add_argument("--timeout", type=float, metavar="S",
                              help=f"give up after S seconds (exit status {EXIT_TIMEOUT})")
         sub.set_defaults(handler=handler)
+    serve.register(commands)
     return parser
 
 

@@ -76,6 +76,18 @@ class OneLineParser(argparse.ArgumentParser):
         fail(self.prog, message)
 
 
+class UsageError(ValueError):
+    """Bad command-line input, refused by a :class:`CheckingParser`: the one-line message."""
+
+
+class CheckingParser(OneLineParser):
+    """A :class:`OneLineParser` that raises :class:`UsageError` instead of printing and
+    exiting (for checking a command line on behalf of someone else, e.g. the HTTP server)."""
+
+    def error(self, message: str) -> NoReturn:
+        raise UsageError(" ".join(str(message).split()))
+
+
 def fail(prog: str, message: str) -> NoReturn:
     """Print ``prog: error: message`` (one line; under mpirun from rank 0 only) and exit 2."""
     rank = os.environ.get("PMI_RANK", os.environ.get("OMPI_COMM_WORLD_RANK", "0"))

@@ -18,6 +18,7 @@ type before any worker starts), journals and checkpoints the supersteps, writes
 
 from __future__ import annotations
 
+import sys
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -25,6 +26,7 @@ from typing import Any, ClassVar
 
 from ocpar.bsp import Backend
 from ocpar.cli import (
+    CheckingParser,
     OneLineParser,
     Progress,
     RuntimeOptions,
@@ -90,24 +92,31 @@ class SchemeRun(RuntimeOptions):
         raise NotImplementedError
 
 
-def build_parser(scheme: type[SchemeRun]) -> OneLineParser:
+def build_parser(scheme: type[SchemeRun],
+                 parser_class: type[OneLineParser] = OneLineParser) -> OneLineParser:
     """The scheme's command line, generated from its options dataclass."""
-    parser = OneLineParser(prog=scheme.prog, description=scheme.description)
+    parser = parser_class(prog=scheme.prog, description=scheme.description)
     add_options(parser, scheme)
     return parser
+
+
+def check_options(scheme: type[SchemeRun], argv: Sequence[str]
+                  ) -> tuple[SchemeRun, frozenset[str]]:
+    """The options of command line ``argv`` and the keys it sets; bad input raises
+    ValueError (:class:`~ocpar.cli.UsageError` from the parser) with one line."""
+    namespace = build_parser(scheme, CheckingParser).parse_args(argv)
+    options, given = options_from_namespace(scheme, namespace)
+    options.validate(given)
+    return options, given
 
 
 def parse_options(scheme: type[SchemeRun], argv: Sequence[str] | None = None
                   ) -> tuple[SchemeRun, frozenset[str]]:
     """The options of command line ``argv`` and the keys it sets (exits 2 on bad input)."""
-    parser = build_parser(scheme)
-    namespace = parser.parse_args(argv)
     try:
-        options, given = options_from_namespace(scheme, namespace)
-        options.validate(given)
+        return check_options(scheme, sys.argv[1:] if argv is None else argv)
     except ValueError as exc:
-        parser.error(str(exc))
-    return options, given
+        fail(scheme.prog, str(exc))
 
 
 def explicitly_set(options: SchemeRun) -> frozenset[str]:

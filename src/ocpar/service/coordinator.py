@@ -14,23 +14,22 @@ import subprocess
 import sys
 from pathlib import Path
 
-from ocpar.cli import EXIT_CANCELLED
-from ocpar.results import EXIT_STATUS
-from ocpar.service.jobs import write_state
+from ocpar.service.jobs import outcome, run_command, write_state
 
-#: Exit statuses of a run that ended with its result.json (every status but cancelled).
-FINISHED = frozenset(code for status, code in EXIT_STATUS.items() if status != "cancelled")
+
+def dask_options(scheduler: str, job_id: str, tls: dict | None = None) -> list[str]:
+    """The backend options of a job's run on the cluster at ``scheduler``: its tasks go
+    through the scheduler, named after the job; ``tls``: the certificate files it presents."""
+    return ["--backend", "dask", "--scheduler", scheduler, "--dispatch", "tasks",
+            "--job-name", job_id,
+            *(arg for name, path in (tls or {}).items()
+              for arg in ("--" + name.replace("_", "-"), path))]
 
 
 def command(path: Path, job: dict) -> list[str]:
     """The scheme's command line for the job in ``path``."""
-    return [sys.executable, "-m", f"ocpar.{job['scheme']}", *job["argv"],
-            "--backend", "dask", "--scheduler", job["scheduler"],
-            "--checkpoint", str(path / "checkpoint"), "--output", str(path / "output"),
-            "--stop-file", str(path / "cancel"), "--dispatch", "tasks",
-            "--job-name", job["id"],
-            *(arg for name, path in (job.get("tls") or {}).items()
-              for arg in ("--" + name.replace("_", "-"), path))]
+    return run_command(path, job["scheme"], job["argv"],
+                       dask_options(job["scheduler"], job["id"], job.get("tls")))
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -40,14 +39,9 @@ def main(argv: list[str] | None = None) -> int:
     with open(path / "log.txt", "ab") as log:
         status = subprocess.run(command(path, job), stdout=log, stderr=log,
                                 stdin=subprocess.DEVNULL).returncode
-    result = path / "output" / "result.json"
-    if status == EXIT_CANCELLED:
-        write_state(path, "cancelled", exit_status=status)
-    elif result.exists() and status in FINISHED:
-        outcome = json.loads(result.read_text()).get("status")
-        write_state(path, "finished", exit_status=status, result_status=outcome)
-    else:
-        write_state(path, "failed", exit_status=status)
+    state, result_status = outcome(path, status)
+    details = {"result_status": result_status} if state == "finished" else {}
+    write_state(path, state, exit_status=status, **details)
     return 0
 
 

@@ -34,12 +34,18 @@ from pathlib import Path
 from typing import Any
 
 from ocpar.bsp.journal import MANIFEST
+from ocpar.cli import EXIT_CANCELLED
+from ocpar.results import EXIT_STATUS
 
 JOBS_DIR_ENV = "OCPAR_JOBS_DIR"
 #: A job's id: its scheme, the submission time and 6 random hex digits.
 JOB_ID = re.compile(r"(?:formation|pursuit|macs)-[0-9]{8}-[0-9]{6}-[0-9a-f]{6}", re.ASCII)
 #: Files of a finished job that ``ocpar result`` fetches (from ``output/``).
 RESULT_SUFFIXES = (".json", ".png")
+
+
+#: Exit statuses of a run that ended with its result.json (every status but cancelled).
+FINISHED = frozenset(code for status, code in EXIT_STATUS.items() if status != "cancelled")
 
 
 class JobError(ValueError):
@@ -83,6 +89,51 @@ def write_state(path: Path, state: str, **details: Any) -> None:
     _write_json(path / "state.json", {"state": state, "time": time.time(), **details})
 
 
+def new_job_id(scheme: str) -> str:
+    """A fresh job id for a run of ``scheme`` (see :data:`JOB_ID`)."""
+    return f"{scheme}-{time.strftime('%Y%m%d-%H%M%S')}-{secrets.token_hex(3)}"
+
+
+def run_command(path: Path, scheme: str, argv: list[str], backend: list[str],
+                resume: bool = False, launcher: list[str] | None = None) -> list[str]:
+    """The scheme's command line for the job in directory ``path``: ``argv`` (the run's own
+    options), then ``backend`` (where it runs), checkpointing into ``path/checkpoint`` (or
+    resuming from it), writing ``path/output`` and stopping at a superstep boundary once
+    ``path/cancel`` exists; ``launcher`` (e.g. ``mpirun -n 2``) goes in front."""
+    journal = "--resume" if resume else "--checkpoint"
+    return [*(launcher or []), sys.executable, "-m", f"ocpar.{scheme}", *argv, *backend,
+            journal, str(path / "checkpoint"), "--output", str(path / "output"),
+            "--stop-file", str(path / "cancel")]
+
+
+def supersteps_done(path: Path) -> int:
+    """The supersteps recorded in the checkpoint of the job in ``path`` (0 if none yet)."""
+    try:
+        return int(json.loads((path / "checkpoint" / MANIFEST).read_text())["supersteps"])
+    except (OSError, ValueError, KeyError, TypeError):
+        return 0
+
+
+def has_checkpoint(path: Path) -> bool:
+    """Whether the job in ``path`` has a checkpoint to resume (``--resume``)."""
+    return (path / "checkpoint" / MANIFEST).exists()
+
+
+def outcome(path: Path, exit_status: int) -> tuple[str, str | None]:
+    """How the run of the job in ``path`` ended, from its exit status: ``("cancelled",
+    None)`` (stopped by its stop file), ``("finished", STATUS)`` (it wrote
+    ``output/result.json`` with that status) or ``("failed", None)``."""
+    result = path / "output" / "result.json"
+    if exit_status == EXIT_CANCELLED:
+        return "cancelled", None
+    if exit_status in FINISHED and result.exists():
+        try:
+            return "finished", json.loads(result.read_text()).get("status")
+        except ValueError:
+            return "failed", None
+    return "failed", None
+
+
 def scheduler_certificate(dask_scheduler: Any) -> dict[str, str]:
     """The CA file, certificate and key of the scheduler ``dask_scheduler`` (absolute paths),
     which the coordinators of a ``tls://`` cluster's jobs present as clients."""
@@ -105,7 +156,7 @@ def create_and_start(scheme: str, argv: list[str], scheduler: str,
     returns the job id. On a ``tls://`` cluster the coordinator connects with the scheduler's
     own certificate files."""
     tls = scheduler_certificate(dask_scheduler) if scheduler.startswith("tls://") else None
-    job_id = f"{scheme}-{time.strftime('%Y%m%d-%H%M%S')}-{secrets.token_hex(3)}"
+    job_id = new_job_id(scheme)
     path = jobs_root() / job_id
     path.mkdir()
     _write_json(path / "job.json", {"id": job_id, "scheme": scheme, "argv": argv,
@@ -124,10 +175,7 @@ def job_status(job_id: str) -> dict:
     path = job_dir(job_id)
     job = json.loads((path / "job.json").read_text())
     state = json.loads((path / "state.json").read_text())
-    try:
-        supersteps = json.loads((path / "checkpoint" / MANIFEST).read_text())["supersteps"]
-    except (OSError, ValueError, KeyError):
-        supersteps = 0
+    supersteps = supersteps_done(path)
     lines = [line for line in (path / "log.txt").read_text(errors="replace").splitlines()
              if line.strip()] if (path / "log.txt").exists() else []
     return {"id": job_id, "scheme": job["scheme"], **state, "supersteps": supersteps,

@@ -1,0 +1,303 @@
+"""The supervisor of ``ocpar serve``: starts queued jobs within the limits, watches their
+processes and records how they end.
+
+Each job runs as its own process group: the scheme's command line
+(:func:`ocpar.service.jobs.run_command`: checkpoint, output and stop file in the job's
+directory) on the server's backend: the embedded Dask cluster (a process of its own,
+:mod:`ocpar.service.web.cluster`, started and owned by the server), an existing cluster
+(``--scheduler``), ``mpirun -n W`` (``--backend mpi``) or one serial process.
+
+A job's state: ``queued`` → ``running`` → ``succeeded`` (its ``result.json`` has status
+converged), ``failed`` (any other result status, or no result: the reason says why) or
+``cancelled`` (stopped by ``DELETE``, or by its token's wall-time limit: the stop file is
+touched, and the process group killed if it still runs ``grace`` seconds later).
+
+On start-up every job the database has as ``running`` (the server was stopped or killed
+while it ran) has any surviving process group of its own killed and is queued again: it
+resumes from its checkpoint, or starts afresh if it wrote none; a job whose directory is
+gone is marked failed. None is lost, none is left ``running``.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import logging
+import os
+import signal
+import subprocess
+import sys
+import threading
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+from ocpar.service.coordinator import dask_options
+from ocpar.service.jobs import has_checkpoint, outcome, run_command, supersteps_done
+from ocpar.service.web.store import Store
+
+log = logging.getLogger("ocpar.serve")
+
+#: The server's backends.
+BACKENDS = ("dask", "mpi", "serial")
+
+
+@dataclass(frozen=True)
+class Settings:
+    """How ``ocpar serve`` runs jobs and whom it serves."""
+
+    state_dir: Path
+    backend: str = "dask"
+    workers: int = 2               # dask: the embedded cluster's workers; mpi: ranks per job
+    scheduler: str | None = None   # an existing Dask cluster instead of the embedded one
+    max_running: int = 2           # jobs running at once, over all tokens
+    allow_problem: tuple[str, ...] = ()  # fnmatch patterns of module:factory references
+    grace: float = 30.0            # s between a wall-time stop request and the kill
+    poll: float = 0.2              # s between the supervisor's rounds
+
+
+class Runner:
+    """Starts and watches the jobs of ``store`` (a thread of the server's process)."""
+
+    def __init__(self, store: Store, settings: Settings) -> None:
+        self.store = store
+        self.settings = settings
+        self.procs: dict[str, subprocess.Popen] = {}
+        self.cluster: subprocess.Popen | None = None
+        self.address = settings.scheduler
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._loop, name="ocpar-runner", daemon=True)
+
+    # life cycle ---------------------------------------------------------------------------
+
+    def start(self) -> None:
+        """Recover the jobs a previous server left running, start the embedded cluster if
+        it is the backend, then supervise."""
+        self.recover()
+        if self.settings.backend == "dask" and self.address is None:
+            self.address = self._start_cluster()
+        self._thread.start()
+
+    def stop(self) -> None:
+        """Stop supervising: the running jobs' processes are ended and stay ``running`` in
+        the database, so that the next start resumes them from their checkpoints."""
+        self._stop.set()
+        if self._thread.is_alive():
+            self._thread.join()
+        for proc in self.procs.values():
+            _kill_group(proc.pid, signal.SIGTERM)
+        for proc in self.procs.values():
+            try:
+                proc.wait(10)
+            except subprocess.TimeoutExpired:
+                _kill_group(proc.pid, signal.SIGKILL)
+                proc.wait()
+        if self.cluster is not None:
+            self.cluster.terminate()
+            try:
+                self.cluster.wait(20)
+            except subprocess.TimeoutExpired:
+                _kill_group(self.cluster.pid, signal.SIGKILL)
+
+    def _start_cluster(self) -> str:
+        address_file = self.store.state_dir / "cluster-address"
+        address_file.unlink(missing_ok=True)
+        with open(self.store.state_dir / "cluster.log", "ab") as out:
+            self.cluster = subprocess.Popen(
+                [sys.executable, "-m", "ocpar.service.web.cluster", str(address_file),
+                 str(self.settings.workers)], stdin=subprocess.DEVNULL, stdout=out,
+                stderr=out, start_new_session=True, env=_job_environment())
+        deadline = time.monotonic() + 120
+        while not address_file.exists():
+            if self.cluster.poll() is not None or time.monotonic() > deadline:
+                raise RuntimeError("the embedded Dask cluster did not start (see "
+                                   f"{self.store.state_dir / 'cluster.log'})")
+            time.sleep(0.2)
+        return address_file.read_text().strip()
+
+    def recover(self) -> None:
+        """Queue again every job left ``running`` by a server that was stopped or killed,
+        its surviving processes killed first (see the module's docstring)."""
+        for row in self.store.jobs(state="running"):
+            path = self.store.job_dir(row["id"])
+            if row["pid"] and _is_job_process(row["pid"], path):
+                _kill_group(row["pid"], signal.SIGKILL)
+                _wait_gone(row["pid"])
+            if not path.is_dir():
+                self.store.update(row["id"], state="failed", finished=time.time(), pid=None,
+                                  reason="the server restarted and the job's directory "
+                                  f"{path} is gone")
+                continue
+            resume = has_checkpoint(path)
+            reason = (f"the server restarted; resumed from its checkpoint after "
+                      f"{supersteps_done(path)} superstep(s)" if resume else
+                      "the server restarted before its first checkpoint; started afresh")
+            self.store.update(row["id"], state="queued", pid=None, resume=int(resume),
+                              reason=reason)
+            log.warning("job %s: %s", row["id"], reason)
+
+    # supervision --------------------------------------------------------------------------
+
+    def _loop(self) -> None:
+        while not self._stop.wait(self.settings.poll):
+            try:
+                self.step()
+            except Exception:  # keep supervising; the error is the operator's to see
+                log.exception("supervisor round failed")
+
+    def step(self) -> None:
+        """One round: record the jobs that ended, enforce wall times, start queued jobs."""
+        for job_id, proc in list(self.procs.items()):
+            code = proc.poll()
+            if code is None:
+                self._enforce_wall_time(job_id, proc)
+            else:
+                del self.procs[job_id]
+                self._finish(job_id, code)
+        self._start_queued()
+
+    def _enforce_wall_time(self, job_id: str, proc: subprocess.Popen) -> None:
+        row = self.store.job(job_id)
+        token = self.store.token(row["owner"]) if row else None
+        if row is None or token is None or token.wall_time is None or not row["started"]:
+            return
+        ran = time.time() - row["started"]
+        if ran > token.wall_time and row["stop_reason"] is None:
+            (self.store.job_dir(job_id) / "cancel").touch()
+            self.store.update(job_id, stop_reason=f"wall-time limit of {token.wall_time:g} s "
+                              "exceeded")
+        elif ran > token.wall_time + self.settings.grace:
+            _kill_group(proc.pid, signal.SIGKILL)
+
+    def _finish(self, job_id: str, code: int) -> None:
+        row = self.store.job(job_id)
+        path = self.store.job_dir(job_id)
+        ended, result_status = outcome(path, code)
+        reason = None
+        if row["stop_reason"] and ended != "finished":
+            state = "cancelled"
+            reason = row["stop_reason"] + ("" if ended == "cancelled" else
+                                           f"; killed {self.settings.grace:g} s after the "
+                                           "stop request")
+        elif ended == "cancelled":
+            state, reason = "cancelled", "cancelled by request"
+        elif ended == "finished" and result_status == "converged":
+            state = "succeeded"
+        else:
+            state = "failed"
+            reason = _failure(path, code, result_status)
+        self.store.update(job_id, state=state, reason=reason, finished=time.time(),
+                          exit_status=code, result_status=result_status,
+                          headline=_title(path) if result_status is not None else None)
+        log.info("job %s: %s%s", job_id, state, f" ({reason})" if reason else "")
+
+    def _start_queued(self) -> None:
+        running = self.store.jobs(state="running")
+        if len(running) >= self.settings.max_running:
+            return
+        per_owner: dict[str, int] = {}
+        for row in running:
+            per_owner[row["owner"]] = per_owner.get(row["owner"], 0) + 1
+        for row in reversed(self.store.jobs(state="queued")):  # oldest first
+            if len(running) >= self.settings.max_running:
+                return
+            token = self.store.token(row["owner"])
+            if token and token.max_jobs and per_owner.get(row["owner"], 0) >= token.max_jobs:
+                continue
+            if self._launch(row):
+                running.append(row)
+                per_owner[row["owner"]] = per_owner.get(row["owner"], 0) + 1
+
+    def _launch(self, row: dict) -> bool:
+        job_id = row["id"]
+        if not self.store.update(job_id, only_if="queued", state="running",
+                                 started=time.time(), finished=None, stop_reason=None,
+                                 exit_status=None, result_status=None, headline=None):
+            return False  # cancelled meanwhile
+        path = self.store.job_dir(job_id)
+        (path / "output").mkdir(parents=True, exist_ok=True)
+        (path / "output" / "result.json").unlink(missing_ok=True)  # a previous run's
+        backend, launcher = self._backend(job_id)
+        command = run_command(path, row["scheme"], json.loads(row["argv"]), backend,
+                              resume=bool(row["resume"]), launcher=launcher)
+        with open(path / "log.txt", "ab") as out:
+            try:
+                proc = subprocess.Popen(command, stdin=subprocess.DEVNULL, stdout=out,
+                                        stderr=subprocess.STDOUT, start_new_session=True,
+                                        cwd=path, env=_job_environment())
+            except OSError as exc:
+                self.store.update(job_id, state="failed", finished=time.time(),
+                                  reason=f"cannot start {command[0]}: {exc.strerror or exc}")
+                return False
+        self.procs[job_id] = proc
+        self.store.update(job_id, pid=proc.pid)
+        return True
+
+    def _backend(self, job_id: str) -> tuple[list[str], list[str] | None]:
+        """The backend options of a job's command line and its launcher (mpirun) if any."""
+        if self.settings.backend == "serial":
+            return ["--backend", "serial"], None
+        if self.settings.backend == "mpi":
+            mpirun = Path(sys.executable).with_name("mpirun")
+            return [], [str(mpirun) if mpirun.exists() else "mpirun", "-n",
+                        str(self.settings.workers)]
+        assert self.address is not None
+        return dask_options(self.address, job_id), None
+
+
+def _job_environment() -> dict[str, str]:
+    """A job's (and the embedded cluster's) environment: one BLAS/OpenMP thread, progress
+    lines unbuffered."""
+    from ocpar.bsp.dask import WORKER_ENV
+
+    return {**os.environ, **WORKER_ENV, "PYTHONUNBUFFERED": "1"}
+
+
+def _title(path: Path) -> str | None:
+    """The headline of the job's result (``result.json``'s title), if it has one."""
+    try:
+        title = json.loads((path / "output" / "result.json").read_text()).get("title")
+    except (OSError, ValueError, AttributeError):
+        return None
+    return title if isinstance(title, str) else None
+
+
+def _failure(path: Path, code: int, result_status: str | None) -> str:
+    """Why a run failed: its result's status and message, else its log's last line."""
+    if result_status is not None:
+        try:
+            message = json.loads((path / "output" / "result.json").read_text()).get("message")
+        except (OSError, ValueError):
+            message = None
+        return f"result status {result_status}" + (f": {message}" if message else "")
+    lines = []
+    if (path / "log.txt").exists():
+        lines = [line.strip() for line in (path / "log.txt").read_text(
+            errors="replace").splitlines() if line.strip()]
+    last = lines[-1] if lines else "no output"
+    how = f"killed by signal {-code}" if code < 0 else f"exit status {code}"
+    return f"{how}: {last}"[:500]
+
+
+def _is_job_process(pid: int, path: Path) -> bool:
+    """Whether process ``pid`` lives and runs the job in ``path`` (not a reused pid)."""
+    try:
+        command = Path(f"/proc/{pid}/cmdline").read_bytes().decode(errors="replace")
+    except OSError:
+        return False
+    return str(path) in command
+
+
+def _kill_group(pid: int, sig: int) -> None:
+    with contextlib.suppress(ProcessLookupError, PermissionError):
+        os.killpg(pid, sig)
+
+
+def _wait_gone(pid: int, timeout: float = 10.0) -> None:
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        try:
+            os.killpg(pid, 0)
+        except (ProcessLookupError, PermissionError):
+            return
+        time.sleep(0.05)

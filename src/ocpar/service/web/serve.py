@@ -1,0 +1,192 @@
+"""``ocpar serve``: run the HTTP job API, issue and list its tokens, print its OpenAPI schema.
+
+::
+
+    ocpar serve [--host 127.0.0.1] [--port 8000] [--state-dir DIR] [--backend dask|mpi|serial]
+                [--workers N] [--scheduler ADDR] [--max-running N] [--allow-problem PATTERN]
+                [--ssl-certfile F --ssl-keyfile F]
+    ocpar serve token add NAME [--max-jobs N] [--max-agents N] [--max-evaluations N]
+                               [--wall-time S] [--state-dir DIR]
+    ocpar serve token list [--state-dir DIR]
+    ocpar serve openapi [--output FILE]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+import tempfile
+from pathlib import Path
+from typing import Any
+
+from ocpar.cli import fail, positive_int
+
+PROG = "ocpar serve"
+#: The state directory (database and jobs) unless --state-dir or $OCPAR_SERVER_DIR says.
+DEFAULT_STATE_DIR = "~/.ocpar/server"
+STATE_DIR_ENV = "OCPAR_SERVER_DIR"
+
+
+def positive_float(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
+    if not value > 0 or value == float("inf"):
+        raise argparse.ArgumentTypeError(f"expected a positive number, got {text}")
+    return value
+
+
+def state_dir(args: argparse.Namespace) -> Path:
+    """The state directory the arguments (or the environment) name."""
+    return Path(getattr(args, "state_dir", None) or os.environ.get(STATE_DIR_ENV)
+                or DEFAULT_STATE_DIR).expanduser()
+
+
+def register(commands: Any) -> None:
+    """Add ``serve`` (with ``token add|list`` and ``openapi``) to the ``ocpar`` subparsers
+    ``commands``."""
+    from ocpar.service.web.runner import BACKENDS
+
+    parser = commands.add_parser(
+        "serve", prog=PROG, help="run the HTTP job API and its page",
+        description="Serve the HTTP job API (and the page of jobs at /) on HOST:PORT, running "
+        "jobs on an embedded Dask cluster of --workers processes (default), an existing one "
+        "(--scheduler), mpirun -n WORKERS (--backend mpi) or one process each (--backend "
+        "serial). Jobs and tokens live in --state-dir; jobs left running by a stopped server "
+        "resume from their checkpoints when it starts again.")
+    add_state_dir(parser, None)
+    parser.add_argument("--host", default="127.0.0.1",
+                        help="address to bind (default 127.0.0.1: this host only)")
+    parser.add_argument("--port", type=int, default=8000, help="port (default 8000)")
+    parser.add_argument("--backend", choices=BACKENDS, default="dask",
+                        help="where jobs run (default dask: an embedded cluster)")
+    parser.add_argument("--workers", type=positive_int, default=2, metavar="N",
+                        help="dask: the embedded cluster's worker processes; mpi: ranks per "
+                             "job (default 2)")
+    parser.add_argument("--scheduler", metavar="ADDR",
+                        help="an existing Dask cluster's scheduler (tcp://HOST:PORT) instead "
+                             "of the embedded one")
+    parser.add_argument("--max-running", type=positive_int, default=2, metavar="N",
+                        help="jobs running at once over all tokens (default 2); the rest "
+                             "wait, queued")
+    parser.add_argument("--allow-problem", action="append", default=[], metavar="PATTERN",
+                        help="allow problem references module:factory matching PATTERN "
+                             "(fnmatch, e.g. 'mypkg.problems:*'); repeat for more. Built-in "
+                             "examples are always allowed")
+    parser.add_argument("--wall-time-grace", type=positive_float, default=30.0, metavar="S",
+                        help="seconds a job over its token's wall time has to stop at a "
+                             "superstep boundary before it is killed (default 30)")
+    parser.add_argument("--ssl-certfile", metavar="FILE", help="serve HTTPS: certificate (PEM)")
+    parser.add_argument("--ssl-keyfile", metavar="FILE", help="serve HTTPS: its key (PEM)")
+    parser.set_defaults(handler=serve, action=None)
+    actions = parser.add_subparsers(dest="action", metavar="ACTION")
+
+    token = actions.add_parser("token", prog=f"{PROG} token", help="issue or list tokens")
+    token_actions = token.add_subparsers(dest="token_action", metavar="add|list",
+                                         required=True)
+    add = token_actions.add_parser(
+        "add", prog=f"{PROG} token add", help="issue a token (printed once)",
+        description="Issue a token named NAME and print it (once: only its SHA-256 hash is "
+        "stored). Its jobs are limited as given (default: unlimited).")
+    add.add_argument("name", metavar="NAME")
+    add.add_argument("--max-jobs", type=positive_int, metavar="N",
+                     help="jobs running at once (the rest wait, queued)")
+    add.add_argument("--max-agents", type=positive_int, metavar="N",
+                     help="agents per job (formation agents, pursuit max_agents)")
+    add.add_argument("--max-evaluations", type=positive_int, metavar="N",
+                     help="MACS evaluations per job (max_evals)")
+    add.add_argument("--wall-time", type=positive_float, metavar="S",
+                     help="seconds a job may run; then it is cancelled")
+    add_state_dir(add, argparse.SUPPRESS)
+    add.set_defaults(handler=token_add)
+    listing = token_actions.add_parser("list", prog=f"{PROG} token list",
+                                       help="list the tokens and their limits")
+    add_state_dir(listing, argparse.SUPPRESS)
+    listing.set_defaults(handler=token_list)
+
+    schema = actions.add_parser("openapi", prog=f"{PROG} openapi",
+                                help="print the API's OpenAPI schema (JSON)")
+    schema.add_argument("--output", metavar="FILE", help="write it to FILE")
+    schema.set_defaults(handler=openapi)
+
+
+def add_state_dir(parser: argparse.ArgumentParser, default: Any) -> None:
+    parser.add_argument("--state-dir", default=default, metavar="DIR",
+                        help=f"the server's database and jobs (default ${STATE_DIR_ENV} or "
+                             f"{DEFAULT_STATE_DIR})")
+
+
+def serve(args: argparse.Namespace) -> int:
+    """Run the server until it is interrupted."""
+    import uvicorn
+
+    from ocpar.service.web.app import create_app
+    from ocpar.service.web.runner import Settings
+
+    if args.scheduler is not None and args.backend != "dask":
+        fail(PROG, "--scheduler only applies to --backend dask")
+    if (args.ssl_certfile is None) != (args.ssl_keyfile is None):
+        fail(PROG, "--ssl-certfile and --ssl-keyfile go together")
+    for path in (args.ssl_certfile, args.ssl_keyfile):
+        if path is not None and not os.path.isfile(path):
+            fail(PROG, f"{path}: no such file")
+    if not 0 <= args.port < 65536:
+        fail(PROG, f"--port must be 0 to 65535, got {args.port}")
+    settings = Settings(state_dir=state_dir(args), backend=args.backend, workers=args.workers,
+                        scheduler=args.scheduler, max_running=args.max_running,
+                        allow_problem=tuple(args.allow_problem), grace=args.wall_time_grace)
+    app = create_app(settings)
+    scheme = "https" if args.ssl_certfile else "http"
+    host = f"[{args.host}]" if ":" in args.host else args.host
+    print(f"{PROG}: {scheme}://{host}:{args.port}/ (jobs in {app.state.store.state_dir}, "
+          f"backend {args.backend}{' ' + args.scheduler if args.scheduler else ''})",
+          flush=True)
+    uvicorn.run(app, host=args.host, port=args.port, ssl_certfile=args.ssl_certfile,
+                ssl_keyfile=args.ssl_keyfile, log_level="warning")
+    return 0
+
+
+def token_add(args: argparse.Namespace) -> int:
+    from ocpar.service.web.store import Store, Token
+    from ocpar.service.web.tokens import issue
+
+    token = Token(args.name, args.max_jobs, args.max_agents, args.max_evaluations,
+                  args.wall_time)
+    try:
+        secret = issue(Store(state_dir(args)), token)
+    except ValueError as exc:
+        fail(f"{PROG} token add", str(exc))
+    print(secret)
+    return 0
+
+
+def token_list(args: argparse.Namespace) -> int:
+    from ocpar.service.web.store import Store
+
+    for token in Store(state_dir(args)).tokens():
+        limits = [f"{name.replace('_', '-')} {value:g}" for name in
+                  ("max_jobs", "max_agents", "max_evaluations", "wall_time")
+                  if (value := getattr(token, name)) is not None]
+        print(f"{token.name:24} {', '.join(limits) or 'unlimited'}")
+    return 0
+
+
+def openapi_schema() -> dict:
+    """The API's OpenAPI schema (docs/openapi.json)."""
+    from ocpar.service.web.app import create_app
+    from ocpar.service.web.runner import Settings
+
+    with tempfile.TemporaryDirectory() as tmp:
+        return create_app(Settings(state_dir=Path(tmp))).openapi()
+
+
+def openapi(args: argparse.Namespace) -> int:
+    text = json.dumps(openapi_schema(), indent=1) + "\n"
+    if args.output:
+        Path(args.output).write_text(text)
+    else:
+        sys.stdout.write(text)
+    return 0
