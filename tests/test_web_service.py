@@ -1,0 +1,478 @@
+"""The HTTP job API (``ocpar serve``) as a client sees it: real server processes on 127.0.0.1
+(``python -m ocpar serve``), requests over HTTP with httpx.
+
+Most servers here run each job as one serial process (fast); one test uses the default
+backend, the embedded Dask cluster. Results are compared with ``ocpar run`` of the same
+configuration, run here in this process."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import threading
+import time
+from collections.abc import Iterator
+from pathlib import Path
+
+import httpx
+import pytest
+from conftest import computed, free_port, user_environment
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+from ocpar.__main__ import main as ocpar_main
+from ocpar.config import scheme_options
+from ocpar.service.web.app import SERVER_KEYS
+from ocpar.service.web.serve import openapi_schema
+from ocpar.service.web.store import FINAL, Store, Token
+from ocpar.service.web.tokens import issue
+
+REPO = Path(__file__).resolve().parents[1]
+#: The five configurations each of the four tokens submits (20 jobs at once).
+CONFIGS = [
+    {"config": "formation-60", "set": {"agents": 8}},
+    {"config": {"scheme": "formation", "agents": 10, "radius": 5.0, "outer": "sqp"}},
+    {"config": "formation-60", "set": {"agents": 12, "ordering": "keep"}},
+    {"config": "macs-goddard", "set": {"max_evals": 300, "seed": 1}},
+    {"config": "pursuit-case1", "set": {"samples": 61, "window": 20, "update": 10}},
+]
+#: A job long enough to cancel, kill and time out (25 supersteps, ~0.3 s each serially).
+LONG = {"config": "macs-goddard", "set": {"max_evals": 1500, "seed": 7}}
+
+
+class Server:
+    """``python -m ocpar serve`` on a free port of 127.0.0.1 with its state in
+    ``state_dir``."""
+
+    def __init__(self, state_dir: Path, *options: str, env: dict | None = None) -> None:
+        self.state_dir, self.options = state_dir, options
+        self.env = dict(env or os.environ, OMP_NUM_THREADS="1")
+        self.port = free_port()
+        self.url = f"http://127.0.0.1:{self.port}"
+        self.proc: subprocess.Popen | None = None
+
+    def start(self, timeout: float = 120) -> Server:
+        log = open(self.state_dir.parent / f"{self.state_dir.name}-server.log", "ab")  # noqa: SIM115
+        self.proc = subprocess.Popen(
+            [sys.executable, "-m", "ocpar", "serve", "--port", str(self.port), "--state-dir",
+             str(self.state_dir), *self.options], stdout=log, stderr=log, env=self.env)
+        log.close()
+        deadline = time.monotonic() + timeout
+        while True:
+            try:
+                if httpx.get(self.url + "/openapi.json", timeout=2).status_code == 200:
+                    return self
+            except httpx.HTTPError:
+                pass
+            assert self.proc.poll() is None, "the server exited: " + self.log()
+            assert time.monotonic() < deadline, "the server did not answer: " + self.log()
+            time.sleep(0.2)
+
+    def log(self) -> str:
+        return (self.state_dir.parent / f"{self.state_dir.name}-server.log").read_text()
+
+    def stop(self, sig: int = signal.SIGTERM) -> None:
+        if self.proc is not None and self.proc.poll() is None:
+            self.proc.send_signal(sig)
+            try:
+                self.proc.wait(60)
+            except subprocess.TimeoutExpired:
+                self.proc.kill()
+                self.proc.wait()
+
+    def client(self, token: str | None) -> httpx.Client:
+        headers = {"Authorization": f"Bearer {token}"} if token else {}
+        return httpx.Client(base_url=self.url, headers=headers, timeout=60)
+
+
+def add_token(state_dir: Path, name: str, **limits) -> str:
+    return issue(Store(state_dir), Token(name, **limits))
+
+
+@pytest.fixture(scope="module")
+def server(tmp_path_factory) -> Iterator[tuple[Server, dict[str, str]]]:
+    """A serial-backend server running 4 jobs at once, with tokens a-d (at most 2 running
+    jobs each; d with small per-job limits) issued before it starts."""
+    state = tmp_path_factory.mktemp("web") / "state"
+    state.mkdir()
+    proc = subprocess.run([sys.executable, "-m", "ocpar", "serve", "token", "add", "a",
+                           "--max-jobs", "2", "--state-dir", str(state)],
+                          capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 0, proc.stderr
+    tokens = {"a": proc.stdout.strip()}
+    tokens |= {name: add_token(state, name, max_jobs=2) for name in "bc"}
+    tokens["d"] = add_token(state, "d", max_jobs=2, max_agents=20, max_evaluations=1000)
+    listed = subprocess.run([sys.executable, "-m", "ocpar", "serve", "token", "list",
+                             "--state-dir", str(state)], capture_output=True, text=True)
+    assert listed.stdout.split()[:4] == ["a", "max-jobs", "2", "b"], listed.stdout
+    assert tokens["a"] not in listed.stdout and tokens["a"] not in (state / "server.sqlite3"
+                                                                    ).read_bytes().decode(
+        errors="replace")
+    srv = Server(state, "--backend", "serial", "--max-running", "4").start()
+    yield srv, tokens
+    srv.stop()
+
+
+def wait_final(client: httpx.Client, job_id: str, timeout: float = 240) -> dict:
+    deadline = time.monotonic() + timeout
+    while True:
+        record = client.get(f"/jobs/{job_id}").json()
+        if record["state"] in FINAL:
+            return record
+        assert time.monotonic() < deadline, record
+        time.sleep(0.3)
+
+
+def wait_supersteps(client: httpx.Client, job_id: str, count: int) -> dict:
+    deadline = time.monotonic() + 120
+    while (record := client.get(f"/jobs/{job_id}").json())["supersteps"] < count:
+        assert record["state"] not in FINAL, record
+        assert time.monotonic() < deadline, record
+        time.sleep(0.1)
+    return record
+
+
+def toml_value(value) -> str:
+    return json.dumps(value) if not isinstance(value, bool) else str(value).lower()
+
+
+def run_direct(request: dict, out: Path) -> dict:
+    """``ocpar run`` of the request's configuration (serially, here): result.json."""
+    config = request["config"]
+    if isinstance(config, dict):
+        path = out.with_suffix(".toml")
+        path.write_text("".join(f"{key} = {toml_value(value)}\n"
+                                for key, value in config.items()))
+        config = str(path)
+    sets = [f"{key}={toml_value(value)}" for key, value in request.get("set", {}).items()]
+    assert ocpar_main(["run", config, "--set", *sets, f"output={out}", "quiet=true"]) == 0
+    return json.loads((out / "result.json").read_text())
+
+
+def fetch_result(client: httpx.Client, job_id: str) -> dict:
+    response = client.get(f"/jobs/{job_id}/files/result.json")
+    assert response.status_code == 200, response.text
+    return response.json()
+
+
+def test_twenty_jobs_from_four_tokens_equal_their_direct_runs(server, tmp_path):
+    """Each of 4 tokens submits the 5 configurations at once (20 concurrent requests): every
+    job succeeds with the result of ``ocpar run`` of its configuration; no token had more
+    than 2 jobs running at once, the server no more than 4; each token sees its 5 jobs."""
+    srv, tokens = server
+    submitted: dict[str, list[tuple[int, dict]]] = {name: [] for name in tokens}
+    errors: list[str] = []
+
+    def submit(name: str, index: int) -> None:
+        with srv.client(tokens[name]) as client:
+            response = client.post("/jobs", json=CONFIGS[index])
+        if response.status_code != 201:
+            errors.append(f"{name} {index}: {response.status_code} {response.text}")
+        else:
+            submitted[name].append((index, response.json()))
+
+    threads = [threading.Thread(target=submit, args=(name, index))
+               for name in tokens for index in range(len(CONFIGS))]
+    for thread in threads:
+        thread.start()
+    for thread in threads:
+        thread.join()
+    assert not errors
+    assert all(record["state"] == "queued" for jobs in submitted.values()
+               for _, record in jobs)
+
+    expected = [computed(run_direct(config, tmp_path / f"direct-{k}"))
+                for k, config in enumerate(CONFIGS)]
+    finals = []
+    for name, jobs in submitted.items():
+        with srv.client(tokens[name]) as client:
+            listed = client.get("/jobs").json()["jobs"]
+            assert sorted(r["id"] for r in listed) == sorted(r["id"] for _, r in jobs)
+            for index, record in jobs:
+                final = wait_final(client, record["id"])
+                assert final["state"] == "succeeded", final
+                assert final["result_status"] == "converged" and final["reason"] is None
+                assert "result.json" in final["files"]
+                result = fetch_result(client, record["id"])
+                assert computed(result) == expected[index], (name, index)
+                assert result["supersteps"] == final["supersteps"]
+                # TODO(issue 36, A's array file): once runs write result.json's "arrays"
+                # file, compare GET /jobs/{id}/files/<arrays> bytewise with the direct run's.
+                finals.append((name, final))
+    intervals = [(name, _epoch(f["started"]), _epoch(f["finished"])) for name, f in finals]
+    for _, start, _ in intervals:
+        running = [name for name, s, e in intervals if s <= start < e]
+        assert len(running) <= 4
+        assert all(running.count(name) <= 2 for name in running)
+
+
+def _epoch(text: str) -> float:
+    from datetime import datetime
+
+    return datetime.fromisoformat(text.replace("Z", "+00:00")).timestamp()
+
+
+def test_tokens_ownership_and_request_limits(server, tmp_path):
+    """401 without or with a wrong token, 403 on another token's job, 404 for no such job,
+    409 on cancelling or resuming a finished job, 413 over 64 KiB, the idempotency key, the
+    allow-list of problem references and the per-token limits (422 naming the key)."""
+    srv, tokens = server
+    anonymous, a, b, d = (srv.client(None), srv.client(tokens["a"]), srv.client(tokens["b"]),
+                          srv.client(tokens["d"]))
+    assert anonymous.get("/jobs").status_code == 401
+    assert anonymous.post("/jobs", json=CONFIGS[0]).status_code == 401
+    assert srv.client("ocpar_not-a-token").get("/jobs").status_code == 401
+    assert anonymous.get("/").status_code == 200  # the page needs no token
+
+    first = a.post("/jobs", json=CONFIGS[0], headers={"Idempotency-Key": "k1"})
+    assert first.status_code == 201
+    job = first.json()["id"]
+    again = a.post("/jobs", json=CONFIGS[0], headers={"Idempotency-Key": "k1"})
+    assert again.status_code == 200 and again.json()["id"] == job
+    other = b.post("/jobs", json=CONFIGS[0], headers={"Idempotency-Key": "k1"})
+    assert other.status_code == 201 and other.json()["id"] != job  # keys are per token
+
+    for method, path in (("GET", ""), ("GET", "/log"), ("GET", "/files"), ("GET", "/events"),
+                         ("GET", "/files/result.json"), ("DELETE", ""), ("POST", "/resume")):
+        assert b.request(method, f"/jobs/{job}{path}").status_code == 403, (method, path)
+        assert b.request(method, f"/jobs/formation-20000101-000000-abcdef{path}"
+                         ).status_code == 404
+    assert a.get("/jobs/../../etc/passwd").status_code == 404
+    assert a.get("/jobs/not-a-job").status_code == 404
+
+    final = wait_final(a, job)
+    assert final["state"] == "succeeded"
+    assert a.delete(f"/jobs/{job}").status_code == 409
+    assert a.post(f"/jobs/{job}/resume").status_code == 409
+    assert a.get(f"/jobs/{job}/files/nothing.png").status_code == 404
+    assert a.get(f"/jobs/{job}/files/..%2Fstate.json").status_code == 404
+    log = a.get(f"/jobs/{job}/log").json()
+    rest = a.get(f"/jobs/{job}/log", params={"offset": 10}).json()
+    assert log["offset"] == 0 and log["next_offset"] == len(log["text"].encode())
+    assert rest["text"] == log["text"][10:] and "superstep" in log["text"]
+    assert {f["name"] for f in a.get(f"/jobs/{job}/files").json()["files"]} == \
+        set(final["files"])
+
+    big = {"config": {"scheme": "formation"}, "set": {"radius": 1.0}, "pad": "x" * 70_000}
+    assert a.post("/jobs", json=big).status_code == 413
+    assert a.post("/jobs", content=b"{" * 65_537,
+                  headers={"Content-Type": "application/json"}).status_code == 413
+
+    refused = {
+        "agents": (d, {"config": "formation-60"}),                    # 60 > 20
+        "max_agents": (d, {"config": "pursuit-case1"}),               # 100000 > 20
+        "max_evals": (d, {"config": "macs-goddard"}),                 # 10000 > 1000
+        "problem": (a, {"config": {"scheme": "formation", "problem": "os:system"}}),
+        "output": (a, {"config": "formation-60", "set": {"output": "/tmp/x"}}),
+    }
+    for key, (client, body) in refused.items():
+        response = client.post("/jobs", json=body)
+        assert response.status_code == 422, (key, response.text)
+        assert key in response.json()["detail"], response.text
+    assert d.post("/jobs", json={"config": "formation-60", "set": {"agents": 20}}
+                  ).status_code == 201
+
+
+def test_allow_list_of_problem_references(tmp_path, user_package):
+    """A reference matching --allow-problem is loaded before a job id is returned (one that
+    does not give a problem is a 422) and runs; any other is refused unloaded."""
+    state = tmp_path / "state"
+    state.mkdir()
+    token = add_token(state, "u")
+    srv = Server(state, "--backend", "serial", "--allow-problem", "mypkg.problems:*",
+                 "--allow-problem", "mypkg.broken:*", env=user_environment(user_package))
+    srv.start()
+    try:
+        client = srv.client(token)
+        ok = client.post("/jobs", json={"config": {"scheme": "formation", "problem":
+                                                   "mypkg.problems:make_formation"}})
+        assert ok.status_code == 201, ok.text
+        for reference, needle in (("mypkg.other:make", "not allowed"),
+                                  ("mypkg.problems:nothing", "has no attribute"),
+                                  ("mypkg.broken:make", "importing mypkg.broken raised"),
+                                  ("mypkg.problems:make_macs", "returned an object")):
+            response = client.post("/jobs", json={"config": {"scheme": "formation",
+                                                             "problem": reference}})
+            assert response.status_code == 422 and needle in response.json()["detail"], \
+                response.text
+        assert wait_final(client, ok.json()["id"])["state"] == "succeeded"
+        assert len(client.get("/jobs").json()["jobs"]) == 1
+    finally:
+        srv.stop()
+
+
+# malformed configurations: each has one entry that cannot run ------------------------------
+
+SCHEME_NAMES = ("formation", "pursuit", "macs")
+JSON_SCALARS = st.one_of(st.booleans(), st.integers(-10**6, 10**6),
+                         st.floats(allow_nan=False, allow_infinity=False), st.text(max_size=8))
+
+
+@st.composite
+def malformed(draw) -> tuple[dict, str | None]:
+    """A request body with one bad entry, and the key the error must name (None: any)."""
+    scheme = draw(st.sampled_from(SCHEME_NAMES))
+    options = scheme_options(scheme)
+    kind = draw(st.sampled_from(["type", "unknown", "server", "null", "range", "scheme",
+                                 "body"]))
+    if kind == "scheme":
+        return {"config": {"scheme": draw(st.text(max_size=10).filter(
+            lambda s: s not in SCHEME_NAMES))}}, "scheme"
+    if kind == "body":
+        return draw(st.one_of(st.lists(JSON_SCALARS, max_size=3), JSON_SCALARS,
+                              st.just({"config": "formation-60", "set": [1]}),
+                              st.just({"config": 3}), st.just({"conf": "formation-60"}))), None
+    where = draw(st.sampled_from(["config", "set"]))
+    if kind == "type":
+        key = draw(st.sampled_from(sorted(k for k, o in options.items()
+                                          if o.kind in ("integer", "number", "flag"))))
+        kind_of = options[key].kind
+        value = draw(JSON_SCALARS.filter(
+            lambda v: (isinstance(v, str) or isinstance(v, bool) != (kind_of == "flag")
+                       or (kind_of == "integer" and isinstance(v, float)))))
+    elif kind == "unknown":
+        key = draw(st.from_regex(r"[a-z_]{1,12}", fullmatch=True).filter(
+            lambda k: k not in options and k != "scheme"))
+        value = draw(JSON_SCALARS)
+    elif kind == "server":
+        key, value = draw(st.sampled_from(sorted(SERVER_KEYS))), draw(JSON_SCALARS)
+    elif kind == "null":
+        key, value = draw(st.sampled_from(sorted(options))), None
+    else:
+        key = {"formation": "agents", "pursuit": "samples", "macs": "population"}[scheme]
+        value = draw(st.sampled_from([0, -1, -10**9, 10**9]))
+    entry = {key: value}
+    body = ({"config": {"scheme": scheme, **entry}} if where == "config" else
+            {"config": {"scheme": scheme}, "set": entry})
+    return body, key
+
+
+@settings(max_examples=120, deadline=None, derandomize=True, database=None,
+          suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(case=malformed())
+def test_malformed_configurations_get_422_naming_the_key(server, case):
+    """Every malformed configuration is a 422 with one line naming its key, and no job."""
+    srv, tokens = server
+    body, key = case
+    with srv.client(tokens["c"]) as client:
+        before = len(client.get("/jobs").json()["jobs"])
+        response = client.post("/jobs", json=body)
+        assert response.status_code == 422, (body, response.text)
+        detail = response.json()["detail"]
+        assert isinstance(detail, str) and "\n" not in detail and 0 < len(detail) < 600
+        if key is not None:
+            assert key in detail or f"--{key.replace('_', '-')}" in detail, (body, detail)
+        assert len(client.get("/jobs").json()["jobs"]) == before
+
+
+# cancel, resume, restart, wall time ---------------------------------------------------------
+
+@pytest.fixture(scope="module")
+def long_expected(tmp_path_factory) -> dict:
+    """The uninterrupted result of :data:`LONG`."""
+    return computed(run_direct(LONG, tmp_path_factory.mktemp("long") / "direct"))
+
+
+def test_cancel_lands_within_one_superstep_and_resume_finishes_it(server, long_expected):
+    srv, tokens = server
+    client = srv.client(tokens["b"])
+    job = client.post("/jobs", json=LONG).json()["id"]
+    wait_supersteps(client, job, 3)
+    assert client.delete(f"/jobs/{job}").status_code == 204
+    at_cancel = client.get(f"/jobs/{job}").json()["supersteps"]
+    final = wait_final(client, job)
+    assert final["state"] == "cancelled" and final["reason"] == "cancelled by request"
+    assert at_cancel <= final["supersteps"] <= at_cancel + 1
+    assert final["supersteps"] < long_expected["supersteps"]
+    assert client.delete(f"/jobs/{job}").status_code == 409
+
+    resumed = client.post(f"/jobs/{job}/resume")
+    assert resumed.status_code == 202 and resumed.json()["state"] == "queued"
+    final = wait_final(client, job)
+    assert final["state"] == "succeeded", final
+    assert computed(fetch_result(client, job)) == long_expected
+
+    events = client.get(f"/jobs/{job}/events", timeout=30).text
+    blocks = [block for block in events.strip().split("\n\n") if block]
+    names = [block.split("\n")[0].removeprefix("event: ") for block in blocks]
+    assert names[-1] == "end" and names.count("end") == 1 and "state" in names
+    progress = [json.loads(block.split("\n")[1].removeprefix("data: ")) for block in blocks
+                if block.startswith("event: progress")]
+    iterations = [p for p in progress if "hypervolume" in p["figures"]]
+    assert len(iterations) >= 3 and all(p["superstep"] is None for p in iterations)
+    assert iterations[-1]["figures"]["hypervolume"] == pytest.approx(
+        long_expected["hv"], abs=1e-6)  # printed to 6 decimals
+
+
+def test_a_killed_server_resumes_its_running_job_on_restart(tmp_path, long_expected):
+    """SIGKILL the server during a run; the restarted server kills what is left of the
+    run, resumes it from its checkpoint and it finishes with the uninterrupted result."""
+    state = tmp_path / "state"
+    state.mkdir()
+    token = add_token(state, "k")
+    srv = Server(state, "--backend", "serial").start()
+    try:
+        client = srv.client(token)
+        job = client.post("/jobs", json=LONG).json()["id"]
+        killed_at = wait_supersteps(client, job, 4)["supersteps"]
+        srv.stop(signal.SIGKILL)
+        srv.start()
+        client = srv.client(token)
+        record = client.get(f"/jobs/{job}").json()
+        assert record["state"] in ("queued", "running") and "restarted" in record["reason"]
+        final = wait_final(client, job)
+        assert final["state"] == "succeeded", final
+        assert final["supersteps"] >= killed_at
+        assert computed(fetch_result(client, job)) == long_expected
+        assert "resumed from its checkpoint" in final["reason"] or final["reason"] is None
+    finally:
+        srv.stop()
+
+
+def test_a_job_over_its_wall_time_is_cancelled_and_marked(tmp_path):
+    state = tmp_path / "state"
+    state.mkdir()
+    token = add_token(state, "w", wall_time=3.0)
+    srv = Server(state, "--backend", "serial", "--wall-time-grace", "20").start()
+    try:
+        client = srv.client(token)
+        job = client.post("/jobs", json=LONG).json()["id"]
+        final = wait_final(client, job)
+        assert final["state"] == "cancelled", final
+        assert final["reason"] == "wall-time limit of 3 s exceeded"
+        ran = _epoch(final["finished"]) - _epoch(final["started"])
+        assert 3.0 <= ran < 20.0
+    finally:
+        srv.stop()
+
+
+def test_embedded_dask_cluster_runs_a_job_as_ocpar_run_does(tmp_path):
+    """The default backend: the server's own Dask cluster of 2 workers."""
+    state = tmp_path / "state"
+    state.mkdir()
+    token = add_token(state, "dask")
+    srv = Server(state, "--workers", "2").start()
+    try:
+        client = srv.client(token)
+        job = client.post("/jobs", json=CONFIGS[0]).json()["id"]
+        final = wait_final(client, job)
+        assert final["state"] == "succeeded", final
+        result = fetch_result(client, job)
+        assert result["backend"] == "dask" and result["workers"] == 2
+        assert computed(result) == computed(run_direct(CONFIGS[0], tmp_path / "direct"))
+    finally:
+        srv.stop()
+    cluster = state / "cluster.log"
+    assert cluster.exists()
+
+
+def test_the_published_openapi_schema_is_the_servers():
+    published = json.loads((REPO / "docs" / "openapi.json").read_text())
+    assert published == openapi_schema()
+    paths = published["paths"]
+    assert {"/jobs", "/jobs/{job_id}", "/jobs/{job_id}/events", "/jobs/{job_id}/log",
+            "/jobs/{job_id}/files", "/jobs/{job_id}/files/{name}",
+            "/jobs/{job_id}/resume"} <= set(paths)
