@@ -159,7 +159,7 @@ def _describe_record(record: dict) -> str:
     """One line of a server's job record: id, scheme, problem, state, supersteps, submitted,
     finished (UTC) and the headline (or why not)."""
     about = record.get("headline") or record.get("reason") or ""
-    return (f"{record['id']}  {record['scheme']:9} {record.get('problem') or '-':18} "
+    return (f"{record['id']:32}  {record['scheme']:9} {record.get('problem') or '-':18} "
             f"{record['state']:9} {record['supersteps'] or 0:5d}  {_when(record['submitted'])}  "
             f"{_when(record['finished']):19}  {about}").rstrip()
 
