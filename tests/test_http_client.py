@@ -179,8 +179,12 @@ def test_a_malformed_configuration_is_one_line_and_exit_2(server, args, needles)
     one_line_error(proc, "submit", *needles, "(HTTP 422)")
 
 
-def test_tokens_and_addresses_are_checked(server, jobs):
+def test_tokens_and_addresses_are_checked(server, jobs, monkeypatch):
     job = jobs["converged"]
+    monkeypatch.delenv("OCPAR_SERVER", raising=False)
+    one_line_error(ocpar("submit", "formation-60"), "submit",
+                   "give --server URL (or set OCPAR_SERVER)", "or --scheduler ADDR")
+    one_line_error(ocpar("wait", job), "wait", "give --server URL (or set OCPAR_SERVER)")
     one_line_error(ocpar("jobs", "--server", server.url, "--token", "not-a-token"), "jobs",
                    "(HTTP 401)")
     one_line_error(ocpar("status", job, "--server", server.url, "--token",
@@ -192,6 +196,10 @@ def test_tokens_and_addresses_are_checked(server, jobs):
                    f"cannot reach the ocpar server at {closed}")
     one_line_error(ocpar("jobs", "--server", server.url, "--scheduler", "tcp://h:1"), "jobs",
                    "not allowed with argument")
+    one_line_error(ocpar("jobs", "--scheduler", "tcp://h:1", "--token", "t"), "jobs",
+                   "--token is for an ocpar server (--server), not --scheduler")
+    one_line_error(ocpar("status", job, "--follow", "--scheduler", "tcp://h:1"), "status",
+                   "--follow needs an ocpar server")
 
 
 def test_server_sent_events_are_parsed_as_sent():

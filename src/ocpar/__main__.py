@@ -171,8 +171,8 @@ JOBS_HEADER = "id, scheme, problem, state, supersteps, submitted, finished (UTC)
 def _service_call(args: argparse.Namespace, action: str, call) -> object:
     """``call(security)`` with the TLS options' security (one line and exit 2 on an error)."""
     prog = f"{PROG} {action}"
-    if args.server is not None or args.token is not None:
-        fail(prog, "--server and --token go without --scheduler")
+    if args.token is not None:
+        fail(prog, "--token is for an ocpar server (--server), not --scheduler")
     check_tls_arguments(args, prog)
     security = client_security(args, prog)
     try:
