@@ -182,7 +182,7 @@ class Runner:
         elif ended == "cancelled":
             state, reason = "cancelled", "cancelled by request"
         elif ended == "finished" and result_status == "converged":
-            state = "succeeded"
+            state, reason = "succeeded", row["reason"]  # a restart's note, if any
         else:
             state = "failed"
             reason = _failure(path, code, result_status)
