@@ -49,10 +49,9 @@ def server(tmp_path_factory):
     env = dict(os.environ, OMP_NUM_THREADS="1")
     tokens = {}
     for name in ("alice", "bob"):
-        issued = subprocess.run([sys.executable, "-m", "ocpar", "serve", "token", "add", name,
-                                 "--state-dir", str(state)], capture_output=True, text=True,
-                                env=env, check=True)
-        tokens[name] = issued.stdout.strip()
+        issued = ocpar("serve", "token", "add", name, "--state-dir", str(state))
+        assert issued.code == 0, issued
+        tokens[name] = issued.out.strip()
     port = free_port()
     log = open(state / "serve.log", "wb")  # noqa: SIM115 (closed below)
     proc = subprocess.Popen([sys.executable, "-m", "ocpar", "serve", "--port", str(port),
@@ -73,7 +72,8 @@ def server(tmp_path_factory):
 def jobs(server, tmp_path_factory):
     """Three jobs of alice, one at a time: the 60-agent formation by name (it converges), the
     same from a TOML file with one outer iteration (not converged: the job fails) and a MACS
-    run cancelled while it waits in the queue behind them."""
+    run that waits in the queue behind them (until test_wait_gives_up_after_its_timeout
+    cancels it)."""
     config = tmp_path_factory.mktemp("config") / "short.toml"
     config.write_text('scheme = "formation"\nproblem = "point-mass-plane"\nagents = 60\n'
                       'max_outer_iterations = 1\noutput = "ignored: the service sets it"\n')
@@ -84,9 +84,23 @@ def jobs(server, tmp_path_factory):
         assert proc.code == 0 and proc.err == "", proc
         ids[name] = proc.out.strip()
     assert len(set(ids.values())) == 3
-    proc = ocpar("cancel", ids["cancelled"], *server.as_alice)
-    assert proc.code == 0 and "cancel requested" in proc.out, proc
     return ids
+
+
+def test_wait_gives_up_after_its_timeout(server, jobs):
+    """The MACS job waits behind the two formation runs: ``wait --timeout`` gives up; a
+    queued job's cancel is at once, and ``wait`` then exits with a cancelled run's status."""
+    job = jobs["cancelled"]
+    proc = ocpar("wait", job, "--timeout", "0.5", *server.as_alice)
+    assert proc.code == EXIT_TIMEOUT and proc.out == "", proc
+    assert proc.err.strip() == f"ocpar wait: job {job} has not ended after 0.5 s"
+    proc = ocpar("cancel", job, *server.as_alice)
+    assert proc.code == 0 and "cancel requested" in proc.out, proc
+    proc = ocpar("wait", job, "--timeout", "60", *server.as_alice)
+    assert proc.code == EXIT_STATUS["cancelled"] == 4, proc
+    assert " cancelled " in proc.out
+    record = json.loads(ocpar("status", job, "--json", *server.as_alice).out)
+    assert record["started"] is None and record["supersteps"] == 0  # it never ran
 
 
 def test_submit_wait_result_gives_the_files_the_server_holds(server, jobs, tmp_path):
@@ -129,23 +143,6 @@ def test_wait_exits_with_the_runs_exit_status(server, jobs):
     proc = ocpar("wait", jobs["short"], *server.as_alice)
     assert proc.code == EXIT_STATUS["not_converged"] == 1, proc
     assert " failed " in proc.out and "not_converged" in proc.out
-
-    proc = ocpar("wait", jobs["cancelled"], "--timeout", "60", *server.as_alice)
-    assert proc.code == EXIT_STATUS["cancelled"] == 4, proc
-    assert " cancelled " in proc.out
-    record = json.loads(ocpar("status", jobs["cancelled"], "--json", *server.as_alice).out)
-    assert record["started"] is None and record["supersteps"] == 0  # it never ran
-
-
-def test_wait_gives_up_after_its_timeout(server, tmp_path):
-    config = tmp_path / "long.toml"
-    config.write_text('scheme = "macs"\nproblem = "goddard"\nmax_evals = 5000\n')
-    job = ocpar("submit", str(config), *server.as_alice).out.strip()
-    proc = ocpar("wait", job, "--timeout", "0.5", *server.as_alice)
-    assert proc.code == EXIT_TIMEOUT and proc.out == "", proc
-    assert proc.err.strip() == f"ocpar wait: job {job} has not ended after 0.5 s"
-    assert ocpar("cancel", job, *server.as_alice).code == 0
-    assert ocpar("wait", job, *server.as_alice).code == EXIT_STATUS["cancelled"]
 
 
 def test_jobs_lists_the_callers_jobs_from_the_environment(server, jobs, monkeypatch):
