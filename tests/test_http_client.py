@@ -11,6 +11,7 @@ import json
 import os
 import subprocess
 import sys
+from pathlib import Path
 from types import SimpleNamespace
 
 import pytest
@@ -205,3 +206,54 @@ def test_server_sent_events_are_parsed_as_sent():
     assert list(parse_events(iter(lines))) == [
         ("progress", {"line": "a", "n": 1}), ("message", {}), ("end", {"state": "succeeded"})]
     assert str(ServerRefused(404, "no job x")) == "no job x (HTTP 404)"
+
+
+def self_signed_certificate(directory: Path) -> tuple[Path, Path]:
+    """A self-signed certificate for 127.0.0.1 and its key (cert.pem, key.pem in
+    ``directory``)."""
+    import datetime
+    import ipaddress
+
+    from cryptography import x509
+    from cryptography.hazmat.primitives import hashes, serialization
+    from cryptography.hazmat.primitives.asymmetric import ec
+    from cryptography.x509.oid import NameOID
+
+    key = ec.generate_private_key(ec.SECP256R1())
+    name = x509.Name([x509.NameAttribute(NameOID.COMMON_NAME, "ocpar-test-server")])
+    now = datetime.datetime.now(datetime.UTC)
+    cert = (x509.CertificateBuilder().subject_name(name).issuer_name(name)
+            .public_key(key.public_key()).serial_number(x509.random_serial_number())
+            .not_valid_before(now - datetime.timedelta(minutes=5))
+            .not_valid_after(now + datetime.timedelta(days=1))
+            .add_extension(x509.SubjectAlternativeName(
+                [x509.IPAddress(ipaddress.ip_address("127.0.0.1"))]), critical=False)
+            .add_extension(x509.BasicConstraints(ca=True, path_length=None), critical=True)
+            .sign(key, hashes.SHA256()))
+    cert_path, key_path = directory / "cert.pem", directory / "key.pem"
+    cert_path.write_bytes(cert.public_bytes(serialization.Encoding.PEM))
+    key_path.write_bytes(key.private_bytes(serialization.Encoding.PEM,
+                                           serialization.PrivateFormat.PKCS8,
+                                           serialization.NoEncryption()))
+    return cert_path, key_path
+
+
+def test_an_https_server_is_trusted_through_its_ca_file(tmp_path):
+    """``ocpar serve --ssl-certfile/--ssl-keyfile``: the commands reach it with
+    ``--tls-ca-file``, and refuse it in one line without (an unknown certificate)."""
+    cert, key = self_signed_certificate(tmp_path)
+    token = ocpar("serve", "token", "add", "carol", "--state-dir", str(tmp_path)).out.strip()
+    port = free_port()
+    proc = subprocess.Popen([sys.executable, "-m", "ocpar", "serve", "--port", str(port),
+                             "--state-dir", str(tmp_path), "--backend", "serial",
+                             "--ssl-certfile", str(cert), "--ssl-keyfile", str(key)],
+                            cwd=REPO, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    try:
+        wait_for_port(port, proc, 60, "ocpar serve --ssl-certfile did not start")
+        url = f"https://127.0.0.1:{port}"
+        listed = ocpar("jobs", "--server", url, "--token", token, "--tls-ca-file", str(cert))
+        assert listed.code == 0 and listed.out.startswith("# id, scheme"), listed
+        one_line_error(ocpar("jobs", "--server", url, "--token", token), "jobs",
+                       f"cannot reach the ocpar server at {url}", "CERTIFICATE_VERIFY_FAILED")
+    finally:
+        stop_processes([proc])
