@@ -188,6 +188,11 @@ def test_tokens_and_addresses_are_checked(server, jobs, monkeypatch):
     one_line_error(ocpar("status", job, "--server", server.url, "--token",
                          server.tokens["bob"]), "status", "(HTTP 403)")
     one_line_error(ocpar("status", "no-such-job", *server.as_alice), "status", "(HTTP 404)")
+    for path in ("../openapi.json", "x/../../openapi.json"):  # one path segment each
+        one_line_error(ocpar("status", path, *server.as_alice), "status", "(HTTP 404)")
+    one_line_error(ocpar("status", "..", *server.as_alice), "status",
+                   "not a job id or file name: '..'")
+    one_line_error(ocpar("jobs", "--server", f"{server.url}/static/x", "--token", "t"), "jobs")
     one_line_error(ocpar("cancel", job, *server.as_alice), "cancel", "(HTTP 409)")
     closed = f"http://127.0.0.1:{free_port()}"
     one_line_error(ocpar("jobs", "--server", closed, "--token", "t"), "jobs",
@@ -257,3 +262,23 @@ def test_an_https_server_is_trusted_through_its_ca_file(tmp_path):
                        f"cannot reach the ocpar server at {url}", "CERTIFICATE_VERIFY_FAILED")
     finally:
         stop_processes([proc])
+
+
+def test_a_server_that_is_not_ocpar_is_one_line(tmp_path):
+    """A web server that answers ``GET /jobs`` with something else than JSON."""
+    import functools
+    import http.server
+    import threading
+
+    class Quiet(http.server.SimpleHTTPRequestHandler):
+        def log_message(self, *args) -> None:  # not on this test's stderr
+            pass
+
+    (tmp_path / "jobs").write_text("<html>a page</html>")
+    handler = functools.partial(Quiet, directory=str(tmp_path))
+    with http.server.ThreadingHTTPServer(("127.0.0.1", 0), handler) as httpd:
+        threading.Thread(target=httpd.serve_forever, daemon=True).start()
+        url = f"http://127.0.0.1:{httpd.server_address[1]}"
+        one_line_error(ocpar("jobs", "--server", url, "--token", "t"), "jobs",
+                       f"{url}/jobs answered 200 without JSON: is it an ocpar server?")
+        httpd.shutdown()

@@ -257,6 +257,7 @@ def wait(args: argparse.Namespace) -> int:
 
 
 def resume(args: argparse.Namespace) -> int:
+    """``ocpar resume JOB``: run a cancelled or failed job on from its checkpoint."""
     record = _http_call(args, "resume", lambda server: server.resume(args.job))
     print(f"{args.job}: resumed from its checkpoint (state {record['state']})")
     return 0

@@ -23,6 +23,7 @@ import time
 from collections.abc import Iterator, Mapping
 from pathlib import Path
 from typing import Any
+from urllib.parse import quote
 
 import httpx
 
@@ -73,6 +74,15 @@ def _detail(response: httpx.Response) -> str:
         detail = f"{where}: {first.get('msg', '')}" if where else first.get("msg")
     text = str(detail) if detail else response.text or response.reason_phrase
     return " ".join(text.split())[:500]
+
+
+def _path(job: str, *parts: str) -> str:
+    """``/jobs/JOB/PART/...`` with each piece quoted: a job id or file name is one segment,
+    never a way to another endpoint (``../x``, ``..``: a ServiceError)."""
+    for piece in (job, *parts):
+        if piece in ("", ".", ".."):
+            raise ServiceError(f"not a job id or file name: {piece!r}")
+    return "/".join(["/jobs", *(quote(piece, safe="") for piece in (job, *parts))])
 
 
 def parse_events(lines: Iterator[str]) -> Iterator[tuple[str, dict]]:
@@ -133,6 +143,16 @@ class Server:
             raise ServerRefused(response.status_code, _detail(response))
         return response
 
+    def _json(self, method: str, path: str, **kwargs: Any) -> Any:
+        """The JSON answer of a request (a ServiceError if it is none: not an ocpar
+        server)."""
+        response = self._request(method, path, **kwargs)
+        try:
+            return response.json()
+        except ValueError:
+            raise ServiceError(f"{self.url}{path} answered {response.status_code} without "
+                               "JSON: is it an ocpar server?") from None
+
     def _unreachable(self, exc: Exception) -> ServiceError:
         return ServiceError(f"cannot reach the ocpar server at {self.url}: "
                             f"{' '.join(str(exc).split()) or type(exc).__name__}")
@@ -145,15 +165,15 @@ class Server:
         record, or the first job's if ``idempotency_key`` was used before by this token."""
         headers = {"Idempotency-Key": idempotency_key} if idempotency_key else {}
         body = {"config": config, "set": dict(overrides or {})}
-        return self._request("POST", "/jobs", json=body, headers=headers).json()
+        return self._json("POST", "/jobs", json=body, headers=headers)
 
     def list_jobs(self) -> list[dict]:
         """This token's jobs, newest first."""
-        return self._request("GET", "/jobs").json()["jobs"]
+        return self._json("GET", "/jobs")["jobs"]
 
     def status(self, job: str) -> dict:
         """The record of ``job``."""
-        return self._request("GET", f"/jobs/{job}").json()
+        return self._json("GET", _path(job))
 
     def events(self, job: str, read_timeout_s: float | None = None
                ) -> Iterator[tuple[str, dict]]:
@@ -164,7 +184,7 @@ class Server:
         :class:`httpx.ReadTimeout`)."""
         timeout = httpx.Timeout(TIMEOUT_S, read=read_timeout_s)
         try:
-            with self._http.stream("GET", f"/jobs/{job}/events", timeout=timeout) as response:
+            with self._http.stream("GET", _path(job, "events"), timeout=timeout) as response:
                 if response.status_code >= 400:
                     response.read()
                     raise ServerRefused(response.status_code, _detail(response))
@@ -217,18 +237,18 @@ class Server:
 
     def log(self, job: str, offset: int = 0) -> dict:
         """The job's log from byte ``offset``: ``{"offset", "next_offset", "text"}``."""
-        return self._request("GET", f"/jobs/{job}/log", params={"offset": offset}).json()
+        return self._json("GET", _path(job, "log"), params={"offset": offset})
 
     def files(self, job: str) -> list[dict]:
         """The files of the job's output directory: ``[{"name", "size"}, ...]`` (size in
         bytes)."""
-        return self._request("GET", f"/jobs/{job}/files").json()["files"]
+        return self._json("GET", _path(job, "files"))["files"]
 
     def download(self, job: str, name: str, path: str | Path) -> Path:
         """Write the job's output file ``name`` to ``path``; returns ``path``."""
         path = Path(path)
         try:
-            with self._http.stream("GET", f"/jobs/{job}/files/{name}") as response:
+            with self._http.stream("GET", _path(job, "files", name)) as response:
                 if response.status_code >= 400:
                     response.read()
                     raise ServerRefused(response.status_code, _detail(response))
@@ -255,9 +275,9 @@ class Server:
     def cancel(self, job: str) -> None:
         """Ask ``job`` to stop at its next superstep boundary (a queued job is cancelled at
         once); its checkpoint stays for :meth:`resume`."""
-        self._request("DELETE", f"/jobs/{job}")
+        self._request("DELETE", _path(job))
 
     def resume(self, job: str) -> dict:
         """Run a cancelled or failed ``job`` on from its checkpoint with its own options;
         returns its record."""
-        return self._request("POST", f"/jobs/{job}/resume").json()
+        return self._json("POST", _path(job, "resume"))
