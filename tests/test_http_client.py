@@ -11,6 +11,7 @@ import json
 import os
 import subprocess
 import sys
+import time
 from pathlib import Path
 from types import SimpleNamespace
 
@@ -19,7 +20,7 @@ from conftest import REPO, free_port, stop_processes, wait_for_port
 
 from ocpar.__main__ import EXIT_TIMEOUT, main
 from ocpar.results import EXIT_STATUS
-from ocpar.service.http_client import ServerRefused, parse_events
+from ocpar.service.http_client import FINAL_STATES, ServerRefused, parse_events
 
 
 def ocpar(*args: str) -> SimpleNamespace:
@@ -282,3 +283,52 @@ def test_a_server_that_is_not_ocpar_is_one_line(tmp_path):
         one_line_error(ocpar("jobs", "--server", url, "--token", "t"), "jobs",
                        f"{url}/jobs answered 200 without JSON: is it an ocpar server?")
         httpd.shutdown()
+
+
+def start_server(state: Path, port: int, *options: str) -> subprocess.Popen:
+    """``ocpar serve`` on 127.0.0.1:``port`` with its state in ``state`` (serial backend),
+    once it accepts connections."""
+    proc = subprocess.Popen([sys.executable, "-m", "ocpar", "serve", "--port", str(port),
+                             "--state-dir", str(state), "--backend", "serial", *options],
+                            cwd=REPO, env=dict(os.environ, OMP_NUM_THREADS="1"),
+                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    wait_for_port(port, proc, 60, "ocpar serve did not start")
+    return proc
+
+
+def test_wait_outlives_a_restart_of_the_server(tmp_path):
+    """The server is killed while a client waits for a job, and started again: the wait
+    reconnects and returns the job's final record."""
+    import threading
+
+    from ocpar.service.http_client import Server
+
+    token = ocpar("serve", "token", "add", "dave", "--state-dir", str(tmp_path)).out.strip()
+    port = free_port()
+    url = f"http://127.0.0.1:{port}"
+    proc = start_server(tmp_path, port)
+    try:
+        with Server(url, token) as server:
+            job = server.submit("formation-60")["id"]
+            outcome: dict = {}
+
+            def wait() -> None:
+                try:
+                    outcome["record"] = server.wait(job, timeout_s=120)
+                except Exception as exc:  # reported by the assertion below
+                    outcome["error"] = exc
+
+            waiting = threading.Thread(target=wait)
+            waiting.start()
+            time.sleep(0.5)
+            assert waiting.is_alive()
+            proc.kill()
+            proc.wait()
+            time.sleep(1.5)  # the waiting client finds no server
+            proc = start_server(tmp_path, port)
+            waiting.join(150)
+            assert "record" in outcome, outcome
+            assert outcome["record"]["state"] in FINAL_STATES
+            assert outcome["record"] == server.status(job)
+    finally:
+        stop_processes([proc])

@@ -12,7 +12,8 @@ A job is the server's record, a dict: ``id``, ``scheme``, ``problem``, ``state``
 running, succeeded, failed, cancelled), ``reason``, ``supersteps``, ``submitted``,
 ``started``, ``finished`` (ISO 8601 UTC or None), ``result_status``, ``headline``, ``files``.
 Every refusal is a :class:`ServerRefused` (a :class:`ServiceError`) with the server's one-line
-detail and the HTTP status; a server that cannot be reached is a ServiceError naming its URL.
+detail and the HTTP status; a server that cannot be reached is a :class:`ServerUnreachable`
+naming its URL.
 """
 
 from __future__ import annotations
@@ -36,8 +37,15 @@ FINAL_STATES = ("succeeded", "failed", "cancelled")
 SERVER_ENV, TOKEN_ENV = "OCPAR_SERVER", "OCPAR_TOKEN"
 #: Seconds to connect, send and (outside event streams) wait for an answer.
 TIMEOUT_S = 30.0
-#: Seconds between reconnections of :meth:`Server.wait` when an event stream breaks.
+#: Seconds between reconnections of :meth:`Server.follow` when an event stream breaks.
 RECONNECT_S = 1.0
+#: Seconds :meth:`Server.follow` tries to reach a server that went away (e.g. restarting).
+UNREACHABLE_S = 60.0
+
+
+class ServerUnreachable(ServiceError):
+    """The server cannot be reached (refused connection, unknown host, TLS failure); the
+    message names its URL."""
 
 
 class ServerRefused(ServiceError):
@@ -153,8 +161,8 @@ class Server:
             raise ServiceError(f"{self.url}{path} answered {response.status_code} without "
                                "JSON: is it an ocpar server?") from None
 
-    def _unreachable(self, exc: Exception) -> ServiceError:
-        return ServiceError(f"cannot reach the ocpar server at {self.url}: "
+    def _unreachable(self, exc: Exception) -> ServerUnreachable:
+        return ServerUnreachable(f"cannot reach the ocpar server at {self.url}: "
                             f"{' '.join(str(exc).split()) or type(exc).__name__}")
 
     def submit(self, config: str | Mapping[str, Any],
@@ -197,11 +205,13 @@ class Server:
     def follow(self, job: str, timeout_s: float | None = None
                ) -> Iterator[tuple[str, dict]]:
         """The events of ``job`` (as :meth:`events`) until its ``("end", record)``, each
-        progress line once: a broken stream is opened again (after :data:`RECONNECT_S`) and
-        the lines already given are skipped. :class:`TimeoutError` after ``timeout_s``
-        seconds (None: no limit)."""
+        progress line once: a broken stream is opened again (after :data:`RECONNECT_S`; a
+        server that went away is tried for :data:`UNREACHABLE_S`) and the lines already
+        given are skipped. :class:`TimeoutError` after ``timeout_s`` seconds (None: no
+        limit)."""
         deadline = None if timeout_s is None else time.monotonic() + timeout_s
         seen = 0  # progress events given so far
+        lost = None  # since when the server cannot be reached
         while True:
             remaining = None if deadline is None else deadline - time.monotonic()
             if remaining is not None and remaining <= 0:
@@ -209,6 +219,7 @@ class Server:
             count = 0
             try:
                 for event, data in self.events(job, read_timeout_s=remaining):
+                    lost = None
                     if event == "progress":
                         count += 1
                         if count <= seen:
@@ -221,6 +232,10 @@ class Server:
                         break
             except (httpx.ReadTimeout, httpx.ReadError):
                 pass
+            except ServerUnreachable:
+                lost = time.monotonic() if lost is None else lost
+                if time.monotonic() - lost > UNREACHABLE_S:
+                    raise
             time.sleep(max(0.0, min(RECONNECT_S, remaining if remaining is not None else
                                     RECONNECT_S)))
 
