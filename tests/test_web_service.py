@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import json
 import os
-import re
 import signal
 import subprocess
 import sys
@@ -42,8 +41,8 @@ CONFIGS = [
     {"config": "pursuit-case1", "set": {"samples": 31, "window": 10, "update": 5,
                                        "max_agents": 20}},
 ]
-#: A job long enough to cancel, kill and time out (25 supersteps, ~0.3 s each serially).
-LONG = {"config": "macs-goddard", "set": {"max_evals": 1500, "seed": 7}}
+#: A job long enough to cancel, kill and time out (19 supersteps, ~0.25 s each serially).
+LONG = {"config": "macs-goddard", "set": {"max_evals": 1000, "seed": 7}}
 
 
 class Server:
@@ -400,7 +399,7 @@ def malformed(draw) -> tuple[dict, str | None]:
     return body, key
 
 
-@settings(max_examples=120, deadline=None, derandomize=True, database=None,
+@settings(max_examples=60, deadline=None, derandomize=True, database=None,
           suppress_health_check=[HealthCheck.function_scoped_fixture])
 @given(case=malformed())
 def test_malformed_configurations_get_422_naming_the_key(server, case):
@@ -453,13 +452,16 @@ def test_cancel_lands_within_one_superstep_and_resume_finishes_it(server, long_e
                 if block.startswith("event: progress")]
     iterations = [p for p in progress if "hypervolume" in p["figures"]]
     assert len(iterations) >= 3 and all(p["superstep"] is None for p in iterations)
-    assert iterations[-1]["figures"]["hypervolume"] == pytest.approx(
-        long_expected["hv"], abs=1e-6)  # printed to 6 decimals
+    counts = [int(p["figures"]["iteration"]) for p in iterations]
+    assert counts.count(1) == 2  # the log holds the cancelled run, then the resumed one
+    resumed = counts[len(counts) - 1 - counts[::-1].index(1):]
+    assert resumed == list(range(1, len(resumed) + 1)) and len(resumed) > counts.index(1, 1)
 
 
 def test_a_killed_server_resumes_its_running_job_on_restart(tmp_path, long_expected):
-    """SIGKILL the server during a run; the restarted server kills what is left of the
-    run, resumes it from its checkpoint and it finishes with the uninterrupted result."""
+    """SIGKILL the server during a run (its run frozen with SIGSTOP, a survivor that must
+    not write on); the restarted server kills what is left of the run, resumes it from its
+    checkpoint and it finishes with the uninterrupted result."""
     state = tmp_path / "state"
     state.mkdir()
     token = add_token(state, "k")
@@ -467,20 +469,24 @@ def test_a_killed_server_resumes_its_running_job_on_restart(tmp_path, long_expec
     try:
         client = srv.client(token)
         job = client.post("/jobs", json=LONG).json()["id"]
-        killed_at = wait_supersteps(client, job, 4)["supersteps"]
+        wait_supersteps(client, job, 4)
+        pid = Store(state).job(job)["pid"]
+        os.killpg(pid, signal.SIGSTOP)
         srv.stop(signal.SIGKILL)
+        frozen = json.loads((state / "jobs" / job / "checkpoint" / "manifest.json"
+                             ).read_text())["supersteps"]
         srv.start()
         client = srv.client(token)
         record = client.get(f"/jobs/{job}").json()
         assert record["state"] in ("queued", "running") and "restarted" in record["reason"]
+        assert not Path(f"/proc/{pid}/cmdline").read_bytes() if Path(f"/proc/{pid}").exists() \
+            else True  # the survivor was killed (gone, or a zombie not yet reaped)
         final = wait_final(client, job)
         assert final["state"] == "succeeded", final
-        assert final["supersteps"] >= killed_at
         assert computed(fetch_result(client, job)) == long_expected
-        assert final["reason"] == record["reason"]
-        resumed_at = re.search(r"resumed from its checkpoint after (\d+) superstep",
-                               final["reason"])
-        assert resumed_at and killed_at <= int(resumed_at.group(1)) < final["supersteps"]
+        assert final["reason"] == record["reason"] == (
+            f"the server restarted; resumed from its checkpoint after {frozen} superstep(s)")
+        assert 4 <= frozen < final["supersteps"]
     finally:
         srv.stop()
 

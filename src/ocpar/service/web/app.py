@@ -16,6 +16,7 @@ some of them local to :func:`create_app`.)
 import asyncio
 import json
 import shutil
+import threading
 import time
 from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
@@ -262,6 +263,14 @@ def create_app(settings: Settings) -> FastAPI:
         check_limits(run.scheme, options, problem, token)
         return run, argv, options.problem
 
+    checking = threading.Lock()
+
+    def checked(data: Any, token: Token) -> tuple[RunConfig, list[str], str]:
+        """:func:`prepare`, one request at a time (problems are built with CasADi, whose
+        symbolic construction is not meant for several threads at once)."""
+        with checking:
+            return prepare(data, token)
+
     def check_limits(scheme: str, options: Any, problem: Any, token: Token) -> None:
         key, field, what = LIMITED[scheme]
         limit = token.max_evaluations if what == "evaluations" else token.max_agents
@@ -290,7 +299,7 @@ def create_app(settings: Settings) -> FastAPI:
             data = json.loads(body)
         except (ValueError, UnicodeDecodeError) as exc:
             raise refuse(f"body: not JSON: {exc}") from None
-        run, argv, problem = await run_in_threadpool(prepare, data, token)
+        run, argv, problem = await run_in_threadpool(checked, data, token)
         job_id = new_job_id(run.scheme)
         path = store.job_dir(job_id)
         path.mkdir(parents=True)
