@@ -275,3 +275,17 @@ def test_task_dispatch_names_tasks_after_the_run_and_superstep(local_dask):
     assert {k.split("-superstep-")[1] for k in keys} == {"0-chunk-0", "0-chunk-1",
                                                         "1-chunk-0", "1-chunk-1"}
     assert all(k.startswith("ocpar-job-42-") for k in keys)
+
+
+def test_the_dashboard_link_a_dask_run_prints_answers(local_dask):
+    """The embedded cluster's dashboard (the link every Dask run prints) serves its status
+    page, which needs bokeh; without it Dask answers "Dask needs bokeh>=3.1.0"."""
+    import httpx
+
+    link = local_dask.dashboard_link
+    assert link is not None and link.endswith("/status")
+    page = httpx.get(link, timeout=30, follow_redirects=True)
+    assert page.status_code == 200, page.text[:200]
+    assert "bokeh" in page.text.lower() and "needs bokeh" not in page.text
+    tasks = httpx.get(link.replace("/status", "/tasks"), timeout=30)
+    assert tasks.status_code == 200

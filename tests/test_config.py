@@ -403,8 +403,7 @@ def test_other_schemes_refuse_out_of_range_values(scheme, text, needle, tmp_path
          "ocpar.formation: error: unrecognized arguments: --bogus"),
         ([], "ocpar: error: the following arguments are required: COMMAND"),
         (["launch"], "ocpar: error: argument COMMAND: invalid choice: 'launch'"),
-        (["submit"], "ocpar submit: error: the following arguments are required: CONFIG, "
-                     "--scheduler"),
+        (["submit"], "ocpar submit: error: the following arguments are required: CONFIG"),
     ],
 )
 def test_bad_usage_refused(argv, needle, tmp_path, capsys):

@@ -133,6 +133,27 @@ def test_service_commands_refuse_bad_input_with_one_line(cluster):
         assert proc.returncode == 2 and len(lines) == 1 and needle in lines[0], proc.stderr
 
 
+@pytest.mark.parametrize(("reference", "needle"), [
+    ("no_such_pkg.problems:make", "no module named 'no_such_pkg'"),
+    ("ocpar.examples.formation_point_masses:no_factory", "has no attribute 'no_factory'"),
+    ("ocpar.macs.problems:PROBLEMS", "not a function"),
+])
+def test_submit_loads_a_problem_reference_on_the_scheduler_before_a_job_exists(
+        cluster, reference, needle, tmp_path):
+    """A ``module:factory`` that does not load where the job would run (the scheduler's
+    host) is refused by ``ocpar submit`` with one line and exit 2, and no job is made."""
+    address, jobs_dir = cluster
+    config = tmp_path / "mine.toml"
+    config.write_text(f'scheme = "formation"\nproblem = "{reference}"\n')
+    before = sorted(p.name for p in jobs_dir.iterdir())
+    proc = ocpar("submit", str(config), "--scheduler", address)
+    lines = proc.stderr.strip().splitlines()
+    assert proc.returncode == 2 and proc.stdout == "" and len(lines) == 1, proc.stderr
+    assert lines[0].startswith("ocpar submit: error: on the scheduler's host: problem ")
+    assert needle in lines[0]
+    assert sorted(p.name for p in jobs_dir.iterdir()) == before
+
+
 @pytest.mark.parametrize("option", ["--output", "--tls-cert=client.pem", "--dispatch",
                                     "--scheduler"])
 def test_submit_refuses_options_the_service_sets(option):

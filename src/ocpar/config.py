@@ -269,18 +269,22 @@ def read_config_text(name: str | Path) -> bytes:
                       f"{_suggestion(stem, examples())}")
 
 
+def read_config_data(name: str | Path) -> dict[str, Any]:
+    """The TOML table of the configuration file ``name`` (or the packaged example of that
+    name), not yet checked. Raises :class:`ConfigError`."""
+    raw = read_config_text(name)
+    try:
+        return tomllib.loads(raw.decode("utf-8"))
+    except UnicodeDecodeError as exc:
+        raise ConfigError(f"{name}: not UTF-8 text (byte {exc.start})") from None
+    except tomllib.TOMLDecodeError as exc:
+        raise ConfigError(f"{name}: invalid TOML: {exc}") from None
+
+
 def load_config(name: str | Path, overrides: Mapping[str, Any] | None = None) -> RunConfig:
     """Read and check the configuration file ``name`` (or the packaged example of that name),
     then apply ``overrides`` (keys as in the file). Raises :class:`ConfigError`."""
-    source = str(name)
-    raw = read_config_text(name)
-    try:
-        data = tomllib.loads(raw.decode("utf-8"))
-    except UnicodeDecodeError as exc:
-        raise ConfigError(f"{source}: not UTF-8 text (byte {exc.start})") from None
-    except tomllib.TOMLDecodeError as exc:
-        raise ConfigError(f"{source}: invalid TOML: {exc}") from None
-    config = from_mapping(data, source)
+    config = from_mapping(read_config_data(name), str(name))
     return config.with_overrides(overrides) if overrides else config
 
 

@@ -139,6 +139,14 @@ def resolve_problem(options: SchemeRun) -> Any:
     return build_example(options)
 
 
+def checked_problem(options: SchemeRun) -> Any:
+    """The problem ``options`` name (:func:`resolve_problem`), checked against the options
+    (ValueError with one line naming the cause)."""
+    problem = resolve_problem(options)
+    options.check_problem(problem)
+    return problem
+
+
 def run_scheme(options: SchemeRun, given: frozenset[str] | None = None) -> int:
     """Run ``options`` (on MPI, on every rank) and return the exit status; bad input exits 2
     with one line before any worker starts."""
@@ -151,8 +159,7 @@ def run_scheme(options: SchemeRun, given: frozenset[str] | None = None) -> int:
     choose_backend(options, prog)
     out = prepare_output_dir(options.output, prog)
     try:
-        problem = resolve_problem(options)
-        options.check_problem(problem)
+        problem = checked_problem(options)
     except (ProblemReferenceError, ValueError) as exc:
         fail(prog, str(exc))
 

@@ -16,7 +16,9 @@ from typing import Any, TypeVar
 
 from ocpar import driver
 from ocpar.config import SCHEMES, scheme_class
+from ocpar.references import is_reference
 from ocpar.service import jobs
+from ocpar.service.check import check_and_start
 
 #: Options of a scheme's command line that the service sets for a submitted job.
 SERVICE_OPTIONS = ("--backend", "--scheduler", "--output", "--checkpoint", "--resume",
@@ -56,9 +58,9 @@ def checked_id(job_id: str) -> str:
         raise ServiceError(str(exc)) from None
 
 
-def check_run(scheme: str, argv: list[str]) -> None:
+def check_run(scheme: str, argv: list[str]) -> driver.SchemeRun:
     """Validate the scheme's options as its command line would (raises SystemExit(2) with a
-    one-line message on bad input), before anything is sent to the cluster."""
+    one-line message on bad input), before anything is sent to the cluster; returns them."""
     if scheme not in SCHEMES:
         raise ServiceError(f"unknown scheme {scheme!r}; choose one of {', '.join(SCHEMES)}")
     given = {arg.split("=", 1)[0] for arg in argv}
@@ -66,17 +68,21 @@ def check_run(scheme: str, argv: list[str]) -> None:
         if option in given:
             raise ServiceError(f"{option} is set by the service for a submitted job; leave "
                                "it out")
-    driver.parse_options(scheme_class(scheme),
-                         [*argv, "--backend", "dask", "--scheduler", "tcp://host:1"])
+    options, _ = driver.parse_options(scheme_class(scheme),
+                                      [*argv, "--backend", "dask", "--scheduler", "tcp://host:1"])
+    return options
 
 
 def submit(scheme: str, argv: list[str], scheduler: str, security: Any = None) -> str:
     """Start ``python -m ocpar.<scheme> argv`` as a detached job on the cluster at
     ``scheduler`` (its coordinator runs on the scheduler's host, and on a ``tls://`` cluster
-    presents the scheduler's certificate); returns the job id at once."""
-    check_run(scheme, argv)
-    return on_scheduler(scheduler, jobs.create_and_start, scheme, list(argv), scheduler,
-                        security=security)
+    presents the scheduler's certificate); returns the job id at once. A
+    ``package.module:factory`` problem is loaded on the scheduler's host first, where the
+    job's coordinator loads it (:func:`ocpar.service.check.check_and_start`): one that does not
+    load is a ServiceError and no job."""
+    options = check_run(scheme, argv)
+    start = check_and_start if is_reference(options.problem) else jobs.create_and_start
+    return on_scheduler(scheduler, start, scheme, list(argv), scheduler, security=security)
 
 
 def list_jobs(scheduler: str, security: Any = None) -> list[dict]:
