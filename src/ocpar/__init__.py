@@ -18,3 +18,8 @@ for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
     os.environ.setdefault(_var, "1")
 
 __version__ = "0.1.0"
+
+# (after the threading variables: these import numpy)
+from ocpar.result_files import Run, load  # noqa: E402
+
+__all__ = ["Run", "load"]
