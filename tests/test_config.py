@@ -327,7 +327,7 @@ def test_bad_configuration_refused_by_ocpar_run(text, needle, tmp_path, capsys):
     ("text", "needle"),
     [
         ("agents = 1\n", "ocpar.formation: error: argument --agents: expected an integer "
-                            "between 2 and 100000, got 1"),
+                            "between 2 and 10000000, got 1"),
         ("radius = -1.0\n", "ocpar.formation: error: argument --radius: expected a positive "
                             "finite number, got -1.0"),
         ("radius = inf\n", "ocpar.formation: error: argument --radius: expected a positive "
@@ -395,7 +395,7 @@ def test_other_schemes_refuse_out_of_range_values(scheme, text, needle, tmp_path
          "ocpar run: error: --set: scheme: the scheme is the file's (formation)"),
         (["run", "formation-60", "--set", "agents=1", "--print-argv"],
          "ocpar.formation: error: argument --agents: expected an integer between 2 and "
-         "100000, got 1"),
+         "10000000, got 1"),
         (["run", "formation-60", "--set", "a=1", "--set", "b=2"],
          "ocpar run: error: option --set is given more than once"),
         # options after CONFIG are the scheme's: its own parser refuses an unknown one

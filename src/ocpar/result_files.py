@@ -5,12 +5,14 @@ Every run with an output directory writes three files there (:func:`write_result
 * ``result.json``: the summary (:meth:`~ocpar.results.RunResult.to_dict`: the common fields,
   ``title``, the scheme's scalar and small fields), naming the other two as ``"arrays"`` and
   ``"trace_file"``;
-* ``result.nc``: the arrays (:meth:`~ocpar.results.RunResult.dataset`: trajectories, per-agent
-  data, with named dimensions and each variable's ``units`` and ``long_name``), netCDF4
-  written uncompressed through xarray's ``netcdf4`` engine: of the formats measured at
-  100,000 agents (``scripts/result_formats.py``) the fastest to write (0.03 s) and to load
-  (0.03 s), one file for an HTTP download, 53 MB (zlib level 1 halves it for 40x the write
-  time; zarr takes 0.7–0.9 s and is a directory or a zip);
+* ``result.nc``: the arrays (:meth:`~ocpar.results.RunResult.arrays`, read back as the
+  :meth:`~ocpar.results.RunResult.dataset`: trajectories, per-agent data, with named
+  dimensions and each variable's ``units`` and ``long_name``), netCDF4, uncompressed: of the
+  formats measured at 100,000 agents (``scripts/result_formats.py``, docs/results.md) the
+  fastest to write and to load (0.03 s each through xarray's ``netcdf4`` engine), one file
+  for an HTTP download (zlib level 1 halves its size for 40x the write time; zarr takes
+  0.7–0.9 s and is a directory or a zip). It is written with netCDF4-python directly, as
+  xarray would write it: the coordinator does not import xarray (0.5–1 s) to write it;
 * ``trace.json``: the per-superstep trace, one record per superstep
   (:meth:`~ocpar.bsp.SuperstepTrace.to_dict`).
 
@@ -23,7 +25,7 @@ import json
 from pathlib import Path
 from typing import TYPE_CHECKING, NamedTuple
 
-from ocpar.results import RunResult
+from ocpar.results import Array, RunResult
 
 if TYPE_CHECKING:
     import xarray as xr
@@ -41,11 +43,32 @@ def write_result(result: RunResult, directory: Path) -> list[Path]:
     directory = Path(directory)
     arrays, trace, summary = (directory / ARRAYS_FILE, directory / TRACE_FILE,
                               directory / SUMMARY_FILE)
-    result.dataset().to_netcdf(arrays, engine=ENGINE)
+    write_netcdf(result.arrays(), result.file_attributes(), arrays)
     trace.write_text(json.dumps([t.to_dict() for t in result.trace]))
     summary.write_text(json.dumps(result.to_dict()
                                   | {"arrays": ARRAYS_FILE, "trace_file": TRACE_FILE}))
     return [summary, arrays, trace]
+
+
+def write_netcdf(variables: dict[str, Array], attrs: dict[str, str], path: Path) -> None:
+    """Write ``variables`` (:func:`~ocpar.results.array`) and the file's ``attrs`` to ``path``
+    as netCDF4, uncompressed, as :meth:`xarray.Dataset.to_netcdf` would (string arrays as
+    variable-length strings, no fill values)."""
+    import netCDF4
+
+    with netCDF4.Dataset(path, "w", format="NETCDF4") as f:
+        f.setncatts(attrs)
+        for name, (dims, values, var_attrs) in variables.items():
+            for dim, size in zip(dims, values.shape, strict=True):
+                if dim not in f.dimensions:
+                    f.createDimension(dim, size)
+                elif len(f.dimensions[dim]) != size:
+                    raise ValueError(f"{name}: dimension {dim} has {size} entries, another "
+                                     f"variable's {len(f.dimensions[dim])}")
+            text = values.dtype.kind in "OU"
+            var = f.createVariable(name, str if text else values.dtype, dims, fill_value=False)
+            var.setncatts(var_attrs)
+            var[...] = values.astype(object) if text else values
 
 
 class Run(NamedTuple):

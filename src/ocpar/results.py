@@ -143,14 +143,18 @@ class RunResult:
         variable named like a dimension is its coordinate."""
         raise NotImplementedError
 
-    def dataset(self) -> xr.Dataset:
-        """:meth:`arrays` as an :class:`xarray.Dataset`, with the attributes ``scheme``,
-        ``problem``, ``status``, ``title`` (:meth:`title`) and ``message``."""
-        import xarray as xr   # (imported by the coordinator only, when it writes)
+    def file_attributes(self) -> dict[str, str]:
+        """The array file's attributes: ``scheme``, ``problem``, ``status``, ``title``
+        (:meth:`title`) and ``message``."""
+        return {"scheme": self.scheme, "problem": self.problem, "status": self.status,
+                "title": self.title(), "message": self.message}
 
-        return xr.Dataset(self.arrays(), attrs={
-            "scheme": self.scheme, "problem": self.problem, "status": self.status,
-            "title": self.title(), "message": self.message})
+    def dataset(self) -> xr.Dataset:
+        """:meth:`arrays` as an :class:`xarray.Dataset` with :meth:`file_attributes` (what
+        :func:`ocpar.load` reads back from the array file)."""
+        import xarray as xr   # (not imported by a run: the array file is written without it)
+
+        return xr.Dataset(self.arrays(), attrs=self.file_attributes())
 
     def to_dict(self) -> dict:
         """The ``result.json`` summary: the common fields, ``title`` (:meth:`title`), then
