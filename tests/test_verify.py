@@ -29,8 +29,8 @@ from ocpar.formation.solve import _verified
 from ocpar.formation.targets.surface import SphereSurface
 from ocpar.formation.verify import NEAR_COLLISION_FRACTION, verify_formation
 from ocpar.models import PointMass
-from ocpar.result_files import write_result
 from ocpar.ocp.columns_eval import evaluate_columns
+from ocpar.result_files import write_result
 
 CENTRE, RADIUS = np.array([100.0, 100.0]), 10.0
 

@@ -12,8 +12,8 @@ plot). :func:`main` is a scheme's whole command line; :func:`run_scheme` the sam
 The driver checks the options (one line, exit 2), chooses and opens the backend, loads the
 problem (a built-in name, or ``package.module:factory`` checked against the scheme's problem
 type before any worker starts), journals and checkpoints the supersteps, writes
-``result.json``, the array file and ``trace.json`` (:mod:`ocpar.result_files`) and the plots, and exits with the status's code
-(:data:`ocpar.results.EXIT_STATUS`).
+``result.json``, the array file and ``trace.json`` (:mod:`ocpar.result_files`) and the
+plots, and exits with the status's code (:data:`ocpar.results.EXIT_STATUS`).
 """
 
 from __future__ import annotations

@@ -102,7 +102,7 @@ def load(path: str | Path) -> Run:
     Dataset, loaded into memory, and its summary, e.g.
     ``ds, summary = ocpar.load("runs/formation")``; ``ds.configuration`` (agent, node,
     q_component). FileNotFoundError if the directory holds no result.json or array file."""
-    import xarray as xr   # (not on the import path of workers)
+    import xarray as xr  # (not on the import path of workers)
 
     summary_path = _summary_path(Path(path))
     summary = read_summary(summary_path)

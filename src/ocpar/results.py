@@ -152,7 +152,7 @@ class RunResult:
     def dataset(self) -> xr.Dataset:
         """:meth:`arrays` as an :class:`xarray.Dataset` with :meth:`file_attributes` (what
         :func:`ocpar.load` reads back from the array file)."""
-        import xarray as xr   # (not imported by a run: the array file is written without it)
+        import xarray as xr  # (not imported by a run: the array file is written without it)
 
         return xr.Dataset(self.arrays(), attrs=self.file_attributes())
 
