@@ -82,6 +82,8 @@ class Run(NamedTuple):
 def _summary_path(path: Path) -> Path:
     """``result.json`` of ``path``: a run directory, its result.json or its array file."""
     path = Path(path)
+    if not path.exists():
+        raise FileNotFoundError(f"{path}: no such run directory or file")
     if path.is_dir():
         return path / SUMMARY_FILE
     if path.suffix == ".json":
@@ -91,7 +93,10 @@ def _summary_path(path: Path) -> Path:
 
 def read_summary(path: str | Path) -> dict:
     """The ``result.json`` of ``path`` (a run directory, its result.json or array file)."""
-    summary_path = _summary_path(Path(path))
+    return _read(_summary_path(Path(path)))
+
+
+def _read(summary_path: Path) -> dict:
     if not summary_path.is_file():
         raise FileNotFoundError(f"no {SUMMARY_FILE} at {summary_path}")
     return json.loads(summary_path.read_text())
@@ -105,7 +110,7 @@ def load(path: str | Path) -> Run:
     import xarray as xr  # (not on the import path of workers)
 
     summary_path = _summary_path(Path(path))
-    summary = read_summary(summary_path)
+    summary = _read(summary_path)
     arrays = summary_path.parent / summary.get("arrays", ARRAYS_FILE)
     if not arrays.is_file():
         raise FileNotFoundError(f"no array file {arrays.name} beside {summary_path}")
@@ -116,5 +121,5 @@ def load_trace(path: str | Path) -> list[dict]:
     """The per-superstep trace of the run at ``path`` (as :func:`load` takes it): one record
     per superstep (:meth:`~ocpar.bsp.SuperstepTrace.to_dict`)."""
     summary_path = _summary_path(Path(path))
-    name = read_summary(summary_path).get("trace_file", TRACE_FILE)
+    name = _read(summary_path).get("trace_file", TRACE_FILE)
     return json.loads((summary_path.parent / name).read_text())
