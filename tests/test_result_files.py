@@ -140,5 +140,5 @@ def test_macs_arrays_are_the_front_decisions_and_trajectories(tmp_path):
 
 
 def test_a_directory_without_a_result_is_refused(tmp_path):
-    with pytest.raises(FileNotFoundError, match="no result.json at"):
+    with pytest.raises(FileNotFoundError, match=r"no result\.json at"):
         ocpar.load(tmp_path)
