@@ -37,6 +37,7 @@ def written(result, directory):
     for name, variable in ds.variables.items():
         assert variable.attrs["units"] and variable.attrs["long_name"], name
     trace = load_trace(directory)
+    assert trace == json.loads(json.dumps([t.to_dict() for t in result.trace]))
     assert len(trace) == summary["supersteps"] == result.supersteps > 0
     assert [t["index"] for t in trace] == [t.index for t in result.trace]
     xr.testing.assert_identical(ds, result.dataset())

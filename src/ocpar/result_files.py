@@ -25,6 +25,8 @@ import json
 from pathlib import Path
 from typing import TYPE_CHECKING, NamedTuple
 
+import numpy as np
+
 from ocpar.results import Array, RunResult
 
 if TYPE_CHECKING:
@@ -44,10 +46,36 @@ def write_result(result: RunResult, directory: Path) -> list[Path]:
     arrays, trace, summary = (directory / ARRAYS_FILE, directory / TRACE_FILE,
                               directory / SUMMARY_FILE)
     write_netcdf(result.arrays(), result.file_attributes(), arrays)
-    trace.write_text(json.dumps([t.to_dict() for t in result.trace]))
+    trace.write_text("[" + ", ".join(_trace_record(t.to_dict()) for t in result.trace) + "]")
     summary.write_text(json.dumps(result.to_dict()
                                   | {"arrays": ARRAYS_FILE, "trace_file": TRACE_FILE}))
     return [summary, arrays, trace]
+
+
+#: The per-task lists of a trace record (one number per task: 10^6 of each per superstep at
+#: 1,000,000 agents), written by :func:`_number_list`.
+TASK_LISTS = ("task_wall_s", "task_cpu_s", "task_worker")
+
+
+def _trace_record(record: dict) -> str:
+    """One trace record as JSON, its :data:`TASK_LISTS` last, written by
+    :func:`_number_list`: what ``json.dumps(record)`` says, 10x faster for a batched kernel's
+    per-task times."""
+    lists = {key: record.pop(key) for key in TASK_LISTS if key in record}
+    text = json.dumps(record)
+    extra = "".join(f", {json.dumps(key)}: {_number_list(v)}" for key, v in lists.items())
+    return text[:-1] + extra + "}" if lists else text
+
+
+def _number_list(values: list[float] | list[int]) -> str:
+    """``json.dumps(values)`` for a list of numbers, each distinct value's text made once (a
+    batched kernel gives every task of its chunk the chunk's mean time: a few distinct
+    values among 10^6)."""
+    if not values:
+        return "[]"
+    distinct, index = np.unique(np.asarray(values), return_inverse=True)
+    texts = np.array([json.dumps(v) for v in distinct.tolist()], dtype=object)
+    return "[" + ", ".join(texts[index].tolist()) + "]"
 
 
 def write_netcdf(variables: dict[str, Array], attrs: dict[str, str], path: Path) -> None:
