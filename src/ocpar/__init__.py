@@ -20,6 +20,6 @@ for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
 __version__ = "0.1.0"
 
 # (after the threading variables: these import numpy)
-from ocpar.result_files import Run, load  # noqa: E402
+from ocpar.result_files import Run, load, load_trace  # noqa: E402
 
-__all__ = ["Run", "load"]
+__all__ = ["Run", "load", "load_trace"]

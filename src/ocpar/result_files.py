@@ -39,10 +39,11 @@ TRACE_FILE = "trace.json"
 ENGINE = "netcdf4"
 
 
-def write_result(result: RunResult, directory: Path) -> list[Path]:
-    """Write ``result`` into ``directory`` (which exists) as ``result.json``, ``result.nc``
-    and ``trace.json``; returns their paths (summary first)."""
+def write_result(result: RunResult, directory: str | Path) -> list[Path]:
+    """Write ``result`` into ``directory`` (made if missing) as ``result.json``,
+    ``result.nc`` and ``trace.json``; returns their paths (summary first)."""
     directory = Path(directory)
+    directory.mkdir(parents=True, exist_ok=True)
     arrays, trace, summary = (directory / ARRAYS_FILE, directory / TRACE_FILE,
                               directory / SUMMARY_FILE)
     write_netcdf(result.arrays(), result.file_attributes(), arrays)

@@ -31,6 +31,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import TYPE_CHECKING, Any, ClassVar
 
 import numpy as np
@@ -155,6 +156,13 @@ class RunResult:
         import xarray as xr  # (not imported by a run: the array file is written without it)
 
         return xr.Dataset(self.arrays(), attrs=self.file_attributes())
+
+    def write(self, directory: str | Path) -> list[Path]:
+        """Write this result into ``directory`` as ``result.json``, ``result.nc`` and
+        ``trace.json`` (:func:`ocpar.result_files.write_result`); returns their paths."""
+        from ocpar.result_files import write_result  # (it imports this module)
+
+        return write_result(self, directory)
 
     def to_dict(self) -> dict:
         """The ``result.json`` summary: the common fields, ``title`` (:meth:`title`), then

@@ -248,16 +248,15 @@ class FormationResult(RunResult):
         return {"verification": v.to_dict(), "near_collision": v.near_collision}
 
     def _obstacle_fields(self) -> dict:
-        """``min_obstacle_clearance`` and where it occurs, ``obstacle_sides`` (none without
-        obstacles)."""
+        """``min_obstacle_clearance`` and where it occurs (none without obstacles; the sides
+        are in the array file)."""
         c = self.obstacle_clearance
         if c is None:
             return {}
         return {"min_obstacle_clearance": _finite_or_none(c.distance),
                 "obstacle_agent": c.agent if c.agent >= 0 else None,
                 "obstacle_index": c.obstacle if c.obstacle >= 0 else None,
-                "obstacle_time": _finite_or_none(c.time),
-                "obstacle_sides": self.obstacle_sides}
+                "obstacle_time": _finite_or_none(c.time)}
 
     def _required_summary(self) -> str:
         """The summary's words on a required separation ('' without one)."""

@@ -124,7 +124,7 @@ class MacsResult(RunResult):
             "front_transcribed": array("member objective",
                                        np.reshape(self.front_transcribed, (k, m)), "1",
                                        "objectives on the DFET transcription"),
-            "decision": array("member decision", np.reshape(self.decisions, (k, -1)), "1",
+            "decision": array("member decision", np.asarray(self.decisions), "1",
                               "decision vector: control nodes, then t_f"),
             "state": array("member element state_node state_component", self.states,
                            "state", "DFET state nodes (the member's trajectory)"),
