@@ -21,15 +21,14 @@ AXES = ("x", "y", "z")
 
 @dataclass
 class Fleet:
-    """What the array file says of the problem's agents: ``duration`` T and ``intervals`` N
-    (common to the fleet); ``position_indices`` the configuration's position entries;
+    """What the array file says of the problem's agents: ``duration`` T (common to the
+    fleet); ``position_indices`` the configuration's position entries;
     ``targets`` (n, d) the target points z(φ) at the returned φ (NaN where φ is not finite);
     ``model`` (n,) each agent's index into ``model_names`` (the models' class names, in order
     of first use); ``mass`` (n,) each agent's model's ``mass`` (NaN for a model without
     one)."""
 
     duration: float
-    intervals: int
     position_indices: tuple[int, ...]
     targets: np.ndarray
     model: np.ndarray
@@ -52,8 +51,7 @@ class Fleet:
                 names.append(name)
             model[agents] = names.index(name)
             mass[agents] = float(getattr(shape_i.model, "mass", math.nan))
-        return cls(shape.duration, shape.intervals, problem.position_indices, targets, model,
-                   names, mass)
+        return cls(shape.duration, problem.position_indices, targets, model, names, mass)
 
 
 @dataclass
