@@ -117,7 +117,7 @@ def test_the_disc_turns_the_formation_and_hierarchical_equals_monolithic(free, h
     assert segment_distances(free.trajectories, CENTRE_2D).min() < RADIUS - 0.3
     assert segment_distances(result.trajectories, CENTRE_2D).min() <= RADIUS + 1e-9
     fields = result.scheme_fields()
-    assert fields["obstacle_sides"] == result.obstacle_sides
+    assert result.arrays()["obstacle_side"][1][:, 0].tolist() == [-1] * 4 + [1] * 2
     assert fields["min_obstacle_clearance"] == result.obstacle_clearance.distance
 
 
