@@ -41,7 +41,8 @@ ENGINE = "netcdf4"
 
 def write_result(result: RunResult, directory: str | Path) -> list[Path]:
     """Write ``result`` into ``directory`` (made if missing) as ``result.json``,
-    ``result.nc`` and ``trace.json``; returns their paths (summary first)."""
+    ``result.nc`` and ``trace.json``; returns their paths (summary first). The summary is
+    written last: once it is there, so are the others."""
     directory = Path(directory)
     directory.mkdir(parents=True, exist_ok=True)
     arrays, trace, summary = (directory / ARRAYS_FILE, directory / TRACE_FILE,
