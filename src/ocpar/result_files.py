@@ -9,9 +9,9 @@ Every run with an output directory writes three files there (:func:`write_result
   :meth:`~ocpar.results.RunResult.dataset`: trajectories, per-agent data, with named
   dimensions and each variable's ``units`` and ``long_name``), netCDF4, uncompressed: of the
   formats measured at 100,000 agents (``scripts/result_formats.py``, docs/results.md) the
-  fastest to write and to load (0.03 s each through xarray's ``netcdf4`` engine), one file
-  for an HTTP download (zlib level 1 halves its size for 40x the write time; zarr takes
-  0.7–0.9 s and is a directory or a zip). It is written with netCDF4-python directly, as
+  fastest to write (0.03 s through xarray's ``netcdf4`` engine; load 0.06 s), one file for
+  an HTTP download (zlib level 1 halves its size for 30x the write time; zarr takes ~0.4 s
+  and is a directory or a zip). It is written with netCDF4-python directly, as
   xarray would write it: the coordinator does not import xarray (0.5–1 s) to write it;
 * ``trace.json``: the per-superstep trace, one record per superstep
   (:meth:`~ocpar.bsp.SuperstepTrace.to_dict`).
