@@ -84,6 +84,7 @@ from ocpar.bsp.cost_model import (
     superstep_samples,
     task_times,
 )
+from ocpar.result_files import load_trace, read_summary
 
 SIZES = (60, 1000, 10_000)
 MODEL_AGENTS = (10_000, 100_000)
@@ -203,7 +204,7 @@ def run_once(cmd: list[str], out: Path, limit_s: float, memory_mb: float | None 
     if not path.exists():
         tail = (out / "stderr.txt").read_text().strip().splitlines()[-1:] or [""]
         return {"status": "error", "message": f"exit {proc.returncode}: {tail[0]}", **peak}
-    return json.loads(path.read_text()) | peak
+    return read_summary(out) | {"trace": load_trace(out)} | peak
 
 
 def run_figures(result: dict) -> dict:
@@ -293,8 +294,8 @@ def median_result(output: Path, agents: int, config: Configuration, runs: list[d
     if not done:
         return None
     rep, _ = sorted(done, key=lambda x: x[1]["wall_s"])[len(done) // 2]
-    return json.loads((output / f"{agents}-{config.name.replace('/', '-')}-{rep}"
-                       / "result.json").read_text())
+    out = output / f"{agents}-{config.name.replace('/', '-')}-{rep}"
+    return read_summary(out) | {"trace": load_trace(out)}
 
 
 def fit_samples(output: Path, agents: int, config: Configuration, runs: list[dict]
@@ -305,9 +306,8 @@ def fit_samples(output: Path, agents: int, config: Configuration, runs: list[dic
     per_rep = []
     for rep, r in enumerate(runs):
         if "wall_s" in r:
-            result = json.loads((output / f"{agents}-{config.name.replace('/', '-')}-{rep}"
-                                 / "result.json").read_text())
-            per_rep.append(superstep_samples(result["trace"])[1:])
+            trace = load_trace(output / f"{agents}-{config.name.replace('/', '-')}-{rep}")
+            per_rep.append(superstep_samples(trace)[1:])
     if not per_rep or len({len(s) for s in per_rep}) != 1:
         return []
     return [(steps[0][0], statistics.median(s[1] for s in steps),

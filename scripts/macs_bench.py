@@ -35,6 +35,7 @@ from pathlib import Path
 import numpy as np
 
 from ocpar.macs.local_search import RESTORATIONS
+from ocpar.result_files import load_trace, read_summary
 
 PAPER_TABLE_III = {"goddard": {"gd": 2.833e-2, "igd": 2.9449e-2},
                    "orbit-raising": {"gd": 5.9444e-2, "igd": 4.387e-2}}
@@ -74,8 +75,8 @@ def time_run(workers: int, repeat: int, evaluations: int, output: Path, restorat
     proc = subprocess.run(cmd, capture_output=True, text=True, env=env)
     if proc.returncode != 0:
         raise SystemExit(f"failed: {' '.join(cmd)}\n{proc.stderr[-2000:]}")
-    data = json.loads((out / "result.json").read_text())
-    trace = data["trace"]
+    data = read_summary(out)
+    trace = load_trace(out)
     row = {"code": code, "workers": workers, "repeat": repeat,
            "wall_time_s": data["wall_time_s"],
            "task_cpu_s": sum(sum(step["worker_cpu_s"]) for step in trace),

@@ -44,6 +44,9 @@ import subprocess
 import sys
 from pathlib import Path
 
+import ocpar
+from ocpar.result_files import load_trace, read_summary
+
 MPIRUN = str(Path(sys.executable).parent / "mpirun")
 #: The paper's PBMS runs by N: (case, N_Δ, N_δ, the paper's agents), §VI-B.1-3.
 PAPER_RUNS = {301: (1, 60, 32, 3344), 501: (2, 60, 32, 2892), 2001: (2, 100, 81, 12402)}
@@ -64,12 +67,12 @@ def run(args: list[str], out: Path, backend: str, workers: int) -> dict:
     proc = subprocess.run(cmd, capture_output=True, text=True)
     if proc.returncode not in (0, 1):
         raise SystemExit(f"failed: {' '.join(cmd)}\n{proc.stderr[-2000:]}")
-    data = json.loads((out / "result.json").read_text())
+    data = read_summary(out)
     keep = ("mode", "problem", "samples", "window", "update", "epsilon", "backend", "workers",
             "status", "message", "final_mass_kg", "agents", "subproblem_solves",
             "failed_solves", "supersteps", "max_agents_in_flight", "wall_time_s",
             "peak_rss_mb_per_worker", "rk_final_altitude_error_m")
-    row = {k: data[k] for k in keep} | trace_summary(data["trace"], data["wall_time_s"])
+    row = {k: data[k] for k in keep} | trace_summary(load_trace(out), data["wall_time_s"])
     if data["mode"] == "pbms":
         row |= {k: data[k] for k in ("stop_reason", "estimated_remaining_final_mass_kg",
                                      "result_source", "train_final_mass_kg")}
@@ -180,8 +183,9 @@ def convergence_part(samples: list[int], levels: list[int], output: Path) -> lis
         out = output / f"convergence-pbms-{n}-levels-{level}"
         row = run([*args, "--max-agents", str(int(1.5 * paper_agents)), "--levels", str(level)],
                   out, "mpi", 2)
-        data = json.loads((out / "result.json").read_text())
-        gap = ms["final_mass_kg"] - np.array(data["final_mass_kg_per_agent"])  # last level's
+        data = read_summary(out)
+        headlines = ocpar.load(out).dataset["agent_headline"].values   # the last level's
+        gap = ms["final_mass_kg"] - headlines
         close = np.flatnonzero(gap[1:] <= CLOSE_KG) + sum(data["agents_per_level"][:-1])
         row |= {"case": case, "levels": level, "paper_agents": paper_agents,
                 "agents_per_level": data["agents_per_level"],

@@ -52,6 +52,7 @@ from ocpar.bsp.cost_model import (
     serial_time,
     task_times,
 )
+from ocpar.result_files import load_trace, read_summary
 
 #: Speedups the PUB implementation reported (hierarchical-formation paper, Tables I and II),
 #: by formation problem.
@@ -99,7 +100,7 @@ def run_once(cmd: list[str], out: Path) -> dict:
     path = out / "result.json"
     if proc.returncode != 0 and not path.exists():
         raise SystemExit(f"run failed ({' '.join(cmd)}):\n{proc.stderr[-2000:]}")
-    result = json.loads(path.read_text())
+    result = read_summary(out) | {"trace": load_trace(out)}
     if proc.returncode != 0:
         print(f"note: {' '.join(cmd[-8:])} ended with status {result.get('status')!r}: "
               f"{result.get('message', '')}", flush=True)

@@ -18,6 +18,7 @@ from ocpar.examples.formation_point_masses import make as paper_example
 from ocpar.formation import solve_formation
 from ocpar.models import PointMass
 from ocpar.ocp import DmocShape, OcpTask
+from ocpar.result_files import load_trace
 
 SHAPE = DmocShape(PointMass(), 10)
 
@@ -181,7 +182,7 @@ def test_mpirun_two_ranks_matches_serial(serial_reference, tmp_path):
     assert_same_run(data, serial_reference)
     # the blocks start even; measured costs may move agents later (a descheduled rank looks
     # slow), which never changes a bit of the result (tests/test_rebalance.py)
-    tasks = [t["worker_tasks"] for t in data["trace"]]
+    tasks = [t["worker_tasks"] for t in load_trace(tmp_path)]
     assert tasks[0] == [30, 30] and all(sum(t) == 60 and min(t) > 0 for t in tasks), tasks
     assert proc.stdout.count("superstep ") == data["supersteps"]
 

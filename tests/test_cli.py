@@ -9,11 +9,13 @@ from pathlib import Path
 import pytest
 from conftest import assert_result_contract, run_cli
 
+from ocpar.result_files import load_trace
+
 REQUIRED = {
     "scheme": str, "problem": str, "agents": int, "backend": str, "workers": int, "mode": str,
     "status": str, "total_cost": float, "phi": list, "equidistance_error": float,
     "outer_iterations": int, "supersteps": int, "inner_solves": int, "failed_solves": int,
-    "wall_time_s": float, "trace": list,
+    "wall_time_s": float, "title": str, "arrays": str, "trace_file": str,
 }
 
 
@@ -27,9 +29,10 @@ def test_small_run_writes_result_and_plot(tmp_path):
     assert data["scheme"] == "formation" and data["agents"] == 8 and len(data["phi"]) == 8
     assert data["backend"] == "serial" and data["mode"] == "hierarchical"
     assert data["equidistance_error"] <= 1e-9
-    assert data["supersteps"] == len(data["trace"]) == proc.stdout.count("superstep ")
+    trace = load_trace(tmp_path / "run")
+    assert data["supersteps"] == len(trace) == proc.stdout.count("superstep ")
     assert data["inner_solves"] == 8 * (data["supersteps"] - 1)  # the last gathers the paths
-    assert {"wall_s", "overhead_s", "worker_busy_s", "task_cpu_s"} <= set(data["trace"][0])
+    assert {"wall_s", "overhead_s", "worker_busy_s", "task_cpu_s"} <= set(trace[0])
     png = (tmp_path / "run" / "formation.png").read_bytes()
     assert png.startswith(b"\x89PNG") and len(png) > 10_000
     assert "total cost" in proc.stdout and "wall time" in proc.stdout
@@ -41,7 +44,8 @@ def test_monolithic_mode_from_the_command_line(tmp_path):
                    "monolithic", "--quiet", "--output", str(tmp_path))
     assert proc.returncode == 0, proc.stderr
     data = json.loads((tmp_path / "result.json").read_text())
-    assert data["mode"] == "monolithic" and data["supersteps"] == 0 and data["trace"] == []
+    assert data["mode"] == "monolithic" and data["supersteps"] == 0
+    assert load_trace(tmp_path) == []
     assert math.isfinite(data["total_cost"]) and data["equidistance_error"] <= 1e-9
 
 

@@ -12,12 +12,14 @@ import json
 import numpy as np
 import pytest
 
+import ocpar
 import ocpar.macs.plot
 import ocpar.pursuit.plot
 from ocpar.examples import macs_double_integrator, pursuit_van_der_pol
 from ocpar.macs import MacsSettings, solve_macs
 from ocpar.macs.run import MacsRun
 from ocpar.pursuit import PursuitSettings, solve_pursuit
+from ocpar.result_files import write_result
 
 
 def record_titles(monkeypatch, module) -> list[str]:
@@ -43,10 +45,11 @@ def test_a_pursuit_run_to_an_unreachable_target_reports_no_cost(tmp_path, monkey
                            reference=False)
     assert result.status != "converged" and result.failed_solves > 0
     assert abs(result.x[-1, 0] - 50) > 10  # the returned trajectory misses the target
-    data = json.loads(result.write_json(tmp_path).read_text())
+    write_result(result, tmp_path)
+    ds, data = ocpar.load(tmp_path)
     assert data["status"] == result.status
     assert data["cost"] is None and data[result.cost_key] is None
-    assert len(data["cost_per_agent"]) == 7  # the train's history stays: agents 0 to 6
+    assert ds.sizes["agent"] == 7  # the train's history stays: agents 0 to 6
     assert "not reached (not_converged: " in result.summary()
     why = (f"{result.failed_solves} of {result.subproblem_solves} subproblem solves failed, "
            f"the first agent 1 at sample 20: Infeasible_Problem_Detected")
@@ -70,7 +73,7 @@ def test_a_macs_run_with_no_feasible_point_reports_no_front_metrics(tmp_path, mo
     assert max(problem.final_time) ** 2 / 4 < 1.0
     result = solve_macs(problem, MacsSettings(max_evaluations=100, archive_size=5, seed=1))
     assert result.status == "failed" and len(result.front) == 0
-    data = json.loads(result.write_json(tmp_path).read_text())
+    data = json.loads(write_result(result, tmp_path)[0].read_text())
     assert data["status"] == "failed"
     assert data["gd"] is None and data["igd"] is None and data["hv"] is None
     summary = result.summary()

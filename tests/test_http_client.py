@@ -144,7 +144,7 @@ def test_status_follow_prints_the_progress_lines_of_the_jobs_log(server, jobs):
 def test_wait_exits_with_the_runs_exit_status(server, jobs):
     proc = ocpar("wait", jobs["short"], *server.as_alice)
     assert proc.code == EXIT_STATUS["not_converged"] == 1, proc
-    assert " failed " in proc.out and "not_converged" in proc.out
+    assert " failed " in proc.out and "not converged: iteration limit reached" in proc.out
 
 
 def test_jobs_lists_the_callers_jobs_from_the_environment(server, jobs, monkeypatch):

@@ -15,6 +15,7 @@ import numpy as np
 import pytest
 from conftest import run_cli
 
+import ocpar
 from ocpar.bsp import open_backend
 from ocpar.bsp.serial import SerialBackend
 from ocpar.examples.formation_obstacle import make
@@ -116,7 +117,7 @@ def test_the_disc_turns_the_formation_and_hierarchical_equals_monolithic(free, h
     assert segment_distances(free.trajectories, CENTRE_2D).min() < RADIUS - 0.3
     assert segment_distances(result.trajectories, CENTRE_2D).min() <= RADIUS + 1e-9
     fields = result.scheme_fields()
-    assert fields["obstacle_sides"] == result.obstacle_sides
+    assert result.arrays()["obstacle_side"][1][:, 0].tolist() == [-1] * 4 + [1] * 2
     assert fields["min_obstacle_clearance"] == result.obstacle_clearance.distance
 
 
@@ -303,5 +304,8 @@ def test_serial_mpi_and_dask_agree_bit_for_bit(tmp_path, hierarchical):
     assert mpi["status"] == "converged"
     assert mpi["total_cost"] == hierarchical.total_cost
     assert mpi["phi"] == hierarchical.phi.tolist()
-    assert mpi["trajectories"] == hierarchical.trajectories.tolist()
-    assert mpi["obstacle_sides"] == hierarchical.obstacle_sides
+    arrays = ocpar.load(tmp_path).dataset
+    assert arrays["configuration"].values.tolist() == hierarchical.trajectories.tolist()
+    sides = {1: "left", -1: "right", 0: None}
+    assert [[sides[int(s)] for s in row] for row in arrays["obstacle_side"].values] == \
+        hierarchical.obstacle_sides

@@ -15,6 +15,7 @@ import pytest
 from conftest import run_cli
 from test_resident import assert_bitwise, serial_reference
 
+import ocpar
 from ocpar.bsp import open_backend
 from ocpar.bsp.partition import contiguous_blocks
 from ocpar.bsp.resident import (
@@ -27,6 +28,7 @@ from ocpar.examples.formation_mixed_fleet import make
 from ocpar.formation import solve_formation
 from ocpar.formation.hierarchical import OuterObjective
 from ocpar.ocp.endpoint_agents import solve_agents
+from ocpar.result_files import load_trace
 
 AGENTS = 480
 FACTORY = "ocpar.examples.formation_mixed_fleet:make"
@@ -142,10 +144,11 @@ def test_mpirun_blocks_follow_the_costs_and_every_result_is_the_serial_one(seria
     assert data["workers"] == 2
     assert data["total_cost"] == serial_run.total_cost
     assert data["phi"] == serial_run.phi.tolist()
-    assert data["agent_costs"] == serial_run.agent_costs.tolist()
-    assert data["trajectories"] == serial_run.trajectories.tolist()
+    arrays = ocpar.load(tmp_path).dataset
+    assert arrays["cost"].values.tolist() == serial_run.agent_costs.tolist()
+    assert arrays["configuration"].values.tolist() == serial_run.trajectories.tolist()
     assert data["supersteps"] == serial_run.supersteps
-    tasks = [t["worker_tasks"] for t in data["trace"]]
+    tasks = [t["worker_tasks"] for t in load_trace(tmp_path)]
     assert tasks[0] == [240, 240] and any(t[0] < 240 for t in tasks), tasks
 
 

@@ -230,7 +230,7 @@ def test_paper_optimum_reports_its_min_separation(tmp_path):
     assert closest.distance < 0.1 and closest.agents == (58, 59)
     reference = independent_min(problem, result)
     assert closest.distance <= reference <= closest.distance + 1e-3
-    data = json.loads(result.write_json(tmp_path).read_text())
+    data = json.loads(result.write(tmp_path)[0].read_text())
     assert data["min_separation"] == closest.distance and data["closest_pair"] == [58, 59]
     assert 0 < data["closest_time"] < problem.shape.duration
     assert f"min separation {closest.distance:.6g} (agents 58 and 59" in result.summary()

@@ -25,6 +25,7 @@ from conftest import computed, free_port, user_environment
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
+import ocpar
 from ocpar.__main__ import main as ocpar_main
 from ocpar.config import scheme_options
 from ocpar.service.web.app import SERVER_KEYS
@@ -165,6 +166,19 @@ def run_direct(request: dict, out: Path) -> dict:
     return json.loads((out / "result.json").read_text())
 
 
+def assert_bitwise_equal(got, expected) -> None:
+    """Two runs' array files hold the same variables with the same bits (the attributes,
+    which carry run-time figures such as the backend and wall time, are not compared)."""
+    assert sorted(got.variables) == sorted(expected.variables)
+    for name in expected.variables:
+        a, b = got[name].values, expected[name].values
+        assert a.dtype == b.dtype and a.shape == b.shape, name
+        if a.dtype.kind == "O":
+            assert a.tolist() == b.tolist(), name
+        else:
+            assert a.tobytes() == b.tobytes(), name
+
+
 def fetch_result(client: httpx.Client, job_id: str) -> dict:
     response = client.get(f"/jobs/{job_id}/files/result.json")
     assert response.status_code == 200, response.text
@@ -200,6 +214,8 @@ def test_twenty_jobs_from_four_tokens_equal_their_direct_runs(server, tmp_path):
 
     expected = [computed(run_direct(config, tmp_path / f"direct-{k}"))
                 for k, config in enumerate(CONFIGS)]
+    expected_arrays = [ocpar.load(tmp_path / f"direct-{k}").dataset
+                       for k in range(len(CONFIGS))]
     finals = []
     for name, jobs in submitted.items():
         with srv.client(tokens[name]) as client:
@@ -213,8 +229,11 @@ def test_twenty_jobs_from_four_tokens_equal_their_direct_runs(server, tmp_path):
                 result = fetch_result(client, record["id"])
                 assert computed(result) == expected[index], (name, index)
                 assert final["supersteps"] >= result["supersteps"] > 0  # checkpointed ones
-                # TODO(issue 36, A's array file): once runs write result.json's "arrays"
-                # file, compare GET /jobs/{id}/files/<arrays> bytewise with the direct run's.
+                arrays = client.get(f"/jobs/{record['id']}/files/{result['arrays']}")
+                assert arrays.status_code == 200
+                downloaded = tmp_path / f"{record['id']}.nc"
+                downloaded.write_bytes(arrays.content)
+                assert_bitwise_equal(ocpar.load(downloaded).dataset, expected_arrays[index])
                 finals.append((name, final))
                 if index in (0, 4):  # the events of a formation and a pursuit job
                     check_events(client, record["id"], result)

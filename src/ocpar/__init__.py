@@ -18,3 +18,15 @@ for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
     os.environ.setdefault(_var, "1")
 
 __version__ = "0.1.0"
+
+#: ``ocpar.load``, ``ocpar.load_trace``, ``ocpar.Run``: a run's files read back
+#: (:mod:`ocpar.result_files`), imported on first use (``import ocpar`` stays light).
+__all__ = ["Run", "load", "load_trace"]
+
+
+def __getattr__(name: str) -> object:
+    if name in __all__:
+        from ocpar import result_files
+
+        return getattr(result_files, name)
+    raise AttributeError(f"module 'ocpar' has no attribute {name!r}")

@@ -12,8 +12,8 @@ plot). :func:`main` is a scheme's whole command line; :func:`run_scheme` the sam
 The driver checks the options (one line, exit 2), chooses and opens the backend, loads the
 problem (a built-in name, or ``package.module:factory`` checked against the scheme's problem
 type before any worker starts), journals and checkpoints the supersteps, writes
-``result.json`` and the plots, and exits with the status's code
-(:data:`ocpar.results.EXIT_STATUS`).
+``result.json``, the array file and ``trace.json`` (:mod:`ocpar.result_files`) and the
+plots, and exits with the status's code (:data:`ocpar.results.EXIT_STATUS`).
 """
 
 from __future__ import annotations
@@ -37,6 +37,7 @@ from ocpar.cli import (
 )
 from ocpar.options import add_options, option, option_specs, options_from_namespace
 from ocpar.references import REFERENCE, ProblemReferenceError, is_reference, load_problem
+from ocpar.result_files import write_result
 from ocpar.results import RunResult
 
 PROBLEM_GROUP = "problem"
@@ -173,7 +174,7 @@ def run_scheme(options: SchemeRun, given: frozenset[str] | None = None) -> int:
         return 0
     print(result.summary(), flush=True)
     if out is not None:
-        written = [result.write_json(out), *options.plot(problem, result, out)]
+        written = [*write_result(result, out), *options.plot(problem, result, out)]
         print("wrote " + ", ".join(str(p) for p in written), flush=True)
     return result.exit_status
 

@@ -88,12 +88,17 @@ class OptionSpec:
         return value
 
     def _range(self) -> str:
-        what = "an integer" if self.kind == "integer" else "a number"
+        integer = self.kind == "integer"
+        what = "an integer" if integer else "a number"
+
+        def text(bound: float) -> str:   # an integer in full: 10000000, not 1e+07
+            return str(int(bound)) if integer else f"{bound:g}"
+
         if self.low is not None and self.high is not None:
-            return f"{what} between {self.low:g} and {self.high:g}"
+            return f"{what} between {text(self.low)} and {text(self.high)}"
         if self.low is not None:
-            return f"{what} of at least {self.low:g}"
-        return f"{what} of at most {self.high:g}"
+            return f"{what} of at least {text(self.low)}"
+        return f"{what} of at most {text(self.high)}"
 
     def parse(self, text: str) -> Any:
         """The option's value from command-line ``text`` (ValueError if it is not one)."""

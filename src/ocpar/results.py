@@ -21,19 +21,48 @@ Statuses (the same words in every scheme):
 Unless the status is ``converged``, a result reports none of its scheme's headline figures
 (:attr:`RunResult.headline_fields`: null in ``result.json``, "not reached" in the summary), and
 its plots' titles say its status and why (:meth:`RunResult.title`).
+
+A result is written as three files (:mod:`ocpar.result_files`): ``result.json`` the summary
+(:meth:`RunResult.to_dict`), ``result.nc`` its arrays (:meth:`RunResult.dataset`: trajectories
+and per-agent data, named dimensions, units) and ``trace.json`` the per-superstep trace.
 """
 
 from __future__ import annotations
 
-import gc
-import json
-from collections.abc import Iterator
-from contextlib import contextmanager
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import ClassVar
+from typing import TYPE_CHECKING, Any, ClassVar
+
+import numpy as np
 
 from ocpar.bsp import SuperstepTrace
+
+if TYPE_CHECKING:
+    import xarray as xr
+
+#: One variable of a result's Dataset: (dimension names, values, attributes: ``units``,
+#: ``long_name``), as :class:`xarray.Dataset` takes it (:func:`array`).
+Array = tuple[tuple[str, ...], np.ndarray, dict[str, Any]]
+
+
+def array(dims: str, values: Any, units: str, long_name: str, **attrs: Any) -> Array:
+    """A Dataset variable: ``dims`` space-separated dimension names ('' for a scalar),
+    ``values`` an array of that many axes, its ``units`` ('1' dimensionless; a problem's own
+    units are named by what they measure, e.g. 'length', 'time', 'force') and ``long_name``;
+    ``attrs`` more attributes (netCDF values: strings, numbers, lists of them)."""
+    return (tuple(dims.split()), np.asarray(values),
+            {"units": units, "long_name": long_name, **attrs})
+
+
+def categories(values: Sequence[str]) -> tuple[np.ndarray, list[str]]:
+    """Strings ``values`` (n) as codes (n,) int16 into their distinct values (in order of first
+    appearance): one pass, O(n) (per-agent solver statuses: a few distinct strings)."""
+    index: dict[str, int] = {}
+    codes = np.fromiter((index.setdefault(v, len(index)) for v in values), np.int16,
+                        count=len(values))
+    return codes, list(index)
+
 
 #: Exit status of a run by its status (2 is bad usage, before anything runs).
 EXIT_STATUS = {"converged": 0, "not_converged": 1, "failed": 3, "cancelled": 4,
@@ -46,7 +75,8 @@ class RunResult:
     """The fields every scheme's result has. ``inner_solves``: inner problems solved (MACS:
     objective evaluations, each a DFET solve); ``failed_solves`` those that failed for good;
     ``retries`` extra attempts made; ``wall_time_s`` the run's wall time (s); ``trace`` one
-    record per superstep. A scheme's result adds its own fields (:meth:`scheme_fields`)."""
+    record per superstep. A scheme's result adds its own fields (:meth:`scheme_fields`, the
+    summary's) and arrays (:meth:`arrays`, the array file's)."""
 
     scheme: ClassVar[str]
     #: The scheme's headline figures, keys of ``result.json``: written as null unless the
@@ -109,42 +139,43 @@ class RunResult:
         """The scheme's own fields of ``result.json`` (JSON values)."""
         raise NotImplementedError
 
+    def arrays(self) -> dict[str, Array]:  # pragma: no cover - provided by each scheme
+        """The scheme's arrays (trajectories, per-agent data) by name (:func:`array`); a
+        variable named like a dimension is its coordinate."""
+        raise NotImplementedError
+
+    def file_attributes(self) -> dict[str, str]:
+        """The array file's attributes: ``scheme``, ``problem``, ``status``, ``title``
+        (:meth:`title`) and ``message``."""
+        return {"scheme": self.scheme, "problem": self.problem, "status": self.status,
+                "title": self.title(), "message": self.message}
+
+    def dataset(self) -> xr.Dataset:
+        """:meth:`arrays` as an :class:`xarray.Dataset` with :meth:`file_attributes` (what
+        :func:`ocpar.load` reads back from the array file)."""
+        import xarray as xr  # (not imported by a run: the array file is written without it)
+
+        return xr.Dataset(self.arrays(), attrs=self.file_attributes())
+
+    def write(self, directory: str | Path) -> list[Path]:
+        """Write this result into ``directory`` as ``result.json``, ``result.nc`` and
+        ``trace.json`` (:func:`ocpar.result_files.write_result`); returns their paths."""
+        from ocpar.result_files import write_result  # (it imports this module)
+
+        return write_result(self, directory)
+
     def to_dict(self) -> dict:
-        """The ``result.json`` contract: the common fields, then the scheme's own (its
-        :meth:`headline_keys` null unless the status is ``converged``)."""
+        """The ``result.json`` summary: the common fields, ``title`` (:meth:`title`), then
+        the scheme's own (its :meth:`headline_keys` null unless the status is ``converged``).
+        The trace and the arrays are files of their own (:mod:`ocpar.result_files`)."""
         fields = self.scheme_fields()
         if self.status != "converged":   # (a scheme may give ``converged`` its own meaning)
             fields |= {key: None for key in self.headline_keys() if key in fields}
         return {
             "scheme": self.scheme, "problem": self.problem, "backend": self.backend,
             "workers": self.workers, "status": self.status, "message": self.message,
+            "title": self.title(),
             "supersteps": self.supersteps, "inner_solves": self.inner_solves,
             "failed_solves": self.failed_solves, "retries": self.retries,
             "wall_time_s": self.wall_time_s, **fields,
-            "trace": [t.to_dict() for t in self.trace],
         }
-
-    def write_json(self, path: Path) -> Path:
-        """Write :meth:`to_dict` as JSON to ``path`` (a file, or a directory → result.json),
-        with the cyclic garbage collector paused (:func:`_collector_paused`)."""
-        path = Path(path)
-        if path.is_dir():
-            path = path / "result.json"
-        with _collector_paused():
-            text = json.dumps(self.to_dict())
-        path.write_text(text)
-        return path
-
-
-@contextmanager
-def _collector_paused() -> Iterator[None]:
-    """Pause Python's cyclic garbage collector (if it runs) for the block: building the nested
-    lists of 100,000 agents' paths (1.1 million lists, none of them in a cycle) otherwise
-    triggers its collections again and again (measured: 0.64 s against 0.12 s)."""
-    enabled = gc.isenabled()
-    gc.disable()
-    try:
-        yield
-    finally:
-        if enabled:
-            gc.enable()

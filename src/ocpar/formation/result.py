@@ -11,8 +11,47 @@ import numpy as np
 from ocpar.formation.couplings.potential import equidistance_error
 from ocpar.formation.keep_out.obstacles import Clearance
 from ocpar.formation.keep_out.separation import ClosestApproach
+from ocpar.formation.problem import FormationProblem
 from ocpar.formation.verify import Verification
-from ocpar.results import RunResult
+from ocpar.results import Array, RunResult, array, categories
+
+#: Names of the position entries in the array file's ``q_component`` labels (others: q<i>).
+AXES = ("x", "y", "z")
+
+
+@dataclass
+class Fleet:
+    """What the array file says of the problem's agents: ``duration`` T (common to the
+    fleet); ``position_indices`` the configuration's position entries;
+    ``targets`` (n, d) the target points z(φ) at the returned φ (NaN where φ is not finite);
+    ``model`` (n,) each agent's index into ``model_names`` (the models' class names, in order
+    of first use); ``mass`` (n,) each agent's model's ``mass`` (NaN for a model without
+    one)."""
+
+    duration: float
+    position_indices: tuple[int, ...]
+    targets: np.ndarray
+    model: np.ndarray
+    model_names: list[str]
+    mass: np.ndarray
+
+    @classmethod
+    def of(cls, problem: FormationProblem, phi: np.ndarray) -> Fleet:
+        """``problem``'s fleet at the returned parameters ``phi``: O(n), vectorised."""
+        n, shape = problem.agents, problem.common_shape
+        targets = np.full((n, problem.curve.dim), np.nan)
+        phi = np.reshape(phi, problem.parameter_shape)
+        finite = np.all(np.isfinite(phi.reshape(n, -1)), axis=1)
+        if np.any(finite):
+            targets[finite] = problem.final_positions(phi[finite])
+        model, mass, names = np.zeros(n, np.int16), np.empty(n), []
+        for shape_i, agents in problem.agents_by_shape().items():
+            name = type(shape_i.model).__name__
+            if name not in names:
+                names.append(name)
+            model[agents] = names.index(name)
+            mass[agents] = float(getattr(shape_i.model, "mass", math.nan))
+        return cls(shape.duration, problem.position_indices, targets, model, names, mass)
 
 
 @dataclass
@@ -44,14 +83,16 @@ class FormationResult(RunResult):
     ``continuous`` on a circle (a common rotation), ``discrete`` elsewhere (the potential's
     isolated critical points), with ``critical_sets`` the candidates searched by
     ``--ordering optimal`` (:meth:`~ocpar.formation.couplings.critical_sets.CriticalSet.to_dict`,
-    cheapest first; None when none were).
+    cheapest first; None when none were); ``fleet`` (:class:`Fleet`) and per agent the inner
+    solver's ``solver_status`` and ``solver_iterations`` (n,) of its last solve at the
+    returned φ (with a required separation: of the solve before the rounds; a monolithic
+    run: the one NLP's) for the array file (:meth:`arrays`).
     The common fields are :class:`ocpar.results.RunResult`'s.
     """
 
     scheme: ClassVar[str] = "formation"
     #: Null in ``result.json`` unless converged (with the cost parts, :meth:`headline_keys`).
-    headline_fields: ClassVar[tuple[str, ...]] = ("total_cost", "agent_costs",
-                                                  "unconstrained_cost")
+    headline_fields: ClassVar[tuple[str, ...]] = ("total_cost", "unconstrained_cost")
 
     agents: int
     mode: str
@@ -73,6 +114,9 @@ class FormationResult(RunResult):
     feasible_set: str = "continuous"
     critical_sets: list[dict] | None = None
     verification: Verification | None = None
+    fleet: Fleet | None = None
+    solver_status: list[str] | None = None
+    solver_iterations: np.ndarray | None = None
 
     def headline_keys(self) -> tuple[str, ...]:
         """:attr:`headline_fields` and the cost parts' keys."""
@@ -95,7 +139,8 @@ class FormationResult(RunResult):
         return equidistance_error(self.phi) if self.on_circle else math.nan
 
     def scheme_fields(self) -> dict:
-        """Formation's fields of ``result.json`` (per-agent costs, final angles, paths)."""
+        """Formation's fields of ``result.json`` (the figures and the final angles; the
+        paths and per-agent data are in the array file, :meth:`arrays`)."""
         return {
             "agents": self.agents,
             "mode": self.mode,
@@ -112,14 +157,85 @@ class FormationResult(RunResult):
             "required_separation": self.required_separation,
             "separation_rounds": self.separation_rounds,
             "unconstrained_cost": _finite_or_none(self.unconstrained_cost),
-            "agent_costs": [_finite_or_none(c) for c in self.agent_costs],
-            "peak_thrust": [_finite_or_none(t) for t in self.peak_thrust],
             **self._obstacle_fields(),
             "feasible_set": self.feasible_set,
             "critical_sets": self.critical_sets,
             **self._verification_fields(),
-            "trajectories": np.asarray(self.trajectories, float).tolist(),
         }
+
+    def arrays(self) -> dict[str, Array]:
+        """The array file's variables (:meth:`~ocpar.results.RunResult.dataset`): on the
+        dimensions agent, node (N+1), interval (N), q_component (labelled x, y, z for the
+        position entries, q<i> for the others), u_component, axis (d): ``time`` of the nodes,
+        ``interval_time`` (midpoints), ``configuration`` (the node paths),
+        ``velocity`` (q_{k+1} − q_k)/h on each interval (DMOC's path is linear between nodes:
+        one velocity per interval; the boundary ones are the problem's data), ``control``,
+        ``cost``, ``peak_thrust``, ``phi``, ``target`` z(φ), ``model`` (an index into
+        ``model_name``), ``mass``, ``solver_status`` (an index into ``solver_status_name``),
+        ``solver_iterations``, ``constraint_violation`` and, with obstacles,
+        ``obstacle_side``. Units: the problem's own (length, time, force, cost)."""
+        q = np.asarray(self.trajectories, float)
+        n, nodes, nq = q.shape
+        fleet = self.fleet
+        duration = math.nan if fleet is None else fleet.duration
+        h = duration / (nodes - 1)
+        positions = () if fleet is None else fleet.position_indices
+        labels = [AXES[positions.index(i)] if i in positions and len(positions) <= 3
+                  else f"q{i}" for i in range(nq)]
+        out = {
+            "agent": array("agent", np.arange(n), "1", "agent index"),
+            "q_component": array("q_component", np.array(labels, dtype=object), "1",
+                                 "configuration entry (x, y, z: the position)"),
+            "time": array("node", np.linspace(0.0, duration, nodes), "time", "node time t_k"),
+            "interval_time": array("interval", (np.arange(nodes - 1) + 0.5) * h, "time",
+                                   "midpoint time of each interval"),
+            "configuration": array("agent node q_component", q, "length",
+                                   "configuration q_k at the nodes (the DMOC node path)"),
+            "velocity": array("agent interval q_component", np.diff(q, axis=1) / h,
+                              "length/time", "velocity (q_{k+1} - q_k)/h on each interval"),
+            "cost": array("agent", np.asarray(self.agent_costs, float), "cost",
+                          "inner optimal cost J_i"),
+            "phi": array("agent" if np.ndim(self.phi) == 1 else "agent parameter",
+                         np.asarray(self.phi, float), "rad" if self.on_circle else "1",
+                         "final parameter on the target (angle on a curve, slot index, "
+                         "surface parameters)"),
+        }
+        if self.controls is not None:
+            out["control"] = array("agent interval u_component",
+                                   np.asarray(self.controls, float), "force",
+                                   "control u_k on each interval (constant on it)")
+            out["peak_thrust"] = array("agent", self.peak_thrust, "force",
+                                       "max_k |u_k|")
+        if fleet is not None:
+            out |= {
+                "target": array("agent axis", fleet.targets, "length",
+                                "target point z(phi) at the returned parameters"),
+                "model": array("agent", fleet.model, "1", "index into model_name"),
+                "model_name": array("models", np.array(fleet.model_names, dtype=object), "1",
+                                    "the agents' model classes"),
+                "mass": array("agent", fleet.mass, "mass",
+                              "the agent's model's mass (NaN: a model without one)"),
+            }
+        if self.solver_status is not None:
+            codes, names = categories(self.solver_status)
+            out |= {
+                "solver_status": array("agent", codes, "1",
+                                       "index into solver_status_name: the inner solver's "
+                                       "return status"),
+                "solver_status_name": array("status", np.array(names, dtype=object), "1",
+                                            "inner solver return statuses"),
+                "solver_iterations": array("agent", np.asarray(self.solver_iterations,
+                                                               np.int32), "1",
+                                           "inner solver iterations"),
+            }
+        if self.verification is not None:
+            out["constraint_violation"] = array(
+                "agent", self.verification.agent_violation, "1",
+                "largest relative residual of the agent's boundary, momentum, control-bound "
+                "and path-constraint checks (ocpar.formation.verify)")
+        if self.obstacle_sides is not None:
+            out["obstacle_side"] = _obstacle_sides(self.obstacle_sides, positions)
+        return out
 
     def _verification_fields(self) -> dict:
         """``verification`` (:meth:`~ocpar.formation.verify.Verification.to_dict`) and
@@ -130,16 +246,15 @@ class FormationResult(RunResult):
         return {"verification": v.to_dict(), "near_collision": v.near_collision}
 
     def _obstacle_fields(self) -> dict:
-        """``min_obstacle_clearance`` and where it occurs, ``obstacle_sides`` (none without
-        obstacles)."""
+        """``min_obstacle_clearance`` and where it occurs (none without obstacles; the sides
+        are in the array file)."""
         c = self.obstacle_clearance
         if c is None:
             return {}
         return {"min_obstacle_clearance": _finite_or_none(c.distance),
                 "obstacle_agent": c.agent if c.agent >= 0 else None,
                 "obstacle_index": c.obstacle if c.obstacle >= 0 else None,
-                "obstacle_time": _finite_or_none(c.time),
-                "obstacle_sides": self.obstacle_sides}
+                "obstacle_time": _finite_or_none(c.time)}
 
     def _required_summary(self) -> str:
         """The summary's words on a required separation ('' without one)."""
@@ -182,6 +297,27 @@ class FormationResult(RunResult):
             f"wall time {self.wall_time_s:.2f} s on {self.workers} {self.backend} worker(s), "
             f"mode {self.mode}"
         )
+
+
+def _obstacle_sides(sides: list[list[str | list[float] | None]],
+                    positions: tuple[int, ...]) -> Array:
+    """``obstacle_sides`` (per agent, per obstacle) as an array: in 2-D (agent, obstacle)
+    +1 left, −1 right, 0 none (a half-space, a failed path); else (agent, obstacle, axis) the
+    unit vector from the centre to the closest point, NaN for none."""
+    n, m = len(sides), len(sides[0]) if sides else 0
+    if len(positions) == 2:
+        codes = {"left": 1, "right": -1, None: 0}
+        values = np.array([[codes[s] for s in row] for row in sides], np.int8).reshape(n, m)
+        return array("agent obstacle", values, "1", "side the agent passes each obstacle on",
+                     flag_values=[1, -1, 0], flag_meanings="left right none")
+    values = np.full((n, m, len(positions)), np.nan)
+    for i, row in enumerate(sides):
+        for j, side in enumerate(row):
+            if side is not None:
+                values[i, j] = side
+    return array("agent obstacle axis", values, "1",
+                 "unit vector from the obstacle's centre to the agent's closest point "
+                 "(scaled space); NaN: none")
 
 
 def _finite_or_none(x: float) -> float | None:

@@ -20,8 +20,10 @@ from ocpar.references import is_reference
 
 #: The scheme's public problem type: what a ``--problem package.module:factory`` returns.
 PROBLEM_TYPE = FormationProblem
-#: Most agents a built-in example may be given (the paper's examples have 60 and 30).
-MAX_AGENTS = 100_000
+#: Most agents a built-in example may be given (the paper's examples have 60 and 30; 1,000,000
+#: point masses run on ``mpirun -n 2``, docs/results.md; the bound keeps a typo from asking for
+#: more memory than a machine has).
+MAX_AGENTS = 10_000_000
 #: Most agents for ``--ordering optimal``, which fills n × n tables of inner solves.
 MAX_OPTIMAL_ORDERING_AGENTS = 1_000
 #: ``--radius`` must lie within this factor of the example's default radius (its length scale).

@@ -33,7 +33,7 @@ from ocpar.formation.keep_out.separation import check_separation_feasible
 from ocpar.formation.monolithic import solve_monolithic
 from ocpar.formation.ordering import ORDERINGS, optimal_ordering
 from ocpar.formation.problem import FormationProblem
-from ocpar.formation.result import FormationResult
+from ocpar.formation.result import Fleet, FormationResult
 from ocpar.formation.slot_assignment import SlotChoice, assign_slots
 from ocpar.formation.targets.slots import SLOT_CANDIDATES, Slots
 from ocpar.formation.targets.surface import Surface
@@ -408,7 +408,8 @@ def solve_formation(
             outer_iterations=-1, inner_solves=0, failed_solves=0,
             wall_time_s=time.perf_counter() - start,
             separation=problem.closest_approach(np.full((n, 2, shape.model.nq), np.nan)),
-            trace=backend.traces[first_trace:])
+            trace=backend.traces[first_trace:],
+            fleet=Fleet.of(problem, np.full(problem.parameter_shape, np.nan)))
     discrete = discrete_choice(problem, choice, phi0)
     note = discrete.pop("note")
 
@@ -444,6 +445,9 @@ def solve_formation(
             coupling_residual=verification.coupling_residual,
             controls=sol.controls,
             verification=verification,
+            fleet=Fleet.of(problem, sol.phi),
+            solver_status=[sol.status] * problem.agents,
+            solver_iterations=np.full(problem.agents, sol.iterations),
             **discrete,
             **obstacle_fields,
         )
@@ -514,6 +518,9 @@ def solve_formation(
         coupling_residual=verification.coupling_residual,
         controls=controls,
         verification=verification,
+        fleet=Fleet.of(problem, phi),
+        solver_status=sols.column("status"),
+        solver_iterations=np.asarray(sols.column("iterations")),
         **discrete,
         **extra,
     )

@@ -143,7 +143,9 @@ class Verification:
     any two agents; ``spacing`` the smallest distance between two target points (length
     unit; inf with one agent); ``obstacle_clearance`` (None without obstacles);
     ``near_collision`` (None, or where and how close, :data:`NEAR_COLLISION_FRACTION`);
-    ``time_s`` how long the checks took (s)."""
+    ``time_s`` how long the checks took (s); ``agent_violation`` (n,) per agent the largest
+    relative residual of its own checks (start, attitude, momentum, control bounds, path
+    constraints; NaN for a path that is not finite)."""
 
     checks: dict[str, Check]
     parameters: np.ndarray
@@ -153,6 +155,7 @@ class Verification:
     obstacle_clearance: Clearance | None
     near_collision: dict | None
     time_s: float
+    agent_violation: np.ndarray
 
     @property
     def passed(self) -> bool:
@@ -279,10 +282,10 @@ def _momentum_residuals(shape: DmocShape, q: np.ndarray, u: np.ndarray, v0: np.n
     return np.maximum(*residuals)
 
 
-def _constraint_checks(problem: FormationProblem, q: np.ndarray, u: np.ndarray
-                       ) -> dict[str, Check]:
+def _constraint_checks(problem: FormationProblem, q: np.ndarray, u: np.ndarray,
+                       violation: np.ndarray) -> dict[str, Check]:
     """``control_bounds`` and ``path_constraints`` checks of each agent's shape, where any
-    agent has them (module docstring)."""
+    agent has them (module docstring); raises ``violation`` (n,) to each agent's worst."""
     bounds, path = [], []
     for shape, agents in problem.agents_by_shape().items():
         qs, us = q[agents], u[agents]
@@ -292,7 +295,9 @@ def _constraint_checks(problem: FormationProblem, q: np.ndarray, u: np.ndarray
             gap = np.maximum(np.maximum(lo - us, us - hi), 0.0)
             scale = np.maximum(1.0, np.where(np.isfinite([lo, hi]), np.abs([lo, hi]), 0.0)
                                .max(axis=0))
-            bounds.append(_worst(np.max(gap / scale, axis=(1, 2)), CONSTRAINT_RTOL, agents))
+            worst = np.max(gap / scale, axis=(1, 2))
+            violation[agents] = np.maximum(violation[agents], worst)
+            bounds.append(_worst(worst, CONSTRAINT_RTOL, agents))
         for constraint in shape.path_constraints:
             if constraint.depends_on("v", "u"):
                 values = {"q": (qs[:, :-1] + qs[:, 1:]) / 2, "v": (qs[:, 1:] - qs[:, :-1]) / h,
@@ -302,8 +307,10 @@ def _constraint_checks(problem: FormationProblem, q: np.ndarray, u: np.ndarray
             values = {k: v.reshape(-1, v.shape[-1]) for k, v in values.items()}
             finite = [abs(b) for b in constraint.lower + constraint.upper if math.isfinite(b)]
             gap = constraint.violation(values).reshape(m, -1) / max([1.0, *finite])
-            path.append(_worst(np.max(gap, axis=1) if gap.size else np.zeros(m),
-                               CONSTRAINT_RTOL, agents, f"path constraint {constraint.name!r}"))
+            worst = np.max(gap, axis=1) if gap.size else np.zeros(m)
+            violation[agents] = np.maximum(violation[agents], worst)
+            path.append(_worst(worst, CONSTRAINT_RTOL, agents,
+                               f"path constraint {constraint.name!r}"))
     # per name the worst over shapes and constraints: a failed one first, NaN first
     return {name: max(found, key=lambda c: (not c.passed, math.inf if math.isnan(c.value)
                                             else c.value))
@@ -361,18 +368,21 @@ def verify_formation(problem: FormationProblem, trajectories: np.ndarray,
     else:
         checks["coupling"] = Check(residual, -1, COUPLING_TOL)
 
-    checks["start"] = _worst(_relative(q[:, 0] - problem.starts, problem.starts),
-                             BOUNDARY_RTOL)
+    violation = _relative(q[:, 0] - problem.starts, problem.starts)
+    checks["start"] = _worst(violation, BOUNDARY_RTOL)
     if len(problem.final_attitude):
-        checks["attitude"] = _worst(_relative(q[:, -1, d:] - problem.final_attitude,
-                                              problem.final_attitude[None]), BOUNDARY_RTOL)
+        attitude = _relative(q[:, -1, d:] - problem.final_attitude,
+                             problem.final_attitude[None])
+        violation = np.maximum(violation, attitude)
+        checks["attitude"] = _worst(attitude, BOUNDARY_RTOL)
     momentum = np.empty(n)
     for shape, agents in problem.agents_by_shape().items():
         momentum[agents] = _momentum_residuals(shape, q[agents], u[agents],
                                                problem.start_velocities[agents],
                                                problem.final_velocities(agents))
     checks["momentum"] = _worst(momentum, MOMENTUM_RTOL)
-    checks |= _constraint_checks(problem, q, u)
+    violation = np.maximum(violation, momentum)
+    checks |= _constraint_checks(problem, q, u, violation)
 
     clearance = None
     if problem.obstacles:
@@ -401,7 +411,7 @@ def verify_formation(problem: FormationProblem, trajectories: np.ndarray,
                         f"formation's spacing (the smallest distance between two target "
                         f"points)"}
     return Verification(checks, located, residual, closest, spacing, clearance, near,
-                        time.perf_counter() - start)
+                        time.perf_counter() - start, violation)
 
 
 def near_collision_words(near: dict) -> str:

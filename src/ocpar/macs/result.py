@@ -8,7 +8,7 @@ from typing import ClassVar
 import numpy as np
 
 from ocpar.macs.local_search import STATIONARITY_TOL
-from ocpar.results import RunResult
+from ocpar.results import Array, RunResult, array
 
 
 def finite_or_none(values: np.ndarray) -> list[float | None]:
@@ -26,6 +26,8 @@ class MacsResult(RunResult):
     ideal and nadir; None when the problem has no reference front); ``hv`` the hypervolume
     normalised by the reference front, or without one by the final front itself (None if that
     has no extent); ``decisions`` the members' decision vectors (controls and t_f);
+    ``states`` (k, N, l+1, nx) each member's DFET state nodes per element at
+    ``state_times`` (k, N, l+1) (its trajectory, in the array file only);
     ``objective_names`` m labels; ``reference_front`` the problem's (not written to JSON).
     After the final refinement (else None): per member whether its refinement was kept
     (``refined``, k), whether its point is one a neighbour's start reached (``moved``, k) and
@@ -46,6 +48,8 @@ class MacsResult(RunResult):
     front: np.ndarray
     front_transcribed: np.ndarray
     decisions: np.ndarray
+    states: np.ndarray
+    state_times: np.ndarray
     evaluations: int
     iterations: int
     failed_searches: int
@@ -74,7 +78,8 @@ class MacsResult(RunResult):
         self.failed_solves = self.failed_searches
 
     def scheme_fields(self) -> dict:
-        """MACS's fields of ``result.json``: the front, its quality, the decisions."""
+        """MACS's fields of ``result.json``: the front and its quality (the decisions and
+        trajectories are in the array file, :meth:`arrays`)."""
         return {
             "seed": self.seed,
             "objectives": self.objective_names,
@@ -87,7 +92,6 @@ class MacsResult(RunResult):
             "igd": self.igd,
             "hv": self.hv,
             "settings": self.settings,
-            "decisions": np.asarray(self.decisions).tolist(),
             "history": self.history,
             "refinement": None if self.stationarity is None else {
                 "evaluations": self.refinement_evaluations,
@@ -101,6 +105,50 @@ class MacsResult(RunResult):
                 "tradeoff": [finite_or_none(w) for w in self.tradeoff],
             },
         }
+
+    def arrays(self) -> dict[str, Array]:
+        """The array file's variables, per archive member (sorted by J1): ``objective``
+        (objective) the names; ``front`` (member, objective) re-simulated and
+        ``front_transcribed`` the DFET's; ``decision`` (member, decision) the decision vector
+        (control nodes, then t_f); ``state`` (member, element, state_node, state_component)
+        the DFET trajectory at ``state_time`` (member, element, state_node); after the final
+        refinement ``refined``, ``moved``, ``settled``, ``converged`` (int8 flags),
+        ``improvement``, ``stationarity`` and ``tradeoff`` (member, objective). Units: the
+        problem's own."""
+        k, m = len(self.front), len(self.objective_names)
+        out = {
+            "objective": array("objective", np.array(self.objective_names, dtype=object), "1",
+                               "objective names"),
+            "front": array("member objective", np.reshape(self.front, (k, m)), "1",
+                           "objectives re-simulated from each member's control law"),
+            "front_transcribed": array("member objective",
+                                       np.reshape(self.front_transcribed, (k, m)), "1",
+                                       "objectives on the DFET transcription"),
+            "decision": array("member decision", np.asarray(self.decisions), "1",
+                              "decision vector: control nodes, then t_f"),
+            "state": array("member element state_node state_component", self.states,
+                           "state", "DFET state nodes (the member's trajectory)"),
+            "state_time": array("member element state_node", self.state_times, "time",
+                                "time of each state node"),
+        }
+        if self.stationarity is not None:
+            flags = {"refined": "its refinement was kept",
+                     "moved": "its point is one a neighbour's start reached",
+                     "settled": "no start of its last check beat it by more than the tolerance",
+                     "converged": "settled and Pareto-stationary within the tolerance"}
+            out |= {name: array("member", np.asarray(getattr(self, name), np.int8), "1",
+                                f"1: {words}") for name, words in flags.items()}
+            out |= {
+                "improvement": array("member", np.asarray(self.improvement, float), "1",
+                                     "sum_i dJ_i/s_i by which the point dominates its own "
+                                     "start's (units of the archive's span)"),
+                "stationarity": array("member", np.asarray(self.stationarity, float), "1",
+                                      "Pareto-stationarity residual",
+                                      tolerance=STATIONARITY_TOL),
+                "tradeoff": array("member objective", np.reshape(self.tradeoff, (k, m)), "1",
+                                  "trade-off weights"),
+            }
+        return out
 
     @property
     def converged(self) -> np.ndarray | None:

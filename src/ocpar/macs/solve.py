@@ -92,7 +92,13 @@ def solve_macs(
         message="" if len(front) else failure_message(outcome),
         front=front,
         front_transcribed=np.array([mb.objectives for mb in members]).reshape(-1, m),
-        decisions=np.array([mb.z[dfet.decision_slice] for mb in members]),
+        decisions=np.array([mb.z[dfet.decision_slice] for mb in members]).reshape(
+            -1, dfet.nz - dfet.decision_slice.start),
+        states=np.array([dfet.state_nodes_of(mb.z) for mb in members]).reshape(
+            -1, dfet.n, problem.shape.order + 1, dfet.nx),
+        state_times=((np.arange(dfet.n)[None, :, None] + (dfet.state_nodes + 1) / 2)
+                     * np.array([dfet.final_time(mb.z) for mb in members]).reshape(-1, 1, 1)
+                     / dfet.n),
         evaluations=outcome.evaluations,
         iterations=outcome.iterations,
         failed_searches=outcome.failed_searches,

@@ -7,7 +7,7 @@ from typing import ClassVar
 
 import numpy as np
 
-from ocpar.results import RunResult
+from ocpar.results import Array, RunResult, array
 
 
 @dataclass
@@ -33,7 +33,7 @@ class PursuitResult(RunResult):
     is at least as good); the train's own figures are kept beside it (``train_headline``,
     ``train_cost``, ``train_remaining`` and ``train_remaining_method``; its agents are
     ``agents``), with ``windows`` the (N_Δ, N_δ) it ran with, widened after each stall.
-    Times in s.
+    ``time`` (N,) the sample times t_j (the model's time unit). Wall times in s.
     """
 
     scheme: ClassVar[str] = "pursuit"
@@ -59,6 +59,7 @@ class PursuitResult(RunResult):
     x: np.ndarray
     u: np.ndarray
     initial_x: np.ndarray
+    time: np.ndarray
     headlines: list[float] = field(default_factory=list)
     reference_headline: float | None = None
     reference_x: np.ndarray | None = None
@@ -100,9 +101,10 @@ class PursuitResult(RunResult):
         return (self.headline_key, self.cost_key)
 
     def scheme_fields(self) -> dict:
-        """Pursuit's fields of ``result.json``, with trajectories and per-agent headlines. Keys
+        """Pursuit's fields of ``result.json`` (the trajectories and the per-agent headlines
+        are in the array file, :meth:`arrays`). Keys
         named by the problem: ``headline`` gives the headline's key (e.g. ``final_mass_kg``),
-        which also prefixes ``reference_ms_`` and suffixes ``_per_agent``; the cost's key (e.g.
+        which also prefixes ``reference_ms_``; the cost's key (e.g.
         ``fuel_kg``); ``rk_`` + each check's key."""
         key = self.headline_key
         return {
@@ -138,10 +140,35 @@ class PursuitResult(RunResult):
             f"train_remaining_{key}": finite_or_none(self.train_remaining),
             "train_remaining_method": self.train_remaining_method,
             "windows": [list(w) for w in self.windows],
-            f"{key}_per_agent": self.headlines,
-            "states": np.asarray(self.x).tolist(),
-            "controls": np.asarray(self.u).tolist(),
         }
+
+    def arrays(self) -> dict[str, Array]:
+        """The array file's variables: ``time`` (sample, N) the sample times; ``state``
+        (sample, state_component) the returned trajectory; ``control`` (interval,
+        control_component) its controls, u_j on [t_j, t_{j+1}] (``interval_time`` t_j);
+        ``initial_state`` agent 0's trajectory; ``reference_state`` the full-horizon MS
+        solution's (when solved); ``agent_headline`` (agent) the headline of each of the
+        finest level's finished agents, agent 0 first (a cost-headline problem: its cost).
+        Units: the model's own (time, state, control)."""
+        x, u = np.asarray(self.x, float), np.asarray(self.u, float)
+        unit = self.headline_unit or "1"
+        out = {
+            "time": array("sample", self.time, "time", "sample time t_j"),
+            "interval_time": array("interval", self.time[:-1], "time",
+                                   "start time t_j of each control interval"),
+            "state": array("sample state_component", x, "state", "returned trajectory x(t_j)"),
+            "control": array("interval control_component", u, "control",
+                             "returned control u_j (on [t_j, t_{j+1}])"),
+            "initial_state": array("sample state_component", self.initial_x, "state",
+                                   "agent 0's trajectory"),
+            "agent_headline": array("agent", np.asarray(self.headlines, float), unit,
+                                    f"{self.headline_name} of each finished agent "
+                                    "(finest level)"),
+        }
+        if self.reference_x is not None:
+            out["reference_state"] = array("sample state_component", self.reference_x,
+                                           "state", "full-horizon MS solution's trajectory")
+        return out
 
     def summary(self) -> str:
         unit = f" {self.headline_unit}" if self.headline_unit else ""

@@ -115,6 +115,7 @@ def solve_pursuit(
         constraint_violation=violation,
         rk_terminal_error=check.terminal_error, rk_checks=check.values,
         wall_time_s=wall, x=x, u=u, initial_x=initial_x, headlines=headlines,
+        time=problem.grid,
         reference_headline=reference_headline, reference_x=reference_x, trace=trace,
         stop_reason=stop_reason, estimated_remaining=remaining,
         remaining_method=remaining_method, certificate_headline=certificate,

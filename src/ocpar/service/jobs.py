@@ -41,7 +41,7 @@ JOBS_DIR_ENV = "OCPAR_JOBS_DIR"
 #: A job's id: its scheme, the submission time and 6 random hex digits.
 JOB_ID = re.compile(r"(?:formation|pursuit|macs)-[0-9]{8}-[0-9]{6}-[0-9a-f]{6}", re.ASCII)
 #: Files of a finished job that ``ocpar result`` fetches (from ``output/``).
-RESULT_SUFFIXES = (".json", ".png")
+RESULT_SUFFIXES = (".json", ".nc", ".png")
 
 
 #: Exit statuses of a run that ended with its result.json (every status but cancelled).

@@ -1,0 +1,159 @@
+"""A run's result as files, and :func:`load` to read them back.
+
+Every run with an output directory writes three files there (:func:`write_result`):
+
+* ``result.json``: the summary (:meth:`~ocpar.results.RunResult.to_dict`: the common fields,
+  ``title``, the scheme's scalar and small fields), naming the other two as ``"arrays"`` and
+  ``"trace_file"``;
+* ``result.nc``: the arrays (:meth:`~ocpar.results.RunResult.arrays`, read back as the
+  :meth:`~ocpar.results.RunResult.dataset`: trajectories, per-agent data, with named
+  dimensions and each variable's ``units`` and ``long_name``), netCDF4, uncompressed: of the
+  formats measured at 100,000 agents (``scripts/result_formats.py``, docs/results.md) the
+  fastest to write (0.03 s through xarray's ``netcdf4`` engine; load 0.06 s), one file for
+  an HTTP download (zlib level 1 halves its size for 30x the write time; zarr takes ~0.4 s
+  and is a directory or a zip). It is written with netCDF4-python directly, as
+  xarray would write it: the coordinator does not import xarray (0.5–1 s) to write it;
+* ``trace.json``: the per-superstep trace, one record per superstep
+  (:meth:`~ocpar.bsp.SuperstepTrace.to_dict`).
+
+``ocpar.load("runs/mine")`` returns the :class:`Run`: ``dataset, summary = ocpar.load(...)``.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import TYPE_CHECKING, NamedTuple
+
+import numpy as np
+
+from ocpar.results import Array, RunResult
+
+if TYPE_CHECKING:
+    import xarray as xr
+
+SUMMARY_FILE = "result.json"
+ARRAYS_FILE = "result.nc"
+TRACE_FILE = "trace.json"
+#: xarray's engine for the array file (netCDF4-python)
+ENGINE = "netcdf4"
+
+
+def write_result(result: RunResult, directory: str | Path) -> list[Path]:
+    """Write ``result`` into ``directory`` (made if missing) as ``result.json``,
+    ``result.nc`` and ``trace.json``; returns their paths (summary first). The summary is
+    written last: once it is there, so are the others."""
+    directory = Path(directory)
+    directory.mkdir(parents=True, exist_ok=True)
+    arrays, trace, summary = (directory / ARRAYS_FILE, directory / TRACE_FILE,
+                              directory / SUMMARY_FILE)
+    write_netcdf(result.arrays(), result.file_attributes(), arrays)
+    trace.write_text("[" + ", ".join(_trace_record(t.to_dict()) for t in result.trace) + "]")
+    summary.write_text(json.dumps(result.to_dict()
+                                  | {"arrays": ARRAYS_FILE, "trace_file": TRACE_FILE}))
+    return [summary, arrays, trace]
+
+
+#: The per-task lists of a trace record (one number per task: 10^6 of each per superstep at
+#: 1,000,000 agents), written by :func:`_number_list`.
+TASK_LISTS = ("task_wall_s", "task_cpu_s", "task_worker")
+
+
+def _trace_record(record: dict) -> str:
+    """One trace record as JSON, its :data:`TASK_LISTS` last, written by
+    :func:`_number_list`: what ``json.dumps(record)`` says, 10x faster for a batched kernel's
+    per-task times."""
+    lists = {key: record.pop(key) for key in TASK_LISTS if key in record}
+    text = json.dumps(record)
+    extra = "".join(f", {json.dumps(key)}: {_number_list(v)}" for key, v in lists.items())
+    return text[:-1] + extra + "}" if lists else text
+
+
+def _number_list(values: list[float] | list[int]) -> str:
+    """``json.dumps(values)`` for a list of numbers, each distinct value's text made once (a
+    batched kernel gives every task of its chunk the chunk's mean time: a few distinct
+    values among 10^6)."""
+    if not values:
+        return "[]"
+    distinct, index = np.unique(np.asarray(values), return_inverse=True)
+    texts = np.array([json.dumps(v) for v in distinct.tolist()], dtype=object)
+    return "[" + ", ".join(texts[index].tolist()) + "]"
+
+
+def write_netcdf(variables: dict[str, Array], attrs: dict[str, str], path: Path) -> None:
+    """Write ``variables`` (:func:`~ocpar.results.array`) and the file's ``attrs`` to ``path``
+    as netCDF4, uncompressed, as :meth:`xarray.Dataset.to_netcdf` would (string arrays as
+    variable-length strings, no fill values)."""
+    import netCDF4
+
+    with netCDF4.Dataset(path, "w", format="NETCDF4") as f:
+        f.setncatts(attrs)
+        for name, (dims, values, var_attrs) in variables.items():
+            for dim, size in zip(dims, values.shape, strict=True):
+                if dim not in f.dimensions:
+                    f.createDimension(dim, size)
+                elif len(f.dimensions[dim]) != size:
+                    raise ValueError(f"{name}: dimension {dim} has {size} entries, another "
+                                     f"variable's {len(f.dimensions[dim])}")
+            text = values.dtype.kind in "OU"
+            var = f.createVariable(name, str if text else values.dtype, dims, fill_value=False)
+            var.setncatts(var_attrs)
+            var[...] = values.astype(object) if text else values
+
+
+class Run(NamedTuple):
+    """A written run, read back by :func:`load`: ``dataset`` its arrays (in memory, the file
+    closed), ``summary`` its ``result.json`` (a dict; None for an array file read on its own,
+    e.g. one downloaded without its summary)."""
+
+    dataset: xr.Dataset
+    summary: dict | None
+
+
+def _summary_path(path: Path) -> Path:
+    """``result.json`` of ``path``: a run directory, its result.json or its array file."""
+    path = Path(path)
+    if not path.exists():
+        raise FileNotFoundError(f"{path}: no such run directory or file")
+    if path.is_dir():
+        return path / SUMMARY_FILE
+    if path.suffix == ".json":
+        return path
+    return path.parent / SUMMARY_FILE
+
+
+def read_summary(path: str | Path) -> dict:
+    """The ``result.json`` of ``path`` (a run directory, its result.json or array file)."""
+    return _read(_summary_path(Path(path)))
+
+
+def _read(summary_path: Path) -> dict:
+    if not summary_path.is_file():
+        raise FileNotFoundError(f"no {SUMMARY_FILE} at {summary_path}")
+    return json.loads(summary_path.read_text())
+
+
+def load(path: str | Path) -> Run:
+    """The run at ``path`` (a run directory, its ``result.json`` or its array file): its
+    Dataset, loaded into memory, and its summary, e.g.
+    ``ds, summary = ocpar.load("runs/formation")``; ``ds.configuration`` (agent, node,
+    q_component). An array file with no result.json beside it loads with summary None.
+    FileNotFoundError if the directory holds no result.json or array file."""
+    import xarray as xr  # (not on the import path of workers)
+
+    summary_path = _summary_path(Path(path))
+    if Path(path).suffix not in ("", ".json") and not summary_path.is_file():
+        return Run(xr.load_dataset(path, engine=ENGINE), None)
+    summary = _read(summary_path)
+    arrays = summary_path.parent / summary.get("arrays", ARRAYS_FILE)
+    if not arrays.is_file():
+        raise FileNotFoundError(f"no array file {arrays.name} beside {summary_path}")
+    return Run(xr.load_dataset(arrays, engine=ENGINE), summary)
+
+
+def load_trace(path: str | Path) -> list[dict]:
+    """The per-superstep trace of the run at ``path`` (as :func:`load` takes it): one record
+    per superstep (:meth:`~ocpar.bsp.SuperstepTrace.to_dict`)."""
+    summary_path = _summary_path(Path(path))
+    name = _read(summary_path).get("trace_file", TRACE_FILE)
+    return json.loads((summary_path.parent / name).read_text())

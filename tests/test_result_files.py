@@ -1,0 +1,145 @@
+"""A run's three files (result.json, result.nc, trace.json) and ``ocpar.load``: every scheme's
+arrays come back bitwise as the run returned them, with units; the summary keeps its
+contract."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+import xarray as xr
+from conftest import assert_result_contract
+
+import ocpar
+from ocpar.driver import main
+from ocpar.examples import formation_point_masses, macs_double_integrator
+from ocpar.examples.pursuit_orbit_transfer import make as make_transfer
+from ocpar.formation import solve_formation
+from ocpar.formation.run import FormationRun
+from ocpar.formation.verify import verify_formation
+from ocpar.macs import MacsSettings, solve_macs
+from ocpar.pursuit import PursuitSettings, solve_pursuit
+from ocpar.result_files import ARRAYS_FILE, SUMMARY_FILE, TRACE_FILE, load_trace, write_result
+
+
+def written(result, directory):
+    """``result`` written into ``directory`` and loaded back, after the common checks: three
+    files, named by the summary; every variable with units and a long name; one trace record
+    per superstep; the file's Dataset identical to the result's own."""
+    paths = write_result(result, directory)
+    assert [p.name for p in paths] == [SUMMARY_FILE, ARRAYS_FILE, TRACE_FILE]
+    assert_result_contract(directory)
+    ds, summary = ocpar.load(directory)
+    assert summary["arrays"] == ARRAYS_FILE and summary["trace_file"] == TRACE_FILE
+    assert summary["title"] == result.title() == ds.attrs["title"]
+    assert "trace" not in summary
+    for name, variable in ds.variables.items():
+        assert variable.attrs["units"] and variable.attrs["long_name"], name
+    trace = load_trace(directory)
+    assert trace == json.loads(json.dumps([t.to_dict() for t in result.trace]))
+    assert len(trace) == summary["supersteps"] == result.supersteps > 0
+    assert [t["index"] for t in trace] == [t.index for t in result.trace]
+    xr.testing.assert_identical(ds, result.dataset())
+    return ds, summary
+
+
+def test_formation_arrays_are_the_returned_paths_and_end_on_the_circle(tmp_path):
+    problem = formation_point_masses.make(agents=12)
+    result = solve_formation(problem)
+    assert result.converged
+    ds, summary = written(result, tmp_path)
+    q = ds["configuration"].values
+    assert q.tobytes() == np.asarray(result.trajectories).tobytes()   # bitwise
+    assert ds["control"].values.tobytes() == np.asarray(result.controls).tobytes()
+    assert ds["cost"].values.tobytes() == result.agent_costs.tobytes()
+    assert summary["phi"] == ds["phi"].values.tolist() == result.phi.tolist()
+    assert "trajectories" not in summary and "agent_costs" not in summary
+    # the end points on the circle of radius 10 about (100, 100) at φ, from the formula
+    phi = ds["phi"].values
+    circle = np.column_stack([100 + 10 * np.cos(phi), 100 + 10 * np.sin(phi)])
+    np.testing.assert_allclose(q[:, -1], circle, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(ds["target"].values, circle, rtol=0, atol=1e-12)
+    # time grid T = 1, N = 10; velocities the node differences over h = 0.1
+    np.testing.assert_array_equal(ds["time"].values, np.linspace(0, 1, 11))
+    np.testing.assert_allclose(ds["velocity"].values, np.diff(q, axis=1) / 0.1, rtol=1e-15)
+    assert ds["velocity"].dims == ("agent", "interval", "q_component")
+    assert list(ds["q_component"].values) == ["x", "y"]
+    assert ds["mass"].values.tolist() == [1.0] * 12
+    assert ds["model_name"].values.tolist() == ["PointMass"]
+    assert ds["solver_status_name"].values[ds["solver_status"].values].tolist() == \
+        ["Solve_Succeeded"] * 12   # the batched Newton kernel's status
+    assert np.all(ds["solver_iterations"].values >= 1)
+    assert np.all(ds["constraint_violation"].values <= 1e-7)
+    assert ds["configuration"].attrs["units"] == "length"
+
+
+def test_the_per_agent_violation_is_the_perturbed_agents_momentum_residual():
+    """Agent 3's first free node moved by 1e-3: its violation is DMOC's first boundary
+    momentum equation m v0 − m (q1 − q0)/h + h/2 u0 (relative to 1 + Σ |terms|), computed here
+    from the formula; the other agents' stay at rounding."""
+    problem = formation_point_masses.make(agents=8)
+    result = solve_formation(problem)
+    q, u = result.trajectories.copy(), result.controls
+    q[3, 1, 0] += 1e-3
+    violation = verify_formation(problem, q, u, result.phi).agent_violation
+    h, v0 = 0.1, np.zeros(2)
+    terms = [v0, -(q[3, 1] - q[3, 0]) / h, h / 2 * u[3, 0]]
+    expected = np.linalg.norm(sum(terms)) / (1 + sum(np.linalg.norm(t) for t in terms))
+    assert violation[3] == pytest.approx(expected, rel=1e-9)
+    assert expected > 1e-5   # far above the check's tolerance 1e-7
+    assert np.max(np.delete(violation, 3)) < 1e-12
+
+
+def test_a_formation_run_from_the_command_line_writes_the_three_files(tmp_path, capsys):
+    assert main(FormationRun, ["--agents", "6", "--quiet", "--output", str(tmp_path)]) == 0
+    assert {SUMMARY_FILE, ARRAYS_FILE, TRACE_FILE} <= {p.name for p in tmp_path.iterdir()}
+    assert_result_contract(tmp_path)
+    reference = solve_formation(formation_point_masses.make(agents=6))
+    for path in (tmp_path, tmp_path / SUMMARY_FILE, tmp_path / ARRAYS_FILE):
+        ds, summary = ocpar.load(path)
+        assert ds["configuration"].values.tobytes() == reference.trajectories.tobytes()
+        assert summary["total_cost"] == reference.total_cost
+    with pytest.raises(FileNotFoundError, match="nowhere: no such run"):
+        ocpar.load(tmp_path / "nowhere")
+
+
+def test_pursuit_arrays_are_the_returned_trajectory(tmp_path):
+    result = solve_pursuit(make_transfer(case=1, samples=101),
+                           PursuitSettings(window=32, update=16, max_agents=12,
+                                           certify_samples=0), reference=False)
+    ds, summary = written(result, tmp_path)
+    assert ds["state"].values.tobytes() == np.asarray(result.x, float).tobytes()
+    assert ds["control"].values.tobytes() == np.asarray(result.u, float).tobytes()
+    assert ds["agent_headline"].values.tolist() == result.headlines
+    assert len(result.headlines) == 13   # agent 0 and its 12 pursuers
+    np.testing.assert_allclose(ds["time"].values, np.linspace(0, 300, 101), rtol=1e-15)
+    assert "states" not in summary and "controls" not in summary
+    assert ds["agent_headline"].attrs["units"] == "kg"
+
+
+def test_macs_arrays_are_the_front_decisions_and_trajectories(tmp_path):
+    problem = macs_double_integrator.make()
+    result = solve_macs(problem, MacsSettings(max_evaluations=150, archive_size=5, seed=1))
+    assert len(result.front)
+    ds, summary = written(result, tmp_path)
+    assert ds["front"].values.tolist() == summary["front"] == result.front.tolist()
+    assert ds["objective"].values.tolist() == summary["objectives"]
+    assert ds["decision"].values.tobytes() == result.decisions.tobytes()
+    assert "decisions" not in summary
+    # each trajectory starts at x_0 and ends where the transcription's final state is, at t_f
+    k = len(result.front)
+    states, times = ds["state"].values, ds["state_time"].values
+    assert states.shape[0] == times.shape[0] == k
+    np.testing.assert_allclose(states[:, 0, 0], np.broadcast_to(
+        problem.shape.initial_state, (k, len(problem.shape.initial_state))), atol=1e-9)
+    np.testing.assert_allclose(times[:, -1, -1], result.decisions[:, -1], rtol=1e-14)
+    assert ds["refined"].values.tolist() == np.asarray(result.refined, int).tolist()
+    assert ds["stationarity"].values.tobytes() == np.asarray(result.stationarity,
+                                                               float).tobytes()
+    json.loads((tmp_path / TRACE_FILE).read_text())
+
+
+def test_a_directory_without_a_result_is_refused(tmp_path):
+    with pytest.raises(FileNotFoundError, match=r"no result\.json at"):
+        ocpar.load(tmp_path)
