@@ -86,6 +86,10 @@ USER = [case for case in CONFIGS if case.endswith("-user")]
 NO_CONTRACT = {"pursuit-user", "macs-user"}
 CASES = [pytest.param(case, marks=[] if case in USER else [pytest.mark.slow])
          for case in CONFIGS]
+#: On MPI and Dask: the user's formation in the default run, every other case slow (each
+#: scheme's own tests run its examples on every backend).
+PARALLEL = [pytest.param(case, marks=[] if case == "formation-user" else [pytest.mark.slow])
+            for case in CONFIGS]
 
 
 @pytest.fixture(scope="module")
@@ -138,21 +142,26 @@ def test_serial_run(case, serial, workdir):
     assert not (workdir / "ignored").exists()  # --output after CONFIG overrode its output
 
 
-@pytest.mark.parametrize("case", CASES)
+@pytest.mark.parametrize("case", PARALLEL)
 def test_mpirun_gives_the_serial_result(case, serial, user_package, workdir):
     result = run(user_package, workdir, case, "mpi", mpi_ranks=2)
     assert result["backend"] == "mpi" and result["workers"] == 2
     assert computed(result) == computed(serial(case))
 
 
-@pytest.mark.parametrize("case", CASES)
+@pytest.mark.parametrize("case", PARALLEL)
 def test_dask_gives_the_serial_result(case, serial, user_package, workdir, cluster):
     result = run(user_package, workdir, case, "dask", "--scheduler", cluster)
     assert result["backend"] == "dask" and result["workers"] == 2
     assert computed(result) == computed(serial(case))
 
 
-@pytest.mark.parametrize("case", USER)
+#: Submitted through the Dask-client path: the formation in the default run, the others slow
+#: (the HTTP service's own tests submit every scheme).
+SUBMITTED = [case for case in PARALLEL if case.values[0] in USER]
+
+
+@pytest.mark.parametrize("case", SUBMITTED)
 def test_submit_gives_the_serial_result(case, serial, user_package, workdir, cluster):
     """The same configuration as a detached job: the reference travels with it."""
     site = user_package

@@ -206,6 +206,7 @@ def test_obstacles_no_formation_can_avoid_are_refused():
         solve_formation(problem)
 
 
+@pytest.mark.slow
 def test_mixed_fleet_on_mpi_and_dask_is_bitwise_the_serial_result(tmp_path):
     """Norm thrust limits, the ball and a separation of 0.4 in the same rounds: serial,
     2 Dask workers and mpirun -n 2 agree bit for bit."""

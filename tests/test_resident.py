@@ -63,7 +63,8 @@ def test_a_superstep_moves_outcomes_and_the_paths_come_once(serial_run):
         assert np.array_equal(solutions.column("cost"), outcomes.column("cost"))
 
 
-@pytest.mark.parametrize("workers", [1, 2, 3])
+@pytest.mark.parametrize("workers", [pytest.param(1, marks=pytest.mark.slow), 2,
+                                     pytest.param(3, marks=pytest.mark.slow)])
 def test_dask_workers_give_the_serial_run_bit_for_bit(serial_run, workers):
     with open_backend("dask", workers=workers) as backend:
         result = solve_formation(paper_example(AGENTS), backend)

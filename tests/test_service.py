@@ -91,6 +91,7 @@ def test_two_jobs_submitted_at_once_finish_and_match_ocpar_run(cluster, tmp_path
         assert any(p.suffix == ".png" for p in out.iterdir())
 
 
+@pytest.mark.slow  # (the HTTP service's cancel and resume are in the default run)
 def test_cancel_stops_within_a_superstep_and_the_checkpoint_resumes(cluster, tmp_path):
     address, jobs_dir = cluster
     config = ["macs-goddard", "--set", "max_evals=3000", "seed=3"]

@@ -281,6 +281,7 @@ def test_command_line_without_certificates_is_refused_in_one_line(tls_cluster, c
     assert time.monotonic() - started < 30
 
 
+@pytest.mark.slow
 def test_a_job_submitted_to_the_tls_cluster_matches_serial(tls_cluster, certs, reference,
                                                           tmp_path):
     """``ocpar submit`` with the client's certificate; the job's coordinator, on the scheduler's
