@@ -69,7 +69,10 @@ def _unwritable_dir(tmp_path: Path) -> str:
         (["--backend", "serial", "--workers", "3"], "serial"),
         (["--backend", "mpi"], "mpirun"),
         (["--scheduler", "not-an-address"], "--scheduler"),
-        (["--backend", "dask", "--scheduler", "tcp://127.0.0.1:9"], "scheduler"),
+        # (10 s of connection retries; an unreachable scheduler's one line is also in
+        # test_service.py's default run)
+        pytest.param(["--backend", "dask", "--scheduler", "tcp://127.0.0.1:9"], "scheduler",
+                     marks=pytest.mark.slow),
         (["--output", "UNWRITABLE"], "not writable"),
         (["--agnets", "3"], "unrecognized"),
     ],

@@ -326,6 +326,7 @@ def test_embedded_cluster_uses_tls_and_matches_serial(certs, reference, tmp_path
     assert result.workers == 2 and result.backend == "dask"
 
 
+@pytest.mark.slow  # (the embedded TLS cluster itself: test_embedded_cluster_uses_tls_...)
 def test_embedded_tls_cluster_from_the_command_line(certs, reference, tmp_path):
     proc = run_cli("-m", "ocpar.formation", "--agents", str(AGENTS), "--backend", "dask",
                    "--workers", "2", *tls_options(certs), "--output", str(tmp_path), "--quiet",
