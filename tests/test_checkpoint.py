@@ -136,6 +136,7 @@ def test_an_mpi_superstep_past_its_deadline_aborts_with_a_clear_message(tmp_path
     assert "no result from MPI rank(s) 1 within 1 s" in proc.stderr
 
 
+@pytest.mark.slow
 def test_killing_an_mpi_rank_ends_the_run_and_keeps_the_checkpoint(tmp_path):
     """SIGKILL of rank 1 mid-run: mpirun ends the job (no hang), the checkpoint holds the
     supersteps before, and resuming on two ranks gives the uninterrupted result. IPOPT inner

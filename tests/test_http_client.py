@@ -296,6 +296,7 @@ def start_server(state: Path, port: int, *options: str) -> subprocess.Popen:
     return proc
 
 
+@pytest.mark.slow  # (the server's own restart is in test_web_service.py's default run)
 def test_wait_outlives_a_restart_of_the_server(tmp_path):
     """The server is killed while a client waits for a job, and started again: the wait
     reconnects and returns the job's final record."""

@@ -547,6 +547,7 @@ def test_embedded_dask_cluster_runs_a_job_as_ocpar_run_does(tmp_path):
     assert cluster.exists()
 
 
+@pytest.mark.slow  # (HTTPS from the client's side: test_http_client.py)
 def test_https_with_the_operators_certificate(tmp_path):
     """--ssl-certfile/--ssl-keyfile: the API over TLS (a client trusting the CA gets in with
     its token; plain HTTP gets no answer)."""
