@@ -124,6 +124,26 @@ def open_page(browser, url: str, token: str) -> None:
     browser.find_element(By.ID, "save-token").click()
 
 
+def submit_and_show(server, browser, request: dict):
+    """Submit ``request`` through the API, open the page and show the job's panel: the API
+    client, the job id, the CSS selector of its row and a 60 s waiter."""
+    from selenium.webdriver.common.by import By
+    from selenium.webdriver.support.ui import WebDriverWait
+
+    url, token, output = server
+    api = httpx.Client(base_url=url, headers={"Authorization": f"Bearer {token}"},
+                       timeout=30)
+    submitted = api.post("/jobs", json=request)
+    assert submitted.status_code == 201, f"{submitted.text}\n{output.read_text()}"
+    job = submitted.json()["id"]
+    open_page(browser, url, token)
+    row = f'#job-rows tr[data-job-id="{job}"]'
+    wait = WebDriverWait(browser, 60, poll_frequency=0.1)
+    wait.until(lambda d: d.find_elements(By.CSS_SELECTOR, row))
+    browser.find_element(By.CSS_SELECTOR, f'{row} button[data-action="show"]').click()
+    return api, job, row, wait
+
+
 PLOT = """const svg = document.getElementById("convergence-plot");
     return [svg.dataset.figure, [...svg.querySelectorAll("circle.pt")].map(
         (c) => [Number(c.dataset.x), Number(c.dataset.y)]), Number(svg.dataset.points)];"""
@@ -144,22 +164,10 @@ def png_width(data: bytes) -> int:
 
 def test_page_follows_a_job_to_its_result(server, browser):
     from selenium.webdriver.common.by import By
-    from selenium.webdriver.support.ui import WebDriverWait
 
-    url, token, output = server
-    api = httpx.Client(base_url=url, headers={"Authorization": f"Bearer {token}"},
-                       timeout=30)
-    followed = api.post("/jobs", json={"config": "formation-60", "set": {"agents": 8}})
-    assert followed.status_code == 201, f"{followed.text}\n{output.read_text()}"
-    job = followed.json()["id"]
-
-    open_page(browser, url, token)
-    row = f'#job-rows tr[data-job-id="{job}"]'
-    wait = WebDriverWait(browser, 60, poll_frequency=0.1)
-    wait.until(lambda d: d.find_elements(By.CSS_SELECTOR, row))
-
+    api, job, row, wait = submit_and_show(server, browser, {"config": "formation-60",
+                                                             "set": {"agents": 8}})
     # the followed job, shown in the detail panel, reaches succeeded on the page
-    browser.find_element(By.CSS_SELECTOR, f'{row} button[data-action="show"]').click()
     wait.until(lambda d: d.find_element(By.CSS_SELECTOR, row)
                .get_attribute("data-state") == "succeeded")
     record = api.get(f"/jobs/{job}").json()
@@ -204,19 +212,10 @@ def test_page_follows_a_job_to_its_result(server, browser):
 
 def test_page_cancels_queued_and_running_jobs_and_resumes_one(server, browser):
     from selenium.webdriver.common.by import By
-    from selenium.webdriver.support.ui import WebDriverWait
 
-    url, token, output = server
-    api = httpx.Client(base_url=url, headers={"Authorization": f"Bearer {token}"},
-                       timeout=30)
-    submitted = api.post("/jobs", json={"config": "pursuit-case1"})  # minutes of supersteps
-    assert submitted.status_code == 201, f"{submitted.text}\n{output.read_text()}"
-    job = submitted.json()["id"]
-    open_page(browser, url, token)
-    row = f'#job-rows tr[data-job-id="{job}"]'
-    wait = WebDriverWait(browser, 60, poll_frequency=0.1)
-    wait.until(lambda d: d.find_elements(By.CSS_SELECTOR, row))
-    browser.find_element(By.CSS_SELECTOR, f'{row} button[data-action="show"]').click()
+    output = server[2]
+    api, job, row, wait = submit_and_show(server, browser,
+                                          {"config": "pursuit-case1"})  # minutes of supersteps
 
     def points() -> int:
         return plotted(browser)[2]
