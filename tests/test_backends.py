@@ -273,8 +273,8 @@ def test_task_dispatch_names_tasks_after_the_run_and_superstep(local_dask):
         backend.superstep("math:sqrt", [4.0, 9.0, 16.0])
         backend.superstep("math:sqrt", [4.0, 9.0, 16.0])
     keys = {str(task["key"]) for task in stream.data}
-    assert {k.split("-superstep-")[1] for k in keys} == {"0-chunk-0", "0-chunk-1",
-                                                        "1-chunk-0", "1-chunk-1"}
+    assert {k.split("-superstep-")[1] for k in keys} == {
+        "0-round-0-chunk-0", "0-round-0-chunk-1", "1-round-1-chunk-0", "1-round-1-chunk-1"}
     assert all(k.startswith("ocpar-job-42-") for k in keys)
 
 

@@ -144,3 +144,28 @@ def test_closing_frees_the_workers_states():
         assert any(key == objective._agents.key for key, _ in resident._BLOCKS)
         objective.close()
         assert not any(key == objective._agents.key for key, _ in resident._BLOCKS)
+
+
+def test_chunks_that_land_on_the_other_dask_worker_are_replayed_there(serial_run):
+    """``tasks`` dispatch through the scheduler, which may run a chunk on another worker than
+    its slot's (work stealing, a busy worker): that worker lacks the slot's states and the
+    superstep sends a second round of chunks with their history. Here every superstep after
+    the first sends slot w's chunk to the other worker. The second round must get its own
+    results, not the first round's (they shared task keys once: 'slot 0 still lacks states
+    after its history was sent' on a busy shared cluster), and the run is the serial one."""
+    with open_backend("dask", workers=2, dispatch="tasks") as backend:
+        step, rounds = backend._resident_superstep, []
+
+        def swapped(*args):
+            result = step(*args)
+            backend.addresses.reverse()
+            return result
+
+        run = backend._run_chunks
+        backend._resident_superstep = swapped
+        backend._run_chunks = lambda name, chunks: rounds.append(chunks) or run(name, chunks)
+        result = solve_formation(paper_example(AGENTS), backend)
+    assert_bitwise(result, serial_run)
+    replayed = [item for chunks in rounds for chunk in chunks for item in chunk
+                if item.history is not None]
+    assert len(replayed) >= 2 * (result.supersteps - 2)

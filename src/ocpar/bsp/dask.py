@@ -44,6 +44,7 @@ import contextlib
 import copy
 import dataclasses
 import gc
+import itertools
 import os
 import time
 import uuid
@@ -67,8 +68,12 @@ WORKER_ENV = {"OMP_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1", "MKL_NUM_THRE
 #: Modules the embedded cluster's workers import at start-up.
 WORKER_PRELOAD = ("ocpar.ocp",)
 
-#: Worker settings for CPU-bound ~ms kernels: no statistical profiler sampling the solves.
-WORKER_CONFIG = {"distributed.worker.profile.enabled": False}
+#: Settings of the clusters ocpar starts (embedded, ``ocpar serve``'s, dask-mpi): no
+#: statistical profiler sampling the workers' ~ms solves, and no work stealing: a chunk waits
+#: for its own worker (which holds its resident agents' states and warm solvers) instead of
+#: moving to an idle one, where a resident set would have to replay its history.
+CLUSTER_CONFIG = {"distributed.worker.profile.enabled": False,
+                  "distributed.scheduler.work-stealing": False}
 
 
 DISPATCH = ("direct", "tasks")
@@ -181,6 +186,9 @@ class DaskBackend(Backend):
         self.superstep_timeout_s = superstep_timeout_s
         #: Chunks run again because their worker was lost (over the backend's life).
         self.lost_chunks = 0
+        #: Rounds of chunks sent so far (``tasks`` dispatch: a superstep may send several,
+        #: e.g. a resident set's replay round, and each needs keys of its own).
+        self._rounds = itertools.count()
 
         self._cluster = None
         self._channels: dict[str, Channel] = {}
@@ -188,7 +196,7 @@ class DaskBackend(Backend):
         # would be deduplicated by the scheduler, and one would get the other's results
         self._run_id = (f"{run_name}-{uuid.uuid4().hex[:6]}" if run_name
                         else uuid.uuid4().hex[:12])
-        with dask.config.set(WORKER_CONFIG):
+        with dask.config.set(CLUSTER_CONFIG):
             if scheduler is None:
                 n = workers or os.cpu_count() or 1
                 tls = {}
@@ -284,13 +292,16 @@ class DaskBackend(Backend):
             return self._run_direct(name, packed)
         from distributed import wait
 
-        step = len(self.traces)
+        # a key names one computation: a superstep's second round of chunks (a resident set's
+        # replay, or a set's drop before the next superstep) must not reuse the first's keys,
+        # or the scheduler hands back the first round's results
+        step, round_ = len(self.traces), next(self._rounds)
         futures = [
             self.client.submit(
                 run_chunk_as_task,
                 name,
                 chunk,
-                key=f"ocpar-{self._run_id}-superstep-{step}-chunk-{w}",
+                key=f"ocpar-{self._run_id}-superstep-{step}-round-{round_}-chunk-{w}",
                 # its worker first; if that worker is lost the scheduler runs it elsewhere
                 workers=[address],
                 allow_other_workers=True,

@@ -8,7 +8,7 @@ coordinator's client closes.
 from __future__ import annotations
 
 from ocpar.bsp.backend import BackendError
-from ocpar.bsp.dask import WORKER_CONFIG, DaskBackend
+from ocpar.bsp.dask import CLUSTER_CONFIG, DaskBackend
 
 
 def open_dask_mpi(workers: int | None = None, balance: str = "blocks") -> DaskBackend:
@@ -33,7 +33,7 @@ def open_dask_mpi(workers: int | None = None, balance: str = "blocks") -> DaskBa
     logger = logging.getLogger("distributed")
     level = logger.level
     logger.setLevel(logging.CRITICAL)
-    with dask.config.set(WORKER_CONFIG):
+    with dask.config.set(CLUSTER_CONFIG):
         initialize(nthreads=1, dashboard_address=":0", memory_limit=0)
     logger.setLevel(level)
     return DaskBackend(workers=size - 2, scheduler=dask.config.get("scheduler_address"),

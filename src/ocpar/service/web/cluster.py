@@ -19,13 +19,13 @@ def main(argv: list[str] | None = None) -> int:
     import dask
     from distributed import LocalCluster
 
-    from ocpar.bsp.dask import WORKER_CONFIG, WORKER_ENV, WORKER_PRELOAD
+    from ocpar.bsp.dask import CLUSTER_CONFIG, WORKER_ENV, WORKER_PRELOAD
 
     address_file, workers = (argv if argv is not None else sys.argv[1:])[:2]
     parent = os.getppid()
     stop = []
     signal.signal(signal.SIGTERM, lambda *_: stop.append(True))
-    with dask.config.set(WORKER_CONFIG), LocalCluster(
+    with dask.config.set(CLUSTER_CONFIG), LocalCluster(
             n_workers=int(workers), threads_per_worker=1, processes=True, host="127.0.0.1",
             scheduler_port=0, dashboard_address=None, env=WORKER_ENV,
             preload=list(WORKER_PRELOAD)) as cluster:
