@@ -224,7 +224,7 @@ def wrong_type():
 '''
 USER_BROKEN_PY = 'raise ImportError("needs a library that is not installed")\n'
 #: Fields of result.json that say where and how long a run ran, not what it computed.
-RUNTIME = {"backend", "workers", "wall_time_s", "trace", "peak_rss_mb_per_worker"}
+RUNTIME = {"backend", "workers", "wall_time_s", "trace", "peak_rss_mb_per_worker", "timings"}
 
 
 @pytest.fixture(scope="session")

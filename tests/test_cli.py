@@ -36,6 +36,14 @@ def test_small_run_writes_result_and_plot(tmp_path):
     png = (tmp_path / "run" / "formation.png").read_bytes()
     assert png.startswith(b"\x89PNG") and len(png) > 10_000
     assert "total cost" in proc.stdout and "wall time" in proc.stdout
+    # the last line: where the time went, the figures of result.json's timings
+    last = proc.stdout.strip().splitlines()[-1]
+    timings = data["timings"]
+    assert last == ("timings: " + ", ".join(
+        f"{name} {timings[key]:.2f} s" for key, name in (
+            ("startup_s", "start-up"), ("build_s", "build"), ("solve_s", "solve"),
+            ("verification_s", "verification"), ("files_s", "files"),
+            ("picture_s", "picture"))) + f"; total {timings['total_s']:.2f} s")
     assert_result_contract(tmp_path / "run")
 
 

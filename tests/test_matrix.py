@@ -140,6 +140,13 @@ def test_serial_run(case, serial, workdir):
     assert result["scheme"] == case.split("-")[0] and result["backend"] == "serial"
     assert result["status"] == "converged" and result["failed_solves"] == 0
     assert not (workdir / "ignored").exists()  # --output after CONFIG overrode its output
+    # where the time went: every phase, disjoint parts of the process's life
+    timings = result["timings"]
+    phases = ["startup_s", "build_s", "solve_s", "verification_s", "files_s", "picture_s"]
+    assert [key for key in timings if key in phases] == phases and "total_s" in timings
+    assert timings["solve_s"] == result["wall_time_s"]
+    assert all(value >= 0 for value in timings.values())
+    assert sum(timings[key] for key in phases) <= timings["total_s"] + 1e-6
 
 
 @pytest.mark.parametrize("case", PARALLEL)

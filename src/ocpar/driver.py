@@ -19,6 +19,7 @@ plots, and exits with the status's code (:data:`ocpar.results.EXIT_STATUS`).
 from __future__ import annotations
 
 import sys
+import time
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -37,8 +38,9 @@ from ocpar.cli import (
 )
 from ocpar.options import add_options, option, option_specs, options_from_namespace
 from ocpar.references import REFERENCE, ProblemReferenceError, is_reference, load_problem
-from ocpar.result_files import write_result
+from ocpar.result_files import write_result, write_summary
 from ocpar.results import RunResult
+from ocpar.timing import process_age, timings_line
 
 PROBLEM_GROUP = "problem"
 
@@ -152,6 +154,7 @@ def run_scheme(options: SchemeRun, given: frozenset[str] | None = None) -> int:
     """Run ``options`` (on MPI, on every rank) and return the exit status; bad input exits 2
     with one line before any worker starts."""
     prog = options.prog
+    started, entered = process_age(), time.perf_counter()
     given = explicitly_set(options) if given is None else given
     try:
         options.validate(given)
@@ -163,8 +166,12 @@ def run_scheme(options: SchemeRun, given: frozenset[str] | None = None) -> int:
         problem = checked_problem(options)
     except (ProblemReferenceError, ValueError) as exc:
         fail(prog, str(exc))
+    built: list[float] = []
+    said: list[Progress] = []
 
     def solve(backend: Backend, say: Progress) -> RunResult:
+        built.append(time.perf_counter() - entered)
+        said.append(say)
         say(f"{prog}: {options.describe(problem)}, backend {backend.name} with "
             f"{backend.workers} worker(s)")
         return options.solve(problem, backend, say)
@@ -172,10 +179,19 @@ def run_scheme(options: SchemeRun, given: frozenset[str] | None = None) -> int:
     result = run_on_backend(options, prog, solve)
     if result is None:  # an MPI rank other than the coordinator's
         return 0
+    result.timings |= {"build_s": built[0]} | (
+        {} if started is None else {"startup_s": started})
     print(result.summary(), flush=True)
     if out is not None:
-        written = [*write_result(result, out), *options.plot(problem, result, out)]
+        written = write_result(result, out)
+        drawing = time.perf_counter()
+        written += options.plot(problem, result, out)
+        result.timings["picture_s"] = time.perf_counter() - drawing
+        if (age := process_age()) is not None:
+            result.timings["total_s"] = age
+        write_summary(result, out)
         print("wrote " + ", ".join(str(p) for p in written), flush=True)
+    said[0](timings_line(result.all_timings()))
     return result.exit_status
 
 

@@ -22,6 +22,8 @@ Every run with an output directory writes three files there (:func:`write_result
 from __future__ import annotations
 
 import json
+import os
+import time
 from pathlib import Path
 from typing import TYPE_CHECKING, NamedTuple
 
@@ -42,16 +44,28 @@ ENGINE = "netcdf4"
 def write_result(result: RunResult, directory: str | Path) -> list[Path]:
     """Write ``result`` into ``directory`` (made if missing) as ``result.json``,
     ``result.nc`` and ``trace.json``; returns their paths (summary first). The summary is
-    written last: once it is there, so are the others."""
+    written last: once it is there, so are the others. The time the other two took is
+    recorded as the result's ``timings["files_s"]`` (:mod:`ocpar.timing`)."""
     directory = Path(directory)
     directory.mkdir(parents=True, exist_ok=True)
-    arrays, trace, summary = (directory / ARRAYS_FILE, directory / TRACE_FILE,
-                              directory / SUMMARY_FILE)
+    start = time.perf_counter()
+    arrays, trace = directory / ARRAYS_FILE, directory / TRACE_FILE
     write_netcdf(result.arrays(), result.file_attributes(), arrays)
     trace.write_text("[" + ", ".join(_trace_record(t.to_dict()) for t in result.trace) + "]")
-    summary.write_text(json.dumps(result.to_dict()
+    result.timings["files_s"] = time.perf_counter() - start
+    return [write_summary(result, directory), arrays, trace]
+
+
+def write_summary(result: RunResult, directory: str | Path) -> Path:
+    """Write ``result.json`` (:meth:`~ocpar.results.RunResult.to_dict`, naming the array file
+    and the trace) into ``directory``, atomically (a new file renamed over the old one: a
+    reader never sees half of it); written again after the plots with their time."""
+    summary = Path(directory) / SUMMARY_FILE
+    partial = summary.with_name(f".{SUMMARY_FILE}.{os.getpid()}")
+    partial.write_text(json.dumps(result.to_dict()
                                   | {"arrays": ARRAYS_FILE, "trace_file": TRACE_FILE}))
-    return [summary, arrays, trace]
+    os.replace(partial, summary)
+    return summary
 
 
 #: The per-task lists of a trace record (one number per task: 10^6 of each per superstep at

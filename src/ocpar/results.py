@@ -37,6 +37,7 @@ from typing import TYPE_CHECKING, Any, ClassVar
 import numpy as np
 
 from ocpar.bsp import SuperstepTrace
+from ocpar.timing import PHASES
 
 if TYPE_CHECKING:
     import xarray as xr
@@ -75,8 +76,10 @@ class RunResult:
     """The fields every scheme's result has. ``inner_solves``: inner problems solved (MACS:
     objective evaluations, each a DFET solve); ``failed_solves`` those that failed for good;
     ``retries`` extra attempts made; ``wall_time_s`` the run's wall time (s); ``trace`` one
-    record per superstep. A scheme's result adds its own fields (:meth:`scheme_fields`, the
-    summary's) and arrays (:meth:`arrays`, the array file's)."""
+    record per superstep; ``timings`` where the run's time went, by phase (s,
+    :mod:`ocpar.timing`: a scheme gives ``verification_s``, the driver the others). A scheme's
+    result adds its own fields (:meth:`scheme_fields`, the summary's) and arrays
+    (:meth:`arrays`, the array file's)."""
 
     scheme: ClassVar[str]
     #: The scheme's headline figures, keys of ``result.json``: written as null unless the
@@ -93,6 +96,7 @@ class RunResult:
     retries: int = 0
     message: str = ""
     trace: list[SuperstepTrace] = field(default_factory=list)
+    timings: dict[str, float] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
         if self.status not in STATUSES:
@@ -178,4 +182,14 @@ class RunResult:
             "supersteps": self.supersteps, "inner_solves": self.inner_solves,
             "failed_solves": self.failed_solves, "retries": self.retries,
             "wall_time_s": self.wall_time_s, **fields,
+            "timings": self.all_timings(),
         }
+
+    def all_timings(self) -> dict[str, float]:
+        """:attr:`timings` with ``solve_s`` (the :attr:`wall_time_s`), in the order of
+        :data:`ocpar.timing.PHASES` (those not measured left out), ``total_s`` last."""
+        known = self.timings | {"solve_s": self.wall_time_s}
+        ordered = {key: known[key] for key in PHASES if key in known}
+        return ordered | {key: value for key, value in known.items() if key not in ordered
+                          and key != "total_s"} | (
+            {"total_s": known["total_s"]} if "total_s" in known else {})

@@ -36,7 +36,6 @@ from statistics import median
 from typing import Any
 
 import numpy as np
-from scipy.optimize import nnls
 
 from ocpar.bsp.partition import contiguous_blocks, longest_first
 from ocpar.bsp.trace import SuperstepTrace
@@ -129,6 +128,7 @@ class SyncCost:
         ``sent_bytes`` + ``received_bytes`` and ``overhead_s``), from runs on at least two
         worker counts or with bytes that vary (else the terms cannot be told apart: the
         coefficient NNLS sets to 0 is then folded into the others)."""
+        from scipy.optimize import nnls
         rows = [(float(_check_workers(p)), float(h), float(y)) for p, h, y in samples]
         if not rows:
             raise ValueError("SyncCost.fit_supersteps needs at least one superstep")
@@ -148,6 +148,7 @@ class SyncCost:
         P workers (see :func:`median_overhead`). One point gives b = 0 and a = that overhead.
         The fit is non-negative least squares, so a coefficient that would come out negative
         is 0 and the other one is refitted (noise, e.g. overheads falling with P)."""
+        from scipy.optimize import nnls
         if not overheads:
             raise ValueError("SyncCost.fit needs at least one (workers, overhead) point")
         ps = [_check_workers(p) for p in overheads]

@@ -26,7 +26,6 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.optimize import brentq, minimize_scalar
 
 from ocpar.bsp import Backend
 from ocpar.formation.couplings.coupling import ShiftFamily
@@ -97,6 +96,8 @@ def feasible_window(problem: FormationProblem, family: ShiftFamily) -> ShiftWind
     found = reach_excess(problem, family, thetas)
     if found is None:
         return None
+    from scipy.optimize import minimize_scalar
+
     excess = found[0]
 
     def at(theta: float) -> float:
@@ -142,6 +143,7 @@ def _end(at, centre: float, direction: float, spacing: float, grid: np.ndarray,
     """The end, towards ``direction`` (±1), of the interval of E ≤ 0 that holds ``centre``
     (E(centre) ≤ 0): steps of the grid ``spacing`` until E > 0 (a period at most; read off
     the ``grid`` values where ``centre`` is its point ``index``), then bisection (Brent)."""
+    from scipy.optimize import brentq
     inner = centre
     for step in range(1, WINDOW_GRID + 1):
         outer = inner + direction * spacing

@@ -24,9 +24,6 @@ from __future__ import annotations
 from collections.abc import Callable
 
 import numpy as np
-from scipy.linalg import block_diag
-from scipy.optimize import minimize, root_scalar
-from scipy.spatial.transform import Rotation
 
 from ocpar.bsp import Backend
 from ocpar.bsp.columns import Columns
@@ -207,6 +204,7 @@ def solve_outer(
     objective: OuterObjective, phi0: np.ndarray, tol: float, max_iterations: int
 ) -> tuple[np.ndarray, int, bool, str]:
     """SLSQP on J(φ)/J(φ_0) s.t. c(φ) = 0. Returns (φ, iterations, success, message)."""
+    from scipy.optimize import minimize
     curve, coupling = objective.problem.curve, objective.problem.coupling
     scale = 1.0 / max(objective.value(phi0), 1e-300)
     result = minimize(
@@ -235,6 +233,7 @@ def solve_outer_offset(
     θ changes by less than ``tol``·(1 + |θ|) and J did not increase (beyond rounding:
     :data:`ROUNDING_RTOL`, then φ⁰ is returned). Returns (φ, iterations, success, message).
     Only for a problem on a :class:`~ocpar.formation.Circle` (ValueError otherwise)."""
+    from scipy.optimize import root_scalar
     objective.problem.require_circle("outer 'offset'")
     error = equidistance_error(phi0)
     if error > 1e-9:
@@ -406,6 +405,7 @@ def tangent_newton(objective: OuterObjective, phi: np.ndarray, tol: float,
     rounding, whose inner solves fail, or from which the retraction does not reach
     max |c_k| ≤ :data:`PROJECTION_TOL`, is halved. Converged when |Zᵀg|_∞ ≤ ``tol`` Σ|g_i|
     with ZᵀWZ positive definite, or a step was at most ``tol``·(1 + |φ|_∞)."""
+    from scipy.linalg import block_diag
     coupling, curve = objective.problem.coupling, objective.problem.curve
 
     def model(phi: np.ndarray) -> tuple[float, np.ndarray, bool]:
@@ -465,6 +465,7 @@ def rotation_newton(objective: OuterObjective, phi: np.ndarray, tol: float,
     :data:`RANK_RTOL`), or a step of at most ``tol`` rad was taken or was the last to fail
     to lower J. Returns (φ (2n,) of the points
     reached, iterations, success, message)."""
+    from scipy.spatial.transform import Rotation
     surface = objective.problem.curve
     if not isinstance(surface, EllipsoidSurface) or not len(surface.symmetry_axes):
         raise ValueError("rotation_newton needs an ellipsoid with rotational symmetry")

@@ -58,7 +58,6 @@ from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.optimize import linear_sum_assignment, minimize_scalar
 
 from ocpar.bsp import Backend
 from ocpar.formation.feasibility import feasible_start, inner_costs
@@ -176,6 +175,7 @@ def cheapest_assignment(table: np.ndarray) -> np.ndarray:
     """The cheapest assignment of a cost table (+∞: an infeasible pair): slot index per agent
     (n,). Raises :class:`~ocpar.formation.hierarchical.InnerSolveFailed` if every assignment
     takes an infeasible pair."""
+    from scipy.optimize import linear_sum_assignment
     try:
         rows, cols = linear_sum_assignment(table)
     except ValueError:   # scipy: "cost matrix is infeasible"
@@ -248,6 +248,7 @@ class CostSurrogate:
     def minimise(self, assignment: np.ndarray) -> tuple[float, float]:
         """(min J̃(σ, θ), its θ in rad) over the whole circle: the best of n·FINE_OFFSETS
         equally spaced offsets, polished by bounded Brent within one spacing."""
+        from scipy.optimize import minimize_scalar
         series = self.ordering(assignment)
         points = self.agents * max(FINE_OFFSETS, 2 * self.starts)  # > L: no aliasing
         step = 2 * np.pi / points

@@ -427,6 +427,7 @@ def solve_formation(
                                                           words + note)
         verification, status, message = _verified(
             problem, options, sol.trajectories, sol.controls, sol.phi, status, message)
+        checked = time.perf_counter() - start - wall_time_s
         return FormationResult(
             **common,
             status=status,
@@ -440,6 +441,7 @@ def solve_formation(
             inner_solves=ordering_solves,
             failed_solves=0,
             wall_time_s=wall_time_s,
+            timings={"verification_s": checked},
             separation=verification.closest,
             trace=backend.traces[first_trace:],
             coupling_residual=verification.coupling_residual,
@@ -494,11 +496,12 @@ def solve_formation(
                        f"come within {rounds.closest.distance:.6g} (short by "
                        f"{distance - rounds.closest.distance:.3g}; {rounds.dropped} "
                        f"half-space(s) dropped for want of slots over the rounds)")
+    wall_time_s = time.perf_counter() - start
     status, message, obstacle_fields = obstacle_check(problem, trajectories, status, message)
     extra |= obstacle_fields
-    wall_time_s = time.perf_counter() - start
     verification, status, message = _verified(problem, options, trajectories, controls, phi,
                                                status, message)
+    checked = time.perf_counter() - start - wall_time_s
     return FormationResult(
         **common,
         status=status,
@@ -514,6 +517,7 @@ def solve_formation(
         failed_solves=failed_solves,
         retries=retries,
         wall_time_s=wall_time_s,
+        timings={"verification_s": checked},
         trace=backend.traces[first_trace:],
         coupling_residual=verification.coupling_residual,
         controls=controls,

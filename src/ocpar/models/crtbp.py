@@ -26,8 +26,6 @@ from dataclasses import dataclass
 from functools import cached_property
 
 import numpy as np
-from scipy.integrate import solve_ivp
-from scipy.optimize import brentq
 
 SUN_EARTH_MU = 3.040357e-6
 LENGTH_UNIT_KM = 149_597_870.7
@@ -44,6 +42,7 @@ CORIOLIS = np.array([[0.0, 2.0, 0.0], [-2.0, 0.0, 0.0], [0.0, 0.0, 0.0]])
 
 def _integrate(fun: Callable, t_end: float, y0: np.ndarray, t_start: float = 0.0, **kwargs):
     """solve_ivp with DOP853 at the module's tolerances, from t_start to t_end."""
+    from scipy.integrate import solve_ivp
     return solve_ivp(fun, (t_start, t_end), y0, method="DOP853", rtol=RTOL, atol=ATOL, **kwargs)
 
 
@@ -104,6 +103,7 @@ class Crtbp:
 
     def l2_point(self) -> float:
         """x-coordinate of L2 (beyond the EMB), root of ∂Ω/∂x1 on the x-axis."""
+        from scipy.optimize import brentq
         hill = (self.mu / 3.0) ** (1.0 / 3.0)
         return brentq(lambda x: self.potential_gradient([x, 0.0, 0.0])[0],
                       1.0 - self.mu + 0.1 * hill, 2.0, xtol=1e-300, rtol=4 * np.finfo(float).eps)

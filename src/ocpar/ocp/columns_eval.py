@@ -16,7 +16,14 @@ from __future__ import annotations
 
 import casadi as ca
 import numpy as np
-from scipy import special
+
+
+def _erf(a: np.ndarray) -> np.ndarray:
+    """The error function (SciPy's, imported on first use: few models have one)."""
+    from scipy import special
+
+    return special.erf(a)
+
 
 #: CasADi operation codes → numpy functions of their one or two arguments.
 OPERATIONS = {
@@ -33,7 +40,7 @@ OPERATIONS = {
     ca.OP_OR: lambda a, b: ((a != 0) | (b != 0)).astype(float),
     ca.OP_FLOOR: np.floor, ca.OP_CEIL: np.ceil, ca.OP_FMOD: np.fmod, ca.OP_FABS: np.abs,
     ca.OP_SIGN: np.sign, ca.OP_COPYSIGN: np.copysign,
-    ca.OP_IF_ELSE_ZERO: lambda a, b: np.where(a != 0, b, 0.0), ca.OP_ERF: special.erf,
+    ca.OP_IF_ELSE_ZERO: lambda a, b: np.where(a != 0, b, 0.0), ca.OP_ERF: _erf,
     ca.OP_FMIN: np.fmin, ca.OP_FMAX: np.fmax, ca.OP_INV: lambda a: 1.0 / a,
     ca.OP_SINH: np.sinh, ca.OP_COSH: np.cosh, ca.OP_TANH: np.tanh, ca.OP_ASINH: np.arcsinh,
     ca.OP_ACOSH: np.arccosh, ca.OP_ATANH: np.arctanh, ca.OP_HYPOT: np.hypot,

@@ -29,7 +29,6 @@ import casadi as ca
 import numpy as np
 from numpy.polynomial import legendre
 from numpy.polynomial import polynomial as poly
-from scipy.integrate import solve_ivp
 
 from ocpar.models.ode import OdeModel
 from ocpar.ocp.constraints import CompiledConstraint, ConstraintRows
@@ -350,6 +349,7 @@ class DfetTranscription:
     def _integrate_adaptive(self, p: np.ndarray, rtol: float, atol: float, hold: bool
                             ) -> tuple[np.ndarray, np.ndarray]:
         """:meth:`_integrate` by scipy's DOP853, element by element."""
+        from scipy.integrate import solve_ivp
         buffer, evaluate = self.rhs_function.buffer()  # one per call: thread-safe
         state, control, derivative = np.empty(self.nx), np.empty(self.nu), np.empty(self.nx)
         for i, array in enumerate((state, control)):

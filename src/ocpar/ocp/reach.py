@@ -24,7 +24,6 @@ from functools import lru_cache
 
 import casadi as ca
 import numpy as np
-from scipy.optimize import linprog
 
 from ocpar.models import PointMass
 from ocpar.ocp.dmoc import DmocShape, DmocTranscription
@@ -119,6 +118,7 @@ def _axis_reach(mass: float, intervals: int, duration: float, lo: float, hi: flo
     """(min, max) of q_N − q_0 of a one-axis point mass of ``mass`` at rest at both ends of
     its DMOC transcription (N = ``intervals`` over T = ``duration``) under lo ≤ u_k ≤ hi:
     two linear programmes on the transcription's equations (±inf on an unbounded side)."""
+    from scipy.optimize import linprog
     if not lo <= 0 <= hi:
         raise ValueError(f"control bounds ({lo:g}, {hi:g}) exclude 0: the agent cannot stay "
                          "at rest")

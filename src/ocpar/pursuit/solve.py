@@ -86,12 +86,16 @@ def solve_pursuit(
                  "windows": outcome.windows}
     trace = backend.traces[first_trace:]
     wall = time.perf_counter() - start
+    timings = {}
     if mode == "pbms" and reference and problem.samples <= REFERENCE_MAX_SAMPLES:
         ref = solve_full_horizon(problem, backend)
         if ref.success:
             reference_headline, reference_x = problem.headline_value(ref.x, ref.u), ref.x
+        timings["reference_s"] = time.perf_counter() - start - wall
+    checking = time.perf_counter()
     check = rk_check(problem, u)
     violation = discrete_residual(problem, x, u)
+    timings["verification_s"] = time.perf_counter() - checking
     if status == "converged" and not violation <= FEASIBILITY_TOL:
         status = "not_converged"
         message += (f"; the returned trajectory breaks the dynamics, target set or path "
@@ -114,7 +118,8 @@ def solve_pursuit(
         max_agents_in_flight=in_flight,
         constraint_violation=violation,
         rk_terminal_error=check.terminal_error, rk_checks=check.values,
-        wall_time_s=wall, x=x, u=u, initial_x=initial_x, headlines=headlines,
+        wall_time_s=wall, timings=timings, x=x, u=u, initial_x=initial_x,
+        headlines=headlines,
         time=problem.grid,
         reference_headline=reference_headline, reference_x=reference_x, trace=trace,
         stop_reason=stop_reason, estimated_remaining=remaining,

@@ -28,8 +28,6 @@ from dataclasses import dataclass
 
 import casadi as ca
 import numpy as np
-from scipy.linalg import null_space
-from scipy.optimize import minimize
 
 from ocpar.formation.couplings.potential import (
     coupling,
@@ -135,6 +133,7 @@ class Coupling(ABC):
     def free_directions(self, phi: np.ndarray, curve: Curve) -> np.ndarray:
         """An orthonormal basis (n, r) of the tangent space of c = 0 at ``phi``: r = 0 where
         the solution is isolated."""
+        from scipy.linalg import null_space
         return null_space(self.jacobian(phi, curve), rcond=RANK_RTOL)
 
     def feasible_set(self, phi: np.ndarray, curve: Curve) -> str:
@@ -186,6 +185,8 @@ class PotentialCoupling(Coupling):
         trust-exact on the scaled G, then :meth:`retract`); circles: ``phi``."""
         if not isinstance(curve, Surface):
             return relax(phi, curve)
+        from scipy.optimize import minimize
+
         phi = np.asarray(phi, float).ravel()
 
         relaxed = minimize(lambda x: self.scaled_potential(x, curve), phi,

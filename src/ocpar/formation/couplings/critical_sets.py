@@ -40,12 +40,9 @@ from __future__ import annotations
 import math
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
-from scipy.linalg import null_space
-from scipy.optimize import least_squares, linear_sum_assignment, root
-from scipy.spatial.distance import cdist, pdist
-from scipy.spatial.transform import Rotation
 
 from ocpar.bsp import Backend
 from ocpar.formation.couplings.potential import (
@@ -65,6 +62,9 @@ from ocpar.formation.ordering import assignment_cost, cheapest_assignment, cost_
 from ocpar.formation.problem import FormationProblem
 from ocpar.formation.targets.curve import Curve
 from ocpar.formation.targets.surface import EllipsoidSurface, Surface
+
+if TYPE_CHECKING:
+    from scipy.spatial.transform import Rotation
 
 #: Random starts of the search besides the initial guess (default).
 CRITICAL_STARTS = 32
@@ -212,6 +212,7 @@ def _solve(problem: FormationProblem, guess: np.ndarray, critical: str,
     (``stable``),
     else Levenberg–Marquardt on a surface (c = 0 is rank-deficient there where the surface
     has symmetries) or Newton's method (SciPy's ``root``) on a curve."""
+    from scipy.optimize import least_squares, root
     coupling = problem.coupling
     if critical == "stable":
         return coupling.project(guess, curve)
@@ -237,6 +238,7 @@ def _smallest_eigenvalue(problem: FormationProblem, phi: np.ndarray,
     """The smallest eigenvalue of G's scaled Hessian dc/dφ at ``phi`` on ``curve`` (the
     problem's, or its surface in another chart) across its symmetry (on a sphere the three
     rotations leave G unchanged: their directions are left out)."""
+    from scipy.linalg import null_space
     hessian = problem.coupling.jacobian(phi, curve)
     if not isinstance(curve, Surface):
         return float(np.linalg.eigvalsh(hessian)[0])
@@ -299,6 +301,9 @@ def _same_set(problem: FormationProblem, a: np.ndarray, b: np.ndarray) -> bool:
     if not isinstance(problem.curve, Surface):
         return any(np.max(np.abs(np.angle(np.exp(1j * (np.roll(a, k) - b))))) <= SAME_SET_TOL
                    for k in range(len(a)))
+    from scipy.optimize import linear_sum_assignment
+    from scipy.spatial.distance import cdist, pdist
+
     tol = SAME_SET_TOL * problem.curve.length_scale
     p, q = problem.final_positions(a), problem.final_positions(b)
     if _turnable(problem, a):
@@ -411,6 +416,7 @@ def _rotate(problem: FormationProblem, backend: Backend, phi: np.ndarray, tol: f
 def _turns(axes: np.ndarray) -> Rotation:
     """:data:`ROTATION_STARTS` − 1 seeded rotations about the axes (k, 3): uniformly random
     with three (a sphere's), else the angles 2πm/ROTATION_STARTS about the one axis."""
+    from scipy.spatial.transform import Rotation
     if len(axes) == 3:
         return Rotation.random(ROTATION_STARTS - 1, random_state=ROTATION_SEED)
     angles = 2 * np.pi * np.arange(1, ROTATION_STARTS) / ROTATION_STARTS

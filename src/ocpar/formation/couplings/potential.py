@@ -21,16 +21,17 @@ from __future__ import annotations
 
 import math
 from functools import partial
+from typing import TYPE_CHECKING
 
 import casadi as ca
 import numpy as np
 from numpy.polynomial import Polynomial
-from scipy.optimize import minimize
-from scipy.sparse import csc_matrix
-from scipy.sparse.linalg import LinearOperator, cg, splu
 
 from ocpar.formation.targets.curve import Curve
 from ocpar.formation.targets.surface import Surface
+
+if TYPE_CHECKING:
+    from scipy.sparse import csc_matrix
 
 #: Rows of the coupling evaluated at once by :func:`coupling`: its temporaries (BLOCK, n)
 #: stay in cache (10,000 agents: ~2 s on this machine, loaded; in one piece 2.4 GB).
@@ -166,6 +167,8 @@ def relax(phi: np.ndarray, curve: Curve) -> np.ndarray:
         return phi
     if phi.size > DENSE_RELAX_AGENTS:
         return _relax_newton_pcg(phi, curve)
+    from scipy.optimize import minimize
+
     phi = np.asarray(minimize(potential, phi, args=(curve,), jac=coupling,
                               hess=coupling_jacobian, method="trust-exact",
                               options={"gtol": RELAX_TOL}).x, float)
@@ -186,6 +189,7 @@ def _relax_newton_pcg(phi: np.ndarray, curve: Curve) -> np.ndarray:
     (its sparse LU). A step is halved until G falls (Armijo), or, where G's change is within
     rounding, until |c| falls. Stops when max_k |c_k| ≤ :data:`RELAX_TOL`, or no step of at
     least 1e-8 of Newton's is accepted."""
+    from scipy.sparse.linalg import LinearOperator, cg, splu
     n = phi.size
     c = coupling(phi, curve)
     for _ in range(RELAX_MAX_ITERATIONS):
@@ -216,6 +220,7 @@ def _band_hessian(phi: np.ndarray, curve: Curve, width: int) -> csc_matrix:
     """The Hessian of the scaled potential restricted to pairs at most ``width`` apart in the
     cyclic order of the angles (n × n, sparse, 2 width + 1 entries a row): ∂c_k/∂φ_m as in
     :func:`coupling_jacobian`, its diagonal summed over the same pairs."""
+    from scipy.sparse import csc_matrix
     n = phi.size
     order = np.argsort(np.mod(phi, 2 * np.pi), kind="stable")
     place = np.empty(n, dtype=np.intp)

@@ -30,10 +30,12 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
-from scipy.optimize import linear_sum_assignment
-from scipy.spatial import cKDTree
+
+if TYPE_CHECKING:
+    from scipy.spatial import cKDTree
 
 #: Candidate slots per agent to begin with (its nearest, twice: module docstring).
 SLOT_CANDIDATES = 16
@@ -90,6 +92,7 @@ class Slots:
 
 def closest_pair(points: np.ndarray) -> tuple[float, tuple[int, int]]:
     """The smallest distance between two of ``points`` (m, d), m ≥ 2, and the pair."""
+    from scipy.spatial import cKDTree
     distance, index = cKDTree(points).query(points, k=2)
     i = int(np.argmin(distance[:, 1]))
     j = int(index[i, 1] if index[i, 1] != i else index[i, 0])   # a duplicate may come first
@@ -115,6 +118,7 @@ def assign_over_candidates(starts: np.ndarray, slots: Slots, candidates: int,
     no longer lowers the total), the pair costs from ``cost(agents, slots)`` (p,) → (p,),
     each pair's once: (slot per agent (n,), the k of the result, total cost). ``progress``
     gets a line per round."""
+    from scipy.spatial import cKDTree
     n, m = len(starts), slots.count
     tree = cKDTree(slots.points)
     near = (starts, _aligned(starts, slots.points))
@@ -174,6 +178,7 @@ def _match(pairs: np.ndarray, values: np.ndarray, n: int, m: int) -> np.ndarray:
     ``min_weight_full_bipartite_matching`` took 11 s at 1000 × 1000 with 62,000 candidate
     pairs and 229 s at 4000 (integer costs), against 0.75 s and 25 s dense. Pairs of cost +∞
     (infeasible) are no candidates."""
+    from scipy.optimize import linear_sum_assignment
     feasible = np.isfinite(values)
     pairs, values = pairs[feasible], values[feasible]
     if not len(values):
