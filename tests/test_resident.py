@@ -130,7 +130,9 @@ def test_a_killed_dask_worker_s_agents_are_rebuilt_on_a_live_one(serial_run):
         os.kill(victim, signal.SIGKILL)
         time.sleep(0.5)
         got += [objective.gradient(phi) for phi in angles[2:]]
-        assert backend.workers == 1
+        # its chunk ran again on a live worker (the one left, or the nanny's restarted one
+        # if it registered in time)
+        assert backend.lost_chunks >= 1 and victim not in backend.client.run(os.getpid).values()
         assert all(np.array_equal(g, e) for g, e in zip(got, expected, strict=True))
         assert np.array_equal(np.asarray(objective.solutions(angles[-1]).column("q")), paths)
 

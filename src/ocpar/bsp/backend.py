@@ -115,18 +115,20 @@ class Backend(ABC):
         self._resident_sets.add(resident)
         return resident
 
-    def _resident_superstep(self, resident: ResidentSet, what: str, tasks: Columns | None
-                           ) -> Columns:
-        """One superstep of ``resident`` (:meth:`ResidentSet.step` with its n ``tasks``, or
-        :meth:`ResidentSet.collect` with None): the agents on the workers of their slots'
-        blocks (:attr:`ResidentSet.blocks`, whatever the :attr:`balance` policy), results in
-        agent order, timed and journaled like any superstep. The results must be instances
-        of one dataclass (as for :meth:`superstep_columns`)."""
+    def _resident_superstep(self, resident: ResidentSet, what: str, tasks: Columns | None,
+                            reduce: str | None = None) -> Columns:
+        """One superstep of ``resident`` (:meth:`ResidentSet.step` with its n ``tasks`` and
+        optional ``reduce``r, or :meth:`ResidentSet.collect` with None): the agents on the
+        workers of their slots' blocks (:attr:`ResidentSet.blocks`, whatever the
+        :attr:`balance` policy), results in agent order (a reduced step's: in unit order),
+        timed and journaled like any superstep. The results must be instances of one
+        dataclass (as for :meth:`superstep_columns`)."""
         n = resident.agents
         if what == STEP:
             assert tasks is not None
-            return self._superstep(resident.kernel, n, tasks.take, None, columns=True,
-                                   run=lambda: resident.run(STEP, tasks))
+            name = resident.kernel if reduce is None else f"{resident.kernel}>{reduce}"
+            return self._superstep(name, n, tasks.take, None, columns=True,
+                                   run=lambda: resident.run(STEP, tasks, reduce))
         return self._superstep(f"{resident.kernel}#{what}", n,
                                lambda _: (what, resident.version, n), None, columns=True,
                                run=lambda: resident.run(what, None))

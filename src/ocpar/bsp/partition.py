@@ -57,6 +57,39 @@ def cost_balanced_blocks(costs: Sequence[float] | np.ndarray, n_workers: int) ->
     return [range(a, b) for a, b in itertools.pairwise(bounds)]
 
 
+#: Reduction units: a resident set of n agents is cut into units of ``unit_size(n)``
+#: consecutive agents, at least this many units where n allows (module-level, so that a
+#: unit's size depends on n alone, never on the worker count).
+MIN_UNITS = 1024
+#: ... and units of at most this many agents (a unit's row summarises them: the rows a
+#: superstep's reduction returns grow like n / MAX_UNIT_SIZE).
+MAX_UNIT_SIZE = 256
+
+
+def unit_size(n: int) -> int:
+    """Agents per reduction unit of a resident set of ``n`` agents: ⌊n / MIN_UNITS⌋ clipped to
+    [1, MAX_UNIT_SIZE] (1 below 2 MIN_UNITS agents: every agent its own unit). A function of
+    n alone: the units, and the sums over them, are the same on any number of workers."""
+    return int(min(max(n // MIN_UNITS, 1), MAX_UNIT_SIZE))
+
+
+def unit_blocks(n: int, n_workers: int, costs: Sequence[float] | np.ndarray | None = None
+                ) -> list[range]:
+    """Contiguous blocks of agents 0..n-1, one per worker, made of whole reduction units
+    (:func:`unit_size`; the last unit may be shorter): :func:`contiguous_blocks` of the
+    units, or, given each agent's estimated cost (n,), :func:`cost_balanced_blocks` of the
+    units' costs. Every block starts at a unit's first agent."""
+    size = unit_size(n)
+    units = -(-n // size)
+    if costs is None:
+        blocks = contiguous_blocks(units, n_workers)
+    else:
+        starts = np.arange(0, n, size)
+        blocks = cost_balanced_blocks(np.add.reduceat(np.asarray(costs, float), starts),
+                                      n_workers)
+    return [range(min(b.start * size, n), min(b.stop * size, n)) for b in blocks]
+
+
 def block_loads(costs: Sequence[float] | np.ndarray, blocks: Sequence[range]) -> np.ndarray:
     """The total of ``costs`` over each of the contiguous ``blocks`` (ranges of step 1)."""
     prefix = np.concatenate([[0.0], np.cumsum(np.asarray(costs, dtype=float))])

@@ -17,8 +17,19 @@ An agent's result and new state must depend only on its own task and previous st
 on which other agents share the call; then an agent's state is a function of its history of
 tasks alone, wherever it is computed.
 
-Placement: the agents are split into contiguous blocks, one per worker slot
-(:attr:`ResidentSet.blocks`, at first :func:`~ocpar.bsp.partition.contiguous_blocks` of n
+Reductions: a step may name a *reducer* (``module:function``) that each worker applies to
+its agents' results before replying, ``reducer(results, bounds) -> rows``: ``results`` the
+block's k results (Columns, agent order), ``bounds`` the row offsets of the block's
+*reduction units* in them (unit j: rows bounds[j]:bounds[j+1]; units are runs of
+:func:`~ocpar.bsp.partition.unit_size` consecutive agents, a function of n alone), ``rows``
+one row per unit (Columns, or a list of instances of one dataclass), each computed from its
+unit's results alone. The step then returns the units' rows, in unit order: a few numbers
+per unit cross the network instead of an agent's outcome, and a sum over the units' rows
+taken in unit order is the same number on any number of workers (e.g. the formation's outer
+step, :mod:`ocpar.formation.outer_step`).
+
+Placement: the agents are split into contiguous blocks of whole units, one per worker slot
+(:attr:`ResidentSet.blocks`, at first :func:`~ocpar.bsp.partition.unit_blocks` of n
 agents over the backend's workers); slot w's chunk goes to worker w. Each worker process
 holds a store (module-level, :data:`_BLOCKS`) of its slots' states, keyed by the set and the
 slot, with the number of tasks they have seen (the *version*). A chunk names its agents and
@@ -40,8 +51,8 @@ solvers, serve until then; a slot that took in agents in a step keeps its agents
 its time includes building solvers for the newcomers' shapes), and so, from the third step
 on, is how far the slots' measured times stray from their estimates (the *noise*, relative
 to the mean slot's time). Before a step the
-coordinator asks :meth:`ResidentSet.rebalanced` whether blocks of equal estimated cost
-(:func:`~ocpar.bsp.partition.cost_balanced_blocks`) pay: the current blocks' estimated
+coordinator asks :meth:`ResidentSet.rebalanced` whether blocks of whole units of equal
+estimated cost (:func:`~ocpar.bsp.partition.unit_blocks`) pay: the current blocks' estimated
 imbalance (max/mean load) must exceed 1 + the backend's
 :attr:`~ocpar.bsp.Backend.resident_tolerance` (default
 :data:`~ocpar.bsp.partition.AFFINITY_TOLERANCE`, None: fixed blocks; ``--resident-blocks``
@@ -72,9 +83,9 @@ from typing import TYPE_CHECKING, Any, Protocol
 
 import numpy as np
 
-from ocpar.bsp.columns import LISTED, SHARED, Columns
+from ocpar.bsp.columns import LISTED, SHARED, Columns, to_columns
 from ocpar.bsp.kernel import ChunkResult, kernel_name, resolve_kernel
-from ocpar.bsp.partition import block_loads, contiguous_blocks, cost_balanced_blocks
+from ocpar.bsp.partition import block_loads, unit_blocks, unit_size
 
 if TYPE_CHECKING:
     from ocpar.bsp.kernel import KernelRef
@@ -126,7 +137,8 @@ class ResidentChunk:
     agent of ``rebuild``, in the order given) to replay. ``imported``: agents that move into
     the slot, their states (after ``version`` tasks) in ``imports`` (one row each, in the
     order given); ``export``: agents that leave the slot after this step, their new states
-    to be returned and forgotten."""
+    to be returned and forgotten. ``reduce``: the step's reducer (module docstring), which
+    gets the block's units of ``unit`` agents (``agents`` starts at a unit's first)."""
 
     what: str
     key: str
@@ -140,6 +152,8 @@ class ResidentChunk:
     imported: np.ndarray | None = None
     imports: Columns | None = None
     export: np.ndarray | None = None
+    reduce: str | None = None
+    unit: int = 1
 
 
 @dataclass
@@ -181,6 +195,9 @@ def run_resident(chunk: ResidentChunk) -> ResidentReply:
     if len(new_states) != len(agents):
         raise ValueError(f"resident kernel {chunk.kernel} returned {len(new_states)} states "
                          f"for {len(agents)} tasks")
+    if chunk.reduce is not None:
+        bounds = np.append(np.arange(0, len(agents), chunk.unit), len(agents))
+        results = resolve_kernel(chunk.reduce)(to_columns(results), bounds)
     size, exported = _nbytes(new_states), None
     if chunk.export is not None and len(chunk.export):
         leaving = np.isin(agents, chunk.export)
@@ -303,8 +320,9 @@ class ResidentSet:
         self.key = uuid.uuid4().hex
         #: The tasks of each superstep so far (Columns of n tasks each): the agents' history.
         self.history: list[Columns] = []
-        #: Each worker slot's agents (contiguous ranges, in slot order) at the next superstep.
-        self.blocks: list[range] = contiguous_blocks(agents, backend.workers)
+        #: Each worker slot's agents (contiguous ranges of whole reduction units, in slot
+        #: order) at the next superstep.
+        self.blocks: list[range] = unit_blocks(agents, backend.workers)
         #: Each agent's estimated solve time (s): its slot's busy time per agent, averaged
         #: over the steps measured (:data:`COST_SMOOTHING`); None before the first.
         self.costs: np.ndarray | None = None
@@ -324,13 +342,21 @@ class ResidentSet:
         """Tasks each agent has had so far."""
         return len(self.history)
 
-    def step(self, tasks: Columns) -> Columns:
-        """One superstep: task i to agent i (``tasks``: Columns of n tasks), the results in
-        agent order (the kernel's results must be instances of one dataclass)."""
+    @property
+    def units(self) -> int:
+        """The reduction units of the set (module docstring): the rows of a reduced step."""
+        return -(-self.agents // unit_size(self.agents))
+
+    def step(self, tasks: Columns, reduce: KernelRef | None = None) -> Columns:
+        """One superstep: task i to agent i (``tasks``: Columns of n tasks; a field shared
+        by all of them travels once per worker), the results in agent order (the kernel's
+        results must be instances of one dataclass), or with a reducer ``reduce``
+        (``module:function``, module docstring) its :attr:`units` rows, in unit order."""
         if len(tasks) != self.agents:
             raise ValueError(f"{len(tasks)} tasks for {self.agents} resident agents")
         self._check_open()
-        results = self.backend._resident_superstep(self, STEP, tasks)
+        results = self.backend._resident_superstep(
+            self, STEP, tasks, None if reduce is None else kernel_name(reduce))
         self.history.append(tasks)
         return results
 
@@ -342,15 +368,17 @@ class ResidentSet:
         self._check_open()
         return self.backend._resident_superstep(self, COLLECT, None)
 
-    def run(self, what: str, tasks: Columns | None) -> tuple[list[range], list[ChunkResult]]:
+    def run(self, what: str, tasks: Columns | None, reduce: str | None = None
+            ) -> tuple[list[range], list[ChunkResult]]:
         """Run ``what`` for every agent through the backend's chunks, slot w's agents
         (:attr:`blocks`) on worker w, with the states moving into each slot; a step also
         moves the blocks where that pays (:meth:`rebalanced`: the leaving agents' new states
         come back with the replies, for the next superstep's chunks). Returns the blocks run
-        and the chunk results, whose ``results`` are per agent (a reply's results) and whose
-        times are the rounds' sums (a second round if a worker lacked states)."""
+        and the chunk results, whose ``results`` are per agent (a reply's results; with
+        ``reduce``, per unit) and whose times are the rounds' sums (a second round if a
+        worker lacked states)."""
         if len(self.blocks) != self.backend.workers:  # the worker count changed
-            self.blocks, self.costs = contiguous_blocks(self.agents, self.backend.workers), None
+            self.blocks, self.costs = unit_blocks(self.agents, self.backend.workers), None
         groups = self.blocks
         following = self.rebalanced() if what == STEP else groups
         moving, self._moving = self._moving, None
@@ -370,7 +398,8 @@ class ResidentSet:
                                  rebuild=rebuild, history=history,
                                  imported=None if imported is None else imported[0],
                                  imports=None if imported is None else imported[1],
-                                 export=leaving[w] if len(leaving[w]) else None)
+                                 export=leaving[w] if len(leaving[w]) else None,
+                                 reduce=reduce, unit=unit_size(self.agents))
 
         first = self.backend._run_chunks(RUNNER, [[chunk(w)] for w in range(len(groups))])
         replies = [_replies(c) for c in first]
@@ -399,7 +428,8 @@ class ResidentSet:
 
     def rebalanced(self) -> list[range]:
         """The blocks for the superstep after the next one: those that equalise the agents'
-        estimated :attr:`costs` (:func:`~ocpar.bsp.partition.cost_balanced_blocks`) if the
+        estimated :attr:`costs` over whole units (:func:`~ocpar.bsp.partition.unit_blocks`)
+        if the
         current blocks' estimated imbalance (max/mean load) exceeds 1 + the backend's
         :attr:`~ocpar.bsp.Backend.resident_tolerance` + the measurements' :attr:`noise` and
         the makespan they save in one superstep exceeds the estimated cost of moving the
@@ -411,7 +441,7 @@ class ResidentSet:
         loads = block_loads(self.costs, self.blocks)
         if loads.max() <= (1.0 + tolerance + self.noise) * loads.mean():
             return self.blocks
-        proposed = cost_balanced_blocks(self.costs, len(self.blocks))
+        proposed = unit_blocks(self.agents, len(self.blocks), self.costs)
         saving = loads.max() - block_loads(self.costs, proposed).max()
         staying = sum(max(0, min(a.stop, b.stop) - max(a.start, b.start))
                       for a, b in zip(self.blocks, proposed, strict=True))

@@ -27,6 +27,7 @@ import numpy as np
 
 from ocpar.bsp import Backend
 from ocpar.bsp.columns import Columns
+from ocpar.bsp.partition import unit_size
 from ocpar.formation.couplings.coupling import (
     PROJECTION_TOL,
     RANK_RTOL,
@@ -35,10 +36,17 @@ from ocpar.formation.couplings.coupling import (
 )
 from ocpar.formation.couplings.potential import equidistance_error
 from ocpar.formation.feasibility import feasible_window, inner_costs
+from ocpar.formation.outer_step import (
+    ShiftValues,
+    combine,
+    shift_tasks,
+    solve_formation_agents,
+    unit_terms,
+)
 from ocpar.formation.problem import FormationProblem
 from ocpar.formation.targets.slots import Slots
 from ocpar.formation.targets.surface import EllipsoidSurface, Surface
-from ocpar.ocp.endpoint_agents import agent_tasks, solve_agents
+from ocpar.ocp.endpoint_agents import agent_tasks
 
 #: Second iterate of the offset search (rad): 1/60 of a slot for the paper's 60 agents.
 OFFSET_FIRST_STEP = 1.7e-3
@@ -81,17 +89,28 @@ class OuterObjective:
         self.inner_solves = 0
         self.failed_solves = 0
         self.retries = 0
-        self.last_phi: np.ndarray | None = None
         self.last_outcomes: Columns | None = None
-        self._agents = backend.resident(solve_agents, problem.agents)
+        self._agents = backend.resident(solve_formation_agents, problem.agents)
+        self._phi: np.ndarray | None = None   # the last superstep's angles, or
+        self._shift: tuple[ShiftFamily, float] | None = None   # its family and shift
+        self._family: ShiftFamily | None = None   # the family the agents hold
         self._gathered: Columns | None = None  # the solutions at last_phi, once gathered
+
+    @property
+    def last_phi(self) -> np.ndarray | None:
+        """The angles of the last superstep (None before the first); after a
+        :meth:`shifted` superstep, its family's angles at its shift (computed here once)."""
+        if self._phi is None and self._shift is not None:
+            family, theta = self._shift
+            self._phi = family.angles(theta)[0]
+        return self._phi
 
     def outcomes(self, phi: np.ndarray) -> Columns:
         """The agents' outcomes at angles φ (Columns of
         :class:`~ocpar.ocp.endpoint_agents.AgentOutcome`): one superstep, unless φ is the last
         one asked for. Raises :class:`InnerSolveFailed` if a solve failed."""
         phi = np.asarray(phi, float)
-        if self.last_phi is None or not np.array_equal(phi, self.last_phi):
+        if self.last_outcomes is None or not np.array_equal(phi, self.last_phi):
             problem, d = self.problem, self.problem.curve.dim
             if self._agents.version == 0:
                 tasks = agent_tasks(problem.shape, d, params=problem.boundary_params_rows(
@@ -103,8 +122,9 @@ class OuterObjective:
             self.retries += int(np.sum(np.asarray(outcomes.column("attempts")) - 1))
             failed = np.flatnonzero(~np.asarray(outcomes.column("success"), dtype=bool))
             self.failed_solves += len(failed)
-            self.last_phi, self.last_outcomes, self._gathered = phi.copy(), outcomes, None
-            self._report(phi, outcomes)
+            self._phi, self._shift, self.last_outcomes = phi.copy(), None, outcomes
+            self._gathered, self._family = None, None   # (the agents' new states: no base)
+            self._report(phi, f"{float(np.sum(outcomes.column('cost'))):.12e}")
             if len(failed):
                 raise InnerSolveFailed(
                     f"{len(failed)} inner solve(s) failed, first agent {failed[0]}: "
@@ -112,20 +132,43 @@ class OuterObjective:
                 )
         return self.last_outcomes  # type: ignore[return-value]
 
+    def shifted(self, family: ShiftFamily, theta: float) -> ShiftValues:
+        """J, dJ/dθ, Σ|g_i φ_i′| and d²J/dθ² at the shift θ (rad) of ``family``: one
+        superstep whose arithmetic the workers do (:mod:`ocpar.formation.outer_step`: θ out,
+        a few sums per reduction unit back). Raises :class:`InnerSolveFailed` if a solve
+        failed."""
+        first = self._agents.version == 0
+        tasks = shift_tasks(self.problem, family, theta, first, family is not self._family)
+        rows = self._agents.step(tasks, reduce=unit_terms)
+        self._family = family
+        values = combine(rows, unit_size(self.problem.agents))
+        self.inner_solves += self.problem.agents
+        self.retries += values.retries
+        self.failed_solves += values.failed
+        self._phi, self._shift, self.last_outcomes, self._gathered = \
+            None, (family, theta), None, None
+        if self.progress is not None:
+            self._report(None, f"{values.value:.12e}")
+        if values.failed:
+            raise InnerSolveFailed(f"{values.failed} inner solve(s) failed, first agent "
+                                   f"{values.first_failed}: {values.first_status}")
+        return values
+
     def solutions(self, phi: np.ndarray) -> Columns:
         """The inner solutions at angles φ (Columns of
         :class:`~ocpar.ocp.endpoint_agents.AgentState`, a :class:`~ocpar.ocp.DmocSolution`
         with its boundary data: costs (n,), paths (n, N+1, nq), controls (n, N, nu), ...):
         :meth:`outcomes`, then one superstep that gathers the solutions from the workers (once
         per φ)."""
-        self.outcomes(phi)
+        if self.last_phi is None or not np.array_equal(phi, self.last_phi):
+            self.outcomes(phi)
         return self.last_solutions  # type: ignore[return-value]
 
     @property
     def last_solutions(self) -> Columns | None:
         """The inner solutions of the last superstep, gathered from the workers on first use
         (None before the first superstep); also after a superstep whose solves failed."""
-        if self.last_phi is None:
+        if self._phi is None and self._shift is None:
             return None
         if self._gathered is None:
             self._gathered = self._agents.collect()
@@ -180,11 +223,28 @@ class OuterObjective:
         return (np.einsum("ida,ide,ieb->iab", along, h_pos, along)
                 + np.einsum("id,idab->iab", d_pos, self.problem.curve.second_derivatives(at)))
 
-    def _report(self, phi: np.ndarray, outcomes: Columns) -> None:
+    def _report(self, phi: np.ndarray | None, cost: str) -> None:
+        """The progress line of the last superstep at angles ``phi`` (None: a family's shift,
+        whose feasibility is its start's), the total ``cost`` as text."""
         if self.progress is None:
             return
         trace = self.backend.traces[-1]
-        cost = float(np.sum(outcomes.column("cost")))
+        feasibility = self._family_feasibility() if phi is None else self._feasibility(phi)
+        self.progress(
+            f"superstep {trace.index:4d}  cost {cost}  {feasibility}  "
+            f"wall {trace.wall_s * 1e3:7.1f} ms  overhead {trace.overhead_s * 1e3:6.1f} ms"
+        )
+
+    def _family_feasibility(self) -> str:
+        """The feasibility words of the agents' family (c(φ(θ)) = 0 at every shift: those of
+        its angles at the first shift reported, computed once)."""
+        family, theta = self._shift  # type: ignore[misc]
+        if getattr(self, "_family_words", (None,))[0] is not family:
+            self._family_words = (family, self._feasibility(family.angles(theta)[0]))
+        return self._family_words[1]
+
+    def _feasibility(self, phi: np.ndarray) -> str:
+        """How far ``phi`` is from the coupling's solutions, in the progress line's words."""
         # on a circle the gaps' deviation, O(n log n): |c(φ)| would cost O(n²) per superstep
         # (50 ms at 1000 agents, as much as the superstep itself on 64 workers)
         if self.problem.on_circle:
@@ -194,10 +254,7 @@ class OuterObjective:
         else:
             residual = self.problem.coupling.residual(phi, self.problem.curve)
             feasibility = f"coupling {np.max(np.abs(residual)):.1e}"
-        self.progress(
-            f"superstep {trace.index:4d}  cost {cost:.12e}  {feasibility}  "
-            f"wall {trace.wall_s * 1e3:7.1f} ms  overhead {trace.overhead_s * 1e3:6.1f} ms"
-        )
+        return feasibility
 
 
 def solve_outer(
@@ -313,11 +370,8 @@ def _shift_newton(objective: OuterObjective, family: ShiftFamily, tol: float,
     fails, :func:`_scan_start` looks for a feasible one."""
 
     def evaluate(theta: float) -> tuple[float, float, float, float]:
-        phi, along, bend = family.angles(theta)
-        g = objective.gradient(phi)
-        return (objective.value(phi), float(np.sum(g * along)),
-                float(np.sum(np.abs(g * along))),
-                float(np.sum(objective.hessian_diagonal(phi) * along**2 + g * bend)))
+        at = objective.shifted(family, theta)
+        return at.value, at.slope, at.scale, at.curvature
 
     window = feasible_window(objective.problem, family)
     low, high, theta = (-np.inf, np.inf, 0.0) if window is None else \

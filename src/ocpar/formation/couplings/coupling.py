@@ -36,7 +36,7 @@ from ocpar.formation.couplings.potential import (
     relax,
     respace,
 )
-from ocpar.formation.targets.curve import Circle, Curve
+from ocpar.formation.targets.curve import Circle, Curve, CurveEvaluator
 from ocpar.formation.targets.surface import Surface
 
 #: A projection onto c(φ) = 0 (and a solution found from the start guess) must reach
@@ -54,12 +54,37 @@ RANK_RTOL = 1e-9
 UNIT_CIRCLE = Circle(radius=1.0)
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class ShiftFamily:
-    """Solutions φ(θ) of c = 0 through a point, one per common shift θ (rad):
-    ``angles(θ)`` gives φ (n,), dφ/dθ (n,) and d²φ/dθ² (n,)."""
+    """Solutions φ(θ) of c = 0 through a point, one per common shift θ (rad): agent i at
+    φ_i(θ) = φ(u_i + θ), u = ``base`` (n,) (rad), the map φ(u) the identity where ``chart``
+    is None (a circle's equidistant angles) or the inverse of the arc-length angle
+    u(φ) = 2π s(φ)/ℓ of a curve (``chart``: its :attr:`~ocpar.formation.Curve.arc_evaluator`,
+    equal arc length). :meth:`angles` gives φ, dφ/dθ and d²φ/dθ² (n,) each. An agent's angle
+    depends on its own u_i and θ alone (:func:`shifted`): a worker computes its agents'
+    (:mod:`ocpar.formation.outer_step`)."""
 
-    angles: Callable[[float], tuple[np.ndarray, np.ndarray, np.ndarray]]
+    base: np.ndarray
+    chart: CurveEvaluator | None = None
+
+    def angles(self, theta: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """φ (n,) rad, dφ/dθ and d²φ/dθ² (n,) at the shift ``theta`` (rad)."""
+        return shifted(self.base + theta, self.chart)
+
+
+def shifted(u: np.ndarray, chart: CurveEvaluator | None
+            ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The angles φ(u) (rad) of shifted base angles ``u`` (m,) and their first and second
+    derivatives in the shift (m,) each (:class:`ShiftFamily`), element by element: φ = u
+    (``chart`` None), or s(φ) = u ℓ/2π on the curve of ``chart`` with dφ/dθ = 1/u′(φ) and
+    d²φ/dθ² = −u″/u′³."""
+    u = np.asarray(u, float)
+    if chart is None:
+        return u, np.ones(u.size), np.zeros(u.size)
+    scale = 2 * np.pi / chart.length
+    phi = chart.at_arc_lengths(u / scale)
+    du, d2u = scale * chart.arc_lengths(phi, 1), scale * chart.arc_lengths(phi, 2)
+    return phi, 1 / du, -d2u / du**3
 
 
 class Coupling(ABC):
@@ -209,9 +234,7 @@ class PotentialCoupling(Coupling):
         """On a circle the equidistant angles in ``phi``'s cyclic order, rotated by θ."""
         if isinstance(curve, Surface) or not curve.rotation_invariant:
             return None
-        base = respace(phi)
-        ones, zeros = np.ones(base.size), np.zeros(base.size)
-        return ShiftFamily(lambda theta: (base + theta, ones, zeros))
+        return ShiftFamily(respace(phi))
 
     def free_directions(self, phi: np.ndarray, curve: Curve | Surface) -> np.ndarray:
         if isinstance(curve, Surface):
@@ -267,14 +290,7 @@ class EqualArcLength(Coupling):
         return self._angles(respace(self._u(phi, curve)), curve)
 
     def family(self, phi: np.ndarray, curve: Curve) -> ShiftFamily:
-        base = respace(self._u(phi, curve))
-
-        def angles(theta: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-            phi = self._angles(base + theta, curve)
-            du, d2u = self._u(phi, curve, 1), self._u(phi, curve, 2)
-            return phi, 1 / du, -d2u / du**3
-
-        return ShiftFamily(angles)
+        return ShiftFamily(respace(self._u(phi, curve)), chart=curve.arc_evaluator)
 
     def free_directions(self, phi: np.ndarray, curve: Curve) -> np.ndarray:
         along = 1 / self._u(phi, curve, 1)

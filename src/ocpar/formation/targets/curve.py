@@ -62,21 +62,32 @@ class Curve(ABC):
         dz = ca.jacobian(z, phi)
         return ca.Function("curve", [phi], [z, dz, ca.jacobian(dz, phi)])
 
-    def _evaluate(self, phi: np.ndarray, which: int) -> np.ndarray:
-        phi = np.atleast_1d(np.asarray(phi, float)).ravel()
-        return np.asarray(self._derivatives(phi[None, :])[which]).reshape(self.dim, -1).T
+    @cached_property
+    def evaluator(self) -> CurveEvaluator | CircleEvaluator:
+        """z, z′, z″ of the curve, picklable (built once): what a worker evaluates its
+        agents' targets with, and what :meth:`points`, :meth:`tangents` and
+        :meth:`curvatures` call, so that both give the same bits."""
+        return CurveEvaluator(self._derivatives, self.dim)
+
+    @cached_property
+    def arc_evaluator(self) -> CurveEvaluator:
+        """The curve's arc length s(φ) and length ℓ with z, z′, z″, picklable (built on first
+        use): what :meth:`arc_lengths` and :meth:`at_arc_lengths` call."""
+        arc = self._arc_length
+        length = float(np.asarray(arc(np.array([[2 * np.pi]]))[0]).ravel()[0])
+        return CurveEvaluator(self._derivatives, self.dim, arc, length)
 
     def points(self, phi: np.ndarray) -> np.ndarray:
         """z(φ) for angles φ (n,) rad: shape (n, d)."""
-        return self._evaluate(phi, 0)
+        return self.evaluator.evaluate(phi, 0)
 
     def tangents(self, phi: np.ndarray) -> np.ndarray:
         """z′(φ) = dz/dφ for angles φ (n,): shape (n, d), length unit per rad."""
-        return self._evaluate(phi, 1)
+        return self.evaluator.evaluate(phi, 1)
 
     def curvatures(self, phi: np.ndarray) -> np.ndarray:
         """z″(φ) = d²z/dφ² for angles φ (n,): shape (n, d), length unit per rad²."""
-        return self._evaluate(phi, 2)
+        return self.evaluator.evaluate(phi, 2)
 
     @cached_property
     def _arc_length(self) -> ca.Function:
@@ -107,25 +118,16 @@ class Curve(ABC):
     def arc_lengths(self, phi: np.ndarray, which: int = 0) -> np.ndarray:
         """s(φ) (length unit), or its first or second derivative in φ (``which`` 1, 2), at
         the angles φ (n,): shape (n,). See :attr:`length` for ℓ = s(2π)."""
-        phi = np.atleast_1d(np.asarray(phi, float)).ravel()
-        return np.asarray(self._arc_length(phi[None, :])[which]).ravel()
+        return self.arc_evaluator.arc_lengths(phi, which)
 
-    @cached_property
+    @property
     def length(self) -> float:
         """ℓ = s(2π), the curve's length by the rule of :meth:`arc_lengths` (length unit)."""
-        return float(self.arc_lengths(np.array([2 * np.pi]))[0])
+        return self.arc_evaluator.length
 
     def at_arc_lengths(self, s: np.ndarray) -> np.ndarray:
-        """The angles φ (n,) rad with s(φ) = ``s`` (n,): Newton's method from the angles of
-        the same fractions of a circle, to rounding (at most 50 iterations)."""
-        s = np.asarray(s, float)
-        phi = 2 * np.pi * s / self.length
-        for _ in range(50):
-            step = (self.arc_lengths(phi) - s) / self.arc_lengths(phi, 1)
-            phi = phi - step
-            if np.max(np.abs(step), initial=0.0) <= 4e-16 * (1 + np.max(np.abs(phi))):
-                break
-        return phi
+        """The angles φ (n,) rad with s(φ) = ``s`` (n,) (:meth:`CurveEvaluator.at_arc_lengths`)."""
+        return self.arc_evaluator.at_arc_lengths(s)
 
     def locate(self, points: np.ndarray, hint: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """The inverse of :meth:`points`: for ``points`` (n, d) the angles φ (n,) rad of the
@@ -218,6 +220,70 @@ class Curve(ABC):
         if gap > CLOSURE_RTOL * size:
             raise ValueError(f"curve: not closed with period 2π: |z(φ + 2π) − z(φ)| up to "
                              f"{gap:.1e}, size {size:.1e}")
+
+
+@dataclass(frozen=True, eq=False)
+class CurveEvaluator:
+    """A curve's numbers as CasADi Functions, picklable: what a worker needs to place its
+    agents on the curve (:mod:`ocpar.formation.outer_step`), and what the curve itself
+    evaluates with, so that both compute the same bits. ``derivatives`` maps a row of angles
+    φ to (z, z′, z″); ``dim`` d; with an arc length, ``arc`` maps φ to (s, s′, s″) and
+    ``length`` is ℓ = s(2π) (length unit)."""
+
+    derivatives: ca.Function
+    dim: int
+    arc: ca.Function | None = None
+    length: float = float("nan")
+
+    def evaluate(self, phi: np.ndarray, which: int) -> np.ndarray:
+        """z (``which`` 0), z′ (1) or z″ (2) at the angles φ (n,) rad: shape (n, d)."""
+        phi = np.atleast_1d(np.asarray(phi, float)).ravel()
+        return np.asarray(self.derivatives(phi[None, :])[which]).reshape(self.dim, -1).T
+
+    def arc_lengths(self, phi: np.ndarray, which: int = 0) -> np.ndarray:
+        """s(φ) (length unit), or its first or second derivative in φ (``which`` 1, 2), at
+        the angles φ (n,): shape (n,)."""
+        phi = np.atleast_1d(np.asarray(phi, float)).ravel()
+        return np.asarray(self.arc(phi[None, :])[which]).ravel()  # type: ignore[misc]
+
+    def at_arc_lengths(self, s: np.ndarray) -> np.ndarray:
+        """The angles φ (n,) rad with s(φ) = ``s`` (n,): Newton's method from the angles of
+        the same fractions of a circle, each to rounding (at most 50 iterations). Element by
+        element: an angle does not depend on the others given with it (a worker computes its
+        agents' own)."""
+        s = np.asarray(s, float)
+        phi = 2 * np.pi * s / self.length
+        active = np.arange(phi.size)
+        for _ in range(50):
+            step = (self.arc_lengths(phi.ravel()[active]) - s.ravel()[active]) \
+                / self.arc_lengths(phi.ravel()[active], 1)
+            phi.ravel()[active] -= step
+            active = active[np.abs(step) > 4e-16 * (1 + np.abs(phi.ravel()[active]))]
+            if not active.size:
+                break
+        return phi
+
+
+@dataclass(frozen=True, eq=False)
+class CircleEvaluator:
+    """A circle's z, z′, z″ in closed form, picklable (:attr:`Curve.evaluator`): ``center``
+    (d,), ``plane`` (2, d) its orthonormal axes, ``radius``."""
+
+    center: np.ndarray
+    plane: np.ndarray
+    radius: float
+
+    @property
+    def dim(self) -> int:
+        return len(self.center)
+
+    def evaluate(self, phi: np.ndarray, which: int) -> np.ndarray:
+        """z, z′ or z″ (``which`` 0, 1, 2) at the angles φ (n,), (n, d): the k-th derivative
+        of (cos φ, sin φ) is (cos, sin)(φ + kπ/2). Numpy: ~0.3 ms at 10,000 angles against
+        ~7 ms through the compiled CasADi function (the outer solver asks every superstep)."""
+        phi = np.atleast_1d(np.asarray(phi, float)).ravel() + which * np.pi / 2
+        xy = self.radius * np.column_stack([np.cos(phi), np.sin(phi)])
+        return (self.center if which == 0 else 0.0) + xy @ self.plane
 
 
 def _numbers(name: str, value: object) -> np.ndarray:
@@ -319,13 +385,10 @@ class Circle(PlaneCurve):
         radial = np.hypot(xy[:, 0], xy[:, 1]) - self.radius
         return phi, np.sqrt(radial**2 + np.sum(off_plane**2, axis=1))
 
-    def _evaluate(self, phi: np.ndarray, which: int) -> np.ndarray:
-        """z, z′ or z″ (``which`` 0, 1, 2) in closed form, (n, d): the k-th derivative of
-        (cos φ, sin φ) is (cos, sin)(φ + kπ/2). Numpy: ~0.3 ms at 10,000 angles against ~7 ms
-        through the compiled CasADi function (the outer solver asks every superstep)."""
-        phi = np.atleast_1d(np.asarray(phi, float)).ravel() + which * np.pi / 2
-        xy = self.radius * np.column_stack([np.cos(phi), np.sin(phi)])
-        return (self.center if which == 0 else 0.0) + xy @ self.plane
+    @cached_property
+    def evaluator(self) -> CircleEvaluator:
+        """z, z′, z″ in closed form (:class:`CircleEvaluator`)."""
+        return CircleEvaluator(self.center, self.plane, self.radius)
 
     def spread(self, phi_c: float, fractions: np.ndarray) -> np.ndarray:
         """Arc length is proportional to φ: φ_c + 2π ``fractions``, exactly."""
