@@ -7,6 +7,7 @@ import json
 
 import numpy as np
 import pytest
+from conftest import run_cli
 
 from ocpar.examples import formation_halo
 from ocpar.examples.formation_point_masses import make as paper_example
@@ -244,3 +245,30 @@ def test_halo_optimum_reports_its_min_separation():
     reference = independent_min(problem, result)
     assert result.separation.distance <= reference <= result.separation.distance + 1e-4
     assert result.separation.distance < 0.05    # the unconstrained optimum: 21 m
+
+
+@pytest.mark.parametrize("seed", range(2))
+def test_the_intervals_on_mpi_ranks_give_the_same_closest_approach(seed, tmp_path):
+    """The closest approach's intervals searched on 2 MPI ranks (a superstep of N interval
+    tasks taken from a shared queue): the serial answer, which is the all-pairs one."""
+    rng = np.random.default_rng(200 + seed)
+    positions = bundles(rng, 240, 7, 2)
+    np.save(tmp_path / "positions.npy", positions)
+    script = tmp_path / "closest.py"
+    script.write_text(
+        "import json, sys, numpy as np\n"
+        "from ocpar.bsp import open_backend\n"
+        "from ocpar.formation.keep_out.separation import closest_approach\n"
+        "with open_backend('mpi') as backend:\n"
+        "    if backend.is_coordinator:\n"
+        f"        found = closest_approach(np.load({str(tmp_path / 'positions.npy')!r}), 2.0,"
+        " backend)\n"
+        "        print(json.dumps([found.distance, list(found.agents), found.time,"
+        " backend.traces[-1].worker_tasks]))\n"
+        "    else:\n"
+        "        backend.serve()\n")
+    proc = run_cli(str(script), mpi_ranks=2)
+    assert proc.returncode == 0, proc.stderr
+    distance, agents, time, tasks = json.loads(proc.stdout.strip().splitlines()[-1])
+    assert (distance, tuple(agents), time) == all_pairs(positions, 2.0)
+    assert sum(tasks) == 7   # one task per interval, taken by whichever rank is free

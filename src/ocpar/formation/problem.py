@@ -23,6 +23,7 @@ from dataclasses import dataclass, field
 import casadi as ca
 import numpy as np
 
+from ocpar.bsp import Backend
 from ocpar.bsp.columns import LISTED, Columns
 from ocpar.formation.couplings.coupling import Coupling, PotentialCoupling
 from ocpar.formation.keep_out.obstacles import Obstacle, check_obstacles
@@ -413,15 +414,17 @@ class FormationProblem:
         """The position part (n, N+1, p) of node paths ``trajectories`` (n, N+1, nq)."""
         return np.asarray(trajectories)[..., list(self.position_indices)]
 
-    def closest_approach(self, trajectories: np.ndarray) -> ClosestApproach:
+    def closest_approach(self, trajectories: np.ndarray, backend: Backend | None = None
+                         ) -> ClosestApproach:
         """The closest approach of any two agents on node paths ``trajectories`` (n, N+1, nq),
         on their piecewise-linear positions over [0, T]
-        (:mod:`ocpar.formation.keep_out.separation`);
-        distance and time NaN, pair (−1, −1) if a path is not finite (a failed run)."""
+        (:mod:`ocpar.formation.keep_out.separation`; its intervals on the ``backend``'s
+        workers if one is given); distance and time NaN, pair (−1, −1) if a path is not
+        finite (a failed run)."""
         positions = self.positions(trajectories)
         if not np.all(np.isfinite(positions)):
             return ClosestApproach(math.nan, (-1, -1), math.nan)
-        return closest_approach(positions, self.common_shape.duration)
+        return closest_approach(positions, self.common_shape.duration, backend)
 
     @property
     def agents(self) -> int:

@@ -279,15 +279,15 @@ KNOWN_FAILURES = {"separation_not_met": ("separation",), "obstacles_not_cleared"
 
 
 def _verified(problem: FormationProblem, options: FormationOptions, trajectories: np.ndarray,
-              controls: np.ndarray, phi: np.ndarray, status: str, message: str
-              ) -> tuple[Verification, str, str]:
+              controls: np.ndarray, phi: np.ndarray, status: str, message: str,
+              backend: Backend) -> tuple[Verification, str, str]:
     """The answer's verification (:func:`~ocpar.formation.verify.verify_formation`) and the
     status and message it leaves: ``converged`` becomes ``failed`` if it fails (the message
     then starts with the first failure), other statuses stay with the failures appended that
     they do not already report (:data:`KNOWN_FAILURES`); a near-collision is said in the
     message (the status stays)."""
     verification = verify_formation(problem, trajectories, controls, phi,
-                                    options.min_separation)
+                                    options.min_separation, backend)
     if not verification.passed:
         if status == "converged":
             words = verification.failure_words()
@@ -426,7 +426,8 @@ def solve_formation(
         status, message, obstacle_fields = obstacle_check(problem, sol.trajectories, status,
                                                           words + note)
         verification, status, message = _verified(
-            problem, options, sol.trajectories, sol.controls, sol.phi, status, message)
+            problem, options, sol.trajectories, sol.controls, sol.phi, status, message,
+            backend)
         checked = time.perf_counter() - start - wall_time_s
         return FormationResult(
             **common,
@@ -500,7 +501,7 @@ def solve_formation(
     status, message, obstacle_fields = obstacle_check(problem, trajectories, status, message)
     extra |= obstacle_fields
     verification, status, message = _verified(problem, options, trajectories, controls, phi,
-                                               status, message)
+                                               status, message, backend)
     checked = time.perf_counter() - start - wall_time_s
     return FormationResult(
         **common,

@@ -42,6 +42,7 @@ from functools import lru_cache
 import casadi as ca
 import numpy as np
 
+from ocpar.bsp import Backend
 from ocpar.formation.couplings.coupling import PotentialCoupling
 from ocpar.formation.couplings.potential import (
     circle_coupling,
@@ -345,12 +346,15 @@ def _locate(problem: FormationProblem, ends: np.ndarray, phi: np.ndarray
 
 def verify_formation(problem: FormationProblem, trajectories: np.ndarray,
                      controls: np.ndarray, phi: np.ndarray,
-                     min_separation: float | None = None) -> Verification:
+                     min_separation: float | None = None,
+                     backend: Backend | None = None) -> Verification:
     """Check a returned formation from its node paths ``trajectories`` (n, N+1, nq), interval
     controls ``controls`` (n, N, nu) and parameters ``phi`` (the shape of φ; used only as the
     hint where the end points are located, and onto slots as the assignment) against
     ``problem`` (module docstring); ``min_separation`` D (length unit) if the run required
-    one (then the closest approach must be ≥ D (1 − :data:`SEPARATION_RTOL`))."""
+    one (then the closest approach must be ≥ D (1 − :data:`SEPARATION_RTOL`)). With a
+    ``backend``, the closest approach's intervals are searched on its workers (the same
+    figures)."""
     start = time.perf_counter()
     q, u = np.asarray(trajectories, float), np.asarray(controls, float)
     n, d = problem.agents, problem.curve.dim
@@ -394,7 +398,7 @@ def verify_formation(problem: FormationProblem, trajectories: np.ndarray,
         checks["obstacles"] = Check(-clearance.distance, clearance.agent,
                                     CLEARANCE_TOL * min(o.scale for o in problem.obstacles),
                                     where)
-    closest = problem.closest_approach(q)
+    closest = problem.closest_approach(q, backend)
     if min_separation is not None:
         checks["separation"] = Check(min_separation - closest.distance, closest.agents[0],
                                      min_separation * SEPARATION_RTOL,

@@ -28,10 +28,14 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from ocpar.ocp.obstacles import segment_closest
+
+if TYPE_CHECKING:
+    from ocpar.bsp import Backend
 
 #: Agents per leaf of the tree over one interval's segments (see :func:`_interval_within`).
 LEAF = 2
@@ -256,23 +260,75 @@ def _upper_bound(positions: np.ndarray) -> float:
     return float(np.linalg.norm(np.diff(ranked, axis=0), axis=-1).min())
 
 
-def closest_approach(positions: np.ndarray, duration: float) -> ClosestApproach:
+@dataclass(frozen=True)
+class IntervalTask:
+    """One interval's closest approach to find (:func:`interval_minimum`): the agents'
+    positions at its start and end ``segments`` (n, 2, dim), the ``bound`` (length unit) an
+    actual pair distance at some node of the paths (:func:`_upper_bound`), and ``scale``
+    max |position| over the paths (the slack of the test)."""
+
+    segments: np.ndarray
+    bound: float
+    scale: float
+
+
+@dataclass(frozen=True)
+class IntervalMinimum:
+    """The closest pair on one interval, among pairs that come within the bound there:
+    ``distance`` (inf if none), the pair (``i``, ``j``), i < j ((−1, −1) if none), the first
+    ``fraction`` s ∈ [0, 1] of the interval where it occurs."""
+
+    distance: float
+    i: int
+    j: int
+    fraction: float
+
+
+def interval_minimum(task: IntervalTask) -> IntervalMinimum:
+    """Engine kernel: the exact closest approach on the interval of ``task`` among the pairs
+    within its bound (:func:`_interval_within`; the closest pair of the whole paths is among
+    them on its interval); ties go to the first pair in (i, j) order."""
+    n = len(task.segments)
+    reach = task.bound * (1 + 1e-9) + 1e-12 * (1.0 + task.scale)
+    i, j = _interval_within(task.segments.reshape(n, -1), reach)
+    if not len(i):
+        return IntervalMinimum(math.inf, -1, -1, math.nan)
+    pairs = np.unique(np.minimum(i, j).astype(np.int64) * n + np.maximum(i, j))
+    first, second = np.divmod(pairs, n)
+    relative = task.segments[first] - task.segments[second]
+    distance, fraction = segment_closest(relative[:, 0], relative[:, 1])
+    best = int(np.argmin(distance))
+    return IntervalMinimum(float(distance[best]), int(first[best]), int(second[best]),
+                           float(fraction[best]))
+
+
+def closest_approach(positions: np.ndarray, duration: float,
+                     backend: Backend | None = None) -> ClosestApproach:
     """Closest approach of any two agents on piecewise-linear paths.
 
     ``positions`` (n, N+1, dim) node positions at t_k = k T/N, ``duration`` T (time unit).
     Equal to the all-pairs minimum (ties: the first pair in (i, j) order, then the earliest
-    interval).
+    interval). Interval by interval (:func:`interval_minimum`), each within a bound that an
+    actual pair distance gives (:func:`_upper_bound`): with a ``backend``, one superstep of
+    N interval tasks on its workers (the same numbers: each interval's arithmetic is its
+    own).
     """
     positions = _check_positions(positions)
     n, nodes, _ = positions.shape
     if n < 2:
         return ClosestApproach(math.inf, (-1, -1), math.nan)
-    pairs = _within(positions, _upper_bound(positions))   # holds the closest pair
-    minima, when = _pair_minima(positions, pairs)
-    best = int(np.argmin(minima))
-    i, j = (int(x) for x in pairs[best])
-    return ClosestApproach(float(minima[best]), (i, j),
-                           float(when[best]) * duration / (nodes - 1))
+    bound, scale = _upper_bound(positions), float(np.abs(positions).max())
+    tasks = [IntervalTask(np.ascontiguousarray(positions[:, k:k + 2]), bound, scale)
+             for k in range(nodes - 1)]
+    # (equal cost estimates: under MPI the ranks take the intervals from a shared queue)
+    minima = (backend.superstep(interval_minimum, tasks, costs=[1.0] * len(tasks))
+              if backend is not None else [interval_minimum(task) for task in tasks])
+    # the smallest distance; ties to the first pair, then the earliest interval
+    k = min(range(len(minima)), key=lambda k: (minima[k].distance, minima[k].i, minima[k].j,
+                                                k))
+    best = minima[k]
+    return ClosestApproach(best.distance, (best.i, best.j),
+                           (k + best.fraction) * duration / (nodes - 1))
 
 
 def positions_at(positions: np.ndarray, time: float, duration: float) -> np.ndarray:
