@@ -280,7 +280,7 @@ KNOWN_FAILURES = {"separation_not_met": ("separation",), "obstacles_not_cleared"
 
 def _verified(problem: FormationProblem, options: FormationOptions, trajectories: np.ndarray,
               controls: np.ndarray, phi: np.ndarray, status: str, message: str,
-              backend: Backend) -> tuple[Verification, str, str]:
+              backend: Backend | None = None) -> tuple[Verification, str, str]:
     """The answer's verification (:func:`~ocpar.formation.verify.verify_formation`) and the
     status and message it leaves: ``converged`` becomes ``failed`` if it fails (the message
     then starts with the first failure), other statuses stay with the failures appended that
