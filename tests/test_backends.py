@@ -86,7 +86,7 @@ def test_lpt_balances_a_heterogeneous_workload_with_the_same_results():
         results = [backend.superstep("ocpar.bsp.workload:spin", seconds) for _ in range(3)]
         first, *later = backend.traces
     assert all(r == seconds for r in results)
-    assert first.task_worker == [0] * 6 + [1] * 6 and first.imbalance > 1.3
+    assert first.task_worker.tolist() == [0] * 6 + [1] * 6 and first.imbalance > 1.3
     for trace in later:
         assert trace.imbalance < 1.1, trace.worker_busy_s
     # 10 of 12 tasks stay where they were (only tasks 7 and 8 move to worker 0)
@@ -199,7 +199,7 @@ if backend.is_coordinator:
         estimates = {None: None, "true": seconds, "equal": [1.0] * len(seconds)}[costs]
         got = backend.superstep("ocpar.bsp.workload:spin", seconds, costs=estimates)
         trace = backend.traces[-1]
-        out.append({"sent": seconds, "got": got, "task_worker": trace.task_worker,
+        out.append({"sent": seconds, "got": got, "task_worker": trace.task_worker.tolist(),
                     "worker_tasks": trace.worker_tasks})
     backend.close()
     print(json.dumps(out))

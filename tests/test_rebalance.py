@@ -45,12 +45,14 @@ def serial_run():
 
 
 def recording(backend) -> list[ResidentChunk]:
-    """Record every resident chunk item ``backend`` sends from now on."""
+    """Record every resident chunk item ``backend`` sends from now on (not the other
+    supersteps' tasks, e.g. the verification's)."""
     items: list[ResidentChunk] = []
     run = backend._run_chunks
 
     def record(name, chunks):
-        items.extend(item for chunk in chunks for item in chunk)
+        items.extend(item for chunk in chunks for item in chunk
+                     if isinstance(item, ResidentChunk))
         return run(name, chunks)
 
     backend._run_chunks = record

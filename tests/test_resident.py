@@ -90,10 +90,11 @@ def test_mpirun_gives_the_serial_run_bit_for_bit(serial_run, tmp_path, ranks):
     assert data["supersteps"] == serial_run.supersteps
     if ranks > 2:
         return   # 3 agents per rank: each message's framing outweighs its agents' numbers
-    # the transport counts the bytes: every superstep's few, the last's (the paths) many
-    *solves, gather = load_trace(tmp_path)
-    assert all(0 < t["received_bytes"] < gather["received_bytes"] / 4 for t in solves)
-    assert all(t["sent_bytes"] > gather["sent_bytes"] for t in solves)
+    # the transport counts the bytes: a superstep's reply carries a few numbers per agent,
+    # never the paths (rank 1's 12 agents' node positions alone are 12 * 11 * 2 doubles)
+    first, *later = load_trace(tmp_path)
+    assert all(0 < t["received_bytes"] < 12 * 11 * 2 * 8 for t in [first, *later])
+    assert all(first["sent_bytes"] > t["sent_bytes"] > 0 for t in later)  # the boundary data
 
 
 def test_a_resumed_run_rebuilds_the_workers_states_from_the_history(serial_run, tmp_path):
@@ -112,7 +113,7 @@ def test_a_resumed_run_rebuilds_the_workers_states_from_the_history(serial_run, 
     result = solve_formation(paper_example(AGENTS), resumed)
     assert_bitwise(result, serial_run)
     rebuilt = [item for chunks in calls for chunk in chunks for item in chunk
-               if item.history is not None]
+               if getattr(item, "history", None) is not None]
     assert len(rebuilt) == 1 and len(rebuilt[0].history) == 3
     assert len(rebuilt[0].rebuild) == AGENTS
 
@@ -169,5 +170,5 @@ def test_chunks_that_land_on_the_other_dask_worker_are_replayed_there(serial_run
         result = solve_formation(paper_example(AGENTS), backend)
     assert_bitwise(result, serial_run)
     replayed = [item for chunks in rounds for chunk in chunks for item in chunk
-                if item.history is not None]
+                if getattr(item, "history", None) is not None]
     assert len(replayed) >= 2 * (result.supersteps - 2)

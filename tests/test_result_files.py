@@ -143,3 +143,35 @@ def test_macs_arrays_are_the_front_decisions_and_trajectories(tmp_path):
 def test_a_directory_without_a_result_is_refused(tmp_path):
     with pytest.raises(FileNotFoundError, match=r"no result\.json at"):
         ocpar.load(tmp_path)
+
+
+def test_a_large_run_s_workers_write_their_agents_and_load_joins_them(tmp_path, monkeypatch):
+    """Above PARTS_MIN_AGENTS (lowered here) the workers write their agents' variables
+    themselves: 2 Dask workers write 2 parts beside result.nc, which holds the run's own
+    variables and names them; ``ocpar.load`` joins them into the Dataset the serial run's
+    one file holds, bit for bit (the solver statuses' names merged in agent order), and
+    the summary names the parts. An array file whose parts are not beside it is refused
+    with their names."""
+    from ocpar.bsp import open_backend
+    from ocpar.formation import finish
+
+    monkeypatch.setattr(finish, "PARTS_MIN_AGENTS", 100)
+    problem = formation_point_masses.make(agents=300)
+    single = solve_formation(problem, output=tmp_path / "single")   # one worker: one file
+    assert not single.parts
+    write_result(single, tmp_path / "single")
+    with open_backend("dask", workers=2) as backend:
+        parted = solve_formation(problem, backend, output=tmp_path / "parts")
+    assert len(parted.parts) == 2 and parted.trajectories is None
+    assert parted.total_cost == single.total_cost and parted.phi.tolist() == single.phi.tolist()
+    assert parted.verification.to_dict() == single.verification.to_dict()
+    paths = write_result(parted, tmp_path / "parts")
+    assert [p.name for p in paths] == [SUMMARY_FILE, ARRAYS_FILE, *parted.parts, TRACE_FILE]
+    ds, summary = ocpar.load(tmp_path / "parts")
+    assert summary["array_parts"] == parted.parts
+    xr.testing.assert_identical(ds, ocpar.load(tmp_path / "single").dataset)
+    for name in ds.variables:
+        assert ds[name].dtype == ocpar.load(tmp_path / "single").dataset[name].dtype, name
+    (tmp_path / "parts" / parted.parts[1]).unlink()
+    with pytest.raises(FileNotFoundError, match=parted.parts[1]):
+        ocpar.load(tmp_path / "parts" / ARRAYS_FILE)

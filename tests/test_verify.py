@@ -89,8 +89,7 @@ def test_an_end_point_moved_off_the_circle_is_named(six):
     # moved along the radius: the located angle, and with it the coupling, unchanged
     assert v.coupling_residual <= 1e-8
     # the solve's status follows: converged becomes failed, the first failure first
-    _, status, message = _verified(problem, FormationOptions(), q, result.controls,
-                                   result.phi, "converged", result.message)
+    _, status, message = _verified(v, "converged", result.message)
     assert status == "failed"
     assert message.startswith("the returned formation fails verification: agent 3's end "
                               "point") and "(and 1 more)" in message

@@ -11,7 +11,9 @@ from __future__ import annotations
 
 import logging
 
-import ocpar  # noqa: F401  (sets one BLAS/OpenMP thread per process)
+# importing ocpar sets one BLAS/OpenMP thread per process; the formation's worker side
+# (its resident kernel) is imported now, not in the first superstep
+import ocpar.formation.outer_step  # noqa: F401
 from ocpar.bsp.malloc import keep_solver_workspaces_on_heap
 from ocpar.examples.formation_point_masses import make as point_masses
 from ocpar.ocp import dmoc_problem

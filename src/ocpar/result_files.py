@@ -14,7 +14,8 @@ Every run with an output directory writes three files there (:func:`write_result
   and is a directory or a zip). It is written with netCDF4-python directly, as
   xarray would write it: the coordinator does not import xarray (0.5–1 s) to write it;
 * ``trace.json``: the per-superstep trace, one record per superstep
-  (:meth:`~ocpar.bsp.SuperstepTrace.to_dict`).
+  (:meth:`~ocpar.bsp.SuperstepTrace.to_dict`), the per-task values as runs of equal values
+  (``{"values": [...], "repeats": [...]}``; :func:`load_trace` gives them back as lists).
 
 ``ocpar.load("runs/mine")`` returns the :class:`Run`: ``dataset, summary = ocpar.load(...)``.
 """
@@ -29,7 +30,7 @@ from typing import TYPE_CHECKING, NamedTuple
 
 import numpy as np
 
-from ocpar.results import Array, RunResult
+from ocpar.results import Array, RunResult, categories
 
 if TYPE_CHECKING:
     import xarray as xr
@@ -37,23 +38,37 @@ if TYPE_CHECKING:
 SUMMARY_FILE = "result.json"
 ARRAYS_FILE = "result.nc"
 TRACE_FILE = "trace.json"
+#: The array file's attribute naming its parts (space-separated file names beside it), where
+#: the workers wrote their agents' variables themselves.
+PARTS_ATTRIBUTE = "agent_parts"
 #: xarray's engine for the array file (netCDF4-python)
 ENGINE = "netcdf4"
 
 
 def write_result(result: RunResult, directory: str | Path) -> list[Path]:
     """Write ``result`` into ``directory`` (made if missing) as ``result.json``,
-    ``result.nc`` and ``trace.json``; returns their paths (summary first). The summary is
-    written last: once it is there, so are the others. The time the other two took is
-    recorded as the result's ``timings["files_s"]`` (:mod:`ocpar.timing`)."""
+    ``result.nc`` and ``trace.json``; returns their paths (summary first, then the array file
+    and its parts). The summary is written last: once it is there, so are the others. The
+    time the other two took is added to the result's ``timings["files_s"]``
+    (:mod:`ocpar.timing`). A result whose agents' arrays its workers wrote as parts of the
+    array file (a formation's ``parts``, :mod:`ocpar.formation.finish`) is written into the
+    directory that holds them: result.nc names them (attribute :data:`PARTS_ATTRIBUTE`), and
+    so does result.json (``array_parts``)."""
     directory = Path(directory)
     directory.mkdir(parents=True, exist_ok=True)
     start = time.perf_counter()
     arrays, trace = directory / ARRAYS_FILE, directory / TRACE_FILE
-    write_netcdf(result.arrays(), result.file_attributes(), arrays)
-    trace.write_text("[" + ", ".join(_trace_record(t.to_dict()) for t in result.trace) + "]")
-    result.timings["files_s"] = time.perf_counter() - start
-    return [write_summary(result, directory), arrays, trace]
+    parts = getattr(result, "parts", [])
+    if missing := [p for p in parts if not (directory / p).is_file()]:
+        raise ValueError(f"the run's workers wrote its agents' arrays as {', '.join(missing)} "
+                         f"into the run's output directory, not {directory}: write the "
+                         "result there")
+    write_netcdf(result.arrays(), result.file_attributes()
+                 | ({PARTS_ATTRIBUTE: " ".join(parts)} if parts else {}), arrays)
+    trace.write_text("[" + ", ".join(_trace_record(t.to_dict(lists=False))
+                                     for t in result.trace) + "]")
+    result.timings["files_s"] = result.timings.get("files_s", 0.0) + time.perf_counter() - start
+    return [write_summary(result, directory), arrays, *(directory / p for p in parts), trace]
 
 
 def write_summary(result: RunResult, directory: str | Path) -> Path:
@@ -62,36 +77,47 @@ def write_summary(result: RunResult, directory: str | Path) -> Path:
     reader never sees half of it); written again after the plots with their time."""
     summary = Path(directory) / SUMMARY_FILE
     partial = summary.with_name(f".{SUMMARY_FILE}.{os.getpid()}")
+    parts = getattr(result, "parts", [])
     partial.write_text(json.dumps(result.to_dict()
-                                  | {"arrays": ARRAYS_FILE, "trace_file": TRACE_FILE}))
+                                  | {"arrays": ARRAYS_FILE, "trace_file": TRACE_FILE}
+                                  | ({"array_parts": parts} if parts else {})))
     os.replace(partial, summary)
     return summary
 
 
 #: The per-task lists of a trace record (one number per task: 10^6 of each per superstep at
-#: 1,000,000 agents), written by :func:`_number_list`.
+#: 1,000,000 agents), written as runs of equal values (:func:`_runs`).
 TASK_LISTS = ("task_wall_s", "task_cpu_s", "task_worker")
 
 
 def _trace_record(record: dict) -> str:
-    """One trace record as JSON, its :data:`TASK_LISTS` last, written by
-    :func:`_number_list`: what ``json.dumps(record)`` says, 10x faster for a batched kernel's
-    per-task times."""
+    """One trace record as JSON, its :data:`TASK_LISTS` last, each as its runs of equal
+    values (:func:`_runs`)."""
     lists = {key: record.pop(key) for key in TASK_LISTS if key in record}
     text = json.dumps(record)
-    extra = "".join(f", {json.dumps(key)}: {_number_list(v)}" for key, v in lists.items())
+    extra = "".join(f", {json.dumps(key)}: {_runs(v)}" for key, v in lists.items())
     return text[:-1] + extra + "}" if lists else text
 
 
-def _number_list(values: list[float] | list[int]) -> str:
-    """``json.dumps(values)`` for a list of numbers, each distinct value's text made once (a
-    batched kernel gives every task of its chunk the chunk's mean time: a few distinct
-    values among 10^6)."""
-    if not values:
-        return "[]"
-    distinct, index = np.unique(np.asarray(values), return_inverse=True)
-    texts = np.array([json.dumps(v) for v in distinct.tolist()], dtype=object)
-    return "[" + ", ".join(texts[index].tolist()) + "]"
+def _runs(values: np.ndarray | list[float]) -> str:
+    """``values`` (one per task) as JSON ``{"values": [...], "repeats": [...]}``: each run of
+    equal consecutive values once, with its length (a batched kernel gives every task of its
+    chunk the chunk's mean time: a run per worker, where a list would hold 10^6 numbers).
+    :func:`load_trace` gives the list back."""
+    values = np.asarray(values)
+    if not values.size:
+        return '{"values": [], "repeats": []}'
+    starts = np.flatnonzero(np.r_[True, values[1:] != values[:-1]])
+    repeats = np.diff(np.r_[starts, values.size])
+    return json.dumps({"values": values[starts].tolist(), "repeats": repeats.tolist()})
+
+
+def _expanded(record: dict) -> dict:
+    """A trace record as :func:`load_trace` gives it: its per-task runs as lists."""
+    for key in TASK_LISTS:
+        if isinstance(runs := record.get(key), dict):
+            record[key] = np.repeat(runs["values"], runs["repeats"]).tolist()
+    return record
 
 
 def write_netcdf(variables: dict[str, Array], attrs: dict[str, str], path: Path) -> None:
@@ -153,21 +179,53 @@ def load(path: str | Path) -> Run:
     ``ds, summary = ocpar.load("runs/formation")``; ``ds.configuration`` (agent, node,
     q_component). An array file with no result.json beside it loads with summary None.
     FileNotFoundError if the directory holds no result.json or array file."""
-    import xarray as xr  # (not on the import path of workers)
-
     summary_path = _summary_path(Path(path))
     if Path(path).suffix not in ("", ".json") and not summary_path.is_file():
-        return Run(xr.load_dataset(path, engine=ENGINE), None)
+        return Run(_joined(Path(path)), None)
     summary = _read(summary_path)
     arrays = summary_path.parent / summary.get("arrays", ARRAYS_FILE)
     if not arrays.is_file():
         raise FileNotFoundError(f"no array file {arrays.name} beside {summary_path}")
-    return Run(xr.load_dataset(arrays, engine=ENGINE), summary)
+    return Run(_joined(arrays), summary)
+
+
+def _joined(path: Path) -> xr.Dataset:
+    """The array file at ``path`` loaded, with the agents' variables of its parts beside it
+    (its :data:`PARTS_ATTRIBUTE`) joined along ``agent`` in order: the Dataset one file would
+    hold. A variable whose ``categories`` attribute names another that a part holds (codes
+    into the part's own names, e.g. solver statuses) gets codes into all parts' names in
+    order of first appearance."""
+    import xarray as xr
+
+    whole = xr.load_dataset(path, engine=ENGINE)
+    names = whole.attrs.pop(PARTS_ATTRIBUTE, None)
+    if not names:
+        return whole
+    missing = [n for n in names.split() if not (path.parent / n).is_file()]
+    if missing:
+        raise FileNotFoundError(f"{path.name} names its agents' parts {', '.join(missing)}, "
+                                f"not beside it in {path.parent}")
+    parts = [xr.load_dataset(path.parent / name, engine=ENGINE) for name in names.split()]
+    first = parts[0]
+    tables = {name: v.attrs["categories"] for name, v in first.data_vars.items()
+              if v.attrs.get("categories") in first.variables}
+    joined = xr.concat([p.drop_vars(list(tables.values())) for p in parts], dim="agent",
+                       data_vars="minimal", coords="minimal", compat="override")
+    for name, table in tables.items():   # codes into each part's own table: one table
+        labels = np.concatenate([p[table].values[p[name].values] for p in parts])
+        codes, distinct = categories(labels.tolist())
+        joined[name] = (first[name].dims, codes.astype(first[name].dtype), first[name].attrs)
+        joined[table] = (first[table].dims,   # as one file's loads: text of its longest
+                         np.array(distinct, dtype=None if first[table].dtype.kind == "U"
+                                  else object), first[table].attrs)
+    return xr.merge([whole, joined], combine_attrs="override")
 
 
 def load_trace(path: str | Path) -> list[dict]:
     """The per-superstep trace of the run at ``path`` (as :func:`load` takes it): one record
-    per superstep (:meth:`~ocpar.bsp.SuperstepTrace.to_dict`)."""
+    per superstep (:meth:`~ocpar.bsp.SuperstepTrace.to_dict`), its per-task values as lists
+    (the file holds their runs)."""
     summary_path = _summary_path(Path(path))
     name = _read(summary_path).get("trace_file", TRACE_FILE)
-    return json.loads((summary_path.parent / name).read_text())
+    return [_expanded(record)
+            for record in json.loads((summary_path.parent / name).read_text())]

@@ -77,6 +77,14 @@ class Backend(ABC):
         """True in the process that runs the outer problem (always, except MPI ranks > 0)."""
         return True
 
+    @property
+    def shares_files(self) -> bool:
+        """Whether every worker sees the coordinator's file system, so that a worker may
+        write its share of a run's output itself: here (one process, and MPI ranks, which
+        run where ``mpirun`` put them: a job's output directory is one every rank sees),
+        Dask's where its workers are on this host."""
+        return True
+
     def superstep(
         self, kernel: KernelRef, tasks: Sequence[Any], costs: Sequence[float] | None = None
     ) -> list[Any]:
@@ -177,9 +185,9 @@ class Backend(ABC):
             flat = [r for c in chunks for r in from_columns(c.results)]
             results = flat if in_order else [flat[i] for i in position.tolist()]
 
-        def per_task(per_chunk: list[list[float]]) -> list[float]:
-            values = list(itertools.chain.from_iterable(per_chunk))
-            return values if in_order else np.asarray(values, dtype=float)[position].tolist()
+        def per_task(per_chunk: list[np.ndarray]) -> np.ndarray:
+            values = np.concatenate([np.zeros(0), *per_chunk])
+            return values if in_order else values[position]
 
         walls = per_task([c.task_wall_s for c in chunks])
         cpus = per_task([c.task_cpu_s for c in chunks])
@@ -198,7 +206,7 @@ class Backend(ABC):
                 worker_peak_rss_mb=[c.peak_rss_mb for c in chunks],
                 task_wall_s=walls,
                 task_cpu_s=cpus,
-                task_worker=workers.tolist(),
+                task_worker=workers,
                 worker_sent_bytes=[c.sent_bytes for c in chunks],
                 worker_received_bytes=[c.received_bytes for c in chunks],
             )

@@ -65,8 +65,10 @@ from ocpar.bsp.mpi import SUPERSTEP_TIMEOUT_S
 #: Environment of worker processes spawned by the embedded cluster: one BLAS/OpenMP thread.
 WORKER_ENV = {"OMP_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
 
-#: Modules the embedded cluster's workers import at start-up.
-WORKER_PRELOAD = ("ocpar.ocp",)
+#: Modules the embedded cluster's workers import at start-up: the transcriptions, and the
+#: formation's worker side (its resident kernel and finish, which import the formation
+#: package: ~0.3 s that would otherwise fall in the first superstep).
+WORKER_PRELOAD = ("ocpar.ocp", "ocpar.formation.outer_step")
 
 #: Settings of the clusters ocpar starts (embedded, ``ocpar serve``'s, dask-mpi): no
 #: statistical profiler sampling the workers' ~ms solves, and no work stealing: a chunk waits
@@ -277,6 +279,20 @@ class DaskBackend(Backend):
                        if address.startswith("tls://") else None)
             self._channels[address] = Channel(self.client.sync(channel_address), context)
         return self._channels[address]
+
+    @property
+    def shares_files(self) -> bool:
+        """True where every worker is on this host (an embedded cluster, or workers on
+        127.0.0.1 or on one of this host's own addresses); a remote worker may not see the
+        coordinator's files."""
+        import socket
+
+        local = {"127.0.0.1", "localhost", "::1", socket.gethostname()}
+        with contextlib.suppress(OSError):
+            local |= {info[4][0] for info in socket.getaddrinfo(socket.gethostname(), None)}
+        hosts = {address.partition("://")[2].rsplit(":", 1)[0].strip("[]")
+                 for address in self.addresses}
+        return hosts <= local
 
     @property
     def dashboard_link(self) -> str | None:

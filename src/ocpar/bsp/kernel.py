@@ -27,6 +27,8 @@ from dataclasses import dataclass
 from functools import lru_cache
 from typing import Any
 
+import numpy as np
+
 from ocpar.bsp.columns import Columns, from_columns, to_columns
 
 KernelRef = str | Callable[[Any], Any]
@@ -71,7 +73,8 @@ class ChunkResult:
     """What one worker returns for its chunk of a superstep.
 
     ``results`` is a list, or :class:`~ocpar.bsp.columns.Columns` where a backend packed
-    them; ``task_wall_s``/``task_cpu_s`` are per task (s); ``busy_s``/``cpu_s`` cover the
+    them; ``task_wall_s``/``task_cpu_s`` are per task (s, float arrays); ``busy_s``/``cpu_s``
+    cover the
     whole chunk (with its unpacking and packing, where there is any);
     ``peak_rss_mb`` is the worker process's peak resident memory so far (MiB);
     ``sent_bytes``/``received_bytes`` the length of the coordinator's message with the chunk
@@ -80,8 +83,8 @@ class ChunkResult:
     """
 
     results: list[Any] | Columns
-    task_wall_s: list[float]
-    task_cpu_s: list[float]
+    task_wall_s: np.ndarray
+    task_cpu_s: np.ndarray
     busy_s: float
     cpu_s: float
     peak_rss_mb: float
@@ -102,9 +105,9 @@ def run_chunk(name: str, tasks: Sequence[Any] | Columns) -> ChunkResult:
             results = list(kernel(from_columns(tasks))) if len(tasks) else []
         busy, cpu = time.perf_counter() - start_wall, time.process_time() - start_cpu
         share = max(len(tasks), 1)
-        return ChunkResult(results=results, task_wall_s=[busy / share] * len(tasks),
-                           task_cpu_s=[cpu / share] * len(tasks), busy_s=busy, cpu_s=cpu,
-                           peak_rss_mb=peak_rss_mb())
+        return ChunkResult(results=results, task_wall_s=np.full(len(tasks), busy / share),
+                           task_cpu_s=np.full(len(tasks), cpu / share), busy_s=busy,
+                           cpu_s=cpu, peak_rss_mb=peak_rss_mb())
     results, walls, cpus = [], [], []
     for task in from_columns(tasks):
         t_wall, t_cpu = time.perf_counter(), time.process_time()
@@ -113,8 +116,8 @@ def run_chunk(name: str, tasks: Sequence[Any] | Columns) -> ChunkResult:
         cpus.append(time.process_time() - t_cpu)
     return ChunkResult(
         results=results,
-        task_wall_s=walls,
-        task_cpu_s=cpus,
+        task_wall_s=np.array(walls),
+        task_cpu_s=np.array(cpus),
         busy_s=time.perf_counter() - start_wall,
         cpu_s=time.process_time() - start_cpu,
         peak_rss_mb=peak_rss_mb(),

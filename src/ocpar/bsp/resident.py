@@ -92,8 +92,9 @@ if TYPE_CHECKING:
 
 #: The engine kernel that runs a :class:`ResidentChunk` in a worker (:func:`run_resident`).
 RUNNER = "ocpar.bsp.resident:run_resident"
-#: What a :class:`ResidentChunk` asks: solve tasks, return states, or forget the set.
-STEP, COLLECT, DROP = "step", "collect", "drop"
+#: What a :class:`ResidentChunk` asks: solve tasks, return states, apply a function to the
+#: states, or forget the set.
+STEP, COLLECT, APPLY, DROP = "step", "collect", "apply", "drop"
 #: Weight of the latest step's measurement in an agent's estimated cost (an exponential
 #: average over the steps: one slow step of a worker moves its agents' estimates by half).
 COST_SMOOTHING = 0.5
@@ -137,8 +138,9 @@ class ResidentChunk:
     agent of ``rebuild``, in the order given) to replay. ``imported``: agents that move into
     the slot, their states (after ``version`` tasks) in ``imports`` (one row each, in the
     order given); ``export``: agents that leave the slot after this step, their new states
-    to be returned and forgotten. ``reduce``: the step's reducer (module docstring), which
-    gets the block's units of ``unit`` agents (``agents`` starts at a unit's first)."""
+    to be returned and forgotten. ``function``: a step's reducer (module docstring), which
+    gets the block's units of ``unit`` agents (``agents`` starts at a unit's first), or the
+    function :meth:`ResidentSet.apply` applies."""
 
     what: str
     key: str
@@ -152,7 +154,7 @@ class ResidentChunk:
     imported: np.ndarray | None = None
     imports: Columns | None = None
     export: np.ndarray | None = None
-    reduce: str | None = None
+    function: str | None = None
     unit: int = 1
 
 
@@ -191,13 +193,15 @@ def run_resident(chunk: ResidentChunk) -> ResidentReply:
     if chunk.what == COLLECT:
         return ResidentReply(results=states)
     assert chunk.tasks is not None
+    if chunk.what == APPLY:
+        return ResidentReply(results=resolve_kernel(chunk.function)(chunk.tasks, states))
     results, new_states = kernel(chunk.tasks, states)
     if len(new_states) != len(agents):
         raise ValueError(f"resident kernel {chunk.kernel} returned {len(new_states)} states "
                          f"for {len(agents)} tasks")
-    if chunk.reduce is not None:
+    if chunk.function is not None:
         bounds = np.append(np.arange(0, len(agents), chunk.unit), len(agents))
-        results = resolve_kernel(chunk.reduce)(to_columns(results), bounds)
+        results = resolve_kernel(chunk.function)(to_columns(results), bounds)
     size, exported = _nbytes(new_states), None
     if chunk.export is not None and len(chunk.export):
         leaving = np.isin(agents, chunk.export)
@@ -368,15 +372,32 @@ class ResidentSet:
         self._check_open()
         return self.backend._resident_superstep(self, COLLECT, None)
 
-    def run(self, what: str, tasks: Columns | None, reduce: str | None = None
+    def apply(self, function: KernelRef, tasks: Columns) -> Columns:
+        """``function(tasks, states)`` on every worker for its agents (``tasks``: Columns of n
+        tasks; the states as the last step left them), the results (one per agent, instances
+        of one dataclass) in agent order. Not a superstep: the states stay as they are, and
+        it is neither traced nor journaled (a resumed run applies it again, to the states
+        its history rebuilds); for what a run does with its answer once it has it (the
+        formation checks and writes its agents' paths where they are,
+        :mod:`ocpar.formation.finish`)."""
+        if len(tasks) != self.agents:
+            raise ValueError(f"{len(tasks)} tasks for {self.agents} resident agents")
+        if not self.history:
+            raise ValueError("no states to apply a function to before the first step")
+        self._check_open()
+        _, chunks = self.run(APPLY, tasks, kernel_name(function))
+        parts = [to_columns(c.results) for c in chunks if len(c.results)]
+        return Columns.concat(parts)  # type: ignore[arg-type]
+
+    def run(self, what: str, tasks: Columns | None, function: str | None = None
             ) -> tuple[list[range], list[ChunkResult]]:
         """Run ``what`` for every agent through the backend's chunks, slot w's agents
         (:attr:`blocks`) on worker w, with the states moving into each slot; a step also
         moves the blocks where that pays (:meth:`rebalanced`: the leaving agents' new states
         come back with the replies, for the next superstep's chunks). Returns the blocks run
-        and the chunk results, whose ``results`` are per agent (a reply's results; with
-        ``reduce``, per unit) and whose times are the rounds' sums (a second round if a
-        worker lacked states)."""
+        and the chunk results, whose ``results`` are per agent (a reply's results; a step's
+        with a reducer ``function``, per unit) and whose times are the rounds' sums (a second
+        round if a worker lacked states)."""
         if len(self.blocks) != self.backend.workers:  # the worker count changed
             self.blocks, self.costs = unit_blocks(self.agents, self.backend.workers), None
         groups = self.blocks
@@ -399,7 +420,7 @@ class ResidentSet:
                                  imported=None if imported is None else imported[0],
                                  imports=None if imported is None else imported[1],
                                  export=leaving[w] if len(leaving[w]) else None,
-                                 reduce=reduce, unit=unit_size(self.agents))
+                                 function=function, unit=unit_size(self.agents))
 
         first = self.backend._run_chunks(RUNNER, [[chunk(w)] for w in range(len(groups))])
         replies = [_replies(c) for c in first]
@@ -511,7 +532,7 @@ def _replies(chunk: ChunkResult) -> list[ResidentReply]:
 
 def _added(first: ChunkResult, second: ChunkResult) -> ChunkResult:
     """``first`` with the time and bytes of ``second`` (its worker's second round) added."""
-    return ChunkResult(results=first.results, task_wall_s=[], task_cpu_s=[],
+    return ChunkResult(results=first.results, task_wall_s=np.zeros(0), task_cpu_s=np.zeros(0),
                        busy_s=first.busy_s + second.busy_s, cpu_s=first.cpu_s + second.cpu_s,
                        peak_rss_mb=max(first.peak_rss_mb, second.peak_rss_mb),
                        sent_bytes=first.sent_bytes + second.sent_bytes,
@@ -524,7 +545,7 @@ def _per_agent(chunk: ChunkResult, replies: list[ResidentReply], k: int) -> Chun
     (reply,) = replies
     results = reply.results if reply.results is not None else []
     share = max(k, 1)
-    return ChunkResult(results=results, task_wall_s=[chunk.busy_s / share] * k,
-                       task_cpu_s=[chunk.cpu_s / share] * k, busy_s=chunk.busy_s,
+    return ChunkResult(results=results, task_wall_s=np.full(k, chunk.busy_s / share),
+                       task_cpu_s=np.full(k, chunk.cpu_s / share), busy_s=chunk.busy_s,
                        cpu_s=chunk.cpu_s, peak_rss_mb=chunk.peak_rss_mb,
                        sent_bytes=chunk.sent_bytes, received_bytes=chunk.received_bytes)

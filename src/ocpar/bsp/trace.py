@@ -4,13 +4,16 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field, fields
 
+import numpy as np
+
 
 @dataclass
 class SuperstepTrace:
     """Measurements of one superstep.
 
     ``task_wall_s``/``task_cpu_s``/``task_worker`` (the worker that ran it) are per task in
-    task order; ``worker_busy_s``/``worker_cpu_s``
+    task order (arrays: a million tasks cost 8 MB each, not a list of Python objects);
+    ``worker_busy_s``/``worker_cpu_s``
     and ``worker_peak_rss_mb`` (peak resident memory of the worker process so far, MiB)
     per worker; ``overhead_s`` = ``wall_s`` - max(``worker_busy_s``): communication, barrier
     and scheduling cost. ``worker_sent_bytes``/``worker_received_bytes``: per worker, the
@@ -27,9 +30,9 @@ class SuperstepTrace:
     worker_cpu_s: list[float]
     worker_tasks: list[int]
     worker_peak_rss_mb: list[float]
-    task_wall_s: list[float]
-    task_cpu_s: list[float]
-    task_worker: list[int]
+    task_wall_s: np.ndarray
+    task_cpu_s: np.ndarray
+    task_worker: np.ndarray
     worker_sent_bytes: list[int] = field(default_factory=list)
     worker_received_bytes: list[int] = field(default_factory=list)
 
@@ -58,10 +61,12 @@ class SuperstepTrace:
         mean = sum(busy) / len(busy) if busy else 0.0
         return max(busy) / mean if mean > 0 else 1.0
 
-    def to_dict(self) -> dict:
+    def to_dict(self, lists: bool = True) -> dict:
         """The fields (lists copied, not deep-copied item by item as ``dataclasses.asdict`` does:
-        ~1 s per run at 10,000 agents), with ``overhead_s`` and ``imbalance``."""
+        ~1 s per run at 10,000 agents; the per-task arrays as lists, or as they are with
+        ``lists`` False), with ``overhead_s`` and ``imbalance``."""
         out = {f.name: getattr(self, f.name) for f in fields(self)}
-        out = {k: list(v) if isinstance(v, list) else v for k, v in out.items()}
+        out = {k: list(v) if isinstance(v, list) else v.tolist()
+               if lists and isinstance(v, np.ndarray) else v for k, v in out.items()}
         return out | {"overhead_s": self.overhead_s, "imbalance": self.imbalance,
                       "sent_bytes": self.sent_bytes, "received_bytes": self.received_bytes}

@@ -25,7 +25,7 @@ from collections.abc import Callable
 
 import numpy as np
 
-from ocpar.bsp import Backend
+from ocpar.bsp import Backend, ResidentSet
 from ocpar.bsp.columns import Columns
 from ocpar.bsp.partition import unit_size
 from ocpar.formation.couplings.coupling import (
@@ -160,9 +160,20 @@ class OuterObjective:
         with its boundary data: costs (n,), paths (n, N+1, nq), controls (n, N, nu), ...):
         :meth:`outcomes`, then one superstep that gathers the solutions from the workers (once
         per φ)."""
+        self.reach(phi)
+        return self.last_solutions  # type: ignore[return-value]
+
+    def reach(self, phi: np.ndarray) -> None:
+        """Make ``phi`` the last superstep's angles (one superstep, unless they are): the
+        agents' solutions on the workers are then those at ``phi``. Raises
+        :class:`InnerSolveFailed` if a solve failed."""
         if self.last_phi is None or not np.array_equal(phi, self.last_phi):
             self.outcomes(phi)
-        return self.last_solutions  # type: ignore[return-value]
+
+    @property
+    def agents(self) -> ResidentSet:
+        """The resident set of the agents (their solutions on the workers)."""
+        return self._agents
 
     @property
     def last_solutions(self) -> Columns | None:
@@ -338,7 +349,7 @@ def solve_outer_newton(
     if family is not None:
         return _shift_newton(objective, family, tol, max_iterations)
     phi = problem.coupling.project(phi0, problem.curve)
-    objective.solutions(phi)
+    objective.reach(phi)
     residual = float(np.max(np.abs(problem.coupling.residual(phi, problem.curve))))
     if residual > PROJECTION_TOL:
         return phi, 0, False, (f"the projection did not reach c(phi) = 0 (max |c| "

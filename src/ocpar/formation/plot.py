@@ -60,8 +60,8 @@ def plot_formation(problem: FormationProblem, result: FormationResult, path: Pat
     circle, style = _target(problem, 400)
     shown = slice(None, None, path_step(result.agents))
     ends = problem.final_positions(result.phi[shown])
-    tail = max(2, result.trajectories.shape[1] // 3)
-    drawn = result.trajectories[shown]
+    tail = max(2, result.positions.shape[1] // 3)
+    drawn = result.positions[shown]
     for ax, paths in ((ax_all, drawn), (ax_end, drawn[:, -tail:])):
         # one collection, not one line per agent: 10,000 paths in ~1 s instead of ~1 min
         ax.add_collection(LineCollection(paths[..., :2], colors="tab:blue", lw=0.7, alpha=0.7))
@@ -97,7 +97,7 @@ def _plot_3d(problem: FormationProblem, result: FormationResult, path: Path) -> 
     circle, style = _target(problem, 200)
     shown = slice(None, None, path_step(result.agents))
     ends = problem.final_positions(result.phi[shown])
-    drawn = result.trajectories[shown, :, :3]
+    drawn = result.positions[shown, :, :3]
     ax.add_collection(Line3DCollection(drawn, colors="tab:blue", lw=0.7, alpha=0.8))
     ax.plot(circle[:, 0], circle[:, 1], circle[:, 2], **style)
     starts = problem.starts[shown]
@@ -141,8 +141,8 @@ def _mark_closest(ax, problem: FormationProblem, result: FormationResult) -> Non
     closest = result.separation
     if not np.isfinite(closest.distance):
         return
-    where = positions_at(problem.positions(result.trajectories), closest.time,
-                         problem.common_shape.duration)[list(closest.agents)]
+    where = positions_at(result.positions[list(closest.agents)], closest.time,
+                         problem.common_shape.duration)
     coords = where.T[:3] if ax.name == "3d" else where.T[:2]
     i, j = closest.agents
     ax.plot(*coords, "-s", color="tab:orange", ms=6, lw=1.5, zorder=5,

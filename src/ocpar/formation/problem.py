@@ -421,7 +421,11 @@ class FormationProblem:
         (:mod:`ocpar.formation.keep_out.separation`; its intervals on the ``backend``'s
         workers if one is given); distance and time NaN, pair (−1, −1) if a path is not
         finite (a failed run)."""
-        positions = self.positions(trajectories)
+        return self.closest_approach_of(self.positions(trajectories), backend)
+
+    def closest_approach_of(self, positions: np.ndarray, backend: Backend | None = None
+                            ) -> ClosestApproach:
+        """:meth:`closest_approach` of the agents' positions (n, N+1, d) on the nodes."""
         if not np.all(np.isfinite(positions)):
             return ClosestApproach(math.nan, (-1, -1), math.nan)
         return closest_approach(positions, self.common_shape.duration, backend)

@@ -26,7 +26,7 @@ class Fleet:
     ``targets`` (n, d) the target points z(φ) at the returned φ (NaN where φ is not finite);
     ``model`` (n,) each agent's index into ``model_names`` (the models' class names, in order
     of first use); ``mass`` (n,) each agent's model's ``mass`` (NaN for a model without
-    one)."""
+    one); ``nq`` the configuration's entries."""
 
     duration: float
     position_indices: tuple[int, ...]
@@ -34,6 +34,7 @@ class Fleet:
     model: np.ndarray
     model_names: list[str]
     mass: np.ndarray
+    nq: int
 
     @classmethod
     def of(cls, problem: FormationProblem, phi: np.ndarray) -> Fleet:
@@ -51,7 +52,8 @@ class Fleet:
                 names.append(name)
             model[agents] = names.index(name)
             mass[agents] = float(getattr(shape_i.model, "mass", math.nan))
-        return cls(shape.duration, problem.position_indices, targets, model, names, mass)
+        return cls(shape.duration, problem.position_indices, targets, model, names, mass,
+                   shape.model.nq)
 
 
 @dataclass
@@ -86,7 +88,11 @@ class FormationResult(RunResult):
     cheapest first; None when none were); ``fleet`` (:class:`Fleet`) and per agent the inner
     solver's ``solver_status`` and ``solver_iterations`` (n,) of its last solve at the
     returned φ (with a required separation: of the solve before the rounds; a monolithic
-    run: the one NLP's) for the array file (:meth:`arrays`).
+    run: the one NLP's) for the array file (:meth:`arrays`); ``positions`` (n, N+1, p) the
+    position entries of the node paths. Where the workers wrote their agents' part of the
+    array file themselves (``parts``, the files' names, :mod:`ocpar.formation.finish`), the
+    per-agent arrays (``agent_costs``, ``trajectories``, ``controls``, ``solver_status``,
+    ``solver_iterations``) are None: they are in those files, and ``positions`` is here.
     The common fields are :class:`ocpar.results.RunResult`'s.
     """
 
@@ -98,8 +104,8 @@ class FormationResult(RunResult):
     mode: str
     total_cost: float
     phi: np.ndarray
-    agent_costs: np.ndarray
-    trajectories: np.ndarray
+    agent_costs: np.ndarray | None
+    trajectories: np.ndarray | None
     outer_iterations: int
     separation: ClosestApproach
     cost_parts: dict[str, float] = field(default_factory=dict)
@@ -117,6 +123,14 @@ class FormationResult(RunResult):
     fleet: Fleet | None = None
     solver_status: list[str] | None = None
     solver_iterations: np.ndarray | None = None
+    positions: np.ndarray | None = None
+    parts: list[str] = field(default_factory=list)
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        if self.positions is None and self.trajectories is not None and self.fleet is not None:
+            self.positions = np.asarray(self.trajectories)[..., list(
+                self.fleet.position_indices)]
 
     def headline_keys(self) -> tuple[str, ...]:
         """:attr:`headline_fields` and the cost parts' keys."""
@@ -173,69 +187,28 @@ class FormationResult(RunResult):
         ``cost``, ``peak_thrust``, ``phi``, ``target`` z(φ), ``model`` (an index into
         ``model_name``), ``mass``, ``solver_status`` (an index into ``solver_status_name``),
         ``solver_iterations``, ``constraint_violation`` and, with obstacles,
-        ``obstacle_side``. Units: the problem's own (length, time, force, cost)."""
-        q = np.asarray(self.trajectories, float)
-        n, nodes, nq = q.shape
+        ``obstacle_side``. Units: the problem's own (length, time, force, cost). Where the
+        workers wrote their agents' variables (:attr:`parts`), the run's own ones only
+        (:func:`run_arrays`)."""
         fleet = self.fleet
         duration = math.nan if fleet is None else fleet.duration
-        h = duration / (nodes - 1)
         positions = () if fleet is None else fleet.position_indices
-        labels = [AXES[positions.index(i)] if i in positions and len(positions) <= 3
-                  else f"q{i}" for i in range(nq)]
-        out = {
-            "agent": array("agent", np.arange(n), "1", "agent index"),
-            "q_component": array("q_component", np.array(labels, dtype=object), "1",
-                                 "configuration entry (x, y, z: the position)"),
-            "time": array("node", np.linspace(0.0, duration, nodes), "time", "node time t_k"),
-            "interval_time": array("interval", (np.arange(nodes - 1) + 0.5) * h, "time",
-                                   "midpoint time of each interval"),
-            "configuration": array("agent node q_component", q, "length",
-                                   "configuration q_k at the nodes (the DMOC node path)"),
-            "velocity": array("agent interval q_component", np.diff(q, axis=1) / h,
-                              "length/time", "velocity (q_{k+1} - q_k)/h on each interval"),
-            "cost": array("agent", np.asarray(self.agent_costs, float), "cost",
-                          "inner optimal cost J_i"),
-            "phi": array("agent" if np.ndim(self.phi) == 1 else "agent parameter",
-                         np.asarray(self.phi, float), "rad" if self.on_circle else "1",
-                         "final parameter on the target (angle on a curve, slot index, "
-                         "surface parameters)"),
-        }
-        if self.controls is not None:
-            out["control"] = array("agent interval u_component",
-                                   np.asarray(self.controls, float), "force",
-                                   "control u_k on each interval (constant on it)")
-            out["peak_thrust"] = array("agent", self.peak_thrust, "force",
-                                       "max_k |u_k|")
-        if fleet is not None:
-            out |= {
-                "target": array("agent axis", fleet.targets, "length",
-                                "target point z(phi) at the returned parameters"),
-                "model": array("agent", fleet.model, "1", "index into model_name"),
-                "model_name": array("models", np.array(fleet.model_names, dtype=object), "1",
-                                    "the agents' model classes"),
-                "mass": array("agent", fleet.mass, "mass",
-                              "the agent's model's mass (NaN: a model without one)"),
-            }
-        if self.solver_status is not None:
-            codes, names = categories(self.solver_status)
-            out |= {
-                "solver_status": array("agent", codes, "1",
-                                       "index into solver_status_name: the inner solver's "
-                                       "return status"),
-                "solver_status_name": array("status", np.array(names, dtype=object), "1",
-                                            "inner solver return statuses"),
-                "solver_iterations": array("agent", np.asarray(self.solver_iterations,
-                                                               np.int32), "1",
-                                           "inner solver iterations"),
-            }
-        if self.verification is not None:
-            out["constraint_violation"] = array(
-                "agent", self.verification.agent_violation, "1",
-                "largest relative residual of the agent's boundary, momentum, control-bound "
-                "and path-constraint checks (ocpar.formation.verify)")
-        if self.obstacle_sides is not None:
-            out["obstacle_side"] = _obstacle_sides(self.obstacle_sides, positions)
-        return out
+        nodes = (self.trajectories if self.trajectories is not None else self.positions).shape[1]
+        nq = fleet.nq if fleet is not None else self.trajectories.shape[2]
+        out = run_arrays(nodes, nq, duration, positions,
+                         [] if fleet is None else fleet.model_names)
+        if self.parts:
+            return out
+        return out | agent_arrays(AgentRecords(
+            first=0, q=np.asarray(self.trajectories, float), u=self.controls,
+            cost=np.asarray(self.agent_costs, float), phi=np.asarray(self.phi, float),
+            target=None if fleet is None else fleet.targets,
+            model=None if fleet is None else fleet.model,
+            mass=None if fleet is None else fleet.mass,
+            status=self.solver_status, iterations=self.solver_iterations,
+            violation=None if self.verification is None
+            else self.verification.agent_violation, sides=self.obstacle_sides),
+            duration, positions, self.on_circle)
 
     def _verification_fields(self) -> dict:
         """``verification`` (:meth:`~ocpar.formation.verify.Verification.to_dict`) and
@@ -297,6 +270,110 @@ class FormationResult(RunResult):
             f"wall time {self.wall_time_s:.2f} s on {self.workers} {self.backend} worker(s), "
             f"mode {self.mode}"
         )
+
+
+def run_arrays(nodes: int, nq: int, duration: float, positions: tuple[int, ...],
+               model_names: list[str]) -> dict[str, Array]:
+    """The array file's variables that are the run's, not an agent's: ``q_component``
+    (labels), ``time`` of the ``nodes`` nodes over ``duration``, ``interval_time`` and
+    ``model_name`` (where the agents' models are known)."""
+    h = duration / (nodes - 1)
+    labels = [AXES[positions.index(i)] if i in positions and len(positions) <= 3
+              else f"q{i}" for i in range(nq)]
+    out = {
+        "q_component": array("q_component", np.array(labels, dtype=object), "1",
+                             "configuration entry (x, y, z: the position)"),
+        "time": array("node", np.linspace(0.0, duration, nodes), "time", "node time t_k"),
+        "interval_time": array("interval", (np.arange(nodes - 1) + 0.5) * h, "time",
+                               "midpoint time of each interval"),
+    }
+    if model_names:
+        out["model_name"] = array("models", np.array(model_names, dtype=object), "1",
+                                  "the agents' model classes")
+    return out
+
+
+@dataclass
+class AgentRecords:
+    """What the array file holds of m consecutive agents, the first ``first``: node paths
+    ``q`` (m, N+1, nq), controls ``u`` (m, N, nu) (None: none), ``cost`` (m,), ``phi`` (m,)
+    or (m, 2), ``target`` (m, d), ``model`` (m,) indices into the run's model names,
+    ``mass`` (m,), the inner solver's ``status`` (m strings) and ``iterations`` (m,), the
+    verification's ``violation`` (m,) and the ``sides`` each passes its obstacles on (None
+    where not known)."""
+
+    first: int
+    q: np.ndarray
+    u: np.ndarray | None
+    cost: np.ndarray
+    phi: np.ndarray
+    target: np.ndarray | None = None
+    model: np.ndarray | None = None
+    mass: np.ndarray | None = None
+    status: list[str] | None = None
+    iterations: np.ndarray | None = None
+    violation: np.ndarray | None = None
+    sides: list[list[str | list[float] | None]] | None = None
+
+
+def agent_arrays(records: AgentRecords, duration: float, positions: tuple[int, ...],
+                 on_circle: bool) -> dict[str, Array]:
+    """The array file's variables of the agents of ``records`` (their ``agent`` coordinate,
+    configuration, velocity, cost, phi, control, peak_thrust, target, model, mass,
+    solver_status with its own ``solver_status_name``, solver_iterations,
+    constraint_violation, obstacle_side: :meth:`FormationResult.arrays`). Any block of
+    agents gives its rows of the whole fleet's variables; the solver statuses' names are the
+    block's own (:func:`ocpar.result_files.load` joins them)."""
+    q = records.q
+    m, nodes, _ = q.shape
+    h = duration / (nodes - 1)
+    out = {
+        "agent": array("agent", np.arange(records.first, records.first + m), "1",
+                       "agent index"),
+        "configuration": array("agent node q_component", q, "length",
+                               "configuration q_k at the nodes (the DMOC node path)"),
+        "velocity": array("agent interval q_component", np.diff(q, axis=1) / h,
+                          "length/time", "velocity (q_{k+1} - q_k)/h on each interval"),
+        "cost": array("agent", records.cost, "cost", "inner optimal cost J_i"),
+        "phi": array("agent" if np.ndim(records.phi) == 1 else "agent parameter",
+                     records.phi, "rad" if on_circle else "1",
+                     "final parameter on the target (angle on a curve, slot index, "
+                     "surface parameters)"),
+    }
+    if records.u is not None:
+        u = np.asarray(records.u, float)
+        out["control"] = array("agent interval u_component", u, "force",
+                               "control u_k on each interval (constant on it)")
+        out["peak_thrust"] = array("agent", np.max(np.linalg.norm(u, axis=2), axis=1), "force",
+                                   "max_k |u_k|")
+    if records.target is not None:
+        out |= {
+            "target": array("agent axis", records.target, "length",
+                            "target point z(phi) at the returned parameters"),
+            "model": array("agent", records.model, "1", "index into model_name",
+                           categories="model_name"),
+            "mass": array("agent", records.mass, "mass",
+                          "the agent's model's mass (NaN: a model without one)"),
+        }
+    if records.status is not None:
+        codes, names = categories(records.status)
+        out |= {
+            "solver_status": array("agent", codes, "1",
+                                   "index into solver_status_name: the inner solver's "
+                                   "return status", categories="solver_status_name"),
+            "solver_status_name": array("status", np.array(names, dtype=object), "1",
+                                        "inner solver return statuses"),
+            "solver_iterations": array("agent", np.asarray(records.iterations, np.int32),
+                                       "1", "inner solver iterations"),
+        }
+    if records.violation is not None:
+        out["constraint_violation"] = array(
+            "agent", records.violation, "1",
+            "largest relative residual of the agent's boundary, momentum, control-bound "
+            "and path-constraint checks (ocpar.formation.verify)")
+    if records.sides is not None:
+        out["obstacle_side"] = _obstacle_sides(records.sides, positions)
+    return out
 
 
 def _obstacle_sides(sides: list[list[str | list[float] | None]],

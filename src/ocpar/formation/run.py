@@ -93,7 +93,8 @@ class FormationRun(SchemeRun, FormationOptions):
     def solve(self, problem: FormationProblem, backend: Backend,
               progress: Progress) -> FormationResult:
         return solve_formation(problem, backend, project(self, FormationOptions),
-                               progress=progress)
+                               progress=progress,
+                               output=None if self.output is None else Path(self.output))
 
     def plot(self, problem: FormationProblem, result: FormationResult,
              out: Path) -> list[Path]:

@@ -7,6 +7,7 @@ import math
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 
@@ -20,6 +21,7 @@ from ocpar.formation.couplings.critical_sets import (
     best_isolated_formation,
 )
 from ocpar.formation.feasibility import feasible_start
+from ocpar.formation.finish import cost_groups, finish, writes_parts
 from ocpar.formation.hierarchical import (
     InnerSolveFailed,
     OuterObjective,
@@ -28,7 +30,7 @@ from ocpar.formation.hierarchical import (
     solve_outer_offset,
 )
 from ocpar.formation.keep_out.obstacles import cleared, closest_obstacle, passing_sides
-from ocpar.formation.keep_out.rounds import separate
+from ocpar.formation.keep_out.rounds import Separation, separate
 from ocpar.formation.keep_out.separation import check_separation_feasible
 from ocpar.formation.monolithic import solve_monolithic
 from ocpar.formation.ordering import ORDERINGS, optimal_ordering
@@ -37,7 +39,12 @@ from ocpar.formation.result import Fleet, FormationResult
 from ocpar.formation.slot_assignment import SlotChoice, assign_slots
 from ocpar.formation.targets.slots import SLOT_CANDIDATES, Slots
 from ocpar.formation.targets.surface import Surface
-from ocpar.formation.verify import Verification, near_collision_words, verify_formation
+from ocpar.formation.verify import (
+    Verification,
+    near_collision_words,
+    verify_checked,
+    verify_formation,
+)
 from ocpar.ocp.batch import SOLVERS
 from ocpar.options import numbers, option
 
@@ -168,15 +175,25 @@ class FormationOptions:
             raise ValueError("initial_angles and initial_rotation: give one start, not both")
 
 
-def cost_parts(problem: FormationProblem, controls: np.ndarray) -> dict[str, float]:
+def control_squares(problem: FormationProblem, controls: np.ndarray) -> np.ndarray:
+    """Each agent's Σ |u|² over its control groups whose cost parts the run reports
+    (:func:`~ocpar.formation.finish.cost_groups`), from the controls (n, N, nu): (n, groups),
+    as a worker computes its agents' (:mod:`ocpar.formation.finish`)."""
+    groups = cost_groups(problem)
+    if not groups:
+        return np.zeros((len(controls), 0))
+    return np.column_stack([np.sum(controls[..., a:b] ** 2, axis=(1, 2))
+                            for a, b in groups.values()])
+
+
+def cost_parts(problem: FormationProblem, squares: np.ndarray) -> dict[str, float]:
     """The total cost h Σ |u|² split into the model's named control groups (e.g. force and
-    torque), from the controls (n, N, nu); empty if the model names none or an agent has a
-    running cost of its own."""
-    if any(shape.running_cost is not None for shape in set(problem.shapes)):
-        return {}
+    torque), from each agent's sums ``squares`` (n, groups, :func:`control_squares`) added
+    in agent order; empty if the model names none or an agent has a running cost of its
+    own."""
     h = problem.common_shape.duration / problem.common_shape.intervals
-    groups = getattr(problem.common_shape.model, "cost_parts", {})
-    return {name: float(h * np.sum(controls[..., a:b] ** 2)) for name, (a, b) in groups.items()}
+    return {name: float(h * np.sum(squares[:, j]))
+            for j, name in enumerate(cost_groups(problem))}
 
 
 def given_start(problem: FormationProblem, options: FormationOptions) -> np.ndarray | None:
@@ -249,16 +266,15 @@ def check_applicable(problem: FormationProblem, options: FormationOptions) -> No
                                   options.min_separation)
 
 
-def obstacle_check(problem: FormationProblem, trajectories: np.ndarray, status: str,
+def obstacle_check(problem: FormationProblem, positions: np.ndarray, status: str,
                     message: str) -> tuple[str, str, dict]:
-    """The returned paths ``trajectories`` (n, N+1, nq) checked against ``problem``'s
-    obstacles (:func:`~ocpar.formation.keep_out.obstacles.closest_obstacle`, independently of the
+    """The returned paths' positions (n, N+1, p) checked against ``problem``'s obstacles
+    (:func:`~ocpar.formation.keep_out.obstacles.closest_obstacle`, independently of the
     inner planes): the status (``obstacles_not_cleared`` if a path of a run that reached its
     answer is inside one), the message and the result's obstacle fields (clearance, each
     agent's sides); unchanged and none without obstacles."""
     if not problem.obstacles:
         return status, message, {}
-    positions = problem.positions(trajectories)
     closest = closest_obstacle(positions, problem.obstacles, problem.common_shape.duration)
     fields = {"obstacle_clearance": closest,
               "obstacle_sides": passing_sides(positions, problem.obstacles)}
@@ -278,16 +294,13 @@ def obstacle_check(problem: FormationProblem, trajectories: np.ndarray, status: 
 KNOWN_FAILURES = {"separation_not_met": ("separation",), "obstacles_not_cleared": ("obstacles",)}
 
 
-def _verified(problem: FormationProblem, options: FormationOptions, trajectories: np.ndarray,
-              controls: np.ndarray, phi: np.ndarray, status: str, message: str,
-              backend: Backend | None = None) -> tuple[Verification, str, str]:
-    """The answer's verification (:func:`~ocpar.formation.verify.verify_formation`) and the
-    status and message it leaves: ``converged`` becomes ``failed`` if it fails (the message
-    then starts with the first failure), other statuses stay with the failures appended that
-    they do not already report (:data:`KNOWN_FAILURES`); a near-collision is said in the
-    message (the status stays)."""
-    verification = verify_formation(problem, trajectories, controls, phi,
-                                    options.min_separation, backend)
+def _verified(verification: Verification, status: str, message: str
+              ) -> tuple[Verification, str, str]:
+    """The answer's ``verification`` (:mod:`ocpar.formation.verify`) and the status and
+    message it leaves: ``converged`` becomes ``failed`` if it fails (the message then starts
+    with the first failure), other statuses stay with the failures appended that they do not
+    already report (:data:`KNOWN_FAILURES`); a near-collision is said in the message (the
+    status stays)."""
     if not verification.passed:
         if status == "converged":
             words = verification.failure_words()
@@ -352,6 +365,7 @@ def solve_formation(
     options: FormationOptions | None = None,
     phi0: np.ndarray | None = None,
     progress: Callable[[str], None] | None = None,
+    output: Path | None = None,
 ) -> FormationResult:
     """Solve ``problem`` from the angles ``phi0`` (default: the options' ``initial_angles``
     or ``initial_rotation``, else :meth:`FormationProblem.initial_phi` moved to the nearest
@@ -360,6 +374,10 @@ def solve_formation(
 
     ``backend`` runs the inner solves (default: serial, in this process); ``progress`` is
     called with one line per superstep. The backend is left open for the caller to close.
+    ``output``: the directory the run's files go to, where a large run's workers write their
+    agents' part of the array file themselves (:mod:`ocpar.formation.finish`; the result
+    then holds no per-agent paths, controls or solver statuses, and names the parts); None:
+    every agent's arrays come back into the result.
     """
     options = options or FormationOptions()
     backend = backend or SerialBackend()
@@ -423,11 +441,12 @@ def solve_formation(
                  f"{sol.status}; the returned point breaks the constraints by "
                  f"{sol.violation:.3g}: an infeasible iterate, no answer")
         wall_time_s = time.perf_counter() - start  # before the checks below (reporting)
-        status, message, obstacle_fields = obstacle_check(problem, sol.trajectories, status,
-                                                          words + note)
-        verification, status, message = _verified(
-            problem, options, sol.trajectories, sol.controls, sol.phi, status, message,
-            backend)
+        solved = len(backend.traces)   # the checks' supersteps are not the solve's
+        status, message, obstacle_fields = obstacle_check(
+            problem, problem.positions(sol.trajectories), status, words + note)
+        verification, status, message = _verified(verify_formation(
+            problem, sol.trajectories, sol.controls, sol.phi, options.min_separation, backend),
+            status, message)
         checked = time.perf_counter() - start - wall_time_s
         return FormationResult(
             **common,
@@ -437,14 +456,14 @@ def solve_formation(
             phi=sol.phi,
             agent_costs=sol.agent_costs,
             trajectories=sol.trajectories,
-            cost_parts=cost_parts(problem, sol.controls),
+            cost_parts=cost_parts(problem, control_squares(problem, sol.controls)),
             outer_iterations=sol.iterations,
             inner_solves=ordering_solves,
             failed_solves=0,
             wall_time_s=wall_time_s,
             timings={"verification_s": checked},
             separation=verification.closest,
-            trace=backend.traces[first_trace:],
+            trace=backend.traces[first_trace:solved],
             coupling_residual=verification.coupling_residual,
             controls=sol.controls,
             verification=verification,
@@ -463,46 +482,59 @@ def solve_formation(
             )
         else:   # the feasible set is discrete and the choice was the outer solve
             phi, iterations, success, message = phi0, 0, True, chosen
-        sols = objective.solutions(phi)
+        objective.reach(phi)
         status = "converged" if success else "not_converged"
         message += note
     except InnerSolveFailed as exc:
         phi, iterations, status, message = objective.last_phi, -1, "failed", str(exc)
-        sols = objective.last_solutions
-    objective.close()  # the solutions are gathered: the workers need not keep them
-    costs = np.asarray(sols.column("cost"), dtype=float)
-    trajectories, controls = np.asarray(sols.column("q")), np.asarray(sols.column("u"))
     inner_solves = ordering_solves + objective.inner_solves
     failed_solves, retries = objective.failed_solves, objective.retries
-    extra = {}
+    extra: dict = {}
     distance = options.min_separation
-    if distance is not None and status != "failed":
-        rounds = separate(problem, backend, phi, sols, distance, options.separation_rounds,
-                          progress)
-        extra = {"required_separation": distance, "separation_rounds": rounds.rounds,
-                 "unconstrained_cost": float(np.sum(costs))}
-        costs, trajectories, controls = rounds.costs, rounds.q, rounds.u
-        inner_solves += rounds.inner_solves
-        failed_solves += rounds.failed_solves
-        retries += rounds.retries
-        if rounds.met and not rounds.rounds:
-            message += f"; separation {distance:g} met by the unconstrained paths"
-        elif rounds.met:
-            message += (f"; separation {distance:g} met after {rounds.rounds} round(s) (last "
-                        f"move {rounds.change:.1e})")
-        else:
-            status = "separation_not_met"
-            message = (f"separation {distance:g} not met after {rounds.rounds} round(s): "
-                       f"agents {rounds.closest.agents[0]} and {rounds.closest.agents[1]} "
-                       f"come within {rounds.closest.distance:.6g} (short by "
-                       f"{distance - rounds.closest.distance:.3g}; {rounds.dropped} "
-                       f"half-space(s) dropped for want of slots over the rounds)")
-    wall_time_s = time.perf_counter() - start
-    status, message, obstacle_fields = obstacle_check(problem, trajectories, status, message)
+    parts: list[str] = []
+    if status == "failed" or distance is not None:   # the paths here, for the rounds
+        sols = objective.last_solutions
+        objective.close()  # the solutions are gathered: the workers need not keep them
+        costs = np.asarray(sols.column("cost"), dtype=float)
+        trajectories, controls = np.asarray(sols.column("q")), np.asarray(sols.column("u"))
+        statuses, solver_iterations = sols.column("status"), np.asarray(
+            sols.column("iterations"))
+        if distance is not None and status != "failed":
+            rounds = separate(problem, backend, phi, sols, distance,
+                              options.separation_rounds, progress)
+            extra = {"required_separation": distance, "separation_rounds": rounds.rounds,
+                     "unconstrained_cost": float(np.sum(costs))}
+            costs, trajectories, controls = rounds.costs, rounds.q, rounds.u
+            inner_solves += rounds.inner_solves
+            failed_solves += rounds.failed_solves
+            retries += rounds.retries
+            status, message = _separation_words(rounds, distance, status, message)
+        wall_time_s = time.perf_counter() - start
+        solved = len(backend.traces)   # the checks' supersteps are not the solve's
+        positions = problem.positions(trajectories)
+        squares = control_squares(problem, controls)
+        verification = verify_formation(problem, trajectories, controls, phi, distance,
+                                        backend)
+    else:   # finished where the paths are (ocpar.formation.finish)
+        wall_time_s = time.perf_counter() - start
+        solved = len(backend.traces)   # the checks' supersteps are not the solve's
+        checking = time.perf_counter()
+        done = finish(problem, objective.agents, phi,
+                      output if writes_parts(problem, backend, output) else None)
+        objective.close()
+        costs, trajectories, controls = done.costs, done.q, done.u
+        statuses, solver_iterations = done.status, done.iterations
+        positions, squares, parts = done.positions, done.squares, done.parts
+        verification = verify_checked(problem, positions, done.ends, phi, done.checks,
+                                      distance, backend,
+                                      time.perf_counter() - checking - done.written_s)
+        if parts:   # the workers wrote their agents' part of the array file
+            extra["timings"] = {"files_s": done.written_s}
+    checking = time.perf_counter()
+    status, message, obstacle_fields = obstacle_check(problem, positions, status, message)
     extra |= obstacle_fields
-    verification, status, message = _verified(problem, options, trajectories, controls, phi,
-                                               status, message, backend)
-    checked = time.perf_counter() - start - wall_time_s
+    verification, status, message = _verified(verification, status, message)
+    checked = verification.time_s + time.perf_counter() - checking
     return FormationResult(
         **common,
         status=status,
@@ -511,21 +543,39 @@ def solve_formation(
         phi=np.reshape(phi, problem.parameter_shape),
         agent_costs=costs,
         trajectories=trajectories,
-        cost_parts=cost_parts(problem, controls),
+        cost_parts=cost_parts(problem, squares),
         outer_iterations=iterations,
         separation=verification.closest,
         inner_solves=inner_solves,
         failed_solves=failed_solves,
         retries=retries,
         wall_time_s=wall_time_s,
-        timings={"verification_s": checked},
-        trace=backend.traces[first_trace:],
+        timings={"verification_s": checked} | extra.pop("timings", {}),
+        trace=backend.traces[first_trace:solved],
         coupling_residual=verification.coupling_residual,
         controls=controls,
         verification=verification,
         fleet=Fleet.of(problem, phi),
-        solver_status=sols.column("status"),
-        solver_iterations=np.asarray(sols.column("iterations")),
+        solver_status=statuses,
+        solver_iterations=solver_iterations,
+        positions=positions,
+        parts=parts,
         **discrete,
         **extra,
     )
+
+
+def _separation_words(rounds: Separation, distance: float, status: str, message: str
+                      ) -> tuple[str, str]:
+    """The status and message after the separation ``rounds`` for the required ``distance``
+    (length unit)."""
+    if rounds.met and not rounds.rounds:
+        return status, message + f"; separation {distance:g} met by the unconstrained paths"
+    if rounds.met:
+        return status, message + (f"; separation {distance:g} met after {rounds.rounds} "
+                                  f"round(s) (last move {rounds.change:.1e})")
+    return "separation_not_met", (
+        f"separation {distance:g} not met after {rounds.rounds} round(s): agents "
+        f"{rounds.closest.agents[0]} and {rounds.closest.agents[1]} come within "
+        f"{rounds.closest.distance:.6g} (short by {distance - rounds.closest.distance:.3g}; "
+        f"{rounds.dropped} half-space(s) dropped for want of slots over the rounds)")

@@ -283,22 +283,61 @@ def _momentum_residuals(shape: DmocShape, q: np.ndarray, u: np.ndarray, v0: np.n
     return np.maximum(*residuals)
 
 
-def _constraint_checks(problem: FormationProblem, q: np.ndarray, u: np.ndarray,
-                       violation: np.ndarray) -> dict[str, Check]:
-    """``control_bounds`` and ``path_constraints`` checks of each agent's shape, where any
-    agent has them (module docstring); raises ``violation`` (n,) to each agent's worst."""
-    bounds, path = [], []
-    for shape, agents in problem.agents_by_shape().items():
-        qs, us = q[agents], u[agents]
-        m, h = len(agents), shape.duration / shape.intervals
+@dataclass
+class AgentChecks:
+    """The checks that read one agent's own path (module docstring: ``start``,
+    ``attitude``, ``momentum``, the shape's ``control_bounds`` and ``path_constraints``) as
+    relative residuals per agent, for m agents in order: ``start``, ``attitude`` (None
+    without attitude entries) and ``momentum`` (m,); per shape with control bounds its
+    agents' worst ``bounds`` (m_s,), per shape with path constraints each constraint's worst
+    ``path`` (m_s, C), the agents of each shape ``agents`` (their indices, m_s); and
+    ``violation`` (m,), each agent's largest. Made where the paths are (:func:`agent_checks`:
+    the coordinator's, or each worker's block of agents, :mod:`ocpar.formation.finish`)."""
+
+    start: np.ndarray
+    attitude: np.ndarray | None
+    momentum: np.ndarray
+    bounds: dict[DmocShape, np.ndarray]
+    path: dict[DmocShape, np.ndarray]
+    agents: dict[DmocShape, np.ndarray]
+    violation: np.ndarray
+
+
+def agent_checks(shapes: list[DmocShape], q: np.ndarray, u: np.ndarray, starts: np.ndarray,
+                 start_velocities: np.ndarray, final_attitude: np.ndarray,
+                 final_velocities: np.ndarray, positions: int, first: int = 0
+                 ) -> AgentChecks:
+    """The :class:`AgentChecks` of m agents with indices ``first`` … ``first`` + m − 1: each
+    one's shape (``shapes``, m), node paths ``q`` (m, N+1, nq), controls ``u`` (m, N, nu),
+    start configurations and velocities, final attitudes (m, nq − d) and velocities (m, nq)
+    (its boundary data), ``positions`` d. Each agent's numbers are its own: any block of
+    agents gives the rows of the whole fleet's."""
+    m = len(q)
+    start = _relative(q[:, 0] - starts, starts)
+    violation = start
+    attitude = None
+    if final_attitude.shape[1]:
+        attitude = _relative(q[:, -1, positions:] - final_attitude, final_attitude)
+        violation = np.maximum(violation, attitude)
+    groups: dict[DmocShape, list[int]] = {}
+    for row, shape in enumerate(shapes):
+        groups.setdefault(shape, []).append(row)
+    momentum = np.empty(m)
+    bounds, path, agents = {}, {}, {}
+    for shape, members in groups.items():
+        rows = np.array(members)
+        agents[shape] = rows + first
+        momentum[rows] = _momentum_residuals(shape, q[rows], u[rows],
+                                             start_velocities[rows], final_velocities[rows])
+        qs, us = q[rows], u[rows]
+        h = shape.duration / shape.intervals
         if shape.control_bounds is not None:
             lo, hi = np.array(shape.control_bounds).T
             gap = np.maximum(np.maximum(lo - us, us - hi), 0.0)
             scale = np.maximum(1.0, np.where(np.isfinite([lo, hi]), np.abs([lo, hi]), 0.0)
                                .max(axis=0))
-            worst = np.max(gap / scale, axis=(1, 2))
-            violation[agents] = np.maximum(violation[agents], worst)
-            bounds.append(_worst(worst, CONSTRAINT_RTOL, agents))
+            bounds[shape] = np.max(gap / scale, axis=(1, 2))
+        worst_path = []
         for constraint in shape.path_constraints:
             if constraint.depends_on("v", "u"):
                 values = {"q": (qs[:, :-1] + qs[:, 1:]) / 2, "v": (qs[:, 1:] - qs[:, :-1]) / h,
@@ -307,10 +346,31 @@ def _constraint_checks(problem: FormationProblem, q: np.ndarray, u: np.ndarray,
                 values = {"q": qs[:, 1:-1]}
             values = {k: v.reshape(-1, v.shape[-1]) for k, v in values.items()}
             finite = [abs(b) for b in constraint.lower + constraint.upper if math.isfinite(b)]
-            gap = constraint.violation(values).reshape(m, -1) / max([1.0, *finite])
-            worst = np.max(gap, axis=1) if gap.size else np.zeros(m)
-            violation[agents] = np.maximum(violation[agents], worst)
-            path.append(_worst(worst, CONSTRAINT_RTOL, agents,
+            gap = constraint.violation(values).reshape(len(rows), -1) / max([1.0, *finite])
+            worst_path.append(np.max(gap, axis=1) if gap.size else np.zeros(len(rows)))
+        if worst_path:
+            path[shape] = np.column_stack(worst_path)
+    violation = np.maximum(violation, momentum)
+    for shape, rows in agents.items():   # raised to each agent's worst bound and constraint
+        local = rows - first
+        for worst in ([bounds[shape]] if shape in bounds else []) + (
+                list(path[shape].T) if shape in path else []):
+            violation[local] = np.maximum(violation[local], worst)
+    return AgentChecks(start, attitude, momentum, bounds, path, agents, violation)
+
+
+def _constraint_checks(problem: FormationProblem, checks: AgentChecks) -> dict[str, Check]:
+    """``control_bounds`` and ``path_constraints`` checks of each agent's shape, where any
+    agent has them (module docstring), from the agents' ``checks``."""
+    bounds, path = [], []
+    for shape in problem.agents_by_shape():
+        if shape not in checks.agents:
+            continue
+        agents = checks.agents[shape]
+        if shape in checks.bounds:
+            bounds.append(_worst(checks.bounds[shape], CONSTRAINT_RTOL, agents))
+        for c, constraint in enumerate(shape.path_constraints):
+            path.append(_worst(checks.path[shape][:, c], CONSTRAINT_RTOL, agents,
                                f"path constraint {constraint.name!r}"))
     # per name the worst over shapes and constraints: a failed one first, NaN first
     return {name: max(found, key=lambda c: (not c.passed, math.inf if math.isnan(c.value)
@@ -354,56 +414,67 @@ def verify_formation(problem: FormationProblem, trajectories: np.ndarray,
     ``problem`` (module docstring); ``min_separation`` D (length unit) if the run required
     one (then the closest approach must be ≥ D (1 − :data:`SEPARATION_RTOL`)). With a
     ``backend``, the closest approach's intervals are searched on its workers (the same
-    figures)."""
+    figures). :func:`agent_checks`, then :func:`verify_checked`."""
     start = time.perf_counter()
     q, u = np.asarray(trajectories, float), np.asarray(controls, float)
-    n, d = problem.agents, problem.curve.dim
-    checks: dict[str, Check] = {}
+    n = problem.agents
+    checks = agent_checks(list(problem.shapes), q, u, problem.starts,
+                          problem.start_velocities,
+                          np.broadcast_to(problem.final_attitude,
+                                          (n, len(problem.final_attitude))),
+                          problem.final_velocities(np.arange(n)), problem.curve.dim)
+    return verify_checked(problem, problem.positions(q), q[:, -1, :problem.curve.dim], phi,
+                          checks, min_separation, backend, time.perf_counter() - start)
 
-    ends = q[:, -1, :d]
+
+def verify_checked(problem: FormationProblem, positions: np.ndarray, ends: np.ndarray,
+                   phi: np.ndarray, checks: AgentChecks, min_separation: float | None = None,
+                   backend: Backend | None = None, spent_s: float = 0.0) -> Verification:
+    """:func:`verify_formation` given the agents' own checks ``checks`` (made where their
+    paths are, :func:`agent_checks`), their positions (n, N+1, p) on the nodes
+    (:meth:`~ocpar.formation.FormationProblem.positions`) and their end points ``ends``
+    (n, d: the first d entries of q_N, which the target fixes): the target and coupling at
+    the end points, the obstacles, the closest approach (its intervals on the ``backend``'s
+    workers, if one is given), the near-collision rule. ``spent_s``: time already spent on
+    the checks (s), counted in the verification's."""
+    start = time.perf_counter() - spent_s
+    positions, ends = np.asarray(positions, float), np.asarray(ends, float)
+    n = problem.agents
+    found: dict[str, Check] = {}
+
     located, distance = _locate(problem, ends, phi)
-    checks["target"] = _worst(distance / _target_size(problem), TARGET_RTOL)
+    found["target"] = _worst(distance / _target_size(problem), TARGET_RTOL)
     if isinstance(problem.curve, Surface) and problem.coupling == PotentialCoupling():
         residual = surface_criticality(problem.curve, ends)[0]   # in space, chart-free
     else:
         residual = coupling_residual(problem, located)
     if isinstance(problem.curve, Slots):
-        checks["slots_shared"] = Check(residual, -1, 0.0)
+        found["slots_shared"] = Check(residual, -1, 0.0)
     else:
-        checks["coupling"] = Check(residual, -1, COUPLING_TOL)
+        found["coupling"] = Check(residual, -1, COUPLING_TOL)
 
-    violation = _relative(q[:, 0] - problem.starts, problem.starts)
-    checks["start"] = _worst(violation, BOUNDARY_RTOL)
-    if len(problem.final_attitude):
-        attitude = _relative(q[:, -1, d:] - problem.final_attitude,
-                             problem.final_attitude[None])
-        violation = np.maximum(violation, attitude)
-        checks["attitude"] = _worst(attitude, BOUNDARY_RTOL)
-    momentum = np.empty(n)
-    for shape, agents in problem.agents_by_shape().items():
-        momentum[agents] = _momentum_residuals(shape, q[agents], u[agents],
-                                               problem.start_velocities[agents],
-                                               problem.final_velocities(agents))
-    checks["momentum"] = _worst(momentum, MOMENTUM_RTOL)
-    violation = np.maximum(violation, momentum)
-    checks |= _constraint_checks(problem, q, u, violation)
+    found["start"] = _worst(checks.start, BOUNDARY_RTOL)
+    if checks.attitude is not None:
+        found["attitude"] = _worst(checks.attitude, BOUNDARY_RTOL)
+    found["momentum"] = _worst(checks.momentum, MOMENTUM_RTOL)
+    found |= _constraint_checks(problem, checks)
 
     clearance = None
     if problem.obstacles:
-        clearance = closest_obstacle(problem.positions(q), problem.obstacles,
+        clearance = closest_obstacle(positions, problem.obstacles,
                                      problem.common_shape.duration)
         where = (f"obstacles[{clearance.obstacle}] "
                  f"({problem.obstacles[clearance.obstacle].name})"
                  if clearance.obstacle >= 0 else "an obstacle")
-        checks["obstacles"] = Check(-clearance.distance, clearance.agent,
-                                    CLEARANCE_TOL * min(o.scale for o in problem.obstacles),
-                                    where)
-    closest = problem.closest_approach(q, backend)
+        found["obstacles"] = Check(-clearance.distance, clearance.agent,
+                                   CLEARANCE_TOL * min(o.scale for o in problem.obstacles),
+                                   where)
+    closest = problem.closest_approach_of(positions, backend)
     if min_separation is not None:
-        checks["separation"] = Check(min_separation - closest.distance, closest.agents[0],
-                                     min_separation * SEPARATION_RTOL,
-                                     f"{closest.agents[0]} and {closest.agents[1]}")
-    targets = problem.positions(q[:, -1:])[:, 0]
+        found["separation"] = Check(min_separation - closest.distance, closest.agents[0],
+                                    min_separation * SEPARATION_RTOL,
+                                    f"{closest.agents[0]} and {closest.agents[1]}")
+    targets = positions[:, -1]
     spacing = (closest_pair(targets)[0] if n > 1 and np.all(np.isfinite(targets))
                else math.inf if n < 2 else math.nan)
     near = None
@@ -414,8 +485,8 @@ def verify_formation(problem: FormationProblem, trajectories: np.ndarray,
                 "rule": f"closest approach below {100 * NEAR_COLLISION_FRACTION:g} % of the "
                         f"formation's spacing (the smallest distance between two target "
                         f"points)"}
-    return Verification(checks, located, residual, closest, spacing, clearance, near,
-                        time.perf_counter() - start, violation)
+    return Verification(found, located, residual, closest, spacing, clearance, near,
+                        time.perf_counter() - start, checks.violation)
 
 
 def near_collision_words(near: dict) -> str:
