@@ -20,7 +20,7 @@ ocpar.SCHEME --backend dask --workers P``, its embedded cluster) each P of ``--w
 the formation P above the number of agents). Sizes: the formation's ``--agents`` (default
 10,000 and 100,000); pursuit at the paper's size (``--case 1 --samples 301``, the paper's
 train: ``--no-reference --finish train``); MACS at the paper's (``--problem goddard
---max-evals 10000 --archive 20 --seed 0``). ``--extra "ARGS"`` adds scheme options to every
+--max-evals 10000 --archive 20 --seed 0``). ``--extra="ARGS"`` adds scheme options to every
 run (after the script's own, so they win). Repetitions are outermost, then sizes, then
 configurations: a drift of the machine hits all alike.
 
