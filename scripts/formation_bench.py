@@ -61,6 +61,7 @@ configuration; predicted efficiency vs P) in ``--output``.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import itertools
 import json
 import math
@@ -71,6 +72,7 @@ import signal
 import statistics
 import subprocess
 import sys
+import threading
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -164,47 +166,61 @@ def parse_variant(text: str) -> tuple[str, tuple[str, ...]]:
     return name, words
 
 
-def run_once(cmd: list[str], out: Path, limit_s: float, memory_mb: float | None = None,
-             source: str | None = None) -> dict:
-    """Run ``cmd`` in its own process group; kill the group after ``limit_s`` seconds. With
-    ``memory_mb`` its address space is capped at that many MiB (an allocation beyond it
-    fails, and the run ends as ``error``).
-    Returns the result.json's fields (``status`` ``timeout`` or ``error`` if there is none),
-    ``process_peak_rss_mb``, the peak resident memory of the largest process it ran, and
-    ``process_s``, its wall time from launch to exit (start-up included). ``source``: the
-    ``PYTHONPATH`` to run it with (default this process's environment)."""
+def launch(cmd: list[str], out: Path, limit_s: float, memory_mb: float | None = None,
+           source: str | None = None) -> dict:
+    """Run ``cmd`` in its own process group, its stderr to ``out/stderr.txt``; kill the group
+    after ``limit_s`` seconds. With ``memory_mb`` its address space is capped at that many
+    MiB (an allocation beyond it fails, and the run ends as ``error``). ``source``: the
+    ``PYTHONPATH`` to run it with (default this process's environment).
+    Returns ``process_peak_rss_mb``, the peak resident memory of the largest process it ran
+    (from ``wait4``; Linux counts a child's pages from before its ``exec`` too, so this is at
+    least the peak of the calling process itself), ``process_s``, its wall time from just
+    before the launch to its exit (start-up included; a blocking wait), ``exit_code``, and
+    where ``out`` has no result.json afterwards ``status`` ``timeout`` or ``error`` with a
+    ``message``."""
     out.mkdir(parents=True, exist_ok=True)
     (out / "result.json").unlink(missing_ok=True)
     with open(out / "stderr.txt", "w") as err:
         cap = None if memory_mb is None else int(memory_mb * 2**20)
         env = None if source is None else os.environ | {"PYTHONPATH": source}
+        launched = time.monotonic()
         proc = subprocess.Popen(
             cmd, stdout=subprocess.DEVNULL, stderr=err, start_new_session=True, env=env,
             preexec_fn=None if cap is None else
             lambda: resource.setrlimit(resource.RLIMIT_AS, (cap, cap)))
-        launched = time.monotonic()
-        deadline = launched + limit_s
-        timed_out = False
-        while True:
-            pid, status, usage = os.wait4(proc.pid, os.WNOHANG)
-            if pid:
-                break
-            if time.monotonic() > deadline:
+        fired = threading.Event()
+
+        def kill() -> None:
+            fired.set()
+            with contextlib.suppress(ProcessLookupError):
                 os.killpg(proc.pid, signal.SIGKILL)
-                pid, status, usage = os.wait4(proc.pid, 0)
-                timed_out = True
-                break
-            time.sleep(0.05)
+
+        killer = threading.Timer(limit_s, kill)
+        killer.start()
+        try:
+            _, status, usage = os.wait4(proc.pid, 0)
+        finally:
+            killer.cancel()
+        ended = time.monotonic()
         proc.returncode = os.waitstatus_to_exitcode(status)
-    peak = {"process_peak_rss_mb": usage.ru_maxrss / 1024,  # Linux: KiB
-            "process_s": time.monotonic() - launched}
-    if timed_out:
-        return {"status": "timeout", "message": f"killed after {limit_s:g} s", **peak}
-    path = out / "result.json"
-    if not path.exists():
+    process = {"process_peak_rss_mb": usage.ru_maxrss / 1024,  # Linux: KiB
+               "process_s": ended - launched, "exit_code": proc.returncode}
+    if fired.is_set():
+        return {"status": "timeout", "message": f"killed after {limit_s:g} s", **process}
+    if not (out / "result.json").exists():
         tail = (out / "stderr.txt").read_text().strip().splitlines()[-1:] or [""]
-        return {"status": "error", "message": f"exit {proc.returncode}: {tail[0]}", **peak}
-    return read_summary(out) | {"trace": load_trace(out)} | peak
+        return {"status": "error", "message": f"exit {proc.returncode}: {tail[0]}", **process}
+    return process
+
+
+def run_once(cmd: list[str], out: Path, limit_s: float, memory_mb: float | None = None,
+             source: str | None = None) -> dict:
+    """:func:`launch` ``cmd``; returns the result.json's fields (``status`` ``timeout`` or
+    ``error`` if there is none) with its ``trace`` and ``launch``'s figures."""
+    process = launch(cmd, out, limit_s, memory_mb, source)
+    if "status" in process:
+        return process
+    return read_summary(out) | {"trace": load_trace(out)} | process
 
 
 def run_figures(result: dict) -> dict:

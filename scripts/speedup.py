@@ -142,12 +142,17 @@ def model_of(runs: list[dict], sync: SyncCost, workers: list[int],
                          for policy in POLICIES}}
 
 
-def headline(result: dict) -> float:
-    """The scheme's headline figure, compared across all runs (must not depend on P)."""
+def headline_key(result: dict) -> str:
+    """The name of the scheme's headline figure in ``result`` (a result.json)."""
     for key in ("total_cost", "final_mass_kg", "hv"):
         if key in result:
-            return float(result[key])
+            return key
     raise KeyError("result.json has no headline figure")
+
+
+def headline(result: dict) -> float:
+    """The scheme's headline figure, compared across all runs (must not depend on P)."""
+    return float(result[headline_key(result)])
 
 
 def plot(table: dict, models: dict, paper: tuple[str, dict] | None, baseline: str,
