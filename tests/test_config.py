@@ -57,7 +57,7 @@ EXAMPLES = {
         "--population", "10", "--archive", "10", "--output", "runs/macs-orbit-raising"]),
 }
 #: Fields of result.json that time the run rather than say what it computed.
-TIMINGS = {"wall_time_s", "trace", "peak_rss_mb_per_worker"}
+TIMINGS = {"wall_time_s", "trace", "peak_rss_mb_per_worker", "timings"}
 
 
 def ocpar(*args: str, cwd: Path, timeout: float = 600) -> subprocess.CompletedProcess:

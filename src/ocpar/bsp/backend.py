@@ -86,7 +86,8 @@ class Backend(ABC):
         return True
 
     def superstep(
-        self, kernel: KernelRef, tasks: Sequence[Any], costs: Sequence[float] | None = None
+        self, kernel: KernelRef, tasks: Sequence[Any], costs: Sequence[float] | None = None,
+        record: bool = True,
     ) -> list[Any]:
         """Run ``kernel`` on every task, one chunk per worker; wait for all (the barrier) and
         return the results in task order. Given estimated ``costs`` (one per task, any unit)
@@ -98,10 +99,12 @@ class Backend(ABC):
         with the same number of tasks, task i being the same piece of work, and uses
         contiguous blocks until then). The assignment never changes the results. The
         superstep's timings are appended to :attr:`traces` (per-task times and workers in
-        task order)."""
+        task order), and the :attr:`journal` records it; with ``record`` False neither: work
+        that is no step of the run (e.g. checking its answer), which a resumed run does
+        again."""
         tasks = list(tasks)
         return self._superstep(kernel, len(tasks), lambda group: [tasks[i] for i in group],
-                               costs, columns=False)
+                               costs, columns=False, record=record)
 
     def superstep_columns(
         self, kernel: KernelRef, tasks: Columns, costs: Sequence[float] | None = None
@@ -143,17 +146,17 @@ class Backend(ABC):
 
     def _superstep(self, kernel: KernelRef, n: int, select: Callable[[list[int]], Any],
                    costs: Sequence[float] | None, columns: bool,
-                   run: Callable[[], tuple[list[range], list[ChunkResult]]] | None = None
-                   ) -> Any:
+                   run: Callable[[], tuple[list[range], list[ChunkResult]]] | None = None,
+                   record: bool = True) -> Any:
         """The superstep of ``kernel`` on ``n`` tasks, ``select(indices)`` giving those tasks
         (and, for all indices, what the journal's digest is of). ``run``: how a resident
         superstep runs its contiguous blocks (:meth:`_resident_superstep`) instead: the
-        blocks and their chunk results."""
+        blocks and their chunk results. ``record`` False: neither traced nor journaled."""
         name = kernel_name(kernel)
-        if self.stop_file is not None and self.stop_file.exists():
+        if record and self.stop_file is not None and self.stop_file.exists():
             raise RunCancelled(f"cancelled before superstep {len(self.traces)}")
         tasks_digest = None
-        if self.journal is not None:
+        if record and self.journal is not None:
             tasks_digest = digest(select(list(range(n))))
             if (recorded := self.journal.replay(len(self.traces), name, tasks_digest)) is not None:
                 self.traces.append(recorded.trace)
@@ -195,6 +198,8 @@ class Backend(ABC):
         if not in_order:
             workers = workers[position]
         wall = time.perf_counter() - start
+        if not record:
+            return results
         self.traces.append(
             SuperstepTrace(
                 index=len(self.traces),

@@ -94,6 +94,7 @@ class OuterObjective:
         self._phi: np.ndarray | None = None   # the last superstep's angles, or
         self._shift: tuple[ShiftFamily, float] | None = None   # its family and shift
         self._family: ShiftFamily | None = None   # the family the agents hold
+        self._family_words: tuple[ShiftFamily, str] | None = None   # its feasibility, said
         self._gathered: Columns | None = None  # the solutions at last_phi, once gathered
 
     @property
@@ -158,8 +159,9 @@ class OuterObjective:
         """The inner solutions at angles φ (Columns of
         :class:`~ocpar.ocp.endpoint_agents.AgentState`, a :class:`~ocpar.ocp.DmocSolution`
         with its boundary data: costs (n,), paths (n, N+1, nq), controls (n, N, nu), ...):
-        :meth:`outcomes`, then one superstep that gathers the solutions from the workers (once
-        per φ)."""
+        :meth:`reach`, then one superstep that gathers the solutions from the workers (once
+        per φ; the separation rounds and a failed run's answer need them here; a finished
+        run checks and writes them where they are, :mod:`ocpar.formation.finish`)."""
         self.reach(phi)
         return self.last_solutions  # type: ignore[return-value]
 
@@ -250,7 +252,7 @@ class OuterObjective:
         """The feasibility words of the agents' family (c(φ(θ)) = 0 at every shift: those of
         its angles at the first shift reported, computed once)."""
         family, theta = self._shift  # type: ignore[misc]
-        if getattr(self, "_family_words", (None,))[0] is not family:
+        if self._family_words is None or self._family_words[0] is not family:
             self._family_words = (family, self._feasibility(family.angles(theta)[0]))
         return self._family_words[1]
 

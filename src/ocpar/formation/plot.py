@@ -13,7 +13,7 @@ from ocpar.formation.problem import FormationProblem
 from ocpar.formation.result import FormationResult
 from ocpar.formation.targets.slots import Slots
 from ocpar.formation.targets.surface import Surface, fibonacci_directions
-from ocpar.plotting import pyplot, save, wrapped
+from ocpar.plotting import figure, save, subplots, wrapped
 
 #: Most agents a picture draws (trajectory, start and final position): above it every k-th,
 #: said in the title (drawing and writing the planar picture: 10,000 paths 0.9 s, 2000 0.3 s,
@@ -53,10 +53,9 @@ def plot_formation(problem: FormationProblem, result: FormationResult, path: Pat
     view as the paper's Fig. 5."""
     if problem.curve.dim == 3:
         return _plot_3d(problem, result, path)
-    plt = pyplot()
     from matplotlib.collections import LineCollection
 
-    fig, (ax_all, ax_end) = plt.subplots(1, 2, figsize=(12, 5.5))
+    fig, (ax_all, ax_end) = subplots(1, 2, figsize=(12, 5.5))
     circle, style = _target(problem, 400)
     shown = slice(None, None, path_step(result.agents))
     ends = problem.final_positions(result.phi[shown])
@@ -89,10 +88,9 @@ def plot_formation(problem: FormationProblem, result: FormationResult, path: Pat
 
 
 def _plot_3d(problem: FormationProblem, result: FormationResult, path: Path) -> Path:
-    plt = pyplot()
     from mpl_toolkits.mplot3d.art3d import Line3DCollection
 
-    fig = plt.figure(figsize=(8, 7))
+    fig = figure(figsize=(8, 7))
     ax = fig.add_subplot(projection="3d")
     circle, style = _target(problem, 200)
     shown = slice(None, None, path_step(result.agents))

@@ -441,7 +441,6 @@ def solve_formation(
                  f"{sol.status}; the returned point breaks the constraints by "
                  f"{sol.violation:.3g}: an infeasible iterate, no answer")
         wall_time_s = time.perf_counter() - start  # before the checks below (reporting)
-        solved = len(backend.traces)   # the checks' supersteps are not the solve's
         status, message, obstacle_fields = obstacle_check(
             problem, problem.positions(sol.trajectories), status, words + note)
         verification, status, message = _verified(verify_formation(
@@ -463,7 +462,7 @@ def solve_formation(
             wall_time_s=wall_time_s,
             timings={"verification_s": checked},
             separation=verification.closest,
-            trace=backend.traces[first_trace:solved],
+            trace=backend.traces[first_trace:],
             coupling_residual=verification.coupling_residual,
             controls=sol.controls,
             verification=verification,
@@ -510,14 +509,12 @@ def solve_formation(
             retries += rounds.retries
             status, message = _separation_words(rounds, distance, status, message)
         wall_time_s = time.perf_counter() - start
-        solved = len(backend.traces)   # the checks' supersteps are not the solve's
         positions = problem.positions(trajectories)
         squares = control_squares(problem, controls)
         verification = verify_formation(problem, trajectories, controls, phi, distance,
                                         backend)
     else:   # finished where the paths are (ocpar.formation.finish)
         wall_time_s = time.perf_counter() - start
-        solved = len(backend.traces)   # the checks' supersteps are not the solve's
         checking = time.perf_counter()
         done = finish(problem, objective.agents, phi,
                       output if writes_parts(problem, backend, output) else None)
@@ -551,7 +548,7 @@ def solve_formation(
         retries=retries,
         wall_time_s=wall_time_s,
         timings={"verification_s": checked} | extra.pop("timings", {}),
-        trace=backend.traces[first_trace:solved],
+        trace=backend.traces[first_trace:],
         coupling_residual=verification.coupling_residual,
         controls=controls,
         verification=verification,

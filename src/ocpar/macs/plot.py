@@ -12,7 +12,7 @@ from ocpar.macs.local_search import STATIONARITY_TOL
 from ocpar.macs.problem import MacsProblem
 from ocpar.macs.result import MacsResult
 from ocpar.ocp import dfet_problem
-from ocpar.plotting import pyplot, save, wrapped
+from ocpar.plotting import save, subplots, wrapped
 
 
 def plot_front(result: MacsResult, path: Path) -> Path:
@@ -21,12 +21,11 @@ def plot_front(result: MacsResult, path: Path) -> Path:
     the converged members (settled and stationary) are filled, those whose refinement was
     not kept crossed. Titled by the front's quality, or the run's status and why if it did
     not converge (:meth:`~ocpar.results.RunResult.title`)."""
-    plt = pyplot()
     names, reference = result.objective_names, result.reference_front
     pairs = list(combinations(range(len(names)), 2))
     columns = min(len(pairs), 3)
     rows = -(-len(pairs) // columns)
-    fig, axes = plt.subplots(rows, columns, figsize=(6.5 * columns, 4.8 * rows), squeeze=False)
+    fig, axes = subplots(rows, columns, figsize=(6.5 * columns, 4.8 * rows), squeeze=False)
     for ax, (a, b) in zip(axes.ravel(), pairs, strict=False):
         if reference is not None:
             style = "-" if len(names) == 2 else "."
@@ -59,10 +58,9 @@ def plot_front(result: MacsResult, path: Path) -> Path:
 def plot_controls(problem: MacsProblem, result: MacsResult, path: Path, count: int = 4) -> Path:
     """Control laws u(t) of ``count`` archive members spread along the front (every control
     component: one panel each)."""
-    plt = pyplot()
     dfet = dfet_problem(problem.shape)
     nu = problem.model.nu
-    fig, axes = plt.subplots(nu, 1, figsize=(6.5, 4.5 * nu), squeeze=False)
+    fig, axes = subplots(nu, 1, figsize=(6.5, 4.5 * nu), squeeze=False)
     picks = np.unique(np.linspace(0, len(result.decisions) - 1, count).round().astype(int))
     for i in picks:
         law = dfet.control_law(result.decisions[i])

@@ -7,7 +7,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ocpar.plotting import pyplot, save, wrapped
+from ocpar.plotting import save, subplots, wrapped
 from ocpar.pursuit.problem import PursuitProblem
 from ocpar.pursuit.result import PursuitResult
 
@@ -16,9 +16,8 @@ def plot_trajectories(problem: PursuitProblem, result: PursuitResult, path: Path
     """One panel per state component x_i(t): agent 0, the result and the full-horizon MS
     solution, with the targets of the fixed final components; titled by the result's
     headline, or its status and why if it did not converge."""
-    plt = pyplot()
     nx = problem.model.nx
-    fig, axes = plt.subplots(nx, 1, figsize=(7, 1.8 * nx + 1), sharex=True, squeeze=False)
+    fig, axes = subplots(nx, 1, figsize=(7, 1.8 * nx + 1), sharex=True, squeeze=False)
     t = problem.grid
     label = "PBMS" if result.mode == "pbms" else "MS"
     returned = result.label(result.headline) if result.status == "converged" else result.status
@@ -45,8 +44,7 @@ def plot_trajectories(problem: PursuitProblem, result: PursuitResult, path: Path
 def plot_convergence(result: PursuitResult, path: Path) -> Path:
     """The headline of each finished agent (agent 0 left out), with the MS reference; titled
     as :func:`plot_trajectories`."""
-    plt = pyplot()
-    fig, ax = plt.subplots(figsize=(7, 4.5))
+    fig, ax = subplots(figsize=(7, 4.5))
     values = result.headlines[1:]
     ax.plot(np.arange(1, len(values) + 1), values, "-", color="tab:blue", label="PBMS agents")
     if result.reference_headline is not None:

@@ -43,6 +43,9 @@ LEAF = 2
 KEY_BITS = 16
 #: Pairs per chunk of the exact test (bounds its temporary arrays to a few hundred MB).
 CHUNK = 200_000
+#: A search cut into C spatial cells cuts at the first tree level with at least this many
+#: nodes per cell (:func:`_interval_within`): the levels above are every cell's (few pairs).
+CELL_NODES = 16
 
 
 @dataclass(frozen=True)
@@ -184,7 +187,8 @@ def _leaf_pairs(a: np.ndarray, b: np.ndarray, count: np.ndarray
     return (np.concatenate([i for i, _ in rows]), np.concatenate([j for _, j in rows]))
 
 
-def _interval_within(x: np.ndarray, reach: float) -> tuple[np.ndarray, np.ndarray]:
+def _interval_within(x: np.ndarray, reach: float, cell: int = 0, cells: int = 1
+                     ) -> tuple[np.ndarray, np.ndarray]:
     """Agent pairs (i, j) (each (m,), unordered) whose segments come within ``reach`` of each
     other on one interval by the exact test: ``x`` (n, 2 dim) holds each agent's position at
     the interval's start and at its end.
@@ -194,17 +198,26 @@ def _interval_within(x: np.ndarray, reach: float) -> tuple[np.ndarray, np.ndarra
     level, keeping those whose boxes may meet (:func:`_may_meet`); the agent pairs of the
     surviving leaf pairs get the exact test. Agents that travel together, however far, stay
     in small boxes relative to each other, so the work is about n log n for paths that do not
-    crowd within ``reach``."""
+    crowd within ``reach``.
+
+    ``cells`` > 1 cuts the search into that many spatial cells, runs of the Z-order: from
+    the first level of at least :data:`CELL_NODES` nodes a cell each, only the pairs whose
+    first node lies in cell ``cell`` are refined (the other node wherever it is: the halo);
+    the cells' pairs together are the whole search's."""
     dim = x.shape[1] // 2
     order = np.argsort(_zorder(0.5 * (x[:, :dim] + x[:, dim:])), kind="stable")
     x = x[order]
     a = b = np.zeros(1, np.intp)
     levels = _tree_levels(x)
+    split = cells == 1
     for depth, (lo, hi, count) in enumerate(levels):
         if depth:
             a, b = _children(a, b)
             filled = (count[a] > 0) & (count[b] > 0)
             a, b = a[filled], b[filled]
+        if not split and (len(count) >= CELL_NODES * cells or depth == len(levels) - 1):
+            mine = a * cells // len(count) == cell
+            a, b, split = a[mine], b[mine], True
         meet = _may_meet(*_box_terms(lo, hi, reach), a, b)
         a, b = a[meet], b[meet]
     found_i, found_j = [], []
@@ -264,12 +277,15 @@ def _upper_bound(positions: np.ndarray) -> float:
 class IntervalTask:
     """One interval's closest approach to find (:func:`interval_minimum`): the agents'
     positions at its start and end ``segments`` (n, 2, dim), the ``bound`` (length unit) an
-    actual pair distance at some node of the paths (:func:`_upper_bound`), and ``scale``
-    max |position| over the paths (the slack of the test)."""
+    actual pair distance at some node of the paths (:func:`_upper_bound`), ``scale``
+    max |position| over the paths (the slack of the test); the search cut into ``cells``
+    spatial cells, this task's is ``cell`` (:func:`_interval_within`)."""
 
     segments: np.ndarray
     bound: float
     scale: float
+    cell: int = 0
+    cells: int = 1
 
 
 @dataclass(frozen=True)
@@ -290,7 +306,7 @@ def interval_minimum(task: IntervalTask) -> IntervalMinimum:
     them on its interval); ties go to the first pair in (i, j) order."""
     n = len(task.segments)
     reach = task.bound * (1 + 1e-9) + 1e-12 * (1.0 + task.scale)
-    i, j = _interval_within(task.segments.reshape(n, -1), reach)
+    i, j = _interval_within(task.segments.reshape(n, -1), reach, task.cell, task.cells)
     if not len(i):
         return IntervalMinimum(math.inf, -1, -1, math.nan)
     pairs = np.unique(np.minimum(i, j).astype(np.int64) * n + np.maximum(i, j))
@@ -310,23 +326,29 @@ def closest_approach(positions: np.ndarray, duration: float,
     Equal to the all-pairs minimum (ties: the first pair in (i, j) order, then the earliest
     interval). Interval by interval (:func:`interval_minimum`), each within a bound that an
     actual pair distance gives (:func:`_upper_bound`): with a ``backend``, one superstep of
-    N interval tasks on its workers (the same numbers: each interval's arithmetic is its
-    own).
+    tasks on its workers (not recorded as the run's), each interval cut into spatial cells
+    where the workers outnumber the intervals (⌈P/N⌉ cells each: :func:`_interval_within`);
+    the same numbers (each interval's and cell's arithmetic is its own).
     """
     positions = _check_positions(positions)
     n, nodes, _ = positions.shape
     if n < 2:
         return ClosestApproach(math.inf, (-1, -1), math.nan)
     bound, scale = _upper_bound(positions), float(np.abs(positions).max())
-    tasks = [IntervalTask(np.ascontiguousarray(positions[:, k:k + 2]), bound, scale)
-             for k in range(nodes - 1)]
-    # (equal cost estimates: under MPI the ranks take the intervals from a shared queue)
-    minima = (backend.superstep(interval_minimum, tasks, costs=[1.0] * len(tasks))
+    cells = 1 if backend is None else -(-backend.workers // (nodes - 1))
+    tasks = [IntervalTask(segments, bound, scale, cell, cells)
+             for segments in (np.ascontiguousarray(positions[:, k:k + 2])
+                              for k in range(nodes - 1))
+             for cell in range(cells)]
+    # equal cost estimates: under MPI the ranks take the tasks from a shared queue; not a
+    # step of the run (neither traced nor journaled)
+    minima = (backend.superstep(interval_minimum, tasks, costs=[1.0] * len(tasks),
+                                record=False)
               if backend is not None else [interval_minimum(task) for task in tasks])
     # the smallest distance; ties to the first pair, then the earliest interval
-    k = min(range(len(minima)), key=lambda k: (minima[k].distance, minima[k].i, minima[k].j,
-                                                k))
-    best = minima[k]
+    t = min(range(len(minima)), key=lambda t: (minima[t].distance, minima[t].i, minima[t].j,
+                                                t))
+    best, k = minima[t], t // cells
     return ClosestApproach(best.distance, (best.i, best.j),
                            (k + best.fraction) * duration / (nodes - 1))
 
