@@ -77,16 +77,16 @@ def unit_blocks(n: int, n_workers: int, costs: Sequence[float] | np.ndarray | No
                 ) -> list[range]:
     """Contiguous blocks of agents 0..n-1, one per worker, made of whole reduction units
     (:func:`unit_size`; the last unit may be shorter): :func:`contiguous_blocks` of the
-    units, or, given each agent's estimated cost (n,), :func:`cost_balanced_blocks` of the
-    units' costs. Every block starts at a unit's first agent."""
+    units, or, given each unit's estimated cost (⌈n / unit_size(n)⌉,),
+    :func:`cost_balanced_blocks` of them. Every block starts at a unit's first agent."""
     size = unit_size(n)
     units = -(-n // size)
     if costs is None:
         blocks = contiguous_blocks(units, n_workers)
     else:
-        starts = np.arange(0, n, size)
-        blocks = cost_balanced_blocks(np.add.reduceat(np.asarray(costs, float), starts),
-                                      n_workers)
+        if len(costs) != units:
+            raise ValueError(f"{len(costs)} unit costs for {units} units of {n} agents")
+        blocks = cost_balanced_blocks(costs, n_workers)
     return [range(min(b.start * size, n), min(b.stop * size, n)) for b in blocks]
 
 

@@ -45,7 +45,9 @@ the first superstep, 1.6 MB for each later one) and is only sent where a worker 
 
 Rebalancing: the blocks follow the agents' measured costs. After each step an agent's cost
 is estimated as its slot's busy time over the slot's agents (a batched kernel times no finer),
-a piecewise-constant cost over agent ids, averaged over the steps (:data:`COST_SMOOTHING`)
+a piecewise-constant cost over agent ids, kept per reduction unit (the unit's agents' sum: a
+few thousand numbers at any n, so that the coordinator's bookkeeping does not grow with the
+agents), averaged over the steps (:data:`COST_SMOOTHING`)
 from the second step on (the first step's times, which include building the workers'
 solvers, serve until then; a slot that took in agents in a step keeps its agents' estimates:
 its time includes building solvers for the newcomers' shapes), and so, from the third step
@@ -327,9 +329,14 @@ class ResidentSet:
         #: Each worker slot's agents (contiguous ranges of whole reduction units, in slot
         #: order) at the next superstep.
         self.blocks: list[range] = unit_blocks(agents, backend.workers)
-        #: Each agent's estimated solve time (s): its slot's busy time per agent, averaged
-        #: over the steps measured (:data:`COST_SMOOTHING`); None before the first.
+        #: Each reduction unit's estimated solve time (s, :attr:`units` of them): its
+        #: agents' share of their slot's busy time, averaged over the steps measured
+        #: (:data:`COST_SMOOTHING`); None before the first.
         self.costs: np.ndarray | None = None
+        size = unit_size(agents)
+        #: The agents of each reduction unit (all :func:`~ocpar.bsp.partition.unit_size`
+        #: but the last).
+        self.unit_lengths = np.diff(np.append(np.arange(0, agents, size), agents))
         #: How far a step's measured slot times stray from their estimates, relative to the
         #: mean slot's (averaged like the costs; :data:`INITIAL_NOISE` until measured).
         self.noise = INITIAL_NOISE
@@ -459,11 +466,11 @@ class ResidentSet:
         tolerance = self.backend.resident_tolerance
         if tolerance is None or self.costs is None or len(self.blocks) < 2:
             return self.blocks
-        loads = block_loads(self.costs, self.blocks)
+        loads = block_loads(self.costs, self._in_units(self.blocks))
         if loads.max() <= (1.0 + tolerance + self.noise) * loads.mean():
             return self.blocks
         proposed = unit_blocks(self.agents, len(self.blocks), self.costs)
-        saving = loads.max() - block_loads(self.costs, proposed).max()
+        saving = loads.max() - block_loads(self.costs, self._in_units(proposed)).max()
         staying = sum(max(0, min(a.stop, b.stop) - max(a.start, b.start))
                       for a, b in zip(self.blocks, proposed, strict=True))
         moving_s = MOVE_SECONDS + (self.agents - staying) * self.state_bytes * MOVE_SECONDS_PER_BYTE
@@ -485,22 +492,29 @@ class ResidentSet:
             self._moving = _Moving(agents=agents, version=self.version + 1, states=states)
             self.moved += len(agents)
 
+    def _in_units(self, blocks: list[range]) -> list[range]:
+        """``blocks`` of whole units (agent ranges) as ranges of unit indices."""
+        size = unit_size(self.agents)
+        return [range(b.start // size, -(-b.stop // size)) for b in blocks]
+
     def _measure(self, groups: list[range], busy_s: list[float], arrived: list[bool]) -> None:
-        """Update the agents' estimated :attr:`costs` and the :attr:`noise` by a step's busy
+        """Update the units' estimated :attr:`costs` and the :attr:`noise` by a step's busy
         time per slot, but for the slots where agents ``arrived`` (a worker's first solves of
-        an agent's shape build its solver: not the agents' cost), whose agents keep their
+        an agent's shape build its solver: not the agents' cost), whose units keep their
         estimates."""
-        sizes = [len(g) for g in groups]
-        sample = np.repeat([b / max(k, 1) for b, k in zip(busy_s, sizes, strict=True)], sizes)
+        units = self._in_units(groups)
+        counts = [len(u) for u in units]
+        per_agent = [b / max(len(g), 1) for b, g in zip(busy_s, groups, strict=True)]
+        sample = np.repeat(per_agent, counts) * self.unit_lengths
         if self.costs is None or self.version == 1:  # the first step's times, which include
             self.costs = sample                        # building the solvers, until the next
             return
         settled = np.logical_not(arrived)
-        expected = block_loads(self.costs, groups)
+        expected = block_loads(self.costs, units)
         if settled.any() and expected.mean() > 0:
             stray = np.abs(np.asarray(busy_s) - expected)[settled].max() / expected.mean()
             self.noise = COST_SMOOTHING * stray + (1.0 - COST_SMOOTHING) * self.noise
-        self.costs = np.where(np.repeat(settled, sizes), COST_SMOOTHING * sample
+        self.costs = np.where(np.repeat(settled, counts), COST_SMOOTHING * sample
                               + (1.0 - COST_SMOOTHING) * self.costs, self.costs)
 
     def close(self) -> None:
