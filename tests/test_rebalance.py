@@ -166,13 +166,16 @@ def test_a_worker_killed_while_states_move_loses_nothing():
         objective = OuterObjective(problem, backend)
         agents = objective._agents
         got = []
+        victim = None
         for phi in angles:
             got.append(objective.gradient(phi))
-            if agents._moving is not None and backend.workers == 2:
+            if agents._moving is not None and victim is None:
                 victim = backend.client.run(os.getpid)[backend.addresses[1]]
                 os.kill(victim, signal.SIGKILL)
                 time.sleep(0.5)
-        assert backend.workers == 1 and agents.moved > 0
+        # its chunk ran again on a live worker (the one left, or the nanny's restarted one
+        # if it registered in time)
+        assert victim is not None and backend.lost_chunks >= 1 and agents.moved > 0
         solutions = objective.solutions(angles[-1])
     assert all(np.array_equal(g, e) for g, e in zip(got, expected, strict=True))
     assert np.array_equal(np.asarray(solutions.column("q")), paths)
