@@ -22,15 +22,18 @@ arithmetic, bit for bit).
 
 from __future__ import annotations
 
+from collections import Counter
 from dataclasses import dataclass
 
 import numpy as np
 
+from ocpar.bsp import Backend
 from ocpar.bsp.columns import LISTED, SHARED, STACKED, Columns
+from ocpar.bsp.partition import unit_blocks
 from ocpar.formation.couplings.coupling import ShiftFamily, shifted
 from ocpar.formation.problem import FormationProblem
 from ocpar.formation.targets.curve import CircleEvaluator, CurveEvaluator
-from ocpar.ocp.contract import Shape
+from ocpar.ocp.contract import PrepareTask, Shape, prepare_solvers
 from ocpar.ocp.dmoc import DmocShape
 from ocpar.ocp.endpoint_agents import AgentState, agent_tasks, solve_agents
 
@@ -186,6 +189,20 @@ def shift_tasks(problem: FormationProblem, family: ShiftFamily, theta: float,
         "curve": (SHARED, problem.curve.evaluator),
         "base": (STACKED, family.base) if new_family or first else (SHARED, None),
         "params": (STACKED, params) if first else (SHARED, None)})
+
+
+def prepare_workers(problem: FormationProblem, backend: Backend) -> None:
+    """Build, on each worker, the inner solvers its block of resident agents will solve
+    (:func:`~ocpar.ocp.contract.prepare_solvers`: the shapes' transcriptions and their
+    batched calls for the block's size): one superstep that is no step of the run, so that
+    the solve's first superstep solves only."""
+    blocks = unit_blocks(problem.agents, backend.workers)
+    if isinstance(problem.shape, DmocShape):
+        counts = [((problem.shape, len(block)),) for block in blocks]
+    else:
+        counts = [tuple(Counter(problem.shape[block.start:block.stop]).items())
+                  for block in blocks]
+    backend.superstep(prepare_solvers, [PrepareTask(c) for c in counts], record=False)
 
 
 @dataclass(frozen=True)

@@ -94,6 +94,12 @@ class MappedNlp:
         return (self.solver.map(columns, "serial"), self.residuals.map(columns, "serial"),
                 post)
 
+    def prepare(self, count: int) -> None:
+        """Build the mapped calls that solving ``count`` NLPs at once takes (one per block
+        size), so that the first solve does not."""
+        for rows in _blocks(np.arange(count)):
+            self._mapped(len(rows))
+
     def solve(self, x0: np.ndarray, p: np.ndarray, lam_g0: np.ndarray, lbg: np.ndarray,
               ubg: np.ndarray, lbx: np.ndarray, ubx: np.ndarray) -> BatchSolve:
         """Solve k NLPs from guesses ``x0`` (k, nx), parameters ``p`` (k, np) and constraint
@@ -308,6 +314,12 @@ class KktNewton:
             newton = self.system.batched_newton(self.name, self.steps, self.constant_matrix, k)
         return (BufferedFunction(newton), BufferedFunction(self.gradient.map(k, "serial")),
                 post)
+
+    def prepare(self, count: int) -> None:
+        """Build the mapped calls that solving ``count`` NLPs at once takes (one per block
+        size), so that the first solve does not."""
+        for rows in _blocks(np.arange(count)):
+            self._mapped(len(rows))
 
     def solve(self, x0: np.ndarray, p: np.ndarray, lam_g0: np.ndarray, lbx: np.ndarray,
               ubx: np.ndarray, rounds: int = 1) -> BatchSolve:

@@ -332,6 +332,26 @@ def _apply_policy(nlp: Transcription[Any], task: OcpTask, params: np.ndarray,
     return solution
 
 
+@dataclass(frozen=True)
+class PrepareTask:
+    """What one worker is about to solve in batches: ``counts`` tasks of each shape
+    (:func:`prepare_solvers`)."""
+
+    counts: tuple[tuple[Shape, int], ...]
+
+
+def prepare_solvers(task: PrepareTask) -> int:
+    """Engine kernel: build this process's transcription of each shape of ``task`` and what
+    solving its count of tasks in one batch takes (a transcription's ``prepare``, where it
+    has one): the build a worker's first superstep would otherwise do, done once, apart from
+    the solve. Returns this process's id."""
+    for shape, count in task.counts:
+        prepare = getattr(transcription(shape), "prepare", None)
+        if prepare is not None:
+            prepare(count)
+    return os.getpid()
+
+
 def cache_report(_task: object = None) -> dict:
     """Engine kernel for diagnostics: this process's id and its transcription-cache counters
     (``builds`` = transcriptions built, ``hits`` = reuses)."""

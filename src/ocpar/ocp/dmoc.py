@@ -692,6 +692,12 @@ class DmocTranscription:
                                    np.asarray(params, float)[None])[0]
         return x0
 
+    def prepare(self, count: int) -> None:
+        """Build what solving ``count`` tasks in one :meth:`solve_batch` takes (the batched
+        solver's mapped calls), so that the first superstep does not."""
+        if self.batch_solver is not None:
+            self.batch_solver.prepare(count)
+
     def solve_batch(self, params: np.ndarray, guesses: np.ndarray | list[np.ndarray | None],
                     multipliers: np.ndarray | list[np.ndarray | None]) -> Columns | None:
         """Solve k tasks in one mapped call (:class:`~ocpar.ocp.batch.MappedNlp`): boundary
