@@ -329,7 +329,7 @@ class ResidentSet:
         #: Each worker slot's agents (contiguous ranges of whole reduction units, in slot
         #: order) at the next superstep.
         self.blocks: list[range] = unit_blocks(agents, backend.workers)
-        #: Each reduction unit's estimated solve time (s, :attr:`units` of them): its
+        #: Each reduction unit's estimated solve time (s, one per unit): its
         #: agents' share of their slot's busy time, averaged over the steps measured
         #: (:data:`COST_SMOOTHING`); None before the first.
         self.costs: np.ndarray | None = None
@@ -353,16 +353,12 @@ class ResidentSet:
         """Tasks each agent has had so far."""
         return len(self.history)
 
-    @property
-    def units(self) -> int:
-        """The reduction units of the set (module docstring): the rows of a reduced step."""
-        return -(-self.agents // unit_size(self.agents))
-
     def step(self, tasks: Columns, reduce: KernelRef | None = None) -> Columns:
         """One superstep: task i to agent i (``tasks``: Columns of n tasks; a field shared
         by all of them travels once per worker), the results in agent order (the kernel's
         results must be instances of one dataclass), or with a reducer ``reduce``
-        (``module:function``, module docstring) its :attr:`units` rows, in unit order."""
+        (``module:function``, module docstring) one row per reduction unit, in unit
+        order."""
         if len(tasks) != self.agents:
             raise ValueError(f"{len(tasks)} tasks for {self.agents} resident agents")
         self._check_open()
