@@ -472,7 +472,16 @@ def submit_batch(address: str, clients: int, requests: list[dict], jobs_dir: Pat
             records = []
         for record in records:
             job = waiting.get(record["id"])
-            if job is None or record["state"] not in ("finished", "failed", "cancelled"):
+            if job is None:
+                continue
+            if record["state"] == "queued" and "Traceback" in "\n".join(
+                    tail := log_tail(jobs_dir / job.job / "log.txt")):
+                # its coordinator writes "running" first: this one died before it could
+                del waiting[record["id"]]
+                job.state, job.log_tail = "failed", tail
+                job.reason = f"its coordinator died before it started: {record['progress']}"
+                continue
+            if record["state"] not in ("finished", "failed", "cancelled"):
                 continue
             del waiting[record["id"]]
             job.finished = record["time"]
