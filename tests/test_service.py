@@ -225,6 +225,16 @@ def test_the_scheduler_side_refuses_what_is_not_a_job_id(job_id, tmp_path, monke
         assert message.startswith("not a job id") == (jobs.JOB_ID.fullmatch(job_id) is None)
 
 
+def test_a_relative_jobs_dir_is_the_schedulers_directory(tmp_path, monkeypatch):
+    """A relative $OCPAR_JOBS_DIR is taken from the scheduler's working directory: job
+    directories are absolute, so a coordinator started in its own directory finds its job
+    (before: it looked for JOB/JOBS_DIR/JOB/job.json, and the job stayed queued forever)."""
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.setenv(jobs.JOBS_DIR_ENV, "jobs")
+    assert jobs.jobs_root() == (tmp_path / "jobs").resolve()
+    assert jobs.jobs_root().is_dir()
+
+
 def test_submit_refuses_service_options_after_the_configuration(capsys):
     from ocpar.__main__ import main
 

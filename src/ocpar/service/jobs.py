@@ -53,8 +53,11 @@ class JobError(ValueError):
 
 
 def jobs_root() -> Path:
-    """The jobs root on this host (created if missing)."""
-    root = Path(os.environ.get(JOBS_DIR_ENV) or Path.home() / ".ocpar" / "jobs")
+    """The jobs root on this host (created if missing), as an absolute path: a relative
+    ``$OCPAR_JOBS_DIR`` is taken from the scheduler's working directory (a job's coordinator
+    runs in its own directory, so a relative path would not lead it back to its job)."""
+    root = Path(os.environ.get(JOBS_DIR_ENV) or Path.home() / ".ocpar" / "jobs"
+                ).expanduser().resolve()
     root.mkdir(parents=True, exist_ok=True)
     return root
 
