@@ -61,11 +61,12 @@ from typing import Any
 
 import numpy as np
 
+from ocpar.result_files import RUNTIME_FIELDS
+
 REPO = Path(__file__).resolve().parents[1]
 PATHS = ("serve", "submit")
-#: Fields of result.json that say where and how long a run ran, not what it computed (as
-#: ``RUNTIME`` in tests/conftest.py, which the test checks).
-RUNTIME = frozenset({"backend", "workers", "wall_time_s", "trace", "peak_rss_mb_per_worker"})
+#: Fields of result.json that say where and how long a run ran, not what it computed.
+RUNTIME = RUNTIME_FIELDS
 
 #: What the jobs run: requests as ``POST /jobs`` takes them (``config``: an example's name or
 #: the keys of a TOML configuration; ``set``: keys as ``ocpar run --set``).

@@ -17,6 +17,8 @@ from pathlib import Path
 
 import pytest
 
+from ocpar.result_files import RUNTIME_FIELDS
+
 BIN = Path(sys.executable).parent
 REPO = Path(__file__).resolve().parents[1]
 
@@ -224,7 +226,7 @@ def wrong_type():
 '''
 USER_BROKEN_PY = 'raise ImportError("needs a library that is not installed")\n'
 #: Fields of result.json that say where and how long a run ran, not what it computed.
-RUNTIME = {"backend", "workers", "wall_time_s", "trace", "peak_rss_mb_per_worker", "timings"}
+RUNTIME = RUNTIME_FIELDS
 
 
 @pytest.fixture(scope="session")

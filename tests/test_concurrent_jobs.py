@@ -12,7 +12,7 @@ import sys
 from pathlib import Path
 
 import pytest
-from conftest import REPO, RUNTIME
+from conftest import REPO
 
 
 def _script(name: str):
@@ -28,10 +28,6 @@ concurrent_jobs = _script("concurrent_jobs")
 MIX = concurrent_jobs.MIXES["small"]
 #: CPU-burning processes beside the jobs (this machine has 2 cores).
 LOAD = 2
-
-
-def test_the_script_ignores_the_same_runtime_fields_as_the_tests():
-    assert concurrent_jobs.RUNTIME == RUNTIME
 
 
 @pytest.fixture(scope="module")

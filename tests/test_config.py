@@ -25,7 +25,7 @@ from ocpar.config import (
     scheme_options,
     scheme_parser,
 )
-from ocpar.result_files import load_trace
+from ocpar.result_files import RUNTIME_FIELDS, load_trace
 
 #: Every packaged example and the scheme command line it stands for.
 EXAMPLES = {
@@ -57,7 +57,7 @@ EXAMPLES = {
         "--population", "10", "--archive", "10", "--output", "runs/macs-orbit-raising"]),
 }
 #: Fields of result.json that time the run rather than say what it computed.
-TIMINGS = {"wall_time_s", "trace", "peak_rss_mb_per_worker", "timings"}
+TIMINGS = RUNTIME_FIELDS - {"backend", "workers"}
 
 
 def ocpar(*args: str, cwd: Path, timeout: float = 600) -> subprocess.CompletedProcess:

@@ -43,6 +43,10 @@ TRACE_FILE = "trace.json"
 PARTS_ATTRIBUTE = "agent_parts"
 #: xarray's engine for the array file (netCDF4-python)
 ENGINE = "netcdf4"
+#: The fields of result.json that say where, how and how long a run ran, not what it
+#: computed: two runs of one problem on different backends or worker counts differ only there.
+RUNTIME_FIELDS = frozenset({"backend", "workers", "wall_time_s", "trace",
+                            "peak_rss_mb_per_worker", "timings", "array_parts"})
 
 
 def write_result(result: RunResult, directory: str | Path) -> list[Path]:
