@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import json
 import math
+import subprocess
+import sys
 from pathlib import Path
 
 import pytest
@@ -101,3 +103,16 @@ def test_bad_input_under_mpirun_ends_every_rank(tmp_path):
     assert proc.stderr.count("error: argument --agents") == 1 and "Traceback" not in proc.stderr
 
 
+
+
+def test_a_command_line_process_leaves_its_objects_out_of_the_exit_collections():
+    """The exit handler runs after every exit handler registered before the command line ran
+    (here: the one that reports what the interpreter's teardown will collect)."""
+    script = ("import atexit, gc\n"
+              "atexit.register(lambda: print(gc.get_freeze_count() > 0, gc.get_count()[2]))\n"
+              "from ocpar import driver\n"
+              "from ocpar.formation.run import FormationRun\n"
+              "driver.main(FormationRun, ['--agents', '3', '--quiet'])\n")
+    done = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True,
+                          timeout=120, check=True)
+    assert done.stdout.split()[-2:] == ["True", "0"]

@@ -30,7 +30,14 @@ from pathlib import Path
 from typing import Any
 
 from ocpar import driver
-from ocpar.cli import OneLineParser, add_tls_arguments, check_tls_arguments, client_security, fail
+from ocpar.cli import (
+    OneLineParser,
+    add_tls_arguments,
+    check_tls_arguments,
+    client_security,
+    fail,
+    freeze_objects_at_exit,
+)
 from ocpar.config import (
     ConfigError,
     examples,
@@ -410,6 +417,7 @@ def build_parser() -> OneLineParser:
 
 def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else list(argv)
+    freeze_objects_at_exit()
     parser = build_parser()
     args, extra = parser.parse_known_args(argv)
     parser.subcommands[args.command].refuse_repeated(argv[1:])

@@ -33,6 +33,7 @@ from ocpar.cli import (
     RuntimeOptions,
     choose_backend,
     fail,
+    freeze_objects_at_exit,
     prepare_output_dir,
     run_on_backend,
 )
@@ -198,5 +199,6 @@ def run_scheme(options: SchemeRun, given: frozenset[str] | None = None) -> int:
 
 def main(scheme: type[SchemeRun], argv: Sequence[str] | None = None) -> int:
     """A scheme's command line: parse ``argv`` and run."""
+    freeze_objects_at_exit()
     options, given = parse_options(scheme, argv)
     return run_scheme(options, given)
