@@ -12,6 +12,7 @@ from conftest import run_cli
 from ocpar.examples import formation_halo
 from ocpar.examples.formation_point_masses import make as paper_example
 from ocpar.formation import solve_formation
+from ocpar.formation.keep_out import separation
 from ocpar.formation.keep_out.separation import (
     check_separation_feasible,
     close_pairs,
@@ -295,3 +296,17 @@ def test_intervals_cut_into_spatial_cells_give_the_same_closest_approach(seed):
     for workers in (8, 16, 40):
         found = closest_approach(positions, 2.0, InProcess(workers))
         assert (found.distance, found.agents, found.time) == expected, workers
+
+
+@pytest.mark.parametrize("tree_points", [separation.TREE_POINTS, 0], ids=["tree", "cKDTree"])
+@pytest.mark.parametrize("dim", [2, 3])
+def test_closest_pair_is_the_all_pairs_minimum(monkeypatch, tree_points, dim):
+    monkeypatch.setattr(separation, "TREE_POINTS", tree_points)
+    rng = np.random.default_rng(dim)
+    for points in (rng.uniform(size=(2, dim)), rng.uniform(size=(700, dim)),
+                   np.repeat(rng.uniform(size=(40, dim)), [1] * 39 + [2], axis=0),
+                   np.column_stack([np.arange(300.0) ** 1.5] + [np.zeros(300)] * (dim - 1))):
+        gaps = np.linalg.norm(points[:, None] - points[None], axis=-1)
+        gaps[np.diag_indices(len(points))] = np.inf
+        distance, (i, j) = separation.closest_pair(points)
+        assert distance == gaps.min() and i < j and gaps[i, j] == distance

@@ -51,9 +51,9 @@ from ocpar.formation.couplings.potential import (
 )
 from ocpar.formation.keep_out.obstacles import CLEARANCE_TOL, Clearance, closest_obstacle
 from ocpar.formation.keep_out.rounds import SEPARATION_RTOL
-from ocpar.formation.keep_out.separation import ClosestApproach
+from ocpar.formation.keep_out.separation import ClosestApproach, closest_pair
 from ocpar.formation.problem import FormationProblem
-from ocpar.formation.targets.slots import Slots, closest_pair
+from ocpar.formation.targets.slots import Slots
 from ocpar.formation.targets.surface import Surface
 from ocpar.ocp import DmocShape
 from ocpar.ocp.columns_eval import evaluate_columns

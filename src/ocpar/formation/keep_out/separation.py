@@ -318,6 +318,31 @@ def interval_minimum(task: IntervalTask) -> IntervalMinimum:
                            float(fraction[best]))
 
 
+#: Most points :func:`closest_pair` searches with the interval tree; above, SciPy's k-d tree
+#: (measured on this 2-core machine, on a circle and in a cube: the tree 0.04 s at 10,000
+#: points, 0.16 s at 50,000 and 0.5 s at 100,000; ``cKDTree`` 0.06 s at 100,000, but
+#: importing ``scipy.spatial`` takes 0.22 s).
+TREE_POINTS = 50_000
+
+
+def closest_pair(points: np.ndarray) -> tuple[float, tuple[int, int]]:
+    """The smallest distance between two of ``points`` (m, d), m ≥ 2, and a pair (i, j),
+    i < j, at that distance: as the closest approach of agents standing still
+    (:func:`interval_minimum` on a zero-length interval) up to :data:`TREE_POINTS` points,
+    above by SciPy's ``cKDTree``."""
+    points = np.asarray(points, float)
+    if len(points) <= TREE_POINTS:
+        still = IntervalTask(np.stack([points, points], axis=1), _upper_bound(points[:, None]),
+                             float(np.abs(points).max()))
+        found = interval_minimum(still)
+        return found.distance, (found.i, found.j)
+    from scipy.spatial import cKDTree
+    distance, index = cKDTree(points).query(points, k=2)
+    i = int(np.argmin(distance[:, 1]))
+    j = int(index[i, 1] if index[i, 1] != i else index[i, 0])   # a duplicate may come first
+    return float(distance[i, 1]), (min(i, j), max(i, j))
+
+
 def closest_approach(positions: np.ndarray, duration: float,
                      backend: Backend | None = None) -> ClosestApproach:
     """Closest approach of any two agents on piecewise-linear paths.

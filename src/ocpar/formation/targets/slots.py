@@ -34,6 +34,8 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from ocpar.formation.keep_out.separation import closest_pair
+
 if TYPE_CHECKING:
     from scipy.spatial import cKDTree
 
@@ -88,15 +90,6 @@ class Slots:
         them, length unit (a slot is not searched for: the assignment names it)."""
         hint = np.asarray(hint, float).ravel()
         return hint, np.linalg.norm(np.asarray(points, float) - self.at(hint), axis=1)
-
-
-def closest_pair(points: np.ndarray) -> tuple[float, tuple[int, int]]:
-    """The smallest distance between two of ``points`` (m, d), m ≥ 2, and the pair."""
-    from scipy.spatial import cKDTree
-    distance, index = cKDTree(points).query(points, k=2)
-    i = int(np.argmin(distance[:, 1]))
-    j = int(index[i, 1] if index[i, 1] != i else index[i, 0])   # a duplicate may come first
-    return float(distance[i, 1]), (min(i, j), max(i, j))
 
 
 def nearest_assignment(starts: np.ndarray, slots: Slots,
