@@ -71,7 +71,30 @@ def test_a_converged_circle_verifies_from_its_end_points(six):
     assert v.coupling_residual <= 1e-8 and independent <= 1e-8
     assert v.checks["target"].value <= 1e-12
     assert v.checks["momentum"].value <= 1e-10
+    assert v.checks["dynamics"].value <= 1e-10
     assert result.to_dict()["verification"]["passed"] is True
+
+
+def test_an_inner_node_moved_breaks_the_interior_equations_only(six):
+    """A unit point mass (L = |v|²/2, force u): DMOC's interior equation at node k is
+    (q_k − q_{k−1})/h − (q_{k+1} − q_k)/h + h (u_{k−1} + u_k)/2 = 0, written here; moving q_5
+    by δ breaks those of k = 4, 5, 6 and no boundary equation."""
+    problem, result = six
+    q, u = result.trajectories.copy(), result.controls
+    q[2, 5, :2] += np.array([3e-4, -1e-4])
+    v = verify_formation(problem, q, u, result.phi)
+    failed = {name for name, c in v.checks.items() if not c.passed}
+    assert failed == {"dynamics"} and v.checks["dynamics"].agent == 2
+    h = problem.common_shape.duration / problem.common_shape.intervals
+    worst = 0.0
+    for k in range(1, problem.common_shape.intervals):
+        terms = [(q[2, k] - q[2, k - 1]) / h, -(q[2, k + 1] - q[2, k]) / h,
+                 h / 2 * u[2, k - 1], h / 2 * u[2, k]]
+        worst = max(worst, np.linalg.norm(sum(terms))
+                    / (1 + sum(np.linalg.norm(t) for t in terms)))
+    assert worst > 1e-5   # far above the tolerance, 1e-7
+    assert v.checks["dynamics"].value == pytest.approx(worst, rel=1e-9)
+    assert "breaks its dynamics" in v.failures[0]
 
 
 def test_an_end_point_moved_off_the_circle_is_named(six):
@@ -81,8 +104,9 @@ def test_an_end_point_moved_off_the_circle_is_named(six):
     q[3, -1, :2] += 1e-3 * radial
     v = verify_formation(problem, q, result.controls, result.phi)
     failed = {name: c for name, c in v.checks.items() if not c.passed}
-    # the end point is off the target, and the path no longer meets its end velocity
-    assert set(failed) == {"target", "momentum"}
+    # the end point is off the target, the path no longer meets its end velocity, and the
+    # last inner node's equation (q_N is in it) breaks
+    assert set(failed) == {"target", "momentum", "dynamics"}
     assert {c.agent for c in failed.values()} == {3}
     assert failed["target"].value == pytest.approx(1e-3 / RADIUS, rel=1e-6)
     assert v.failures[0].startswith("agent 3's end point lies 0.0001 (relative) off")
@@ -92,7 +116,7 @@ def test_an_end_point_moved_off_the_circle_is_named(six):
     _, status, message = _verified(v, "converged", result.message)
     assert status == "failed"
     assert message.startswith("the returned formation fails verification: agent 3's end "
-                              "point") and "(and 1 more)" in message
+                              "point") and "(and 2 more)" in message
 
 
 @pytest.mark.parametrize("limit", ["box", "norm"])
@@ -106,7 +130,9 @@ def test_a_broken_thrust_limit_is_named(limit):
     v = verify_formation(problem, result.trajectories, u, result.phi)
     failed = {name: c for name, c in v.checks.items() if not c.passed}
     name = "control_bounds" if limit == "box" else "path_constraints"
-    assert set(failed) == {name} and failed[name].agent == 5
+    # the scaled control no longer moves the returned path: the interior equations break too
+    assert set(failed) == {name, "dynamics"}
+    assert failed[name].agent == failed["dynamics"].agent == 5
     # box: 1e-3 of u_max = 2.7 over max(1, 2.7); norm: |u|² ≤ u_max² broken by ~2e-3 u_max²
     expected = 1e-3 if limit == "box" else (1.001**2 - 1) * 2.7**2 / 2.7**2
     assert failed[name].value == pytest.approx(expected, rel=1e-6)
@@ -225,9 +251,12 @@ def test_a_path_through_an_obstacle_is_named():
     q[2, 5, :2] = (50.0, -20.0)
     v = verify_formation(problem, q, result.controls, result.phi)
     failed = {name: c for name, c in v.checks.items() if not c.passed}
-    assert set(failed) == {"obstacles"} and failed["obstacles"].agent == 2
+    # the moved node breaks agent 2's interior equations too (its controls did not move it)
+    assert set(failed) == {"obstacles", "dynamics"}
+    assert failed["obstacles"].agent == failed["dynamics"].agent == 2
     assert failed["obstacles"].value == pytest.approx(5.0, rel=1e-12)
-    assert v.failures[0].startswith("agent 2's path enters obstacles[0] (sphere) by 5")
+    assert any(f.startswith("agent 2's path enters obstacles[0] (sphere) by 5")
+               for f in v.failures)
 
 
 def test_columns_evaluated_with_numpy_equal_casadi():

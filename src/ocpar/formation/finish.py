@@ -6,7 +6,7 @@ Once the outer solver has its φ, the agents' solutions (paths, controls) are on
 there (:meth:`ocpar.bsp.ResidentSet.apply`: not a superstep of the solve): each worker
 
 * checks its agents' own paths (:func:`~ocpar.formation.verify.agent_checks`: start,
-  attitude, boundary momentum, control bounds, path constraints),
+  attitude, boundary momentum, interior dynamics, control bounds, path constraints),
 * on a run that writes its agents in parts (:func:`writes_parts`), writes their variables of
   the array file (:func:`~ocpar.formation.result.agent_arrays`) as ``result.agents-K.nc``
   (K its first agent) into the run's output directory, which :func:`ocpar.load` joins;
@@ -73,15 +73,16 @@ class FinishTask:
 @dataclass
 class AgentFinish:
     """What an agent's finish sends back: its own checks' residuals (``start``, ``attitude``
-    (NaN without attitude entries), ``momentum``, ``bounds`` (NaN without control bounds),
-    ``path`` (one per path constraint of its shape), ``violation``), its ``positions``
-    (N+1, p) and ``end`` (d,), its ``cost`` and ``cost_parts`` (h Σ|u|² per control group,
-    before the factor h); and, where its worker wrote no part, its paths ``q``, controls
-    ``u``, solver ``status`` and ``iterations`` (None where written)."""
+    (NaN without attitude entries), ``momentum``, ``dynamics``, ``bounds`` (NaN without
+    control bounds), ``path`` (one per path constraint of its shape), ``violation``), its
+    ``positions`` (N+1, p) and ``end`` (d,), its ``cost`` and ``cost_parts`` (h Σ|u|² per
+    control group, before the factor h); and, where its worker wrote no part, its paths
+    ``q``, controls ``u``, solver ``status`` and ``iterations`` (None where written)."""
 
     start: float
     attitude: float
     momentum: float
+    dynamics: float
     bounds: float
     path: np.ndarray
     violation: float
@@ -136,6 +137,7 @@ def finish_agents(tasks: Columns, states: Columns) -> Columns:
         "attitude": (STACKED, np.full(k, math.nan) if checks.attitude is None
                      else checks.attitude),
         "momentum": (STACKED, checks.momentum),
+        "dynamics": (STACKED, checks.dynamics),
         "bounds": (STACKED, _per_agent(checks.bounds, checks.agents, first, k)),
         "path": _paths(checks, first, k),
         "violation": (STACKED, checks.violation),
@@ -252,6 +254,7 @@ def finish(problem: FormationProblem, agents: ResidentSet, phi: np.ndarray,
         start=np.asarray(rows.column("start")),
         attitude=attitude if len(problem.final_attitude) else None,
         momentum=np.asarray(rows.column("momentum")),
+        dynamics=np.asarray(rows.column("dynamics")),
         bounds={s: bounds[a] for s, a in by_shape.items() if s.control_bounds is not None},
         path={s: np.array([paths[i] for i in a]).reshape(len(a), -1)
               for s, a in by_shape.items() if s.path_constraints},

@@ -369,8 +369,8 @@ def agent_arrays(records: AgentRecords, duration: float, positions: tuple[int, .
     if records.violation is not None:
         out["constraint_violation"] = array(
             "agent", records.violation, "1",
-            "largest relative residual of the agent's boundary, momentum, control-bound "
-            "and path-constraint checks (ocpar.formation.verify)")
+            "largest relative residual of the agent's boundary, momentum, dynamics, "
+            "control-bound and path-constraint checks (ocpar.formation.verify)")
     if records.sides is not None:
         out["obstacle_side"] = _obstacle_sides(records.sides, positions)
     return out

@@ -18,6 +18,10 @@ interval controls (n, N, nu) and the parameters φ, and the problem's data. It c
   f⁻_0 = 0 and −D2L(q_N, q̇_N) + D2L_d(q_{N−1}, q_N) + f⁺_{N−1} = 0 on the returned nodes and
   controls with the problem's q̇_0, q̇_N (the holonomic reactions projected out), built
   here from the model's Lagrangian and force;
+* ``dynamics``: DMOC's interior equations, the discrete Euler–Lagrange equations with forces
+  D2L_d(q_{k−1}, q_k) + D1L_d(q_k, q_{k+1}) + f⁺_{k−1} + f⁻_k = 0 at every inner node
+  k = 1 … N−1 (the holonomic reactions projected out, and c(q_k) = 0 there), on the returned
+  nodes and controls, built here the same way;
 * ``control_bounds``, ``path_constraints``: every bound and path constraint of each agent's
   shape at the points where DMOC imposes them: controls u_k; rows of ``q`` alone at the
   inner nodes, rows of ``v``/``u`` at (q_{k+½}, (q_{k+1} − q_k)/h, u_k);
@@ -71,7 +75,8 @@ COUPLING_TOL = 1e-8
 #: Start configuration and final attitude are every inner problem's data: equal to rounding,
 #: relative to 1 + |q| (1e-9 leaves room for a model's unit-quaternion normalisation).
 BOUNDARY_RTOL = 1e-9
-#: DMOC's boundary momentum equations hold to this, relative to 1 + the size of their terms:
+#: DMOC's boundary momentum and interior equations hold to this, relative to 1 + the size of
+#: their terms:
 #: the inner solvers stop at a KKT residual of ~1e-10 (``kkt_tol``, IPOPT's tol 1e-12 scaled).
 MOMENTUM_RTOL = 1e-7
 #: Bounds and path rows hold to this, relative to max(1, |bound|): the solvers' accuracy
@@ -105,6 +110,8 @@ FAILURE_WORDS = {
                 "relative)",
     "momentum": "agent {agent}'s path misses its boundary velocities: DMOC's boundary "
                 "momentum residual {value:.3g} (relative)",
+    "dynamics": "agent {agent}'s path breaks its dynamics: DMOC's interior equations' "
+                "residual {value:.3g} (relative)",
     "control_bounds": "agent {agent}'s controls break control_bounds by {value:.3g} "
                       "(relative)",
     "path_constraints": "agent {agent}'s path breaks {where} by {value:.3g} (relative)",
@@ -145,7 +152,7 @@ class Verification:
     unit; inf with one agent); ``obstacle_clearance`` (None without obstacles);
     ``near_collision`` (None, or where and how close, :data:`NEAR_COLLISION_FRACTION`);
     ``time_s`` how long the checks took (s); ``agent_violation`` (n,) per agent the largest
-    relative residual of its own checks (start, attitude, momentum, control bounds, path
+    relative residual of its own checks (start, attitude, momentum, dynamics, control bounds, path
     constraints; NaN for a path that is not finite)."""
 
     checks: dict[str, Check]
@@ -260,43 +267,93 @@ def _boundary_terms(shape: DmocShape) -> ca.Function:
     return ca.Function("boundary", [q0, q1, qm, qn, u0, um, v0, vn], [*terms, *grads])
 
 
+@lru_cache(maxsize=64)
+def _interior_terms(shape: DmocShape, k: int) -> ca.Function:
+    """(q_{k−1}, q_k, q_{k+1}, u_{k−1}, u_k) ↦ the terms of DMOC's k-th interior equation,
+    D2L_d(q_{k−1}, q_k), D1L_d(q_k, q_{k+1}), f⁺_{k−1}, f⁻_k (nq each, without the
+    reactions), the holonomic constraints' gradient ∇c(q_k)ᵀ (nq × nc, flattened) and c(q_k)
+    (nc), from the model's Lagrangian and force (:mod:`ocpar.ocp.dmoc`); ``k`` names the
+    intervals' Lagrangians of a time-dependent model (0 otherwise: one for all)."""
+    model, h = shape.model, shape.duration / shape.intervals
+    qa, qb, qc = (ca.SX.sym(name, model.nq) for name in ("qa", "qb", "qc"))
+    ua, ub = ca.SX.sym("ua", model.nu), ca.SX.sym("ub", model.nu)
+
+    def discrete_lagrangian(a: ca.SX, b: ca.SX, interval: int) -> ca.SX:
+        return h * model.lagrangian((a + b) / 2, (b - a) / h, interval)
+
+    before = k - 1 if getattr(model, "time_dependent", False) else 0
+    terms = [ca.gradient(discrete_lagrangian(qa, qb, before), qb),
+             ca.gradient(discrete_lagrangian(qb, qc, k), qb),
+             0.5 * h * model.generalized_force((qa + qb) / 2, ua),
+             0.5 * h * model.generalized_force((qb + qc) / 2, ub)]
+    nc = getattr(model, "n_constraints", 0)
+    holonomic = ([ca.vec(ca.jacobian(model.constraints(qb), qb).T), model.constraints(qb)]
+                 if nc else [ca.SX(0, 1), ca.SX(0, 1)])
+    return ca.Function("interior", [qa, qb, qc, ua, ub], [*terms, *holonomic])
+
+
+def _equation_residuals(terms: list[np.ndarray], grad: np.ndarray) -> np.ndarray:
+    """Per row (m,) the relative residual |r| / (1 + Σ |terms|) of one DMOC equation whose
+    ``terms`` are (m, nq) each, r their sum with its part in the range of ∇c(q)ᵀ (``grad``
+    (m, nq nc) flattened column-major, nc ≥ 0: the holonomic reactions, free multipliers)
+    removed by least squares; a row with a non-finite entry gives NaN."""
+    m, nq = terms[0].shape
+    r = sum(terms[1:], terms[0])
+    if grad.size:   # least-squares reactions λ: r − G (GᵀG)⁻¹ Gᵀ r, G = ∇cᵀ (nq, nc)
+        g = grad.reshape(m, -1, nq).transpose(0, 2, 1)
+        ok = np.all(np.isfinite(g), axis=(1, 2)) & np.all(np.isfinite(r), axis=1)
+        r = np.where(ok[:, None], r, np.nan)   # a failed path's NaN stays NaN
+        g, gt = g[ok], g[ok].transpose(0, 2, 1)
+        r[ok] -= (g @ np.linalg.solve(gt @ g, gt @ r[ok][..., None]))[..., 0]
+    size = sum(np.sqrt(np.einsum("ij,ij->i", t, t)) for t in terms)
+    return np.sqrt(np.einsum("ij,ij->i", r, r)) / (1.0 + size)
+
+
+def _dynamics_residuals(shape: DmocShape, q: np.ndarray, u: np.ndarray) -> np.ndarray:
+    """Per agent (m,) the largest residual of DMOC's interior equations (the discrete
+    Euler–Lagrange equations with forces at the inner nodes k = 1 … N−1, relative as in
+    :func:`_equation_residuals`) and of the holonomic constraints |c(q_k)| there, on node
+    paths ``q`` (m, N+1, nq) and controls ``u`` (m, N, nu); 0 with one interval."""
+    varying = getattr(shape.model, "time_dependent", False)
+    worst = np.zeros(len(q))
+    for k in range(1, shape.intervals):   # node by node: m rows at a time (memory)
+        out = evaluate_columns(_interior_terms(shape, k if varying else 0), q[:, k - 1],
+                               q[:, k], q[:, k + 1], u[:, k - 1], u[:, k])
+        residual = _equation_residuals(out[0:4], out[4])
+        if out[5].size:
+            residual = np.maximum(residual, np.max(np.abs(out[5]), axis=1))
+        worst = np.maximum(worst, residual)
+    return worst
+
+
 def _momentum_residuals(shape: DmocShape, q: np.ndarray, u: np.ndarray, v0: np.ndarray,
                         vn: np.ndarray) -> np.ndarray:
     """Per agent (m,) the larger relative residual of DMOC's two boundary equations on node
     paths ``q`` (m, N+1, nq) and controls ``u`` (m, N, nu) with boundary velocities ``v0``,
     ``vn`` (m, nq): |r| / (1 + Σ |terms|), r the sum of the terms with its part in the range
     of ∇c(q)ᵀ (the holonomic reactions, free multipliers) removed."""
-    m, nq = len(q), shape.model.nq
     out = evaluate_columns(_boundary_terms(shape), q[:, 0], q[:, 1], q[:, -2], q[:, -1],
                            u[:, 0], u[:, -1], v0, vn)
-    residuals = []
-    for terms, grad in ((out[0:3], out[6]), (out[3:6], out[7])):
-        r = terms[0] + terms[1] + terms[2]
-        if grad.size:   # least-squares reactions λ: r − G (GᵀG)⁻¹ Gᵀ r, G = ∇cᵀ (nq, nc)
-            g = grad.reshape(m, -1, nq).transpose(0, 2, 1)
-            ok = np.all(np.isfinite(g), axis=(1, 2)) & np.all(np.isfinite(r), axis=1)
-            r = np.where(ok[:, None], r, np.nan)   # a failed path's NaN stays NaN
-            g, gt = g[ok], g[ok].transpose(0, 2, 1)
-            r[ok] -= (g @ np.linalg.solve(gt @ g, gt @ r[ok][..., None]))[..., 0]
-        size = sum(np.sqrt(np.einsum("ij,ij->i", t, t)) for t in terms)
-        residuals.append(np.sqrt(np.einsum("ij,ij->i", r, r)) / (1.0 + size))
-    return np.maximum(*residuals)
+    return np.maximum(_equation_residuals(out[0:3], out[6]),
+                      _equation_residuals(out[3:6], out[7]))
 
 
 @dataclass
 class AgentChecks:
     """The checks that read one agent's own path (module docstring: ``start``,
-    ``attitude``, ``momentum``, the shape's ``control_bounds`` and ``path_constraints``) as
-    relative residuals per agent, for m agents in order: ``start``, ``attitude`` (None
-    without attitude entries) and ``momentum`` (m,); per shape with control bounds its
-    agents' worst ``bounds`` (m_s,), per shape with path constraints each constraint's worst
-    ``path`` (m_s, C), the agents of each shape ``agents`` (their indices, m_s); and
-    ``violation`` (m,), each agent's largest. Made where the paths are (:func:`agent_checks`:
-    the coordinator's, or each worker's block of agents, :mod:`ocpar.formation.finish`)."""
+    ``attitude``, ``momentum``, ``dynamics``, the shape's ``control_bounds`` and
+    ``path_constraints``) as relative residuals per agent, for m agents in order: ``start``,
+    ``attitude`` (None without attitude entries), ``momentum`` and ``dynamics`` (m,); per
+    shape with control bounds its agents' worst ``bounds`` (m_s,), per shape with path
+    constraints each constraint's worst ``path`` (m_s, C), the agents of each shape
+    ``agents`` (their indices, m_s); and ``violation`` (m,), each agent's largest. Made where
+    the paths are (:func:`agent_checks`: the coordinator's, or each worker's block of agents,
+    :mod:`ocpar.formation.finish`)."""
 
     start: np.ndarray
     attitude: np.ndarray | None
     momentum: np.ndarray
+    dynamics: np.ndarray
     bounds: dict[DmocShape, np.ndarray]
     path: dict[DmocShape, np.ndarray]
     agents: dict[DmocShape, np.ndarray]
@@ -322,13 +379,14 @@ def agent_checks(shapes: list[DmocShape], q: np.ndarray, u: np.ndarray, starts: 
     groups: dict[DmocShape, list[int]] = {}
     for row, shape in enumerate(shapes):
         groups.setdefault(shape, []).append(row)
-    momentum = np.empty(m)
+    momentum, dynamics = np.empty(m), np.empty(m)
     bounds, path, agents = {}, {}, {}
     for shape, members in groups.items():
         rows = np.array(members)
         agents[shape] = rows + first
         momentum[rows] = _momentum_residuals(shape, q[rows], u[rows],
                                              start_velocities[rows], final_velocities[rows])
+        dynamics[rows] = _dynamics_residuals(shape, q[rows], u[rows])
         qs, us = q[rows], u[rows]
         h = shape.duration / shape.intervals
         if shape.control_bounds is not None:
@@ -350,13 +408,13 @@ def agent_checks(shapes: list[DmocShape], q: np.ndarray, u: np.ndarray, starts: 
             worst_path.append(np.max(gap, axis=1) if gap.size else np.zeros(len(rows)))
         if worst_path:
             path[shape] = np.column_stack(worst_path)
-    violation = np.maximum(violation, momentum)
+    violation = np.maximum(violation, np.maximum(momentum, dynamics))
     for shape, rows in agents.items():   # raised to each agent's worst bound and constraint
         local = rows - first
         for worst in ([bounds[shape]] if shape in bounds else []) + (
                 list(path[shape].T) if shape in path else []):
             violation[local] = np.maximum(violation[local], worst)
-    return AgentChecks(start, attitude, momentum, bounds, path, agents, violation)
+    return AgentChecks(start, attitude, momentum, dynamics, bounds, path, agents, violation)
 
 
 def _constraint_checks(problem: FormationProblem, checks: AgentChecks) -> dict[str, Check]:
@@ -457,6 +515,7 @@ def verify_checked(problem: FormationProblem, positions: np.ndarray, ends: np.nd
     if checks.attitude is not None:
         found["attitude"] = _worst(checks.attitude, BOUNDARY_RTOL)
     found["momentum"] = _worst(checks.momentum, MOMENTUM_RTOL)
+    found["dynamics"] = _worst(checks.dynamics, MOMENTUM_RTOL)
     found |= _constraint_checks(problem, checks)
 
     clearance = None
