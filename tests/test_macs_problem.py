@@ -17,11 +17,12 @@ from conftest import golden
 
 from ocpar.examples import macs_double_integrator, macs_thrust_limited
 from ocpar.macs import MacsProblem, MacsSettings, Objective, make_problem, solve_macs
-from ocpar.macs.archive import dominates
-from ocpar.macs.local_search import SearchTask, inner_solvers, run_search
+from ocpar.macs.archive import Member, dominates
+from ocpar.macs.local_search import STATIONARITY_TOL, SearchTask, inner_solvers, run_search
 from ocpar.macs.metrics import inverted_generational_distance, normalise
 from ocpar.macs.objectives import objective_functions
 from ocpar.macs.plot import plot_controls, plot_front
+from ocpar.macs.solve import run_status
 from ocpar.ocp import dfet_problem
 from ocpar.ocp.constraints import NormSquared, PathConstraint
 
@@ -135,6 +136,26 @@ def test_refinement_puts_every_member_on_the_front_and_reports_it(short_runs, tm
     assert data["evaluations"] == refined.refinement_evaluations
     assert plain.to_dict()["refinement"] is None
     plot_front(refined, tmp_path / "front.png")  # converged members drawn filled
+    # the status means every member converged: the refined run is, the plain one is not
+    # (nothing checked its members), and says why
+    assert refined.status == "converged" and refined.to_dict()["igd"] is not None
+    assert plain.status == "not_converged" and plain.to_dict()["igd"] is None
+    assert "refinement was skipped" in plain.message
+
+
+def test_a_run_with_a_member_not_converged_is_not_converged(short_runs):
+    """The same members, one of them given a stationarity residual above the tolerance and
+    another unsettled: the run's status counts and names them."""
+    _, refined = short_runs
+    members = [Member(z=np.zeros(1), objectives=f, settled=True, stationarity=s)
+               for f, s in zip(refined.front, refined.stationarity, strict=True)]
+    assert run_status(members, None) == ("converged", "")
+    members[3].stationarity = 10 * STATIONARITY_TOL
+    members[7].settled = False
+    status, message = run_status(members, None)
+    assert status == "not_converged"
+    assert message.startswith(f"2 of {len(members)} archive members not converged")
+    assert message.endswith("members 3, 7")
 
 
 def test_stationarity_measures_the_fronts_slope_and_its_distance():

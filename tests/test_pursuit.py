@@ -129,6 +129,10 @@ def test_the_reported_improvement_to_come_holds_against_the_full_horizon_optimum
     extrapolated = solve_pursuit(van_der_pol.make(), dataclasses.replace(
         settings, certify_samples=0), reference=False)
     assert extrapolated.stop_reason == "estimate_below_epsilon"
+    # an estimate is no guarantee: not converged, and no headline reported
+    assert extrapolated.status == "not_converged" and not extrapolated.converged
+    assert "without a full-horizon certificate" in extrapolated.message
+    assert extrapolated.to_dict()[extrapolated.headline_key] is None
     assert extrapolated.remaining_method == "extrapolated"
     assert extrapolated.certificate_headline is None
     assert extrapolated.result_source == "train"

@@ -12,6 +12,7 @@ from ocpar.bsp import Backend
 from ocpar.bsp.serial import SerialBackend
 from ocpar.macs.algorithm import Macs, MacsOutcome, MacsSettings
 from ocpar.macs.archive import Member
+from ocpar.macs.local_search import STATIONARITY_TOL
 from ocpar.macs.metrics import generational_distance, hypervolume, inverted_generational_distance
 from ocpar.macs.objectives import objective_functions
 from ocpar.macs.problem import MacsProblem
@@ -54,6 +55,28 @@ def failure_message(outcome: MacsOutcome) -> str:
             f"({outcome.evaluations} evaluations), the first {outcome.first_failure}")
 
 
+def run_status(members: list[Member], outcome: MacsOutcome) -> tuple[str, str]:
+    """The run's status and message: ``failed`` with no feasible member; ``converged`` only if
+    every archive member is (settled, and Pareto-stationary within
+    :data:`~ocpar.macs.local_search.STATIONARITY_TOL`, by the final refinement); else
+    ``not_converged``, naming how many members are not (or that the refinement, which
+    checks them, was skipped)."""
+    if not members:
+        return "failed", failure_message(outcome)
+    if members[0].stationarity is None:
+        return ("not_converged", "the final refinement was skipped (no_refine): no archive "
+                "member's Pareto stationarity was checked")
+    stationary = np.array([mb.stationarity for mb in members]) <= STATIONARITY_TOL
+    converged = np.array([mb.settled for mb in members], bool) & stationary
+    if converged.all():
+        return "converged", ""
+    late = np.flatnonzero(~converged)
+    shown = ", ".join(str(i) for i in late[:10]) + (", ..." if len(late) > 10 else "")
+    return ("not_converged",
+            f"{len(late)} of {len(members)} archive members not converged (not settled, or "
+            f"Pareto-stationarity residual above {STATIONARITY_TOL:g}): members {shown}")
+
+
 def solve_macs(
     problem: MacsProblem,
     settings: MacsSettings | None = None,
@@ -85,13 +108,14 @@ def solve_macs(
                for entry, f in zip(outcome.history, outcome.fronts, strict=True)]
     known = reference is not None and len(front) > 0
     dfet = dfet_problem(problem.shape)
+    status, message = run_status(members, outcome)
     return MacsResult(
         problem=problem.name,
         seed=settings.seed,
         backend=backend.name,
         workers=backend.workers,
-        status="converged" if len(front) else "failed",
-        message="" if len(front) else failure_message(outcome),
+        status=status,
+        message=message,
         front=front,
         front_transcribed=np.array([mb.objectives for mb in members]).reshape(-1, m),
         decisions=np.array([mb.z[dfet.decision_slice] for mb in members]).reshape(

@@ -552,8 +552,9 @@ def conclude(problem: PursuitProblem, settings: PursuitSettings, trains: list[Pu
              note: str, max_in_flight: int) -> PursuitOutcome:
     """The outcome of the ``trains`` of one run (a stalled train, then each widened one;
     ``note`` the last one's stop): the certificate if it is at least as good as the last
-    agent, else the last agent, and whether that answer is within ε (certified, or estimated
-    where there is no certificate)."""
+    agent, else the last agent, and whether that answer is converged: within ε of the
+    certificate's optimum (an estimate below ε without a certificate stops the run, and says
+    so, but is not convergence)."""
     train, eps = trains[-1], settings.epsilon
     unit = f" {problem.headline_unit}".rstrip()
     certificate, best = train.certificate, train.best
@@ -582,8 +583,11 @@ def conclude(problem: PursuitProblem, settings: PursuitSettings, trains: list[Pu
         subproblem_solves=sum(t.solves for t in trains),
         failed_solves=sum(t.failed for t in trains),
         retries=sum(t.retries for t in trains),
-        max_in_flight=max_in_flight, converged=remaining < eps,
-        message=note + answer, stop_reason=stop_reason, remaining=remaining,
+        max_in_flight=max_in_flight, converged=certificate is not None and remaining < eps,
+        message=note + answer + ("" if certificate is not None or remaining >= eps else
+                                 "; not converged: within ε by the train's extrapolated "
+                                 "estimate only, without a full-horizon certificate"),
+        stop_reason=stop_reason, remaining=remaining,
         remaining_method=method, certificate=certificate,
         failures=[f for t in trains for f in t.failures][:20],
         agents_per_level=[train.agents_before + best.index],
