@@ -16,8 +16,11 @@ from scipy.spatial.distance import pdist
 import ocpar
 from ocpar.bsp import open_backend
 from ocpar.examples.formation_slots import make
-from ocpar.formation import FormationOptions, Slots, solve_formation
+from ocpar.formation import DmocShape, FormationOptions, FormationProblem, Slots, solve_formation
+from ocpar.formation.plot import plot_formation
+from ocpar.models import PointMass
 from ocpar.ocp import solve_tasks
+from ocpar.result_files import write_result
 
 
 def full_table_optimum(problem) -> tuple[float, np.ndarray]:
@@ -114,3 +117,24 @@ def test_a_thousand_masses_onto_a_thousand_slots():
     expected, assignment = full_table_optimum(problem)
     assert result.total_cost == pytest.approx(expected, rel=1e-12)
     np.testing.assert_array_equal(result.phi, assignment)
+
+
+def test_slots_no_agent_assignment_can_reach_fail_with_their_files_and_picture(tmp_path):
+    """Two thrust-limited masses (|u_i| ≤ 4 reaches 1 in t = 1 from rest to rest), three
+    slots of which only one lies within either's reach: no feasible assignment. The run fails
+    saying so, and its files and picture are written (no slot: NaN end points)."""
+    problem = FormationProblem(
+        name="unreachable",
+        shape=DmocShape(PointMass(dim=2, mass=1.0), intervals=10, duration=1.0,
+                        control_bounds=((-4.0, 4.0), (-4.0, 4.0))),
+        curve=Slots(np.array([[0.5, 0.0], [100.0, 0.0], [200.0, 0.0]])),
+        starts=np.array([[0.0, 0.0], [1.0, 0.0]]))
+    result = solve_formation(problem)
+    assert result.status == "failed" and np.isnan(result.phi).all()
+    assert "no assignment of every agent to a slot it can reach" in result.message
+    assert np.isnan(problem.final_positions(result.phi)).all()
+    plot_formation(problem, result, tmp_path / "formation.png")
+    write_result(result, tmp_path)
+    summary = json.loads((tmp_path / "result.json").read_text())
+    assert summary["status"] == "failed" and summary["total_cost"] is None
+    assert (tmp_path / "formation.png").stat().st_size > 0

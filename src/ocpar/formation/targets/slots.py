@@ -82,8 +82,15 @@ class Slots:
         return len(self.points)
 
     def at(self, indices: np.ndarray) -> np.ndarray:
-        """The slots ``indices`` (n,) (integers, or floats holding them): shape (n, d)."""
-        return self.points[np.asarray(indices).astype(np.intp)]
+        """The slots ``indices`` (n,) (integers, or floats holding them): shape (n, d); a NaN
+        index (no slot assigned: a run with no feasible assignment) gives a NaN row."""
+        index = np.asarray(indices, float)
+        assigned = np.isfinite(index)
+        if assigned.all():
+            return self.points[index.astype(np.intp)]
+        out = np.full((*index.shape, self.dim), np.nan)
+        out[assigned] = self.points[index[assigned].astype(np.intp)]
+        return out
 
     def locate(self, points: np.ndarray, hint: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """The slots assigned, ``hint`` (n,), and the distances (n,) of ``points`` (n, d) from
