@@ -31,7 +31,12 @@ from ocpar.formation import (
     solve_formation,
 )
 from ocpar.formation.couplings import critical_sets
-from ocpar.formation.couplings.critical_sets import CriticalSet, _verify
+from ocpar.formation.couplings.critical_sets import (
+    CRITICAL_STARTS,
+    SATURATION_STARTS,
+    CriticalSet,
+    _verify,
+)
 from ocpar.formation.couplings.potential import tangential_potential_gradient
 from ocpar.formation.hierarchical import OuterObjective
 from ocpar.models import PointMass
@@ -317,6 +322,23 @@ def test_any_reading_on_a_sphere_keeps_only_critical_candidates_and_finds_the_be
     assert all(any(same_shape(unit, other) for other in found) for unit in reference)
     assert result.total_cost == pytest.approx(
         min(global_optimum(unit, problem, k) for unit in reference), rel=1e-8)
+
+
+def test_any_reading_at_default_settings_searches_until_no_new_set_and_finds_the_best():
+    """The line-through-the-centre case at default settings: 32 starts alone miss the best
+    set (the regular octagon on a great circle, 25.4068093253 by the 200-start slow test
+    and its independent enumeration); starts go on until 32 in a row find no new set, which
+    reaches it. The result lists the sets with the start that first reached each."""
+    result = solve_formation(line_through_the_centre(),
+                             options=FormationOptions(ordering="optimal", critical="any"))
+    assert result.converged
+    assert result.total_cost == pytest.approx(25.4068093253, rel=1e-10)
+    firsts = [c["first_start"] for c in result.critical_sets]
+    made = max(firsts) + SATURATION_STARTS + 1
+    assert max(firsts) > CRITICAL_STARTS   # found only by the starts the saturation added
+    assert f"from {made} start(s) (the last {SATURATION_STARTS} found no new one)" in \
+        result.message
+    assert sum(c["hits"] for c in result.critical_sets) <= made
 
 
 def test_locate_inverts_every_chart_and_the_normals_are_the_surfaces():

@@ -17,6 +17,8 @@ from ocpar.formation.couplings.coupling import PROJECTION_TOL, PotentialCoupling
 from ocpar.formation.couplings.critical_sets import (
     CRITICAL_READINGS,
     CRITICAL_STARTS,
+    MAX_CRITICAL_STARTS,
+    SATURATION_STARTS,
     IsolatedChoice,
     best_isolated_formation,
 )
@@ -116,7 +118,9 @@ class FormationOptions:
                            "included: the paper's g(phi) = 0)", choices=CRITICAL_READINGS)
     critical_starts: int = option(CRITICAL_STARTS, "off a circle, with --ordering optimal: "
                                   "random starts of the search for the coupling's solution "
-                                  "sets, besides the initial guess", low=1)
+                                  "sets, besides the initial guess, at least; more until "
+                                  f"{SATURATION_STARTS} consecutive starts find no new set "
+                                  f"(at most {MAX_CRITICAL_STARTS})", low=1)
     slot_candidates: int = option(SLOT_CANDIDATES, "onto slots: candidate slots per agent to "
                                   "begin with (its nearest to its start and to its place in "
                                   "the formation), doubled until doubling finds no cheaper "
@@ -337,7 +341,10 @@ def discrete_choice(problem: FormationProblem, choice: IsolatedChoice | SlotChoi
         return {"feasible_set": feasible_set,
                 "critical_sets": [s.to_dict() for s in choice.sets],
                 "note": (f"; the best of {len(choice.sets)} critical set(s) found from "
-                         f"{choice.starts} start(s), each with its cheapest assignment"
+                         f"{choice.starts} start(s)"
+                         + (f" (the last {SATURATION_STARTS} found no new one)"
+                            if choice.saturated else " (the search had not saturated)")
+                         + ", each with its cheapest assignment"
                          + (" and rotation" if feasible_set == "continuous" else "")
                          + (f" ({choice.dropped} more dropped: their returned points are "
                             "not critical or not of the potential reported)"

@@ -66,8 +66,14 @@ from ocpar.formation.targets.surface import EllipsoidSurface, Surface
 if TYPE_CHECKING:
     from scipy.spatial.transform import Rotation
 
-#: Random starts of the search besides the initial guess (default).
+#: Random starts of the search besides the initial guess, at least (default)...
 CRITICAL_STARTS = 32
+#: ... then more until this many consecutive starts found no new set (the enumeration has
+#: saturated: on the sphere's line-through-the-centre case the best set, the octagon, is first
+#: reached by start 45 of 200, after 32 starts had found 10 of the 12 sets)...
+SATURATION_STARTS = 32
+#: ... or this many random starts in all.
+MAX_CRITICAL_STARTS = 1024
 #: The two readings of the coupling: local minima of G only, or every critical point.
 CRITICAL_READINGS = ("stable", "any")
 #: Two sets of sorted angles agreeing to this (rad), up to a cyclic shift, are one set.
@@ -102,11 +108,13 @@ class CriticalSet:
     (None until the tables are solved); ``rotated`` (2n,) on a sphere the set turned by the
     outer solve over its rotations, in agent order (``total_cost`` is there);
     ``points_potential`` and ``tangential_gradient`` on a surface the scaled G and the largest
-    tangential |∇G| (length⁻³) of the returned points (:func:`_verify`)."""
+    tangential |∇G| (length⁻³) of the returned points (:func:`_verify`); ``first_start`` the
+    search that first reached it (0: the initial guess)."""
 
     phi: np.ndarray
     potential: float
     min_eigenvalue: float
+    first_start: int = 0
     hits: int = 1
     assignment: np.ndarray | None = None
     total_cost: float | None = None
@@ -131,7 +139,8 @@ class CriticalSet:
         scaled potential and largest tangential |∇G|, length⁻³)."""
         found = {"total_cost": self.total_cost, "potential": self.potential,
                  "stable": self.stable, "min_eigenvalue": self.min_eigenvalue,
-                 "hits": self.hits, "phi": self.phi.tolist()}
+                 "hits": self.hits, "first_start": self.first_start,
+                 "phi": self.phi.tolist()}
         if self.rotated is not None:
             found["rotated_phi"] = self.rotated.tolist()
         if self.points_potential is not None:
@@ -145,7 +154,8 @@ class IsolatedChoice:
     """Outcome of :func:`best_isolated_formation`: ``phi`` (n,) the best angles in agent order
     (rad); ``total_cost`` there; ``sets`` every distinct critical set found and verified,
     cheapest first; ``starts`` the searches run (the initial guess's included; those that did
-    not converge or were not stable are ``starts`` − Σ hits − the dropped sets' hits);
+    not converge or were not stable are ``starts`` − Σ hits − the dropped sets' hits),
+    ``saturated`` whether the last :data:`SATURATION_STARTS` of them found no new set;
     ``inner_solves`` M n² and the rotation searches'; ``dropped`` the sets whose returned
     points failed :func:`_verify`."""
 
@@ -153,33 +163,39 @@ class IsolatedChoice:
     total_cost: float
     sets: list[CriticalSet]
     starts: int
+    saturated: bool
     inner_solves: int
     dropped: int = 0
 
 
 def critical_sets(problem: FormationProblem, critical: str = "stable",
-                  starts: int = CRITICAL_STARTS, seed: int = 0
-                  ) -> tuple[list[CriticalSet], int]:
-    """The distinct critical sets of G reached from the initial guess and ``starts`` random
-    angle vectors (module docstring, step 1), in order of discovery; and the number of
-    searches that did not converge (``any``) or ended on a set that is not stable
-    (``stable``)."""
+                  starts: int = CRITICAL_STARTS, seed: int = 0,
+                  saturation: int = SATURATION_STARTS
+                  ) -> tuple[list[CriticalSet], int, int, bool]:
+    """The distinct critical sets of G reached from the initial guess and seeded random angle
+    vectors (module docstring, step 1), in order of discovery: at least ``starts`` random
+    ones, then more until ``saturation`` consecutive starts found no new set (0: exactly
+    ``starts``), at most :data:`MAX_CRITICAL_STARTS`; the number of searches that did not
+    converge (``any``) or ended on a set that is not stable (``stable``); the number of
+    searches made (the initial guess's included); and whether the last ``saturation`` of them
+    found no new set (the enumeration saturated; False with ``saturation`` 0)."""
     if critical not in CRITICAL_READINGS:
         raise ValueError(f"critical must be one of {', '.join(CRITICAL_READINGS)}, got "
                          f"{critical!r}")
     curve, n, coupling = problem.curve, problem.agents, problem.coupling
     on_surface = isinstance(curve, Surface)
     rng = np.random.default_rng(seed)
-    guesses = [problem.initial_phi().ravel()]
-    for _ in range(starts):
-        if on_surface:
-            directions = rng.normal(size=(n, 3))
-            guesses.append(curve.parameters_toward(directions).ravel())
-        else:
-            guesses.append(np.sort(rng.uniform(0, 2 * np.pi, n)))
     found: list[CriticalSet] = []
-    failed = 0
-    for guess in guesses:
+    failed, made, last_new = 0, 0, 0
+    limit = max(starts, MAX_CRITICAL_STARTS) if saturation else starts
+    while made <= limit and (made <= starts or (saturation and made - last_new <= saturation)):
+        if not made:
+            guess = problem.initial_phi().ravel()
+        elif on_surface:
+            guess = curve.parameters_toward(rng.normal(size=(n, 3))).ravel()
+        else:
+            guess = np.sort(rng.uniform(0, 2 * np.pi, n))
+        start, made = made, made + 1
         phi, chart = _solve(problem, guess, critical, curve), curve
         points = problem.final_positions(phi) if on_surface else None
         if isinstance(curve, EllipsoidSurface) and not (
@@ -199,10 +215,11 @@ def critical_sets(problem: FormationProblem, critical: str = "stable",
             phi = np.sort(np.mod(phi, 2 * np.pi))
         same = next((s for s in found if _same_set(problem, s.phi, phi)), None)
         if same is None:
-            found.append(CriticalSet(phi, _potential(problem, phi), eigenvalue))
+            found.append(CriticalSet(phi, _potential(problem, phi), eigenvalue, start))
+            last_new = start
         else:
             same.hits += 1
-    return found, failed
+    return found, failed, made, bool(saturation) and made - 1 - last_new >= saturation
 
 
 def _solve(problem: FormationProblem, guess: np.ndarray, critical: str,
@@ -328,9 +345,9 @@ def best_isolated_formation(problem: FormationProblem, backend: Backend,
     if not isinstance(problem.curve, Surface) and problem.curve.rotation_invariant:
         raise ValueError("best_isolated_formation is for curves whose coupling has isolated "
                          "solutions; on a circle use optimal_ordering")
-    sets, failed = critical_sets(problem, critical, starts)
+    sets, failed, made, saturated = critical_sets(problem, critical, starts)
     if not sets:
-        raise ValueError(f"no critical set of the potential found from {starts + 1} starts "
+        raise ValueError(f"no critical set of the potential found from {made} starts "
                          f"(reading {critical!r})")
     n = problem.agents
     tables = cost_tables(problem, backend, np.array([s.phi.reshape(n, -1) for s in sets]))
@@ -365,11 +382,11 @@ def best_isolated_formation(problem: FormationProblem, backend: Backend,
         raise InnerSolveFailed(f"none of the {len(sets)} critical set(s) has an assignment "
                                "with every agent's inner problem feasible")
     if progress is not None:
-        progress(f"critical sets ({critical}): {len(sets)} distinct from {starts + 1} starts "
+        progress(f"critical sets ({critical}): {len(sets)} distinct from {made} starts "
                  f"({failed} not converged or not stable, {len(dropped)} dropped by the check "
                  f"from their points); costs " + ", ".join(f"{s.total_cost:.9e}" for s in sets))
-    return IsolatedChoice(best.returned(), float(best.total_cost), sets, starts + 1, solves,
-                          len(dropped))
+    return IsolatedChoice(best.returned(), float(best.total_cost), sets, made, saturated,
+                          solves, len(dropped))
 
 
 def _rotate(problem: FormationProblem, backend: Backend, phi: np.ndarray, tol: float
