@@ -103,18 +103,14 @@ def without_coordinates(attrs: dict[str, Any]) -> dict[str, Any]:
 
 def time_axes(times: np.ndarray, unit: str) -> dict[str, Array]:
     """The time coordinates of a path sampled at ``times`` (n,) in ``unit``: ``time``
-    (dimension ``time``, n) the samples, ``interval_time`` (dimension ``interval_time``,
-    n−1) the start t_k of each interval [t_k, t_{k+1}] (a control held on it is the one in
-    force at t_k: ``sel(interval_time=t, method="ffill")`` gives the interval holding t),
-    with ``interval_bounds`` (interval_time, bound) its ends (CF ``bounds``)."""
+    (dimension ``time``, n) the samples and ``interval_time`` (dimension ``interval_time``,
+    n−1) the start t_k of each interval [t_k, t_k+1] (a control held on it is the one in
+    force from t_k: ``sel(interval_time=t, method="ffill")`` gives the interval holding t)."""
     times = np.asarray(times, float)
     return {
         "time": array("time", times, unit, "time", standard_name="time", axis="T"),
         "interval_time": array("interval_time", times[:-1], unit,
-                               "start time t_k of each interval [t_k, t_k+1]",
-                               bounds="interval_bounds"),
-        "interval_bounds": array("interval_time bound", np.column_stack(
-            [times[:-1], times[1:]]), unit, "start and end time of each interval"),
+                               "start time t_k of each interval [t_k, t_k+1]"),
     }
 
 

@@ -224,7 +224,7 @@ class FormationResult(RunResult):
         dimensions agent, time (the N+1 nodes), interval_time (the N intervals, by their
         start), q_component (named by the model, default x, y, z for the position entries,
         q<i> for the others), u_component, axis (d): the coordinates ``time``,
-        ``interval_time`` (with ``interval_bounds``), ``q_component`` and ``u_component``
+        ``interval_time``, ``q_component`` and ``u_component``
         (with their ``*_units``); ``configuration`` (the node paths), ``velocity``
         (q_{k+1} − q_k)/h on each interval (DMOC's path is linear between nodes: one
         velocity per interval; the boundary ones are the problem's data), ``control``,

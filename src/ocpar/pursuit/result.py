@@ -150,8 +150,8 @@ class PursuitResult(RunResult):
 
     def arrays(self) -> dict[str, Array]:
         """The array file's variables: the coordinates ``time`` (N) the sample times,
-        ``interval_time`` (N−1) the start t_j of each control interval (with
-        ``interval_bounds``, :func:`~ocpar.results.time_axes`), ``state_component`` and
+        ``interval_time`` (N−1) the start t_j of each control interval
+        (:func:`~ocpar.results.time_axes`), ``state_component`` and
         ``control_component`` (the model's names, with their ``*_units``); ``state`` (time,
         state_component) the returned trajectory; ``control`` (interval_time,
         control_component) its controls, u_j on [t_j, t_{j+1}]; ``initial_state``
