@@ -132,7 +132,9 @@ class MacsResult(RunResult):
         (member, objective). Units: the problem's (:mod:`ocpar.models.labels`,
         :class:`~ocpar.macs.Objective`'s ``unit``)."""
         k, m = len(self.front), len(self.objective_names)
-        decisions = np.asarray(self.decisions, float).reshape(k, -1)
+        decisions = np.asarray(self.decisions, float)
+        if decisions.ndim != 2:
+            decisions = decisions.reshape(k, -1)
         states = np.asarray(self.states, float)
         nx = states.shape[-1]
         fractions = (np.asarray(self.control_fractions, float)
@@ -162,7 +164,8 @@ class MacsResult(RunResult):
                                 "time of each state node"),
         }
         if fractions is not None:
-            nu = (decisions.shape[1] - 1) // fractions.size
+            nu = (len(self.controls_labels.names) if self.controls_labels is not None
+                  else (decisions.shape[1] - 1) // fractions.size)
             control_labels = self.controls_labels or Labels(
                 tuple(f"u{i}" for i in range(nu)), (DIMENSIONLESS,) * nu)
             out |= {
