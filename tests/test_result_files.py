@@ -165,7 +165,7 @@ def test_pursuit_arrays_are_the_returned_trajectory(tmp_path):
     assert ds["state"].attrs["units_by_component"] == "state_component_units"
     assert UNITS.Quantity(1.0, ds["state_component_units"].sel(state_component="mass").item()
                           ).to("kg").magnitude == pytest.approx(1000.0, rel=1e-15)
-    assert ds["time"].attrs["units"] == "min"
+    assert ds["time"].attrs["units"] == "min" and ds["time"].attrs["standard_name"] == "time"
     # t = 150 min is sample 50 (h = 3 min); interval_time the intervals' starts
     np.testing.assert_array_equal(ds["state"].sel(time=151.0, method="nearest").values,
                                   np.asarray(result.x)[50])
@@ -207,6 +207,11 @@ def test_macs_arrays_are_the_front_decisions_and_trajectories(tmp_path):
     np.testing.assert_array_equal(control.sel(control_fraction=0.5, method="nearest").values,
                                   control.values[:, near])
     np.testing.assert_array_equal(ds["final_time"].values, result.decisions[:, -1])
+    # one member's controls by its own time: t_f times the fraction
+    first = control.isel(member=0).swap_dims(control_fraction="control_time")
+    np.testing.assert_array_equal(
+        first.sel(control_time=0.5 * result.decisions[0, -1], method="nearest").values,
+        control.values[0, near])
     # each trajectory starts at x_0 and ends where the transcription's final state is, at t_f
     states, times = ds["state"].values, ds["state_time"].values
     assert states.shape[0] == times.shape[0] == k

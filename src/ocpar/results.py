@@ -108,7 +108,9 @@ def time_axes(times: np.ndarray, unit: str) -> dict[str, Array]:
     force from t_k: ``sel(interval_time=t, method="ffill")`` gives the interval holding t)."""
     times = np.asarray(times, float)
     return {
-        "time": array("time", times, unit, "time", standard_name="time", axis="T"),
+        # (CF's standard name ``time`` needs a unit of time: not given to a nondimensional one)
+        "time": array("time", times, unit, "time", axis="T",
+                      **({} if unit == "1" else {"standard_name": "time"})),
         "interval_time": array("interval_time", times[:-1], unit,
                                "start time t_k of each interval [t_k, t_k+1]"),
     }
