@@ -76,6 +76,7 @@ def test_formation_arrays_are_the_returned_paths_and_end_on_the_circle(tmp_path)
     circle = np.column_stack([100 + 10 * np.cos(phi), 100 + 10 * np.sin(phi)])
     np.testing.assert_allclose(q[:, -1], circle, rtol=0, atol=1e-12)
     np.testing.assert_allclose(ds["target"].values, circle, rtol=0, atol=1e-12)
+    np.testing.assert_array_equal(ds["target"].sel(axis="y").values, ds["target"].values[:, 1])
     # time grid T = 1, N = 10; velocities the node differences over h = 0.1
     np.testing.assert_array_equal(ds["time"].values, np.linspace(0, 1, 11))
     np.testing.assert_allclose(ds["velocity"].values, np.diff(q, axis=1) / 0.1, rtol=1e-15)

@@ -29,7 +29,7 @@ and per-agent data, named dimensions, units) and ``trace.json`` the per-superste
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, ClassVar
@@ -70,7 +70,7 @@ def array(dims: str, values: Any, units: str | Labels, long_name: str, **attrs: 
     return (names, np.asarray(values), {**unit_attrs, "long_name": long_name, **attrs})
 
 
-def text(values: Sequence[str]) -> np.ndarray:
+def text(values: Iterable[str]) -> np.ndarray:
     """Strings as an array the array file writes as variable-length strings."""
     return np.array(list(values), dtype=object)
 

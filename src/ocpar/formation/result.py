@@ -239,7 +239,8 @@ class FormationResult(RunResult):
         positions = () if fleet is None else fleet.position_indices
         nodes = (self.trajectories if self.trajectories is not None else self.positions).shape[1]
         units = self.units()
-        out = run_arrays(nodes, duration, units, [] if fleet is None else fleet.model_names)
+        out = run_arrays(nodes, duration, units, [] if fleet is None else fleet.model_names,
+                         positions)
         if self.parts:
             return out
         return out | agent_arrays(AgentRecords(
@@ -324,15 +325,19 @@ class FormationResult(RunResult):
         )
 
 
-def run_arrays(nodes: int, duration: float, units: Units,
-               model_names: list[str]) -> dict[str, Array]:
+def run_arrays(nodes: int, duration: float, units: Units, model_names: list[str],
+               positions: tuple[int, ...] = ()) -> dict[str, Array]:
     """The array file's variables that are the run's, not an agent's: the coordinates
     ``time`` of the ``nodes`` nodes over ``duration``, ``interval_time``
     (:func:`~ocpar.results.time_axes`), ``q_component`` and ``u_component`` (names and
-    units, ``units``) and ``model_name`` (where the agents' models are known)."""
+    units, ``units``), ``axis`` (the names of the configuration's ``positions`` entries,
+    where known) and ``model_name`` (where the agents' models are known)."""
     out = (time_axes(np.linspace(0.0, duration, nodes), units.time)
            | components("q_component", units.state, "configuration entry")
            | components("u_component", units.control, "control entry"))
+    if positions:
+        out["axis"] = array("axis", text(units.state.names[i] for i in positions), "1",
+                            "position entry (the target's and the obstacles' axes)")
     if model_names:
         out["model_name"] = array("models", text(model_names), "1",
                                   "the agents' model classes")
