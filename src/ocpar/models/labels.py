@@ -9,7 +9,7 @@ name its state and control entries and give their units, as optional members:
 * ``time_unit``: the unit of t (of T, h, the sample times);
 * ``cost_unit``: the unit of the running cost's integral (the inner optimal cost).
 
-Units are strings a unit library parses (pint, udunits: ``m``, ``s``, ``kg``, ``N``,
+Units are strings a unit library parses (pint: ``m``, ``s``, ``kg``, ``N``,
 ``m/s``, ``Mm/min``); ``1`` (the default) is a nondimensional quantity, as in the papers'
 examples. Without names the entries are ``x0``, ``x1``, ... and ``u0``, ``u1``, ...
 (:func:`state_labels`, :func:`control_labels`). The result files read them here and nowhere
