@@ -1,12 +1,14 @@
 """A run's three files (result.json, result.nc, trace.json) and ``ocpar.load``: every scheme's
-arrays come back bitwise as the run returned them, with units; the summary keeps its
-contract."""
+arrays come back bitwise as the run returned them, with units a unit library (pint) parses,
+time coordinates and named components; the summary keeps its contract."""
 
 from __future__ import annotations
 
+import dataclasses
 import json
 
 import numpy as np
+import pint
 import pytest
 import xarray as xr
 from conftest import assert_result_contract
@@ -19,8 +21,11 @@ from ocpar.formation import solve_formation
 from ocpar.formation.run import FormationRun
 from ocpar.formation.verify import verify_formation
 from ocpar.macs import MacsSettings, solve_macs
+from ocpar.models import PointMass
 from ocpar.pursuit import PursuitSettings, solve_pursuit
 from ocpar.result_files import ARRAYS_FILE, SUMMARY_FILE, TRACE_FILE, load_trace, write_result
+
+UNITS = pint.UnitRegistry()
 
 
 def written(result, directory):
@@ -34,8 +39,19 @@ def written(result, directory):
     assert summary["arrays"] == ARRAYS_FILE and summary["trace_file"] == TRACE_FILE
     assert summary["title"] == result.title() == ds.attrs["title"]
     assert "trace" not in summary
+    assert ds.attrs["Conventions"] == "CF-1.10"
     for name, variable in ds.variables.items():
-        assert variable.attrs["units"] and variable.attrs["long_name"], name
+        assert variable.attrs["long_name"], name
+        if "units_by_component" in variable.attrs:   # entries of different units
+            units = ds[variable.attrs["units_by_component"]]
+            assert units.dims == variable.dims[-1:], name
+            assert "units" not in variable.attrs, name
+            for unit in units.values:
+                UNITS.parse_units(str(unit))
+        else:
+            UNITS.parse_units(variable.attrs["units"])   # raises unless pint parses it
+        if name in ds.dims:   # a dimension's coordinate is 1-D, along it
+            assert variable.dims == (name,), name
     trace = load_trace(directory)
     assert trace == json.loads(json.dumps([t.to_dict() for t in result.trace]))
     assert len(trace) == summary["supersteps"] == result.supersteps > 0
@@ -60,18 +76,46 @@ def test_formation_arrays_are_the_returned_paths_and_end_on_the_circle(tmp_path)
     circle = np.column_stack([100 + 10 * np.cos(phi), 100 + 10 * np.sin(phi)])
     np.testing.assert_allclose(q[:, -1], circle, rtol=0, atol=1e-12)
     np.testing.assert_allclose(ds["target"].values, circle, rtol=0, atol=1e-12)
+    np.testing.assert_array_equal(ds["target"].sel(axis="y").values, ds["target"].values[:, 1])
     # time grid T = 1, N = 10; velocities the node differences over h = 0.1
     np.testing.assert_array_equal(ds["time"].values, np.linspace(0, 1, 11))
     np.testing.assert_allclose(ds["velocity"].values, np.diff(q, axis=1) / 0.1, rtol=1e-15)
-    assert ds["velocity"].dims == ("agent", "interval", "q_component")
+    assert ds["velocity"].dims == ("agent", "interval_time", "q_component")
     assert list(ds["q_component"].values) == ["x", "y"]
+    # time coordinates: the node at t = 0.5 is node 5; interval_time the intervals' starts,
+    # so the control in force at t = 0.55 is u_5 (on [0.5, 0.6])
+    np.testing.assert_array_equal(ds["configuration"].sel(time=0.52, method="nearest").values,
+                                  q[:, 5])
+    np.testing.assert_allclose(ds["interval_time"].values, np.arange(10) / 10, rtol=1e-15)
+    np.testing.assert_array_equal(ds["control"].sel(interval_time=0.55, method="ffill").values,
+                                  result.controls[:, 5])
+    # per-agent and per-node variables apart: each table has one row per point of its own dims
+    groups = ocpar.by_dimensions(ds)
+    assert set(groups[("agent",)].data_vars) >= {"cost", "phi", "mass", "peak_thrust"}
+    assert groups[("agent",)].to_dataframe().shape[0] == 12
+    assert groups[("agent", "time", "q_component")].to_dataframe().shape[0] == 12 * 11 * 2
     assert ds["mass"].values.tolist() == [1.0] * 12
     assert ds["model_name"].values.tolist() == ["PointMass"]
     assert ds["solver_status_name"].values[ds["solver_status"].values].tolist() == \
         ["Solve_Succeeded"] * 12   # the batched Newton kernel's status
     assert np.all(ds["solver_iterations"].values >= 1)
     assert np.all(ds["constraint_violation"].values <= 1e-7)
-    assert ds["configuration"].attrs["units"] == "length"
+    assert ds["configuration"].attrs["units"] == ds["control"].attrs["units"] == "1"
+
+
+def test_a_dimensional_fleet_s_arrays_carry_its_si_units(tmp_path):
+    """Point masses in m, kg and s: the configuration in m, the velocity in m/s, the control
+    a force (N), the cost ∫|u|² dt in N² s, time in s: checked by conversion with pint."""
+    problem = formation_point_masses.make(agents=4).with_shapes(lambda s: dataclasses.replace(
+        s, model=PointMass(2, 1.0, length_unit="m", mass_unit="kg", time_unit="s")))
+    ds, _ = written(solve_formation(problem), tmp_path)
+    quantity = UNITS.Quantity
+    for name, unit in (("configuration", "m"), ("velocity", "m/s"), ("control", "N"),
+                       ("peak_thrust", "N"), ("cost", "N**2*s"), ("time", "s"),
+                       ("interval_time", "s"), ("mass", "kg")):
+        assert quantity(1.0, ds[name].attrs["units"]).to(unit).magnitude == \
+            pytest.approx(1.0, rel=1e-15), name
+    assert ds["q_component_units"].values.tolist() == ["m", "m"]
 
 
 def test_the_per_agent_violation_is_the_perturbed_agents_momentum_residual():
@@ -116,6 +160,25 @@ def test_pursuit_arrays_are_the_returned_trajectory(tmp_path):
     np.testing.assert_allclose(ds["time"].values, np.linspace(0, 300, 101), rtol=1e-15)
     assert "states" not in summary and "controls" not in summary
     assert ds["agent_headline"].attrs["units"] == "kg"
+    # named entries in the model's units (Mm, t, min); the mixed units of the state by entry
+    assert ds["state_component"].values.tolist() == ["r", "r_dot", "theta_dot", "mass"]
+    assert ds["control_component"].values.tolist() == ["u1", "u2"]
+    assert ds["state"].attrs["units_by_component"] == "state_component_units"
+    assert UNITS.Quantity(1.0, ds["state_component_units"].sel(state_component="mass").item()
+                          ).to("kg").magnitude == pytest.approx(1000.0, rel=1e-15)
+    assert ds["time"].attrs["units"] == "min" and ds["time"].attrs["standard_name"] == "time"
+    # t = 150 min is sample 50 (h = 3 min); interval_time the intervals' starts
+    np.testing.assert_array_equal(ds["state"].sel(time=151.0, method="nearest").values,
+                                  np.asarray(result.x)[50])
+    np.testing.assert_array_equal(ds["interval_time"].values, ds["time"].values[:-1])
+    # the initial state x_I (9.6 Mm, at rest radially, 0.525 t); agent 0's path beside it
+    initial = ds["initial_state"]
+    assert initial.dims == ("state_component",)
+    assert initial.sel(state_component="r").item() == 9.6
+    assert initial.sel(state_component="mass").item() == 0.525
+    assert initial.sel(state_component="r_dot").item() == 0.0
+    assert ds["plan_state"].dims == ("time", "state_component")
+    np.testing.assert_array_equal(ds["plan_state"].values[0], initial.values)
 
 
 def test_macs_arrays_are_the_front_decisions_and_trajectories(tmp_path):
@@ -126,9 +189,31 @@ def test_macs_arrays_are_the_front_decisions_and_trajectories(tmp_path):
     assert ds["front"].values.tolist() == summary["front"] == result.front.tolist()
     assert ds["objective"].values.tolist() == summary["objectives"]
     assert ds["decision"].values.tobytes() == result.decisions.tobytes()
+    assert ds["decision"].dims == ("member", "decision_entry")
     assert "decisions" not in summary
-    # each trajectory starts at x_0 and ends where the transcription's final state is, at t_f
+    # the controls: the decision's control nodes (all but t_f), element by element, at the
+    # elements' Gauss-Legendre nodes (4 elements, controls of order 1: 2 nodes each) as
+    # fractions of t_f
+    control = ds["control"]
     k = len(result.front)
+    assert (problem.elements, problem.control_order) == (4, 1)
+    assert control.dims == ("member", "control_fraction", "control_component")
+    np.testing.assert_array_equal(control.values.reshape(k, -1), result.decisions[:, :-1])
+    nodes = (np.array([-1, 1]) / np.sqrt(3) + 1) / 2
+    fractions = ((np.arange(4)[:, None] + nodes) / 4).ravel()
+    np.testing.assert_allclose(ds["control_fraction"].values, fractions, rtol=1e-14)
+    np.testing.assert_allclose(ds["control_time"].values,
+                               result.decisions[:, -1:] * fractions, rtol=1e-14)
+    near = int(np.argmin(np.abs(fractions - 0.5)))
+    np.testing.assert_array_equal(control.sel(control_fraction=0.5, method="nearest").values,
+                                  control.values[:, near])
+    np.testing.assert_array_equal(ds["final_time"].values, result.decisions[:, -1])
+    # one member's controls by its own time: t_f times the fraction
+    first = control.isel(member=0).swap_dims(control_fraction="control_time")
+    np.testing.assert_array_equal(
+        first.sel(control_time=0.5 * result.decisions[0, -1], method="nearest").values,
+        control.values[0, near])
+    # each trajectory starts at x_0 and ends where the transcription's final state is, at t_f
     states, times = ds["state"].values, ds["state_time"].values
     assert states.shape[0] == times.shape[0] == k
     np.testing.assert_allclose(states[:, 0, 0], np.broadcast_to(
@@ -175,3 +260,31 @@ def test_a_large_run_s_workers_write_their_agents_and_load_joins_them(tmp_path, 
     (tmp_path / "parts" / parted.parts[1]).unlink()
     with pytest.raises(FileNotFoundError, match=parted.parts[1]):
         ocpar.load(tmp_path / "parts" / ARRAYS_FILE)
+
+
+def test_a_model_s_names_and_units_are_checked_with_the_problem():
+    """Names that do not fit the model's entries, or repeat, and a unit that is not a string
+    are refused in one line naming the member, when the problem is built."""
+    from ocpar.models import OrbitTransfer
+    from ocpar.models.ode import check_ode_model
+
+    @dataclasses.dataclass(frozen=True)
+    class Short(OrbitTransfer):
+        state_names = ("r", "r_dot", "theta_dot")
+
+    @dataclasses.dataclass(frozen=True)
+    class Twice(OrbitTransfer):
+        control_names = ("u", "u")
+
+    @dataclasses.dataclass(frozen=True)
+    class Timeless(OrbitTransfer):
+        time_unit = ""
+
+    for model, message in ((Short(), r"model: Short.state_names: need 4 non-empty strings"),
+                           (Twice(), r"model: Twice.control_names: names repeat"),
+                           (Timeless(), r"model: Timeless.time_unit: need a unit string")):
+        with pytest.raises(ValueError, match=message) as error:
+            check_ode_model(model)
+        assert "\n" not in str(error.value)
+    with pytest.raises(ValueError, match=r"MacsProblem.model: Short.state_names"):
+        dataclasses.replace(macs_double_integrator.make(), model=Short())

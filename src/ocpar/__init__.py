@@ -19,9 +19,10 @@ for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
 
 __version__ = "0.1.0"
 
-#: ``ocpar.load``, ``ocpar.load_trace``, ``ocpar.Run``: a run's files read back
+#: ``ocpar.load``, ``ocpar.load_trace``, ``ocpar.Run``: a run's files read back, and
+#: ``ocpar.by_dimensions`` a Dataset's variables grouped by their dimensions
 #: (:mod:`ocpar.result_files`), imported on first use (``import ocpar`` stays light).
-__all__ = ["Run", "load", "load_trace"]
+__all__ = ["Run", "by_dimensions", "load", "load_trace"]
 
 
 def __getattr__(name: str) -> object:

@@ -30,7 +30,7 @@ from typing import TYPE_CHECKING, NamedTuple
 
 import numpy as np
 
-from ocpar.results import Array, RunResult, categories
+from ocpar.results import Array, RunResult, categories, coordinates, without_coordinates
 
 if TYPE_CHECKING:
     import xarray as xr
@@ -127,11 +127,13 @@ def _expanded(record: dict) -> dict:
 def write_netcdf(variables: dict[str, Array], attrs: dict[str, str], path: Path) -> None:
     """Write ``variables`` (:func:`~ocpar.results.array`) and the file's ``attrs`` to ``path``
     as netCDF4, uncompressed, as :meth:`xarray.Dataset.to_netcdf` would (string arrays as
-    variable-length strings, no fill values)."""
+    variable-length strings, no fill values; the coordinates that are not dimensions,
+    :func:`~ocpar.results.coordinates`, named in the global ``coordinates`` attribute)."""
     import netCDF4
 
     with netCDF4.Dataset(path, "w", format="NETCDF4") as f:
-        f.setncatts(attrs)
+        names = coordinates(variables)
+        f.setncatts(attrs | ({"coordinates": " ".join(names)} if names else {}))
         for name, (dims, values, var_attrs) in variables.items():
             for dim, size in zip(dims, values.shape, strict=True):
                 if dim not in f.dimensions:
@@ -141,7 +143,7 @@ def write_netcdf(variables: dict[str, Array], attrs: dict[str, str], path: Path)
                                      f"variable's {len(f.dimensions[dim])}")
             text = values.dtype.kind in "OU"
             var = f.createVariable(name, str if text else values.dtype, dims, fill_value=False)
-            var.setncatts(var_attrs)
+            var.setncatts(without_coordinates(var_attrs))
             var[...] = values.astype(object) if text else values
 
 
@@ -223,6 +225,18 @@ def _joined(path: Path) -> xr.Dataset:
                          np.array(distinct, dtype=None if first[table].dtype.kind == "U"
                                   else object), first[table].attrs)
     return xr.merge([whole, joined], combine_attrs="override")
+
+
+def by_dimensions(dataset: xr.Dataset) -> dict[tuple[str, ...], xr.Dataset]:
+    """``dataset``'s data variables grouped by their dimensions, each group a Dataset of its
+    own (with the coordinates on those dimensions), e.g. ``("agent",)``: the per-agent
+    variables, ``("agent", "time", "q_component")``: the node paths. Each group's
+    :meth:`~xarray.Dataset.to_dataframe` has one row per point of its own dimensions
+    (``ds.to_dataframe()`` of the whole Dataset takes the product of every dimension)."""
+    groups: dict[tuple[str, ...], list[str]] = {}
+    for name, variable in dataset.data_vars.items():
+        groups.setdefault(tuple(variable.dims), []).append(name)
+    return {dims: dataset[names] for dims, names in groups.items()}
 
 
 def load_trace(path: str | Path) -> list[dict]:

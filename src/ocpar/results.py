@@ -29,7 +29,7 @@ and per-agent data, named dimensions, units) and ``trace.json`` the per-superste
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, ClassVar
@@ -42,18 +42,78 @@ from ocpar.timing import PHASES
 if TYPE_CHECKING:
     import xarray as xr
 
+    from ocpar.models.labels import Labels  # (not imported at run time: it imports CasADi)
+
 #: One variable of a result's Dataset: (dimension names, values, attributes: ``units``,
 #: ``long_name``), as :class:`xarray.Dataset` takes it (:func:`array`).
 Array = tuple[tuple[str, ...], np.ndarray, dict[str, Any]]
 
+#: The conventions the array file follows (its ``Conventions`` attribute).
+CONVENTIONS = "CF-1.10"
 
-def array(dims: str, values: Any, units: str, long_name: str, **attrs: Any) -> Array:
+
+def array(dims: str, values: Any, units: str | Labels, long_name: str, **attrs: Any) -> Array:
     """A Dataset variable: ``dims`` space-separated dimension names ('' for a scalar),
-    ``values`` an array of that many axes, its ``units`` ('1' dimensionless; a problem's own
-    units are named by what they measure, e.g. 'length', 'time', 'force') and ``long_name``;
-    ``attrs`` more attributes (netCDF values: strings, numbers, lists of them)."""
-    return (tuple(dims.split()), np.asarray(values),
-            {"units": units, "long_name": long_name, **attrs})
+    ``values`` an array of that many axes, its ``units`` (a string a unit library parses,
+    '1' for a nondimensional number or an index; or the :class:`~ocpar.models.labels.Labels`
+    of its last dimension's entries: their common unit, or, where they differ, no ``units``
+    and ``units_by_component`` naming the coordinate ``<last dimension>_units`` that holds
+    them, :func:`components`) and ``long_name``; ``attrs`` more attributes (netCDF values:
+    strings, numbers, lists of them)."""
+    names = tuple(dims.split())
+    if not isinstance(units, str):
+        unit = units.unit
+        unit_attrs = ({"units": unit} if unit is not None
+                      else {"units_by_component": f"{names[-1]}_units"})
+    else:
+        unit_attrs = {"units": units}
+    return (names, np.asarray(values), {**unit_attrs, "long_name": long_name, **attrs})
+
+
+def text(values: Iterable[str]) -> np.ndarray:
+    """Strings as an array the array file writes as variable-length strings."""
+    return np.array(list(values), dtype=object)
+
+
+def components(dim: str, labels: Labels, long_name: str) -> dict[str, Array]:
+    """The coordinate ``dim`` naming a vector's entries (``labels.names``) and ``<dim>_units``
+    their units (``labels.units``, strings a unit library parses)."""
+    return {dim: array(dim, text(labels.names), "1", long_name),
+            f"{dim}_units": array(dim, text(labels.units), "1", f"units of each {long_name}")}
+
+
+def coordinates(variables: dict[str, Array]) -> list[str]:
+    """The names of ``variables`` that are coordinates besides those named like their
+    dimension: each ``<dim>_units`` of a dimension's entries (:func:`components`), each
+    variable another names as its ``bounds`` and each one another names in its
+    ``coordinates`` attribute (e.g. each member's own node times). The array file lists them
+    in its global ``coordinates`` attribute, which xarray reads."""
+    dims = {d for dims, _, _ in variables.values() for d in dims}
+    named = {n for _, _, attrs in variables.values()
+             for n in [attrs.get("bounds", ""), *attrs.get("coordinates", "").split()] if n}
+    return [name for name in variables
+            if name in named or (name.endswith("_units") and name[:-6] in dims)]
+
+
+def without_coordinates(attrs: dict[str, Any]) -> dict[str, Any]:
+    """A variable's ``attrs`` without its ``coordinates`` (the file's global one lists them,
+    :func:`coordinates`; xarray drops it on reading)."""
+    return {key: value for key, value in attrs.items() if key != "coordinates"}
+
+
+def time_axes(times: np.ndarray, unit: str) -> dict[str, Array]:
+    """The time coordinates of a path sampled at ``times`` (n,) in ``unit``: ``time``
+    (dimension ``time``, n) the samples and ``interval_time`` (dimension ``interval_time``,
+    n−1) the start t_k of each interval [t_k, t_k+1] (a control held on it is the one in
+    force from t_k: ``sel(interval_time=t, method="ffill")`` gives the interval holding t)."""
+    times = np.asarray(times, float)
+    return {
+        # (CF's standard name ``time`` needs a unit of time: not given to a nondimensional one)
+        "time": array("time", times, unit, "time", axis="T",
+                      **({} if unit == "1" else {"standard_name": "time"})),
+        "interval_time": array("interval_time", times[:-1], unit,
+                               "start time t_k of each interval [t_k, t_k+1]"),
+    }
 
 
 def categories(values: Sequence[str]) -> tuple[np.ndarray, list[str]]:
@@ -149,17 +209,20 @@ class RunResult:
         raise NotImplementedError
 
     def file_attributes(self) -> dict[str, str]:
-        """The array file's attributes: ``scheme``, ``problem``, ``status``, ``title``
-        (:meth:`title`) and ``message``."""
-        return {"scheme": self.scheme, "problem": self.problem, "status": self.status,
-                "title": self.title(), "message": self.message}
+        """The array file's attributes: ``Conventions`` (:data:`CONVENTIONS`), ``scheme``,
+        ``problem``, ``status``, ``title`` (:meth:`title`) and ``message``."""
+        return {"Conventions": CONVENTIONS, "scheme": self.scheme, "problem": self.problem,
+                "status": self.status, "title": self.title(), "message": self.message}
 
     def dataset(self) -> xr.Dataset:
         """:meth:`arrays` as an :class:`xarray.Dataset` with :meth:`file_attributes` (what
         :func:`ocpar.load` reads back from the array file)."""
         import xarray as xr  # (not imported by a run: the array file is written without it)
 
-        return xr.Dataset(self.arrays(), attrs=self.file_attributes())
+        variables = self.arrays()
+        return xr.Dataset({name: (dims, values, without_coordinates(attrs))
+                           for name, (dims, values, attrs) in variables.items()},
+                          attrs=self.file_attributes()).set_coords(coordinates(variables))
 
     def write(self, directory: str | Path) -> list[Path]:
         """Write this result into ``directory`` as ``result.json``, ``result.nc`` and

@@ -35,7 +35,7 @@ from ocpar.bsp import Backend
 from ocpar.bsp.columns import LISTED, SHARED, STACKED, Columns
 from ocpar.bsp.resident import ResidentSet
 from ocpar.formation.problem import FormationProblem
-from ocpar.formation.result import AgentRecords, agent_arrays
+from ocpar.formation.result import AgentRecords, Units, agent_arrays
 from ocpar.formation.verify import AgentChecks, agent_checks
 from ocpar.ocp.contract import Shape
 from ocpar.ocp.dmoc import DmocShape
@@ -55,7 +55,8 @@ class FinishTask:
     the horizon ``duration``, whether the target is a circle (``on_circle``, the units of
     φ), the fleet's ``model_names``, the control groups ``cost_groups`` (name → columns)
     whose cost parts the run reports, and ``directory`` the part file goes to (None: sent
-    back instead) with its name's digit ``width``."""
+    back instead) with its name's digit ``width``, and the fleet's names and ``units``
+    (:class:`~ocpar.formation.result.Units`)."""
 
     shape: Shape
     agent: int
@@ -68,6 +69,7 @@ class FinishTask:
     cost_groups: dict
     directory: str | None
     width: int
+    units: Units
 
 
 @dataclass
@@ -108,10 +110,10 @@ def finish_agents(tasks: Columns, states: Columns) -> Columns:
     shape_kind, shape_data = tasks.fields["shape"]
     shapes = [shape_data] * k if shape_kind == SHARED else list(shape_data)
     first = int(np.asarray(tasks.column("agent"))[0])
-    positions, dim, duration, on_circle, model_names, cost_groups, directory, width = (
+    positions, dim, duration, on_circle, model_names, cost_groups, directory, width, units = (
         tasks.fields[name][1] for name in ("positions", "dim", "duration", "on_circle",
                                            "model_names", "cost_groups", "directory",
-                                           "width"))
+                                           "width", "units"))
     nq = q.shape[2]
     checks = agent_checks(shapes, q, u, params[:, :nq], params[:, nq:2 * nq],
                           params[:, 2 * nq + dim:3 * nq], params[:, 3 * nq:], dim, first)
@@ -130,7 +132,7 @@ def finish_agents(tasks: Columns, states: Columns) -> Columns:
             mass=np.array([float(getattr(s.model, "mass", math.nan)) for s in shapes]),
             status=list(states.column("status")),
             iterations=np.asarray(states.column("iterations")),
-            violation=checks.violation), duration, positions, on_circle)
+            violation=checks.violation), duration, positions, on_circle, units)
         written = time.perf_counter() - start
     rows = {
         "start": (STACKED, checks.start),
@@ -181,13 +183,14 @@ def _paths(checks: AgentChecks, first: int, k: int) -> tuple[str, object]:
 
 
 def write_part(directory: Path, first: int, width: int, records: AgentRecords,
-               duration: float, positions: tuple[int, ...], on_circle: bool) -> Path:
+               duration: float, positions: tuple[int, ...], on_circle: bool,
+               units: Units) -> Path:
     """Write the array file's variables of the agents of ``records`` into ``directory`` as
-    the part that starts at agent ``first`` (:data:`PART_NAME`)."""
+    the part that starts at agent ``first`` (:data:`PART_NAME`), in ``units``."""
     from ocpar.result_files import write_netcdf
 
     path = directory / PART_NAME.format(first=first, width=width)
-    write_netcdf(agent_arrays(records, duration, positions, on_circle), {}, path)
+    write_netcdf(agent_arrays(records, duration, positions, on_circle, units), {}, path)
     return path
 
 
@@ -244,7 +247,9 @@ def finish(problem: FormationProblem, agents: ResidentSet, phi: np.ndarray,
         "model_names": (SHARED, tuple(dict.fromkeys(
             type(s.model).__name__ for s in problem.agents_by_shape()))),
         "cost_groups": (SHARED, groups), "directory": (SHARED, directory),
-        "width": (SHARED, len(str(n - 1)))})
+        "width": (SHARED, len(str(n - 1))),
+        "units": (SHARED, Units.of(shape.model, shape.model.nq, shape.model.nu,
+                                   problem.position_indices))})
     rows = agents.apply(finish_agents, tasks)
     paths = rows.column("path")
     by_shape = problem.agents_by_shape()

@@ -32,6 +32,7 @@ from ocpar.formation.targets.curve import Circle, Curve
 from ocpar.formation.targets.slots import Slots, nearest_assignment
 from ocpar.formation.targets.surface import PARAMETERS, Surface, fibonacci_directions
 from ocpar.models import MechanicalSystem
+from ocpar.models.labels import check_labels
 from ocpar.ocp import DmocShape, OcpTask
 from ocpar.ocp.constraints import check_smooth
 from ocpar.ocp.reach import Reach, rest_to_rest_reach
@@ -385,6 +386,7 @@ class FormationProblem:
             raise ValueError(f"{label}: the model's lagrangian must be a scalar and its "
                              f"generalized_force a column of {model.nq}, got shapes "
                              f"{lagrangian.shape} and {force.shape}")
+        check_labels(model, model.nq, model.nu, label)
 
     def _check_holonomic_constraints(self) -> None:
         """Starts and final configurations (at a point of the curve) must satisfy each

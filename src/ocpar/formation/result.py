@@ -13,10 +13,49 @@ from ocpar.formation.keep_out.obstacles import Clearance
 from ocpar.formation.keep_out.separation import ClosestApproach
 from ocpar.formation.problem import FormationProblem
 from ocpar.formation.verify import Verification
-from ocpar.results import Array, RunResult, array, categories
+from ocpar.models.labels import (
+    Labels,
+    control_labels,
+    cost_unit,
+    mass_unit,
+    rate,
+    state_labels,
+    time_unit,
+)
+from ocpar.results import Array, RunResult, array, categories, components, text, time_axes
 
-#: Names of the position entries in the array file's ``q_component`` labels (others: q<i>).
+#: Names of the position entries in the array file's ``q_component`` labels (others: q<i>),
+#: unless the model names its entries (``state_names``, :mod:`ocpar.models.labels`).
 AXES = ("x", "y", "z")
+
+
+@dataclass(frozen=True)
+class Units:
+    """The names and units of the fleet's quantities (its first agent's model's,
+    :mod:`ocpar.models.labels`): ``state`` the configuration's entries (default x, y, z for
+    the position entries, q<i> for the others), ``control`` the control's, and the units of
+    ``time``, ``cost`` (the inner optimal cost) and ``mass`` (unit strings, '1' by
+    default)."""
+
+    state: Labels
+    control: Labels
+    time: str
+    cost: str
+    mass: str
+
+    @classmethod
+    def of(cls, model: object, nq: int, nu: int, positions: tuple[int, ...]) -> Units:
+        """``model``'s names and units of its ``nq`` configuration and ``nu`` control
+        entries, ``positions`` the configuration's position entries."""
+        default = tuple(AXES[positions.index(i)] if i in positions and len(positions) <= 3
+                        else f"q{i}" for i in range(nq))
+        return cls(state_labels(model, nq, default), control_labels(model, nu),
+                   time_unit(model), cost_unit(model), mass_unit(model))
+
+    @property
+    def velocity(self) -> Labels:
+        """The velocities' names and units (the configuration's per time unit)."""
+        return Labels(self.state.names, tuple(rate(u, self.time) for u in self.state.units))
 
 
 @dataclass
@@ -26,7 +65,8 @@ class Fleet:
     ``targets`` (n, d) the target points z(φ) at the returned φ (NaN where φ is not finite);
     ``model`` (n,) each agent's index into ``model_names`` (the models' class names, in order
     of first use); ``mass`` (n,) each agent's model's ``mass`` (NaN for a model without
-    one); ``nq`` the configuration's entries."""
+    one); ``nq`` the configuration's entries; ``units`` the names and units of the fleet's
+    quantities (:class:`Units`)."""
 
     duration: float
     position_indices: tuple[int, ...]
@@ -35,6 +75,7 @@ class Fleet:
     model_names: list[str]
     mass: np.ndarray
     nq: int
+    units: Units | None = None
 
     @classmethod
     def of(cls, problem: FormationProblem, phi: np.ndarray) -> Fleet:
@@ -53,7 +94,8 @@ class Fleet:
             model[agents] = names.index(name)
             mass[agents] = float(getattr(shape_i.model, "mass", math.nan))
         return cls(shape.duration, problem.position_indices, targets, model, names, mass,
-                   shape.model.nq)
+                   shape.model.nq, Units.of(shape.model, shape.model.nq, shape.model.nu,
+                                            problem.position_indices))
 
 
 @dataclass
@@ -179,24 +221,26 @@ class FormationResult(RunResult):
 
     def arrays(self) -> dict[str, Array]:
         """The array file's variables (:meth:`~ocpar.results.RunResult.dataset`): on the
-        dimensions agent, node (N+1), interval (N), q_component (labelled x, y, z for the
-        position entries, q<i> for the others), u_component, axis (d): ``time`` of the nodes,
-        ``interval_time`` (midpoints), ``configuration`` (the node paths),
-        ``velocity`` (q_{k+1} − q_k)/h on each interval (DMOC's path is linear between nodes:
-        one velocity per interval; the boundary ones are the problem's data), ``control``,
+        dimensions agent, time (the N+1 nodes), interval_time (the N intervals, by their
+        start), q_component (named by the model, default x, y, z for the position entries,
+        q<i> for the others), u_component, axis (d): the coordinates ``time``,
+        ``interval_time``, ``q_component`` and ``u_component``
+        (with their ``*_units``); ``configuration`` (the node paths), ``velocity``
+        (q_{k+1} − q_k)/h on each interval (DMOC's path is linear between nodes: one
+        velocity per interval; the boundary ones are the problem's data), ``control``,
         ``cost``, ``peak_thrust``, ``phi``, ``target`` z(φ), ``model`` (an index into
         ``model_name``), ``mass``, ``solver_status`` (an index into ``solver_status_name``),
         ``solver_iterations``, ``constraint_violation`` and, with obstacles,
-        ``obstacle_side``. Units: the problem's own (length, time, force, cost). Where the
-        workers wrote their agents' variables (:attr:`parts`), the run's own ones only
-        (:func:`run_arrays`)."""
+        ``obstacle_side``. Units: the model's (:class:`Units`; '1' for the nondimensional
+        paper examples). Where the workers wrote their agents' variables (:attr:`parts`),
+        the run's own ones only (:func:`run_arrays`)."""
         fleet = self.fleet
         duration = math.nan if fleet is None else fleet.duration
         positions = () if fleet is None else fleet.position_indices
         nodes = (self.trajectories if self.trajectories is not None else self.positions).shape[1]
-        nq = fleet.nq if fleet is not None else self.trajectories.shape[2]
-        out = run_arrays(nodes, nq, duration, positions,
-                         [] if fleet is None else fleet.model_names)
+        units = self.units()
+        out = run_arrays(nodes, duration, units, [] if fleet is None else fleet.model_names,
+                         positions)
         if self.parts:
             return out
         return out | agent_arrays(AgentRecords(
@@ -208,7 +252,16 @@ class FormationResult(RunResult):
             status=self.solver_status, iterations=self.solver_iterations,
             violation=None if self.verification is None
             else self.verification.agent_violation, sides=self.obstacle_sides),
-            duration, positions, self.on_circle)
+            duration, positions, self.on_circle, units)
+
+    def units(self) -> Units:
+        """The names and units of the fleet's quantities (:class:`Units`: the fleet's, else
+        the defaults for the arrays' shapes)."""
+        if self.fleet is not None and self.fleet.units is not None:
+            return self.fleet.units
+        nq = self.fleet.nq if self.fleet is not None else np.shape(self.trajectories)[2]
+        nu = 0 if self.controls is None else np.shape(self.controls)[2]
+        return Units.of(None, nq, nu, () if self.fleet is None else self.fleet.position_indices)
 
     def _verification_fields(self) -> dict:
         """``verification`` (:meth:`~ocpar.formation.verify.Verification.to_dict`) and
@@ -272,23 +325,21 @@ class FormationResult(RunResult):
         )
 
 
-def run_arrays(nodes: int, nq: int, duration: float, positions: tuple[int, ...],
-               model_names: list[str]) -> dict[str, Array]:
-    """The array file's variables that are the run's, not an agent's: ``q_component``
-    (labels), ``time`` of the ``nodes`` nodes over ``duration``, ``interval_time`` and
-    ``model_name`` (where the agents' models are known)."""
-    h = duration / (nodes - 1)
-    labels = [AXES[positions.index(i)] if i in positions and len(positions) <= 3
-              else f"q{i}" for i in range(nq)]
-    out = {
-        "q_component": array("q_component", np.array(labels, dtype=object), "1",
-                             "configuration entry (x, y, z: the position)"),
-        "time": array("node", np.linspace(0.0, duration, nodes), "time", "node time t_k"),
-        "interval_time": array("interval", (np.arange(nodes - 1) + 0.5) * h, "time",
-                               "midpoint time of each interval"),
-    }
+def run_arrays(nodes: int, duration: float, units: Units, model_names: list[str],
+               positions: tuple[int, ...] = ()) -> dict[str, Array]:
+    """The array file's variables that are the run's, not an agent's: the coordinates
+    ``time`` of the ``nodes`` nodes over ``duration``, ``interval_time``
+    (:func:`~ocpar.results.time_axes`), ``q_component`` and ``u_component`` (names and
+    units, ``units``), ``axis`` (the names of the configuration's ``positions`` entries,
+    where known) and ``model_name`` (where the agents' models are known)."""
+    out = (time_axes(np.linspace(0.0, duration, nodes), units.time)
+           | components("q_component", units.state, "configuration entry")
+           | components("u_component", units.control, "control entry"))
+    if positions:
+        out["axis"] = array("axis", text(units.state.names[i] for i in positions), "1",
+                            "position entry (the target's and the obstacles' axes)")
     if model_names:
-        out["model_name"] = array("models", np.array(model_names, dtype=object), "1",
+        out["model_name"] = array("models", text(model_names), "1",
                                   "the agents' model classes")
     return out
 
@@ -317,24 +368,26 @@ class AgentRecords:
 
 
 def agent_arrays(records: AgentRecords, duration: float, positions: tuple[int, ...],
-                 on_circle: bool) -> dict[str, Array]:
+                 on_circle: bool, units: Units) -> dict[str, Array]:
     """The array file's variables of the agents of ``records`` (their ``agent`` coordinate,
     configuration, velocity, cost, phi, control, peak_thrust, target, model, mass,
     solver_status with its own ``solver_status_name``, solver_iterations,
-    constraint_violation, obstacle_side: :meth:`FormationResult.arrays`). Any block of
-    agents gives its rows of the whole fleet's variables; the solver statuses' names are the
-    block's own (:func:`ocpar.result_files.load` joins them)."""
+    constraint_violation, obstacle_side: :meth:`FormationResult.arrays`), in ``units``. Any
+    block of agents gives its rows of the whole fleet's variables; the solver statuses'
+    names are the block's own (:func:`ocpar.result_files.load` joins them)."""
     q = records.q
     m, nodes, _ = q.shape
     h = duration / (nodes - 1)
+    position = Labels(*(tuple(units.state.names[i] for i in positions),
+                        tuple(units.state.units[i] for i in positions))) if positions else None
     out = {
         "agent": array("agent", np.arange(records.first, records.first + m), "1",
                        "agent index"),
-        "configuration": array("agent node q_component", q, "length",
+        "configuration": array("agent time q_component", q, units.state,
                                "configuration q_k at the nodes (the DMOC node path)"),
-        "velocity": array("agent interval q_component", np.diff(q, axis=1) / h,
-                          "length/time", "velocity (q_{k+1} - q_k)/h on each interval"),
-        "cost": array("agent", records.cost, "cost", "inner optimal cost J_i"),
+        "velocity": array("agent interval_time q_component", np.diff(q, axis=1) / h,
+                          units.velocity, "velocity (q_{k+1} - q_k)/h on each interval"),
+        "cost": array("agent", records.cost, units.cost, "inner optimal cost J_i"),
         "phi": array("agent" if np.ndim(records.phi) == 1 else "agent parameter",
                      records.phi, "rad" if on_circle else "1",
                      "final parameter on the target (angle on a curve, slot index, "
@@ -342,17 +395,20 @@ def agent_arrays(records: AgentRecords, duration: float, positions: tuple[int, .
     }
     if records.u is not None:
         u = np.asarray(records.u, float)
-        out["control"] = array("agent interval u_component", u, "force",
+        out["control"] = array("agent interval_time u_component", u, units.control,
                                "control u_k on each interval (constant on it)")
-        out["peak_thrust"] = array("agent", np.max(np.linalg.norm(u, axis=2), axis=1), "force",
-                                   "max_k |u_k|")
+        out["peak_thrust"] = array("agent", np.max(np.linalg.norm(u, axis=2), axis=1),
+                                   units.control.unit or "1", "max_k |u_k|"
+                                   + ("" if units.control.unit else
+                                      " (over entries of different units)"))
     if records.target is not None:
         out |= {
-            "target": array("agent axis", records.target, "length",
+            "target": array("agent axis", records.target,
+                            "1" if position is None else position.unit or "1",
                             "target point z(phi) at the returned parameters"),
             "model": array("agent", records.model, "1", "index into model_name",
                            categories="model_name"),
-            "mass": array("agent", records.mass, "mass",
+            "mass": array("agent", records.mass, units.mass,
                           "the agent's model's mass (NaN: a model without one)"),
         }
     if records.status is not None:
@@ -361,7 +417,7 @@ def agent_arrays(records: AgentRecords, duration: float, positions: tuple[int, .
             "solver_status": array("agent", codes, "1",
                                    "index into solver_status_name: the inner solver's "
                                    "return status", categories="solver_status_name"),
-            "solver_status_name": array("status", np.array(names, dtype=object), "1",
+            "solver_status_name": array("status", text(names), "1",
                                         "inner solver return statuses"),
             "solver_iterations": array("agent", np.asarray(records.iterations, np.int32),
                                        "1", "inner solver iterations"),

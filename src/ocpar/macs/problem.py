@@ -21,6 +21,7 @@ from dataclasses import dataclass, field
 import casadi as ca
 import numpy as np
 
+from ocpar.models.labels import check_labels
 from ocpar.models.ode import OdeModel
 from ocpar.ocp import DfetShape
 from ocpar.ocp.constraints import (
@@ -39,11 +40,14 @@ Term = Callable[[ca.SX, ca.SX], ca.SX]
 class Objective:
     """J = ``mayer``(x(t_f), t_f) + ∫_0^{t_f} ``running``(x(t), u(t)) dt, minimised; either
     term may be None, not both. Terms are Python callables built from CasADi operations (or
-    ``casadi.Function``); ``name`` labels the objective in plots (default ``J<i>``)."""
+    ``casadi.Function``); ``name`` labels the objective in plots (default ``J<i>``) and
+    results; ``unit`` is its unit in the array file (a string a unit library parses, '1'
+    nondimensional)."""
 
     mayer: Term | None = None
     running: Term | None = None
     name: str = ""
+    unit: str = "1"
 
 
 @dataclass(frozen=True, eq=False)
@@ -105,6 +109,11 @@ class MacsProblem:
     def objective_names(self) -> list[str]:
         """Each objective's ``name``, or ``J<i>`` (1-based)."""
         return [o.name or f"J{i + 1}" for i, o in enumerate(self.objectives)]
+
+    @property
+    def objective_units(self) -> list[str]:
+        """Each objective's ``unit``."""
+        return [o.unit for o in self.objectives]
 
     @property
     def shape(self) -> DfetShape:
@@ -181,6 +190,7 @@ def _check(problem: MacsProblem) -> dict:
                     f"state_bounds() ({_first_line(exc)})") from None
     if lower.shape != (nx,) or upper.shape != (nx,) or np.any(lower > upper):
         raise _fail("model.state_bounds", f"must be two arrays ({nx},) with lower <= upper")
+    check_labels(model, nx, nu, "MacsProblem.model")
     out["elements"] = _integer(problem.elements, "elements", 1)
     out["order"] = _integer(problem.order, "order", 1)
     control_order = problem.order if problem.control_order is None else problem.control_order
@@ -249,7 +259,9 @@ def _check(problem: MacsProblem) -> dict:
             objective.mayer, f"{where}.mayer", xs, tf, (xf, t_lo))
         running = None if objective.running is None else _compile(
             objective.running, f"{where}.running", xs, us, (x0, u_mid))
-        compiled.append(Objective(mayer, running, str(objective.name)))
+        if not isinstance(objective.unit, str) or not objective.unit.strip():
+            raise _fail(f"{where}.unit", f"must be a unit string, got {objective.unit!r}")
+        compiled.append(Objective(mayer, running, str(objective.name), objective.unit))
     out["objectives"] = tuple(compiled)
 
     u_start = np.clip(0.0, bounds[:, 0], bounds[:, 1])   # the DFET's default guess
@@ -294,7 +306,7 @@ def _digest(problem: MacsProblem) -> str:
              problem.order, problem.control_order,
              [(c.serialized, c.lower, c.upper) for c in problem.path_constraints]]
     for objective in problem.objectives:
-        parts += [objective.name] + [None if t is None else t.serialize()
+        parts += [objective.name, objective.unit] + [None if t is None else t.serialize()
                                      for t in (objective.mayer, objective.running)]
     digest = hashlib.sha256(repr(parts).encode())
     if problem.reference_front is not None:

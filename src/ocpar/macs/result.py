@@ -8,7 +8,8 @@ from typing import ClassVar
 import numpy as np
 
 from ocpar.macs.local_search import STATIONARITY_TOL
-from ocpar.results import Array, RunResult, array
+from ocpar.models.labels import DIMENSIONLESS, Labels
+from ocpar.results import Array, RunResult, array, components, text
 
 
 def finite_or_none(values: np.ndarray) -> list[float | None]:
@@ -28,6 +29,10 @@ class MacsResult(RunResult):
     has no extent); ``decisions`` the members' decision vectors (controls and t_f);
     ``states`` (k, N, l+1, nx) each member's DFET state nodes per element at
     ``state_times`` (k, N, l+1) (its trajectory, in the array file only);
+    ``control_fractions`` (N (m+1),) the control nodes' times as fractions t/t_f of each
+    member's t_f (the decision's controls at them, element by element); ``time_unit``,
+    ``states_labels`` and ``controls_labels`` the model's units and names
+    (:mod:`ocpar.models.labels`; None: the defaults), ``objective_units`` each objective's;
     ``objective_names`` m labels; ``reference_front`` the problem's (not written to JSON).
     After the final refinement (else None): per member whether its refinement was kept
     (``refined``, k), whether its point is one a neighbour's start reached (``moved``, k) and
@@ -67,6 +72,11 @@ class MacsResult(RunResult):
     stationarity: np.ndarray | None = None
     tradeoff: np.ndarray | None = None
     refinement_evaluations: int = 0
+    control_fractions: np.ndarray | None = None
+    time_unit: str = DIMENSIONLESS
+    states_labels: Labels | None = None
+    controls_labels: Labels | None = None
+    objective_units: list[str] | None = None
     #: the common counts: every evaluation is one DFET solve; a failed search is rejected
     #: (the paper's penalty), never retried
     inner_solves: int = field(init=False)
@@ -107,30 +117,69 @@ class MacsResult(RunResult):
         }
 
     def arrays(self) -> dict[str, Array]:
-        """The array file's variables, per archive member (sorted by J1): ``objective``
-        (objective) the names; ``front`` (member, objective) re-simulated and
-        ``front_transcribed`` the DFET's; ``decision`` (member, decision) the decision vector
-        (control nodes, then t_f); ``state`` (member, element, state_node, state_component)
-        the DFET trajectory at ``state_time`` (member, element, state_node); after the final
-        refinement ``refined``, ``moved``, ``settled``, ``converged`` (int8 flags),
-        ``improvement``, ``stationarity`` and ``tradeoff`` (member, objective). Units: the
-        problem's own."""
+        """The array file's variables, per archive member (sorted by J1): the coordinates
+        ``objective`` (the names, with ``objective_units``), ``state_component`` and
+        ``control_component`` (the model's names, with their ``*_units``),
+        ``control_fraction`` (the control nodes' times as fractions of t_f, the same for
+        every member); ``front`` (member, objective) re-simulated and ``front_transcribed``
+        the DFET's; ``decision`` (member, decision_entry) the decision vector (control
+        nodes, then t_f); ``final_time`` (member) t_f; ``control`` (member,
+        control_fraction, control_component) the decision's controls at ``control_time``
+        (member, control_fraction); ``state`` (member, element, state_node,
+        state_component) the DFET trajectory at ``state_time`` (member, element,
+        state_node); after the final refinement ``refined``, ``moved``, ``settled``,
+        ``converged`` (int8 flags), ``improvement``, ``stationarity`` and ``tradeoff``
+        (member, objective). Units: the problem's (:mod:`ocpar.models.labels`,
+        :class:`~ocpar.macs.Objective`'s ``unit``)."""
         k, m = len(self.front), len(self.objective_names)
+        decisions = np.asarray(self.decisions, float)
+        if decisions.ndim != 2:
+            decisions = decisions.reshape(k, -1)
+        states = np.asarray(self.states, float)
+        nx = states.shape[-1]
+        fractions = (np.asarray(self.control_fractions, float)
+                     if self.control_fractions is not None else None)
+        state_labels = self.states_labels or Labels(
+            tuple(f"x{i}" for i in range(nx)), (DIMENSIONLESS,) * nx)
+        objectives = Labels(tuple(self.objective_names),
+                            tuple(self.objective_units or (DIMENSIONLESS,) * m))
+        t = self.time_unit
         out = {
-            "objective": array("objective", np.array(self.objective_names, dtype=object), "1",
-                               "objective names"),
-            "front": array("member objective", np.reshape(self.front, (k, m)), "1",
+            "objective": array("objective", text(objectives.names), "1", "objective names"),
+            "objective_units": array("objective", text(objectives.units), "1",
+                                     "units of each objective"),
+            **components("state_component", state_labels, "state entry"),
+            "front": array("member objective", np.reshape(self.front, (k, m)), objectives,
                            "objectives re-simulated from each member's control law"),
             "front_transcribed": array("member objective",
-                                       np.reshape(self.front_transcribed, (k, m)), "1",
+                                       np.reshape(self.front_transcribed, (k, m)), objectives,
                                        "objectives on the DFET transcription"),
-            "decision": array("member decision", np.asarray(self.decisions), "1",
-                              "decision vector: control nodes, then t_f"),
-            "state": array("member element state_node state_component", self.states,
-                           "state", "DFET state nodes (the member's trajectory)"),
-            "state_time": array("member element state_node", self.state_times, "time",
+            "decision": array("member decision_entry", decisions, "1",
+                              "decision vector: control nodes, then t_f (each in its unit)"),
+            "final_time": array("member", decisions[:, -1], t, "final time t_f"),
+            "state": array("member element state_node state_component", states,
+                           state_labels, "DFET state nodes (the member's trajectory)",
+                           coordinates="state_time"),
+            "state_time": array("member element state_node", self.state_times, t,
                                 "time of each state node"),
         }
+        if fractions is not None:
+            nu = (len(self.controls_labels.names) if self.controls_labels is not None
+                  else (decisions.shape[1] - 1) // fractions.size)
+            control_labels = self.controls_labels or Labels(
+                tuple(f"u{i}" for i in range(nu)), (DIMENSIONLESS,) * nu)
+            out |= {
+                "control_fraction": array("control_fraction", fractions, "1",
+                                          "time of each control node as a fraction of t_f"),
+                **components("control_component", control_labels, "control entry"),
+                "control": array("member control_fraction control_component",
+                                 decisions[:, :-1].reshape(k, fractions.size, nu),
+                                 control_labels, "control nodes (the member's control law)",
+                                 coordinates="control_time"),
+                "control_time": array("member control_fraction",
+                                      decisions[:, -1:] * fractions, t,
+                                      "time of each control node"),
+            }
         if self.stationarity is not None:
             flags = {"refined": "its refinement was kept",
                      "moved": "its point is one a neighbour's start reached",

@@ -17,6 +17,7 @@ from ocpar.macs.metrics import generational_distance, hypervolume, inverted_gene
 from ocpar.macs.objectives import objective_functions
 from ocpar.macs.problem import MacsProblem
 from ocpar.macs.result import MacsResult
+from ocpar.models.labels import control_labels, state_labels, time_unit
 from ocpar.ocp import dfet_problem
 
 
@@ -125,6 +126,12 @@ def solve_macs(
         state_times=((np.arange(dfet.n)[None, :, None] + (dfet.state_nodes + 1) / 2)
                      * np.array([dfet.final_time(mb.z) for mb in members]).reshape(-1, 1, 1)
                      / dfet.n),
+        control_fractions=((np.arange(dfet.n)[:, None] + (dfet.control_nodes + 1) / 2)
+                           / dfet.n).ravel(),
+        time_unit=time_unit(problem.model),
+        states_labels=state_labels(problem.model, dfet.nx),
+        controls_labels=control_labels(problem.model, dfet.nu),
+        objective_units=problem.objective_units,
         evaluations=outcome.evaluations,
         iterations=outcome.iterations,
         failed_searches=outcome.failed_searches,

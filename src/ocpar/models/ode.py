@@ -8,6 +8,8 @@ from typing import Protocol, runtime_checkable
 import casadi as ca
 import numpy as np
 
+from ocpar.models.labels import check_labels
+
 
 @runtime_checkable
 class OdeModel(Protocol):
@@ -64,7 +66,8 @@ def check_ode_model(model: object, field: str = "model") -> None:
     """Raise one ValueError naming ``field`` unless ``model`` is an :class:`OdeModel` whose
     dimensions are positive integers, whose ``rhs`` and ``running_cost`` build CasADi
     expressions of shapes (nx, 1) and (1, 1), and whose bounds have the right shapes with
-    lower ≤ upper (NaN nowhere)."""
+    lower ≤ upper (NaN nowhere), and whose names and units fit
+    (:func:`~ocpar.models.labels.check_labels`)."""
     missing = [name for name in ("nx", "nu", "rhs", "running_cost", "state_bounds")
                if not hasattr(model, name)]
     if missing:
@@ -97,3 +100,4 @@ def check_ode_model(model: object, field: str = "model") -> None:
                              f"expected ({n},)")
         if np.isnan(lower).any() or np.isnan(upper).any() or (lower > upper).any():
             raise ValueError(f"{field}.{name}: need lower <= upper, no NaN")
+    check_labels(model, nx, nu, field)

@@ -13,6 +13,7 @@ objectives (t_f, −final energy) are Mayer-type, so the running cost is 0.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import ClassVar
 
 import casadi as ca
 import numpy as np
@@ -22,6 +23,12 @@ import numpy as np
 class OrbitRaising:
     """The orbit-raising dynamics: thrust acceleration ``a``; ``min_radius`` bounds the NLPs
     away from the singularity at r = 0."""
+
+    #: Names and units of the entries (:mod:`ocpar.models.labels`; canonical units).
+    state_names: ClassVar[tuple[str, ...]] = ("r", "v_r", "theta", "v_t")
+    state_units: ClassVar[tuple[str, ...]] = ("1", "1", "rad", "1")
+    control_names: ClassVar[tuple[str, ...]] = ("thrust_angle",)
+    control_units: ClassVar[str] = "rad"
 
     a: float = 1e-2
     min_radius: float = 0.1

@@ -16,6 +16,7 @@ paper reports. u_E = 3.98e14 m³/s² = 1.4328 Mm³/min².
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import ClassVar
 
 import casadi as ca
 import numpy as np
@@ -28,6 +29,14 @@ M_PER_MM = 1e6
 class OrbitTransfer:
     """The orbit transfer dynamics; ``min_radius`` (Mm) and ``min_mass`` (t) bound the NLPs
     away from the singularities at r = 0 and μ = 0."""
+
+    #: Names and units of the entries and of time (:mod:`ocpar.models.labels`); the control
+    #: is the paper's calibrated thrust, nondimensional.
+    state_names: ClassVar[tuple[str, ...]] = ("r", "r_dot", "theta_dot", "mass")
+    state_units: ClassVar[tuple[str, ...]] = ("Mm", "Mm/min", "rad/min", "t")
+    control_names: ClassVar[tuple[str, ...]] = ("u1", "u2")
+    time_unit: ClassVar[str] = "min"
+    cost_unit: ClassVar[str] = "kg"
 
     mu_earth: float = 1.4328
     thrust_gain: float = 0.071871

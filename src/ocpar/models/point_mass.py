@@ -6,13 +6,21 @@ from dataclasses import dataclass
 
 import casadi as ca
 
+from ocpar.models.labels import product
+
 
 @dataclass(frozen=True)
 class PointMass:
-    """Point mass of ``mass`` (mass units) moving in ``dim`` dimensions, force u in R^dim."""
+    """Point mass of ``mass`` (mass units) moving in ``dim`` dimensions, force u in R^dim.
+    Its results' units (:mod:`ocpar.models.labels`): ``length_unit``, ``mass_unit`` and
+    ``time_unit`` (strings a unit library parses, e.g. 'm', 'kg', 's'; '1' nondimensional,
+    the default), the force's and the cost's derived from them."""
 
     dim: int = 2
     mass: float = 1.0
+    length_unit: str = "1"
+    mass_unit: str = "1"
+    time_unit: str = "1"
 
     def __post_init__(self) -> None:
         if self.dim < 1:
@@ -27,6 +35,22 @@ class PointMass:
     @property
     def nu(self) -> int:
         return self.dim
+
+    @property
+    def state_units(self) -> str:
+        """The configuration's unit: the length unit."""
+        return self.length_unit
+
+    @property
+    def control_units(self) -> str:
+        """The force's unit, mass · length / time² ('1' nondimensional)."""
+        return product(self.mass_unit, self.length_unit, f"{self.time_unit}**-2")
+
+    @property
+    def cost_unit(self) -> str:
+        """The unit of the cost ∫|u|² dt: force² · time."""
+        force = self.control_units
+        return product(force if force == "1" else f"({force})**2", self.time_unit)
 
     @property
     def position_indices(self) -> tuple[int, ...]:

@@ -55,6 +55,10 @@ class RelativeRigidSpacecraft:
     #: The cost's parts by control entries: |F|² (translation) and |τ|² (rotation).
     cost_parts: ClassVar[dict[str, tuple[int, int]]] = {
         "translational_cost": (0, 3), "rotational_cost": (3, 6)}
+    #: Names of the entries (:mod:`ocpar.models.labels`; normalised units): the position
+    #: δx, the quaternion p, the force per unit mass F and the torque τ.
+    state_names: ClassVar[tuple[str, ...]] = ("x", "y", "z", "p0", "p1", "p2", "p3")
+    control_names: ClassVar[tuple[str, ...]] = ("F_x", "F_y", "F_z", "tau_x", "tau_y", "tau_z")
 
     def __post_init__(self) -> None:
         if not self.hessians or any(len(k) != 9 for k in self.hessians):

@@ -7,7 +7,8 @@ from typing import ClassVar
 
 import numpy as np
 
-from ocpar.results import Array, RunResult, array
+from ocpar.models.labels import DIMENSIONLESS, Labels
+from ocpar.results import Array, RunResult, array, components, time_axes
 
 
 @dataclass
@@ -33,7 +34,9 @@ class PursuitResult(RunResult):
     is at least as good); the train's own figures are kept beside it (``train_headline``,
     ``train_cost``, ``train_remaining`` and ``train_remaining_method``; its agents are
     ``agents``), with ``windows`` the (N_Δ, N_δ) it ran with, widened after each stall.
-    ``time`` (N,) the sample times t_j (the model's time unit). Wall times in s.
+    ``time`` (N,) the sample times t_j (the model's time unit, ``time_unit``); ``states``
+    and ``controls`` the names and units of the model's entries
+    (:mod:`ocpar.models.labels`; None: the defaults). Wall times in s.
     """
 
     scheme: ClassVar[str] = "pursuit"
@@ -74,6 +77,9 @@ class PursuitResult(RunResult):
     train_remaining: float | None = None
     train_remaining_method: str | None = None
     windows: list[tuple[int, int]] = field(default_factory=list)
+    time_unit: str = DIMENSIONLESS
+    states: Labels | None = None
+    controls: Labels | None = None
     #: the common count of inner solves is the catch-up (and full-horizon) solves
     inner_solves: int = field(init=False)
 
@@ -143,31 +149,42 @@ class PursuitResult(RunResult):
         }
 
     def arrays(self) -> dict[str, Array]:
-        """The array file's variables: ``time`` (sample, N) the sample times; ``state``
-        (sample, state_component) the returned trajectory; ``control`` (interval,
-        control_component) its controls, u_j on [t_j, t_{j+1}] (``interval_time`` t_j);
-        ``initial_state`` agent 0's trajectory; ``reference_state`` the full-horizon MS
-        solution's (when solved); ``agent_headline`` (agent) the headline of each of the
-        finest level's finished agents, agent 0 first (a cost-headline problem: its cost).
-        Units: the model's own (time, state, control)."""
+        """The array file's variables: the coordinates ``time`` (N) the sample times,
+        ``interval_time`` (N−1) the start t_j of each control interval
+        (:func:`~ocpar.results.time_axes`), ``state_component`` and
+        ``control_component`` (the model's names, with their ``*_units``); ``state`` (time,
+        state_component) the returned trajectory; ``control`` (interval_time,
+        control_component) its controls, u_j on [t_j, t_{j+1}]; ``initial_state``
+        (state_component) x_I; ``plan_state`` (time, state_component) agent 0's trajectory;
+        ``reference_state`` the full-horizon MS solution's (when solved); ``agent_headline``
+        (agent) the headline of each of the finest level's finished agents, agent 0 first
+        (a cost-headline problem: its cost). Units: the model's (:mod:`ocpar.models.labels`)
+        and the headline's."""
         x, u = np.asarray(self.x, float), np.asarray(self.u, float)
-        unit = self.headline_unit or "1"
-        out = {
-            "time": array("sample", self.time, "time", "sample time t_j"),
-            "interval_time": array("interval", self.time[:-1], "time",
-                                   "start time t_j of each control interval"),
-            "state": array("sample state_component", x, "state", "returned trajectory x(t_j)"),
-            "control": array("interval control_component", u, "control",
+        states = self.states or Labels(tuple(f"x{i}" for i in range(x.shape[1])),
+                                       (DIMENSIONLESS,) * x.shape[1])
+        controls = self.controls or Labels(tuple(f"u{i}" for i in range(u.shape[1])),
+                                           (DIMENSIONLESS,) * u.shape[1])
+        initial = np.asarray(self.initial_x, float)
+        out = (time_axes(self.time, self.time_unit)
+               | components("state_component", states, "state entry")
+               | components("control_component", controls, "control entry")
+               | {
+            "state": array("time state_component", x, states, "returned trajectory x(t_j)"),
+            "control": array("interval_time control_component", u, controls,
                              "returned control u_j (on [t_j, t_{j+1}])"),
-            "initial_state": array("sample state_component", self.initial_x, "state",
-                                   "agent 0's trajectory"),
-            "agent_headline": array("agent", np.asarray(self.headlines, float), unit,
+            "initial_state": array("state_component", initial[0], states,
+                                   "initial state x_I"),
+            "plan_state": array("time state_component", initial, states,
+                                "agent 0's trajectory (its plan)"),
+            "agent_headline": array("agent", np.asarray(self.headlines, float),
+                                    self.headline_unit or DIMENSIONLESS,
                                     f"{self.headline_name} of each finished agent "
                                     "(finest level)"),
-        }
+        })
         if self.reference_x is not None:
-            out["reference_state"] = array("sample state_component", self.reference_x,
-                                           "state", "full-horizon MS solution's trajectory")
+            out["reference_state"] = array("time state_component", self.reference_x,
+                                           states, "full-horizon MS solution's trajectory")
         return out
 
     def summary(self) -> str:

@@ -7,6 +7,7 @@ from collections.abc import Callable
 
 from ocpar.bsp import Backend
 from ocpar.bsp.serial import SerialBackend
+from ocpar.models.labels import control_labels, state_labels, time_unit
 from ocpar.ocp import MsSolution, solve_task
 from ocpar.pursuit.problem import PursuitProblem
 from ocpar.pursuit.result import PursuitResult
@@ -120,7 +121,9 @@ def solve_pursuit(
         rk_terminal_error=check.terminal_error, rk_checks=check.values,
         wall_time_s=wall, timings=timings, x=x, u=u, initial_x=initial_x,
         headlines=headlines,
-        time=problem.grid,
+        time=problem.grid, time_unit=time_unit(problem.model),
+        states=state_labels(problem.model, problem.model.nx),
+        controls=control_labels(problem.model, problem.model.nu),
         reference_headline=reference_headline, reference_x=reference_x, trace=trace,
         stop_reason=stop_reason, estimated_remaining=remaining,
         remaining_method=remaining_method, certificate_headline=certificate,
