@@ -91,6 +91,8 @@ def test_fewer_slots_than_agents_and_the_monolithic_mode_are_refused():
         dataclasses.replace(problem, curve=Slots(problem.curve.points[:9]))
     with pytest.raises(ValueError, match="slots apply to the hierarchical mode only"):
         solve_formation(problem, options=FormationOptions(mode="monolithic"))
+    with pytest.raises(ValueError, match="ordering 'optimal' does nothing onto slots"):
+        solve_formation(problem, options=FormationOptions(ordering="optimal"))
 
 
 def test_slots_on_mpi_and_dask_are_bitwise_the_serial_result(tmp_path):

@@ -239,6 +239,10 @@ def check_applicable(problem: FormationProblem, options: FormationOptions) -> No
     if isinstance(problem.curve, Slots) and options.mode != "hierarchical":
         raise ValueError("slots apply to the hierarchical mode only (the assignment is the "
                          "outer problem)")
+    if isinstance(problem.curve, Slots) and options.ordering == "optimal":
+        raise ValueError("ordering 'optimal' does nothing onto slots: their assignment is "
+                         "always the optimal one over each agent's candidate slots "
+                         "(--slot-candidates); use ordering 'keep'")
     if problem.obstacles and not isinstance(problem.curve, Slots):
         problem.clear_start(problem.initial_phi())
     if options.mode == "hierarchical" and options.outer == "offset":
