@@ -151,6 +151,23 @@ def test_twelve_agents_are_separated_at_all_times(twelve):
     assert kept.required_separation == 2.0
 
 
+def test_the_monolithic_mode_imposes_the_separation_exactly(twelve):
+    """``--mode monolithic --min-separation 4``: every pair's separating planes in the one NLP
+    (added for the pairs that come close): the paths keep 4 apart at all times (sampled
+    here), a pair binds at 4, and the cost is the exact optimum's, below the hierarchical
+    rounds' (whose fixed planes do not re-optimise the rotation, ~1e-4 above it)."""
+    problem, _, _ = twelve
+    exact = solve_formation(problem, options=FormationOptions(mode="monolithic",
+                                                               min_separation=4.0))
+    rounds = solve_formation(problem, options=FormationOptions(min_separation=4.0))
+    assert exact.status == "converged" and exact.verification.passed
+    positions = problem.positions(exact.trajectories)
+    assert sampled_min_distance(positions) >= 4.0 * (1 - 1e-9)
+    assert exact.separation.distance == pytest.approx(4.0, rel=1e-9)
+    assert exact.total_cost < rounds.total_cost
+    assert rounds.total_cost / exact.total_cost - 1 < 1e-3
+
+
 def test_round_limit_ends_with_its_own_status(twelve, monkeypatch):
     """One round meets D = 4 (the spread targets are separated); with the coordinator's
     spreading cut to one iteration its targets are not, and one round falls short."""

@@ -84,14 +84,15 @@ class FormationOptions:
     relies on the circle's symmetry: :func:`solve_formation` refuses it (ValueError) on other
     curves. ``inner_solver``
     (``sqpmethod`` or ``ipopt``, see :mod:`ocpar.ocp.batch`) replaces the problem's
-    ``DmocShape.solver`` for this solve; None keeps it. ``min_separation`` D (length unit,
-    hierarchical mode only): after the outer solve, separation rounds of keep-out DMOC
+    ``DmocShape.solver`` for this solve; None keeps it. ``min_separation`` D (length unit):
+    hierarchical, after the outer solve, separation rounds of keep-out DMOC
     solves (:mod:`ocpar.formation.keep_out.rounds`, at most ``separation_rounds`` supersteps) keep
     every pair ≥ D apart on the continuous paths, or the result's status is
-    ``separation_not_met``; None: no constraint (the paths may cross). A problem's obstacles
-    are in every agent's inner problem (:mod:`ocpar.formation.keep_out.obstacles`), in both modes;
-    the returned paths are checked against them (``obstacles_not_cleared`` if one is inside
-    one).
+    ``separation_not_met``; monolithic, separating planes in the one NLP (exact,
+    :mod:`ocpar.formation.monolithic`); None: no constraint (the paths may cross). A
+    problem's obstacles are in every agent's inner problem
+    (:mod:`ocpar.formation.keep_out.obstacles`), in both modes; the returned paths are
+    checked against them (``obstacles_not_cleared`` if one is inside one).
     """
 
     mode: str = option("hierarchical", "hierarchical, or monolithic (one NLP, for reference)",
@@ -132,8 +133,9 @@ class FormationOptions:
     min_separation: float | None = option(
         None, "keep every pair of agents at least this far apart at all times of the "
         "continuous paths (the model's length unit): separation rounds of keep-out DMOC "
-        "solves after the outer solve; start or final positions closer than this are "
-        "refused", above=0, metavar="D")
+        "solves after the outer solve (with --mode monolithic: exact, separating planes in "
+        "the one NLP); start or final positions closer than this are refused", above=0,
+        metavar="D")
     separation_rounds: int = option(30, "separation rounds (supersteps of keep-out solves) "
                                     "at most, with --min-separation", low=1)
     initial_angles: tuple[float, ...] | None = option(
@@ -266,8 +268,6 @@ def check_applicable(problem: FormationProblem, options: FormationOptions) -> No
     if problem.reach_sets():   # ValueError if no formation is feasible
         feasible_start(problem, problem.initial_phi())
     if options.min_separation is not None:
-        if options.mode != "hierarchical":
-            raise ValueError("min_separation applies to the hierarchical mode only")
         nq = problem.common_shape.model.nq
         final = problem.boundary_params_rows(np.arange(problem.agents),
                                              problem.initial_phi())[:, 2 * nq:3 * nq]
@@ -448,7 +448,8 @@ def solve_formation(
     note = discrete.pop("note")
 
     if options.mode == "monolithic":
-        sol = solve_monolithic(problem, phi0, options.monolithic_tol, options.max_outer_iterations)
+        sol = solve_monolithic(problem, phi0, options.monolithic_tol, options.max_outer_iterations,
+                               options.min_separation)
         feasible = sol.violation <= MONOLITHIC_VIOLATION_TOL
         status = ("converged" if sol.success and feasible
                   else "not_converged" if feasible else "failed")

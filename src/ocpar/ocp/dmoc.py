@@ -639,6 +639,13 @@ class DmocTranscription:
         """The (nq, nq) NaN ``end_hessian`` of a failed solve or of a shape with keep-outs."""
         return np.full((self.nq, self.nq), np.nan)
 
+    def nodes(self, w: ca.SX, params: ca.SX) -> list[ca.SX]:
+        """The node configurations q_0 … q_N (nq each) of ``w`` and ``params`` as
+        expressions: :meth:`unpack`'s paths for symbolic w and p."""
+        nq = self.nq
+        inner = [w[k * nq:(k + 1) * nq] for k in range(self.n - 1)]
+        return [params[:nq], *inner, params[2 * nq:3 * nq]]
+
     def unpack(self, w: np.ndarray, params: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Split w into the node path q (N+1, nq) and the interval controls u (N, nu)."""
         q, u = self.unpack_many(np.asarray(w, float)[None], np.asarray(params, float)[None])
