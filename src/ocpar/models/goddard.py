@@ -13,6 +13,7 @@ running cost is 0.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import ClassVar
 
 import casadi as ca
 import numpy as np
@@ -21,6 +22,9 @@ import numpy as np
 @dataclass(frozen=True)
 class GoddardAscent:
     """The ascent dynamics: gravity ``g``, thrust acceleration ``a``, target ``height``."""
+
+    #: The thrust angle's unit (for plots: :func:`ocpar.plotting.components`).
+    control_units: ClassVar[str] = "rad"
 
     g: float = 1.6e-3
     a: float = 4e-3

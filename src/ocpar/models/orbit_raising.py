@@ -13,6 +13,7 @@ objectives (t_f, −final energy) are Mayer-type, so the running cost is 0.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import ClassVar
 
 import casadi as ca
 import numpy as np
@@ -22,6 +23,9 @@ import numpy as np
 class OrbitRaising:
     """The orbit-raising dynamics: thrust acceleration ``a``; ``min_radius`` bounds the NLPs
     away from the singularity at r = 0."""
+
+    #: The thrust angle's unit (for plots: :func:`ocpar.plotting.components`).
+    control_units: ClassVar[str] = "rad"
 
     a: float = 1e-2
     min_radius: float = 0.1

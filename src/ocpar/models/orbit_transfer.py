@@ -16,6 +16,7 @@ paper reports. u_E = 3.98e14 m³/s² = 1.4328 Mm³/min².
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import ClassVar
 
 import casadi as ca
 import numpy as np
@@ -34,6 +35,13 @@ class OrbitTransfer:
     mass_flow: float = 2.00185
     min_radius: float = 1.0
     min_mass: float = 0.05
+
+    #: The components' names and units (for plots: :func:`ocpar.plotting.components`); the
+    #: thrust's unit is the one A and B are calibrated for.
+    state_names: ClassVar[tuple[str, ...]] = ("$r$", r"$\dot r$", r"$\dot\theta$", r"$\mu$")
+    state_units: ClassVar[tuple[str, ...]] = ("Mm", "Mm/min", "rad/min", "t")
+    control_units: ClassVar[str] = "calibrated thrust unit"
+    time_units: ClassVar[str] = "min"
 
     @property
     def nx(self) -> int:
