@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import dataclasses
 
+import casadi as ca
 import numpy as np
 import pytest
 from matplotlib.collections import LineCollection
@@ -24,8 +25,9 @@ from ocpar.examples import (
     pursuit_orbit_transfer,
     pursuit_van_der_pol,
 )
-from ocpar.formation import solve_formation
+from ocpar.formation import DmocShape, FormationProblem, PlaneCurve, solve_formation
 from ocpar.macs import MacsSettings, solve_macs
+from ocpar.models import PointMass
 from ocpar.pursuit import PursuitSettings, solve_pursuit
 
 
@@ -127,13 +129,28 @@ def test_components_default_to_nondimensional_and_read_a_models_names():
     assert ocpar.plotting.components(Named(), "time", 1, "t")[0].label == "$t$ (min)"
 
 
-@pytest.mark.parametrize("example", ["point-masses", "mixed-fleet", "mixed-norm", "halo"])
+def lobes_tutorial() -> FormationProblem:
+    """The formation tutorial's problem: 2 × 3 point masses onto three lobes about (20, 0)."""
+    def lobes(phi):
+        r = 5.0 * (1 + 0.2 * ca.cos(3 * phi))
+        return r * ca.cos(phi), r * ca.sin(phi)
+
+    x, y = np.meshgrid(np.arange(3) * 2.0, np.arange(2) * 2.0)
+    return FormationProblem(name="three-lobes",
+                            shape=DmocShape(PointMass(dim=2, mass=1.0), 10, 2.0),
+                            curve=PlaneCurve(lobes, center=np.array([20.0, 0.0])),
+                            starts=np.column_stack([x.ravel(), y.ravel()]))
+
+
+@pytest.mark.parametrize("example", ["point-masses", "lobes", "mixed-fleet", "mixed-norm",
+                                     "halo"])
 def test_formation_pictures_keep_text_off_the_data_and_draw_thrust_with_its_limit(
         example, drawn, tmp_path):
     problem = {"point-masses": lambda: formation_point_masses.make(agents=12),
                "mixed-fleet": lambda: formation_mixed_fleet.make(agents=9),
                "mixed-norm": lambda: formation_mixed_fleet.make(agents=6, limit="norm"),
-               "halo": lambda: formation_halo.make(agents=6)}[example]()
+               "halo": lambda: formation_halo.make(agents=6),
+               "lobes": lobes_tutorial}[example]()
     result = solve_formation(problem)
     ocpar.formation.plot.plot_formation(problem, result, tmp_path / "formation.png")
     (fig,) = drawn
