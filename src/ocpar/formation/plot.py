@@ -132,7 +132,9 @@ def _plot_thrust(ax, problem: FormationProblem, result: FormationResult) -> None
     name = f"max$_j$ |$u_j$|{entries}" if box else f"|$u${entries}|"
     edges = np.linspace(0.0, shape.duration, u.shape[1] + 1)
     steps_t = np.repeat(edges, 2)[1:-1]
-    top = np.argsort(size.max(axis=1))[::-1][:THRUST_AGENTS]
+    peaks = size.max(axis=1)
+    top = np.argpartition(-peaks, min(THRUST_AGENTS, len(peaks)) - 1)[:THRUST_AGENTS]
+    top = top[np.argsort(-peaks[top])]        # largest first, O(n) over the fleet
     lines = [np.column_stack([steps_t, np.repeat(size[i], 2)]) for i in top]
     ax.add_collection(LineCollection(lines, colors="tab:blue", lw=0.9, alpha=0.8,
                                      label=f"{name}: {len(top)} agents of the largest peaks"))
