@@ -46,6 +46,14 @@ def drawn(monkeypatch):
     return figures
 
 
+@pytest.fixture(scope="module")
+def van_der_pol():
+    """The van der Pol example (N = 41) and its default PBMS run: one agent and the
+    full-horizon finish."""
+    problem = pursuit_van_der_pol.make()
+    return problem, solve_pursuit(problem, PursuitSettings(window=21, update=10))
+
+
 def data_points(ax, renderer) -> np.ndarray:
     """Display coordinates (k, 2) of the data of a 2-D axes' lines and line collections that
     lie within its frame (horizontal bound lines across the frame included)."""
@@ -175,14 +183,14 @@ def test_formation_pictures_keep_text_off_the_data_and_draw_thrust_with_its_limi
 
 
 @pytest.mark.parametrize("example", ["van-der-pol", "orbit-transfer"])
-def test_pursuit_pictures_name_the_states_the_answer_and_show_one_agent(example, drawn,
+def test_pursuit_pictures_name_the_states_the_answer_and_show_one_agent(example, van_der_pol,
+                                                                        drawn,
                                                                         tmp_path):
     if example == "van-der-pol":
-        problem = pursuit_van_der_pol.make()
-        result = solve_pursuit(problem, PursuitSettings(window=21, update=10))
+        problem, result = van_der_pol
     else:
-        problem = pursuit_orbit_transfer.make(case=1, samples=101)
-        result = solve_pursuit(problem, PursuitSettings(window=40, update=20))
+        problem = pursuit_orbit_transfer.make(case=1, samples=61)
+        result = solve_pursuit(problem, PursuitSettings(window=24, update=12))
     assert len(result.headlines) == 2   # agent 0 and one agent: one point to show
     ocpar.pursuit.plot.plot_trajectories(problem, result, tmp_path / "pursuit.png")
     ocpar.pursuit.plot.plot_convergence(result, tmp_path / "convergence.png")
@@ -220,7 +228,7 @@ def test_pursuit_pictures_name_the_states_the_answer_and_show_one_agent(example,
 def test_macs_pictures_keep_the_title_and_legends_in_and_draw_the_control_bounds(
         drawn, tmp_path):
     problem = macs_goddard.make()
-    result = solve_macs(problem, MacsSettings(max_evaluations=300, archive_size=8, seed=0,
+    result = solve_macs(problem, MacsSettings(max_evaluations=150, archive_size=6, seed=0,
                                               no_refine=True))
     ocpar.macs.plot.plot_front(result, tmp_path / "front.png")
     ocpar.macs.plot.plot_controls(problem, result, tmp_path / "controls.png")
@@ -234,10 +242,10 @@ def test_macs_pictures_keep_the_title_and_legends_in_and_draw_the_control_bounds
     assert controls.axes[0].get_ylabel() == "$u$ (rad)"
 
 
-def test_a_picture_on_a_small_figure_keeps_its_text_inside(drawn, tmp_path, monkeypatch):
+def test_a_picture_on_a_small_figure_keeps_its_text_inside(van_der_pol, drawn, tmp_path,
+                                                           monkeypatch):
     """Long titles and legend labels wrap to a figure of half the width."""
-    problem = pursuit_van_der_pol.make()
-    result = solve_pursuit(problem, PursuitSettings(window=21, update=10))
+    problem, result = van_der_pol
     result = dataclasses.replace(result, status="not_converged", message="x " * 200)
     small = ocpar.plotting.subplots
 
