@@ -91,7 +91,8 @@ def plot_convergence(result: PursuitResult, path: Path) -> Path:
                    label=f"answer, {answer_source(result)}: {result.label(result.headline)}")
     if result.reference_headline is not None:
         ax.axhline(result.reference_headline, color="k", ls="--", lw=0.8,
-                   label=f"full-horizon MS {result.label(result.reference_headline)}")
+                   label=f"reference: full-horizon MS from agent 0's plan: "
+                         f"{result.label(result.reference_headline)}")
     if few:
         ax.set_xlim(0.5, max(len(values), 1) + 0.5)
         ax.set_xticks(agents)
