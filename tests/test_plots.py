@@ -135,6 +135,10 @@ def test_components_default_to_nondimensional_and_read_a_models_names():
     assert [c.label for c in ocpar.plotting.components(Named(), "state", 2, "x")] == [
         "r (Mm)", "v (Mm/min)"]
     assert ocpar.plotting.components(Named(), "time", 1, "t")[0].label == "$t$ (min)"
+    # a problem's names and units come first, the model's fill in what it lacks
+    problem = type("Problem", (), {"state_units": "km"})()
+    assert [c.label for c in ocpar.plotting.components((problem, Named()), "state", 2, "x")
+            ] == ["r (km)", "v (km)"]
 
 
 def lobes_tutorial() -> FormationProblem:

@@ -40,11 +40,18 @@ class Component:
 
 def components(source: Any, kind: str, size: int, symbol: str) -> list[Component]:
     """Names and units of the ``size`` components of ``kind`` (``state``, ``control``,
-    ``configuration`` or ``time``) of ``source`` (a model): its ``<kind>_names`` and
-    ``<kind>_units`` sequences where it has them, else ``symbol`` with subscripts 1 … size
-    (``symbol`` alone for one component) in :data:`NONDIMENSIONAL` units."""
-    names = getattr(source, f"{kind}_names", None)
-    units = getattr(source, f"{kind}_units", None)
+    ``configuration`` or ``time``) of ``source``, a problem or model or a tuple of them
+    searched in turn (e.g. ``(problem, model)``): the first one's ``<kind>_names`` and
+    ``<kind>_units`` (a sequence, or one string for all) that it has; else ``symbol`` with
+    subscripts 1 … size (``symbol`` alone for one component) in :data:`NONDIMENSIONAL`
+    units."""
+    sources = source if isinstance(source, tuple) else (source,)
+
+    def first(field: str) -> Any:
+        return next((value for s in sources
+                     if (value := getattr(s, f"{kind}_{field}", None)) is not None), None)
+
+    names, units = first("names"), first("units")
     if names is None:
         names = ([f"${symbol}$"] if size == 1
                  else [f"${symbol}_{{{i + 1}}}$" for i in range(size)])

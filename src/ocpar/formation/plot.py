@@ -97,7 +97,7 @@ def plot_formation(problem: FormationProblem, result: FormationResult, path: Pat
 def _position_labels(problem: FormationProblem) -> list:
     """The position axes' names and units (the configuration's first entries)."""
     model = problem.common_shape.model
-    return components(model, "configuration", model.nq, "x")
+    return components((problem, model), "configuration", model.nq, "x")
 
 
 #: Agents whose thrust the picture draws over time: those of the largest peaks.
@@ -114,8 +114,8 @@ def _plot_thrust(ax, problem: FormationProblem, result: FormationResult) -> None
     from matplotlib.collections import LineCollection
 
     shape = problem.common_shape
-    time = components(shape.model, "time", 1, "t")[0]
-    force = components(shape.model, "control", shape.model.nu, "u")[0].unit
+    time = components((problem, shape.model), "time", 1, "t")[0]
+    force = components((problem, shape.model), "control", shape.model.nu, "u")[0].unit
     ax.set_xlabel(time.label)
     if result.controls is None:
         ax.set_title("thrust: controls are in the workers' array files", fontsize=10)

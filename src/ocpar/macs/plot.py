@@ -61,8 +61,8 @@ def plot_controls(problem: MacsProblem, result: MacsResult, path: Path, count: i
     (:func:`~ocpar.plotting.components`)."""
     dfet = dfet_problem(problem.shape)
     nu = problem.model.nu
-    controls = components(problem.model, "control", nu, "u")
-    time = components(problem.model, "time", 1, "t")[0]
+    controls = components((problem, problem.model), "control", nu, "u")
+    time = components((problem, problem.model), "time", 1, "t")[0]
     fig, axes = subplots(nu, 1, figsize=(6.5, 3.6 * nu + 1.6), squeeze=False)
     picks = np.unique(np.linspace(0, len(result.decisions) - 1, count).round().astype(int))
     for i in picks:

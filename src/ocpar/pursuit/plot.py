@@ -36,9 +36,9 @@ def plot_trajectories(problem: PursuitProblem, result: PursuitResult, path: Path
     headline, or its status and why if it did not converge."""
     model = problem.model
     nx, nu = model.nx, model.nu
-    states = components(model, "state", nx, "x")
-    controls = components(model, "control", nu, "u")
-    time = components(model, "time", 1, "t")[0]
+    states = components((problem, model), "state", nx, "x")
+    controls = components((problem, model), "control", nu, "u")
+    time = components((problem, model), "time", 1, "t")[0]
     fig, axes = subplots(nx + nu, 1, figsize=(7.5, 1.55 * (nx + nu) + 2.2), sharex=True,
                          squeeze=False)
     axes = axes[:, 0]
