@@ -261,3 +261,14 @@ def test_a_picture_on_a_small_figure_keeps_its_text_inside(van_der_pol, drawn, t
     ocpar.pursuit.plot.plot_convergence(result, tmp_path / "convergence.png")
     for fig in drawn:
         check_layout(fig)
+
+
+def test_without_controls_in_memory_the_thrust_panel_says_where_they_are(drawn, tmp_path):
+    """A run whose workers wrote the agents' arrays keeps no controls on the coordinator."""
+    problem = formation_point_masses.make(agents=4)
+    result = dataclasses.replace(solve_formation(problem), controls=None)
+    ocpar.formation.plot.plot_formation(problem, result, tmp_path / "formation.png")
+    (fig,) = drawn
+    check_layout(fig)
+    assert not fig.axes[-1].axison
+    assert fig.axes[-1].get_title() == "thrust: controls are in the workers' array files"
