@@ -3,25 +3,76 @@
 The schemes draw on :func:`figure`, a :class:`matplotlib.figure.Figure` with its own Agg
 canvas: no ``pyplot`` (whose import, ~0.3–0.5 s, a run's picture need not pay) and no global
 figure registry to close. Scripts may use :func:`pyplot`.
+
+Figures are laid out by Matplotlib's constrained layout, legends go below the axes
+(:func:`legend_below`) and titles are wrapped to the figure's width (:func:`fit`), so no
+text leaves the picture or covers its data. Axis labels name each component and its unit
+through :func:`components`, the one place that reads them from a model.
 """
 
 from __future__ import annotations
 
 import sys
 import textwrap
+from collections.abc import Sequence
+from dataclasses import dataclass
 from pathlib import Path
 from types import ModuleType
 from typing import Any
 
+#: The unit an axis states where the model names none: the paper examples are
+#: nondimensional.
+NONDIMENSIONAL = "nondimensional"
+
+
+@dataclass(frozen=True)
+class Component:
+    """One component's ``name`` (Matplotlib mathtext allowed) and ``unit`` for an axis."""
+
+    name: str
+    unit: str
+
+    @property
+    def label(self) -> str:
+        """``name (unit)``, e.g. ``r (Mm)`` or ``$x_1$ (nondimensional)``."""
+        return f"{self.name} ({self.unit})"
+
+
+def components(source: Any, kind: str, size: int, symbol: str) -> list[Component]:
+    """Names and units of the ``size`` components of ``kind`` (``state``, ``control``,
+    ``configuration`` (a mechanical system's q: its ``state_*`` members) or ``time``) of
+    ``source``, a problem or model or a tuple of them searched in turn (e.g. ``(problem,
+    model)``): the first one's ``<kind>_names`` and ``<kind>_units`` (or ``<kind>_unit``; a
+    sequence, or one string for all) that it has, as :mod:`ocpar.models.labels` reads them
+    for the result files; else ``symbol`` with subscripts 1 … size (``symbol`` alone for one
+    component); unit '1' (or none) is shown as :data:`NONDIMENSIONAL`."""
+    sources = source if isinstance(source, tuple) else (source,)
+    kinds = (kind, "state") if kind == "configuration" else (kind,)
+
+    def first(*fields: str) -> Any:
+        return next((value for s in sources for k in kinds for field in fields
+                     if (value := getattr(s, f"{k}_{field}", None)) is not None), None)
+
+    names, units = first("names"), first("units", "unit")
+    if names is None:
+        names = ([f"${symbol}$"] if size == 1
+                 else [f"${symbol}_{{{i + 1}}}$" for i in range(size)])
+    if units is None:
+        units = [NONDIMENSIONAL] * size
+    if isinstance(units, str):
+        units = [units] * size
+    units = [NONDIMENSIONAL if str(u) == "1" else str(u) for u in units]
+    return [Component(str(n), u) for n, u in zip(names[:size], units[:size], strict=True)]
+
 
 def figure(**kwargs: Any) -> Any:
-    """A :class:`matplotlib.figure.Figure` (``kwargs``: its options, e.g. ``figsize``) on an
-    Agg canvas of its own; draw with ``fig.subplots`` / ``fig.add_subplot``, write with
-    :func:`save`."""
+    """A :class:`matplotlib.figure.Figure` (``kwargs``: its options, e.g. ``figsize``;
+    constrained layout unless ``layout`` says otherwise) on an Agg canvas of its own; draw
+    with ``fig.subplots`` / ``fig.add_subplot``, write with :func:`save`."""
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
 
-    fig = Figure(**kwargs)
+    fig = Figure(**({"layout": "constrained"} | kwargs))
     FigureCanvasAgg(fig)
     return fig
 
@@ -45,9 +96,10 @@ def pyplot() -> ModuleType:
 
 
 def save(fig: Any, path: Path) -> Path:
-    """Lay out ``fig``, write it to ``path`` as a 120-dpi PNG and close it (where pyplot
-    holds it)."""
-    fig.tight_layout()
+    """Lay out ``fig`` (tight layout unless it has a layout engine), write it to ``path`` as a
+    120-dpi PNG and close it (where pyplot holds it)."""
+    if fig.get_layout_engine() is None:
+        fig.tight_layout()
     fig.savefig(path, dpi=120)
     if (plt := sys.modules.get("matplotlib.pyplot")) is not None:
         plt.close(fig)
@@ -57,3 +109,27 @@ def save(fig: Any, path: Path) -> Path:
 def wrapped(title: str, width: int = 70) -> str:
     """``title`` broken into lines of at most ``width`` characters (a failure's reason)."""
     return "\n".join(textwrap.wrap(title, width))
+
+
+def fit(title: str, fig: Any, fontsize: float, share: float = 1.0) -> str:
+    """``title`` wrapped (at its own line breaks too) to ``share`` of ``fig``'s width at
+    ``fontsize`` points (an average character taken as 0.6 em)."""
+    width = max(20, int(share * fig.get_figwidth() * 72 / (0.6 * fontsize)) - 2)
+    return "\n".join(wrapped(line, width) or line for line in title.split("\n"))
+
+
+def legend_below(fig: Any, axes: Sequence[Any], fontsize: float = 8) -> Any:
+    """One legend of every labelled artist of ``axes`` (first label wins), below the axes,
+    outside them (constrained layout makes room): it covers no data. As many columns as
+    the longest label lets fit in the figure's width; labels too long for it are wrapped."""
+    handles: dict[str, Any] = {}
+    for ax in axes:
+        for handle, label in zip(*ax.get_legend_handles_labels(), strict=True):
+            handles.setdefault(label, handle)
+    em = 0.6 * fontsize / 72                    # an average character's width (inches)
+    room = fig.get_figwidth() - 0.8             # less the handle and the padding (inches)
+    labels = [wrapped(label, max(20, int(room / em))) for label in handles]
+    longest = max((len(line) for label in labels for line in label.split("\n")), default=1)
+    columns = max(1, min(len(labels), int(fig.get_figwidth() // (longest * em + 0.8))))
+    return fig.legend(list(handles.values()), labels, loc="outside lower center",
+                      ncols=columns, fontsize=fontsize, frameon=False)

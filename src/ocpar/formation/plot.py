@@ -1,5 +1,6 @@
 """Pictures of a formation result: the paper's Fig. 3 (planar: starts, trajectories, final
-curve) and Fig. 5 (3-D: initial grid, trajectories, final curve)."""
+curve) and Fig. 5 (3-D: initial grid, trajectories, final curve), each with the thrust of a
+few agents over time against their limit."""
 
 from __future__ import annotations
 
@@ -13,7 +14,8 @@ from ocpar.formation.problem import FormationProblem
 from ocpar.formation.result import FormationResult
 from ocpar.formation.targets.slots import Slots
 from ocpar.formation.targets.surface import Surface, fibonacci_directions
-from ocpar.plotting import figure, save, subplots, wrapped
+from ocpar.ocp.reach import thrust_limit
+from ocpar.plotting import components, figure, fit, legend_below, save, subplots
 
 #: Most agents a picture draws (trajectory, start and final position): above it every k-th,
 #: said in the title (drawing and writing the planar picture: 10,000 paths 0.9 s, 2000 0.3 s,
@@ -48,68 +50,134 @@ def _target(problem: FormationProblem, samples: int) -> tuple[np.ndarray, dict]:
 
 
 def plot_formation(problem: FormationProblem, result: FormationResult, path: Path) -> Path:
-    """Write a PNG to ``path``: for a planar problem two panels (the whole manoeuvre, and a
-    close-up of the curve with the last portions of the trajectories), in 3-D one perspective
-    view as the paper's Fig. 5."""
+    """Write a PNG to ``path``: for a planar problem three panels (the whole manoeuvre; a
+    close-up of the curve with the trajectories' ends; the thrust of a few agents over time
+    against their limit), in 3-D a perspective view as the paper's Fig. 5 above the thrust
+    panel. One legend below the panels; axes named with their units (:func:`components`)."""
     if problem.curve.dim == 3:
         return _plot_3d(problem, result, path)
     from matplotlib.collections import LineCollection
 
-    fig, (ax_all, ax_end) = subplots(1, 2, figsize=(12, 5.5))
+    fig, (ax_all, ax_end, ax_u) = subplots(1, 3, figsize=(15, 5.6),
+                                           width_ratios=(1, 1, 1.1))
     circle, style = _target(problem, 400)
     shown = slice(None, None, path_step(result.agents))
     ends = problem.final_positions(result.phi[shown])
-    tail = max(2, result.positions.shape[1] // 3)
     drawn = result.positions[shown]
-    for ax, paths in ((ax_all, drawn), (ax_end, drawn[:, -tail:])):
-        # one collection, not one line per agent: 10,000 paths in ~1 s instead of ~1 min
-        ax.add_collection(LineCollection(paths[..., :2], colors="tab:blue", lw=0.7, alpha=0.7))
+    axes = _position_labels(problem)
+    for ax in (ax_all, ax_end):
+        # one collection, not one line per agent: 10,000 paths in ~1 s instead of ~1 min;
+        # the close-up draws the whole paths too, cut by its frame, none starting mid-air
+        ax.add_collection(LineCollection(drawn[..., :2], colors="tab:blue", lw=0.7, alpha=0.7,
+                                         label="trajectories"))
         ax.autoscale_view()
-        ax.plot(circle[:, 0], circle[:, 1], **style)
+        ax.plot(circle[:, 0], circle[:, 1], **style, label="target")
         ax.plot(ends[:, 0], ends[:, 1], "x", color="tab:red", ms=5, label="final positions")
         ax.set_aspect("equal")
-        ax.set_xlabel("$x_1$")
-        ax.set_ylabel("$x_2$")
+        ax.set_xlabel(axes[0].label)
+        ax.set_ylabel(axes[1].label)
     starts = problem.starts[shown]
     ax_all.plot(starts[:, 0], starts[:, 1], "o", mfc="none", color="k", ms=3,
                 label="start positions")
     for ax in (ax_all, ax_end):
         _draw_obstacles(ax, problem)
     _mark_closest(ax_all, problem, result)
-    ax_all.set_title(f"{result.agents} agents, {wrapped(result.title())}"
-                     f"{_drawn_note(result.agents)}")
-    ax_all.legend(loc="upper left", fontsize=8)
+    ax_all.set_title(fit(f"{result.agents} agents, {result.title()}"
+                         f"{_drawn_note(result.agents)}", fig, 10, 1 / 3), fontsize=10)
     low, high = circle.min(axis=0), circle.max(axis=0)
     margin = 0.25 * np.max(high - low)
     ax_end.set_xlim(low[0] - margin, high[0] + margin)
     ax_end.set_ylim(low[1] - margin, high[1] + margin)
-    ax_end.set_title("final positions and last portions of the trajectories")
+    ax_end.set_title("final positions and the trajectories' ends", fontsize=10)
+    _plot_thrust(ax_u, problem, result)
+    legend_below(fig, (ax_all, ax_end, ax_u))
     return save(fig, path)
+
+
+def _position_labels(problem: FormationProblem) -> list:
+    """The position axes' names and units (the configuration's first entries)."""
+    model = problem.common_shape.model
+    return components((problem, model), "configuration", model.nq, "x")
+
+
+#: Agents whose thrust the picture draws over time: those of the largest peaks.
+THRUST_AGENTS = 6
+
+
+def _plot_thrust(ax, problem: FormationProblem, result: FormationResult) -> None:
+    """The thrust of the :data:`THRUST_AGENTS` agents of the largest peaks over time (each
+    interval's control held on it) and the largest over all agents, with each thrust limit
+    among them (:func:`~ocpar.ocp.reach.thrust_limit`): max_j |u_j| where every limit is a
+    box, else |u|; of the model's first control group where it names them (``cost_parts``:
+    the force, not the torque). Without controls in memory (written by the workers) a note
+    says so."""
+    from matplotlib.collections import LineCollection
+
+    shape = problem.common_shape
+    time = components((problem, shape.model), "time", 1, "t")[0]
+    force = components((problem, shape.model), "control", shape.model.nu, "u")[0].unit
+    ax.set_xlabel(time.label)
+    if result.controls is None:
+        ax.set_title("thrust: controls are in the workers' array files", fontsize=10)
+        ax.set_axis_off()
+        return
+    u = np.asarray(result.controls, float)
+    parts = getattr(shape.model, "cost_parts", None)   # e.g. force, then torque entries
+    group, (first, last) = next(iter(parts.items())) if parts else ("", (0, u.shape[2]))
+    u = u[..., first:last]
+    entries = "" if not parts else f"$_{{{first + 1}…{last}}}$"
+    limits = {thrust_limit(s) for s in problem.agents_by_shape()} - {None}
+    box = bool(limits) and all(kind == "box" for kind, _ in limits)
+    size = np.max(np.abs(u), axis=2) if box else np.linalg.norm(u, axis=2)   # (n, N)
+    name = f"max$_j$ |$u_j$|{entries}" if box else f"|$u${entries}|"
+    edges = np.linspace(0.0, shape.duration, u.shape[1] + 1)
+    steps_t = np.repeat(edges, 2)[1:-1]
+    peaks = size.max(axis=1)
+    top = np.argpartition(-peaks, min(THRUST_AGENTS, len(peaks)) - 1)[:THRUST_AGENTS]
+    top = top[np.argsort(-peaks[top])]        # largest first, O(n) over the fleet
+    lines = [np.column_stack([steps_t, np.repeat(size[i], 2)]) for i in top]
+    ax.add_collection(LineCollection(lines, colors="tab:blue", lw=0.9, alpha=0.8,
+                                     label=f"{name}: {len(top)} agents of the largest peaks"))
+    if result.agents > len(top):
+        ax.plot(steps_t, np.repeat(size.max(axis=0), 2), color="k", lw=0.6, ls=":",
+                label=f"{name}: largest over all agents")
+    for kind, value in sorted(limits):
+        ax.axhline(value, color="tab:red", ls="--", lw=1, label=f"{kind} thrust limit {value:g}")
+    ax.autoscale_view()
+    ax.set_ylim(0, 1.08 * max([size.max(initial=0.0)] + [v for _, v in limits]) or 1.0)
+    ax.set_ylabel(f"{name} ({force})")
+    ax.grid(alpha=0.3)
+    ax.set_title(f"{group.removesuffix('_cost')} thrust over time".lstrip(), fontsize=10)
 
 
 def _plot_3d(problem: FormationProblem, result: FormationResult, path: Path) -> Path:
     from mpl_toolkits.mplot3d.art3d import Line3DCollection
 
-    fig = figure(figsize=(8, 7))
-    ax = fig.add_subplot(projection="3d")
+    fig = figure(figsize=(8, 9.5))
+    grid = fig.add_gridspec(2, 1, height_ratios=(3, 1))
+    ax = fig.add_subplot(grid[0], projection="3d")
+    ax_u = fig.add_subplot(grid[1])
     circle, style = _target(problem, 200)
     shown = slice(None, None, path_step(result.agents))
     ends = problem.final_positions(result.phi[shown])
     drawn = result.positions[shown, :, :3]
-    ax.add_collection(Line3DCollection(drawn, colors="tab:blue", lw=0.7, alpha=0.8))
-    ax.plot(circle[:, 0], circle[:, 1], circle[:, 2], **style)
+    ax.add_collection(Line3DCollection(drawn, colors="tab:blue", lw=0.7, alpha=0.8,
+                                       label="trajectories"))
+    ax.plot(circle[:, 0], circle[:, 1], circle[:, 2], **style, label="target")
     starts = problem.starts[shown]
     ax.plot(starts[:, 0], starts[:, 1], starts[:, 2], "o", mfc="none",
             color="k", ms=4, ls="", label="initial positions")
     ax.plot(ends[:, 0], ends[:, 1], ends[:, 2], "x", color="tab:red", ms=6, ls="",
             label="final positions")
-    ax.set_xlabel("$x_1$")
-    ax.set_ylabel("$x_2$")
-    ax.set_zlabel("$x_3$")
+    axes = _position_labels(problem)
+    ax.set_xlabel(axes[0].label)
+    ax.set_ylabel(axes[1].label)
+    ax.set_zlabel(axes[2].label)
     _mark_closest(ax, problem, result)
-    ax.set_title(f"{problem.name}: {result.agents} agents, {wrapped(result.title())}"
-                 f"{_drawn_note(result.agents)}")
-    ax.legend(loc="upper left", fontsize=8)
+    ax.set_title(fit(f"{problem.name}: {result.agents} agents, {result.title()}"
+                     f"{_drawn_note(result.agents)}", fig, 10), fontsize=10)
+    _plot_thrust(ax_u, problem, result)
+    legend_below(fig, (ax, ax_u))
     return save(fig, path)
 
 

@@ -12,7 +12,7 @@ from ocpar.macs.local_search import STATIONARITY_TOL
 from ocpar.macs.problem import MacsProblem
 from ocpar.macs.result import MacsResult
 from ocpar.ocp import dfet_problem
-from ocpar.plotting import save, subplots, wrapped
+from ocpar.plotting import NONDIMENSIONAL, components, fit, legend_below, save, subplots
 
 
 def plot_front(result: MacsResult, path: Path) -> Path:
@@ -42,25 +42,28 @@ def plot_front(result: MacsResult, path: Path) -> Path:
                 if np.any(members):
                     ax.plot(result.front[members, a], result.front[members, b], ls="none",
                             label=f"{label} ({int(np.sum(members))})", **style)
-        ax.set_xlabel(names[a])
-        ax.set_ylabel(names[b])
-        ax.legend()
+        ax.set_xlabel(f"{names[a]} ({NONDIMENSIONAL})")
+        ax.set_ylabel(f"{names[b]} ({NONDIMENSIONAL})")
         ax.grid(alpha=0.3)
     for ax in axes.ravel()[len(pairs):]:
         ax.set_visible(False)
     refining = (f", {result.refinement_evaluations} of them refining"
                 if result.stationarity is not None else "")
-    fig.suptitle(wrapped(f"{result.problem}: {result.title()} ({result.evaluations} "
-                         f"evaluations{refining})", 100), fontsize=10)
+    fig.suptitle(fit(f"{result.problem}: {result.title()} ({result.evaluations} "
+                     f"evaluations{refining})", fig, 10), fontsize=10)
+    legend_below(fig, axes.ravel()[:len(pairs)])
     return save(fig, path)
 
 
 def plot_controls(problem: MacsProblem, result: MacsResult, path: Path, count: int = 4) -> Path:
     """Control laws u(t) of ``count`` archive members spread along the front (every control
-    component: one panel each)."""
+    component: one panel each, with its bounds), axes named with units
+    (:func:`~ocpar.plotting.components`)."""
     dfet = dfet_problem(problem.shape)
     nu = problem.model.nu
-    fig, axes = subplots(nu, 1, figsize=(6.5, 4.5 * nu), squeeze=False)
+    controls = components((problem, problem.model), "control", nu, "u")
+    time = components((problem, problem.model), "time", 1, "t")[0]
+    fig, axes = subplots(nu, 1, figsize=(6.5, 3.6 * nu + 1.6), squeeze=False)
     picks = np.unique(np.linspace(0, len(result.decisions) - 1, count).round().astype(int))
     for i in picks:
         law = dfet.control_law(result.decisions[i])
@@ -71,10 +74,13 @@ def plot_controls(problem: MacsProblem, result: MacsResult, path: Path, count: i
                                                             result.front[i], strict=True))
         for c in range(nu):
             axes[c, 0].plot(t, u[:, c], label=label)
-    for c in range(nu):
-        axes[c, 0].set_xlabel("t")
-        axes[c, 0].set_ylabel(f"u[{c}]")
+    for c, (low, high) in enumerate(problem.shape.control_bounds):
+        for bound in (low, high):
+            axes[c, 0].axhline(bound, color="tab:red", ls="--", lw=0.9, label="control bounds")
+        axes[c, 0].set_xlabel(time.label)
+        axes[c, 0].set_ylabel(controls[c].label)
         axes[c, 0].grid(alpha=0.3)
-    axes[0, 0].set_title(f"{result.problem}: controls of archive members")
-    axes[0, 0].legend(fontsize=8)
+    axes[0, 0].set_title(fit(f"{result.problem}: controls of archive members", fig, 10),
+                         fontsize=10)
+    legend_below(fig, axes[:, 0])
     return save(fig, path)

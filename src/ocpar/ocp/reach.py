@@ -112,6 +112,20 @@ def _norm_limit(constraint: object, nu: int) -> float | None:
     return math.sqrt(constraint.upper[0] / c)
 
 
+def thrust_limit(shape: DmocShape) -> tuple[str, float] | None:
+    """``shape``'s thrust limit as (kind, u_max) in the force unit: ``("box", u)`` for control
+    bounds −u ≤ u_j ≤ u on every entry, ``("norm", a)`` for a sole path constraint
+    c |u|² ≤ b of ``u`` alone (a = √(b/c)); None without a limit or for any other one."""
+    if shape.control_bounds is not None:
+        highs = {float(hi) for _, hi in shape.control_bounds}
+        symmetric = all(float(lo) == -float(hi) for lo, hi in shape.control_bounds)
+        return ("box", highs.pop()) if symmetric and len(highs) == 1 else None
+    if len(shape.path_constraints) == 1:
+        limit = _norm_limit(shape.path_constraints[0], shape.model.nu)
+        return None if limit is None else ("norm", limit)
+    return None
+
+
 @lru_cache(maxsize=256)
 def _axis_reach(mass: float, intervals: int, duration: float, lo: float, hi: float
                 ) -> tuple[float, float]:

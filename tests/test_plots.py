@@ -1,0 +1,273 @@
+"""The pictures are fit for a report: every text inside the figure and off the data, the
+legends off the data, units on every axis, controls or thrust with their bounds, the pursuit
+answer named by its source. Checked on the artists' bounding boxes in display coordinates
+after drawing, on the paper examples and the mixed fleet at small sizes."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import casadi as ca
+import numpy as np
+import pytest
+from matplotlib.collections import LineCollection
+from matplotlib.lines import Line2D
+
+import ocpar.formation.plot
+import ocpar.macs.plot
+import ocpar.plotting
+import ocpar.pursuit.plot
+from ocpar.examples import (
+    formation_halo,
+    formation_mixed_fleet,
+    formation_point_masses,
+    macs_goddard,
+    pursuit_orbit_transfer,
+    pursuit_van_der_pol,
+)
+from ocpar.formation import DmocShape, FormationProblem, PlaneCurve, solve_formation
+from ocpar.macs import MacsSettings, solve_macs
+from ocpar.models import PointMass
+from ocpar.pursuit import PursuitSettings, solve_pursuit
+
+
+@pytest.fixture
+def drawn(monkeypatch):
+    """The figures the plot modules save, drawn (their layout done)."""
+    figures = []
+    save = ocpar.plotting.save
+
+    def keeping(fig, path):
+        figures.append(fig)
+        return save(fig, path)
+
+    for module in (ocpar.formation.plot, ocpar.pursuit.plot, ocpar.macs.plot):
+        monkeypatch.setattr(module, "save", keeping)
+    return figures
+
+
+@pytest.fixture(scope="module")
+def van_der_pol():
+    """The van der Pol example (N = 41) and its default PBMS run: one agent and the
+    full-horizon finish."""
+    problem = pursuit_van_der_pol.make()
+    return problem, solve_pursuit(problem, PursuitSettings(window=21, update=10))
+
+
+def data_points(ax, renderer) -> np.ndarray:
+    """Display coordinates (k, 2) of the data of a 2-D axes' lines and line collections that
+    lie within its frame (horizontal bound lines across the frame included)."""
+    points = []
+    for artist in ax.get_children():
+        if isinstance(artist, Line2D) and artist.get_visible():
+            xy = artist.get_transform().transform(artist.get_xydata())
+        elif isinstance(artist, LineCollection):
+            segments = artist.get_segments()
+            if not segments:
+                continue
+            xy = artist.get_transform().transform(np.concatenate(segments))
+        else:
+            continue
+        points.append(xy)
+    if not points:
+        return np.empty((0, 2))
+    xy = np.concatenate(points)
+    frame = ax.get_window_extent(renderer)
+    inside = ((xy[:, 0] >= frame.x0) & (xy[:, 0] <= frame.x1)
+              & (xy[:, 1] >= frame.y0) & (xy[:, 1] <= frame.y1))
+    return xy[inside]
+
+
+def covers(extent, points: np.ndarray) -> int:
+    """How many of the display points (k, 2) lie strictly inside the box ``extent``."""
+    return int(np.sum((points[:, 0] > extent.x0) & (points[:, 0] < extent.x1)
+                      & (points[:, 1] > extent.y0) & (points[:, 1] < extent.y1)))
+
+
+def check_layout(fig) -> None:
+    """Every axes' drawn extent (ticks, labels, title), every legend and the figure's title
+    lie inside the figure; no title, axis label or legend covers a data point of a 2-D
+    axes, nor does a legend cover a 3-D axes; every axis says its unit."""
+    renderer = fig.canvas.get_renderer()
+    box = fig.bbox
+    legends = list(fig.legends) + [ax.get_legend() for ax in fig.axes if ax.get_legend()]
+    assert legends
+    suptitle = [fig.get_suptitle()] if fig.get_suptitle() else []
+    extents = ([(f"axes {ax.get_title()!r}", ax.get_tightbbox(renderer)) for ax in fig.axes
+                if ax.get_visible()]
+               + [("legend", legend.get_window_extent(renderer)) for legend in legends]
+               + [(f"title {t!r}", fig._suptitle.get_window_extent(renderer)) for t in suptitle])
+    for what, extent in extents:
+        assert (extent.x0 >= box.x0 - 1 and extent.x1 <= box.x1 + 1 and extent.y0 >= box.y0 - 1
+                and extent.y1 <= box.y1 + 1), f"{what} leaves the figure"
+    flat = [ax for ax in fig.axes if ax.name != "3d" and ax.axison]
+    points = np.concatenate([data_points(ax, renderer) for ax in flat] + [np.empty((0, 2))])
+    texts = [t for ax in fig.axes for t in (ax.title, ax.xaxis.label, ax.yaxis.label)
+             if t.get_visible() and t.get_text()]
+    texts += [fig._suptitle] if suptitle else []
+    for text in texts:
+        covered = covers(text.get_window_extent(renderer), points)
+        assert not covered, f"{text.get_text()!r} covers {covered} data points"
+    for legend in legends:
+        extent = legend.get_window_extent(renderer)
+        covered = covers(extent, points)
+        assert not covered, f"the legend covers {covered} data points"
+        for ax in fig.axes:
+            if ax.name == "3d":
+                assert not extent.overlaps(ax.get_window_extent(renderer))
+    shown = [ax for ax in fig.axes if ax.axison]
+    assert all(ax.get_ylabel() for ax in shown) and any(ax.get_xlabel() for ax in shown)
+    for ax in shown:   # axes sharing x name it once, below
+        labels = [ax.get_xlabel(), ax.get_ylabel()]
+        labels += [ax.get_zlabel()] if ax.name == "3d" else []
+        for label in filter(None, labels):
+            assert label.endswith(")") and "(" in label, f"no unit in {label!r}"
+
+
+def test_components_default_to_nondimensional_and_read_a_models_names():
+    class Named:
+        state_names = ("r", "v")
+        state_units = ("Mm", "Mm/min")
+        time_units = "min"
+
+    assert [c.label for c in ocpar.plotting.components(object(), "state", 2, "x")] == [
+        "$x_{1}$ (nondimensional)", "$x_{2}$ (nondimensional)"]
+    assert [c.label for c in ocpar.plotting.components(Named(), "state", 2, "x")] == [
+        "r (Mm)", "v (Mm/min)"]
+    assert ocpar.plotting.components(Named(), "time", 1, "t")[0].label == "$t$ (min)"
+    # a problem's names and units come first, the model's fill in what it lacks
+    problem = type("Problem", (), {"state_units": "km"})()
+    assert [c.label for c in ocpar.plotting.components((problem, Named()), "state", 2, "x")
+            ] == ["r (km)", "v (km)"]
+
+
+def lobes_tutorial() -> FormationProblem:
+    """The formation tutorial's problem: 2 × 3 point masses onto three lobes about (20, 0)."""
+    def lobes(phi):
+        r = 5.0 * (1 + 0.2 * ca.cos(3 * phi))
+        return r * ca.cos(phi), r * ca.sin(phi)
+
+    x, y = np.meshgrid(np.arange(3) * 2.0, np.arange(2) * 2.0)
+    return FormationProblem(name="three-lobes",
+                            shape=DmocShape(PointMass(dim=2, mass=1.0), 10, 2.0),
+                            curve=PlaneCurve(lobes, center=np.array([20.0, 0.0])),
+                            starts=np.column_stack([x.ravel(), y.ravel()]))
+
+
+@pytest.mark.parametrize("example", ["point-masses", "lobes", "mixed-fleet", "mixed-norm",
+                                     "halo"])
+def test_formation_pictures_keep_text_off_the_data_and_draw_thrust_with_its_limit(
+        example, drawn, tmp_path):
+    problem = {"point-masses": lambda: formation_point_masses.make(agents=12),
+               "mixed-fleet": lambda: formation_mixed_fleet.make(agents=9),
+               "mixed-norm": lambda: formation_mixed_fleet.make(agents=6, limit="norm"),
+               "halo": lambda: formation_halo.make(agents=6),
+               "lobes": lobes_tutorial}[example]()
+    result = solve_formation(problem)
+    ocpar.formation.plot.plot_formation(problem, result, tmp_path / "formation.png")
+    (fig,) = drawn
+    check_layout(fig)
+    thrust = fig.axes[-1]
+    assert "thrust" in thrust.get_title()
+    u = np.asarray(result.controls)
+    if example == "halo":   # the force entries (cost_parts' first group), not the torque
+        u = u[..., :3]
+    size = (np.abs(u).max(axis=2) if example == "mixed-fleet" else np.linalg.norm(u, axis=2))
+    peaks = sorted(size.max(axis=1))[::-1][:ocpar.formation.plot.THRUST_AGENTS]
+    (agents,) = [c for c in thrust.collections if isinstance(c, LineCollection)]
+    drawn_peaks = sorted((s[:, 1].max() for s in agents.get_segments()), reverse=True)
+    assert drawn_peaks == pytest.approx(peaks, rel=1e-12)
+    limits = [line.get_ydata()[0] for line in thrust.get_lines()
+              if "thrust limit" in line.get_label()]
+    assert limits == ([2.7] if example.startswith("mixed") else [])
+    if example == "mixed-fleet":   # the limit binds: the largest peak is at it
+        assert max(peaks) == pytest.approx(2.7, rel=1e-6)
+    elif example == "mixed-norm":
+        assert max(peaks) <= 2.7 * (1 + 1e-6)
+
+
+@pytest.mark.parametrize("example", ["van-der-pol", "orbit-transfer"])
+def test_pursuit_pictures_name_the_states_the_answer_and_show_one_agent(example, van_der_pol,
+                                                                        drawn,
+                                                                        tmp_path):
+    if example == "van-der-pol":
+        problem, result = van_der_pol
+    else:
+        problem = pursuit_orbit_transfer.make(case=1, samples=61)
+        result = solve_pursuit(problem, PursuitSettings(window=24, update=12))
+    assert len(result.headlines) == 2   # agent 0 and one agent: one point to show
+    ocpar.pursuit.plot.plot_trajectories(problem, result, tmp_path / "pursuit.png")
+    ocpar.pursuit.plot.plot_convergence(result, tmp_path / "convergence.png")
+    trajectories, convergence = drawn
+    for fig in drawn:
+        check_layout(fig)
+    nx = problem.model.nx
+    labels = [ax.get_ylabel() for ax in trajectories.axes]
+    if example == "orbit-transfer":
+        assert labels[:nx] == ["r (Mm)", "r_dot (Mm/min)", "theta_dot (rad/min)", "mass (t)"]
+        assert trajectories.axes[-1].get_xlabel() == "$t$ (min)"
+    else:
+        assert labels == ["$x_{1}$ (nondimensional)", "$x_{2}$ (nondimensional)",
+                          "$u$ (nondimensional)"]
+    # the controls drawn are the answer's, held on each interval, with the model's bounds
+    for j, ax in enumerate(trajectories.axes[nx:]):
+        line = ax.get_lines()[0]
+        assert np.array_equal(line.get_ydata()[::2], np.asarray(result.u)[:, j])
+    bounds = sorted(line.get_ydata()[0] for ax in trajectories.axes[nx:]
+                    for line in ax.get_lines() if line.get_label() == "control bounds")
+    assert bounds == ([-1.0, 1.0] if example == "van-der-pol" else [])
+    source = {"full_horizon": "full-horizon MS from the train's answer",
+              "train": "PBMS train's last agent"}[result.result_source]
+    legend = [t.get_text() for t in trajectories.legends[0].get_texts()]
+    assert any(t.startswith(f"answer, {source}") for t in legend)
+    assert not any("PBMS:" in t for t in legend)
+    # one agent: a marker on a linear axis
+    ax = convergence.axes[0]
+    (agents,) = [line for line in ax.get_lines() if line.get_label().startswith("PBMS agents")]
+    assert ax.get_xscale() == "linear" and agents.get_marker() == "o"
+    assert agents.get_ydata().tolist() == [result.headlines[1]]
+
+
+def test_macs_pictures_keep_the_title_and_legends_in_and_draw_the_control_bounds(
+        drawn, tmp_path):
+    problem = macs_goddard.make()
+    result = solve_macs(problem, MacsSettings(max_evaluations=150, archive_size=6, seed=0,
+                                              no_refine=True))
+    ocpar.macs.plot.plot_front(result, tmp_path / "front.png")
+    ocpar.macs.plot.plot_controls(problem, result, tmp_path / "controls.png")
+    for fig in drawn:
+        check_layout(fig)
+    front, controls = drawn
+    assert front.get_suptitle().startswith(result.problem)
+    bounds = sorted(line.get_ydata()[0] for line in controls.axes[0].get_lines()
+                    if line.get_label() == "control bounds")
+    assert bounds == sorted(np.ravel(problem.control_bounds))
+    assert controls.axes[0].get_ylabel() == "thrust_angle (rad)"   # the model's name
+
+
+def test_a_picture_on_a_small_figure_keeps_its_text_inside(van_der_pol, drawn, tmp_path,
+                                                           monkeypatch):
+    """Long titles and legend labels wrap to a figure of half the width."""
+    problem, result = van_der_pol
+    result = dataclasses.replace(result, status="not_converged", message="x " * 200)
+    small = ocpar.plotting.subplots
+
+    def halved(*grid, figsize=None, **kwargs):
+        return small(*grid, figsize=(figsize[0] / 2, figsize[1]), **kwargs)
+
+    monkeypatch.setattr(ocpar.pursuit.plot, "subplots", halved)
+    ocpar.pursuit.plot.plot_trajectories(problem, result, tmp_path / "pursuit.png")
+    ocpar.pursuit.plot.plot_convergence(result, tmp_path / "convergence.png")
+    for fig in drawn:
+        check_layout(fig)
+
+
+def test_without_controls_in_memory_the_thrust_panel_says_where_they_are(drawn, tmp_path):
+    """A run whose workers wrote the agents' arrays keeps no controls on the coordinator."""
+    problem = formation_point_masses.make(agents=4)
+    result = dataclasses.replace(solve_formation(problem), controls=None)
+    ocpar.formation.plot.plot_formation(problem, result, tmp_path / "formation.png")
+    (fig,) = drawn
+    check_layout(fig)
+    assert not fig.axes[-1].axison
+    assert fig.axes[-1].get_title() == "thrust: controls are in the workers' array files"
