@@ -48,7 +48,7 @@ VOLATILE = (
     (re.compile(r"\b(formation|pursuit|macs)-\d{8}-\d{6}-[0-9a-f]{6}\b"), r"\1-JOB"),
     (re.compile(r"\d{4}-\d\d-\d\d \d\d:\d\d:\d\d"), "DATE"),
     (re.compile(r"/\S*/jobs/"), "…/jobs/"),
-    (re.compile(r"\S+_s=\d+(\.\d+)?"), "…"),
+    (re.compile(r"timings: .*"), "timings: …"),
 )
 #: Lines of a run's output that a tutorial does not show (log lines of Dask's processes).
 NOISE = re.compile(r"^(\d{4}-\d\d-\d\d \d\d:\d\d:\d\d,\d+ - |\S+Warning: |  warnings\.warn\()")
@@ -118,7 +118,7 @@ def read_tutorial(path: Path) -> Tutorial:
             command = Command(body, section)
             if i + 1 < len(blocks) and blocks[i + 1][1] == "":
                 following = blocks[i + 1][0].strip()
-                if following in ("", "prints") or following.endswith("e.g."):
+                if following in ("", "prints") or following.endswith(("e.g.", ":")):
                     command.shown, command.shown_at = blocks[i + 1][2], blocks[i + 1][3]
             tutorial.commands.append(command)
     return tutorial
