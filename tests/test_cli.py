@@ -159,16 +159,17 @@ def test_ocpar_warnings_are_one_line_on_the_command_line(monkeypatch, capsys):
     assert caught[0].filename == __file__   # the user's line, not ocpar's
     others = []   # what Python's (here: a stand-in's) display of a warning gets
     monkeypatch.setattr(warnings, "showwarning", lambda message, *args: others.append(message))
-    one_line_warnings("ocpar.formation")
-    with warnings.catch_warnings():
+    stand_in = warnings.showwarning
+    with one_line_warnings("ocpar.formation"):
         warnings.simplefilter("always")
         dataclasses.replace(DmocShape(PointMass(dim=2)), path_constraints=(norm,))
+        warnings.showwarning("not ocpar's", UserWarning, "user.py", 3)
     assert capsys.readouterr().err == (
         "ocpar.formation: warning: path_constraints[0] (thrust): a norm is not "
         "differentiable at 0; solved exactly as its square (row 0: (sq(u_0)+sq(u_1)) in "
         "[-inf, 4])\n")
-    warnings.showwarning("not ocpar's", UserWarning, "user.py", 3)
     assert others == ["not ocpar's"]
+    assert warnings.showwarning is stand_in   # restored on exit
 
 
 def test_ctrl_c_is_one_line_and_keeps_the_checkpoint(tmp_path):

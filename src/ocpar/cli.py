@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import atexit
+import contextlib
 import functools
 import gc
 import os
@@ -11,7 +12,7 @@ import re
 import sys
 import tempfile
 import warnings
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any, NoReturn, TypeVar
@@ -372,22 +373,23 @@ def open_journal(args: argparse.Namespace, prog: str) -> Journal | None:
         fail(prog, str(exc))
 
 
-def one_line_warnings(prog: str) -> None:
-    """Show ocpar's own warnings (e.g. :class:`~ocpar.ocp.constraints.NormSquared`) in this
-    process as one line, ``prog: warning: message``, without a source line; other packages'
-    warnings as Python shows them."""
-    shown = warnings.showwarning if not hasattr(warnings.showwarning, "ocpar") else \
-        warnings.showwarning.ocpar
+@contextlib.contextmanager
+def one_line_warnings(prog: str) -> Iterator[None]:
+    """Within: ocpar's own warnings (e.g. :class:`~ocpar.ocp.constraints.NormSquared`) shown
+    as one line, ``prog: warning: message``, without a source line; other packages' warnings
+    as Python shows them (the display restored on exit)."""
+    with warnings.catch_warnings():
+        shown = warnings.showwarning
 
-    def show(message, category, filename, lineno, file=None, line=None) -> None:
-        if category.__module__.partition(".")[0] != "ocpar":
-            shown(message, category, filename, lineno, file, line)
-            return
-        print(f"{prog}: warning: {' '.join(str(message).split())}", file=file or sys.stderr,
-              flush=True)
+        def show(message, category, filename, lineno, file=None, line=None) -> None:
+            if category.__module__.partition(".")[0] != "ocpar":
+                shown(message, category, filename, lineno, file, line)
+                return
+            print(f"{prog}: warning: {' '.join(str(message).split())}",
+                  file=file or sys.stderr, flush=True)
 
-    show.ocpar = shown  # type: ignore[attr-defined]
-    warnings.showwarning = show
+        warnings.showwarning = show
+        yield
 
 
 @functools.cache

@@ -168,14 +168,17 @@ def previous_run_files(options: SchemeRun, out: Path, problem: Any) -> list[Path
     except FileNotFoundError:
         return []
     except (OSError, ValueError) as exc:
+        if options.overwrite:
+            return [out / "result.json"]
         raise ValueError(f"--output {out}: its result.json is unreadable ({exc}); give "
                          "--overwrite to replace it, or another directory") from None
+    summary = summary if isinstance(summary, dict) else {}
     scheme, name = summary.get("scheme"), summary.get("problem")
     if (scheme, name) != (options.scheme, getattr(problem, "name", None)) \
             and not options.overwrite:
         raise ValueError(f"--output {out} holds another run's files (a {scheme} run of "
                          f"{name}); give --overwrite to replace them, or another directory")
-    plots = scheme_class(scheme).plots if scheme in SCHEMES else ()
+    plots = scheme_class(scheme).plots if isinstance(scheme, str) and scheme in SCHEMES else ()
     names = ["result.json", summary.get("arrays"), summary.get("trace_file"), *plots]
     return [out / Path(n).name for n in names if isinstance(n, str) and n]
 
@@ -232,9 +235,9 @@ def run_scheme(options: SchemeRun, given: frozenset[str] | None = None) -> int:
 def main(scheme: type[SchemeRun], argv: Sequence[str] | None = None) -> int:
     """A scheme's command line: parse ``argv`` and run."""
     freeze_objects_at_exit()
-    one_line_warnings(scheme.prog)
     try:
-        options, given = parse_options(scheme, argv)
-        return run_scheme(options, given)
+        with one_line_warnings(scheme.prog):
+            options, given = parse_options(scheme, argv)
+            return run_scheme(options, given)
     except KeyboardInterrupt:  # outside the supersteps (there: run_on_backend says more)
         interrupted(scheme.prog)
