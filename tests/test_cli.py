@@ -116,3 +116,110 @@ def test_a_command_line_process_leaves_its_objects_out_of_the_exit_collections()
     done = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True,
                           timeout=120, check=True)
     assert done.stdout.split()[-2:] == ["True", "0"]
+
+
+def test_a_negative_number_is_an_options_value(capsys):
+    """``--epsilon -1e-6`` reaches the option's own check (argparse before Python 3.13 took
+    -1e-6 for an unknown option); negative values parse in every notation."""
+    from ocpar.cli import OneLineParser
+    from ocpar.driver import parse_options
+    from ocpar.pursuit.run import PursuitRun
+
+    parser = OneLineParser(prog="p")
+    parser.add_argument("--x", type=float)
+    for text, value in (("-1e-6", -1e-6), ("-2", -2.0), ("-.5", -0.5), ("-3.E+2", -300.0),
+                        ("-inf", -math.inf)):
+        assert parser.parse_args(["--x", text]).x == value
+    with pytest.raises(SystemExit) as exit_:
+        parse_options(PursuitRun, ["--epsilon", "-1e-6"])
+    assert exit_.value.code == 2
+    assert capsys.readouterr().err == ("ocpar.pursuit: error: argument --epsilon: expected a "
+                                       "positive finite number, got -1e-06\n")
+
+
+def test_ocpar_warnings_are_one_line_on_the_command_line(monkeypatch, capsys):
+    """A command line shows ocpar's own warnings (the norm squared) as ``prog: warning: ...``
+    alone, other packages' as Python does; in Python the warning names the user's line."""
+    import dataclasses
+    import warnings
+
+    import casadi as ca
+
+    from ocpar.cli import one_line_warnings
+    from ocpar.ocp import DmocShape
+    from ocpar.ocp.constraints import NormSquared, PathConstraint
+
+    monkeypatch.setattr(warnings, "showwarning", warnings.showwarning)
+    norm = PathConstraint(lambda u: ca.norm_2(u), upper=2.0, name="thrust")
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        from ocpar.models import PointMass
+        DmocShape(PointMass(dim=2), path_constraints=(norm,))  # this line
+    assert [w.category for w in caught] == [NormSquared]
+    assert caught[0].filename == __file__   # the user's line, not ocpar's
+    others = []   # what Python's (here: a stand-in's) display of a warning gets
+    monkeypatch.setattr(warnings, "showwarning", lambda message, *args: others.append(message))
+    stand_in = warnings.showwarning
+    with one_line_warnings("ocpar.formation"):
+        warnings.simplefilter("always")
+        dataclasses.replace(DmocShape(PointMass(dim=2)), path_constraints=(norm,))
+        warnings.showwarning("not ocpar's", UserWarning, "user.py", 3)
+    assert capsys.readouterr().err == (
+        "ocpar.formation: warning: path_constraints[0] (thrust): a norm is not "
+        "differentiable at 0; solved exactly as its square (row 0: (sq(u_0)+sq(u_1)) in "
+        "[-inf, 4])\n")
+    assert others == ["not ocpar's"]
+    assert warnings.showwarning is stand_in   # restored on exit
+
+
+def test_ctrl_c_is_one_line_and_keeps_the_checkpoint(tmp_path):
+    """SIGINT to the run's process group (as a terminal's Ctrl-C: the embedded Dask
+    cluster's workers get it too): one line on stderr naming the checkpoint, no worker's
+    traceback, exit status 130, the checkpoint holds the supersteps done."""
+    import os
+    import signal
+
+    from ocpar.cli import EXIT_INTERRUPTED
+
+    checkpoint = tmp_path / "ck"
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "ocpar.macs", "--problem", "goddard", "--max-evals", "1000000",
+         "--backend", "dask", "--workers", "2", "--checkpoint", str(checkpoint)],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=tmp_path,
+        start_new_session=True)
+    lines = [proc.stdout.readline() for _ in range(3)]  # dashboard, description, iteration
+    assert lines[2].startswith("iteration"), lines
+    os.killpg(proc.pid, signal.SIGINT)
+    _, err = proc.communicate(timeout=120)
+    assert proc.returncode == EXIT_INTERRUPTED == 130
+    assert err == (f"ocpar.macs: interrupted (Ctrl-C); the checkpoint {checkpoint} holds every "
+                   f"completed superstep (resume with --resume {checkpoint})\n")
+    assert (checkpoint / "manifest.json").exists()
+    assert len(list(checkpoint.iterdir())) > 1   # supersteps recorded
+
+
+def test_an_output_directory_of_another_run_is_refused_unless_overwrite(tmp_path, capsys):
+    """--output DIR holding another scheme's (or problem's) run: one line, exit 2, nothing
+    touched; with --overwrite that run's files are replaced and its plot removed; a rerun of
+    the same scheme and problem replaces its own files without --overwrite."""
+    from ocpar.driver import main
+    from ocpar.formation.run import FormationRun
+    from ocpar.pursuit.run import PursuitRun
+
+    out = tmp_path / "run"
+    formation = ["--agents", "4", "--radius", "3", "--quiet", "--output", str(out)]
+    assert main(FormationRun, formation) == 0
+    assert main(FormationRun, formation) == 0           # a rerun: its own files replaced
+    before = (out / "result.json").read_text()
+    pursuit = ["--samples", "21", "--window", "11", "--update", "5", "--max-agents", "3",
+               "--certify-samples", "0", "--no-reference", "--quiet", "--output", str(out)]
+    with pytest.raises(SystemExit) as exit_:
+        main(PursuitRun, pursuit)
+    assert exit_.value.code == 2
+    assert capsys.readouterr().err == (
+        f"ocpar.pursuit: error: --output {out} holds another run's files (a formation run of "
+        "point-mass-plane); give --overwrite to replace them, or another directory\n")
+    assert (out / "result.json").read_text() == before
+    main(PursuitRun, [*pursuit, "--overwrite"])
+    assert json.loads((out / "result.json").read_text())["scheme"] == "pursuit"
+    assert (out / "pursuit.png").exists() and not (out / "formation.png").exists()

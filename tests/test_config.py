@@ -263,6 +263,10 @@ def test_overrides_replace_keys_in_place_and_add_new_ones_at_the_end(capsys):
     # CONFIG may also follow the --set items
     assert main(["run", "--set", "agents=8", "formation-60", "--print-argv"]) == 0
     assert "--agents 8" in capsys.readouterr().out
+    # --set repeats: its items add up
+    assert main(["run", "formation-60", "--set", "agents=8", "backend=dask", "--set",
+                 "workers=2", "quiet=true", "--print-argv"]) == 0
+    assert shlex.split(capsys.readouterr().out) == words
 
 
 @pytest.mark.parametrize(
@@ -398,8 +402,8 @@ def test_other_schemes_refuse_out_of_range_values(scheme, text, needle, tmp_path
         (["run", "formation-60", "--set", "agents=1", "--print-argv"],
          "ocpar.formation: error: argument --agents: expected an integer between 2 and "
          "10000000, got 1"),
-        (["run", "formation-60", "--set", "a=1", "--set", "b=2"],
-         "ocpar run: error: option --set is given more than once"),
+        (["run", "formation-60", "--set", "agents=1", "--set", "agents=2"],
+         "ocpar run: error: --set: agents: given more than once"),
         # options after CONFIG are the scheme's: its own parser refuses an unknown one
         (["run", "formation-60", "--bogus"],
          "ocpar.formation: error: unrecognized arguments: --bogus"),

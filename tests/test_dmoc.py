@@ -204,3 +204,27 @@ def test_without_a_running_cost_the_nlp_is_the_control_energy_bit_for_bit():
 def test_a_bad_running_cost_is_one_error_naming_the_field(cost, message):
     with pytest.raises(ValueError, match=message):
         DmocShape(PointMass(), 12, running_cost=cost)
+
+
+def test_the_default_solver_is_chosen_from_the_shapes_constraints():
+    """``solver="auto"`` (the default): newton for equalities only, sqpmethod once a path
+    constraint is added (``dataclasses.replace`` keeps the choice automatic), and a thrust
+    limit then binds; newton asked for explicitly is still refused with inequalities."""
+    import dataclasses
+
+    free = DmocShape(PointMass(), intervals=20)
+    assert (free.solver, free.chosen_solver) == ("auto", "newton")
+    limit = PathConstraint(lambda u: ca.sumsqr(u), upper=10.0**2, name="thrust")
+    limited = dataclasses.replace(free, path_constraints=(limit,))
+    assert (limited.solver, limited.chosen_solver) == ("auto", "sqpmethod")
+    p = np.array([0, 0, 0, 0, 1, 0, 0, 0.0])   # rest to rest over 1 in T = 1
+    unlimited = solve_task(OcpTask(free, p))
+    assert unlimited.cost == pytest.approx(12.0, rel=1e-2)   # 12 d²/T³; peak |u| ≈ 6
+    sol = solve_task(OcpTask(limited, p))
+    assert sol.success and sol.cost == pytest.approx(unlimited.cost, rel=1e-9)  # 10 > 6
+    tight = solve_task(OcpTask(dataclasses.replace(
+        free, path_constraints=(PathConstraint(lambda u: ca.sumsqr(u), upper=5.0**2),)), p))
+    assert tight.success and tight.cost > unlimited.cost + 1e-3   # the limit binds
+    assert np.max(np.linalg.norm(tight.u, axis=-1)) == pytest.approx(5.0, abs=1e-6)
+    with pytest.raises(ValueError, match="newton solver takes equalities only"):
+        DmocShape(PointMass(), solver="newton", path_constraints=(limit,))

@@ -127,8 +127,12 @@ def test_trust_region_is_the_box_that_keeps_far_pairs_apart(dim):
 
 
 def test_newton_refuses_keep_outs():
+    """newton asked for explicitly; the default (auto) takes keep-outs with sqpmethod."""
     with pytest.raises(ValueError, match="equalities only"):
-        DmocShape(PointMass(dim=2), keep_out_slots=2, keep_out_positions=(0, 1))
+        DmocShape(PointMass(dim=2), keep_out_slots=2, keep_out_positions=(0, 1),
+                  solver="newton")
+    assert DmocShape(PointMass(dim=2), keep_out_slots=2,
+                     keep_out_positions=(0, 1)).chosen_solver == "sqpmethod"
 
 
 @pytest.fixture(scope="module")

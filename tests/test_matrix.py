@@ -242,3 +242,33 @@ def test_user_macs_front_is_on_the_closed_form(serial):
     assert excess.min() > -1e-7 and excess.max() < 0.05
     assert np.median(excess) < 1e-3
     assert front[:, 0].min() < 1.1 * 1.02 * np.sqrt(6) and front[:, 0].max() > 4.5
+
+
+def test_a_module_missing_on_the_workers_is_one_line(user_package, tmp_path, cluster):
+    """The user's module importable here but not on the cluster's workers: ``ocpar run
+    --scheduler`` ends with one line naming the module (exit 2) as soon as the first
+    superstep's chunks reach the workers, not a traceback after the lost-worker wait."""
+    import shutil
+    import subprocess
+    import sys
+
+    from conftest import USER_PROBLEMS_PY
+
+    site = tmp_path / "here-only"
+    (site / "herepkg").mkdir(parents=True)
+    (site / "herepkg" / "__init__.py").write_text("")
+    (site / "herepkg" / "problems.py").write_text(USER_PROBLEMS_PY)
+    env = user_environment(user_package)
+    env["PYTHONPATH"] = f"{site}:{env['PYTHONPATH']}"
+    started = time.monotonic()
+    proc = subprocess.run(
+        [sys.executable, "-m", "ocpar.pursuit", "--problem", "herepkg.problems:make_pursuit",
+         "--window", "8", "--update", "4",
+         "--scheduler", cluster, "--quiet", "--output", str(tmp_path / "run")],
+        capture_output=True, text=True, timeout=300, cwd=tmp_path, env=env)
+    assert proc.returncode == 2, proc.stderr
+    assert proc.stderr.count("\n") == 1 and "Traceback" not in proc.stderr, proc.stderr
+    assert proc.stderr.startswith("ocpar.pursuit: error: a worker on ")
+    assert "cannot import module 'herepkg', which the run's tasks need" in proc.stderr
+    assert time.monotonic() - started < 60
+    shutil.rmtree(site)

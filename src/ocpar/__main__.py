@@ -336,11 +336,12 @@ def build_parser() -> OneLineParser:
         "whole [problem_args] table).")
     run_parser.add_argument("config", nargs="?", metavar="CONFIG",
                             help="a TOML file, or an example name such as formation-60")
-    run_parser.add_argument("--set", nargs="+", default=[], dest="overrides",
-                            metavar="KEY=VALUE",
+    run_parser.add_argument("--set", nargs="+", action="extend", default=[],
+                            dest="overrides", metavar="KEY=VALUE",
                             help="override keys of CONFIG; VALUE is a TOML value (workers=2, "
                                  "quiet=true), taken as a string if it is not one "
-                                 "(backend=dask)")
+                                 "(backend=dask); may repeat (--set backend=dask --set "
+                                 "workers=2)")
     run_parser.add_argument("--print-argv", action="store_true",
                             help="check CONFIG, print the equivalent scheme command line and "
                                  "exit")
@@ -364,8 +365,9 @@ def build_parser() -> OneLineParser:
     submit_parser.add_argument("config", metavar="CONFIG",
                                help="a TOML file, or an example name (ocpar run --list)")
     _add_endpoint(submit_parser)
-    submit_parser.add_argument("--set", nargs="+", default=[], dest="overrides",
-                               metavar="KEY=VALUE", help="override keys of CONFIG")
+    submit_parser.add_argument("--set", nargs="+", action="extend", default=[],
+                               dest="overrides", metavar="KEY=VALUE",
+                               help="override keys of CONFIG; may repeat")
     submit_parser.add_argument("--idempotency-key", metavar="KEY",
                                help="(server) a key of this submission: submitted again with "
                                     "the same key, the server returns the first job")

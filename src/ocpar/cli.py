@@ -4,12 +4,15 @@ from __future__ import annotations
 
 import argparse
 import atexit
+import contextlib
 import functools
 import gc
 import os
+import re
 import sys
 import tempfile
-from collections.abc import Callable
+import warnings
+from collections.abc import Callable, Iterator
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any, NoReturn, TypeVar
@@ -24,6 +27,7 @@ from ocpar.bsp import (
     launched_by_mpirun,
     open_backend,
 )
+from ocpar.bsp.channel import UnreadableRequest
 from ocpar.bsp.journal import CheckpointError, Journal
 from ocpar.bsp.mpi import SUPERSTEP_TIMEOUT_S
 from ocpar.options import option, option_specs
@@ -32,6 +36,8 @@ from ocpar.results import EXIT_STATUS
 EXIT_USAGE = 2
 #: Exit status of a run stopped by its stop file (``--stop-file``, ``ocpar cancel``).
 EXIT_CANCELLED = EXIT_STATUS["cancelled"]
+#: Exit status of a run stopped by Ctrl-C (SIGINT), as a shell reports it: 128 + 2.
+EXIT_INTERRUPTED = 130
 #: Most worker processes an embedded Dask cluster may be asked to start.
 MAX_LOCAL_WORKERS = 256
 #: The TLS options (argparse destinations): a client's CA file, certificate and key.
@@ -44,6 +50,8 @@ TLS_GROUP = ("TLS (dask backend; all three together): certificates for a tls:// 
              "to secure the embedded cluster (workers/tls.md)")
 OUTPUT_GROUP = "output"
 R = TypeVar("R")
+#: A command-line token that is a negative number (-2, -.5, -1e-6, -inf), not an option.
+NEGATIVE_NUMBER = re.compile(r"^-(\d+\.?\d*|\.\d+)([eE][-+]?\d+)?$|^-inf(inity)?$", re.I)
 Progress = Callable[[str], None]
 
 
@@ -54,6 +62,9 @@ class OneLineParser(argparse.ArgumentParser):
     def __init__(self, *args, **kwargs) -> None:
         kwargs.setdefault("allow_abbrev", False)
         super().__init__(*args, **kwargs)
+        # a negative number is an option's value, exponent included (--epsilon -1e-6;
+        # argparse before Python 3.13 took -1e-6 for an option)
+        self._negative_number_matcher = NEGATIVE_NUMBER
 
     def parse_args(self, args=None, namespace=None):  # type: ignore[override]
         argv = sys.argv[1:] if args is None else list(args)
@@ -164,8 +175,12 @@ class RuntimeOptions:
         None, "the private key (PEM, unencrypted) of --tls-cert", metavar="PATH",
         group=TLS_GROUP)
     output: str | None = option(
-        None, "write DIR/result.json and the scheme's plots", metavar="DIR",
-        group=OUTPUT_GROUP)
+        None, "write DIR/result.json, the array file, the trace and the scheme's plots; a "
+        "directory holding another run's files (another scheme's or problem's) is refused "
+        "unless --overwrite; a rerun of the same scheme and problem replaces its own",
+        metavar="DIR", group=OUTPUT_GROUP)
+    overwrite: bool = option(False, "let --output DIR replace another run's files (its "
+                             "result.json, array file, trace and plots)", group=OUTPUT_GROUP)
     quiet: bool = option(False, "no progress lines", group=OUTPUT_GROUP)
 
 
@@ -320,6 +335,19 @@ def run_on_backend(
             print(f"{prog}: {exc} (stop file {args.stop_file}){where}", file=sys.stderr,
                   flush=True)
             sys.exit(EXIT_CANCELLED)
+        except KeyboardInterrupt:
+            interrupted(prog, journal)
+        except UnreadableRequest as exc:  # e.g. the user's module missing on the workers
+            fail(prog, str(exc))
+
+
+def interrupted(prog: str, journal: Journal | None = None) -> NoReturn:
+    """Ctrl-C: one line on stderr (where the checkpoint is, which holds every superstep
+    completed: ``--resume DIR`` continues it) and exit status :data:`EXIT_INTERRUPTED`."""
+    where = (f"; the checkpoint {journal.directory} holds every completed superstep (resume "
+             f"with --resume {journal.directory})" if journal is not None else "")
+    print(f"{prog}: interrupted (Ctrl-C){where}", file=sys.stderr, flush=True)
+    sys.exit(EXIT_INTERRUPTED)
 
 
 def run_fingerprint(options: Any, prog: str) -> dict:
@@ -343,6 +371,25 @@ def open_journal(args: argparse.Namespace, prog: str) -> Journal | None:
                        resume=args.resume is not None)
     except CheckpointError as exc:
         fail(prog, str(exc))
+
+
+@contextlib.contextmanager
+def one_line_warnings(prog: str) -> Iterator[None]:
+    """Within: ocpar's own warnings (e.g. :class:`~ocpar.ocp.constraints.NormSquared`) shown
+    as one line, ``prog: warning: message``, without a source line; other packages' warnings
+    as Python shows them (the display restored on exit)."""
+    with warnings.catch_warnings():
+        shown = warnings.showwarning
+
+        def show(message, category, filename, lineno, file=None, line=None) -> None:
+            if category.__module__.partition(".")[0] != "ocpar":
+                shown(message, category, filename, lineno, file, line)
+                return
+            print(f"{prog}: warning: {' '.join(str(message).split())}",
+                  file=file or sys.stderr, flush=True)
+
+        warnings.showwarning = show
+        yield
 
 
 @functools.cache

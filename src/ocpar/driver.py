@@ -18,6 +18,7 @@ plots, and exits with the status's code (:data:`ocpar.results.EXIT_STATUS`).
 
 from __future__ import annotations
 
+import json
 import sys
 import time
 from collections.abc import Sequence
@@ -34,9 +35,12 @@ from ocpar.cli import (
     choose_backend,
     fail,
     freeze_objects_at_exit,
+    interrupted,
+    one_line_warnings,
     prepare_output_dir,
     run_on_backend,
 )
+from ocpar.config import SCHEMES, scheme_class
 from ocpar.options import add_options, option, option_specs, options_from_namespace
 from ocpar.references import REFERENCE, ProblemReferenceError, is_reference, load_problem
 from ocpar.result_files import write_result, write_summary
@@ -63,6 +67,10 @@ class SchemeRun(RuntimeOptions):
     description: ClassVar[str]
     #: the scheme's public problem type(s): what a factory must return
     problem_type: ClassVar[type | tuple[type, ...]]
+    #: the scheme's name (``scheme`` in configurations and result.json)
+    scheme: ClassVar[str]
+    #: the file names of the plots the scheme may write into its output directory
+    plots: ClassVar[tuple[str, ...]]
 
     def validate(self, given: frozenset[str]) -> None:
         """Cross-checks of the options (``given``: the keys set explicitly); raise ValueError
@@ -151,6 +159,30 @@ def checked_problem(options: SchemeRun) -> Any:
     return problem
 
 
+def previous_run_files(options: SchemeRun, out: Path, problem: Any) -> list[Path]:
+    """The files of the run whose ``result.json`` is in ``out``, which this run replaces
+    (none if there is none): its summary, array file, trace and plots. Another run's (of
+    another scheme or problem) raise ValueError (one line) unless ``options.overwrite``."""
+    try:
+        summary = json.loads((out / "result.json").read_text())
+    except FileNotFoundError:
+        return []
+    except (OSError, ValueError) as exc:
+        if options.overwrite:
+            return [out / "result.json"]
+        raise ValueError(f"--output {out}: its result.json is unreadable ({exc}); give "
+                         "--overwrite to replace it, or another directory") from None
+    summary = summary if isinstance(summary, dict) else {}
+    scheme, name = summary.get("scheme"), summary.get("problem")
+    if (scheme, name) != (options.scheme, getattr(problem, "name", None)) \
+            and not options.overwrite:
+        raise ValueError(f"--output {out} holds another run's files (a {scheme} run of "
+                         f"{name}); give --overwrite to replace them, or another directory")
+    plots = scheme_class(scheme).plots if isinstance(scheme, str) and scheme in SCHEMES else ()
+    names = ["result.json", summary.get("arrays"), summary.get("trace_file"), *plots]
+    return [out / Path(n).name for n in names if isinstance(n, str) and n]
+
+
 def run_scheme(options: SchemeRun, given: frozenset[str] | None = None) -> int:
     """Run ``options`` (on MPI, on every rank) and return the exit status; bad input exits 2
     with one line before any worker starts."""
@@ -165,6 +197,7 @@ def run_scheme(options: SchemeRun, given: frozenset[str] | None = None) -> int:
     out = prepare_output_dir(options.output, prog)
     try:
         problem = checked_problem(options)
+        previous = [] if out is None else previous_run_files(options, out, problem)
     except (ProblemReferenceError, ValueError) as exc:
         fail(prog, str(exc))
     built: list[float] = []
@@ -192,6 +225,8 @@ def run_scheme(options: SchemeRun, given: frozenset[str] | None = None) -> int:
         if (age := process_age()) is not None:
             result.timings["total_s"] = age
         write_summary(result, out)
+        for stale in set(previous) - {out / "result.json", *written}:
+            stale.unlink(missing_ok=True)  # the previous run's, which this one did not write
         print("wrote " + ", ".join(str(p) for p in written), flush=True)
     said[0](timings_line(result.all_timings()))
     return result.exit_status
@@ -200,5 +235,9 @@ def run_scheme(options: SchemeRun, given: frozenset[str] | None = None) -> int:
 def main(scheme: type[SchemeRun], argv: Sequence[str] | None = None) -> int:
     """A scheme's command line: parse ``argv`` and run."""
     freeze_objects_at_exit()
-    options, given = parse_options(scheme, argv)
-    return run_scheme(options, given)
+    try:
+        with one_line_warnings(scheme.prog):
+            options, given = parse_options(scheme, argv)
+            return run_scheme(options, given)
+    except KeyboardInterrupt:  # outside the supersteps (there: run_on_backend says more)
+        interrupted(scheme.prog)

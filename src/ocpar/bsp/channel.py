@@ -37,6 +37,25 @@ class ChannelClosed(ConnectionError):
     """The peer closed the channel (e.g. its process is gone)."""
 
 
+class UnreadableRequest(RuntimeError):
+    """A worker could not unpickle a request: a module or class the run's tasks need is
+    missing there (the message names it, and the worker's host)."""
+
+
+def unreadable(exc: Exception) -> UnreadableRequest:
+    """The one-line :class:`UnreadableRequest` of ``exc``, raised unpickling a request on
+    this host."""
+    host = socket.gethostname()
+    if isinstance(exc, ModuleNotFoundError) and exc.name:
+        return UnreadableRequest(
+            f"a worker on {host} cannot import module {exc.name!r}, which the run's tasks "
+            "need: make it importable on every worker (an installed package, PYTHONPATH in "
+            "the workers' environment, or an upload; docs/user-problems.md)")
+    return UnreadableRequest(f"a worker on {host} cannot read the run's tasks "
+                             f"({type(exc).__name__}: {exc}): is the same code installed "
+                             "there?")
+
+
 def send_message(sock: socket.socket, obj: Any) -> int:
     """Send ``obj`` pickled (protocol 5) with its out-of-band buffers as one message; return
     the message's length (bytes, header included)."""
@@ -68,7 +87,8 @@ def _recv_exact(sock: socket.socket, n: int) -> bytearray:
 
 def receive_message(sock: socket.socket) -> tuple[Any, int]:
     """Receive one message sent by :func:`send_message`: its object, unpickled, and its
-    length (bytes, header included)."""
+    length (bytes, header included). The whole message is read before it is unpickled, so an
+    object that does not unpickle (its exception raised) leaves the channel usable."""
     (count,) = _COUNT.unpack(_recv_exact(sock, _COUNT.size))
     lengths = struct.unpack(f"!{count}Q", _recv_exact(sock, 8 * count))
     payload = memoryview(_recv_exact(sock, sum(lengths)))  # every frame in one read
@@ -109,7 +129,13 @@ class ChannelServer:
             if self._ssl_context is not None:
                 sock = self._ssl_context.wrap_socket(sock, server_side=True)
             while True:
-                (function, args), _ = receive_message(sock)
+                try:
+                    (function, args), _ = receive_message(sock)
+                except (OSError, EOFError):
+                    raise
+                except Exception as exc:  # e.g. a user's module missing on this worker
+                    send_message(sock, (False, unreadable(exc)))
+                    continue
                 with SOLVE_LOCK:
                     try:
                         reply: tuple[bool, Any] = (True, function(*args))

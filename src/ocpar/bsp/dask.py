@@ -46,9 +46,12 @@ import dataclasses
 import gc
 import itertools
 import os
+import signal
 import sys
+import threading
 import time
 import uuid
+from collections.abc import Iterator
 from typing import Any
 
 from ocpar.bsp.backend import Backend, BackendError
@@ -165,6 +168,22 @@ def connect_client(scheduler: str, security: Any = None, timeout_s: float = 10.0
     raise error
 
 
+
+@contextlib.contextmanager
+def sigint_left_to_this_process() -> Iterator[None]:
+    """Within (on the main thread): SIGINT ignored, so that the embedded cluster's worker
+    processes started here inherit that and Ctrl-C, which a terminal sends to the whole
+    process group, is this process's alone (one line, the cluster closed in order) instead
+    of a traceback from every worker. This process's handler is restored on exit."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    previous = signal.signal(signal.SIGINT, signal.SIG_IGN)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, previous)
+
 class DaskBackend(Backend):
     """Workers of a Dask cluster (embedded ``LocalCluster`` or an existing scheduler)."""
 
@@ -213,17 +232,18 @@ class DaskBackend(Backend):
                     security = embedded_cluster_security(security)
                     tls = {"security": security, "protocol": "tls://"}
                 try:
-                    self._cluster = LocalCluster(
-                        n_workers=n,
-                        threads_per_worker=1,
-                        processes=True,
-                        dashboard_address=":0",
-                        env=WORKER_ENV,
-                        # import the transcriptions (CasADi, SciPy: ~0.3 s) when a worker
-                        # starts, as MPI ranks do, not in the first superstep
-                        preload=list(WORKER_PRELOAD),
-                        **tls,
-                    )
+                    with sigint_left_to_this_process():
+                        self._cluster = LocalCluster(
+                            n_workers=n,
+                            threads_per_worker=1,
+                            processes=True,
+                            dashboard_address=":0",
+                            env=WORKER_ENV,
+                            # import the transcriptions (CasADi, SciPy: ~0.3 s) when a worker
+                            # starts, as MPI ranks do, not in the first superstep
+                            preload=list(WORKER_PRELOAD),
+                            **tls,
+                        )
                 except OSError as exc:  # e.g. ssl.SSLError: a certificate that does not load
                     if not tls:
                         raise

@@ -36,6 +36,8 @@ class FormationRun(SchemeRun, FormationOptions):
     :class:`~ocpar.formation.FormationOptions` and where it runs."""
 
     prog: ClassVar[str] = "ocpar.formation"
+    scheme: ClassVar[str] = "formation"
+    plots: ClassVar[tuple[str, ...]] = ("formation.png",)
     description: ClassVar[str] = (
         "Hierarchical formation reconfiguration (the paper's 60 point masses by default): "
         "an outer solver over the final angles (projected Newton by default, or the paper's "

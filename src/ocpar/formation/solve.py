@@ -48,7 +48,7 @@ from ocpar.formation.verify import (
     verify_checked,
     verify_formation,
 )
-from ocpar.ocp.batch import SOLVERS
+from ocpar.ocp.batch import AUTO_SOLVER, SOLVERS
 from ocpar.options import numbers, option
 
 MODES = ("hierarchical", "monolithic")
@@ -83,8 +83,9 @@ class FormationOptions:
     (:func:`ocpar.formation.slot_assignment.assign_slots`, ``slot_candidates``). ``offset``
     relies on the circle's symmetry: :func:`solve_formation` refuses it (ValueError) on other
     curves. ``inner_solver``
-    (``sqpmethod`` or ``ipopt``, see :mod:`ocpar.ocp.batch`) replaces the problem's
-    ``DmocShape.solver`` for this solve; None keeps it. ``min_separation`` D (length unit):
+    (``newton``, ``sqpmethod``, ``ipopt`` or ``auto``: ``DmocShape.chosen_solver``, see
+    :mod:`ocpar.ocp.batch`) replaces the problem's ``DmocShape.solver`` for this solve; None
+    keeps it. ``min_separation`` D (length unit):
     hierarchical, after the outer solve, separation rounds of keep-out DMOC
     solves (:mod:`ocpar.formation.keep_out.rounds`, at most ``separation_rounds`` supersteps) keep
     every pair ≥ D apart on the continuous paths, or the result's status is
@@ -127,9 +128,13 @@ class FormationOptions:
                                   "the formation), doubled until doubling finds no cheaper "
                                   "assignment; the assignment is exact over them", low=1)
     inner_solver: str | None = option(
-        None, "inner DMOC solver: sqpmethod (a chunk in one mapped call, IPOPT for the solves "
-        "that fail its KKT check) or ipopt (one IPOPT call per agent); default: the problem's "
-        "DmocShape.solver (sqpmethod unless it says otherwise)", choices=SOLVERS)
+        None, "inner DMOC solver: newton (Newton steps on a chunk's KKT systems in one "
+        "compiled call; equalities only), sqpmethod (a chunk in one mapped call; both with "
+        "IPOPT for the solves that fail their KKT check), ipopt (one IPOPT call per agent) or "
+        "auto; default: the problem's DmocShape.solver, auto unless it says otherwise: "
+        "newton for inner problems of equalities only, sqpmethod for those with "
+        "inequalities (thrust limits and other path constraints, obstacles)",
+        choices=(AUTO_SOLVER, *SOLVERS))
     min_separation: float | None = option(
         None, "keep every pair of agents at least this far apart at all times of the "
         "continuous paths (the model's length unit): separation rounds of keep-out DMOC "

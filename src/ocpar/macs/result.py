@@ -215,9 +215,21 @@ class MacsResult(RunResult):
             f"evaluations, {self.iterations} iterations, {self.supersteps} supersteps "
             f"({self.failed_searches} infeasible searches rejected)\n"
             f"{self.refinement()}"
-            f"{self.quality()}\n"
+            f"{self.quality()}{self.hv_scale()}\n"
             f"wall time {self.wall_time_s:.2f} s on {self.workers} {self.backend} worker(s)"
         )
+
+    def hv_scale(self) -> str:
+        """What HV is measured in, for the summary: each objective scaled to ideal 0 and nadir
+        1 (of the reference front, or the front found), up to the reference point 1.1 in
+        each, so the ideal point alone would give 1.1^m (1.21 for two objectives) and a good
+        front exceeds 1."""
+        if self.hv is None:
+            return ""
+        m = len(self.objective_names)
+        box = "reference front's" if self.reference_front is not None else "front's own"
+        return (f"   (HV of the objectives scaled to the {box} ideal 0 and nadir 1, up to "
+                f"1.1 in each: the ideal point would give 1.1^{m} = {1.1 ** m:.4g})")
 
     def refinement(self) -> str:
         """The final refinement as one line (empty without it)."""

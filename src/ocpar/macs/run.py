@@ -28,6 +28,8 @@ class MacsRun(SchemeRun, MacsSettings):
     :class:`~ocpar.macs.MacsSettings` and where it runs."""
 
     prog: ClassVar[str] = "ocpar.macs"
+    scheme: ClassVar[str] = "macs"
+    plots: ClassVar[tuple[str, ...]] = ("front.png", "controls.png")
     description: ClassVar[str] = (
         "MACSoc: multi-objective optimal control by multi-agent collaborative search on a DFET "
         "transcription; the agents' local searches run in parallel.")

@@ -40,6 +40,8 @@ import numpy as np
 #: or ``sqpmethod`` (:class:`MappedNlp`), both batched with IPOPT as fallback, or ``ipopt`` (one
 #: IPOPT call per task).
 SOLVERS = ("newton", "sqpmethod", "ipopt")
+#: A shape's default solver: chosen from its constraints (``DmocShape.chosen_solver``).
+AUTO_SOLVER = "auto"
 
 #: Columns per mapped call at most (larger chunks are split): bounds the compiled map's size.
 MAX_COLUMNS = 256

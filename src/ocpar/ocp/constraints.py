@@ -35,6 +35,9 @@ from __future__ import annotations
 
 import inspect
 import math
+import os
+import sys
+import sysconfig
 import warnings
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
@@ -190,10 +193,23 @@ def _square_norms(compiled: CompiledFunction, lower: tuple[float, ...],
     if not squared:
         return compiled.serialized, tuple(lower), tuple(upper)
     warnings.warn(f"{label}: a norm is not differentiable at 0; solved exactly as its "
-                  f"square ({'; '.join(squared)})", NormSquared, stacklevel=4)
+                  f"square ({'; '.join(squared)})", NormSquared, stacklevel=_outside_ocpar())
     serialized = ca.Function("c", symbols, [ca.vertcat(*rows)], list(compiled.arguments),
                              ["c"]).serialize()
     return serialized, tuple(lower), tuple(upper)
+
+
+def _outside_ocpar() -> int:
+    """The ``stacklevel`` that makes a warning issued by this function's caller name the
+    first frame of the user's code: outside the ocpar package, the standard library (e.g.
+    ``dataclasses.replace``) and generated code (a dataclass's ``__init__``)."""
+    inside = (os.path.dirname(os.path.dirname(os.path.abspath(__file__))),
+              os.path.abspath(sysconfig.get_paths()["stdlib"]))
+    frame, level = sys._getframe(1), 1
+    while frame is not None and (frame.f_code.co_filename.startswith("<") or os.path.abspath(
+            frame.f_code.co_filename).startswith(inside)):
+        frame, level = frame.f_back, level + 1
+    return level
 
 
 def _norm_row(row: ca.SX) -> tuple[ca.SX, float] | None:

@@ -102,7 +102,7 @@ import numpy as np
 
 from ocpar.bsp.columns import LISTED, SHARED, STACKED, VALUES, Columns
 from ocpar.models.mechanical import MechanicalSystem
-from ocpar.ocp.batch import SOLVERS, KktNewton, MappedNlp, kkt_met, kkt_residuals
+from ocpar.ocp.batch import AUTO_SOLVER, SOLVERS, KktNewton, MappedNlp, kkt_met, kkt_residuals
 from ocpar.ocp.constraints import (
     CompiledConstraint,
     CompiledFunction,
@@ -151,12 +151,15 @@ class DmocShape:
     """Everything that fixes the structure of a DMOC NLP (the solver-cache key).
 
     ``duration`` is T in the model's time unit; ``intervals`` is N. ``solver`` (see
-    :mod:`ocpar.ocp.batch`): ``newton`` (the default, by measurement: a chunk of tasks in one
-    compiled call of Newton steps on the KKT system, ~0.012 ms per point-mass solve and
-    ~0.8 ms per rigid spacecraft), ``sqpmethod`` (one mapped ``sqpmethod``/``qrqp`` call,
+    :mod:`ocpar.ocp.batch`): ``newton`` (a chunk of tasks in one compiled call of Newton
+    steps on the KKT system, ~0.012 ms per point-mass solve and ~0.8 ms per rigid
+    spacecraft; equalities only), ``sqpmethod`` (one mapped ``sqpmethod``/``qrqp`` call,
     ~0.05 / 1.7 ms), both with IPOPT for the tasks whose KKT check fails, or ``ipopt`` (one
-    IPOPT call per task, ~0.5 / 1.5 ms). ``kkt_tol`` is the batched solvers' stopping
-    tolerance on the (unscaled) primal and dual residuals and their acceptance test;
+    IPOPT call per task, ~0.5 / 1.5 ms); ``auto`` (the default) is :attr:`chosen_solver`:
+    ``newton`` (the fastest, by measurement) for a shape of equalities only, ``sqpmethod``
+    for one with inequalities (path constraints, keep-out slots, obstacles). ``kkt_tol`` is
+    the batched solvers' stopping tolerance on the (unscaled) primal and dual residuals and
+    their acceptance test;
     ``tol`` is IPOPT's (scaled). With 1e-10 a point-mass QP takes one sqpmethod iteration
     instead of two (at 1e-12 the second only meets rounding), and its cost agrees with
     IPOPT's to ~1e-13. ``keep_out_slots`` K and ``keep_out_positions`` (d configuration
@@ -179,7 +182,7 @@ class DmocShape:
     duration: float = 1.0
     tol: float = 1e-12
     max_iter: int = 500
-    solver: str = "newton"
+    solver: str = AUTO_SOLVER
     kkt_tol: float = 1e-10
     keep_out_slots: int = 0
     keep_out_positions: tuple[int, ...] = ()
@@ -204,9 +207,9 @@ class DmocShape:
             raise ValueError(f"DMOC needs at least 1 interval, got {self.intervals}")
         if not self.duration > 0:
             raise ValueError(f"DMOC duration must be > 0, got {self.duration}")
-        if self.solver not in SOLVERS:
+        if self.solver not in (AUTO_SOLVER, *SOLVERS):
             raise ValueError(f"unknown DMOC solver {self.solver!r}; choose one of "
-                             f"{', '.join(SOLVERS)}")
+                             f"{AUTO_SOLVER}, {', '.join(SOLVERS)}")
         if self.keep_out_slots < 0:
             raise ValueError(f"keep_out_slots must be ≥ 0, got {self.keep_out_slots}")
         positions = self.keep_out_positions
@@ -219,10 +222,10 @@ class DmocShape:
             raise ValueError("keep_out_positions needs keep_out_slots > 0")
         if self.keep_out_slots and self.solver == "newton":
             raise ValueError("keep-out half-spaces are inequalities: the newton solver takes "
-                             "equalities only; choose sqpmethod or ipopt")
+                             "equalities only; choose sqpmethod, ipopt or auto (the default)")
         if self.path_constraints and self.solver == "newton":
             raise ValueError("solver: path constraints are inequalities and the newton solver "
-                             "takes equalities only; choose sqpmethod or ipopt")
+                             "takes equalities only; choose sqpmethod, ipopt or auto (the default)")
         self._check_obstacles()
         model_intervals = getattr(self.model, "intervals", None)
         if model_intervals is not None and model_intervals != self.intervals:
@@ -249,7 +252,17 @@ class DmocShape:
         object.__setattr__(self, "obstacle_positions", tuple(int(i) for i in positions))
         if self.solver == "newton":
             raise ValueError("solver: obstacles are inequalities and the newton solver takes "
-                             "equalities only; choose sqpmethod or ipopt")
+                             "equalities only; choose sqpmethod, ipopt or auto (the default)")
+
+    @property
+    def chosen_solver(self) -> str:
+        """The solver this shape's NLPs are solved with: ``solver``, or for ``auto``
+        ``newton`` where the NLP has equalities only and ``sqpmethod`` where it has
+        inequalities (path constraints, keep-out slots, obstacles)."""
+        if self.solver != AUTO_SOLVER:
+            return self.solver
+        inequalities = self.path_constraints or self.keep_out_slots or self.obstacles
+        return "sqpmethod" if inequalities else "newton"
 
     @property
     def n_keep_out(self) -> int:
@@ -555,10 +568,10 @@ class DmocTranscription:
     def batch_solver(self) -> KktNewton | MappedNlp | None:
         """The batched solver of this shape (None when its ``solver`` is ``ipopt``)."""
         w, p = self._w, self._p
-        if self.shape.solver == "newton":  # DmocShape refuses it with keep-out slots
+        if self.shape.chosen_solver == "newton":  # DmocShape refuses it with keep-out slots
             return KktNewton("dmoc", w, p, self.cost(w, p), self.constraints(w, p), 1,
                              self.shape.kkt_tol, post=self.end_hessian)
-        if self.shape.solver != "sqpmethod":
+        if self.shape.chosen_solver != "sqpmethod":
             return None
         return MappedNlp("dmoc_sqp", w, p, self.cost(w, p), self.constraints(w, p),
                          self.shape.kkt_tol, self.shape.max_iter, self.shape.kkt_tol,

@@ -192,8 +192,9 @@ class PursuitResult(RunResult):
         ref = ("" if self.reference_headline is None
                else f"   (full-horizon MS: {self.reference_headline:.6f}{unit})")
         checks = "".join(f", {name} {value:.4g}" for name, value in self.rk_checks.items())
-        figures = (f"{self.headline_name} {self.headline:.6f}{unit}, {self.cost_key} "
-                   f"{self.cost:.6f}" if self.converged
+        cost = (f", {self.cost_key} {self.cost:.6f}" if self.headline_key != self.cost_key
+                else "")  # the cost only where the headline is another figure
+        figures = (f"{self.headline_name} {self.headline:.6f}{unit}{cost}" if self.converged
                    else f"{self.headline_name} — {self.not_reached()}")
         if self.result_source == "full_horizon":
             ref += (f"\nreturned: the full-horizon MS from the train's trajectory; the train's "

@@ -32,6 +32,8 @@ class PursuitRun(SchemeRun, PursuitSettings):
     :class:`~ocpar.pursuit.PursuitSettings`, the mode and where it runs."""
 
     prog: ClassVar[str] = "ocpar.pursuit"
+    scheme: ClassVar[str] = "pursuit"
+    plots: ClassVar[tuple[str, ...]] = ("pursuit.png", "convergence.png")
     description: ClassVar[str] = (
         "Pursuit-based multiple shooting (PBMS) on the paper's orbit transfer: a train of "
         "agents, each intercepting its predecessor; agents in flight solve in parallel.")
