@@ -412,7 +412,7 @@ def test_a_dropped_candidate_is_said_and_not_listed(monkeypatch):
     to refuse the cheapest candidate, that candidate is not listed, the progress output and
     the status line say one was dropped, and the answer is the next cheapest."""
     problem = make_surface(surface="ellipsoid")
-    options = FormationOptions(ordering="optimal", critical="any")
+    options = FormationOptions(ordering="optimal", critical="any", critical_saturation=0)
     honest = solve_formation(problem, options=options)
     assert all(c["tangential_gradient"] <= 1e-8 for c in honest.critical_sets)
     refused = honest.critical_sets[0]["potential"]

@@ -121,8 +121,12 @@ class FormationOptions:
     critical_starts: int = option(CRITICAL_STARTS, "off a circle, with --ordering optimal: "
                                   "random starts of the search for the coupling's solution "
                                   "sets, besides the initial guess, at least; more until "
-                                  f"{SATURATION_STARTS} consecutive starts find no new set "
-                                  f"(at most {MAX_CRITICAL_STARTS})", low=1)
+                                  "--critical-saturation consecutive starts find no new "
+                                  f"set (at most {MAX_CRITICAL_STARTS})", low=1)
+    critical_saturation: int = option(SATURATION_STARTS, "off a circle, with --ordering "
+                                      "optimal: the search for the coupling's solution sets "
+                                      "ends once this many consecutive starts found no new "
+                                      "set (0: after --critical-starts exactly)", low=0)
     slot_candidates: int = option(SLOT_CANDIDATES, "onto slots: candidate slots per agent to "
                                   "begin with (its nearest to its start and to its place in "
                                   "the formation), doubled until doubling finds no cheaper "
@@ -351,7 +355,7 @@ def discrete_choice(problem: FormationProblem, choice: IsolatedChoice | SlotChoi
                 "critical_sets": [s.to_dict() for s in choice.sets],
                 "note": (f"; the best of {len(choice.sets)} critical set(s) found from "
                          f"{choice.starts} start(s)"
-                         + (f" (the last {SATURATION_STARTS} found no new one)"
+                         + (f" (the last {choice.saturation} found no new one)"
                             if choice.saturated else " (the search had not saturated)")
                          + ", each with its cheapest assignment"
                          + (" and rotation" if feasible_set == "continuous" else "")
@@ -436,7 +440,7 @@ def solve_formation(
         elif options.ordering == "optimal":
             choice = best_isolated_formation(problem, backend, options.critical,
                                              options.critical_starts, progress,
-                                             options.outer_tol)
+                                             options.outer_tol, options.critical_saturation)
             phi0, ordering_solves, chosen = choice.phi, choice.inner_solves, "ordering optimal"
     except InnerSolveFailed as exc:   # no assignment with every agent feasible: no answer
         n, shape = problem.agents, problem.common_shape

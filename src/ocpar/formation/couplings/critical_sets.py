@@ -155,7 +155,7 @@ class IsolatedChoice:
     (rad); ``total_cost`` there; ``sets`` every distinct critical set found and verified,
     cheapest first; ``starts`` the searches run (the initial guess's included; those that did
     not converge or were not stable are ``starts`` − Σ hits − the dropped sets' hits),
-    ``saturated`` whether the last :data:`SATURATION_STARTS` of them found no new set;
+    ``saturated`` whether the last ``saturation`` of them found no new set;
     ``inner_solves`` M n² and the rotation searches'; ``dropped`` the sets whose returned
     points failed :func:`_verify`."""
 
@@ -164,6 +164,7 @@ class IsolatedChoice:
     sets: list[CriticalSet]
     starts: int
     saturated: bool
+    saturation: int
     inner_solves: int
     dropped: int = 0
 
@@ -333,19 +334,23 @@ def _same_set(problem: FormationProblem, a: np.ndarray, b: np.ndarray) -> bool:
 def best_isolated_formation(problem: FormationProblem, backend: Backend,
                             critical: str = "stable", starts: int = CRITICAL_STARTS,
                             progress: Callable[[str], None] | None = None,
-                            tol: float = 1e-12) -> IsolatedChoice:
+                            tol: float = 1e-12, saturation: int = SATURATION_STARTS
+                            ) -> IsolatedChoice:
     """The cheapest critical set and assignment (module docstring): the sets on the
-    coordinator, their cost tables in one superstep; on a surface whose sets have free
-    directions (a sphere's rotations) each set's assignment alternated with the outer Newton
-    solve over them (:func:`_rotate`, tolerance ``tol``). Infeasible pairs are +∞ in the
-    tables; a set with no assignment of feasible pairs is no candidate. Raises
+    coordinator (``starts`` random starts at least, then until ``saturation`` in a row find
+    no new set: :func:`critical_sets`), their cost tables in one superstep; on a surface
+    whose sets have free directions (a sphere's rotations) each set's assignment alternated
+    with the outer Newton solve over them (:func:`_rotate`, tolerance ``tol``). Infeasible
+    pairs are +∞ in the tables; a set with no assignment of feasible pairs is no candidate.
+    Raises
     :class:`~ocpar.formation.hierarchical.InnerSolveFailed` if no set has one, and
     ValueError on a circle (its feasible set is continuous:
     :func:`~ocpar.formation.ordering.optimal_ordering`) or when no search converged."""
     if not isinstance(problem.curve, Surface) and problem.curve.rotation_invariant:
         raise ValueError("best_isolated_formation is for curves whose coupling has isolated "
                          "solutions; on a circle use optimal_ordering")
-    sets, failed, made, saturated = critical_sets(problem, critical, starts)
+    sets, failed, made, saturated = critical_sets(problem, critical, starts,
+                                                  saturation=saturation)
     if not sets:
         raise ValueError(f"no critical set of the potential found from {made} starts "
                          f"(reading {critical!r})")
@@ -386,7 +391,7 @@ def best_isolated_formation(problem: FormationProblem, backend: Backend,
                  f"({failed} not converged or not stable, {len(dropped)} dropped by the check "
                  f"from their points); costs " + ", ".join(f"{s.total_cost:.9e}" for s in sets))
     return IsolatedChoice(best.returned(), float(best.total_cost), sets, made, saturated,
-                          solves, len(dropped))
+                          saturation, solves, len(dropped))
 
 
 def _rotate(problem: FormationProblem, backend: Backend, phi: np.ndarray, tol: float
