@@ -311,6 +311,7 @@ def create_app(settings: Settings) -> FastAPI:
             shutil.rmtree(path, ignore_errors=True)
             response.status_code = 200
             return record(earlier)
+        runner.wake.set()
         return record(store.job(job_id))
 
     @app.get("/jobs", response_model=JobList, tags=["jobs"], summary="the caller's jobs",
@@ -410,6 +411,7 @@ def create_app(settings: Settings) -> FastAPI:
         if not store.update(job_id, only_if=("cancelled", "failed"), state="queued", resume=1,
                             reason=None, finished=None, stop_reason=None):
             raise HTTPException(409, f"job {job_id} changed state; try again")
+        runner.wake.set()
         return record(store.job(job_id))
 
     @app.get("/", include_in_schema=False)

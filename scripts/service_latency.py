@@ -1,0 +1,121 @@
+"""How fast ``ocpar serve`` answers: its start time, and POST → ``succeeded`` of a 12-agent
+formation job (``formation-60`` with agents=12) one at a time and 20 at once, on its default
+backend (the embedded Dask cluster of 2 workers), quiet and with CPU burners; writes JSON.
+
+::
+
+    python scripts/service_latency.py --output latency.json [--load 0 2] [--repeat 10]
+
+Start time: from launching ``python -m ocpar serve`` to its first answer (``/openapi.json``).
+A job's latency: from sending its POST to the first ``GET /jobs/ID`` (polled every 20 ms)
+that says ``succeeded``. The first job of a server (the workers build their inner solvers)
+is a warm-up, reported apart.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import statistics
+import sys
+import threading
+import time
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+from concurrent_jobs import (
+    cpu_load,
+    issue_tokens,
+    machine,
+    ocpar_serve,
+)
+
+JOB = {"config": "formation-60", "set": {"agents": 12}}
+
+
+def percentile(values: list[float], q: float) -> float:
+    """The ``q`` quantile (0..1) of ``values``, by linear interpolation."""
+    ordered = sorted(values)
+    position = q * (len(ordered) - 1)
+    low = int(position)
+    high = min(low + 1, len(ordered) - 1)
+    return ordered[low] + (ordered[high] - ordered[low]) * (position - low)
+
+
+def one_job(client, started: float | None = None) -> tuple[float, str]:
+    """POST :data:`JOB` and poll it to its end: (seconds, final state)."""
+    t0 = time.perf_counter() if started is None else started
+    response = client.post("/jobs", json=JOB)
+    response.raise_for_status()
+    job = response.json()["id"]
+    while True:
+        state = client.get(f"/jobs/{job}").json()["state"]
+        if state in ("succeeded", "failed", "cancelled"):
+            return time.perf_counter() - t0, state
+        time.sleep(0.02)
+
+
+def measure(workdir: Path, load: int, repeat: int, concurrent: int) -> dict:
+    import httpx
+
+    state = workdir / f"load{load}" / "state"
+    token = issue_tokens(state, 1, None)["t0"]
+    with cpu_load(load):
+        t0 = time.perf_counter()
+        with ocpar_serve(state) as url:
+            start_s = time.perf_counter() - t0
+            headers = {"Authorization": f"Bearer {token}"}
+            with httpx.Client(base_url=url, headers=headers, timeout=120) as client:
+                first, _ = one_job(client)
+                single = [one_job(client) for _ in range(repeat)]
+            results: list[tuple[float, str]] = []
+            go = threading.Barrier(concurrent)
+
+            def submit() -> None:
+                with httpx.Client(base_url=url, headers=headers, timeout=120) as client:
+                    go.wait()
+                    results.append(one_job(client))
+
+            threads = [threading.Thread(target=submit) for _ in range(concurrent)]
+            for thread in threads:
+                thread.start()
+            for thread in threads:
+                thread.join()
+    one = [s for s, _ in single]
+    many = [s for s, _ in results]
+    return {"cpu_burners": load, "server_start_s": round(start_s, 3),
+            "first_job_s": round(first, 3),
+            "one_at_a_time": {"jobs": repeat, "succeeded": sum(s == "succeeded"
+                                                              for _, s in single),
+                              "p50_s": round(statistics.median(one), 3),
+                              "p95_s": round(percentile(one, 0.95), 3)},
+            "at_once": {"jobs": concurrent, "succeeded": sum(s == "succeeded"
+                                                            for _, s in results),
+                        "p50_s": round(statistics.median(many), 3),
+                        "p95_s": round(percentile(many, 0.95), 3),
+                        "max_s": round(max(many), 3)}}
+
+
+def main(argv: list[str] | None = None) -> int:
+    import tempfile
+
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--output", required=True, help="the JSON report")
+    parser.add_argument("--load", type=int, nargs="+", default=[0, 2],
+                        help="CPU burners of each measurement (default 0 2)")
+    parser.add_argument("--repeat", type=int, default=10, help="jobs one at a time")
+    parser.add_argument("--concurrent", type=int, default=20, help="jobs at once")
+    args = parser.parse_args(argv)
+    report = {"job": JOB, "machine": machine(), "runs": []}
+    with tempfile.TemporaryDirectory() as tmp:
+        for load in args.load:
+            figures = measure(Path(tmp), load, args.repeat, args.concurrent)
+            print(json.dumps(figures), flush=True)
+            report["runs"].append(figures)
+    Path(args.output).write_text(json.dumps(report, indent=1) + "\n")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
