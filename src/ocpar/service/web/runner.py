@@ -59,6 +59,7 @@ class Settings:
     max_running: int = 2           # jobs running at once, over all tokens
     allow_problem: tuple[str, ...] = ()  # fnmatch patterns of module:factory references
     grace: float = 30.0            # s between a wall-time stop request and the kill
+    max_job_memory: int | None = None  # bytes a job's estimate may reach (None: no limit)
     poll: float = 0.2              # s between the supervisor's rounds
 
 
