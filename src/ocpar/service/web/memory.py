@@ -4,7 +4,7 @@
 problem size: a process's base (the interpreter, CasADi, the scheme's solvers) and a cost
 per unit of size, both measured on serial runs (one process holds everything: an upper bound
 for a process of a distributed run) by ``scripts/job_memory.py`` on this project's machine
-(Linux, x86-64, Python 3.12):
+(Linux, x86-64, Python 3.11):
 
 * formation: 111 MiB at 2 agents, 128 MiB at 10,000 and 238 MiB at 40,000 (3.8 KB per
   agent; on ``mpirun -n 2`` 1,000,000 agents peak at 2.6 GB in the largest process);
