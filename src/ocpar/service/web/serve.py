@@ -69,9 +69,10 @@ def register(commands: Any) -> None:
         "serve", prog=PROG, help="run the HTTP job API and its page",
         description="Serve the HTTP job API (and the page of jobs at /) on HOST:PORT, running "
         "jobs on an embedded Dask cluster of --workers processes (default), an existing one "
-        "(--scheduler), mpirun -n WORKERS (--backend mpi) or one process each (--backend "
-        "serial). Jobs and tokens live in --state-dir; jobs left running by a stopped server "
-        "resume from their checkpoints when it starts again.")
+        "(--scheduler), mpirun -n WORKERS (--backend mpi) or serially (--backend serial); "
+        "on Dask and serially each job runs in one of --max-running warm processes (imported "
+        "once, one job at a time). Jobs and tokens live in --state-dir; jobs left running by "
+        "a stopped server resume from their checkpoints when it starts again.")
     add_state_dir(parser, None)
     parser.add_argument("--host", default="127.0.0.1",
                         help="address to bind (default 127.0.0.1: this host only)")

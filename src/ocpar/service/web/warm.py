@@ -202,21 +202,23 @@ def _schemes() -> dict[str, Any]:
     return {f"ocpar.{scheme}": scheme_class(scheme) for scheme in SCHEMES}
 
 
-#: Small runs of each scheme that a runner makes, serially, before its first job.
-WARM_UP = {"ocpar.formation": ["--agents", "4"], "ocpar.pursuit": [],
-           "ocpar.macs": ["--max-evals", "60"]}
+#: The small run a runner makes, serially, before its first job (0.3 s to 1 s).
+WARM_UP = ("ocpar.formation", ["--agents", "12"])
 
 
 def warm_up(schemes: dict[str, Any]) -> None:
-    """Run :data:`WARM_UP` in a temporary directory, so that what a run imports and loads on
-    its way (plots and their fonts, the array file, the examples) is loaded before the first
-    job; their output goes to the runner's log."""
+    """Make the run :data:`WARM_UP` in a temporary directory and import the other schemes'
+    plots, so that what a run imports and loads on its way (Matplotlib and its fonts, the
+    array file) is loaded before the first job; its output goes to the runner's log."""
     import tempfile
 
+    import ocpar.macs.plot
+    import ocpar.pursuit.plot  # noqa: F401
+
+    module, argv = WARM_UP
     with tempfile.TemporaryDirectory(prefix="ocpar-warm-") as tmp:
-        for module, argv in WARM_UP.items():
-            run_job(schemes, {"dir": tmp, "module": module, "argv": [
-                *argv, "--backend", "serial", "--quiet", "--output", f"{tmp}/{module}"]})
+        run_job(schemes, {"dir": tmp, "module": module, "argv": [
+            *argv, "--backend", "serial", "--quiet", "--output", f"{tmp}/output"]})
 
 
 def run_job(schemes: dict[str, Any], request: dict[str, Any]) -> int:
@@ -227,8 +229,8 @@ def run_job(schemes: dict[str, Any], request: dict[str, Any]) -> int:
 
     path = Path(request["dir"])
     here = os.getcwd()
-    saved = os.dup(1), os.dup(2)
     out = os.open(path / "log.txt", os.O_WRONLY | os.O_APPEND | os.O_CREAT, 0o644)
+    saved = os.dup(1), os.dup(2)
     _flush()
     os.dup2(out, 1)
     os.dup2(out, 2)
@@ -294,7 +296,12 @@ def main(argv: list[str] | None = None) -> int:
     print(json.dumps({"ready": True}), file=replies)
     for line in sys.stdin:
         if line.strip():
-            print(json.dumps({"exit": run_job(schemes, json.loads(line))}), file=replies)
+            try:
+                code = run_job(schemes, json.loads(line))
+            except Exception:  # e.g. the job's directory is gone: its log cannot be opened
+                traceback.print_exc()
+                code = 1
+            print(json.dumps({"exit": code}), file=replies)
     return 0
 
 
