@@ -78,8 +78,9 @@ class WarmRunner:
         self.job: WarmJob | None = None
         self._answers: list[int] = []
         self._lock = threading.Lock()
-        threading.Thread(target=self._read, name=f"ocpar-runner-{self.proc.pid}",
-                         daemon=True).start()
+        self._reader = threading.Thread(target=self._read, daemon=True,
+                                        name=f"ocpar-runner-{self.proc.pid}")
+        self._reader.start()
 
     def _read(self) -> None:
         assert self.proc.stdout is not None
@@ -132,6 +133,7 @@ class WarmRunner:
         if code is None:
             return None
         self.proc.wait()
+        self._reader.join(5)  # the rest of its output read
         with self._lock:  # an answer that came just before the exit
             self.job = None
             return self._answers.pop(0) if self._answers else code
