@@ -146,7 +146,10 @@ def dask_cluster():
 
 USER_PROBLEMS_PY = '''
 """A user's problems for every scheme, built with ocpar's public API only."""
+import os
+import signal
 from dataclasses import dataclass
+from pathlib import Path
 
 import casadi as ca
 import numpy as np
@@ -219,6 +222,17 @@ def make_macs(distance: float = 1.0) -> MacsProblem:
 
 def raises():
     raise RuntimeError("boom")
+
+
+def crash_in_job(how: str = "exit") -> FormationProblem:
+    """make_formation(), but a job's process (working directory: a job's directory of ocpar
+    serve) dies loading it: ``how`` exit (os._exit(3)) or segfault (SIGSEGV)."""
+    if Path.cwd().parent.name == "jobs":
+        print("crash_in_job: " + how, flush=True)
+        if how == "segfault":
+            os.kill(os.getpid(), signal.SIGSEGV)
+        os._exit(3)
+    return make_formation()
 
 
 def wrong_type():

@@ -283,6 +283,32 @@ def test_task_dispatch_names_tasks_after_the_run_and_superstep(local_dask):
     assert all(k.startswith("ocpar-job-42-") for k in keys)
 
 
+def test_kept_clients_serve_one_run_after_another_and_a_closed_one_is_replaced(
+        local_dask, monkeypatch):
+    """After ``keep_clients()`` (a warm runner of ocpar serve) runs on one scheduler share one
+    client, left open when each ends; one found closed is replaced by a new connection."""
+    from ocpar.bsp import dask as dask_backend
+
+    monkeypatch.setattr(dask_backend, "_KEPT", {})
+    monkeypatch.setattr(dask_backend, "_keeping", [])
+    dask_backend.keep_clients()
+    scheduler = local_dask.client.scheduler.address
+    clients = []
+    try:
+        for _ in range(3):
+            with open_backend("dask", workers=2, scheduler=scheduler,
+                              dispatch="tasks") as backend:
+                assert backend.superstep("math:sqrt", [4.0, 9.0]) == [2.0, 3.0]
+                clients.append(backend.client)
+            assert clients[-1].status == "running"
+            if len(clients) == 2:
+                clients[-1].close()
+        assert clients[0] is clients[1] and clients[2] is not clients[1]
+    finally:
+        for client in dask_backend._KEPT.values():
+            client.close()
+
+
 def test_the_dashboard_link_a_dask_run_prints_answers(local_dask):
     """The embedded cluster's dashboard (the link every Dask run prints) serves its status
     page, which needs bokeh; without it Dask answers "Dask needs bokeh>=3.1.0"."""

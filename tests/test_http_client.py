@@ -46,11 +46,12 @@ def one_line_error(proc: SimpleNamespace, command: str, *needles: str) -> str:
 
 @pytest.fixture(scope="module")
 def server(tmp_path_factory):
-    """``ocpar serve --backend serial --max-running 1`` with the tokens of alice and bob."""
+    """``ocpar serve --backend serial --max-running 1`` with the tokens of alice, bob and
+    carol."""
     state = tmp_path_factory.mktemp("server")
     env = dict(os.environ, OMP_NUM_THREADS="1")
     tokens = {}
-    for name in ("alice", "bob"):
+    for name in ("alice", "bob", "carol"):
         issued = ocpar("serve", "token", "add", name, "--state-dir", str(state))
         assert issued.code == 0, issued
         tokens[name] = issued.out.strip()
@@ -74,18 +75,23 @@ def server(tmp_path_factory):
 def jobs(server, tmp_path_factory):
     """Three jobs of alice, one at a time: the 60-agent formation by name (it converges), the
     same from a TOML file with one outer iteration (not converged: the job fails) and a MACS
-    run that waits in the queue behind them (until test_wait_gives_up_after_its_timeout
-    cancels it)."""
+    run that waits in the queue behind them and carol's longer MACS run (the ``blocker``)
+    until test_wait_gives_up_after_its_timeout cancels both (a warm server runs the two
+    formations within a second)."""
     config = tmp_path_factory.mktemp("config") / "short.toml"
     config.write_text('scheme = "formation"\nproblem = "point-mass-plane"\nagents = 60\n'
                       'max_outer_iterations = 1\noutput = "ignored: the service sets it"\n')
     ids = {}
-    for name, args in (("converged", ["formation-60"]), ("short", [str(config)]),
-                       ("cancelled", ["macs-goddard", "--set", "max_evals=3000"])):
-        proc = ocpar("submit", *args, *server.as_alice)
+    as_carol = ["--server", server.url, "--token", server.tokens["carol"]]
+    for name, args, who in (
+            ("converged", ["formation-60"], server.as_alice),
+            ("short", [str(config)], server.as_alice),
+            ("blocker", ["macs-goddard", "--set", "max_evals=5000"], as_carol),
+            ("cancelled", ["macs-goddard", "--set", "max_evals=3000"], server.as_alice)):
+        proc = ocpar("submit", *args, *who)
         assert proc.code == 0 and proc.err == "", proc
         ids[name] = proc.out.strip()
-    assert len(set(ids.values())) == 3
+    assert len(set(ids.values())) == 4
     return ids
 
 
@@ -103,6 +109,9 @@ def test_wait_gives_up_after_its_timeout(server, jobs):
     assert " cancelled " in proc.out
     record = json.loads(ocpar("status", job, "--json", *server.as_alice).out)
     assert record["started"] is None and record["supersteps"] == 0  # it never ran
+    proc = ocpar("cancel", jobs["blocker"], "--server", server.url, "--token",
+                 server.tokens["carol"])
+    assert proc.code == 0, proc
 
 
 def test_submit_wait_result_gives_the_files_the_server_holds(server, jobs, tmp_path):
@@ -154,8 +163,8 @@ def test_jobs_lists_the_callers_jobs_from_the_environment(server, jobs, monkeypa
     assert proc.code == 0, proc
     header, *rows = proc.out.splitlines()
     assert header.startswith("# id, scheme, problem, state")
-    for job in jobs.values():
-        assert sum(row.startswith(job) for row in rows) == 1
+    for name in ("converged", "short", "cancelled"):  # alice's (the blocker is carol's)
+        assert sum(row.startswith(jobs[name]) for row in rows) == 1
     monkeypatch.setenv("OCPAR_TOKEN", server.tokens["bob"])
     assert ocpar("jobs").out.splitlines()[1:] == []  # bob's own: none
 

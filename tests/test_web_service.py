@@ -20,6 +20,7 @@ import threading
 import time
 from collections.abc import Iterator
 from pathlib import Path
+from types import SimpleNamespace
 
 import httpx
 import pytest
@@ -30,11 +31,12 @@ from hypothesis import strategies as st
 import ocpar
 from ocpar.__main__ import main as ocpar_main
 from ocpar.config import scheme_options
+from ocpar.service.web import memory
 from ocpar.service.web.app import SERVER_KEYS
 from ocpar.service.web.events import parse_progress
 from ocpar.service.web.serve import openapi_schema
 from ocpar.service.web.store import FINAL, Store, Token
-from ocpar.service.web.tokens import issue
+from ocpar.service.web.tokens import issue, revoke
 
 REPO = Path(__file__).resolve().parents[1]
 #: The five configurations each of the four tokens submits (20 jobs at once).
@@ -107,7 +109,7 @@ def add_token(state_dir: Path, name: str, **limits) -> str:
 @pytest.fixture(scope="module")
 def server(tmp_path_factory, user_package) -> Iterator[tuple[Server, dict[str, str]]]:
     """A server on the default backend (its embedded Dask cluster of 2 workers) running 4 jobs
-    at once, with tokens a-d (at most 2 running
+    at once (jobs' memory estimates up to 0.3 GB), with tokens a-d (at most 2 running
     jobs each; d with small per-job limits) and w (3 s of wall time per job) issued before
     it starts; it allows the problem references of the test package ``mypkg`` (importable
     there) in modules problems and broken."""
@@ -123,12 +125,16 @@ def server(tmp_path_factory, user_package) -> Iterator[tuple[Server, dict[str, s
     tokens["w"] = add_token(state, "w", wall_time=3.0)
     listed = subprocess.run([sys.executable, "-m", "ocpar", "serve", "token", "list",
                              "--state-dir", str(state)], capture_output=True, text=True)
-    assert listed.stdout.split()[:4] == ["a", "max-jobs", "2", "b"], listed.stdout
-    assert "w                        wall-time 3" in listed.stdout
+    lines = listed.stdout.splitlines()
+    # the defaults of the limits not given: 100,000 agents and evaluations, 3,600 s
+    assert lines[0] == "a" + " " * 24 + "max-jobs 2, max-agents 100000, max-evaluations " \
+        "100000, wall-time 3600", listed.stdout
+    assert lines[-1].split(None, 1) == ["w", "max-jobs 2, max-agents 100000, max-evaluations "
+                                        "100000, wall-time 3"], listed.stdout
     assert tokens["a"] not in listed.stdout and tokens["a"] not in (state / "server.sqlite3"
                                                                     ).read_bytes().decode(
         errors="replace")
-    srv = Server(state, "--max-running", "4", "--allow-problem",
+    srv = Server(state, "--max-running", "4", "--max-job-memory", "0.3", "--allow-problem",
                  "mypkg.problems:*", "--allow-problem", "mypkg.broken:*",
                  "--wall-time-grace", "20", env=user_environment(user_package)).start()
     yield srv, tokens
@@ -359,6 +365,93 @@ def test_tokens_ownership_and_request_limits(server, tmp_path):
         assert key in response.json()["detail"], response.text
     assert d.post("/jobs", json={"config": "formation-60", "set": {"agents": 20}}
                   ).status_code == 201
+
+
+def test_a_job_that_kills_its_runner_fails_alone_and_jobs_run_on_warm(server):
+    """A job whose process dies (os._exit, SIGSEGV) ends failed with the exit and its log's
+    last line, and the server runs on; jobs one after another run in one warm process (no
+    interpreter's start-up in their timings), never in a dead one."""
+    srv, tokens = server
+    client, store = srv.client(tokens["c"]), Store(srv.state_dir)
+    crashed = []
+    for how, reason in (("exit", "exit status 3: crash_in_job: exit"),
+                        ("segfault", f"killed by signal {int(signal.SIGSEGV)}: crash_in_job: "
+                                     "segfault")):
+        response = client.post("/jobs", json={"config": {
+            "scheme": "formation", "problem": "mypkg.problems:crash_in_job",
+            "problem_args": {"how": how}}})
+        assert response.status_code == 201, response.text
+        final = wait_final(client, response.json()["id"])
+        assert (final["state"], final["reason"]) == ("failed", reason), final
+        crashed.append(store.job(final["id"])["pid"])
+    pids = []
+    for _ in range(3):
+        final = wait_final(client, client.post("/jobs", json=CONFIGS[0]).json()["id"])
+        assert final["state"] == "succeeded", final
+        assert fetch_result(client, final["id"])["timings"]["startup_s"] < 0.5
+        pids.append(store.job(final["id"])["pid"])
+    assert len(set(pids)) < len(pids) and not set(pids) & set(crashed), (pids, crashed)
+
+
+def test_a_job_over_the_memory_limit_is_refused_naming_estimate_and_limit(server):
+    """The module's server allows 0.3 GB per job: 50,000 agents (112 MiB + 3.9 KB each:
+    0.312 GB) are refused before a job exists, 40,000 (0.273 GB) pass that check."""
+    srv, tokens = server
+    client = srv.client(tokens["c"])
+    before = len(client.get("/jobs").json()["jobs"])
+    response = client.post("/jobs", json={"config": "formation-60", "set": {"agents": 50_000}})
+    assert response.status_code == 422, response.text
+    assert response.json()["detail"] == (
+        "memory: a formation job of 50,000 agents needs about 0.312 GB at its peak, above "
+        "this server's limit of 0.3 GB per job (ocpar serve --max-job-memory)")
+    assert len(client.get("/jobs").json()["jobs"]) == before
+    assert memory.check("formation", SimpleNamespace(agents=40_000), None, 300_000_000) is None
+
+
+@pytest.mark.parametrize(("scheme", "units", "measured_mib"), [
+    ("formation", 2, 110.9), ("formation", 10_000, 127.8), ("formation", 40_000, 237.7),
+    ("pursuit", 301, 172.4), ("pursuit", 1_201, 204.4), ("pursuit", 2_401, 247.1),
+    ("macs", 100, 190.9), ("macs", 8_000, 191.0)])
+def test_memory_estimates_lie_within_20_percent_above_the_measured_peaks(
+        scheme, units, measured_mib):
+    """The peaks of serial runs (scripts/job_memory.py, ru_maxrss) against the model."""
+    estimate = memory.estimate(scheme, units) / 2**20
+    assert measured_mib <= estimate <= 1.2 * measured_mib, estimate
+
+
+def test_revoking_a_token_refuses_it_and_stops_its_jobs(server, tmp_path):
+    """``ocpar serve token revoke`` beside a running server: the token gets 401 at once; in
+    a store, its queued job is cancelled and its running one asked to stop (the stop file);
+    another token's jobs are untouched; an unknown name is one line and exit status 2."""
+    srv, _ = server
+    secret = add_token(srv.state_dir, "r")
+    assert srv.client(secret).get("/jobs").status_code == 200
+    assert ocpar_main(["serve", "token", "revoke", "r", "--state-dir", str(srv.state_dir)]) == 0
+    assert srv.client(secret).get("/jobs").status_code == 401
+
+    store = Store(tmp_path / "state")
+    add_token(store.state_dir, "x")
+    for job_id, owner, state in (("formation-20260101-000000-000001", "x", "queued"),
+                                 ("formation-20260101-000000-000002", "x", "running"),
+                                 ("formation-20260101-000000-000003", "y", "queued")):
+        store.job_dir(job_id).mkdir()
+        store.add_job({"id": job_id, "owner": owner, "scheme": "formation", "problem": "p",
+                       "config": {}, "argv": [], "state": state, "submitted": time.time()})
+    done = revoke(store, "x")
+    assert done.cancelled == ["formation-20260101-000000-000001"]
+    assert done.stopping == ["formation-20260101-000000-000002"]
+    rows = {row["id"][-1]: row for row in store.jobs()}
+    assert (rows["1"]["state"], rows["1"]["reason"]) == ("cancelled",
+                                                         "its token 'x' was revoked")
+    assert (rows["2"]["state"], rows["2"]["stop_reason"]) == ("running",
+                                                              "its token 'x' was revoked")
+    assert (store.job_dir(rows["2"]["id"]) / "cancel").exists()
+    assert rows["3"]["state"] == "queued" and store.token("x") is None
+    proc = subprocess.run([sys.executable, "-m", "ocpar", "serve", "token", "revoke", "x",
+                           "--state-dir", str(store.state_dir)], capture_output=True, text=True)
+    assert proc.returncode == 2 and proc.stderr.strip() == (
+        "ocpar serve token revoke: error: no token named 'x' (ocpar serve token list shows "
+        "them)")
 
 
 def test_allow_list_of_problem_references(server):

@@ -14,6 +14,10 @@ Every run's result carries, in seconds (:data:`PHASES`, in the order they happen
 * ``picture_s``: drawing the plots;
 * ``total_s``: the process's age when the summary was last written.
 
+A warm runner of ``ocpar serve`` (:mod:`ocpar.service.web.warm`) runs many jobs in one
+process: it calls :func:`restart_process_clock` as it takes each, so that ``startup_s`` and
+``total_s`` count from the job's start, not the process's.
+
 A scheme fills ``verification_s`` (and may add a phase of its own, e.g. a reference solve);
 the driver (:mod:`ocpar.driver`) measures the others. ``startup_s`` and ``total_s`` need the
 process's start time, which Linux gives (``/proc``); elsewhere they are omitted.
@@ -32,9 +36,20 @@ WORDS = {"startup_s": "start-up", "build_s": "build", "solve_s": "solve",
          "reference_s": "reference solve", "total_s": "total"}
 
 
+_restarted: list[float] = []  # CLOCK_BOOTTIME of the last restart_process_clock()
+
+
+def restart_process_clock() -> None:
+    """Count :func:`process_age` from now on (a warm process that takes a new job)."""
+    _restarted[:] = [time.clock_gettime(time.CLOCK_BOOTTIME)]
+
+
 def process_age() -> float | None:
     """Seconds since this process started (Linux: its start time in ``/proc/self/stat``
-    against the boot clock, to 1/CLK_TCK s); None where the system does not say."""
+    against the boot clock, to 1/CLK_TCK s), or since :func:`restart_process_clock`; None
+    where the system does not say."""
+    if _restarted:
+        return max(time.clock_gettime(time.CLOCK_BOOTTIME) - _restarted[0], 0.0)
     try:
         with open("/proc/self/stat", "rb") as stat:
             fields = stat.read().rsplit(b")", 1)[1].split()

@@ -184,6 +184,37 @@ def sigint_left_to_this_process() -> Iterator[None]:
     finally:
         signal.signal(signal.SIGINT, previous)
 
+
+#: Clients of existing schedulers that this process keeps open between runs, by address
+#: (:func:`keep_clients`).
+_KEPT: dict[str, Any] = {}
+_keeping: list[bool] = []
+
+
+def keep_clients() -> None:
+    """Keep this process's clients of existing schedulers (no TLS) open when their runs end,
+    and give them to later runs on the same scheduler: a process that runs many jobs one
+    after another (a warm runner of ``ocpar serve``) connects once, not once per job. A
+    client found closed is replaced."""
+    _keeping[:] = [True]
+
+
+def shared_client(scheduler: str, security: Any, timeout_s: float) -> Any:
+    """A client of ``scheduler``: the kept one (:func:`keep_clients`) if it still runs, else a
+    new connection (:func:`connect_client`), kept if this process keeps clients."""
+    if not _keeping or security is not None:
+        return connect_client(scheduler, security, timeout_s)
+    client = _KEPT.get(scheduler)
+    if client is not None and client.status == "running":
+        return client
+    if client is not None:
+        _KEPT.pop(scheduler)
+        with contextlib.suppress(Exception):
+            client.close()
+    _KEPT[scheduler] = client = connect_client(scheduler, security, timeout_s)
+    return client
+
+
 class DaskBackend(Backend):
     """Workers of a Dask cluster (embedded ``LocalCluster`` or an existing scheduler)."""
 
@@ -255,7 +286,7 @@ class DaskBackend(Backend):
                         and not scheduler.startswith("tls://")):
                     raise BackendError(f"TLS certificates need a tls:// scheduler address, "
                                        f"not {scheduler}")
-                self.client = connect_client(scheduler, security, timeout_s)
+                self.client = shared_client(scheduler, security, timeout_s)
         if workers is not None:
             try:
                 self.client.wait_for_workers(workers, timeout=timeout_s)
@@ -439,7 +470,7 @@ class DaskBackend(Backend):
         for address in list(getattr(self, "_channels", {})):
             self._drop_channel(address)
         client, self.client = getattr(self, "client", None), None
-        if client is not None:
+        if client is not None and all(client is not kept for kept in _KEPT.values()):
             client.close()
         if self._cluster is not None:
             self._cluster.close()

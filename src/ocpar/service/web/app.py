@@ -7,7 +7,8 @@ configuration exactly as ``ocpar run`` does (:func:`ocpar.config.from_mapping`,
 :func:`ocpar.driver.check_options`), the problem reference against the operator's allow-list
 (loaded, so that a reference that does not give a problem is refused before a job id is
 returned) and the token's limits; nothing of a request is imported or unpickled but an
-allowed reference. ``GET /`` and ``/static`` serve the page (no token needed).
+allowed reference, and the job's memory estimate against the server's limit
+(:mod:`ocpar.service.web.memory`). ``GET /`` and ``/static`` serve the page (no token needed).
 
 (No ``from __future__ import annotations`` here: FastAPI reads the endpoints' annotations,
 some of them local to :func:`create_app`.)
@@ -40,6 +41,7 @@ from ocpar.driver import check_options, resolve_problem
 from ocpar.references import is_reference
 from ocpar.service.client import SERVICE_OPTIONS
 from ocpar.service.jobs import JOB_ID, has_checkpoint, new_job_id, supersteps_done
+from ocpar.service.web import memory
 from ocpar.service.web.events import parse_progress
 from ocpar.service.web.runner import Runner, Settings
 from ocpar.service.web.store import FINAL, Store, Token
@@ -256,8 +258,10 @@ def create_app(settings: Settings) -> FastAPI:
                          "operator allows references with ocpar serve --allow-problem)")
         check_limits(run.scheme, options, None, token)
         try:
+            memory.check(run.scheme, options, None, settings.max_job_memory)
             problem = resolve_problem(options)
             options.check_problem(problem)
+            memory.check(run.scheme, options, problem, settings.max_job_memory)
         except ValueError as exc:
             raise refuse(str(exc)) from None
         check_limits(run.scheme, options, problem, token)
@@ -311,6 +315,7 @@ def create_app(settings: Settings) -> FastAPI:
             shutil.rmtree(path, ignore_errors=True)
             response.status_code = 200
             return record(earlier)
+        runner.wake.set()
         return record(store.job(job_id))
 
     @app.get("/jobs", response_model=JobList, tags=["jobs"], summary="the caller's jobs",
@@ -410,6 +415,7 @@ def create_app(settings: Settings) -> FastAPI:
         if not store.update(job_id, only_if=("cancelled", "failed"), state="queued", resume=1,
                             reason=None, finished=None, stop_reason=None):
             raise HTTPException(409, f"job {job_id} changed state; try again")
+        runner.wake.set()
         return record(store.job(job_id))
 
     @app.get("/", include_in_schema=False)

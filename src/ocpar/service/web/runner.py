@@ -1,11 +1,14 @@
 """The supervisor of ``ocpar serve``: starts queued jobs within the limits, watches their
 processes and records how they end.
 
-Each job runs as its own process group: the scheme's command line
-(:func:`ocpar.service.jobs.run_command`: checkpoint, output and stop file in the job's
-directory) on the server's backend: the embedded Dask cluster (a process of its own,
-:mod:`ocpar.service.web.cluster`, started and owned by the server), an existing cluster
-(``--scheduler``), ``mpirun -n W`` (``--backend mpi``) or one serial process.
+Each job runs the scheme's command line (:func:`ocpar.service.jobs.run_command`:
+checkpoint, output and stop file in the job's directory) on the server's backend: the
+embedded Dask cluster (a process of its own, :mod:`ocpar.service.web.cluster`, started and
+owned by the server), an existing cluster (``--scheduler``), ``mpirun -n W`` (``--backend
+mpi``) or serially. On the Dask and serial backends it runs in a warm runner
+(:mod:`ocpar.service.web.warm`: a process group of its own that has imported ocpar and keeps
+its cluster connection, one job at a time, ``max_running`` of them); under ``mpirun`` as a
+process group of its own, started for it.
 
 A job's state: ``queued`` → ``running`` → ``succeeded`` (its ``result.json`` has status
 converged), ``failed`` (any other result status, or no result: the reason says why) or
@@ -31,15 +34,18 @@ import threading
 import time
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 from ocpar.service.coordinator import dask_options
 from ocpar.service.jobs import has_checkpoint, outcome, run_command, supersteps_done
 from ocpar.service.web.store import Store
+from ocpar.service.web.warm import WarmPool
 
 log = logging.getLogger("ocpar.serve")
 
-#: The server's backends.
+#: The server's backends, and those whose jobs run in warm runners.
 BACKENDS = ("dask", "mpi", "serial")
+WARM_BACKENDS = ("dask", "serial")
 
 
 @dataclass(frozen=True)
@@ -53,6 +59,7 @@ class Settings:
     max_running: int = 2           # jobs running at once, over all tokens
     allow_problem: tuple[str, ...] = ()  # fnmatch patterns of module:factory references
     grace: float = 30.0            # s between a wall-time stop request and the kill
+    max_job_memory: int | None = None  # bytes a job's estimate may reach (None: no limit)
     poll: float = 0.2              # s between the supervisor's rounds
 
 
@@ -62,20 +69,27 @@ class Runner:
     def __init__(self, store: Store, settings: Settings) -> None:
         self.store = store
         self.settings = settings
-        self.procs: dict[str, subprocess.Popen] = {}
+        self.procs: dict[str, Any] = {}  # subprocess.Popen or WarmJob, by job id
         self.cluster: subprocess.Popen | None = None
         self.address = settings.scheduler
         self._stop = threading.Event()
+        #: Set to start the supervisor's next round now (a job submitted, or one ended).
+        self.wake = threading.Event()
+        self.pool = (WarmPool(store.state_dir, settings.max_running, _job_environment(),
+                              self.wake) if settings.backend in WARM_BACKENDS else None)
         self._thread = threading.Thread(target=self._loop, name="ocpar-runner", daemon=True)
 
     # life cycle ---------------------------------------------------------------------------
 
     def start(self) -> None:
         """Recover the jobs a previous server left running, start the embedded cluster if
-        it is the backend, then supervise."""
+        it is the backend and the warm runners (neither waited for: the first Dask job starts
+        once the cluster has said its address), then supervise."""
         self.recover()
         if self.settings.backend == "dask" and self.address is None:
-            self.address = self._start_cluster()
+            self._start_cluster()
+        if self.pool is not None:
+            self.pool.maintain()
         self._thread.start()
 
     def stop(self) -> None:
@@ -87,11 +101,14 @@ class Runner:
         for proc in self.procs.values():
             _kill_group(proc.pid, signal.SIGTERM)
         for proc in self.procs.values():
-            try:
-                proc.wait(10)
-            except subprocess.TimeoutExpired:
-                _kill_group(proc.pid, signal.SIGKILL)
-                proc.wait()
+            if isinstance(proc, subprocess.Popen):
+                try:
+                    proc.wait(10)
+                except subprocess.TimeoutExpired:
+                    _kill_group(proc.pid, signal.SIGKILL)
+                    proc.wait()
+        if self.pool is not None:
+            self.pool.stop()
         if self.cluster is not None:
             self.cluster.terminate()
             try:
@@ -99,21 +116,29 @@ class Runner:
             except subprocess.TimeoutExpired:
                 _kill_group(self.cluster.pid, signal.SIGKILL)
 
-    def _start_cluster(self) -> str:
-        address_file = self.store.state_dir / "cluster-address"
-        address_file.unlink(missing_ok=True)
+    def _start_cluster(self) -> None:
+        self._address_file.unlink(missing_ok=True)
         with open(self.store.state_dir / "cluster.log", "ab") as out:
             self.cluster = subprocess.Popen(
-                [sys.executable, "-m", "ocpar.service.web.cluster", str(address_file),
+                [sys.executable, "-m", "ocpar.service.web.cluster", str(self._address_file),
                  str(self.settings.workers)], stdin=subprocess.DEVNULL, stdout=out,
                 stderr=out, start_new_session=True, env=_job_environment())
-        deadline = time.monotonic() + 120
-        while not address_file.exists():
-            if self.cluster.poll() is not None or time.monotonic() > deadline:
+        self._cluster_deadline = time.monotonic() + 120
+
+    @property
+    def _address_file(self) -> Path:
+        return self.store.state_dir / "cluster-address"
+
+    def cluster_address(self) -> str | None:
+        """The Dask scheduler's address, None while the embedded cluster starts; a
+        RuntimeError if it did not start."""
+        if self.address is None and self.cluster is not None:
+            if self._address_file.exists():
+                self.address = self._address_file.read_text().strip()
+            elif self.cluster.poll() is not None or time.monotonic() > self._cluster_deadline:
                 raise RuntimeError("the embedded Dask cluster did not start (see "
                                    f"{self.store.state_dir / 'cluster.log'})")
-            time.sleep(0.2)
-        return address_file.read_text().strip()
+        return self.address
 
     def recover(self) -> None:
         """Queue again every job left ``running`` by a server that was stopped or killed,
@@ -139,7 +164,11 @@ class Runner:
     # supervision --------------------------------------------------------------------------
 
     def _loop(self) -> None:
-        while not self._stop.wait(self.settings.poll):
+        while not self._stop.is_set():
+            self.wake.wait(self.settings.poll)
+            self.wake.clear()
+            if self._stop.is_set():
+                return
             try:
                 self.step()
             except Exception:  # keep supervising; the error is the operator's to see
@@ -154,6 +183,8 @@ class Runner:
             else:
                 del self.procs[job_id]
                 self._finish(job_id, code)
+        if self.pool is not None:
+            self.pool.maintain()
         self._start_queued()
 
     def _enforce_wall_time(self, job_id: str, proc: subprocess.Popen) -> None:
@@ -210,6 +241,11 @@ class Runner:
 
     def _launch(self, row: dict) -> bool:
         job_id = row["id"]
+        if self.settings.backend == "dask" and self.cluster_address() is None:
+            return False  # the embedded cluster is starting
+        warm = self.pool.idle() if self.pool is not None else None
+        if self.pool is not None and warm is None:
+            return False  # every runner busy or starting
         if not self.store.update(job_id, only_if="queued", state="running",
                                  started=time.time(), finished=None, stop_reason=None,
                                  exit_status=None, result_status=None, headline=None):
@@ -220,6 +256,10 @@ class Runner:
         backend, launcher = self._backend(job_id)
         command = run_command(path, row["scheme"], json.loads(row["argv"]), backend,
                               resume=bool(row["resume"]), launcher=launcher)
+        if warm is not None:
+            self.procs[job_id] = warm.run(path, command)
+            self.store.update(job_id, pid=warm.proc.pid)
+            return True
         with open(path / "log.txt", "ab") as out:
             try:
                 proc = subprocess.Popen(command, stdin=subprocess.DEVNULL, stdout=out,
@@ -280,12 +320,16 @@ def _failure(path: Path, code: int, result_status: str | None) -> str:
 
 
 def _is_job_process(pid: int, path: Path) -> bool:
-    """Whether process ``pid`` lives and runs the job in ``path`` (not a reused pid)."""
+    """Whether process ``pid`` lives and runs the job in ``path`` (not a reused pid): its
+    command line names the job's directory, or it is a warm runner of this server's state
+    directory."""
     try:
         command = Path(f"/proc/{pid}/cmdline").read_bytes().decode(errors="replace")
     except OSError:
         return False
-    return str(path) in command
+    warm = command.split("\0")[1:4] == ["-m", "ocpar.service.web.warm",
+                                        str(path.parent.parent)]
+    return str(path) in command or warm
 
 
 def _kill_group(pid: int, sig: int) -> None:

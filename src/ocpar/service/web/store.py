@@ -57,15 +57,23 @@ CREATE INDEX IF NOT EXISTS jobs_by_state ON jobs (state, submitted);
 """
 
 
+#: A new token's limits unless the operator gives others (``ocpar serve token add``; None:
+#: unlimited): jobs running at once, formation agents (pursuit max_agents) per job, MACS
+#: evaluations per job, seconds a job may run.
+DEFAULT_LIMITS = {"max_jobs": 2, "max_agents": 100_000, "max_evaluations": 100_000,
+                  "wall_time": 3600.0}
+
+
 @dataclass(frozen=True)
 class Token:
-    """A client's token (by name) and its limits (None: unlimited)."""
+    """A client's token (by name) and its limits (None: unlimited; the defaults:
+    :data:`DEFAULT_LIMITS`)."""
 
     name: str
-    max_jobs: int | None = None
-    max_agents: int | None = None
-    max_evaluations: int | None = None
-    wall_time: float | None = None
+    max_jobs: int | None = DEFAULT_LIMITS["max_jobs"]
+    max_agents: int | None = DEFAULT_LIMITS["max_agents"]
+    max_evaluations: int | None = DEFAULT_LIMITS["max_evaluations"]
+    wall_time: float | None = DEFAULT_LIMITS["wall_time"]
 
 
 class Store:
@@ -114,6 +122,11 @@ class Store:
                             token.max_evaluations, token.wall_time, time.time()))
         except sqlite3.IntegrityError:
             raise ValueError(f"a token named {token.name!r} exists already") from None
+
+    def remove_token(self, name: str) -> bool:
+        """Delete the token named ``name`` (its jobs stay); whether there was one."""
+        with self.connect() as db:
+            return db.execute("DELETE FROM tokens WHERE name = ?", (name,)).rowcount == 1
 
     def token_by_hash(self, digest: str) -> Token | None:
         """The token whose secret has SHA-256 ``digest``, if any."""

@@ -1,9 +1,12 @@
-"""Bearer tokens: issued once by ``ocpar serve token add NAME``, stored as SHA-256 hashes."""
+"""Bearer tokens: issued once by ``ocpar serve token add NAME``, stored as SHA-256 hashes,
+revoked by ``ocpar serve token revoke NAME``."""
 
 from __future__ import annotations
 
 import hashlib
 import secrets
+import time
+from dataclasses import dataclass
 
 from ocpar.service.web.store import Store, Token
 
@@ -32,3 +35,32 @@ def issue(store: Store, token: Token) -> str:
 def authenticate(store: Store, secret: str) -> Token | None:
     """The token whose secret is ``secret``, if any."""
     return store.token_by_hash(digest(secret))
+
+
+@dataclass(frozen=True)
+class Revoked:
+    """What :func:`revoke` did: the token's queued jobs cancelled, its running jobs asked to
+    stop (at their next superstep boundary), by id."""
+
+    cancelled: list[str]
+    stopping: list[str]
+
+
+def revoke(store: Store, name: str) -> Revoked:
+    """Delete the token ``name`` (it authenticates no more; a ValueError if there is none),
+    cancel its queued jobs and ask its running ones to stop; its finished jobs and their
+    files stay. Works beside a running server (the database and the jobs' stop files)."""
+    if not store.remove_token(name):
+        raise ValueError(f"no token named {name!r} (ocpar serve token list shows them)")
+    reason = f"its token {name!r} was revoked"
+    cancelled, stopping = [], []
+    for row in store.jobs(owner=name):
+        if row["state"] == "queued" and store.update(
+                row["id"], only_if="queued", state="cancelled", finished=time.time(),
+                reason=reason):
+            cancelled.append(row["id"])
+        elif row["state"] == "running" and store.update(
+                row["id"], only_if="running", stop_reason=reason):
+            (store.job_dir(row["id"]) / "cancel").touch()
+            stopping.append(row["id"])
+    return Revoked(cancelled, stopping)
