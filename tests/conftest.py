@@ -4,6 +4,7 @@ every scheme, and small problems."""
 from __future__ import annotations
 
 import contextlib
+import importlib.util
 import json
 import os
 import socket
@@ -278,3 +279,13 @@ def computed(result: dict) -> dict:
 
 def read_result(directory: Path) -> dict:
     return json.loads((directory / "result.json").read_text())
+
+
+def script_module(name: str):
+    """``scripts/NAME.py`` as a module (scripts/ is not a package)."""
+    spec = importlib.util.spec_from_file_location(name, REPO / "scripts" / f"{name}.py")
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[name] = module  # its dataclasses look their module up
+    spec.loader.exec_module(module)
+    return module
+

@@ -7,24 +7,12 @@ its configuration."""
 
 from __future__ import annotations
 
-import importlib.util
-import sys
 from pathlib import Path
 
 import pytest
-from conftest import REPO
+from conftest import script_module
 
-
-def _script(name: str):
-    """``scripts/NAME.py`` as a module (scripts/ is not a package)."""
-    spec = importlib.util.spec_from_file_location(name, REPO / "scripts" / f"{name}.py")
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[name] = module  # its dataclasses look their module up
-    spec.loader.exec_module(module)
-    return module
-
-
-concurrent_jobs = _script("concurrent_jobs")
+concurrent_jobs = script_module("concurrent_jobs")
 MIX = concurrent_jobs.MIXES["small"]
 #: CPU-burning processes beside the jobs (this machine has 2 cores).
 LOAD = 2

@@ -7,28 +7,16 @@ cluster and detached jobs) run in the slow test."""
 
 from __future__ import annotations
 
-import importlib.util
 import json
 import re
-import sys
 
 import numpy as np
 import pytest
-from conftest import REPO
+from conftest import script_module
 
 import ocpar
 
-
-def _script(name: str):
-    """``scripts/NAME.py`` as a module (scripts/ is not a package)."""
-    spec = importlib.util.spec_from_file_location(name, REPO / "scripts" / f"{name}.py")
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[name] = module  # its dataclasses look their module up
-    spec.loader.exec_module(module)
-    return module
-
-
-tutorials = _script("tutorials")
+tutorials = script_module("tutorials")
 
 
 def _problems(name: str, runs) -> list[str]:
