@@ -6,12 +6,13 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import re
 
 import numpy as np
 import pint
 import pytest
 import xarray as xr
-from conftest import assert_result_contract
+from conftest import REPO, assert_result_contract
 
 import ocpar
 from ocpar.driver import main
@@ -288,3 +289,29 @@ def test_a_model_s_names_and_units_are_checked_with_the_problem():
         assert "\n" not in str(error.value)
     with pytest.raises(ValueError, match=r"MacsProblem.model: Short.state_names"):
         dataclasses.replace(macs_double_integrator.make(), model=Short())
+
+
+def documented_statuses() -> dict[str, set[str]]:
+    """docs/faults.md's table of what each status guarantees: scheme name → status words
+    (rows for "all" schemes added to each)."""
+    text = (REPO / "docs" / "faults.md").read_text()
+    rows: dict[str, set[str]] = {}
+    for line in text.splitlines():
+        cells = [c.strip() for c in line.strip().strip("|").split("|")]
+        if len(cells) == 3 and cells[1].startswith("`"):
+            rows.setdefault(cells[0].lower(), set()).update(re.findall(r"`([a-z_]+)`", cells[1]))
+    common = rows.pop("all")
+    return {scheme: words | common for scheme, words in rows.items()}
+
+
+def test_every_status_a_scheme_can_end_with_is_defined_in_the_docs_and_no_other():
+    from ocpar.formation.result import FormationResult
+    from ocpar.macs.result import MacsResult
+    from ocpar.pursuit.result import PursuitResult
+
+    documented = documented_statuses()
+    for cls in (FormationResult, PursuitResult, MacsResult):
+        assert set(cls.statuses) == documented[cls.scheme], cls.scheme
+    fields = {f.name: None for f in dataclasses.fields(MacsResult) if f.init}
+    with pytest.raises(ValueError, match="macs run's status 'separation_not_met'"):
+        MacsResult(**(fields | {"status": "separation_not_met"}))

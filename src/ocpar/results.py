@@ -145,6 +145,9 @@ class RunResult:
     #: The scheme's headline figures, keys of ``result.json``: written as null unless the
     #: status is ``converged`` (a run reports no figure it did not reach).
     headline_fields: ClassVar[tuple[str, ...]] = ()
+    #: The status words this scheme's runs can end with (a subset of :data:`STATUSES`), each
+    #: defined in docs/faults.md's table for the scheme.
+    statuses: ClassVar[tuple[str, ...]] = ("converged", "not_converged", "failed", "cancelled")
 
     problem: str
     backend: str
@@ -159,8 +162,9 @@ class RunResult:
     timings: dict[str, float] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
-        if self.status not in STATUSES:
-            raise ValueError(f"status {self.status!r} is not one of {', '.join(STATUSES)}")
+        if self.status not in self.statuses:
+            raise ValueError(f"a {self.scheme} run's status {self.status!r} is not one of "
+                             f"{', '.join(self.statuses)}")
 
     @property
     def supersteps(self) -> int:

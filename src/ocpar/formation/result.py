@@ -141,6 +141,8 @@ class FormationResult(RunResult):
     scheme: ClassVar[str] = "formation"
     #: Null in ``result.json`` unless converged (with the cost parts, :meth:`headline_keys`).
     headline_fields: ClassVar[tuple[str, ...]] = ("total_cost", "unconstrained_cost")
+    statuses: ClassVar[tuple[str, ...]] = (*RunResult.statuses, "separation_not_met",
+                                           "obstacles_not_cleared")
 
     agents: int
     mode: str
