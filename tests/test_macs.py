@@ -309,5 +309,6 @@ def test_ten_seeds_quality(problem):
     Goddard 1.36e-5 and 0.0201, orbit raising 2.4e-6 and 0.0238; docs/schemes/macs.md)."""
     results = [solve_macs(make_problem(problem), MacsSettings(archive_size=20, seed=s))
                for s in range(10)]
+    assert [r.status for r in results] == ["converged"] * 10, [r.message for r in results]
     assert np.mean([r.igd for r in results]) <= golden(f"macs-{problem}.mean_igd_10_seeds").at_most
     assert np.mean([r.gd for r in results]) <= golden(f"macs-{problem}.mean_gd_10_seeds").at_most
