@@ -35,7 +35,13 @@ from ocpar.formation.couplings.coupling import (
     ShiftFamily,
 )
 from ocpar.formation.couplings.potential import equidistance_error
-from ocpar.formation.feasibility import feasible_window, inner_costs
+from ocpar.formation.feasibility import (
+    InnerSolveFailed,
+    NoFeasibleFormation,
+    feasible_window,
+    parameter_gradient,
+    phase_one,
+)
 from ocpar.formation.outer_step import (
     ShiftValues,
     combine,
@@ -58,13 +64,6 @@ MAX_OFFSET_STEP = np.pi / 2
 #: J values this close (relative) count as equal: the offset search starting at the optimum
 #: (e.g. after the optimal ordering) ends where rounding decides.
 ROUNDING_RTOL = 1e-12
-
-#: Shifts tried by :func:`_scan_start` (one superstep of this many times n inner solves).
-SCAN_SHIFTS = 32
-
-
-class InnerSolveFailed(RuntimeError):
-    """Some inner solves of a superstep failed; the outer problem cannot go on."""
 
 
 class OuterObjective:
@@ -202,10 +201,7 @@ class OuterObjective:
         """dJ/dφ (n k,) from each agent's dJ*/dq_N (entries 2nq..3nq of dJ*/dp): on a curve
         dJ*/dq_N · z′(φ_i), on a surface (∂z/∂φ_i)ᵀ ∇_pos J*_i (agent i's at 2i, 2i+1)."""
         d_end = np.asarray(self.outcomes(phi).column("end_gradient"))
-        if isinstance(self.problem.curve, Surface):
-            along = self.problem.curve.jacobians(np.reshape(phi, (-1, 2)))
-            return np.einsum("id,idk->ik", d_end[:, : along.shape[1]], along).ravel()
-        return np.sum(d_end * self.problem.final_position_derivatives(phi), axis=1)
+        return parameter_gradient(self.problem, phi, d_end)
 
     def hessian_diagonal(self, phi: np.ndarray) -> np.ndarray:
         """d²J/dφ_i² (n,): z′(φ_i)ᵀ H_pos z′(φ_i) + ∇_pos J*_i · z″(φ_i), with H_pos the
@@ -268,6 +264,26 @@ class OuterObjective:
             residual = self.problem.coupling.residual(phi, self.problem.curve)
             feasibility = f"coupling {np.max(np.abs(residual)):.1e}"
         return feasibility
+
+
+def feasible_point(objective: OuterObjective, phi: np.ndarray) -> np.ndarray:
+    """``phi`` (on c(φ) = 0) made the last superstep's angles, or, where an agent's inner
+    problem is infeasible there, phase 1's feasible formation
+    (:func:`~ocpar.formation.feasibility.phase_one`, which raises
+    :class:`NoFeasibleFormation` if it finds none). Costs nothing beyond that superstep
+    where ``phi`` is feasible."""
+    try:
+        objective.reach(phi)
+        return phi
+    except NoFeasibleFormation:
+        raise
+    except InnerSolveFailed:
+        problem = objective.problem
+        family = problem.coupling.family(phi, problem.curve)
+        found = phase_one(problem, objective.backend, phi, family, progress=objective.progress)
+        objective.inner_solves += found.inner_solves
+        objective.reach(found.phi)
+        return found.phi
 
 
 def solve_outer(
@@ -351,7 +367,7 @@ def solve_outer_newton(
     if family is not None:
         return _shift_newton(objective, family, tol, max_iterations)
     phi = problem.coupling.project(phi0, problem.curve)
-    objective.reach(phi)
+    phi = feasible_point(objective, phi)
     residual = float(np.max(np.abs(problem.coupling.residual(phi, problem.curve))))
     if residual > PROJECTION_TOL:
         return phi, 0, False, (f"the projection did not reach c(phi) = 0 (max |c| "
@@ -380,7 +396,8 @@ def _shift_newton(objective: OuterObjective, family: ShiftFamily, tol: float,
     θ starts at the feasible start of :func:`~ocpar.formation.feasibility.feasible_window`
     and stays inside its interval (a step beyond an end goes half way to it). Any model: a
     step whose inner solves fail is rejected (halved) and bounds the interval; if the start
-    fails, :func:`_scan_start` looks for a feasible one."""
+    fails, phase 1 (:func:`~ocpar.formation.feasibility.phase_one`) finds a feasible one on
+    the family (or refuses the problem: :class:`NoFeasibleFormation`)."""
 
     def evaluate(theta: float) -> tuple[float, float, float, float]:
         at = objective.shifted(family, theta)
@@ -392,8 +409,11 @@ def _shift_newton(objective: OuterObjective, family: ShiftFamily, tol: float,
     n = objective.problem.agents
     try:
         value, slope, scale, curvature = evaluate(theta)
-    except InnerSolveFailed:   # no feasible start known: scan for one
-        theta, low, high = _scan_start(objective, family, low, high)
+    except InnerSolveFailed:   # an infeasible start: phase 1 along the family
+        found = phase_one(objective.problem, objective.backend, family.angles(theta)[0],
+                          family, low, high, objective.progress)
+        objective.inner_solves += found.inner_solves
+        theta = found.theta
         value, slope, scale, curvature = evaluate(theta)
     # the latest (θ, dJ/dθ) with dJ/dθ < 0 and with dJ/dθ > 0
     below = (theta, slope) if slope < 0 else None
@@ -429,36 +449,6 @@ def _shift_newton(objective: OuterObjective, family: ShiftFamily, tol: float,
         else:
             shrink /= 2
     return family.angles(theta)[0], max_iterations, False, "iteration limit reached"
-
-
-def _scan_start(objective: OuterObjective, family: ShiftFamily, low: float, high: float
-                ) -> tuple[float, float, float]:
-    """A feasible start of the shift search where θ = the given start failed: one superstep
-    of :data:`SCAN_SHIFTS` · n inner solves at shifts spread over (``low``, ``high``) (a
-    period if unbounded; failures are +∞, :func:`~ocpar.formation.feasibility.inner_costs`),
-    the cheapest shift whose every agent solved, and the interval between its failed
-    neighbours. Raises :class:`InnerSolveFailed` if none solved."""
-    problem = objective.problem
-    if not np.isfinite(low) or not np.isfinite(high):
-        low, high = -np.pi, np.pi
-    shifts = low + (np.arange(SCAN_SHIFTS) + 0.5) * (high - low) / SCAN_SHIFTS
-    n = problem.agents
-    phi = np.stack([family.angles(float(t))[0] for t in shifts])
-    found = inner_costs(problem, objective.backend, np.tile(np.arange(n), SCAN_SHIFTS),
-                        phi.ravel())
-    objective.inner_solves += found.solved
-    objective.failed_solves += found.failed
-    totals = found.costs.reshape(SCAN_SHIFTS, n).sum(axis=1)
-    if not np.any(np.isfinite(totals)):
-        raise InnerSolveFailed(f"no feasible start among {SCAN_SHIFTS} shifts in "
-                               f"[{low:.4g}, {high:.4g}] rad ({found.failed} inner solve(s) "
-                               f"failed, {found.skipped} target(s) out of reach; first: "
-                               f"{found.first_failure})")
-    best = int(np.argmin(totals))
-    failed = np.flatnonzero(~np.isfinite(totals))
-    left, right = failed[failed < best], failed[failed > best]
-    return (float(shifts[best]), float(shifts[left[-1]]) if len(left) else low,
-            float(shifts[right[0]]) if len(right) else high)
 
 
 def tangent_newton(objective: OuterObjective, phi: np.ndarray, tol: float,
@@ -527,7 +517,8 @@ def rotation_newton(objective: OuterObjective, phi: np.ndarray, tol: float,
     + A_aᵀ M A_b, M = Σ_i ½ (r_i v_iᵀ + v_i r_iᵀ) − (r_i · v_i) I. The step −H⁺g takes the
     eigenvalues in absolute value and drops those below :data:`RANK_RTOL` times the largest (a
     rotation that changes no cost, e.g. about a line through c that holds every start), is
-    at most :data:`MAX_OFFSET_STEP` rad, and is halved while it raises J beyond rounding.
+    at most :data:`MAX_OFFSET_STEP` rad, and is halved while it raises J beyond rounding or
+    its inner solves fail (the search stays where every agent is feasible).
     Converged when |g|_∞ ≤ ``tol`` Σ_i |r_i × v_i| with H positive semidefinite (to
     :data:`RANK_RTOL`), or a step of at most ``tol`` rad was taken or was the last to fail
     to lower J. Returns (φ (2n,) of the points
@@ -570,7 +561,10 @@ def rotation_newton(objective: OuterObjective, phi: np.ndarray, tol: float,
         if converged:
             return phi, iteration, True, "rotation gradient below tolerance"
         trial = turned(phi, shrink * step)
-        t_value = objective.value(trial)
+        try:
+            t_value = objective.value(trial)
+        except InnerSolveFailed:   # infeasible (or unsolved) there: a rejected step
+            t_value = np.inf
         if t_value <= value + ROUNDING_RTOL * abs(value):
             if shrink * np.linalg.norm(step) <= tol:
                 return trial, iteration + 1, True, "step below tolerance"

@@ -1,0 +1,196 @@
+"""Feasibility for every problem class (issue 42, item 3): the elastic (phase-1) inner
+problem, and infeasible starts on a surface, on slots and on an isolated coupling, each under
+a thrust limit, ending converged and equal to references computed here (the DMOC equations of
+a point mass written by hand, solved by IPOPT; brute force over assignments)."""
+
+from __future__ import annotations
+
+import itertools
+import json
+
+import casadi as ca
+import numpy as np
+import pytest
+from phase_one_problems import DURATION, INTERVALS, MASSES, STARTS, U, reassignable
+from scipy.optimize import minimize
+from scipy.spatial.transform import Rotation
+from test_feasibility import lp_reach
+
+from ocpar.__main__ import main as ocpar_main
+from ocpar.formation import (
+    DmocShape,
+    Ellipse,
+    FormationProblem,
+    PotentialCoupling,
+    SphereSurface,
+    solve_formation,
+)
+from ocpar.models import PointMass
+from ocpar.ocp import dmoc_problem
+from ocpar.ocp.constraints import PathConstraint
+
+
+def hand_dmoc(mass: float, start, end, intervals: int, duration: float, limit: str,
+              u_max: float) -> float | None:
+    """min h Σ|u_k|² of a point mass from rest at ``start`` to rest at ``end`` (any dimension)
+    under |u_k|² ≤ U² (``norm``) or |u_k[j]| ≤ U (``box``): the DMOC equations by hand
+    (midpoint L_d, forces (h/2) u_k each side), IPOPT; None where it finds no feasible point."""
+    start, end = np.asarray(start, float), np.asarray(end, float)
+    d, n, h = len(start), intervals, duration / intervals
+    inner = [ca.SX.sym(f"q{k}", d) for k in range(1, n)]
+    u = [ca.SX.sym(f"u{k}", d) for k in range(n)]
+    q = [ca.DM(start), *inner, ca.DM(end)]
+    rows = [-mass * (q[1] - q[0]) / h + h / 2 * u[0]]
+    rows += [mass * (2 * q[k] - q[k - 1] - q[k + 1]) / h + h / 2 * (u[k - 1] + u[k])
+             for k in range(1, n)]
+    rows.append(mass * (q[n] - q[n - 1]) / h + h / 2 * u[n - 1])
+    ineq = [ca.sumsqr(uk) for uk in u] if limit == "norm" else []
+    bound = u_max if limit == "box" else np.inf
+    x = ca.vertcat(*inner, *u)
+    n_eq = ca.vertcat(*rows).numel()
+    solver = ca.nlpsol("hand", "ipopt", {"x": x, "f": h * ca.sumsqr(ca.vertcat(*u)),
+                                         "g": ca.vertcat(*rows, *ineq)},
+                       {"print_time": False, "ipopt": {"print_level": 0, "tol": 1e-12,
+                                                       "bound_relax_factor": 0.0}})
+    guess = np.concatenate([start + (end - start) * k / n for k in range(1, n)]
+                           + [np.zeros(d * n)])
+    out = solver(x0=guess, lbx=np.r_[np.full(d * (n - 1), -np.inf), np.full(d * n, -bound)],
+                 ubx=np.r_[np.full(d * (n - 1), np.inf), np.full(d * n, bound)],
+                 lbg=np.zeros(n_eq + len(ineq)),
+                 ubg=np.r_[np.zeros(n_eq), np.full(len(ineq), u_max**2)])
+    return float(out["f"]) if solver.stats()["success"] else None
+
+
+# --- the elastic inner problem ---------------------------------------------------------------
+
+@pytest.mark.parametrize("limit", ["box", "norm"])
+def test_the_elastic_slack_is_the_excess_over_the_lp_reach_and_its_gradient_the_multipliers(
+        limit):
+    """A unit point mass at rest, T = 1, N = 10, |u| ≤ 1 moved d along x: s = max(0, d − r)
+    with r the reach of the LP written in test_feasibility (ending beyond it costs one per
+    unit of distance; relaxing the end velocity b gains r′(0) = T/2 < 1 per unit), and
+    ds/dq_N from the multipliers equal to a central difference."""
+    thrust = {"box": {"control_bounds": ((-1.0, 1.0), (-1.0, 1.0))},
+              "norm": {"path_constraints": (PathConstraint(lambda u: ca.sumsqr(u), upper=1.0,
+                                                           name="thrust"),)}}[limit]
+    shape = DmocShape(PointMass(dim=2), 10, 1.0, elastic=True, **thrust)
+    nlp = dmoc_problem(shape)
+    reach = lp_reach(1.0, 10, 1.0, -1.0, 1.0)[1]
+    for d in (0.1, reach - 0.01, reach + 0.05, 0.6):
+        params = np.array([0, 0, 0, 0, d, 0, 0, 0.0])
+        sol = nlp.solve(params)
+        assert sol.success
+        assert sol.cost == pytest.approx(max(0.0, d - reach), abs=1e-8)
+        step = 1e-6
+        up, down = (nlp.solve(params + np.eye(8)[4] * sign * step).cost for sign in (1, -1))
+        assert sol.cost_gradient[4] == pytest.approx((up - down) / (2 * step), abs=1e-6)
+
+
+# --- a surface -------------------------------------------------------------------------------
+
+TETRAHEDRON = np.array([[1, 1, 1], [1, -1, -1], [-1, 1, -1], [-1, -1, 1]]) / np.sqrt(3)
+
+
+def test_an_infeasible_start_on_a_sphere_ends_at_the_optimum_under_a_norm_limit():
+    """Four unit masses at rest on a regular tetrahedron of radius 1.5 onto the unit sphere
+    (the potential: a regular tetrahedron, free up to rotations), |u| ≤ 0.6, T = 2: from that
+    tetrahedron turned 2 rad about z (agent 0 then ~1.1 from its target, beyond its reach)
+    phase 1 turns it feasible; the optimum is every agent 0.5 straight in (no point of the
+    sphere is nearer), its cost 4 × the hand-written NLP's for that move."""
+    u_max = 0.6
+    thrust = PathConstraint(lambda u: ca.sumsqr(u), upper=u_max**2, name="thrust")
+    surface = SphereSurface(radius=1.0)
+    problem = FormationProblem(name="tetrahedron", curve=surface, starts=1.5 * TETRAHEDRON,
+                               shape=DmocShape(PointMass(dim=3), INTERVALS, DURATION,
+                                               path_constraints=(thrust,)))
+    phi0 = surface.locate(Rotation.from_rotvec([0, 0, 2.0]).apply(TETRAHEDRON))
+    far = np.linalg.norm(surface.points(phi0) - problem.starts, axis=1)
+    assert hand_dmoc(1.0, [0, 0, 0], [far.max(), 0, 0], INTERVALS, DURATION, "norm",
+                     u_max) is None   # the start is infeasible
+    result = solve_formation(problem, phi0=phi0)
+    assert result.status == "converged", result.message
+    np.testing.assert_allclose(problem.final_positions(result.phi), TETRAHEDRON, atol=1e-6)
+    one = hand_dmoc(1.0, [0, 0, 0], [0.5, 0, 0], INTERVALS, DURATION, "norm", u_max)
+    assert result.total_cost == pytest.approx(4 * one, rel=1e-6)
+    assert np.max(np.linalg.norm(result.controls, axis=2)) <= u_max * (1 + 1e-9)
+
+
+# --- an isolated coupling --------------------------------------------------------------------
+
+def test_an_infeasible_start_on_an_isolated_coupling_ends_at_the_cheapest_feasible_assignment():
+    """Four unit masses onto an ellipse (3, 1.5), the potential's isolated critical points,
+    |u| ≤ 1.3, T = 2: from the critical set with every agent sent one place on (infeasible),
+    the result is the cheapest of the 4! assignments of the set's points (found here by
+    minimising the potential with SciPy from the same start) whose every move the
+    hand-written NLP solves."""
+    u_max, a, b = 1.3, 3.0, 1.5
+    thrust = PathConstraint(lambda u: ca.sumsqr(u), upper=u_max**2, name="thrust")
+    angles = np.array([0.3, 1.8, 3.5, 5.0])
+    starts = np.column_stack([3.6 * np.cos(angles), 2.0 * np.sin(angles)])
+    problem = FormationProblem(name="iso", curve=Ellipse(semi_axes=(a, b), center=np.zeros(2)),
+                               starts=starts, coupling=PotentialCoupling(),
+                               shape=DmocShape(PointMass(dim=2), INTERVALS, DURATION,
+                                               path_constraints=(thrust,)))
+
+    def potential(phi):
+        z = np.column_stack([a * np.cos(phi), b * np.sin(phi)])
+        i, j = np.triu_indices(len(phi), 1)
+        return np.sum(1 / np.sum((z[i] - z[j]) ** 2, axis=1))
+
+    critical = minimize(potential, angles, method="BFGS", options={"gtol": 1e-12}).x
+    points = np.column_stack([a * np.cos(critical), b * np.sin(critical)])
+    phi0 = np.roll(critical, 1)
+    pair = {(i, j): hand_dmoc(1.0, starts[i], points[j], INTERVALS, DURATION, "norm", u_max)
+            for i in range(4) for j in range(4)}
+    assert any(pair[i, (i + 3) % 4] is None for i in range(4))   # the start is infeasible
+    best = min(sum(pair[i, j] for i, j in enumerate(p))
+               for p in itertools.permutations(range(4))
+               if all(pair[i, j] is not None for i, j in enumerate(p)))
+    result = solve_formation(problem, phi0=phi0)
+    assert result.status == "converged" and result.feasible_set == "discrete", result.message
+    assert result.total_cost == pytest.approx(best, rel=1e-6)
+    ends = problem.final_positions(result.phi)
+    assert max(np.min(np.linalg.norm(points - end, axis=1)) for end in ends) <= 1e-6
+
+
+# --- slots -----------------------------------------------------------------------------------
+
+def test_an_infeasible_nearest_assignment_onto_slots_ends_at_the_cheapest_feasible_one():
+    """The nearest assignment sends the heavy agent (reach 1/6) 0.2 up, infeasible; the
+    result is the cheapest of the 6 assignments whose every move the hand-written NLP
+    solves under the box limit."""
+    problem = reassignable()
+    points = problem.curve.points
+    nearest = problem.initial_phi().astype(int)
+    cost = {(i, j): hand_dmoc(MASSES[i], STARTS[i], points[j], INTERVALS, DURATION, "box", U)
+            for i in range(2) for j in range(3)}
+    assert any(cost[i, j] is None for i, j in enumerate(nearest))
+    best = min(cost[0, a] + cost[1, b] for a, b in itertools.permutations(range(3), 2)
+               if cost[0, a] is not None and cost[1, b] is not None)
+    result = solve_formation(problem)
+    assert result.status == "converged", result.message
+    assert result.total_cost == pytest.approx(best, rel=1e-6)
+
+
+def test_slots_with_no_feasible_assignment_are_refused_in_one_line_with_the_slack(
+        tmp_path, capsys):
+    """Each agent reaches slot 0 alone (the light one misses slots 1 and 2 by 0.1 along x,
+    its LP reach 0.5; the heavy one misses slot 1 by 0.3 − 1/6 and 0.2 − 1/6): the least
+    total slack is 0.1. The run writes result.json and its picture, exits 3 (failed)."""
+    reach = lp_reach(MASSES[0], INTERVALS, DURATION, -U, U)[1]
+    path = tmp_path / "slots.toml"
+    path.write_text(f'scheme = "formation"\nproblem = "phase_one_problems:unassignable"\n'
+                    f'output = "{tmp_path / "out"}"\n')
+    capsys.readouterr()
+    try:
+        code = ocpar_main(["run", str(path)])
+    except SystemExit as exc:
+        code = exc.code
+    out, err = capsys.readouterr()
+    assert code == 3 and "Traceback" not in out + err, out + err
+    summary = json.loads((tmp_path / "out" / "result.json").read_text())
+    assert summary["status"] == "failed" and "\n" not in summary["message"]
+    assert "no feasible formation" in summary["message"]
+    slack = float(summary["message"].split("smallest total slack of ")[1].split(" ")[0])
+    assert slack == pytest.approx(0.6 - reach, rel=1e-3)
+    assert any(p.suffix == ".png" for p in (tmp_path / "out").iterdir())
