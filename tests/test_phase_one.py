@@ -194,3 +194,59 @@ def test_slots_with_no_feasible_assignment_are_refused_in_one_line_with_the_slac
     slack = float(summary["message"].split("smallest total slack of ")[1].split(" ")[0])
     assert slack == pytest.approx(0.6 - reach, rel=1e-3)
     assert any(p.suffix == ".png" for p in (tmp_path / "out").iterdir())
+
+
+# --- every outer solver ----------------------------------------------------------------------
+
+@pytest.mark.parametrize("outer", ["sqp", "offset"])
+def test_sqp_and_offset_start_from_phase_one_and_stay_feasible(outer):
+    """The 6-mass fleet of test_feasibility onto its circle, box limit at 0.8 × the free
+    peak plus an inactive speed limit (so no exact reach set: the start is found by phase 1
+    alone): its default start is infeasible by the LP reach written there; ``sqp`` and
+    ``offset`` end converged, equal to the monolithic NLP written there (1e-8)."""
+    from feasibility_problems import build, free_peak, masses
+    from test_feasibility import reference_formation
+
+    from ocpar.formation import FormationOptions
+    agents = 6
+    u_max = 0.8 * free_peak(agents)
+    speed = PathConstraint(lambda v: ca.sumsqr(v), upper=1e4, name="speed")
+    problem = build(agents, "box", u_max, (speed,))
+    assert problem.reach_sets() == []
+    moves = problem.curve.points(problem.initial_phi()) - problem.starts
+    reach = np.array([lp_reach(float(m), 20, 5.0, -u_max, u_max)[1] for m in masses(agents)])
+    assert np.any(np.max(np.abs(moves), axis=1) > reach)
+    result = solve_formation(problem, options=FormationOptions(
+        outer=outer, outer_tol=1e-14 if outer == "sqp" else 1e-12))
+    assert result.status == "converged", result.message
+    order = np.argsort(np.argsort(np.mod(result.phi - result.phi[0], 2 * np.pi)))
+    theta = float(result.phi[0] - 2 * np.pi * order[0] / agents)
+    reference, _ = reference_formation(problem, order, theta + 0.05, "box", u_max)
+    assert result.total_cost == pytest.approx(reference, rel=1e-8)
+    assert np.abs(result.controls).max() <= u_max * (1 + 1e-9)
+
+
+def test_a_feasible_window_narrower_than_the_old_scan_spacing_is_found():
+    """The 12-mass fleet at 0.615 × the free peak (box) plus an inactive speed limit (no
+    exact reach set): the feasible rotations form one window 0.058 rad wide (the exact reach
+    sets' window of the same fleet without the speed limit, checked here), narrower than
+    the 2π/32 spacing of the old 32-shift scan, which missed it; phase 1 finds it, and the
+    run equals the monolithic NLP written in test_feasibility (1e-8)."""
+    from feasibility_problems import build, fleet, free_peak
+    from test_feasibility import reference_formation
+
+    from ocpar.formation.feasibility import feasible_window
+    exact = fleet("box", 0.615, 12)
+    family = exact.coupling.family(exact.initial_phi(), exact.curve)
+    window = feasible_window(exact, family)
+    assert 0 < window.high - window.low < 2 * np.pi / 32
+    u_max = 0.615 * free_peak(12)
+    speed = PathConstraint(lambda v: ca.sumsqr(v), upper=1e4, name="speed")
+    result = solve_formation(build(12, "box", u_max, (speed,)))
+    assert result.status == "converged", result.message
+    order = np.argsort(np.argsort(np.mod(result.phi - result.phi[0], 2 * np.pi)))
+    theta = float(result.phi[0] - 2 * np.pi * order[0] / 12)
+    shift = np.angle(np.exp(1j * (result.phi - family.base)))   # the family's θ, each agent
+    assert np.ptp(shift) < 1e-9 and window.low <= shift[0] <= window.high
+    reference, _ = reference_formation(exact, order, theta, "box", u_max)
+    assert result.total_cost == pytest.approx(reference, rel=1e-8)

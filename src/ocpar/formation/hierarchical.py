@@ -289,12 +289,23 @@ def feasible_point(objective: OuterObjective, phi: np.ndarray) -> np.ndarray:
 def solve_outer(
     objective: OuterObjective, phi0: np.ndarray, tol: float, max_iterations: int
 ) -> tuple[np.ndarray, int, bool, str]:
-    """SLSQP on J(φ)/J(φ_0) s.t. c(φ) = 0. Returns (φ, iterations, success, message)."""
+    """SLSQP on J(φ)/J(φ_0) s.t. c(φ) = 0, from ``phi0`` or, where an agent's inner problem
+    is infeasible there, from phase 1's feasible point (:func:`feasible_point`); an iterate
+    whose inner solves fail counts J = +∞ there (SLSQP's line search then backtracks into
+    the feasible region). Returns (φ, iterations, success, message)."""
     from scipy.optimize import minimize
     curve, coupling = objective.problem.curve, objective.problem.coupling
+    phi0 = feasible_point(objective, phi0)
     scale = 1.0 / max(objective.value(phi0), 1e-300)
+
+    def value(phi: np.ndarray) -> float:
+        try:
+            return objective.value(phi) * scale
+        except InnerSolveFailed:
+            return np.inf
+
     result = minimize(
-        lambda phi: objective.value(phi) * scale,
+        value,
         phi0,
         jac=lambda phi: objective.gradient(phi) * scale,
         method="SLSQP",
@@ -317,7 +328,10 @@ def solve_outer_offset(
     dJ/dθ = Σ_i dĴ_i/dφ_i = 0, from θ = 0 and θ = :data:`OFFSET_FIRST_STEP` (one superstep per
     iterate: each gives J and dJ/dθ). ``phi0`` must be equidistant. Converged when
     θ changes by less than ``tol``·(1 + |θ|) and J did not increase (beyond rounding:
-    :data:`ROUNDING_RTOL`, then φ⁰ is returned). Returns (φ, iterations, success, message).
+    :data:`ROUNDING_RTOL`, then φ⁰ is returned). Where φ⁰ is infeasible (an agent's inner
+    problem), phase 1 (:func:`feasible_point`) moves it first; where a secant iterate's
+    inner solves fail, :func:`_shift_newton` (which stays inside the feasible offsets)
+    finishes from φ⁰. Returns (φ, iterations, success, message).
     Only for a problem on a :class:`~ocpar.formation.Circle` (ValueError otherwise)."""
     from scipy.optimize import root_scalar
     objective.problem.require_circle("outer 'offset'")
@@ -325,10 +339,18 @@ def solve_outer_offset(
     if error > 1e-9:
         raise ValueError(f"outer 'offset' needs equidistant starting angles; their gaps are "
                          f"off by up to {error:.1e} rad")
+    phi0 = feasible_point(objective, phi0)   # phase 1 where φ0 is infeasible
     start_value = objective.value(phi0)  # the same superstep as dJ/dθ at θ = 0
-    result = root_scalar(lambda theta: float(np.sum(objective.gradient(phi0 + theta))),
-                         x0=0.0, x1=OFFSET_FIRST_STEP, method="secant", xtol=tol,
-                         rtol=tol, maxiter=max_iterations)
+    try:
+        result = root_scalar(lambda theta: float(np.sum(objective.gradient(phi0 + theta))),
+                             x0=0.0, x1=OFFSET_FIRST_STEP, method="secant", xtol=tol,
+                             rtol=tol, maxiter=max_iterations)
+    except InnerSolveFailed:   # a secant iterate left the feasible offsets
+        phi, iterations, success, message = _shift_newton(objective, ShiftFamily(phi0), tol,
+                                                          max_iterations)
+        return phi, iterations, success, (f"{message} (the secant search left the feasible "
+                                          f"offsets: finished by the shift Newton search, "
+                                          f"which stays inside them)")
     theta = float(result.root)
     value = objective.value(phi0 + theta)
     same = abs(value - start_value) <= ROUNDING_RTOL * abs(start_value)
