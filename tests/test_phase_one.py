@@ -117,31 +117,50 @@ def test_an_infeasible_start_on_a_sphere_ends_at_the_optimum_under_a_norm_limit(
 
 # --- an isolated coupling --------------------------------------------------------------------
 
-def test_an_infeasible_start_on_an_isolated_coupling_ends_at_the_cheapest_feasible_assignment():
-    """Four unit masses onto an ellipse (3, 1.5), the potential's isolated critical points,
-    |u| ≤ 1.3, T = 2: from the critical set with every agent sent one place on (infeasible),
-    the result is the cheapest of the 4! assignments of the set's points (found here by
-    minimising the potential with SciPy from the same start) whose every move the
-    hand-written NLP solves."""
-    u_max, a, b = 1.3, 3.0, 1.5
+ELLIPSE = (3.0, 1.5)
+ANGLES = np.array([0.3, 1.8, 3.5, 5.0])
+ELLIPSE_STARTS = np.column_stack([3.6 * np.cos(ANGLES), 2.0 * np.sin(ANGLES)])
+
+
+def ellipse_problem(u_max: float) -> FormationProblem:
+    """Four unit masses from rest outside the ellipse ``ELLIPSE`` onto it (the potential's
+    isolated critical points), |u| ≤ ``u_max``, T = 2, N = 10."""
     thrust = PathConstraint(lambda u: ca.sumsqr(u), upper=u_max**2, name="thrust")
-    angles = np.array([0.3, 1.8, 3.5, 5.0])
-    starts = np.column_stack([3.6 * np.cos(angles), 2.0 * np.sin(angles)])
-    problem = FormationProblem(name="iso", curve=Ellipse(semi_axes=(a, b), center=np.zeros(2)),
-                               starts=starts, coupling=PotentialCoupling(),
-                               shape=DmocShape(PointMass(dim=2), INTERVALS, DURATION,
-                                               path_constraints=(thrust,)))
+    return FormationProblem(name="iso", curve=Ellipse(semi_axes=ELLIPSE, center=np.zeros(2)),
+                            starts=ELLIPSE_STARTS, coupling=PotentialCoupling(),
+                            shape=DmocShape(PointMass(dim=2), INTERVALS, DURATION,
+                                            path_constraints=(thrust,)))
+
+
+def critical_points() -> tuple[np.ndarray, np.ndarray]:
+    """The critical set of the potential Σ 1/|z_i − z_j|² on the ellipse the starts' angles
+    lead to (SciPy's BFGS, here): its angles (4,) and points (4, 2)."""
+    a, b = ELLIPSE
 
     def potential(phi):
         z = np.column_stack([a * np.cos(phi), b * np.sin(phi)])
         i, j = np.triu_indices(len(phi), 1)
         return np.sum(1 / np.sum((z[i] - z[j]) ** 2, axis=1))
 
-    critical = minimize(potential, angles, method="BFGS", options={"gtol": 1e-12}).x
-    points = np.column_stack([a * np.cos(critical), b * np.sin(critical)])
+    critical = minimize(potential, ANGLES, method="BFGS", options={"gtol": 1e-12}).x
+    return critical, np.column_stack([a * np.cos(critical), b * np.sin(critical)])
+
+
+def pair_table(points: np.ndarray, u_max: float) -> dict:
+    """The hand-written NLP's cost of each (agent, point) move, None where infeasible."""
+    return {(i, j): hand_dmoc(1.0, ELLIPSE_STARTS[i], points[j], INTERVALS, DURATION, "norm",
+                              u_max) for i in range(4) for j in range(4)}
+
+
+def test_an_infeasible_start_on_an_isolated_coupling_ends_at_the_cheapest_feasible_assignment():
+    """|u| ≤ 1.3: from the critical set with every agent sent one place on (infeasible),
+    the result is the cheapest of the 4! assignments of the set's points whose every move
+    the hand-written NLP solves."""
+    u_max = 1.3
+    problem = ellipse_problem(u_max)
+    critical, points = critical_points()
     phi0 = np.roll(critical, 1)
-    pair = {(i, j): hand_dmoc(1.0, starts[i], points[j], INTERVALS, DURATION, "norm", u_max)
-            for i in range(4) for j in range(4)}
+    pair = pair_table(points, u_max)
     assert any(pair[i, (i + 3) % 4] is None for i in range(4))   # the start is infeasible
     best = min(sum(pair[i, j] for i, j in enumerate(p))
                for p in itertools.permutations(range(4))
@@ -151,6 +170,25 @@ def test_an_infeasible_start_on_an_isolated_coupling_ends_at_the_cheapest_feasib
     assert result.total_cost == pytest.approx(best, rel=1e-6)
     ends = problem.final_positions(result.phi)
     assert max(np.min(np.linalg.norm(points - end, axis=1)) for end in ends) <= 1e-6
+
+
+def test_an_isolated_coupling_no_assignment_serves_is_refused_in_one_line_with_the_slack():
+    """|u| ≤ 0.8: each agent reaches the ellipse (the problem is accepted), two of the 16
+    (agent, point) moves onto the critical set are feasible, no assignment has all four (the
+    hand-written NLP); the run is refused: ``failed``, one line naming the least total slack
+    found (> 0) and the farthest agent, no verification words about paths that are no
+    answer."""
+    u_max = 0.8
+    critical, points = critical_points()
+    pair = pair_table(points, u_max)
+    assert not any(all(pair[i, j] is not None for i, j in enumerate(p))
+                   for p in itertools.permutations(range(4)))
+    result = solve_formation(ellipse_problem(u_max), phi0=critical)
+    assert result.status == "failed" and "\n" not in result.message
+    assert result.message.startswith("no feasible formation: phase 1")
+    assert "verification" not in result.message
+    slack = float(result.message.split("smallest total slack of ")[1].split(" ")[0])
+    assert slack > 0.1
 
 
 # --- slots -----------------------------------------------------------------------------------

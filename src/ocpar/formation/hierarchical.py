@@ -38,6 +38,7 @@ from ocpar.formation.couplings.potential import equidistance_error
 from ocpar.formation.feasibility import (
     InnerSolveFailed,
     NoFeasibleFormation,
+    PhaseOne,
     feasible_window,
     parameter_gradient,
     phase_one,
@@ -88,6 +89,8 @@ class OuterObjective:
         self.inner_solves = 0
         self.failed_solves = 0
         self.retries = 0
+        #: Phase 1's outcome where the start was infeasible (None: it was feasible).
+        self.phase_one: PhaseOne | None = None
         self.last_outcomes: Columns | None = None
         self._agents = backend.resident(solve_formation_agents, problem.agents)
         self._phi: np.ndarray | None = None   # the last superstep's angles, or
@@ -282,6 +285,7 @@ def feasible_point(objective: OuterObjective, phi: np.ndarray) -> np.ndarray:
         family = problem.coupling.family(phi, problem.curve)
         found = phase_one(problem, objective.backend, phi, family, progress=objective.progress)
         objective.inner_solves += found.inner_solves
+        objective.phase_one = found
         objective.reach(found.phi)
         return found.phi
 
@@ -435,6 +439,7 @@ def _shift_newton(objective: OuterObjective, family: ShiftFamily, tol: float,
         found = phase_one(objective.problem, objective.backend, family.angles(theta)[0],
                           family, low, high, objective.progress)
         objective.inner_solves += found.inner_solves
+        objective.phase_one = found
         theta = found.theta
         value, slope, scale, curvature = evaluate(theta)
     # the latest (θ, dJ/dθ) with dJ/dθ < 0 and with dJ/dθ > 0
