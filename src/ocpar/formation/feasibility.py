@@ -287,6 +287,8 @@ class Slacks:
 
     slack: np.ndarray
     end_gradient: np.ndarray
+    failed: int = 0
+    first_failure: str = ""
 
 
 def elastic_slacks(problem: FormationProblem, backend: Backend, agents: np.ndarray,
@@ -304,7 +306,10 @@ def elastic_slacks(problem: FormationProblem, backend: Backend, agents: np.ndarr
     nq, d = problem.common_shape.model.nq, problem.curve.dim
     gradient = np.asarray(sols.column("cost_gradient"))[:, 2 * nq:2 * nq + d]
     gradient = np.where(success[:, None], gradient, 0.0)
-    return Slacks(np.maximum(slack, 0.0), gradient)
+    bad = np.flatnonzero(~success)
+    first = (f"agent {agents[bad[0]]} ending at phi = {rows[bad[0]].tolist()}: "
+             f"{sols.column('status')[bad[0]]}") if len(bad) else ""
+    return Slacks(np.maximum(slack, 0.0), gradient, len(bad), first)
 
 
 def parameter_gradient(problem: FormationProblem, phi: np.ndarray, d_end: np.ndarray
@@ -376,13 +381,19 @@ class _Search:
 
     def __init__(self, problem: FormationProblem, backend: Backend, progress) -> None:
         self.problem, self.backend, self.progress = problem, backend, progress
-        self.solves, self.steps = 0, 0
+        self.solves, self.steps, self.failed, self.first_failure = 0, 0, 0, ""
         self.best: tuple[float, np.ndarray | None, np.ndarray | None] = (np.inf, None, None)
+
+    def measured(self, found: Slacks) -> Slacks:
+        """``found``, its elastic solves counted (and their first failure kept)."""
+        self.solves += found.slack.size
+        self.failed += found.failed
+        self.first_failure = self.first_failure or found.first_failure
+        return found
 
     def slacks(self, phi: np.ndarray) -> Slacks:
         n = self.problem.agents
-        found = elastic_slacks(self.problem, self.backend, np.arange(n), phi)
-        self.solves += n
+        found = self.measured(elastic_slacks(self.problem, self.backend, np.arange(n), phi))
         total = float(np.sum(found.slack))
         if total < self.best[0]:
             self.best = (total, np.array(phi, float), found.slack)
@@ -392,6 +403,10 @@ class _Search:
 
     def result(self, phi: np.ndarray, theta: float | None) -> PhaseOne:
         total, best_phi, slack = self.best
+        if not np.isfinite(total):   # no measure: the elastic solves failed (a solver limit)
+            raise InnerSolveFailed(f"no feasible start: phase 1's elastic inner problems "
+                                   f"failed too ({self.failed} of {self.solves}; first: "
+                                   f"{self.first_failure})")
         if not total <= SLACK_TOL:
             worst = int(np.nanargmax(slack)) if slack is not None else 0
             where = ("" if slack is None else
@@ -409,9 +424,8 @@ class _Search:
         n = self.problem.agents
         shifts = low + (np.arange(PHASE_ONE_SHIFTS) + 0.5) * (high - low) / PHASE_ONE_SHIFTS
         phi = np.stack([family.angles(float(t))[0] for t in shifts])
-        found = elastic_slacks(self.problem, self.backend, np.tile(np.arange(n), len(shifts)),
-                               phi.ravel())
-        self.solves += found.slack.size
+        found = self.measured(elastic_slacks(self.problem, self.backend,
+                                             np.tile(np.arange(n), len(shifts)), phi.ravel()))
         totals = found.slack.reshape(len(shifts), n).sum(axis=1)
         for k in np.argsort(totals):   # from the least, while the descent stalls above 0
             theta = self._descend_shift(family, float(shifts[k]))
@@ -499,9 +513,9 @@ class _Search:
         starts = [phi, *(x for x in starts
                          if np.max(np.abs(coupling.residual(x, surface))) <= PROJECTION_TOL)]
         n = self.problem.agents
-        found = elastic_slacks(self.problem, self.backend, np.tile(np.arange(n), len(starts)),
-                               np.concatenate(starts))
-        self.solves += found.slack.size
+        found = self.measured(elastic_slacks(self.problem, self.backend,
+                                             np.tile(np.arange(n), len(starts)),
+                                             np.concatenate(starts)))
         totals = found.slack.reshape(len(starts), n).sum(axis=1)
         return [starts[k] for k in np.argsort(totals)]
 
@@ -521,8 +535,8 @@ class _Search:
                   if isinstance(problem.curve, Slots) else np.reshape(phi, (n, -1)))
         m = len(places)
         agents = np.repeat(np.arange(n), m)
-        found = elastic_slacks(problem, self.backend, agents, np.tile(places, (n, 1)))
-        self.solves += found.slack.size
+        found = self.measured(elastic_slacks(problem, self.backend, agents,
+                                             np.tile(places, (n, 1))))
         table = found.slack.reshape(n, m)
         rows, cols = linear_sum_assignment(np.where(np.isfinite(table), table, 1e300))
         total = float(np.sum(table[rows, cols]))
