@@ -288,3 +288,22 @@ def test_a_feasible_window_narrower_than_the_old_scan_spacing_is_found():
     assert np.ptp(shift) < 1e-9 and window.low <= shift[0] <= window.high
     reference, _ = reference_formation(exact, order, theta, "box", u_max)
     assert result.total_cost == pytest.approx(reference, rel=1e-8)
+
+
+def test_an_sqp_step_out_of_the_feasible_window_is_backtracked():
+    """The 12-mass box fleet at 0.615 × the free peak (exact reach sets: the start is inside
+    its 0.058 rad window): an SLSQP iterate leaves the window (its inner solve fails, counted),
+    which used to end the run ``failed``; J = +∞ there makes SLSQP backtrack, and the run
+    equals the monolithic NLP written in test_feasibility (1e-8)."""
+    from feasibility_problems import fleet, free_peak
+    from test_feasibility import reference_formation
+
+    from ocpar.formation import FormationOptions
+    problem = fleet("box", 0.615, 12)
+    result = solve_formation(problem, options=FormationOptions(outer="sqp", outer_tol=1e-14))
+    assert result.status == "converged", result.message
+    assert result.failed_solves >= 1
+    order = np.argsort(np.argsort(np.mod(result.phi - result.phi[0], 2 * np.pi)))
+    theta = float(result.phi[0] - 2 * np.pi * order[0] / 12)
+    reference, _ = reference_formation(problem, order, theta, "box", 0.615 * free_peak(12))
+    assert result.total_cost == pytest.approx(reference, rel=1e-8)
