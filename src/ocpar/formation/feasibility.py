@@ -1,6 +1,6 @@
 """Where the formation's outer problem is feasible: every agent's inner problem has a solution.
 
-Two mechanisms, one per kind of knowledge:
+Three mechanisms:
 
 * **Exact reach sets** (box- or norm-limited point masses at rest at both ends,
   :mod:`ocpar.ocp.reach`): along a family of formations φ(θ) (a circle's common rotation,
@@ -19,6 +19,15 @@ Two mechanisms, one per kind of knowledge:
 * **Failures as data** (any model and constraint): :func:`inner_costs` returns +∞ for an
   inner problem whose solve failed (and, where the reach set is exact, for one outside it,
   without solving it), so that cost tables and scans carry infeasibility as a value.
+* **Phase 1** (any model, constraint, target and coupling, where the start is infeasible):
+  each agent's elastic inner problem (:func:`elastic_shape`, ``DmocShape.elastic``: slack on
+  the end conditions, control bounds and inequality rows, the total slack minimised) gives
+  s_i(φ_i) ≥ 0, 0 exactly where the agent is feasible, and ds_i/dz from its multipliers
+  (:func:`elastic_slacks`); :func:`phase_one` drives S = Σ_i s_i to zero with the outer
+  problem's own freedom (a family's shift, the coupling's free directions, the assignment
+  of agents to the formation's points) or raises :class:`NoFeasibleFormation` with the
+  smallest S it reached. The outer solvers call it only where their start's inner solves
+  fail: a feasible start costs nothing more.
 """
 
 from __future__ import annotations

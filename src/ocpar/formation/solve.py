@@ -151,7 +151,8 @@ class FormationOptions:
         None, "the start: the final angles (rad), one per agent (on a surface two per agent, "
         "agent i's at 2i, 2i+1), numbers separated by commas; default: the documented "
         "initial guess, moved to the nearest feasible formation where thrust limits are "
-        "known exactly", metavar="PHI,PHI,...")
+        "known exactly; elsewhere an infeasible start goes through phase 1 (elastic inner "
+        "problems) first", metavar="PHI,PHI,...")
     initial_rotation: float | None = option(
         None, "the start: the documented initial guess rotated by this angle (rad, added to "
         "every agent's initial angle; curves only)", metavar="RAD")
