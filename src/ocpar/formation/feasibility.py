@@ -33,6 +33,7 @@ Three mechanisms:
 from __future__ import annotations
 
 import dataclasses
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -245,8 +246,11 @@ def inner_costs(problem: FormationProblem, backend: Backend, agents: np.ndarray,
 #: A total slack (the elastic inner problems' ℓ1 measure, mixed units) at most this counts
 #: as feasible (the batched and IPOPT solves of a feasible elastic problem return ~1e-11).
 SLACK_TOL = 1e-8
-#: Shifts of a family at which the total slack is evaluated (one superstep) before descent.
-PHASE_ONE_SHIFTS = 32
+#: Shifts of a family at which the total slack is evaluated (one superstep each scan) before
+#: descent: a coarse scan, and a finer one only if no descent from the first reached S = 0.
+PHASE_ONE_SCANS = (8, 64)
+#: Turned copies of a start on an ellipsoid with rotational symmetry (one superstep).
+PHASE_ONE_TURNS = 32
 #: Turned starts phase 1 descends from at most, the least total slack first.
 PHASE_ONE_STARTS = 4
 #: Steps of one descent of phase 1 at most (each a superstep of n elastic solves, plus halvings).
@@ -348,13 +352,15 @@ class PhaseOne:
 
 def phase_one(problem: FormationProblem, backend: Backend, phi0: np.ndarray,
               family: ShiftFamily | None = None, low: float = -np.inf, high: float = np.inf,
-              progress=None) -> PhaseOne:
+              progress: Callable[[str], None] | None = None) -> PhaseOne:
     """A feasible formation from an infeasible start ``phi0`` (on c(φ) = 0): minimise the
     total slack S(φ) = Σ_i s_i(φ_i) of the agents' elastic inner problems
     (:func:`elastic_slacks`) over the outer problem's own freedom until S ≤ :data:`SLACK_TOL`:
 
     * along ``family`` (its shift θ in (``low``, ``high``), a period if unbounded): S at
-      :data:`PHASE_ONE_SHIFTS` shifts in one superstep, then descent from the least;
+      the shifts of each scan of :data:`PHASE_ONE_SCANS` in one superstep, then descent from
+      the least (and from the next while within twice its S), the finer scan only if no
+      descent from the coarse one reached S = 0;
     * otherwise along the coupling's free directions Z at φ (none where its solutions are
       isolated): steps −α ZZᵀ∇S, each retracted onto c = 0;
     * where the coupling's solutions may be permuted among the agents (the permuted φ still
@@ -363,7 +369,7 @@ def phase_one(problem: FormationProblem, backend: Backend, phi0: np.ndarray,
       assignments with every pair feasible the cheapest (a superstep of hard solves of those
       pairs); then the descent again.
 
-    A descent step is the Polyak step α = :data:`POLYAK_OVERSHOOT` S/|ZᵀZ∇S|² (S grows
+    A descent step is the Polyak step α = :data:`POLYAK_OVERSHOOT` S/|ZZᵀ∇S|² (S grows
     linearly outside the feasible set), halved until S falls. Raises
     :class:`NoFeasibleFormation` (one line: the smallest S found, the agent with the largest
     s_i there) if S stays above :data:`SLACK_TOL`."""
@@ -388,7 +394,8 @@ def phase_one(problem: FormationProblem, backend: Backend, phi0: np.ndarray,
 class _Search:
     """The state of one :func:`phase_one`: solves made, the best (S, φ) seen."""
 
-    def __init__(self, problem: FormationProblem, backend: Backend, progress) -> None:
+    def __init__(self, problem: FormationProblem, backend: Backend,
+                 progress: Callable[[str], None] | None) -> None:
         self.problem, self.backend, self.progress = problem, backend, progress
         self.solves, self.steps, self.failed, self.first_failure = 0, 0, 0, ""
         self.best: tuple[float, np.ndarray | None, np.ndarray | None] = (np.inf, None, None)
@@ -431,18 +438,25 @@ class _Search:
         if not np.isfinite(low) or not np.isfinite(high):
             low, high = -np.pi, np.pi
         n = self.problem.agents
-        shifts = low + (np.arange(PHASE_ONE_SHIFTS) + 0.5) * (high - low) / PHASE_ONE_SHIFTS
-        phi = np.stack([family.angles(float(t))[0] for t in shifts])
-        found = self.measured(elastic_slacks(self.problem, self.backend,
-                                             np.tile(np.arange(n), len(shifts)), phi.ravel()))
-        totals = found.slack.reshape(len(shifts), n).sum(axis=1)
-        for k in np.argsort(totals):   # from the least, while the descent stalls above 0
-            theta = self._descend_shift(family, float(shifts[k]))
-            if self.best[0] <= SLACK_TOL or totals[k] > 2 * totals.min() + SLACK_TOL:
-                break
-        if self.best[0] > SLACK_TOL:
-            return self.result(None, None)   # raises
-        return self.result(family.angles(theta)[0], theta)
+        for count in PHASE_ONE_SCANS:
+            shifts = low + (np.arange(count) + 0.5) * (high - low) / count
+            phi = np.stack([family.angles(float(t))[0] for t in shifts])
+            found = self.measured(elastic_slacks(self.problem, self.backend,
+                                                 np.tile(np.arange(n), count), phi.ravel()))
+            slacks = found.slack.reshape(count, n)
+            totals = slacks.sum(axis=1)
+            if not np.any(np.isfinite(totals)):   # no measure anywhere: the solver's limit
+                return self.result(None, None)   # raises
+            for k in np.argsort(totals):   # from the least, while the descent stalls above 0
+                if totals[k] <= SLACK_TOL:   # a feasible shift on the scan
+                    theta, self.best = float(shifts[k]), (float(totals[k]), phi[k], slacks[k])
+                    return self.result(phi[k], theta)
+                theta = self._descend_shift(family, float(shifts[k]))
+                if self.best[0] <= SLACK_TOL:
+                    return self.result(family.angles(theta)[0], theta)
+                if totals[k] > 2 * totals.min():
+                    break
+        return self.result(None, None)   # raises
 
     def _descend_shift(self, family: ShiftFamily, theta: float) -> float:
         def at(theta: float) -> tuple[float, float]:
@@ -454,7 +468,7 @@ class _Search:
 
         value, slope = at(theta)
         shrink, budget = 1.0, self.steps + PHASE_ONE_STEPS
-        while value > SLACK_TOL and self.steps < budget and slope != 0:
+        while SLACK_TOL < value < np.inf and self.steps < budget and slope != 0:
             step = -shrink * POLYAK_OVERSHOOT * value / slope
             step = float(np.clip(step, -np.pi / 2, np.pi / 2))
             self.steps += 1
@@ -474,7 +488,7 @@ class _Search:
         found = self.slacks(phi)
         value = float(np.sum(found.slack))
         shrink, budget = 1.0, self.steps + PHASE_ONE_STEPS
-        while value > SLACK_TOL and self.steps < budget:
+        while SLACK_TOL < value < np.inf and self.steps < budget:
             free = coupling.free_directions(phi, curve)
             if not free.shape[1]:
                 break
@@ -504,7 +518,7 @@ class _Search:
 
     def turned(self, phi: np.ndarray) -> list[np.ndarray]:
         """``phi`` and, on an ellipsoid with rotational symmetry, its points turned by
-        :data:`PHASE_ONE_SHIFTS` rotations about its axes (seeded, about its centre) that
+        :data:`PHASE_ONE_TURNS` rotations about its axes (seeded, about its centre) that
         keep c = 0, ordered by their total slack (one superstep); else ``phi`` alone."""
         surface = self.problem.curve
         if not isinstance(surface, EllipsoidSurface) or not len(surface.symmetry_axes):
@@ -512,8 +526,8 @@ class _Search:
         from scipy.spatial.transform import Rotation
         axes = surface.symmetry_axes
         rng = np.random.default_rng(0)
-        vectors = rng.normal(size=(PHASE_ONE_SHIFTS, len(axes)))
-        vectors *= (rng.uniform(0, np.pi, PHASE_ONE_SHIFTS)
+        vectors = rng.normal(size=(PHASE_ONE_TURNS, len(axes)))
+        vectors *= (rng.uniform(0, np.pi, PHASE_ONE_TURNS)
                     / np.linalg.norm(vectors, axis=1))[:, None]
         points = surface.points(np.reshape(phi, (-1, 2))) - surface.center
         coupling = self.problem.coupling
