@@ -191,6 +191,39 @@ def test_an_isolated_coupling_no_assignment_serves_is_refused_in_one_line_with_t
     assert slack > 0.1
 
 
+def test_an_infeasible_start_on_a_users_coupling_with_free_directions_is_made_feasible():
+    """The user's coupling of tests/test_couplings.py (two free directions: the tangent
+    Newton search), |u| ≤ 8 (below the free optimum's peak 11.95): from the free optimum's
+    angles with pairs (0, 1) and (2, 3) sent half a turn on (still c = 0, infeasible),
+    phase 1 descends along c = 0 to a feasible formation and the run converges, equal to
+    the monolithic mode started from the free optimum's angles (1e-9)."""
+    from test_couplings import A, B, paired
+
+    from ocpar.formation import FormationOptions, UserCoupling
+    n, u_max = 6, 8.0
+    starts = np.column_stack([np.linspace(-6.0, 6.0, n), np.full(n, -5.0)])
+
+    def make(**limit) -> FormationProblem:
+        return FormationProblem(name="coupled", starts=starts,
+                                shape=DmocShape(PointMass(dim=2), 10, 2.0, **limit),
+                                curve=Ellipse(semi_axes=(A, B), center=np.array([1.0, 2.0])),
+                                coupling=UserCoupling(paired(n)))
+
+    free = solve_formation(make())
+    thrust = PathConstraint(lambda u: ca.sumsqr(u), upper=u_max**2, name="thrust")
+    problem = make(path_constraints=(thrust,))
+    phi0 = free.phi + np.array([np.pi, np.pi, np.pi, np.pi, 0.0, 0.0])
+    moves = np.linalg.norm(problem.final_positions(phi0) - starts, axis=1)
+    assert any(hand_dmoc(1.0, [0, 0], [d, 0], 10, 2.0, "norm", u_max) is None
+               for d in moves)   # the start is infeasible
+    result = solve_formation(problem, phi0=phi0)
+    assert result.status == "converged" and "phase 1" in result.message, result.message
+    monolithic = solve_formation(problem, options=FormationOptions(mode="monolithic"),
+                                 phi0=free.phi)
+    assert monolithic.status == "converged"
+    assert result.total_cost == pytest.approx(monolithic.total_cost, rel=1e-9)
+
+
 # --- slots -----------------------------------------------------------------------------------
 
 def test_an_infeasible_nearest_assignment_onto_slots_ends_at_the_cheapest_feasible_one():
