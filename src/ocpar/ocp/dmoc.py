@@ -85,8 +85,9 @@ Elastic (phase-1) problem (optional, ``DmocShape.elastic``): the same equations 
 every condition a formation's outer problem can make infeasible given slack, the cost the
 total slack (ℓ1) instead of J_d. The end configuration and velocity enter as
 q_N + a⁺ − a⁻ and q̇_N + b⁺ − b⁻ (a±, b± ≥ 0, nq each), each control bound as
-lo − σ ≤ u_k[j] ≤ hi + σ and each inequality row (path, obstacle) as lb − σ ≤ c ≤ ub + σ
-(one σ ≥ 0 per control entry and interval, per row); the cost is
+lo − σ ≤ u_k[j] ≤ hi + σ and each path row as lb − σ ≤ c ≤ ub + σ (one σ ≥ 0 per control
+entry and interval, per row; the obstacle rows stay hard: the start is clear of them and the
+end and controls are free, so they can always be met); the cost is
 s = Σ a± + Σ b± + Σ σ (mixed units: length, velocity, force, the rows' own), 0 exactly
 where the hard NLP is feasible. The NLP is feasible whatever p (zero controls and any path
 meet the equations with slack), and its ``cost_gradient`` −λ_p is ds*/dp (entries
@@ -414,24 +415,26 @@ class DmocTranscription:
         planes = ca.SX.sym("planes", n * len(balls) * len(shape.obstacle_positions))
         obstacle = obstacle_rows(shape.obstacles, [q[list(shape.obstacle_positions)]
                                                    for q in qs], planes)
-        self.u_lower, self.u_upper = (np.array(bound) for bound in zip(
-            *(shape.control_bounds or [(-np.inf, np.inf)] * nu), strict=True))
         rows = ca.vertcat(path.expr, *obstacle)
         row_lower = np.concatenate([path.lower, np.zeros(len(obstacle))])
         row_upper = np.concatenate([path.upper, np.full(len(obstacle), np.inf)])
-        if shape.elastic:   # every row and control bound elastic (module docstring)
+        self.u_lower, self.u_upper = (np.array(bound) for bound in zip(
+            *(shape.control_bounds or [(-np.inf, np.inf)] * nu), strict=True))
+        if shape.elastic:   # the path rows and control bounds elastic (module docstring)
             bounded = shape.control_bounds is not None
-            row_slack = ca.SX.sym("row_slack", rows.numel())
+            row_slack = ca.SX.sym("row_slack", path.count)
             u_slack = ca.SX.sym("u_slack", nu * n if bounded else 0)
             elastic = ca.vertcat(end_slack, u_slack, row_slack)
-            rows = ca.vertcat(rows + row_slack, rows - row_slack,
+            none, free = np.full(path.count, -np.inf), np.full(path.count, np.inf)
+            rows = ca.vertcat(path.expr + row_slack, path.expr - row_slack, *obstacle,
                               *([u_all + u_slack, u_all - u_slack] if bounded else []))
             u_lower, u_upper = np.tile(self.u_lower, n), np.tile(self.u_upper, n)
-            row_lower, row_upper = (
-                np.concatenate([row_lower, np.full(len(row_lower), -np.inf),
-                                *([u_lower, np.full(n * nu, -np.inf)] if bounded else [])]),
-                np.concatenate([np.full(len(row_upper), np.inf), row_upper,
-                                *([np.full(n * nu, np.inf), u_upper] if bounded else [])]))
+            row_lower = np.concatenate([path.lower, none, np.zeros(len(obstacle)),
+                                        *([u_lower, np.full(n * nu, -np.inf)] if bounded
+                                          else [])])
+            row_upper = np.concatenate([free, path.upper, np.full(len(obstacle), np.inf),
+                                        *([np.full(n * nu, np.inf), u_upper] if bounded
+                                          else [])])
             objective = ca.sum1(elastic)
         else:
             elastic, objective = ca.SX.sym("elastic", 0), control_cost + penalty
