@@ -17,6 +17,13 @@ inner KKT system). Three outer solvers:
   keeps them equidistant in the same order, so the feasible set is the one-parameter family
   φ_i = φ_i⁰ + θ; minimise J over the common offset θ (dJ/dθ = Σ_i dĴ_i/dφ_i). Same optimum,
   and the coordinator's work no longer grows like n³ (SLSQP's dense QP).
+
+Every solver starts where each agent's inner problem is feasible: where the given start is
+not, phase 1 (:func:`~ocpar.formation.feasibility.phase_one`, the agents' elastic inner
+problems) finds a feasible formation first, or the problem is refused
+(:class:`~ocpar.formation.feasibility.NoFeasibleFormation`); a later step whose inner solves
+fail is rejected (``newton``), counts J = +∞ (``sqp``), or hands ``offset`` over to the shift
+Newton search.
 """
 
 from __future__ import annotations
