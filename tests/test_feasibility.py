@@ -229,7 +229,8 @@ def test_optimal_ordering_completes_on_the_box_fleet(solved):
 
 def test_without_an_exact_reach_set_failed_solves_are_rejected_steps():
     """Box limit plus an inactive speed limit (no exact reach set known to ocpar): the start
-    fails, a scan finds a feasible one, and the run converges to the exact-reach run's cost
+    fails, phase 1 (the elastic inner problems) finds a feasible one, and the run converges
+    to the exact-reach run's cost
     (1e-9); the failures are counted, not raised."""
     u_max = 0.8 * free_peak()
     speed = PathConstraint(lambda v: ca.sumsqr(v), upper=1e4, name="speed")

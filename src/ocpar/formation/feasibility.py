@@ -1,6 +1,6 @@
 """Where the formation's outer problem is feasible: every agent's inner problem has a solution.
 
-Two mechanisms, one per kind of knowledge:
+Three mechanisms:
 
 * **Exact reach sets** (box- or norm-limited point masses at rest at both ends,
   :mod:`ocpar.ocp.reach`): along a family of formations φ(θ) (a circle's common rotation,
@@ -19,20 +19,31 @@ Two mechanisms, one per kind of knowledge:
 * **Failures as data** (any model and constraint): :func:`inner_costs` returns +∞ for an
   inner problem whose solve failed (and, where the reach set is exact, for one outside it,
   without solving it), so that cost tables and scans carry infeasibility as a value.
+* **Phase 1** (any model, constraint, target and coupling, where the start is infeasible):
+  each agent's elastic inner problem (:func:`elastic_shape`, ``DmocShape.elastic``: slack on
+  the end conditions, control bounds and inequality rows, the total slack minimised) gives
+  s_i(φ_i) ≥ 0, 0 exactly where the agent is feasible, and ds_i/dz from its multipliers
+  (:func:`elastic_slacks`); :func:`phase_one` drives S = Σ_i s_i to zero with the outer
+  problem's own freedom (a family's shift, the coupling's free directions, the assignment
+  of agents to the formation's points) or raises :class:`NoFeasibleFormation` with the
+  smallest S it reached. The outer solvers call it only where their start's inner solves
+  fail: a feasible start costs nothing more.
 """
 
 from __future__ import annotations
 
+import dataclasses
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
 
 from ocpar.bsp import Backend
-from ocpar.formation.couplings.coupling import ShiftFamily
+from ocpar.formation.couplings.coupling import PROJECTION_TOL, ShiftFamily
 from ocpar.formation.problem import FormationProblem
 from ocpar.formation.targets.slots import Slots
-from ocpar.formation.targets.surface import Surface
-from ocpar.ocp import solve_tasks
+from ocpar.formation.targets.surface import EllipsoidSurface, Surface
+from ocpar.ocp import DmocShape, solve_tasks
 
 #: Shifts (per period 2π) at which the largest reach excess E(θ) is evaluated.
 WINDOW_GRID = 2048
@@ -226,3 +237,351 @@ def inner_costs(problem: FormationProblem, backend: Backend, agents: np.ndarray,
             first = (f"agent {agents[k]} ending at phi = {rows[k].tolist()}: "
                      f"{sols.column('status')[bad[0]]}")
     return InnerCosts(costs, len(todo), failed, int(np.sum(skip)), first)
+
+
+# ----------------------------------------------------------------------------------------
+# Phase 1: the elastic inner problem, any model, target and coupling
+# ----------------------------------------------------------------------------------------
+
+#: A total slack (the elastic inner problems' ℓ1 measure, mixed units) at most this counts
+#: as feasible (the batched and IPOPT solves of a feasible elastic problem return ~1e-11).
+SLACK_TOL = 1e-8
+#: Shifts of a family at which the total slack is evaluated (one superstep each scan) before
+#: descent: a coarse scan, and a finer one only if no descent from the first reached S = 0.
+PHASE_ONE_SCANS = (8, 64)
+#: Turned copies of a start on an ellipsoid with rotational symmetry (one superstep).
+PHASE_ONE_TURNS = 32
+#: Turned starts phase 1 descends from at most, the least total slack first.
+PHASE_ONE_STARTS = 4
+#: Steps of one descent of phase 1 at most (each a superstep of n elastic solves, plus halvings).
+PHASE_ONE_STEPS = 60
+#: A descent whose accepted step lowers S by less than this fraction has stalled at a local
+#: minimum above 0 (S falls to 0 in few steps near a feasible region: it grows linearly).
+STALL_RTOL = 0.02
+#: The Polyak step s/|g|² (the step to the zero of a function of linear growth) is taken
+#: this much longer, so that it crosses into the feasible region rather than onto its edge.
+POLYAK_OVERSHOOT = 1.5
+
+
+class InnerSolveFailed(RuntimeError):
+    """Some inner solves of a superstep failed; the outer problem cannot go on."""
+
+
+class NoFeasibleFormation(InnerSolveFailed):
+    """Phase 1 found no formation with every agent feasible; ``slack`` the smallest total
+    slack Σ_i s_i it reached."""
+
+    def __init__(self, message: str, slack: float) -> None:
+        super().__init__(message)
+        self.slack = slack
+
+
+def elastic_shape(shape: DmocShape) -> DmocShape:
+    """``shape``'s elastic (phase-1) NLP (:mod:`ocpar.ocp.dmoc`), solved by IPOPT (the
+    batched ``sqpmethod`` spends its iteration limit on the degenerate ℓ1 problem: ~0.4 s a
+    batch against ~3 ms a task): built once per shape and worker like any other, by the
+    same cache."""
+    return dataclasses.replace(shape, elastic=True, solver="ipopt")
+
+
+def elastic_problem(problem: FormationProblem) -> FormationProblem:
+    """``problem`` with every agent's shape elastic (once per problem)."""
+    cached = problem.__dict__.get("_elastic")
+    if cached is None:
+        cached = problem.with_shapes(elastic_shape)
+        object.__setattr__(problem, "_elastic", cached)
+    return cached
+
+
+@dataclass
+class Slacks:
+    """The elastic measures s (p,) ≥ 0 of pairs (agent, end parameter) and ds/dz (p, d) w.r.t.
+    the end position z (length unit per length unit, etc.: the slacks' mixed units)."""
+
+    slack: np.ndarray
+    end_gradient: np.ndarray
+    failed: int = 0
+    first_failure: str = ""
+
+
+def elastic_slacks(problem: FormationProblem, backend: Backend, agents: np.ndarray,
+                   phi: np.ndarray) -> Slacks:
+    """s_i of agent ``agents[k]`` ending at ``phi[k]`` (an angle, a surface's 2 parameters,
+    or a slot index; rows of ``phi``), one superstep of elastic solves (0: feasible), and
+    ds_i/dz from their multipliers. An elastic solve that fails (it has a solution for every
+    p) counts as +∞ with a zero gradient."""
+    agents = np.asarray(agents, dtype=np.intp)
+    rows = np.asarray(phi, float).reshape(len(agents), -1)
+    elastic = elastic_problem(problem)
+    sols = backend.superstep_columns(solve_tasks, elastic.tasks_for(agents, rows.ravel()))
+    success = np.asarray(sols.column("success"), dtype=bool)
+    slack = np.where(success, np.asarray(sols.column("cost"), dtype=float), np.inf)
+    nq, d = problem.common_shape.model.nq, problem.curve.dim
+    gradient = np.asarray(sols.column("cost_gradient"))[:, 2 * nq:2 * nq + d]
+    gradient = np.where(success[:, None], gradient, 0.0)
+    bad = np.flatnonzero(~success)
+    first = (f"agent {agents[bad[0]]} ending at phi = {rows[bad[0]].tolist()}: "
+             f"{sols.column('status')[bad[0]]}") if len(bad) else ""
+    return Slacks(np.maximum(slack, 0.0), gradient, len(bad), first)
+
+
+def parameter_gradient(problem: FormationProblem, phi: np.ndarray, d_end: np.ndarray
+                       ) -> np.ndarray:
+    """d/dφ (n k,) of Σ_i f_i(z(φ_i)) from each agent's df_i/dz, ``d_end`` (n, ≥ d): on a
+    curve df_i/dz · z′(φ_i), on a surface (∂z/∂φ_i)ᵀ ∇f_i (agent i's at 2i, 2i+1)."""
+    if isinstance(problem.curve, Surface):
+        along = problem.curve.jacobians(np.reshape(phi, (-1, 2)))
+        return np.einsum("id,idk->ik", d_end[:, : along.shape[1]], along).ravel()
+    tangents = problem.curve.tangents(phi)
+    return np.sum(d_end[:, : tangents.shape[1]] * tangents, axis=1)
+
+
+@dataclass
+class PhaseOne:
+    """Outcome of :func:`phase_one`: ``phi`` where Σ_i s_i ≤ :data:`SLACK_TOL` (the start
+    of phase 2), ``theta`` its shift where the search ran along a family (else None),
+    ``slack`` the total there, ``inner_solves`` elastic (and, for an assignment, hard) solves
+    made, ``steps`` descent steps taken."""
+
+    phi: np.ndarray
+    theta: float | None
+    slack: float
+    inner_solves: int
+    steps: int
+
+
+def phase_one(problem: FormationProblem, backend: Backend, phi0: np.ndarray,
+              family: ShiftFamily | None = None, low: float = -np.inf, high: float = np.inf,
+              progress: Callable[[str], None] | None = None) -> PhaseOne:
+    """A feasible formation from an infeasible start ``phi0`` (on c(φ) = 0): minimise the
+    total slack S(φ) = Σ_i s_i(φ_i) of the agents' elastic inner problems
+    (:func:`elastic_slacks`) over the outer problem's own freedom until S ≤ :data:`SLACK_TOL`:
+
+    * along ``family`` (its shift θ in (``low``, ``high``), a period if unbounded): S at
+      the shifts of each scan of :data:`PHASE_ONE_SCANS` in one superstep, then descent from
+      the least (and from the next while within twice its S), the finer scan only if no
+      descent from the coarse one reached S = 0;
+    * otherwise along the coupling's free directions Z at φ (none where its solutions are
+      isolated): steps −α ZZᵀ∇S, each retracted onto c = 0;
+    * where the coupling's solutions may be permuted among the agents (the permuted φ still
+      solves c = 0: the potential; the slots), the assignment of the agents to the start's
+      points minimising S (an n × n table of elastic solves, one superstep), then among the
+      assignments with every pair feasible the cheapest (a superstep of hard solves of those
+      pairs); then the descent again.
+
+    A descent step is the Polyak step α = :data:`POLYAK_OVERSHOOT` S/|ZZᵀ∇S|² (S grows
+    linearly outside the feasible set), halved until S falls. Raises
+    :class:`NoFeasibleFormation` (one line: the smallest S found, the agent with the largest
+    s_i there) if S stays above :data:`SLACK_TOL`."""
+    search = _Search(problem, backend, progress)
+    if isinstance(problem.curve, Slots):
+        return search.assign(np.asarray(phi0, float), final=True)
+    if family is not None:
+        return search.along_family(family, low, high)
+    # the start, and turned copies of its points where they solve c = 0, least S first
+    starts = search.turned(np.asarray(phi0, float).ravel())
+    for k in range(min(PHASE_ONE_STARTS, len(starts))):
+        phi = search.descend(starts[k])
+        if search.best[0] <= SLACK_TOL:
+            break
+    if search.best[0] > SLACK_TOL and search.permutable(phi):
+        phi = search.assign(phi).phi
+        if search.best[0] > SLACK_TOL:
+            phi = search.descend(phi)
+    return search.result(phi, None)
+
+
+class _Search:
+    """The state of one :func:`phase_one`: solves made, the best (S, φ) seen."""
+
+    def __init__(self, problem: FormationProblem, backend: Backend,
+                 progress: Callable[[str], None] | None) -> None:
+        self.problem, self.backend, self.progress = problem, backend, progress
+        self.solves, self.steps, self.failed, self.first_failure = 0, 0, 0, ""
+        self.best: tuple[float, np.ndarray | None, np.ndarray | None] = (np.inf, None, None)
+
+    def measured(self, found: Slacks) -> Slacks:
+        """``found``, its elastic solves counted (and their first failure kept)."""
+        self.solves += found.slack.size
+        self.failed += found.failed
+        self.first_failure = self.first_failure or found.first_failure
+        return found
+
+    def slacks(self, phi: np.ndarray) -> Slacks:
+        n = self.problem.agents
+        found = self.measured(elastic_slacks(self.problem, self.backend, np.arange(n), phi))
+        total = float(np.sum(found.slack))
+        if total < self.best[0]:
+            self.best = (total, np.array(phi, float), found.slack)
+        if self.progress is not None:
+            self.progress(f"phase 1: total slack {total:.6e}")
+        return found
+
+    def result(self, phi: np.ndarray, theta: float | None) -> PhaseOne:
+        total, best_phi, slack = self.best
+        if not np.isfinite(total):   # no measure: the elastic solves failed (a solver limit)
+            raise InnerSolveFailed(f"no feasible start: phase 1's elastic inner problems "
+                                   f"failed too ({self.failed} of {self.solves}; first: "
+                                   f"{self.first_failure})")
+        if not total <= SLACK_TOL:
+            worst = int(np.nanargmax(slack)) if slack is not None else 0
+            where = ("" if slack is None else
+                     f"; agent {worst} the farthest (slack {slack[worst]:.4g})")
+            raise NoFeasibleFormation(
+                f"no feasible formation: phase 1 (elastic inner problems) reached a smallest "
+                f"total slack of {total:.4g} (0: every agent feasible){where}", total)
+        return PhaseOne(best_phi if phi is None else phi, theta, total, self.solves,
+                        self.steps)
+
+    def along_family(self, family: ShiftFamily, low: float, high: float) -> PhaseOne:
+        """Scan, then descent over θ (see :func:`phase_one`)."""
+        if not np.isfinite(low) or not np.isfinite(high):
+            low, high = -np.pi, np.pi
+        n = self.problem.agents
+        for count in PHASE_ONE_SCANS:
+            shifts = low + (np.arange(count) + 0.5) * (high - low) / count
+            phi = np.stack([family.angles(float(t))[0] for t in shifts])
+            found = self.measured(elastic_slacks(self.problem, self.backend,
+                                                 np.tile(np.arange(n), count), phi.ravel()))
+            slacks = found.slack.reshape(count, n)
+            totals = slacks.sum(axis=1)
+            if not np.any(np.isfinite(totals)):   # no measure anywhere: the solver's limit
+                return self.result(None, None)   # raises
+            for k in np.argsort(totals):   # from the least, while the descent stalls above 0
+                if totals[k] <= SLACK_TOL:   # a feasible shift on the scan
+                    theta, self.best = float(shifts[k]), (float(totals[k]), phi[k], slacks[k])
+                    return self.result(phi[k], theta)
+                theta = self._descend_shift(family, float(shifts[k]))
+                if self.best[0] <= SLACK_TOL:
+                    return self.result(family.angles(theta)[0], theta)
+                if totals[k] > 2 * totals.min():
+                    break
+        return self.result(None, None)   # raises
+
+    def _descend_shift(self, family: ShiftFamily, theta: float) -> float:
+        def at(theta: float) -> tuple[float, float]:
+            phi, along, _ = family.angles(theta)
+            found = self.slacks(phi)
+            slope = float(np.sum(parameter_gradient(self.problem, phi, found.end_gradient)
+                                 * along))
+            return float(np.sum(found.slack)), slope
+
+        value, slope = at(theta)
+        shrink, budget = 1.0, self.steps + PHASE_ONE_STEPS
+        while SLACK_TOL < value < np.inf and self.steps < budget and slope != 0:
+            step = -shrink * POLYAK_OVERSHOOT * value / slope
+            step = float(np.clip(step, -np.pi / 2, np.pi / 2))
+            self.steps += 1
+            t_value, t_slope = at(theta + step)
+            if t_value < value:
+                stalled = t_value > (1 - STALL_RTOL) * value
+                theta, value, slope, shrink = theta + step, t_value, t_slope, 1.0
+                if stalled:   # a local minimum of S above 0: another start
+                    break
+            else:
+                shrink /= 2
+        return theta
+
+    def descend(self, phi: np.ndarray) -> np.ndarray:
+        """Polyak steps along the coupling's free directions (see :func:`phase_one`)."""
+        coupling, curve = self.problem.coupling, self.problem.curve
+        found = self.slacks(phi)
+        value = float(np.sum(found.slack))
+        shrink, budget = 1.0, self.steps + PHASE_ONE_STEPS
+        while SLACK_TOL < value < np.inf and self.steps < budget:
+            free = coupling.free_directions(phi, curve)
+            if not free.shape[1]:
+                break
+            g = free @ (free.T @ parameter_gradient(self.problem, phi, found.end_gradient))
+            size = float(g @ g)
+            if size == 0:
+                break
+            step = -shrink * POLYAK_OVERSHOOT * value / size * g
+            step *= min(1.0, (np.pi / 2) / max(np.max(np.abs(step)), 1e-300))
+            self.steps += 1
+            trial = coupling.retract(phi + step, curve)
+            if np.max(np.abs(coupling.residual(trial, curve))) > PROJECTION_TOL:
+                shrink /= 2
+                continue
+            t_found = self.slacks(trial)
+            t_value = float(np.sum(t_found.slack))
+            if t_value < value:
+                stalled = t_value > (1 - STALL_RTOL) * value
+                phi, found, value, shrink = trial, t_found, t_value, 1.0
+                if stalled:   # a local minimum of S above 0: another start
+                    break
+            else:
+                shrink /= 2
+                if shrink < 1e-12:
+                    break
+        return phi if value <= SLACK_TOL else self.best[1]
+
+    def turned(self, phi: np.ndarray) -> list[np.ndarray]:
+        """``phi`` and, on an ellipsoid with rotational symmetry, its points turned by
+        :data:`PHASE_ONE_TURNS` rotations about its axes (seeded, about its centre) that
+        keep c = 0, ordered by their total slack (one superstep); else ``phi`` alone."""
+        surface = self.problem.curve
+        if not isinstance(surface, EllipsoidSurface) or not len(surface.symmetry_axes):
+            return [phi]
+        from scipy.spatial.transform import Rotation
+        axes = surface.symmetry_axes
+        rng = np.random.default_rng(0)
+        vectors = rng.normal(size=(PHASE_ONE_TURNS, len(axes)))
+        vectors *= (rng.uniform(0, np.pi, PHASE_ONE_TURNS)
+                    / np.linalg.norm(vectors, axis=1))[:, None]
+        points = surface.points(np.reshape(phi, (-1, 2))) - surface.center
+        coupling = self.problem.coupling
+        starts = [surface.locate(surface.center + Rotation.from_rotvec(v @ axes).apply(points)
+                                 ).ravel() for v in vectors]
+        starts = [phi, *(x for x in starts
+                         if np.max(np.abs(coupling.residual(x, surface))) <= PROJECTION_TOL)]
+        n = self.problem.agents
+        found = self.measured(elastic_slacks(self.problem, self.backend,
+                                             np.tile(np.arange(n), len(starts)),
+                                             np.concatenate(starts)))
+        totals = found.slack.reshape(len(starts), n).sum(axis=1)
+        return [starts[k] for k in np.argsort(totals)]
+
+    def permutable(self, phi: np.ndarray) -> bool:
+        """Whether the agents may trade the points of ``phi`` (a permutation solves c = 0)."""
+        rows = np.reshape(phi, (self.problem.agents, -1))
+        swapped = np.roll(rows, 1, axis=0).ravel()
+        coupling, curve = self.problem.coupling, self.problem.curve
+        return bool(np.max(np.abs(coupling.residual(swapped, curve))) <= PROJECTION_TOL)
+
+    def assign(self, phi: np.ndarray, final: bool = False) -> PhaseOne:
+        """The assignment of the agents to the points of ``phi`` (onto slots: to every slot)
+        minimising S, then the cheapest with every pair feasible (see :func:`phase_one`)."""
+        from scipy.optimize import linear_sum_assignment
+        problem, n = self.problem, self.problem.agents
+        places = (np.arange(problem.curve.count, dtype=float)[:, None]
+                  if isinstance(problem.curve, Slots) else np.reshape(phi, (n, -1)))
+        m = len(places)
+        agents = np.repeat(np.arange(n), m)
+        found = self.measured(elastic_slacks(problem, self.backend, agents,
+                                             np.tile(places, (n, 1))))
+        table = found.slack.reshape(n, m)
+        rows, cols = linear_sum_assignment(np.where(np.isfinite(table), table, 1e300))
+        total = float(np.sum(table[rows, cols]))
+        chosen = places[cols].ravel()
+        if total < self.best[0]:
+            self.best = (total, chosen, table[rows, cols])
+        if self.progress is not None:
+            self.progress(f"phase 1: assignment, total slack {total:.6e}")
+        if total > SLACK_TOL:
+            if final:
+                return self.result(None, None)   # raises
+            return PhaseOne(chosen, None, total, self.solves, self.steps)
+        feasible = np.flatnonzero(table.ravel() <= SLACK_TOL)
+        costs = np.full(n * m, np.inf)
+        found_costs = inner_costs(problem, self.backend, agents[feasible],
+                                  np.tile(places, (n, 1))[feasible])
+        self.solves += found_costs.solved
+        costs[feasible] = found_costs.costs
+        rows, cols = linear_sum_assignment(np.where(np.isfinite(costs), costs,
+                                                    1e300).reshape(n, m))
+        if not np.all(np.isfinite(costs.reshape(n, m)[rows, cols])):
+            cols = linear_sum_assignment(np.where(np.isfinite(table), table, 1e300))[1]
+        chosen = places[cols].ravel()
+        self.best = (0.0, chosen, table[rows, cols])
+        return PhaseOne(chosen, None, 0.0, self.solves, self.steps)

@@ -17,6 +17,13 @@ inner KKT system). Three outer solvers:
   keeps them equidistant in the same order, so the feasible set is the one-parameter family
   φ_i = φ_i⁰ + θ; minimise J over the common offset θ (dJ/dθ = Σ_i dĴ_i/dφ_i). Same optimum,
   and the coordinator's work no longer grows like n³ (SLSQP's dense QP).
+
+Every solver starts where each agent's inner problem is feasible: where the given start is
+not, phase 1 (:func:`~ocpar.formation.feasibility.phase_one`, the agents' elastic inner
+problems) finds a feasible formation first, or the problem is refused
+(:class:`~ocpar.formation.feasibility.NoFeasibleFormation`); a later step whose inner solves
+fail is rejected (``newton``), counts J = +∞ (``sqp``), or hands ``offset`` over to the shift
+Newton search.
 """
 
 from __future__ import annotations
@@ -35,7 +42,14 @@ from ocpar.formation.couplings.coupling import (
     ShiftFamily,
 )
 from ocpar.formation.couplings.potential import equidistance_error
-from ocpar.formation.feasibility import feasible_window, inner_costs
+from ocpar.formation.feasibility import (
+    InnerSolveFailed,
+    NoFeasibleFormation,
+    PhaseOne,
+    feasible_window,
+    parameter_gradient,
+    phase_one,
+)
 from ocpar.formation.outer_step import (
     ShiftValues,
     combine,
@@ -58,13 +72,6 @@ MAX_OFFSET_STEP = np.pi / 2
 #: J values this close (relative) count as equal: the offset search starting at the optimum
 #: (e.g. after the optimal ordering) ends where rounding decides.
 ROUNDING_RTOL = 1e-12
-
-#: Shifts tried by :func:`_scan_start` (one superstep of this many times n inner solves).
-SCAN_SHIFTS = 32
-
-
-class InnerSolveFailed(RuntimeError):
-    """Some inner solves of a superstep failed; the outer problem cannot go on."""
 
 
 class OuterObjective:
@@ -89,6 +96,8 @@ class OuterObjective:
         self.inner_solves = 0
         self.failed_solves = 0
         self.retries = 0
+        #: Phase 1's outcome where the start was infeasible (None: it was feasible).
+        self.phase_one: PhaseOne | None = None
         self.last_outcomes: Columns | None = None
         self._agents = backend.resident(solve_formation_agents, problem.agents)
         self._phi: np.ndarray | None = None   # the last superstep's angles, or
@@ -202,10 +211,7 @@ class OuterObjective:
         """dJ/dφ (n k,) from each agent's dJ*/dq_N (entries 2nq..3nq of dJ*/dp): on a curve
         dJ*/dq_N · z′(φ_i), on a surface (∂z/∂φ_i)ᵀ ∇_pos J*_i (agent i's at 2i, 2i+1)."""
         d_end = np.asarray(self.outcomes(phi).column("end_gradient"))
-        if isinstance(self.problem.curve, Surface):
-            along = self.problem.curve.jacobians(np.reshape(phi, (-1, 2)))
-            return np.einsum("id,idk->ik", d_end[:, : along.shape[1]], along).ravel()
-        return np.sum(d_end * self.problem.final_position_derivatives(phi), axis=1)
+        return parameter_gradient(self.problem, phi, d_end)
 
     def hessian_diagonal(self, phi: np.ndarray) -> np.ndarray:
         """d²J/dφ_i² (n,): z′(φ_i)ᵀ H_pos z′(φ_i) + ∇_pos J*_i · z″(φ_i), with H_pos the
@@ -270,15 +276,47 @@ class OuterObjective:
         return feasibility
 
 
+def feasible_point(objective: OuterObjective, phi: np.ndarray) -> np.ndarray:
+    """``phi`` (on c(φ) = 0) made the last superstep's angles, or, where an agent's inner
+    problem is infeasible there, phase 1's feasible formation
+    (:func:`~ocpar.formation.feasibility.phase_one`, which raises
+    :class:`NoFeasibleFormation` if it finds none). Costs nothing beyond that superstep
+    where ``phi`` is feasible."""
+    try:
+        objective.reach(phi)
+        return phi
+    except NoFeasibleFormation:
+        raise
+    except InnerSolveFailed:
+        problem = objective.problem
+        family = problem.coupling.family(phi, problem.curve)
+        found = phase_one(problem, objective.backend, phi, family, progress=objective.progress)
+        objective.inner_solves += found.inner_solves
+        objective.phase_one = found
+        objective.reach(found.phi)
+        return found.phi
+
+
 def solve_outer(
     objective: OuterObjective, phi0: np.ndarray, tol: float, max_iterations: int
 ) -> tuple[np.ndarray, int, bool, str]:
-    """SLSQP on J(φ)/J(φ_0) s.t. c(φ) = 0. Returns (φ, iterations, success, message)."""
+    """SLSQP on J(φ)/J(φ_0) s.t. c(φ) = 0, from ``phi0`` or, where an agent's inner problem
+    is infeasible there, from phase 1's feasible point (:func:`feasible_point`); an iterate
+    whose inner solves fail counts J = +∞ there (SLSQP's line search then backtracks into
+    the feasible region). Returns (φ, iterations, success, message)."""
     from scipy.optimize import minimize
     curve, coupling = objective.problem.curve, objective.problem.coupling
+    phi0 = feasible_point(objective, phi0)
     scale = 1.0 / max(objective.value(phi0), 1e-300)
+
+    def value(phi: np.ndarray) -> float:
+        try:
+            return objective.value(phi) * scale
+        except InnerSolveFailed:
+            return np.inf
+
     result = minimize(
-        lambda phi: objective.value(phi) * scale,
+        value,
         phi0,
         jac=lambda phi: objective.gradient(phi) * scale,
         method="SLSQP",
@@ -301,7 +339,10 @@ def solve_outer_offset(
     dJ/dθ = Σ_i dĴ_i/dφ_i = 0, from θ = 0 and θ = :data:`OFFSET_FIRST_STEP` (one superstep per
     iterate: each gives J and dJ/dθ). ``phi0`` must be equidistant. Converged when
     θ changes by less than ``tol``·(1 + |θ|) and J did not increase (beyond rounding:
-    :data:`ROUNDING_RTOL`, then φ⁰ is returned). Returns (φ, iterations, success, message).
+    :data:`ROUNDING_RTOL`, then φ⁰ is returned). Where φ⁰ is infeasible (an agent's inner
+    problem), phase 1 (:func:`feasible_point`) moves it first; where a secant iterate's
+    inner solves fail, :func:`_shift_newton` (which stays inside the feasible offsets)
+    finishes from φ⁰. Returns (φ, iterations, success, message).
     Only for a problem on a :class:`~ocpar.formation.Circle` (ValueError otherwise)."""
     from scipy.optimize import root_scalar
     objective.problem.require_circle("outer 'offset'")
@@ -309,10 +350,18 @@ def solve_outer_offset(
     if error > 1e-9:
         raise ValueError(f"outer 'offset' needs equidistant starting angles; their gaps are "
                          f"off by up to {error:.1e} rad")
+    phi0 = feasible_point(objective, phi0)   # phase 1 where φ0 is infeasible
     start_value = objective.value(phi0)  # the same superstep as dJ/dθ at θ = 0
-    result = root_scalar(lambda theta: float(np.sum(objective.gradient(phi0 + theta))),
-                         x0=0.0, x1=OFFSET_FIRST_STEP, method="secant", xtol=tol,
-                         rtol=tol, maxiter=max_iterations)
+    try:
+        result = root_scalar(lambda theta: float(np.sum(objective.gradient(phi0 + theta))),
+                             x0=0.0, x1=OFFSET_FIRST_STEP, method="secant", xtol=tol,
+                             rtol=tol, maxiter=max_iterations)
+    except InnerSolveFailed:   # a secant iterate left the feasible offsets
+        phi, iterations, success, message = _shift_newton(objective, ShiftFamily(phi0), tol,
+                                                          max_iterations)
+        return phi, iterations, success, (f"{message} (the secant search left the feasible "
+                                          f"offsets: finished by the shift Newton search, "
+                                          f"which stays inside them)")
     theta = float(result.root)
     value = objective.value(phi0 + theta)
     same = abs(value - start_value) <= ROUNDING_RTOL * abs(start_value)
@@ -351,7 +400,7 @@ def solve_outer_newton(
     if family is not None:
         return _shift_newton(objective, family, tol, max_iterations)
     phi = problem.coupling.project(phi0, problem.curve)
-    objective.reach(phi)
+    phi = feasible_point(objective, phi)
     residual = float(np.max(np.abs(problem.coupling.residual(phi, problem.curve))))
     if residual > PROJECTION_TOL:
         return phi, 0, False, (f"the projection did not reach c(phi) = 0 (max |c| "
@@ -380,7 +429,8 @@ def _shift_newton(objective: OuterObjective, family: ShiftFamily, tol: float,
     θ starts at the feasible start of :func:`~ocpar.formation.feasibility.feasible_window`
     and stays inside its interval (a step beyond an end goes half way to it). Any model: a
     step whose inner solves fail is rejected (halved) and bounds the interval; if the start
-    fails, :func:`_scan_start` looks for a feasible one."""
+    fails, phase 1 (:func:`~ocpar.formation.feasibility.phase_one`) finds a feasible one on
+    the family (or refuses the problem: :class:`NoFeasibleFormation`)."""
 
     def evaluate(theta: float) -> tuple[float, float, float, float]:
         at = objective.shifted(family, theta)
@@ -392,8 +442,12 @@ def _shift_newton(objective: OuterObjective, family: ShiftFamily, tol: float,
     n = objective.problem.agents
     try:
         value, slope, scale, curvature = evaluate(theta)
-    except InnerSolveFailed:   # no feasible start known: scan for one
-        theta, low, high = _scan_start(objective, family, low, high)
+    except InnerSolveFailed:   # an infeasible start: phase 1 along the family
+        found = phase_one(objective.problem, objective.backend, family.angles(theta)[0],
+                          family, low, high, objective.progress)
+        objective.inner_solves += found.inner_solves
+        objective.phase_one = found
+        theta = found.theta
         value, slope, scale, curvature = evaluate(theta)
     # the latest (θ, dJ/dθ) with dJ/dθ < 0 and with dJ/dθ > 0
     below = (theta, slope) if slope < 0 else None
@@ -429,36 +483,6 @@ def _shift_newton(objective: OuterObjective, family: ShiftFamily, tol: float,
         else:
             shrink /= 2
     return family.angles(theta)[0], max_iterations, False, "iteration limit reached"
-
-
-def _scan_start(objective: OuterObjective, family: ShiftFamily, low: float, high: float
-                ) -> tuple[float, float, float]:
-    """A feasible start of the shift search where θ = the given start failed: one superstep
-    of :data:`SCAN_SHIFTS` · n inner solves at shifts spread over (``low``, ``high``) (a
-    period if unbounded; failures are +∞, :func:`~ocpar.formation.feasibility.inner_costs`),
-    the cheapest shift whose every agent solved, and the interval between its failed
-    neighbours. Raises :class:`InnerSolveFailed` if none solved."""
-    problem = objective.problem
-    if not np.isfinite(low) or not np.isfinite(high):
-        low, high = -np.pi, np.pi
-    shifts = low + (np.arange(SCAN_SHIFTS) + 0.5) * (high - low) / SCAN_SHIFTS
-    n = problem.agents
-    phi = np.stack([family.angles(float(t))[0] for t in shifts])
-    found = inner_costs(problem, objective.backend, np.tile(np.arange(n), SCAN_SHIFTS),
-                        phi.ravel())
-    objective.inner_solves += found.solved
-    objective.failed_solves += found.failed
-    totals = found.costs.reshape(SCAN_SHIFTS, n).sum(axis=1)
-    if not np.any(np.isfinite(totals)):
-        raise InnerSolveFailed(f"no feasible start among {SCAN_SHIFTS} shifts in "
-                               f"[{low:.4g}, {high:.4g}] rad ({found.failed} inner solve(s) "
-                               f"failed, {found.skipped} target(s) out of reach; first: "
-                               f"{found.first_failure})")
-    best = int(np.argmin(totals))
-    failed = np.flatnonzero(~np.isfinite(totals))
-    left, right = failed[failed < best], failed[failed > best]
-    return (float(shifts[best]), float(shifts[left[-1]]) if len(left) else low,
-            float(shifts[right[0]]) if len(right) else high)
 
 
 def tangent_newton(objective: OuterObjective, phi: np.ndarray, tol: float,
@@ -527,7 +551,8 @@ def rotation_newton(objective: OuterObjective, phi: np.ndarray, tol: float,
     + A_aᵀ M A_b, M = Σ_i ½ (r_i v_iᵀ + v_i r_iᵀ) − (r_i · v_i) I. The step −H⁺g takes the
     eigenvalues in absolute value and drops those below :data:`RANK_RTOL` times the largest (a
     rotation that changes no cost, e.g. about a line through c that holds every start), is
-    at most :data:`MAX_OFFSET_STEP` rad, and is halved while it raises J beyond rounding.
+    at most :data:`MAX_OFFSET_STEP` rad, and is halved while it raises J beyond rounding or
+    its inner solves fail (the search stays where every agent is feasible).
     Converged when |g|_∞ ≤ ``tol`` Σ_i |r_i × v_i| with H positive semidefinite (to
     :data:`RANK_RTOL`), or a step of at most ``tol`` rad was taken or was the last to fail
     to lower J. Returns (φ (2n,) of the points
@@ -570,7 +595,10 @@ def rotation_newton(objective: OuterObjective, phi: np.ndarray, tol: float,
         if converged:
             return phi, iteration, True, "rotation gradient below tolerance"
         trial = turned(phi, shrink * step)
-        t_value = objective.value(trial)
+        try:
+            t_value = objective.value(trial)
+        except InnerSolveFailed:   # infeasible (or unsolved) there: a rejected step
+            t_value = np.inf
         if t_value <= value + ROUNDING_RTOL * abs(value):
             if shrink * np.linalg.norm(step) <= tol:
                 return trial, iteration + 1, True, "step below tolerance"

@@ -10,7 +10,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ocpar.bsp import Backend
-from ocpar.formation.hierarchical import InnerSolveFailed
+from ocpar.formation.feasibility import InnerSolveFailed, NoFeasibleFormation, phase_one
 from ocpar.formation.ordering import pair_costs
 from ocpar.formation.problem import FormationProblem
 from ocpar.formation.targets.slots import SLOT_CANDIDATES, assign_over_candidates
@@ -38,9 +38,10 @@ def assign_slots(problem: FormationProblem, backend: Backend,
                  progress: Callable[[str], None] | None = None) -> SlotChoice:
     """The assignment of ``problem``'s agents to its slots minimising the total inner cost
     (module docstring), its inner solves on ``backend`` (an infeasible pair is +∞:
-    :func:`~ocpar.formation.ordering.pair_costs`); raises
-    :class:`~ocpar.formation.hierarchical.InnerSolveFailed` if no assignment has every
-    agent's pair feasible."""
+    :func:`~ocpar.formation.ordering.pair_costs`); where no assignment has every agent's pair
+    feasible, phase 1 (:func:`~ocpar.formation.feasibility.phase_one`: the assignment of
+    least total elastic slack) raises
+    :class:`~ocpar.formation.feasibility.NoFeasibleFormation` with that slack."""
     solves = 0
 
     def inner_costs(agents: np.ndarray, chosen: np.ndarray) -> np.ndarray:
@@ -53,6 +54,17 @@ def assign_slots(problem: FormationProblem, backend: Backend,
         slots, k, total = assign_over_candidates(starts, problem.curve, candidates,
                                                  inner_costs, progress)
     except ValueError:   # every slot a candidate, and no assignment of finite pairs
-        raise InnerSolveFailed("no assignment of every agent to a slot it can reach (every "
-                               "one takes an infeasible pair)") from None
+        # phase 1: the assignment of least total slack; raises NoFeasibleFormation with it
+        try:
+            found = phase_one(problem, backend, problem.initial_phi(), progress=progress)
+        except NoFeasibleFormation as exc:
+            raise NoFeasibleFormation(f"no assignment of every agent to a slot it can reach: "
+                                      f"{exc}", exc.slack) from None
+        slots = found.phi.astype(np.intp)   # (only if the hard solves failed where it is 0)
+        solves += found.inner_solves
+        total, k = float(np.sum(inner_costs(np.arange(problem.agents), slots))), \
+            problem.curve.count
+        if not np.isfinite(total):
+            raise InnerSolveFailed("no assignment of every agent to a slot it can reach "
+                                   "(every one takes an infeasible pair)") from None
     return SlotChoice(slots, total, k, solves)

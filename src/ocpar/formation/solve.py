@@ -22,7 +22,7 @@ from ocpar.formation.couplings.critical_sets import (
     IsolatedChoice,
     best_isolated_formation,
 )
-from ocpar.formation.feasibility import feasible_start
+from ocpar.formation.feasibility import NoFeasibleFormation, feasible_start
 from ocpar.formation.finish import cost_groups, finish, writes_parts
 from ocpar.formation.hierarchical import (
     InnerSolveFailed,
@@ -151,7 +151,8 @@ class FormationOptions:
         None, "the start: the final angles (rad), one per agent (on a surface two per agent, "
         "agent i's at 2i, 2i+1), numbers separated by commas; default: the documented "
         "initial guess, moved to the nearest feasible formation where thrust limits are "
-        "known exactly", metavar="PHI,PHI,...")
+        "known exactly; elsewhere an infeasible start goes through phase 1 (elastic inner "
+        "problems) first", metavar="PHI,PHI,...")
     initial_rotation: float | None = option(
         None, "the start: the documented initial guess rotated by this angle (rad, added to "
         "every agent's initial angle; curves only)", metavar="RAD")
@@ -500,6 +501,7 @@ def solve_formation(
         )
 
     objective = OuterObjective(problem, backend, progress)
+    refusal = None   # phase 1's one line, where it refused the problem
     try:
         if chosen is None:
             phi, iterations, success, message = OUTER[options.outer](
@@ -510,8 +512,13 @@ def solve_formation(
         objective.reach(phi)
         status = "converged" if success else "not_converged"
         message += note
+        if objective.phase_one is not None:
+            message += (f"; the start was infeasible: phase 1 (elastic inner problems, "
+                        f"{objective.phase_one.inner_solves} solves) found a feasible one")
     except InnerSolveFailed as exc:
         phi, iterations, status, message = objective.last_phi, -1, "failed", str(exc)
+        if isinstance(exc, NoFeasibleFormation):   # refused: the paths are no answer to check
+            refusal = message
     inner_solves = ordering_solves + objective.inner_solves
     failed_solves, retries = objective.failed_solves, objective.retries
     extra: dict = {}
@@ -557,6 +564,8 @@ def solve_formation(
     status, message, obstacle_fields = obstacle_check(problem, positions, status, message)
     extra |= obstacle_fields
     verification, status, message = _verified(verification, status, message)
+    if refusal is not None:
+        message = refusal
     checked = verification.time_s + time.perf_counter() - checking
     return FormationResult(
         **common,

@@ -81,6 +81,19 @@ without planes gets each interval's nearest-point direction
 a bound, where none does, their variables being free there). Inequalities: ``sqpmethod``
 or ``ipopt``.
 
+Elastic (phase-1) problem (optional, ``DmocShape.elastic``): the same equations and rows,
+every condition a formation's outer problem can make infeasible given slack, the cost the
+total slack (ℓ1) instead of J_d. The end configuration and velocity enter as
+q_N + a⁺ − a⁻ and q̇_N + b⁺ − b⁻ (a±, b± ≥ 0, nq each), each control bound as
+lo − σ ≤ u_k[j] ≤ hi + σ and each path row as lb − σ ≤ c ≤ ub + σ (one σ ≥ 0 per control
+entry and interval, per row; the obstacle rows stay hard: the start is clear of them and the
+end and controls are free, so they can always be met); the cost is
+s = Σ a± + Σ b± + Σ σ (mixed units: length, velocity, force, the rows' own), 0 exactly
+where the hard NLP is feasible. The NLP is feasible whatever p (zero controls and any path
+meet the equations with slack), and its ``cost_gradient`` −λ_p is ds*/dp (entries
+2nq..3nq: ds*/dq_N, the end position's). No ``end_hessian`` (NaN), no keep-out slots; the
+returned ``q`` ends at the data q_N, not at the slackened end.
+
 A time-dependent Lagrangian gives each interval its own L_d (see
 :class:`~ocpar.models.MechanicalSystem`). Holonomic constraints c(q) = 0 (e.g. a unit
 quaternion) add the reaction ∇c(q_k)ᵀ λ_k to the equation of every node k = 0..N (boundary
@@ -174,7 +187,8 @@ class DmocShape:
     obstacles in position space, kept
     clear exactly on the continuous path (module docstring; none: the NLP of old), on the
     configuration entries ``obstacle_positions`` (default: the first d, d the obstacles'
-    dimension).
+    dimension). ``elastic``: the phase-1 NLP of this shape instead (module docstring; its
+    ``cost`` the total slack s ≥ 0, 0 where the shape's NLP is feasible).
     """
 
     model: MechanicalSystem
@@ -191,6 +205,7 @@ class DmocShape:
     running_cost: Callable[..., Any] | CompiledFunction | None = None
     obstacles: tuple[Obstacle, ...] = ()
     obstacle_positions: tuple[int, ...] = ()
+    elastic: bool = False
 
     def __post_init__(self) -> None:
         nq, nu = self.model.nq, self.model.nu
@@ -227,6 +242,9 @@ class DmocShape:
             raise ValueError("solver: path constraints are inequalities and the newton solver "
                              "takes equalities only; choose sqpmethod, ipopt or auto (the default)")
         self._check_obstacles()
+        if self.elastic and (self.keep_out_slots or self.solver == "newton"):
+            raise ValueError("elastic: needs a shape without keep-out slots, solved by "
+                             "sqpmethod, ipopt or auto (slacks are inequalities)")
         model_intervals = getattr(self.model, "intervals", None)
         if model_intervals is not None and model_intervals != self.intervals:
             raise ValueError(f"the model is tabulated on {model_intervals} intervals, the "
@@ -261,7 +279,8 @@ class DmocShape:
         inequalities (path constraints, keep-out slots, obstacles)."""
         if self.solver != AUTO_SOLVER:
             return self.solver
-        inequalities = self.path_constraints or self.keep_out_slots or self.obstacles
+        inequalities = (self.path_constraints or self.keep_out_slots or self.obstacles
+                        or self.elastic)
         return "sqpmethod" if inequalities else "newton"
 
     @property
@@ -347,6 +366,11 @@ class DmocTranscription:
 
         p = ca.SX.sym("p", shape.n_params)
         q0, v0, qn, vn = (p[i * nq : (i + 1) * nq] for i in range(4))
+        # the elastic problem's end slacks (a⁺, a⁻, b⁺, b⁻): the end it reaches
+        end_slack = ca.SX.sym("end_slack", 4 * nq if shape.elastic else 0)
+        if shape.elastic:
+            qn = qn + end_slack[:nq] - end_slack[nq:2 * nq]
+            vn = vn + end_slack[2 * nq:3 * nq] - end_slack[3 * nq:]
         q_inner = ca.SX.sym("q_inner", nq * (n - 1))
         u_all = ca.SX.sym("u", nu * n)
         lam = ca.SX.sym("lambda", nc * (n + 1))
@@ -391,35 +415,58 @@ class DmocTranscription:
         planes = ca.SX.sym("planes", n * len(balls) * len(shape.obstacle_positions))
         obstacle = obstacle_rows(shape.obstacles, [q[list(shape.obstacle_positions)]
                                                    for q in qs], planes)
-        w = ca.vertcat(q_inner, u_all, lam, slack, planes)
+        rows = ca.vertcat(path.expr, *obstacle)
+        row_lower = np.concatenate([path.lower, np.zeros(len(obstacle))])
+        row_upper = np.concatenate([path.upper, np.full(len(obstacle), np.inf)])
+        self.u_lower, self.u_upper = (np.array(bound) for bound in zip(
+            *(shape.control_bounds or [(-np.inf, np.inf)] * nu), strict=True))
+        if shape.elastic:   # the path rows and control bounds elastic (module docstring)
+            bounded = shape.control_bounds is not None
+            row_slack = ca.SX.sym("row_slack", path.count)
+            u_slack = ca.SX.sym("u_slack", nu * n if bounded else 0)
+            elastic = ca.vertcat(end_slack, u_slack, row_slack)
+            none, free = np.full(path.count, -np.inf), np.full(path.count, np.inf)
+            rows = ca.vertcat(path.expr + row_slack, path.expr - row_slack, *obstacle,
+                              *([u_all + u_slack, u_all - u_slack] if bounded else []))
+            u_lower, u_upper = np.tile(self.u_lower, n), np.tile(self.u_upper, n)
+            row_lower = np.concatenate([path.lower, none, np.zeros(len(obstacle)),
+                                        *([u_lower, np.full(n * nu, -np.inf)] if bounded
+                                          else [])])
+            row_upper = np.concatenate([free, path.upper, np.full(len(obstacle), np.inf),
+                                        *([np.full(n * nu, np.inf), u_upper] if bounded
+                                          else [])])
+            objective = ca.sum1(elastic)
+        else:
+            elastic, objective = ca.SX.sym("elastic", 0), control_cost + penalty
+        w = ca.vertcat(q_inner, u_all, lam, slack, elastic, planes)
         self.nw = w.numel()
         self.n_params = shape.n_params
         n_eq = nq * (n + 1) + nc * (n - 1)
         self.n_path = path.count
-        #: Inequality rows after the equations and keep-outs: the path rows, the obstacles'.
-        self.n_rows = path.count + len(obstacle)
+        #: Inequality rows after the equations and keep-outs: the path rows, the obstacles'
+        #: (elastic: each with its slack, as lower and upper rows, then the control bounds').
+        self.n_rows = rows.numel()
         self.n_planes = planes.numel()
         self.ng = n_eq + len(keep_out) + self.n_rows
         #: Constraint bounds: the equations = 0, the keep-out rows ≥ 0, the path rows',
         #: the obstacle rows ≥ 0.
-        self.lbg = np.concatenate([np.zeros(n_eq + len(keep_out)), path.lower,
-                                   np.zeros(len(obstacle))])
-        self.ubg = np.concatenate([np.zeros(n_eq), np.full(len(keep_out), np.inf), path.upper,
-                                   np.full(len(obstacle), np.inf)])
-        #: Variable bounds: the controls within ``control_bounds``, the slacks ≥ 0, the rest
-        #: free.
-        self.u_lower, self.u_upper = (np.array(bound) for bound in zip(
-            *(shape.control_bounds or [(-np.inf, np.inf)] * nu), strict=True))
+        self.lbg = np.concatenate([np.zeros(n_eq + len(keep_out)), row_lower])
+        self.ubg = np.concatenate([np.zeros(n_eq), np.full(len(keep_out), np.inf), row_upper])
+        #: Variable bounds: the controls within ``control_bounds`` (elastic: free), the
+        #: slacks ≥ 0, the rest free.
         n_path = q_inner.numel()
-        self.lbx = np.concatenate([np.full(n_path, -np.inf), np.tile(self.u_lower, n),
-                                   np.full(lam.numel(), -np.inf), np.zeros(slack.numel()),
+        u_lower, u_upper = ((np.full(n * nu, -np.inf), np.full(n * nu, np.inf))
+                            if shape.elastic else
+                            (np.tile(self.u_lower, n), np.tile(self.u_upper, n)))
+        self.lbx = np.concatenate([np.full(n_path, -np.inf), u_lower,
+                                   np.full(lam.numel(), -np.inf),
+                                   np.zeros(slack.numel() + elastic.numel()),
                                    np.full(planes.numel(), -np.inf)])
-        self.ubx = np.concatenate([np.full(n_path, np.inf), np.tile(self.u_upper, n),
-                                   np.full(lam.numel() + slack.numel() + planes.numel(),
-                                           np.inf)])
-        self.cost = ca.Function("J", [w, p], [control_cost + penalty], ["w", "p"], ["J"])
-        self.constraints = ca.Function("g", [w, p], [ca.vertcat(*eqs, *keep_out, path.expr,
-                                                                *obstacle)],
+        self.ubx = np.concatenate([np.full(n_path, np.inf), u_upper,
+                                   np.full(lam.numel() + slack.numel() + elastic.numel()
+                                           + planes.numel(), np.inf)])
+        self.cost = ca.Function("J", [w, p], [objective], ["w", "p"], ["J"])
+        self.constraints = ca.Function("g", [w, p], [ca.vertcat(*eqs, *keep_out, rows)],
                                        ["w", "p"], ["g"])
         self._w, self._p = w, p
         # d²J*/dq_N² from the KKT system holds for equalities only: none with keep-outs; with
@@ -429,13 +476,14 @@ class DmocTranscription:
         # (the planes' variables are free where no row binds them: that of the equations is
         # singular there, every solve's comes from the active set, NaN until then)
         equations = ca.Function("g_eq", [w, p], [ca.vertcat(*eqs)])
-        self.end_hessian = None if shape.keep_out_slots else ca.Function(
+        self.end_hessian = None if shape.keep_out_slots or shape.elastic else ca.Function(
             "dmoc_no_hessian", [w, ca.SX.sym("lam_g", self.ng), p],
             [ca.DM(np.full((nq, nq), np.nan))]) if self.n_planes else \
             _on_equations(cost_hessian_function(
                 "dmoc", w, p, self.cost(w, p), equations(w, p), slice(2 * nq, 3 * nq)), self.ng)
         # with control bounds or path rows, that of the active set where one is active
-        self.active_hessian = None if shape.keep_out_slots or not self.has_inequalities else \
+        self.active_hessian = None if (shape.keep_out_slots or shape.elastic
+                                       or not self.has_inequalities) else \
             cost_hessian_function("dmoc", w, p, self.cost(w, p), self.constraints(w, p),
                                   slice(2 * nq, 3 * nq), active_set=True)
         self.path_rows = ca.Function("path", [w, p], [path.expr], ["w", "p"], ["c"])
@@ -504,9 +552,10 @@ class DmocTranscription:
 
     @property
     def has_inequalities(self) -> bool:
-        """Whether the NLP has inequalities (keep-out rows, control bounds, path rows)."""
+        """Whether the NLP has inequalities (keep-out rows, control bounds, path rows,
+        elastic slacks)."""
         return (bool(self.shape.keep_out_slots) or self.shape.control_bounds is not None
-                or bool(self.n_rows))
+                or bool(self.n_rows) or self.shape.elastic)
 
     def _activity(self, w: np.ndarray, params: np.ndarray, lam_g: np.ndarray
                   ) -> tuple[np.ndarray, np.ndarray]:
@@ -694,6 +743,9 @@ class DmocTranscription:
             return self.failure(params, call.status, call.solve_time_s)
         w, lam_g = (np.asarray(call.out[k]).ravel() for k in ("x", "lam_g"))
         q, u = self.unpack(w, params)
+        if self.shape.elastic:   # the cost is the total slack
+            return DmocSolution(**call.common, cost_gradient=call.cost_gradient,
+                                end_hessian=self._no_hessian(), q=q, u=u)
         if self.end_hessian is None:  # keep-outs: the control cost without the penalty
             common = {**call.common, "cost": float(self._costs(w[None], params[None], u[None])[0])}
             return DmocSolution(**common, cost_gradient=call.cost_gradient,
@@ -773,7 +825,9 @@ class DmocTranscription:
         k = len(params)
         q, u = self.unpack_many(batch.x, params)
         iterations = np.full(k, -1) if batch.iterations is None else batch.iterations
-        if self.end_hessian is None:  # keep-outs: the control cost without the penalty
+        if self.shape.elastic:   # the cost is the total slack
+            costs, hessians = batch.f, np.full((k, self.nq, self.nq), np.nan)
+        elif self.end_hessian is None:  # keep-outs: the control cost without the penalty
             costs = self._costs(batch.x, params, u)
             hessians = np.full((k, self.nq, self.nq), np.nan)
         else:
