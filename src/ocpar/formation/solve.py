@@ -92,7 +92,11 @@ class FormationOptions:
     hierarchical, after the outer solve, separation rounds of keep-out DMOC
     solves (:mod:`ocpar.formation.keep_out.rounds`, at most ``separation_rounds`` supersteps) keep
     every pair ≥ D apart on the continuous paths, or the result's status is
-    ``separation_not_met``; monolithic, separating planes in the one NLP (exact,
+    ``separation_not_met``; then, with ``separation`` ``exact`` (the default), the clusters of
+    close agents are solved with their separating planes and the rotation searched
+    (:mod:`ocpar.formation.keep_out.exact`: the monolithic optimum; ``rounds``: the rounds'
+    answer, separated, not optimal; problems with obstacles keep the rounds' answer);
+    monolithic, separating planes in the one NLP (exact,
     :mod:`ocpar.formation.monolithic`); None: no constraint (the paths may cross). A
     problem's obstacles are in every agent's inner problem
     (:mod:`ocpar.formation.keep_out.obstacles`), in both modes; the returned paths are
