@@ -311,14 +311,13 @@ def separate_exactly(problem: FormationProblem, backend: Backend, phi: np.ndarra
                 break
         state.phi = phi_now
         value = float(np.sum(state.costs))
-        if family is None:
-            return value, 0.0, 1.0
-        terms = np.sum(gradient * problem.final_position_derivatives(phi_now), axis=1) * slope
+        terms = (np.zeros(n) if family is None else
+                 np.sum(gradient * problem.final_position_derivatives(phi_now), axis=1) * slope)
         if progress is not None:
             progress(f"exact separation  superstep {state.evaluations:4d}  cost {value:.12e}  "
                      f"rotation {theta:+.6e} rad  pairs {len(state.pairs)}  largest cluster "
                      f"{state.largest}")
-        return value, float(np.sum(terms)), float(np.sum(np.abs(terms)))
+        return value, float(np.sum(terms)), max(float(np.sum(np.abs(terms))), 1e-300)
 
     try:
         if family is None:
