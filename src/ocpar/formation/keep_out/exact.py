@@ -264,8 +264,11 @@ def separate_exactly(problem: FormationProblem, backend: Backend, phi: np.ndarra
         phi_now, slope, _ = family.angles(theta)
         return (fixed if theta == 0 else phi_now), slope
 
+    evaluated: list[float] = []
+
     def evaluate(theta: float) -> tuple[float, float, float]:
         """V, dV/dθ and Σ|dJ_i/dθ| at θ (one superstep, repeated while clusters join)."""
+        evaluated.append(theta)
         phi_now, slope = angles(theta)
         params = problem.boundary_params_rows(np.arange(n), phi_now)
         for _ in range(n):
@@ -325,6 +328,8 @@ def separate_exactly(problem: FormationProblem, backend: Backend, phi: np.ndarra
             state.success, state.message = True, "the angles are isolated: planes only"
             return state
         state.rotation, state.slope, state.success, state.message = _minimise_shift(evaluate)
+        if evaluated[-1] != state.rotation:   # the paths of the answer, not of a rejected step
+            evaluate(state.rotation)
     except _Failed as exc:
         state.message = str(exc)
     return state
@@ -334,8 +339,10 @@ def _minimise_shift(evaluate: Callable[[float], tuple[float, float, float]]
                     ) -> tuple[float, float, bool, str]:
     """The secant method on dV/dθ from θ = 0 (``evaluate``: V, dV/dθ, Σ|dJ_i/dθ| at θ), the
     first step a probe of :data:`PROBE` rad downhill; a step that raises V beyond rounding is
-    halved; once dV/dθ has changed sign, steps stay inside the bracket. Returns θ, the last
-    |dV/dθ| relative to Σ|dJ_i/dθ|, whether converged, and the words."""
+    halved, as is one where a cluster's solve fails (:class:`_Failed`; it bounds the search);
+    once dV/dθ has changed sign, steps stay inside the bracket. Returns θ, the last
+    |dV/dθ| relative to Σ|dJ_i/dθ|, whether converged, and the words. The last evaluation
+    may be a rejected step's: the caller evaluates θ again if it is not θ's."""
     theta, (value, slope, scale) = 0.0, evaluate(0.0)
     previous = None
     low, high = -np.inf, np.inf
@@ -357,7 +364,10 @@ def _minimise_shift(evaluate: Callable[[float], tuple[float, float, float]]
             trial = (low + high) / 2 if np.isfinite(low) and np.isfinite(high) else \
                 theta + np.sign(step) * abs(step) / 2
         for _halving in range(30):
-            t_value, t_slope, t_scale = evaluate(trial)
+            try:
+                t_value, t_slope, t_scale = evaluate(trial)
+            except _Failed:   # a cluster failed there: a rejected step, and a bound
+                t_value, t_slope = np.inf, np.sign(trial - theta)
             if t_value <= value + 1e-12 * abs(value):
                 break
             if t_slope > 0:
