@@ -11,7 +11,7 @@ from conftest import run_cli, script_module
 
 from ocpar.__main__ import main
 from ocpar.bsp import open_backend
-from ocpar.examples import formation_halo
+from ocpar.examples import formation_halo, formation_sphere
 from ocpar.examples.formation_point_masses import make as point_masses
 from ocpar.formation import FormationOptions, solve_formation
 from ocpar.formation.keep_out import exact as exact_separation
@@ -213,6 +213,17 @@ def test_the_exact_separation_turns_the_formation(distance):
     assert turn == pytest.approx(0.159, abs=1e-3)
     assert sampled_min_distance(problem.positions(hierarchical.trajectories)) \
         >= distance * (1 - 1e-9)
+
+
+def test_angles_it_does_not_search_are_said():
+    """On a sphere the formation's rotations are free directions without a shift family: the
+    exact separation solves the clusters at the outer solve's angles and the run says it is
+    not the optimum (``not_converged``), its paths separated."""
+    problem = formation_sphere.make()
+    result = solve_formation(problem, options=FormationOptions(min_separation=1.7))
+    assert result.status == "not_converged"
+    assert "3 free direction(s)" in result.message and "not the optimum" in result.message
+    assert sampled_min_distance(problem.positions(result.trajectories)) >= 1.7 * (1 - 1e-9)
 
 
 def test_clusters_are_the_connected_components():

@@ -638,8 +638,9 @@ def _exact_words(problem: FormationProblem, exact: ExactSeparation, distance: fl
     appended to the rounds' ``message``: ``separation_not_met`` if the answer's closest
     approach (computed here) is below D (1 −
     :data:`~ocpar.formation.keep_out.rounds.SEPARATION_RTOL`), ``not_converged`` if its
-    search over the rotation did not converge, ``failed`` if a cluster's solve failed (no
-    answer), else ``converged``."""
+    search over the rotation did not converge or the angles have free directions it does not
+    search (a surface's rotations, a user's coupling without a shift family), ``failed`` if a
+    cluster's solve failed (no answer), else ``converged``."""
     if not exact.success and exact.message.startswith("a cluster"):
         return "failed", f"exact separation: {exact.message}"
     closest = problem.closest_approach(exact.q)
@@ -652,5 +653,5 @@ def _exact_words(problem: FormationProblem, exact: ExactSeparation, distance: fl
             f"{closest.agents[0]} and {closest.agents[1]} come within "
             f"{closest.distance:.6g} (short by {distance - closest.distance:.3g})")
     if not exact.success:
-        return "not_converged", words + f"; its rotation search did not converge: {exact.message}"
+        return "not_converged", words + f"; {exact.message}"
     return "converged", words

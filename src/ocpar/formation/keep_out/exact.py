@@ -17,7 +17,9 @@ The hierarchical problem
 then has the monolithic optimum: θ is the common shift of the formation's family of
 solutions of c(φ) = 0 (:meth:`~ocpar.formation.couplings.coupling.Coupling.family`: a circle's
 rotation, equal arc length); where the coupling has no such family the angles stay the outer
-solve's (its solutions are isolated). dV/dθ = Σ_i (dJ*/dq_N,i)·z′(φ_i) dφ_i/dθ from the
+solve's: the optimum where its solutions are isolated; where they are not (a sphere's
+rotations, a user's coupling with free directions) the answer is separated but not searched
+over them, and says so (``success`` False). dV/dθ = Σ_i (dJ*/dq_N,i)·z′(φ_i) dφ_i/dθ from the
 clusters' multipliers of their parameters (envelope theorem); θ is found by the secant method
 on dV/dθ from the outer solve's optimum (:func:`_minimise_shift`), one superstep of
 independent cluster solves per evaluation.
@@ -325,7 +327,13 @@ def separate_exactly(problem: FormationProblem, backend: Backend, phi: np.ndarra
     try:
         if family is None:
             evaluate(0.0)
-            state.success, state.message = True, "the angles are isolated: planes only"
+            free = (0 if isinstance(problem.curve, Slots) else
+                    problem.coupling.free_directions(np.ravel(fixed), problem.curve).shape[1])
+            state.success = not free
+            state.message = ("the angles are isolated: the clusters only" if not free else
+                             f"not the optimum: the angles keep the outer solve's, their "
+                             f"{free} free direction(s) (no shift family) are not searched "
+                             "under the separation")
             return state
         state.rotation, state.slope, state.success, state.message = _minimise_shift(evaluate)
         if evaluated[-1] != state.rotation:   # the paths of the answer, not of a rejected step
@@ -376,12 +384,13 @@ def _minimise_shift(evaluate: Callable[[float], tuple[float, float, float]]
                 low = max(low, trial)
             trial = theta + (trial - theta) / 2
         else:
-            return theta, abs(slope) / scale, False, "no shift lowers V"
+            return (theta, abs(slope) / scale, False,
+                    "the rotation search stopped: no shift lowers V")
         previous = (theta, slope)
         if abs(trial - theta) <= SHIFT_RTOL * (1 + abs(theta)):
             return trial, abs(t_slope) / t_scale, True, "step below tolerance"
         theta, value, slope, scale = trial, t_value, t_slope, t_scale
-    return theta, abs(slope) / scale, False, "evaluation limit reached"
+    return theta, abs(slope) / scale, False, "the rotation search reached its evaluation limit"
 
 
 class _Failed(RuntimeError):
