@@ -1,15 +1,20 @@
 #!/usr/bin/env python
-"""What the separation rounds leave against an exact monolithic solve with pairwise constraints.
+"""What the separation rounds leave against an exact monolithic solve with pairwise constraints,
+and the hierarchical scheme's exact separation against the monolithic optimum.
 
     python scripts/separation_exact.py --output runs/separation-exact   # 6 masses, D .25 .5 .75
+    python scripts/separation_exact.py --cases --output runs/separation-cases   # issue 42's three
 
 A small case whose unconstrained optimum has two agents pass close: point masses (mass 1, T = 1,
 N = 10) starting at rest on two staggered rows below the circle of radius 2 about (0, 6), onto
 it at rest, coupled by the formation paper's potential (the 6 masses' agents 2 and 5 come
 within 0.10). For each D:
 
-(a) ocpar's hierarchical run with ``min_separation`` D: the outer solve without separation,
-    then the separation rounds (:mod:`ocpar.formation.keep_out.rounds`; φ is not re-optimised);
+(a) ocpar's hierarchical run with ``min_separation`` D and ``separation="rounds"``: the
+    outer solve without separation, then the separation rounds
+    (:mod:`ocpar.formation.keep_out.rounds`; φ is not re-optimised); and the default
+    (``separation="exact"``, :mod:`ocpar.formation.keep_out.exact`: clusters of close agents
+    with their planes, the rotation searched), whose gap to (b) is ``hierarchical_gap``;
 (b) the exact monolithic NLP, built here: every agent's DMOC NLP
     (:func:`ocpar.ocp.dmoc_problem` of its shape, its ``constraints`` and ``cost``), the final
     angles free under the coupling rows, and for every pair (i, j) and interval k a plane
@@ -26,6 +31,14 @@ exact formation against the rounds' (the circular mean of φ_exact − φ_rounds
 closest approach (exact on the continuous paths), the rounds and IPOPT's verdicts. Writes
 ``separation_exact.json`` and ``separation_exact.png`` (cost increase over the unconstrained
 optimum against D; the paths at the largest D side by side).
+
+``--cases``: the three cases of issue 42 (the paper's 60 point masses with D = 0.5, 12 of them
+with D = 4, the 30 halo spacecraft with D = 0.05 km = 50 m, each ``--ordering keep``): the
+hierarchical run (exact separation), the separation rounds alone and ``--mode monolithic``,
+each one's cost, closest approach, pair and wall time, and the hierarchical and the rounds'
+cost relative to the monolithic; for the 12 masses also the all-pairs NLP above (every pair
+a plane on every interval, from the monolithic answer). Writes ``separation_cases.json`` and
+``separation_cases.png`` (the relative differences, log scale).
 """
 
 from __future__ import annotations
@@ -40,6 +53,8 @@ from pathlib import Path
 import casadi as ca
 import numpy as np
 
+from ocpar.examples import formation_halo
+from ocpar.examples.formation_point_masses import make as point_masses
 from ocpar.formation import Circle, DmocShape, FormationOptions, FormationProblem, solve_formation
 from ocpar.formation.monolithic import violation
 from ocpar.models import PointMass
@@ -138,15 +153,75 @@ def rotation(phi: np.ndarray, reference: np.ndarray) -> float:
     return float(np.angle(np.mean(np.exp(1j * diff))))
 
 
+#: Issue 42's cases: name, problem factory, D (length unit), whether the all-pairs NLP runs.
+CASES = (("60 point masses", point_masses, 0.5, False),
+         ("12 point masses", lambda: point_masses(agents=12), 4.0, True),
+         ("30 halo spacecraft", lambda: formation_halo.make(agents=30), 0.05, False))
+
+
+def cases(output: Path, tol: float) -> None:
+    """The ``--cases`` report (module docstring)."""
+    report = []
+    for name, factory, distance, all_pairs in CASES:
+        problem = factory()
+        runs = {}
+        for label, extra in (("hierarchical", {}), ("rounds", {"separation": "rounds"}),
+                             ("monolithic", {"mode": "monolithic"})):
+            start = time.perf_counter()
+            run = solve_formation(problem, options=FormationOptions(min_separation=distance,
+                                                                    **extra))
+            runs[label] = run
+            runs[label + "_wall"] = time.perf_counter() - start
+        mono = runs["monolithic"]
+        entry = {"case": name, "agents": problem.agents, "distance": distance}
+        for label in ("hierarchical", "rounds", "monolithic"):
+            run = runs[label]
+            entry[label] = {"status": run.status, "cost": run.total_cost,
+                            "min_separation": run.separation.distance,
+                            "closest_pair": list(run.separation.agents),
+                            "wall_s": runs[label + "_wall"],
+                            "relative_to_monolithic": run.total_cost / mono.total_cost - 1,
+                            "rotation_rad": rotation(run.phi, mono.phi)}
+        if all_pairs:
+            independent = exact_solve(problem, distance, mono.phi, mono.trajectories,
+                                      mono.controls, tol)
+            entry["all_pairs_nlp"] = {k: v for k, v in independent.items()
+                                      if k not in ("trajectories", "phi")}
+            entry["hierarchical"]["relative_to_all_pairs"] = (
+                runs["hierarchical"].total_cost / independent["cost"] - 1)
+        report.append(entry)
+        print(json.dumps(entry), flush=True)
+    (output / "separation_cases.json").write_text(json.dumps(report, indent=1))
+    fig, axis = pyplot().subplots(figsize=(7, 4))
+    x = np.arange(len(report))
+    for shift, label in ((-0.2, "hierarchical"), (0.2, "rounds")):
+        values = [max(abs(e[label]["relative_to_monolithic"]), 1e-17) for e in report]
+        axis.bar(x + shift, values, width=0.4, label=f"{label} (exact separation)"
+                 if label == "hierarchical" else "separation rounds alone")
+    axis.set_yscale("log")
+    axis.axhline(1e-6, color="0.5", linestyle="--", linewidth=0.8)
+    axis.set_xticks(x, [f"{e['case']}\nD = {e['distance']:g}" for e in report], fontsize=8)
+    axis.set_ylabel("|cost / monolithic optimum − 1| (1e-17: equal)")
+    axis.legend(fontsize=8)
+    axis.set_title("minimum separation: hierarchical against monolithic")
+    save(fig, output / "separation_cases.png")
+    print(f"wrote {output / 'separation_cases.json'}, {output / 'separation_cases.png'}")
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--agents", type=int, default=6)
     parser.add_argument("--distances", type=float, nargs="+", default=[0.25, 0.5, 0.75],
                         help="D values, length unit")
     parser.add_argument("--tol", type=float, default=1e-10, help="IPOPT's tol (exact NLP)")
+    parser.add_argument("--cases", action="store_true",
+                        help="issue 42's three cases instead (module docstring)")
     parser.add_argument("--output", type=Path, required=True)
     args = parser.parse_args()
     args.output.mkdir(parents=True, exist_ok=True)
+    if args.cases:
+        cases(args.output, args.tol)
+        return
     problem = make_problem(args.agents)
     free = solve_formation(problem)
     report: dict = {"problem": problem.name, "agents": problem.agents,
@@ -158,8 +233,11 @@ def main() -> None:
     paths = {}
     for distance in args.distances:
         start = time.perf_counter()
-        kept = solve_formation(problem, options=FormationOptions(min_separation=distance))
+        kept = solve_formation(problem, options=FormationOptions(min_separation=distance,
+                                                                 separation="rounds"))
         wall = time.perf_counter() - start
+        hierarchical = solve_formation(problem, options=FormationOptions(
+            min_separation=distance))
         exact = {name: exact_solve(problem, distance, run.phi, run.trajectories, run.controls,
                                    args.tol, fix_phi=name == "at_rounds_phi")
                  for name, run in (("from_rounds", kept), ("from_unconstrained", free),
@@ -179,6 +257,11 @@ def main() -> None:
             "cost_gap": math.nan if best is None else kept.total_cost / best["cost"] - 1,
             "path_gap": kept.total_cost / fixed["cost"] - 1 if fixed["success"] else math.nan,
             "rotation_rad": math.nan if best is None else rotation(best["phi"], kept.phi),
+            "hierarchical": {"status": hierarchical.status, "cost": hierarchical.total_cost,
+                             "min_separation": hierarchical.separation.distance,
+                             "rotation_rad": rotation(hierarchical.phi, kept.phi)},
+            "hierarchical_gap": (math.nan if best is None
+                                 else hierarchical.total_cost / best["cost"] - 1),
         }
         report["distances"].append(entry)
         paths[distance] = (kept.trajectories, None if best is None else best["trajectories"])

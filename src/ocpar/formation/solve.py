@@ -31,8 +31,9 @@ from ocpar.formation.hierarchical import (
     solve_outer_newton,
     solve_outer_offset,
 )
+from ocpar.formation.keep_out.exact import ExactSeparation, separate_exactly
 from ocpar.formation.keep_out.obstacles import cleared, closest_obstacle, passing_sides
-from ocpar.formation.keep_out.rounds import Separation, separate
+from ocpar.formation.keep_out.rounds import SEPARATION_RTOL, Separation, separate
 from ocpar.formation.keep_out.separation import check_separation_feasible
 from ocpar.formation.monolithic import solve_monolithic
 from ocpar.formation.ordering import ORDERINGS, optimal_ordering
@@ -52,6 +53,8 @@ from ocpar.ocp.batch import AUTO_SOLVER, SOLVERS
 from ocpar.options import numbers, option
 
 MODES = ("hierarchical", "monolithic")
+#: How the hierarchical mode imposes ``min_separation`` (:class:`FormationOptions`).
+SEPARATIONS = ("exact", "rounds")
 #: The monolithic answer must meet its constraints and bounds to this (the model's units, as
 #: evaluated on the returned point) to count as feasible.
 MONOLITHIC_VIOLATION_TOL = 1e-6
@@ -89,7 +92,11 @@ class FormationOptions:
     hierarchical, after the outer solve, separation rounds of keep-out DMOC
     solves (:mod:`ocpar.formation.keep_out.rounds`, at most ``separation_rounds`` supersteps) keep
     every pair ≥ D apart on the continuous paths, or the result's status is
-    ``separation_not_met``; monolithic, separating planes in the one NLP (exact,
+    ``separation_not_met``; then, with ``separation`` ``exact`` (the default), the clusters of
+    close agents are solved with their separating planes and the rotation searched
+    (:mod:`ocpar.formation.keep_out.exact`: the monolithic optimum; ``rounds``: the rounds'
+    answer, separated, not optimal; problems with obstacles keep the rounds' answer);
+    monolithic, separating planes in the one NLP (exact,
     :mod:`ocpar.formation.monolithic`); None: no constraint (the paths may cross). A
     problem's obstacles are in every agent's inner problem
     (:mod:`ocpar.formation.keep_out.obstacles`), in both modes; the returned paths are
@@ -142,11 +149,17 @@ class FormationOptions:
     min_separation: float | None = option(
         None, "keep every pair of agents at least this far apart at all times of the "
         "continuous paths (the model's length unit): separation rounds of keep-out DMOC "
-        "solves after the outer solve (with --mode monolithic: exact, separating planes in "
-        "the one NLP); start or final positions closer than this are refused", above=0,
-        metavar="D")
+        "solves after the outer solve, then (--separation exact) the separating planes and "
+        "the formation's rotation optimised in the outer problem (with --mode monolithic: "
+        "separating planes in the one NLP); start or final positions closer than this are "
+        "refused", above=0, metavar="D")
     separation_rounds: int = option(30, "separation rounds (supersteps of keep-out solves) "
                                     "at most, with --min-separation", low=1)
+    separation: str = option("exact", "with --min-separation in the hierarchical mode: exact "
+                             "(after the rounds, the separating planes and the formation's "
+                             "rotation are outer variables: the monolithic optimum) or rounds "
+                             "(the rounds' answer: separated, not optimal; fewer supersteps)",
+                             choices=SEPARATIONS)
     initial_angles: tuple[float, ...] | None = option(
         None, "the start: the final angles (rad), one per agent (on a surface two per agent, "
         "agent i's at 2i, 2i+1), numbers separated by commas; default: the documented "
@@ -173,6 +186,9 @@ class FormationOptions:
         if self.min_separation is not None and not (0 < self.min_separation < math.inf):
             raise ValueError(f"min_separation must be a positive finite length, got "
                              f"{self.min_separation}")
+        if self.separation not in SEPARATIONS:
+            raise ValueError(f"unknown separation {self.separation!r}; choose one of "
+                             f"{', '.join(SEPARATIONS)}")
         if self.critical not in CRITICAL_READINGS:
             raise ValueError(f"unknown critical {self.critical!r}; choose one of "
                              f"{', '.join(CRITICAL_READINGS)}")
@@ -541,6 +557,17 @@ def solve_formation(
             failed_solves += rounds.failed_solves
             retries += rounds.retries
             status, message = _separation_words(rounds, distance, status, message)
+            if options.separation == "exact" and status == "converged" and problem.obstacles:
+                message += ("; the rounds' answer: the exact separation does not take "
+                            "obstacles yet")
+            elif options.separation == "exact" and status == "converged":
+                exact = separate_exactly(problem, backend, phi, rounds, distance, progress)
+                inner_solves += exact.inner_solves
+                failed_solves += exact.failed_solves
+                status, message = _exact_words(problem, exact, distance, message)
+                if status != "failed":
+                    phi = np.reshape(exact.phi, np.shape(phi))
+                    costs, trajectories, controls = exact.costs, exact.q, exact.u
         wall_time_s = time.perf_counter() - start
         positions = problem.positions(trajectories)
         squares = control_squares(problem, controls)
@@ -611,3 +638,29 @@ def _separation_words(rounds: Separation, distance: float, status: str, message:
         f"{rounds.closest.agents[0]} and {rounds.closest.agents[1]} come within "
         f"{rounds.closest.distance:.6g} (short by {distance - rounds.closest.distance:.3g}; "
         f"{rounds.dropped} half-space(s) dropped for want of slots over the rounds)")
+
+
+def _exact_words(problem: FormationProblem, exact: ExactSeparation, distance: float,
+                 message: str) -> tuple[str, str]:
+    """The status and message after the exact separation ``exact``
+    (:mod:`ocpar.formation.keep_out.exact`) for the required ``distance`` (length unit),
+    appended to the rounds' ``message``: ``separation_not_met`` if the answer's closest
+    approach (computed here) is below D (1 −
+    :data:`~ocpar.formation.keep_out.rounds.SEPARATION_RTOL`), ``not_converged`` if its
+    search over the rotation did not converge or the angles have free directions it does not
+    search (a surface's rotations, a user's coupling without a shift family), ``failed`` if a
+    cluster's solve failed (no answer), else ``converged``."""
+    if not exact.success and exact.message.startswith("a cluster"):
+        return "failed", f"exact separation: {exact.message}"
+    closest = problem.closest_approach(exact.q)
+    words = (f"{message}; exact separation: {len(exact.pairs)} pair(s) with separating planes "
+             f"(largest cluster {exact.largest} agent(s)), rotation {exact.rotation:+.6e} rad "
+             f"in {exact.evaluations} superstep(s), closest {closest.distance:.10g}")
+    if closest.distance < distance * (1 - SEPARATION_RTOL):
+        return "separation_not_met", (
+            f"separation {distance:g} not met by the exact separation: agents "
+            f"{closest.agents[0]} and {closest.agents[1]} come within "
+            f"{closest.distance:.6g} (short by {distance - closest.distance:.3g})")
+    if not exact.success:
+        return "not_converged", words + f"; {exact.message}"
+    return "converged", words

@@ -72,7 +72,8 @@ misses D or an obstacle says by how much.
 The final angles φ stay those of the outer solve (with its obstacles; the keep-outs move the
 paths, not the formation); the cost increase over the outer solve's paths is reported. With
 ``ordering optimal`` the ordering comes first (fewer close passes to undo), then the outer
-solve, then the rounds.
+solve, then the rounds. The rounds' answer is separated, not optimal: the exact separation
+(:mod:`ocpar.formation.keep_out.exact`) starts from it and reaches the monolithic optimum.
 """
 
 from __future__ import annotations
