@@ -67,7 +67,15 @@ from ocpar.formation.hierarchical import (
     solve_outer_newton,
     solve_outer_offset,
 )
+from ocpar.formation.ordering_bound import (
+    GAP_TOL,
+    SEARCH_ROUNDS,
+    PlaneBounds,
+    SurrogateBounds,
+    branch_and_bound,
+)
 from ocpar.formation.problem import FormationProblem
+from ocpar.ocp.reach import QUADRATIC, end_cost_convexity
 
 ORDERINGS = ("keep", "optimal")
 
@@ -100,7 +108,14 @@ class OrderingResult:
     orderings (modulo rotation) the surrogate scan proposed; ``surrogate_error`` the largest
     |surrogate − real| entry of the tables of the rounds, relative to the largest real entry
     (NaN where the tables held infeasible pairs and no surrogate was built);
-    ``message`` why it stopped.
+    ``message`` why it stopped. The global search
+    (:mod:`~ocpar.formation.ordering_bound`): ``bound`` what it rests on, ``"convex"``
+    (supporting planes of solves), ``"quadratic"`` (the exact surrogate) or None (no bound
+    claimed: a non-convex inner problem, e.g. with obstacles); ``proven`` the relative gap
+    ``gap`` = (total_cost − ``lower_bound``) / total_cost is within its tolerance (NaN
+    gap and lower bound where none is claimed); ``search_supersteps`` and
+    ``search_solves`` its own (the offset searches it ran to polish are counted in
+    ``table_supersteps`` and ``inner_solves``); ``search_message`` why it stopped.
     """
 
     phi: np.ndarray
@@ -115,6 +130,13 @@ class OrderingResult:
     candidates: int = 1
     surrogate_error: float = 0.0
     message: str = ""
+    bound: str | None = None
+    proven: bool = False
+    gap: float = math.nan
+    lower_bound: float = math.nan
+    search_supersteps: int = 0
+    search_solves: int = 0
+    search_message: str = ""
 
 
 def slot_base(problem: FormationProblem) -> np.ndarray:
@@ -290,6 +312,8 @@ def optimal_ordering(
     max_rounds: int = 20,
     progress: Callable[[str], None] | None = None,
     starts: int | None = None,
+    gap: float = GAP_TOL,
+    search_rounds: int = SEARCH_ROUNDS,
 ) -> OrderingResult:
     """The agent→slot assignment and common offset minimising Σ_i Ĵ_i(φ_i) over equidistant
     φ (see the module docstring): one superstep of ``starts`` cost tables per slot width
@@ -297,6 +321,10 @@ def optimal_ordering(
     then alternating offset searches (relative tolerance ``tol`` on the offset, as
     :func:`~ocpar.formation.hierarchical.solve_outer_offset`) and cost tables at the new offset
     until the assignment stops changing or ``max_rounds`` offset searches were run.
+    Then, where the inner problems are convex in their end position
+    (:func:`~ocpar.ocp.reach.end_cost_convexity`), the branch and bound of
+    :mod:`~ocpar.formation.ordering_bound` proves the result globally optimal to the relative
+    ``gap`` (or improves it), within ``search_rounds`` rounds.
     ``progress`` gets one line for the multi-start and one per round. Raises
     :class:`~ocpar.formation.hierarchical.InnerSolveFailed` if an inner solve fails. Only for
     a problem on a :class:`~ocpar.formation.Circle` (ValueError otherwise)."""
@@ -310,6 +338,11 @@ def optimal_ordering(
     starts = default_starts(n) if starts is None else starts
     if isinstance(starts, bool) or not isinstance(starts, int | np.integer) or starts < 1:
         raise ValueError(f"starts must be an integer ≥ 1, got {starts!r}")
+    if not (np.isfinite(gap) and 0 < gap < 1):
+        raise ValueError(f"gap must be a number in (0, 1), got {gap!r}")
+    if isinstance(search_rounds, bool) or not isinstance(search_rounds, int | np.integer) \
+            or search_rounds < 1:
+        raise ValueError(f"search_rounds must be an integer ≥ 1, got {search_rounds!r}")
     width = 2 * np.pi / n
     base = slot_base(problem)
     keep = keep_assignment(problem)
@@ -364,14 +397,38 @@ def optimal_ordering(
                                      offset, tol, max_rounds, surrogate, say))
         except InnerSolveFailed as exc:   # this start's descent met an infeasible step
             failure = exc
-    objective.close()   # the chosen angles start the outer solve, with its own agents
     if not outcomes:
+        objective.close()
         raise failure
+    kinds = {end_cost_convexity(shape) for shape in problem.shapes}
+    proof = None
+    if None not in kinds:
+        def polish(assignment: np.ndarray, offset: float) -> float:
+            try:
+                outcomes.append(_descend(problem, backend, objective, search, base,
+                                         assignment, offset, tol, max_rounds, surrogate, say))
+            except InnerSolveFailed:
+                return math.inf
+            return outcomes[-1]["total_cost"]
+
+        exact = kinds == {QUADRATIC} and surrogate is not None
+        bounds = SurrogateBounds(surrogate) if exact else PlaneBounds(problem, backend, base)
+        best = min(o["total_cost"] for o in outcomes)
+        proof = branch_and_bound(problem, bounds, best, polish, gap, search_rounds, say)
+    objective.close()   # the chosen angles start the outer solve, with its own agents
     table_supersteps += sum(o.pop("tables") for o in outcomes)
     inner_solves += sum(o.pop("solves") for o in outcomes) + objective.inner_solves
+    claimed = {} if proof is None else {
+        "bound": "quadratic" if isinstance(bounds, SurrogateBounds) else "convex",
+        "proven": proof.proven, "gap": proof.gap, "lower_bound": proof.lower_bound,
+        "search_supersteps": proof.supersteps, "search_solves": proof.inner_solves,
+        "search_message": proof.message}
     return OrderingResult(**min(outcomes, key=lambda o: o["total_cost"]),
-                          table_supersteps=table_supersteps, inner_solves=inner_solves,
-                          starts=starts, candidates=len(found))
+                          table_supersteps=table_supersteps + (
+                              0 if proof is None else proof.supersteps),
+                          inner_solves=inner_solves + (0 if proof is None
+                                                       else proof.inner_solves),
+                          starts=starts, candidates=len(found), **claimed)
 
 
 def _descend(problem: FormationProblem, backend: Backend, objective: OuterObjective,
