@@ -174,8 +174,9 @@ class PlaneBounds:
             points.append(_Point(float(theta), costs[k], gradients[k], excess))
         return points
 
-    def anchor(self, point: _Point) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """V, S, K (n, n) at ``point`` (module docstring), from the planes known now."""
+    def anchor(self, point: _Point) -> tuple[np.ndarray, ...]:
+        """V, S (n, n) at ``point`` (module docstring), from the planes known now, and each
+        plane's amplitude ρ and phase β (n, n) on the circle: P(φ) = A + ρ cos(φ − β)."""
         phi = self.base + point.theta                                      # (n,)
         z, tangent = self.circle.at(phi), self.circle.along(phi)           # (n, d)
         value = point.table.copy()
@@ -194,8 +195,11 @@ class PlaneBounds:
                 origin[i, j] = self.circle.at(angles[k])
                 value[i, j] += float(gradient[i, j] @ (z[j] - origin[i, j]))
         slope = np.einsum("ijd,jd->ij", gradient, tangent)
-        curvature = self.circle.radius * np.linalg.norm(gradient @ self.circle.axes.T, axis=2)
-        return value, slope, np.where(np.isfinite(value), curvature, 0.0)
+        # the plane on the circle: P(φ) = A + ρ cos(φ − β), P″ = −ρ cos(φ − β)
+        planar = self.circle.radius * (gradient @ self.circle.axes.T)     # (n, n, 2)
+        amplitude = np.where(np.isfinite(value), np.hypot(planar[..., 0], planar[..., 1]), 0)
+        phase = np.arctan2(planar[..., 1], planar[..., 0])
+        return value, slope, amplitude, np.nan_to_num(phase)
 
     def excluded(self, a: _Point, b: _Point) -> np.ndarray:
         """Pairs (n, n) provably outside their reach on the whole interval [a, b]."""
@@ -210,7 +214,7 @@ class PlaneBounds:
         for here, sign in ((a, 1.0), (b, -1.0)):
             if here.anchor is None:
                 here.anchor = self.anchor(here)
-            value, slope, curvature = here.anchor
+            value, slope, amplitude, phase = here.anchor
             if not np.any(out):   # LAP(V) is the point's own only where nothing is excluded
                 if math.isnan(here.anchor_lap):
                     here.anchor_lap = _lap(value)[0]
@@ -219,9 +223,18 @@ class PlaneBounds:
                 near = _lap(np.where(out, np.inf, value))[0]
             if near <= best:   # this anchor cannot raise the bound
                 continue
+            curvature = amplitude * self._concavity(a.theta, b.theta, phase)
             far = value + sign * slope * length - 0.5 * curvature * length**2
             best = max(best, min(near, _lap(np.where(out, np.inf, far))[0]))
         return best
+
+    def _concavity(self, a: float, b: float, phase: np.ndarray) -> np.ndarray:
+        """max(0, max of cos(φ − β) over slot j's arc φ ∈ [base_j + a, base_j + b]) (n, n):
+        −P″ / ρ at its largest, 0 where the plane is convex on the whole arc."""
+        start = np.mod(self.base + a - phase, 2 * np.pi)                 # (n, n): φ_a − β
+        inside = start + (b - a) >= 2 * np.pi                             # β on the arc
+        ends = np.maximum(np.cos(start), np.cos(start + (b - a)))
+        return np.clip(np.where(inside, 1.0, ends), 0.0, 1.0)
 
 
 class SurrogateBounds:
