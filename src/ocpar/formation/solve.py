@@ -486,7 +486,7 @@ def solve_formation(
         verification, status, message = _verified(verify_formation(
             problem, sol.trajectories, sol.controls, sol.phi, options.min_separation, backend),
             status, message)
-        status = ordering_status(ordered, status)
+        status, message = ordering_status(ordered, status, message)
         checked = time.perf_counter() - start - wall_time_s
         return FormationResult(
             **common,
@@ -572,7 +572,7 @@ def solve_formation(
     status, message, obstacle_fields = obstacle_check(problem, positions, status, message)
     extra |= obstacle_fields
     verification, status, message = _verified(verification, status, message)
-    status = ordering_status(ordered, status)
+    status, message = ordering_status(ordered, status, message)
     checked = verification.time_s + time.perf_counter() - checking
     return FormationResult(
         **common,
@@ -618,13 +618,16 @@ def ordering_note(ordered: OrderingResult | None) -> str:
     return f"; ordering optimal: {ordered.search_message}"
 
 
-def ordering_status(ordered: OrderingResult | None, status: str) -> str:
-    """``status`` unless the ordering's search claimed a bound and stopped short of its gap
-    (its budget, or failed solves): then ``not_converged`` in place of ``converged``."""
+def ordering_status(ordered: OrderingResult | None, status: str, message: str
+                    ) -> tuple[str, str]:
+    """``status`` and ``message`` unless the ordering's search claimed a bound and stopped
+    short of its gap (its budget, or failed solves): then ``not_converged`` in place of
+    ``converged``, the message first saying why."""
     if ordered is not None and ordered.bound is not None and not ordered.proven \
             and status == "converged":
-        return "not_converged"
-    return status
+        rest = message.replace(ordering_note(ordered), "")
+        return "not_converged", f"ordering optimal {ordered.search_message}; {rest}"
+    return status, message
 
 
 def ordering_fields(ordered: OrderingResult) -> dict:
