@@ -37,9 +37,16 @@ assignment is scanned at :data:`FINE_OFFSETS` offsets per slot width, a coordina
 ``keep``, and the best result starts the real descent, which verifies it with inner solves
 (the first table at the real optimum offset then confirms the assignment; the largest
 difference surrogate − real table is reported). The result is a local optimum of the true J
-in this sense; the global optimum is found whenever the surrogate is accurate and its best
-ordering is cheapest on at least one fine offset (it matched brute force over all orderings
-in every test).
+in this sense: on a fleet of 12 norm-limited point masses it stopped 9.4e-4 above the
+global optimum.
+
+Hence the proof that follows it (:mod:`~ocpar.formation.ordering_bound`): where every inner
+problem is convex in its end position (:func:`~ocpar.ocp.reach.end_cost_convexity`: point
+masses, free or with box or norm thrust limits), a branch and bound over the offset with
+assignment lower bounds on intervals finds the global optimum over assignments and rotation
+and proves it to a relative gap (:data:`~ocpar.formation.ordering_bound.GAP_TOL`), or stops
+at its budget of rounds with the gap it proved. Elsewhere (obstacles, other models) no bound
+is claimed and the descent's result stands.
 
 Infeasible pairs (an agent that cannot reach a slot, e.g. under a thrust limit) are +∞ in
 the tables (:func:`pair_costs`: outside an exact reach set not even solved; a failed solve
@@ -353,11 +360,14 @@ def optimal_ordering(
     tables = cost_tables(problem, backend, base[None, :] + offsets[:, None])
     inner_solves, table_supersteps = tables.size, 1
     found: dict[tuple[int, ...], np.ndarray] = {}
+    scanned: dict[float, float] = {}
     if np.all(np.isfinite(tables)):
         surrogate: CostSurrogate | None = CostSurrogate(tables)
         for offset in np.arange(FINE_OFFSETS) * width / FINE_OFFSETS:
-            candidate = cheapest_assignment(surrogate.table(offset))
+            scan = surrogate.table(offset)
+            candidate = cheapest_assignment(scan)
             found.setdefault(_canonical(candidate), candidate)
+            scanned[float(offset)] = assignment_cost(scan, candidate)   # the search's start
         descents = [surrogate.descend(a, max_rounds) for a in [keep, *found.values()]]
         estimate, offset, assignment = min(descents, key=lambda d: d[0])
         say(f"ordering tables: {starts} offset(s) x {n}x{n} solves, {len(found)} candidate "
@@ -412,7 +422,8 @@ def optimal_ordering(
             return outcomes[-1]["total_cost"]
 
         exact = kinds == {QUADRATIC} and surrogate is not None
-        bounds = SurrogateBounds(surrogate) if exact else PlaneBounds(problem, backend, base)
+        bounds = SurrogateBounds(surrogate, scanned) if exact \
+            else PlaneBounds(problem, backend, base)
         best = min(o["total_cost"] for o in outcomes)
         proof = branch_and_bound(problem, bounds, best, polish, gap, search_rounds, say)
     objective.close()   # the chosen angles start the outer solve, with its own agents

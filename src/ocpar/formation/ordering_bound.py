@@ -174,6 +174,10 @@ class PlaneBounds:
             points.append(_Point(float(theta), costs[k], gradients[k], excess))
         return points
 
+    def first(self, width: float) -> list[_Point]:
+        """The first round: :data:`FIRST_INTERVALS` intervals over [0, ``width``]."""
+        return self.evaluate(np.linspace(0.0, width, FIRST_INTERVALS + 1))
+
     def anchor(self, point: _Point) -> tuple[np.ndarray, ...]:
         """V, S (n, n) at ``point`` (module docstring), from the planes known now, and each
         plane's amplitude ρ and phase β (n, n) on the circle: P(φ) = A + ρ cos(φ − β)."""
@@ -240,8 +244,9 @@ class PlaneBounds:
 class SurrogateBounds:
     """Anchors from the exact surrogate (inner costs quadratic in z): no inner solves."""
 
-    def __init__(self, surrogate) -> None:
+    def __init__(self, surrogate, scanned: dict[float, float] | None = None) -> None:
         self.surrogate = surrogate
+        self.scanned = scanned or {}
         c = surrogate.coefficients                                         # (n, L//2+1)
         k = surrogate.frequencies
         # |f''| ≤ (1/L) Σ_k w_k k² |c_k| per agent
@@ -250,6 +255,17 @@ class SurrogateBounds:
 
     def evaluate(self, thetas: np.ndarray) -> list[_Point]:
         return [_Point(float(t), self.surrogate.table(float(t))) for t in thetas]
+
+    def first(self, width: float) -> list[_Point]:
+        """The first round: the offsets the multi-start scanned (``scanned``: offset in
+        [0, ``width``) → its LAP, known), and ``width`` itself (the same LAP as 0: a shift
+        by a slot width relabels the slots); :data:`FIRST_INTERVALS` intervals without."""
+        if 0.0 not in self.scanned:
+            return self.evaluate(np.linspace(0.0, width, FIRST_INTERVALS + 1))
+        points = self.evaluate(np.array([*sorted(self.scanned), width]))
+        for point in points:
+            point.anchor_lap = self.scanned.get(point.theta, self.scanned[0.0])
+        return points
 
     def interval_bound(self, a: _Point, b: _Point) -> float:
         """Each Ĵ_ij lies above its chord on [a, b] less K_i ℓ²/8, an affine function whose
@@ -275,7 +291,7 @@ def branch_and_bound(problem: FormationProblem, bounds, best: float,
     """The search of the module docstring on ``bounds`` (:class:`PlaneBounds` or
     :class:`SurrogateBounds`) from the best known total ``best``; ``polish(assignment,
     offset)`` runs the offset search of an ordering (slot index per agent) from an offset
-    (rad) and returns its real total (it becomes the best known if lower)."""
+    (rad) and returns its real total, +∞ if it failed (it becomes the best known if lower)."""
     n = problem.agents
     width = 2 * np.pi / n
 
@@ -286,16 +302,18 @@ def branch_and_bound(problem: FormationProblem, bounds, best: float,
             table = point.table
             if table is None:
                 continue
-            value, assignment = _lap(table)
-            if np.all(np.isfinite(table)):   # then V = the table: LAP(V) known
-                point.anchor_lap = value
-            if assignment is not None and value < best * (1 - gap) \
-                    and (found is None or value < found[0]):
-                found = (value, assignment, point.theta)
-        if found is not None:
-            best = min(best, found[0], polish(found[1], found[2]))
+            if math.isnan(point.anchor_lap) or not np.all(np.isfinite(table)):
+                value = _lap(table)[0]
+                if np.all(np.isfinite(table)):   # then V = the table: LAP(V) known
+                    point.anchor_lap = value
+            else:
+                value = point.anchor_lap
+            if value < best * (1 - gap) and (found is None or value < found[0]):
+                found = (value, point)
+        if found is not None and (assignment := _lap(found[1].table)[1]) is not None:
+            best = min(best, polish(assignment, found[1].theta))   # a real outcome, or +∞
 
-    points = bounds.evaluate(np.linspace(0.0, width, FIRST_INTERVALS + 1))
+    points = bounds.first(width)
     improve(points)
     open_ = [_Interval(a, b) for a, b in itertools.pairwise(points)]
     closed: list[float] = []
