@@ -225,3 +225,27 @@ def test_a_search_stopped_by_its_budget_is_not_converged_and_says_its_gap(backen
 def test_the_search_options_are_checked(options):
     with pytest.raises(ValueError, match="ordering_"):
         FormationOptions(ordering="optimal", **options)
+
+
+def test_a_failed_solve_leaves_the_gap_unproven(backend):
+    """The search's own verdict: with a failed inner solve (priced +∞, not known
+    infeasible) the bound may be wrong, so the search closes every interval but does not
+    claim the gap; with none it does."""
+    from ocpar.formation.ordering import CostSurrogate, slot_base
+    from ocpar.formation.ordering_bound import SurrogateBounds, branch_and_bound
+    problem = fleet(5, None)
+    result = optimal_ordering(problem, backend)
+    width = 2 * np.pi / 5
+    tables = cost_tables(problem, backend,
+                         slot_base(problem)[None] + np.arange(4)[:, None] * width / 4)
+    outcomes = []
+    for failed in (0, 1):
+        bounds = SurrogateBounds(CostSurrogate(tables))
+        bounds.failed = failed
+        outcomes.append(branch_and_bound(problem, bounds, result.total_cost,
+                                         lambda assignment, offset: np.inf, 1e-9, 100,
+                                         lambda line: None))
+    proven, unproven = outcomes
+    assert proven.proven and proven.gap <= 1e-9
+    assert not unproven.proven and unproven.gap == proven.gap
+    assert unproven.message.startswith("not proven: 1 inner solve(s) failed")
