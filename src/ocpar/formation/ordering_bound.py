@@ -96,19 +96,21 @@ class SearchOutcome:
 
 @dataclass
 class _Point:
-    """One offset θ of the search: its real table (n, n) (+∞ infeasible; None on a
-    surrogate), and per pair the anchor data V, S, K (n, n) of the module docstring."""
+    """One offset θ of the search: its table (n, n) (real, +∞ where infeasible or not
+    solved; the surrogate's), and, once computed, per pair the anchor data of the module
+    docstring (:meth:`PlaneBounds.anchor`) and the LAP of its values."""
 
     theta: float
     table: np.ndarray | None
     gradients: np.ndarray | None = None   # (n, n, d) dĴ/dz, NaN where infeasible
     excess: np.ndarray | None = None      # (n, n) reach excess, −∞ where none is known
-    anchor: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
+    anchor: tuple[np.ndarray, ...] | None = None
     anchor_lap: float = math.nan   # LAP(V) (V = the table where every pair is feasible)
 
 
 def _lap(table: np.ndarray) -> tuple[float, np.ndarray | None]:
-    """(min over assignments of Σ table[i, σ(i)], σ): +∞ and None if every one is +∞."""
+    """(min over assignments of Σ table[i, σ(i)], σ): +∞ and None if every one is +∞,
+    −∞ and None (no bound) if the table holds −∞ or NaN."""
     from scipy.optimize import linear_sum_assignment
     if not np.all(np.isfinite(table) | (table == np.inf)):
         return -math.inf, None
@@ -121,32 +123,13 @@ def _lap(table: np.ndarray) -> tuple[float, np.ndarray | None]:
     return float(np.sum(table[rows, cols])), assignment
 
 
-class _Circle:
-    """z(φ), z′(φ) (…, d) of the problem's circle, and its radius and plane axes."""
-
-    def __init__(self, problem: FormationProblem) -> None:
-        curve = problem.curve
-        self.center = np.asarray(curve.center, float)
-        self.axes = np.asarray(curve.plane, float)
-        self.radius = float(curve.radius)
-
-    def at(self, phi: np.ndarray) -> np.ndarray:
-        phi = np.asarray(phi, float)[..., None]
-        return self.center + self.radius * (np.cos(phi) * self.axes[0]
-                                             + np.sin(phi) * self.axes[1])
-
-    def along(self, phi: np.ndarray) -> np.ndarray:
-        phi = np.asarray(phi, float)[..., None]
-        return self.radius * (-np.sin(phi) * self.axes[0] + np.cos(phi) * self.axes[1])
-
-
 class PlaneBounds:
     """Anchors from supporting planes of solved points (convex inner problems): each round's
     new offsets are solved in one superstep (n² solves each, with dĴ/dz)."""
 
     def __init__(self, problem: FormationProblem, backend: Backend, base: np.ndarray) -> None:
         self.problem, self.backend, self.base = problem, backend, base
-        self.circle = _Circle(problem)
+        self.curve = problem.curve   # a Circle: z(φ) = c + r (cos φ e₀ + sin φ e₁)
         n = problem.agents
         self.n = n
         # every feasible solved point per agent: angle (mod 2π), cost, gradient
@@ -169,7 +152,7 @@ class PlaneBounds:
         points = []
         for k, theta in enumerate(thetas):
             excess = np.full((n, n), -np.inf)
-            ends = self.circle.at(slots[k])                                # (n, d)
+            ends = self.curve.points(slots[k])                             # (n, d)
             for i in range(n):
                 if self.reach[i] is not None:
                     excess[i] = self.reach[i].excess(ends - self.starts[i])
@@ -217,7 +200,7 @@ class PlaneBounds:
         """V, S (n, n) at ``point`` (module docstring), from the planes known now, and each
         plane's amplitude ρ and phase β (n, n) on the circle: P(φ) = A + ρ cos(φ − β)."""
         phi = self.base + point.theta                                      # (n,)
-        z, tangent = self.circle.at(phi), self.circle.along(phi)           # (n, d)
+        z, tangent = self.curve.points(phi), self.curve.tangents(phi)     # (n, d)
         value = point.table.copy()
         gradient = point.gradients.copy()                                  # (n, n, d)
         origin = np.broadcast_to(z, gradient.shape).copy()                 # the planes' z₀
@@ -231,18 +214,18 @@ class PlaneBounds:
                 gap = np.abs(np.angle(np.exp(1j * (angles - phi[j]))))
                 k = int(np.argmin(gap))
                 value[i, j], gradient[i, j] = costs[k], grads[k]
-                origin[i, j] = self.circle.at(angles[k])
+                origin[i, j] = self.curve.points(angles[k:k + 1])[0]
                 value[i, j] += float(gradient[i, j] @ (z[j] - origin[i, j]))
         slope = np.einsum("ijd,jd->ij", gradient, tangent)
         # the plane on the circle: P(φ) = A + ρ cos(φ − β), P″ = −ρ cos(φ − β)
-        planar = self.circle.radius * (gradient @ self.circle.axes.T)     # (n, n, 2)
+        planar = self.curve.radius * (gradient @ self.curve.plane.T)      # (n, n, 2)
         amplitude = np.where(np.isfinite(value), np.hypot(planar[..., 0], planar[..., 1]), 0)
         phase = np.arctan2(planar[..., 1], planar[..., 0])
         return value, slope, amplitude, np.nan_to_num(phase)
 
     def excluded(self, a: _Point, b: _Point) -> np.ndarray:
         """Pairs (n, n) provably outside their reach on the whole interval [a, b]."""
-        length = self.circle.radius * (b.theta - a.theta)
+        length = self.curve.radius * (b.theta - a.theta)
         return (a.excess > 0) & (b.excess > 0) & (a.excess + b.excess > length)
 
     def interval_bound(self, a: _Point, b: _Point) -> float:
