@@ -67,7 +67,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ocpar.bsp import Backend
-from ocpar.formation.feasibility import feasible_start, inner_costs
+from ocpar.formation.feasibility import InnerCosts, feasible_start, inner_costs
 from ocpar.formation.hierarchical import (
     InnerSolveFailed,
     OuterObjective,
@@ -175,13 +175,22 @@ def cost_table(problem: FormationProblem, backend: Backend, slots: np.ndarray) -
 
 def cost_tables(problem: FormationProblem, backend: Backend, slots: np.ndarray) -> np.ndarray:
     """Cost tables (M, n, n) for the M rows of ``slots`` (M, n) (rad), in one superstep."""
+    return solved_tables(problem, backend, slots)[0]
+
+
+def solved_tables(problem: FormationProblem, backend: Backend, slots: np.ndarray
+                  ) -> tuple[np.ndarray, InnerCosts]:
+    """:func:`cost_tables` (M, n, n) and the superstep's
+    :class:`~ocpar.formation.feasibility.InnerCosts` (pair k = (m n + i) n + j: table m,
+    agent i, slot j; with dĴ/dz)."""
     n = problem.agents
     if not np.all(np.isfinite(slots)):
         raise ValueError("slots must be finite angles (rad)")
     tables = len(slots)
     agents = np.tile(np.repeat(np.arange(n), n), tables)
     angles = np.repeat(slots, n, axis=0).ravel()  # row (m, i) holds the slots of table m
-    return pair_costs(problem, backend, agents, angles, "cost-table").reshape(tables, n, n)
+    found = solved_pairs(problem, backend, agents, angles, "cost-table")
+    return found.costs.reshape(tables, n, n), found
 
 
 def pair_costs(problem: FormationProblem, backend: Backend, agents: np.ndarray,
@@ -192,12 +201,19 @@ def pair_costs(problem: FormationProblem, backend: Backend, agents: np.ndarray,
     :func:`~ocpar.formation.feasibility.inner_costs`). Raises
     :class:`~ocpar.formation.hierarchical.InnerSolveFailed`, naming them ``what``, only if
     every pair is infeasible."""
+    return solved_pairs(problem, backend, agents, phi, what).costs
+
+
+def solved_pairs(problem: FormationProblem, backend: Backend, agents: np.ndarray,
+                 phi: np.ndarray, what: str) -> InnerCosts:
+    """:func:`pair_costs` with the rest of what the superstep found (its
+    :class:`~ocpar.formation.feasibility.InnerCosts`)."""
     found = inner_costs(problem, backend, agents, phi)
     if not np.any(np.isfinite(found.costs)):
         first = f"; first: {found.first_failure}" if found.failed else ""
         raise InnerSolveFailed(f"all {len(found.costs)} {what} solve(s) infeasible: "
                                f"{found.failed} failed, {found.skipped} out of reach{first}")
-    return found.costs
+    return found
 
 
 def cheapest_assignment(table: np.ndarray) -> np.ndarray:
@@ -357,7 +373,7 @@ def optimal_ordering(
 
     # multi-start: tables at `starts` offsets within one slot width, one superstep
     offsets = np.arange(starts) * width / starts
-    tables = cost_tables(problem, backend, base[None, :] + offsets[:, None])
+    tables, seed = solved_tables(problem, backend, base[None, :] + offsets[:, None])
     inner_solves, table_supersteps = tables.size, 1
     found: dict[tuple[int, ...], np.ndarray] = {}
     scanned: dict[float, float] = {}
@@ -423,7 +439,7 @@ def optimal_ordering(
 
         exact = kinds == {QUADRATIC} and surrogate is not None
         bounds = SurrogateBounds(surrogate, scanned) if exact \
-            else PlaneBounds(problem, backend, base)
+            else PlaneBounds(problem, backend, base, (offsets, seed))
         best = min(o["total_cost"] for o in outcomes)
         proof = branch_and_bound(problem, bounds, best, polish, gap, search_rounds, say)
     objective.close()   # the chosen angles start the outer solve, with its own agents

@@ -55,7 +55,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ocpar.bsp import Backend
-from ocpar.formation.feasibility import inner_costs
+from ocpar.formation.feasibility import InnerCosts, inner_costs
 from ocpar.formation.problem import FormationProblem
 
 #: The search's stopping test: the proven relative gap (best − lower bound) / best.
@@ -127,7 +127,8 @@ class PlaneBounds:
     """Anchors from supporting planes of solved points (convex inner problems): each round's
     new offsets are solved in one superstep (n² solves each, with dĴ/dz)."""
 
-    def __init__(self, problem: FormationProblem, backend: Backend, base: np.ndarray) -> None:
+    def __init__(self, problem: FormationProblem, backend: Backend, base: np.ndarray,
+                 seed: tuple[np.ndarray, InnerCosts] | None = None) -> None:
         self.problem, self.backend, self.base = problem, backend, base
         self.curve = problem.curve   # a Circle: z(φ) = c + r (cos φ e₀ + sin φ e₁)
         n = problem.agents
@@ -141,40 +142,68 @@ class PlaneBounds:
         for reach, members in problem.reach_sets():
             for i in members:
                 self.reach[i] = reach
+        self.seed = seed
 
     def evaluate(self, thetas: np.ndarray, lazy: bool = True) -> list[_Point]:
         """The points at ``thetas`` (rad), their pairs solved in one superstep: all of them,
         or (``lazy``, once planes are known) those that can matter (:meth:`_chosen`); the
         others stay +∞ in the point's table (no upper bound uses them) and are bounded by
         the planes of the agent's nearest solved points, like an infeasible pair."""
-        n = self.n
-        slots = self.base[None, :] + np.asarray(thetas)[:, None]          # (m, n)
-        points = []
-        for k, theta in enumerate(thetas):
-            excess = np.full((n, n), -np.inf)
-            ends = self.curve.points(slots[k])                             # (n, d)
-            for i in range(n):
-                if self.reach[i] is not None:
-                    excess[i] = self.reach[i].excess(ends - self.starts[i])
-            points.append(_Point(float(theta), np.full((n, n), np.inf),
-                                 np.full((n, n, len(ends[0])), np.nan), excess))
-        chosen = np.stack([self._chosen(point) if lazy else np.ones((n, n), dtype=bool)
+        points = [self._blank(float(theta)) for theta in thetas]
+        chosen = np.stack([self._chosen(point) if lazy else np.ones((self.n, self.n), bool)
                            for point in points])                           # (m, n, n)
         where = np.nonzero(chosen)
-        found = inner_costs(self.problem, self.backend, where[1], slots[where[0], where[2]])
+        slots = self.base[where[2]] + np.asarray(thetas)[where[0]]
+        found = inner_costs(self.problem, self.backend, where[1], slots)
         self.supersteps += 1
-        self.solves += found.solved
+        self._record(points, where, found)
+        return points
+
+    def first(self, width: float) -> list[_Point]:
+        """The first round: the multi-start's tables (``seed``: their offsets in [0,
+        ``width``) and their superstep's :class:`~ocpar.formation.feasibility.InnerCosts`),
+        with ``width`` itself (offset 0's table: a shift by a slot width moves every agent
+        to the next slot); without them :data:`FIRST_INTERVALS` intervals, every pair
+        solved (one superstep)."""
+        if self.seed is None:
+            return self.evaluate(np.linspace(0.0, width, FIRST_INTERVALS + 1), lazy=False)
+        offsets, found = self.seed
+        n, m = self.n, len(offsets)
+        points = [self._blank(float(theta)) for theta in offsets]
+        where = np.nonzero(np.ones((m, n, n), dtype=bool))
+        self._record(points, where, found, counted=False)   # the multi-start's solves
+        last = self._blank(width)
+        last.table = np.roll(points[0].table, -1, axis=1)
+        last.gradients = np.roll(points[0].gradients, -1, axis=1)
+        return [*points, last]
+
+    def _blank(self, theta: float) -> _Point:
+        """The point at offset ``theta`` (rad) with nothing solved: its reach excesses."""
+        n = self.n
+        excess = np.full((n, n), -np.inf)
+        ends = self.curve.points(self.base + theta)                        # (n, d)
+        for i in range(n):
+            if self.reach[i] is not None:
+                excess[i] = self.reach[i].excess(ends - self.starts[i])
+        return _Point(theta, np.full((n, n), np.inf), np.full((n, n, ends.shape[1]), np.nan),
+                      excess)
+
+    def _record(self, points: list[_Point], where: tuple[np.ndarray, ...],
+                found: InnerCosts, counted: bool = True) -> None:
+        """The solves ``found`` of the pairs ``where`` (point, agent, slot) into their points'
+        tables and the agents' known planes (counted as the search's own, or not)."""
+        self.solves += found.solved if counted else 0
         self.failed += found.failed
         for k, point in enumerate(points):
             rows = where[0] == k
             point.table[where[1][rows], where[2][rows]] = found.costs[rows]
             point.gradients[where[1][rows], where[2][rows]] = found.gradients[rows]
-            for i in range(n):
+            slots = self.base + point.theta
+            for i in range(self.n):
                 ok = np.isfinite(point.table[i])
                 if np.any(ok):
-                    self.known[i].append((np.mod(slots[k][ok], 2 * np.pi),
-                                          point.table[i][ok], point.gradients[i][ok]))
-        return points
+                    self.known[i].append((np.mod(slots[ok], 2 * np.pi), point.table[i][ok],
+                                          point.gradients[i][ok]))
 
     def _chosen(self, point: _Point) -> np.ndarray:
         """The pairs (n, n) worth solving at ``point`` (before any is solved there): on the
@@ -191,10 +220,6 @@ class PlaneBounds:
             chosen[rows, assignment] = True
         chosen[~np.all(np.isfinite(value), axis=1)] = True
         return chosen & ~(point.excess > 0)
-
-    def first(self, width: float) -> list[_Point]:
-        """The first round: :data:`FIRST_INTERVALS` intervals over [0, ``width``]."""
-        return self.evaluate(np.linspace(0.0, width, FIRST_INTERVALS + 1), lazy=False)
 
     def anchor(self, point: _Point) -> tuple[np.ndarray, ...]:
         """V, S (n, n) at ``point`` (module docstring), from the planes known now, and each
