@@ -30,8 +30,8 @@ optimum need not be tiny. P comes from what is known of the inner problem
   does not change the best assignment): no inner solves, one LAP per offset.
 
 Any pair may be left unsolved at an offset (then bounded like an infeasible one, by the
-plane of its agent's nearest solved point): the first round solves every pair, later ones
-only those that can matter by the planes' bounds (each agent's :data:`LAZY_SLOTS` cheapest
+plane of its agent's nearest solved point): the first round is the multi-start's tables
+(every pair solved, ``seed``), later ones solve only those that can matter by the planes' bounds (each agent's :data:`LAZY_SLOTS` cheapest
 slots and the cheapest assignment: a choice that leaves every bound valid, and on the
 tests' fleets as few rounds as solving every pair, with half the solves).
 
