@@ -31,9 +31,10 @@ optimum need not be tiny. P comes from what is known of the inner problem
 
 Any pair may be left unsolved at an offset (then bounded like an infeasible one, by the
 plane of its agent's nearest solved point): the first round is the multi-start's tables
-(every pair solved, ``seed``), later ones solve only those that can matter by the planes' bounds (each agent's :data:`LAZY_SLOTS` cheapest
-slots and the cheapest assignment: a choice that leaves every bound valid, and on the
-tests' fleets as few rounds as solving every pair, with half the solves).
+(every pair solved, ``seed``), later rounds solve only the pairs that can matter by the
+planes' bounds (each agent's :data:`LAZY_SLOTS` cheapest slots and the cheapest
+assignment: a choice that leaves every bound valid, and on the tests' fleets about as few
+rounds as solving every pair, with a third of the solves).
 
 Upper bounds: the LAP of the real table at every solved offset (its unsolved pairs +∞: a
 formation with real costs); the best one, where it beats the best known by more than the
