@@ -130,9 +130,11 @@ def test_surrogate_reproduces_the_tables_between_its_samples():
                                                                                       rel=1e-13)
 
 
-def check_result(problem: FormationProblem, result: OrderingResult, backend) -> None:
+def check_result(problem: FormationProblem, result: OrderingResult, backend,
+                 bound: str | None = "quadratic") -> None:
     """The result's invariants: converged, equidistant, φ = slots of the assignment, the
-    total cost Σ Ĵ_i(φ_i) of fresh inner solves."""
+    total cost Σ Ĵ_i(φ_i) of fresh inner solves; point masses without limits: proven
+    optimal on the exact surrogate (no search solves); where no ``bound`` is claimed, no gap."""
     n = problem.agents
     assert result.converged, result.message
     assert result.phi.shape == (n,) and result.assignment.shape == (n,)
@@ -143,9 +145,17 @@ def check_result(problem: FormationProblem, result: OrderingResult, backend) -> 
     np.testing.assert_allclose(np.angle(np.exp(1j * (result.phi - slots))), 0, atol=1e-9)
     fresh = backend.superstep_columns(solve_task, problem.tasks(result.phi))
     assert result.total_cost == pytest.approx(float(np.sum(fresh.column("cost"))), rel=1e-12)
-    assert result.table_supersteps == result.rounds + 1
+    assert result.table_supersteps >= result.rounds + 1
     assert result.inner_solves >= (result.starts + result.rounds) * n * n
     assert result.surrogate_error < 1e-12  # point masses: the surrogate is exact
+    assert result.bound == bound
+    if bound is None:
+        assert not result.proven and np.isnan(result.gap) and np.isnan(result.lower_bound)
+        return
+    assert result.proven, result.search_message
+    assert 0 <= result.gap <= 1e-9
+    assert result.lower_bound == pytest.approx(result.total_cost * (1 - result.gap), rel=1e-15)
+    assert result.search_solves == 0
 
 
 @pytest.mark.parametrize("agents", [5, 6, pytest.param(7, marks=pytest.mark.slow)])
@@ -155,7 +165,8 @@ def test_optimal_ordering_equals_brute_force(agents):
     lines: list[str] = []
     result = optimal_ordering(problem, backend, progress=lines.append)
     check_result(problem, result, backend)
-    assert len(lines) == result.rounds + 1 and lines[-1].startswith("ordering round")
+    assert lines[0].startswith("ordering tables") and lines[-1].startswith(
+        "ordering search round") and " 0 open interval" in lines[-1]
 
     best_cost, best_phi = brute_force(problem, backend)
     assert result.total_cost == pytest.approx(best_cost, rel=1e-9)
@@ -172,7 +183,7 @@ def test_optimal_ordering_equals_brute_force_for_rigid_spacecraft():
     problem = formation_halo.make(agents=5)
     backend = SerialBackend()
     result = optimal_ordering(problem, backend)
-    check_result(problem, result, backend)
+    check_result(problem, result, backend, bound=None)   # not a point mass: not claimed
     best_cost, best_phi = brute_force(problem, backend)
     assert result.total_cost == pytest.approx(best_cost, rel=1e-9)
     assert cyclic_order(result.phi) == cyclic_order(best_phi)

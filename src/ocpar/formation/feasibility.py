@@ -203,13 +203,16 @@ def outside_reach(problem: FormationProblem, agents: np.ndarray, phi: np.ndarray
 class InnerCosts:
     """Ĵ (p,) of each pair, +∞ where infeasible; ``solved`` inner solves, ``failed`` of them
     failed, ``skipped`` pairs outside an exact reach set (not solved), and the first
-    failure's words (``first_failure``, "" if none)."""
+    failure's words (``first_failure``, "" if none); ``gradients`` (p, d) dĴ/dz, the
+    derivative of each pair's cost in its end position z (the first d entries of q_N, the
+    target's dimension; cost unit per length unit), NaN where the cost is +∞."""
 
     costs: np.ndarray
     solved: int
     failed: int
     skipped: int
     first_failure: str
+    gradients: np.ndarray | None = None
 
 
 def inner_costs(problem: FormationProblem, backend: Backend, agents: np.ndarray,
@@ -220,6 +223,8 @@ def inner_costs(problem: FormationProblem, backend: Backend, agents: np.ndarray,
     agents = np.asarray(agents, dtype=np.intp)
     rows = np.asarray(phi, float).reshape(len(agents), -1)   # on a surface 2 per pair
     costs = np.full(len(agents), np.inf)
+    d = problem.curve.dim
+    gradients = np.full((len(agents), d), np.nan)
     skip = outside_reach(problem, agents, rows[:, 0]) if rows.shape[1] == 1 \
         else np.zeros(len(agents), dtype=bool)
     todo = np.flatnonzero(~skip)
@@ -230,13 +235,16 @@ def inner_costs(problem: FormationProblem, backend: Backend, agents: np.ndarray,
         success = np.asarray(sols.column("success"), dtype=bool)
         solved = np.asarray(sols.column("cost"), dtype=float)
         costs[todo[success]] = solved[success]
+        nq = problem.common_shape.model.nq
+        gradient = np.asarray(sols.column("cost_gradient"), float)[:, 2 * nq: 2 * nq + d]
+        gradients[todo[success]] = gradient[success]
         bad = np.flatnonzero(~success)
         failed = len(bad)
         if failed:
             k = int(todo[bad[0]])
             first = (f"agent {agents[k]} ending at phi = {rows[k].tolist()}: "
                      f"{sols.column('status')[bad[0]]}")
-    return InnerCosts(costs, len(todo), failed, int(np.sum(skip)), first)
+    return InnerCosts(costs, len(todo), failed, int(np.sum(skip)), first, gradients)
 
 
 # ----------------------------------------------------------------------------------------

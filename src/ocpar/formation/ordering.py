@@ -37,9 +37,16 @@ assignment is scanned at :data:`FINE_OFFSETS` offsets per slot width, a coordina
 ``keep``, and the best result starts the real descent, which verifies it with inner solves
 (the first table at the real optimum offset then confirms the assignment; the largest
 difference surrogate − real table is reported). The result is a local optimum of the true J
-in this sense; the global optimum is found whenever the surrogate is accurate and its best
-ordering is cheapest on at least one fine offset (it matched brute force over all orderings
-in every test).
+in this sense: on a fleet of 12 norm-limited point masses it stopped 9.4e-4 above the
+global optimum.
+
+Hence the proof that follows it (:mod:`~ocpar.formation.ordering_bound`): where every inner
+problem is convex in its end position (:func:`~ocpar.ocp.reach.end_cost_convexity`: point
+masses, free or with box or norm thrust limits), a branch and bound over the offset with
+assignment lower bounds on intervals finds the global optimum over assignments and rotation
+and proves it to a relative gap (:data:`~ocpar.formation.ordering_bound.GAP_TOL`), or stops
+at its budget of rounds with the gap it proved. Elsewhere (obstacles, other models) no bound
+is claimed and the descent's result stands.
 
 Infeasible pairs (an agent that cannot reach a slot, e.g. under a thrust limit) are +∞ in
 the tables (:func:`pair_costs`: outside an exact reach set not even solved; a failed solve
@@ -60,14 +67,22 @@ from dataclasses import dataclass
 import numpy as np
 
 from ocpar.bsp import Backend
-from ocpar.formation.feasibility import feasible_start, inner_costs
+from ocpar.formation.feasibility import InnerCosts, feasible_start, inner_costs
 from ocpar.formation.hierarchical import (
     InnerSolveFailed,
     OuterObjective,
     solve_outer_newton,
     solve_outer_offset,
 )
+from ocpar.formation.ordering_bound import (
+    GAP_TOL,
+    SEARCH_ROUNDS,
+    PlaneBounds,
+    SurrogateBounds,
+    branch_and_bound,
+)
 from ocpar.formation.problem import FormationProblem
+from ocpar.ocp.reach import QUADRATIC, end_cost_convexity
 
 ORDERINGS = ("keep", "optimal")
 
@@ -100,7 +115,14 @@ class OrderingResult:
     orderings (modulo rotation) the surrogate scan proposed; ``surrogate_error`` the largest
     |surrogate − real| entry of the tables of the rounds, relative to the largest real entry
     (NaN where the tables held infeasible pairs and no surrogate was built);
-    ``message`` why it stopped.
+    ``message`` why it stopped. The global search
+    (:mod:`~ocpar.formation.ordering_bound`): ``bound`` what it rests on, ``"convex"``
+    (supporting planes of solves), ``"quadratic"`` (the exact surrogate) or None (no bound
+    claimed: a non-convex inner problem, e.g. with obstacles); ``proven`` the relative gap
+    ``gap`` = (total_cost − ``lower_bound``) / total_cost is within its tolerance (NaN
+    gap and lower bound where none is claimed); ``search_supersteps`` and
+    ``search_solves`` its own (the offset searches it ran to polish are counted in
+    ``table_supersteps`` and ``inner_solves``); ``search_message`` why it stopped.
     """
 
     phi: np.ndarray
@@ -115,6 +137,13 @@ class OrderingResult:
     candidates: int = 1
     surrogate_error: float = 0.0
     message: str = ""
+    bound: str | None = None
+    proven: bool = False
+    gap: float = math.nan
+    lower_bound: float = math.nan
+    search_supersteps: int = 0
+    search_solves: int = 0
+    search_message: str = ""
 
 
 def slot_base(problem: FormationProblem) -> np.ndarray:
@@ -146,13 +175,22 @@ def cost_table(problem: FormationProblem, backend: Backend, slots: np.ndarray) -
 
 def cost_tables(problem: FormationProblem, backend: Backend, slots: np.ndarray) -> np.ndarray:
     """Cost tables (M, n, n) for the M rows of ``slots`` (M, n) (rad), in one superstep."""
+    return solved_tables(problem, backend, slots)[0]
+
+
+def solved_tables(problem: FormationProblem, backend: Backend, slots: np.ndarray
+                  ) -> tuple[np.ndarray, InnerCosts]:
+    """:func:`cost_tables` (M, n, n) and the superstep's
+    :class:`~ocpar.formation.feasibility.InnerCosts` (pair k = (m n + i) n + j: table m,
+    agent i, slot j; with dĴ/dz)."""
     n = problem.agents
     if not np.all(np.isfinite(slots)):
         raise ValueError("slots must be finite angles (rad)")
     tables = len(slots)
     agents = np.tile(np.repeat(np.arange(n), n), tables)
     angles = np.repeat(slots, n, axis=0).ravel()  # row (m, i) holds the slots of table m
-    return pair_costs(problem, backend, agents, angles, "cost-table").reshape(tables, n, n)
+    found = solved_pairs(problem, backend, agents, angles, "cost-table")
+    return found.costs.reshape(tables, n, n), found
 
 
 def pair_costs(problem: FormationProblem, backend: Backend, agents: np.ndarray,
@@ -163,12 +201,19 @@ def pair_costs(problem: FormationProblem, backend: Backend, agents: np.ndarray,
     :func:`~ocpar.formation.feasibility.inner_costs`). Raises
     :class:`~ocpar.formation.hierarchical.InnerSolveFailed`, naming them ``what``, only if
     every pair is infeasible."""
+    return solved_pairs(problem, backend, agents, phi, what).costs
+
+
+def solved_pairs(problem: FormationProblem, backend: Backend, agents: np.ndarray,
+                 phi: np.ndarray, what: str) -> InnerCosts:
+    """:func:`pair_costs` with the rest of what the superstep found (its
+    :class:`~ocpar.formation.feasibility.InnerCosts`)."""
     found = inner_costs(problem, backend, agents, phi)
     if not np.any(np.isfinite(found.costs)):
         first = f"; first: {found.first_failure}" if found.failed else ""
         raise InnerSolveFailed(f"all {len(found.costs)} {what} solve(s) infeasible: "
                                f"{found.failed} failed, {found.skipped} out of reach{first}")
-    return found.costs
+    return found
 
 
 def cheapest_assignment(table: np.ndarray) -> np.ndarray:
@@ -290,6 +335,8 @@ def optimal_ordering(
     max_rounds: int = 20,
     progress: Callable[[str], None] | None = None,
     starts: int | None = None,
+    gap: float = GAP_TOL,
+    search_rounds: int = SEARCH_ROUNDS,
 ) -> OrderingResult:
     """The agent→slot assignment and common offset minimising Σ_i Ĵ_i(φ_i) over equidistant
     φ (see the module docstring): one superstep of ``starts`` cost tables per slot width
@@ -297,6 +344,10 @@ def optimal_ordering(
     then alternating offset searches (relative tolerance ``tol`` on the offset, as
     :func:`~ocpar.formation.hierarchical.solve_outer_offset`) and cost tables at the new offset
     until the assignment stops changing or ``max_rounds`` offset searches were run.
+    Then, where the inner problems are convex in their end position
+    (:func:`~ocpar.ocp.reach.end_cost_convexity`), the branch and bound of
+    :mod:`~ocpar.formation.ordering_bound` proves the result globally optimal to the relative
+    ``gap`` (or improves it), within ``search_rounds`` rounds.
     ``progress`` gets one line for the multi-start and one per round. Raises
     :class:`~ocpar.formation.hierarchical.InnerSolveFailed` if an inner solve fails. Only for
     a problem on a :class:`~ocpar.formation.Circle` (ValueError otherwise)."""
@@ -310,6 +361,11 @@ def optimal_ordering(
     starts = default_starts(n) if starts is None else starts
     if isinstance(starts, bool) or not isinstance(starts, int | np.integer) or starts < 1:
         raise ValueError(f"starts must be an integer ≥ 1, got {starts!r}")
+    if not (np.isfinite(gap) and 0 < gap < 1):
+        raise ValueError(f"gap must be a number in (0, 1), got {gap!r}")
+    if isinstance(search_rounds, bool) or not isinstance(search_rounds, int | np.integer) \
+            or search_rounds < 1:
+        raise ValueError(f"search_rounds must be an integer ≥ 1, got {search_rounds!r}")
     width = 2 * np.pi / n
     base = slot_base(problem)
     keep = keep_assignment(problem)
@@ -317,14 +373,17 @@ def optimal_ordering(
 
     # multi-start: tables at `starts` offsets within one slot width, one superstep
     offsets = np.arange(starts) * width / starts
-    tables = cost_tables(problem, backend, base[None, :] + offsets[:, None])
+    tables, seed = solved_tables(problem, backend, base[None, :] + offsets[:, None])
     inner_solves, table_supersteps = tables.size, 1
     found: dict[tuple[int, ...], np.ndarray] = {}
+    scanned: dict[float, float] = {}
     if np.all(np.isfinite(tables)):
         surrogate: CostSurrogate | None = CostSurrogate(tables)
         for offset in np.arange(FINE_OFFSETS) * width / FINE_OFFSETS:
-            candidate = cheapest_assignment(surrogate.table(offset))
+            scan = surrogate.table(offset)
+            candidate = cheapest_assignment(scan)
             found.setdefault(_canonical(candidate), candidate)
+            scanned[float(offset)] = assignment_cost(scan, candidate)   # the search's start
         descents = [surrogate.descend(a, max_rounds) for a in [keep, *found.values()]]
         estimate, offset, assignment = min(descents, key=lambda d: d[0])
         say(f"ordering tables: {starts} offset(s) x {n}x{n} solves, {len(found)} candidate "
@@ -364,14 +423,39 @@ def optimal_ordering(
                                      offset, tol, max_rounds, surrogate, say))
         except InnerSolveFailed as exc:   # this start's descent met an infeasible step
             failure = exc
-    objective.close()   # the chosen angles start the outer solve, with its own agents
     if not outcomes:
+        objective.close()
         raise failure
+    kinds = {end_cost_convexity(shape) for shape in problem.shapes}
+    proof = None
+    if None not in kinds:
+        def polish(assignment: np.ndarray, offset: float) -> float:
+            try:
+                outcomes.append(_descend(problem, backend, objective, search, base,
+                                         assignment, offset, tol, max_rounds, surrogate, say))
+            except InnerSolveFailed:
+                return math.inf
+            return outcomes[-1]["total_cost"]
+
+        exact = kinds == {QUADRATIC} and surrogate is not None
+        bounds = SurrogateBounds(surrogate, scanned) if exact \
+            else PlaneBounds(problem, backend, base, (offsets, seed))
+        best = min(o["total_cost"] for o in outcomes)
+        proof = branch_and_bound(problem, bounds, best, polish, gap, search_rounds, say)
+    objective.close()   # the chosen angles start the outer solve, with its own agents
     table_supersteps += sum(o.pop("tables") for o in outcomes)
     inner_solves += sum(o.pop("solves") for o in outcomes) + objective.inner_solves
+    claimed = {} if proof is None else {
+        "bound": "quadratic" if isinstance(bounds, SurrogateBounds) else "convex",
+        "proven": proof.proven, "gap": proof.gap, "lower_bound": proof.lower_bound,
+        "search_supersteps": proof.supersteps, "search_solves": proof.inner_solves,
+        "search_message": proof.message}
     return OrderingResult(**min(outcomes, key=lambda o: o["total_cost"]),
-                          table_supersteps=table_supersteps, inner_solves=inner_solves,
-                          starts=starts, candidates=len(found))
+                          table_supersteps=table_supersteps + (
+                              0 if proof is None else proof.supersteps),
+                          inner_solves=inner_solves + (0 if proof is None
+                                                       else proof.inner_solves),
+                          starts=starts, candidates=len(found), **claimed)
 
 
 def _descend(problem: FormationProblem, backend: Backend, objective: OuterObjective,

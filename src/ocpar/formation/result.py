@@ -127,7 +127,13 @@ class FormationResult(RunResult):
     ``continuous`` on a circle (a common rotation), ``discrete`` elsewhere (the potential's
     isolated critical points), with ``critical_sets`` the candidates searched by
     ``--ordering optimal`` (:meth:`~ocpar.formation.couplings.critical_sets.CriticalSet.to_dict`,
-    cheapest first; None when none were); ``fleet`` (:class:`Fleet`) and per agent the inner
+    cheapest first; None when none were); ``ordering`` on a circle with ``--ordering
+    optimal`` (None otherwise): the assignment (slot index per agent), ``offset`` (rad),
+    what its optimality rests on (``bound``: ``convex``, ``quadratic`` or None: none
+    claimed), ``proven``, the relative ``gap`` and ``lower_bound`` it proved (null where
+    none is claimed), the search's ``search_supersteps`` and ``search_inner_solves``, all the
+    ordering's ``inner_solves`` and why the search stopped (``message``;
+    :mod:`~ocpar.formation.ordering_bound`); ``fleet`` (:class:`Fleet`) and per agent the inner
     solver's ``solver_status`` and ``solver_iterations`` (n,) of its last solve at the
     returned φ (with a required separation: of the solve before the rounds; a monolithic
     run: the one NLP's) for the array file (:meth:`arrays`); ``positions`` (n, N+1, p) the
@@ -163,6 +169,7 @@ class FormationResult(RunResult):
     obstacle_sides: list[list[str | list[float] | None]] | None = None
     feasible_set: str = "continuous"
     critical_sets: list[dict] | None = None
+    ordering: dict | None = None
     verification: Verification | None = None
     fleet: Fleet | None = None
     solver_status: list[str] | None = None
@@ -218,6 +225,7 @@ class FormationResult(RunResult):
             **self._obstacle_fields(),
             "feasible_set": self.feasible_set,
             "critical_sets": self.critical_sets,
+            "ordering": self.ordering,
             **self._verification_fields(),
         }
 

@@ -36,7 +36,8 @@ from ocpar.formation.keep_out.obstacles import cleared, closest_obstacle, passin
 from ocpar.formation.keep_out.rounds import SEPARATION_RTOL, Separation, separate
 from ocpar.formation.keep_out.separation import check_separation_feasible
 from ocpar.formation.monolithic import solve_monolithic
-from ocpar.formation.ordering import ORDERINGS, optimal_ordering
+from ocpar.formation.ordering import ORDERINGS, OrderingResult, optimal_ordering
+from ocpar.formation.ordering_bound import GAP_TOL, SEARCH_ROUNDS
 from ocpar.formation.outer_step import prepare_workers
 from ocpar.formation.problem import FormationProblem
 from ocpar.formation.result import Fleet, FormationResult
@@ -134,6 +135,14 @@ class FormationOptions:
                                       "optimal: the search for the coupling's solution sets "
                                       "ends once this many consecutive starts found no new "
                                       "set (0: after --critical-starts exactly)", low=0)
+    ordering_gap: float = option(GAP_TOL, "on a circle, with --ordering optimal: the relative "
+                                 "gap (best - lower bound) / best at which the search over "
+                                 "assignments and rotation stops, proven (where the inner "
+                                 "problems are convex in their end position)", above=0)
+    ordering_rounds: int = option(SEARCH_ROUNDS, "on a circle, with --ordering optimal: "
+                                  "rounds of that search at most (each one superstep of "
+                                  "inner solves); stopped there, the run is not_converged "
+                                  "with the gap it proved", low=1)
     slot_candidates: int = option(SLOT_CANDIDATES, "onto slots: candidate slots per agent to "
                                   "begin with (its nearest to its start and to its place in "
                                   "the formation), doubled until doubling finds no cheaper "
@@ -192,8 +201,10 @@ class FormationOptions:
         if self.critical not in CRITICAL_READINGS:
             raise ValueError(f"unknown critical {self.critical!r}; choose one of "
                              f"{', '.join(CRITICAL_READINGS)}")
+        if not 0 < self.ordering_gap < 1:
+            raise ValueError(f"ordering_gap must be in (0, 1), got {self.ordering_gap!r}")
         for name in ("separation_rounds", "critical_starts",
-                     "slot_candidates"):
+                     "slot_candidates", "ordering_rounds"):
             if getattr(self, name) < 1:
                 raise ValueError(f"{name} must be at least 1")
         if self.initial_angles is not None:
@@ -445,14 +456,15 @@ def solve_formation(
     start = time.perf_counter()
     common = {"problem": problem.name, "agents": problem.agents, "backend": backend.name,
               "workers": backend.workers, "mode": options.mode, "on_circle": problem.on_circle}
-    ordering_solves, choice, chosen = 0, None, None
+    ordering_solves, choice, chosen, ordered = 0, None, None, None
     try:
         if slots:
             choice = assign_slots(problem, backend, options.slot_candidates, progress)
             phi0, ordering_solves, chosen = choice.phi, choice.inner_solves, "slots assigned"
         elif options.ordering == "optimal" and problem.on_circle:
             ordered = optimal_ordering(problem, backend, tol=options.outer_tol,
-                                       progress=progress)
+                                       progress=progress, gap=options.ordering_gap,
+                                       search_rounds=options.ordering_rounds)
             phi0, ordering_solves = ordered.phi, ordered.inner_solves
         elif options.ordering == "optimal":
             choice = best_isolated_formation(problem, backend, options.critical,
@@ -471,7 +483,9 @@ def solve_formation(
             trace=backend.traces[first_trace:],
             fleet=Fleet.of(problem, np.full(problem.parameter_shape, np.nan)))
     discrete = discrete_choice(problem, choice, phi0)
-    note = discrete.pop("note")
+    note = discrete.pop("note") + ordering_note(ordered)
+    if ordered is not None:
+        discrete["ordering"] = ordering_fields(ordered)
 
     if options.mode == "monolithic":
         sol = solve_monolithic(problem, phi0, options.monolithic_tol, options.max_outer_iterations,
@@ -489,6 +503,7 @@ def solve_formation(
         verification, status, message = _verified(verify_formation(
             problem, sol.trajectories, sol.controls, sol.phi, options.min_separation, backend),
             status, message)
+        status, message = ordering_status(ordered, status, message)
         checked = time.perf_counter() - start - wall_time_s
         return FormationResult(
             **common,
@@ -591,6 +606,7 @@ def solve_formation(
     status, message, obstacle_fields = obstacle_check(problem, positions, status, message)
     extra |= obstacle_fields
     verification, status, message = _verified(verification, status, message)
+    status, message = ordering_status(ordered, status, message)
     if refusal is not None:
         message = refusal
     checked = verification.time_s + time.perf_counter() - checking
@@ -622,6 +638,47 @@ def solve_formation(
         **discrete,
         **extra,
     )
+
+
+def ordering_note(ordered: OrderingResult | None) -> str:
+    """The status line's words on the optimal ordering on a circle ("" without one)."""
+    if ordered is None:
+        return ""
+    if ordered.bound is None:
+        return ("; ordering optimal: the best assignment and rotation found, no bound "
+                "claimed (the inner problems are not known to be convex in their end "
+                "position, e.g. obstacles or a nonlinear model)")
+    if ordered.proven:
+        return (f"; ordering optimal: the global optimum over assignments and rotation, "
+                f"proven to a gap of {ordered.gap:.1e} (lower bound {ordered.lower_bound:.12g})")
+    return f"; ordering optimal: {ordered.search_message}"
+
+
+def ordering_status(ordered: OrderingResult | None, status: str, message: str
+                    ) -> tuple[str, str]:
+    """``status`` and ``message`` unless the ordering's search claimed a bound and stopped
+    short of its gap (its budget, or failed solves): then ``not_converged`` in place of
+    ``converged``, the message first saying why."""
+    if ordered is not None and ordered.bound is not None and not ordered.proven \
+            and status == "converged":
+        rest = message.replace(ordering_note(ordered), "")
+        return "not_converged", f"ordering optimal {ordered.search_message}; {rest}"
+    return status, message
+
+
+def ordering_fields(ordered: OrderingResult) -> dict:
+    """``result.json``'s ``ordering`` (:class:`~ocpar.formation.result.FormationResult`)."""
+    def finite(x: float) -> float | None:
+        return float(x) if math.isfinite(x) else None
+
+    return {"assignment": np.asarray(ordered.assignment).tolist(),
+            "offset": float(ordered.offset), "bound": ordered.bound,
+            "proven": bool(ordered.proven), "gap": finite(ordered.gap),
+            "lower_bound": finite(ordered.lower_bound),
+            "search_supersteps": int(ordered.search_supersteps),
+            "search_inner_solves": int(ordered.search_solves),
+            "inner_solves": int(ordered.inner_solves),
+            "message": ordered.search_message or ordered.message}
 
 
 def _separation_words(rounds: Separation, distance: float, status: str, message: str

@@ -112,6 +112,30 @@ def _norm_limit(constraint: object, nu: int) -> float | None:
     return math.sqrt(constraint.upper[0] / c)
 
 
+#: :func:`end_cost_convexity`'s answers: J*(q_N) a convex quadratic, or convex.
+QUADRATIC, CONVEX = "quadratic", "convex"
+
+
+def end_cost_convexity(shape: DmocShape) -> str | None:
+    """Whether the optimal cost J* of ``shape``'s DMOC NLP is convex in its boundary data p
+    (so in the end position q_N): ``"quadratic"`` (:data:`QUADRATIC`) for a point mass
+    without inequalities (linear equations, cost h Σ|u_k|²: J* is a convex quadratic of p),
+    ``"convex"`` (:data:`CONVEX`) for a point mass whose only inequalities are control bounds
+    (a box) and norm limits c |u|² ≤ b of ``u`` alone (each a convex set: J* is the
+    minimum of a convex function over a convex set that moves linearly with p, so convex
+    in p, and a solve's dJ*/dp is a subgradient: J*(p) ≥ J*(p₀) + dJ*/dp(p₀)·(p − p₀)
+    wherever J* is finite), None otherwise: other models, a running cost, keep-out slots,
+    obstacles (non-convex) or other path constraints (not claimed)."""
+    if not isinstance(shape.model, PointMass) or shape.running_cost is not None \
+            or shape.keep_out_slots or shape.obstacles:
+        return None
+    if any(_norm_limit(c, shape.model.nu) is None for c in shape.path_constraints):
+        return None
+    if shape.control_bounds is None and not shape.path_constraints:
+        return QUADRATIC
+    return CONVEX
+
+
 def thrust_limit(shape: DmocShape) -> tuple[str, float] | None:
     """``shape``'s thrust limit as (kind, u_max) in the force unit: ``("box", u)`` for control
     bounds −u ≤ u_j ≤ u on every entry, ``("norm", a)`` for a sole path constraint
