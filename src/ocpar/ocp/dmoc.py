@@ -92,6 +92,7 @@ from __future__ import annotations
 
 import dataclasses
 import itertools
+import time
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
 from functools import cached_property
@@ -100,7 +101,7 @@ from typing import Any
 import casadi as ca
 import numpy as np
 
-from ocpar.bsp.columns import LISTED, SHARED, STACKED, VALUES, Columns
+from ocpar.bsp.columns import LISTED, SHARED, STACKED, VALUES, Columns, to_columns
 from ocpar.models.mechanical import MechanicalSystem
 from ocpar.ocp.batch import AUTO_SOLVER, SOLVERS, KktNewton, MappedNlp, kkt_met, kkt_residuals
 from ocpar.ocp.constraints import (
@@ -718,6 +719,28 @@ class DmocTranscription:
         if self.batch_solver is not None:
             self.batch_solver.prepare(count)
 
+    @cached_property
+    def without_obstacles(self) -> DmocTranscription | None:
+        """The transcription of this shape without its obstacles (same solver, ``newton``
+        where ``auto`` chooses it then), whose batch :meth:`solve_batch` tries first; None
+        without planes or without a batched solver."""
+        if not self.n_planes or self.batch_solver is None:
+            return None
+        free = dataclasses.replace(self.shape, obstacles=(), obstacle_positions=())
+        return transcription(free)   # type: ignore[return-value]
+
+    def clear_of_obstacles(self, q: np.ndarray) -> np.ndarray:
+        """Whether each path with nodes q (k, N+1, nq) keeps every segment more than
+        ``kkt_tol`` · (the obstacle's scale) outside every obstacle (exact segment distances,
+        :meth:`~ocpar.ocp.obstacles.Ellipsoid.clearance`): (k,) bool, False where not finite."""
+        positions = q[..., list(self.shape.obstacle_positions)]
+        clear = np.all(np.isfinite(positions), axis=(1, 2))
+        for obstacle in self.shape.obstacles:
+            gap, _ = obstacle.clearance(positions[:, :-1], positions[:, 1:])
+            with np.errstate(invalid="ignore"):
+                clear &= np.all(gap > self.shape.kkt_tol * obstacle.scale, axis=1)
+        return clear
+
     def solve_batch(self, params: np.ndarray, guesses: np.ndarray | list[np.ndarray | None],
                     multipliers: np.ndarray | list[np.ndarray | None]) -> Columns | None:
         """Solve k tasks in one mapped call (:class:`~ocpar.ocp.batch.MappedNlp`): boundary
@@ -725,10 +748,65 @@ class DmocTranscription:
         default guess, zero multipliers). ``success`` comes from the KKT check; ``iterations``
         counts Newton steps (``newton``) or is −1 (``sqpmethod``: a mapped call reports none);
         ``solve_time_s`` is the call's time shared equally. None if this shape's solver is
-        ``ipopt`` or CasADi raised (the caller then solves one by one)."""
+        ``ipopt`` or CasADi raised (the caller then solves one by one).
+
+        With obstacles, the tasks are first solved without them (:attr:`without_obstacles`,
+        one batch); a task whose solution there succeeds and clears every obstacle
+        (:meth:`clear_of_obstacles`) keeps it: it is a KKT point of the NLP with the
+        obstacles, their rows inactive (with the canonical planes; ``end_hessian`` and
+        ``cost_gradient`` the same, no obstacle row carrying a multiplier). Only the others
+        are solved with the planes."""
         if self.batch_solver is None:
             return None
         params = np.asarray(params, float)
+        if self.without_obstacles is not None:
+            return self._screened(params, guesses, multipliers)
+        return self._solve_batch(params, guesses, multipliers)
+
+    def _screened(self, params: np.ndarray, guesses: np.ndarray | list[np.ndarray | None],
+                  multipliers: np.ndarray | list[np.ndarray | None]) -> Columns | None:
+        """:meth:`solve_batch` with obstacles: without them first, then with them for the
+        tasks whose paths do not clear them."""
+        free_nlp = self.without_obstacles
+        assert free_nlp is not None
+        k = len(params)
+        guess_rows = list(guesses) if len(guesses) == k else [None] * k
+        lam_rows = list(multipliers) if len(multipliers) == k else [None] * k
+        n_free = free_nlp.nw
+        free_guesses = [None if g is None else
+                        (np.asarray(g, float)[:n_free] if np.size(g) == self.nw else g)
+                        for g in guess_rows]
+        free_lams = [None if m is None else np.asarray(m, float)[:free_nlp.ng]
+                     for m in lam_rows]
+        start = time.perf_counter()
+        free = free_nlp.solve_batch(params, free_guesses, free_lams)
+        free_time = time.perf_counter() - start
+        if free is None:
+            return self._solve_batch(params, guesses, multipliers)
+        q = np.asarray(free.column("q"))
+        kept = np.asarray(free.column("success"), bool) & self.clear_of_obstacles(q)
+        if kept.all():
+            return free
+        rest = np.flatnonzero(~kept)
+        solved = to_columns([self.solve(params[i], guess_rows[i], lam_rows[i]) for i in rest])
+        assert isinstance(solved, Columns)
+        if not kept.any():
+            return solved
+        done = np.flatnonzero(kept)
+        parts = free.take(done), solved
+        joined = Columns.concat(parts)
+        order = np.empty(k, np.intp)
+        order[np.concatenate([done, rest])] = np.arange(k)
+        joined = joined.take(order)
+        # the first batch's time is shared by all, the second's by the tasks it solved
+        times = np.full(k, free_time / k)
+        times[rest] += np.asarray(solved.column("solve_time_s"))
+        joined.fields["solve_time_s"] = (VALUES, times)
+        return joined
+
+    def _solve_batch(self, params: np.ndarray, guesses: np.ndarray | list[np.ndarray | None],
+                     multipliers: np.ndarray | list[np.ndarray | None]) -> Columns | None:
+        """:meth:`solve_batch` of the NLP with its planes (no first solve without them)."""
         tasks = len(params)
         owner = None   # the task of each candidate, where a task's sides make several
         if isinstance(multipliers, np.ndarray) and multipliers.shape == (len(params), self.ng):
