@@ -127,6 +127,8 @@ from ocpar.ocp.obstacles import (
     ellipsoids,
     guess_planes,
     obstacle_rows,
+    plane_multipliers,
+    segment_rows,
     side_guesses,
 )
 from ocpar.ocp.sensitivity import cost_hessian_function
@@ -135,6 +137,15 @@ from ocpar.ocp.sensitivity import cost_hessian_function
 #: a point mass's needs one; a rigid spacecraft's from the default guess four), and at most
 #: the shape's ``max_iter``.
 NEWTON_ROUNDS = 8
+
+#: SQP iterations (at most; and the shape's ``max_iter``) and ``qrqp`` active-set iterations
+#: per QP of a solve with the obstacles' segment rows (``DmocTranscription.segment_nlp``):
+#: from the side nearest the unconstrained path it takes 3–5 (the mixed fleet in 3-D), from
+#: the far side up to ~35, each QP's active-set search up to hundreds (0.8 s for one solve
+#: of the box-limited fleet without these limits, 78 ms with them); a candidate stopped by
+#: them fails (its other sides, or IPOPT, answer).
+SEGMENT_MAX_ITER = 50
+SEGMENT_QP_MAX_ITER = 100
 
 #: Offset b of an unused keep-out slot (with normal 0: the row 0 ≥ b is never active).
 UNUSED_OFFSET = -1.0
@@ -788,8 +799,8 @@ class DmocTranscription:
         if kept.all():
             return free
         rest = np.flatnonzero(~kept)
-        solved = to_columns([self.solve(params[i], guess_rows[i], lam_rows[i]) for i in rest])
-        assert isinstance(solved, Columns)
+        solved = self._solve_segments(params[rest], [guess_rows[i] for i in rest],
+                                      [lam_rows[i] for i in rest], free.take(rest))
         if not kept.any():
             return solved
         done = np.flatnonzero(kept)
@@ -803,6 +814,118 @@ class DmocTranscription:
         times[rest] += np.asarray(solved.column("solve_time_s"))
         joined.fields["solve_time_s"] = (VALUES, times)
         return joined
+
+    @cached_property
+    def segment_nlp(self) -> tuple[MappedNlp, np.ndarray, np.ndarray]:
+        """The NLP of :attr:`without_obstacles` with the obstacles' rows of
+        :func:`~ocpar.ocp.obstacles.segment_rows` (no planes) appended, as a
+        :class:`~ocpar.ocp.batch.MappedNlp`, and its row bounds (lbg, ubg)."""
+        free = self.without_obstacles
+        assert free is not None
+        w, p = free._w, free._p
+        positions = list(self.shape.obstacle_positions)
+        rows = segment_rows(self.shape.obstacles, [q[positions] for q in free.nodes(w, p)])
+        g = ca.vertcat(free.constraints(w, p), *rows)
+        solver = MappedNlp("dmoc_segments", w, p, free.cost(w, p), g, self.shape.kkt_tol,
+                           min(self.shape.max_iter, SEGMENT_MAX_ITER), self.shape.kkt_tol,
+                           qp_max_iter=SEGMENT_QP_MAX_ITER)
+        return (solver, np.concatenate([free.lbg, np.zeros(len(rows))]),
+                np.concatenate([free.ubg, np.full(len(rows), np.inf)]))
+
+    def _solve_segments(self, params: np.ndarray, guesses: list[np.ndarray | None],
+                        multipliers: list[np.ndarray | None], free: Columns) -> Columns:
+        """The tasks ``params`` (k, n_params) whose solutions without obstacles ``free`` do
+        not clear them: from each side of the obstacles the free path enters (a task without
+        a guess; :meth:`side_guesses`) or from its guess, solved together by
+        :attr:`segment_nlp`, each task's cheapest kept, lifted to this NLP (the planes
+        :func:`~ocpar.ocp.obstacles.canonical_planes`, the multipliers
+        :func:`~ocpar.ocp.obstacles.plane_multipliers`) and accepted where it meets this
+        NLP's KKT conditions to ``kkt_tol`` (:func:`~ocpar.ocp.batch.kkt_met`); the others
+        one by one by IPOPT (:meth:`solve`)."""
+        start = time.perf_counter()
+        free_nlp = self.without_obstacles
+        assert free_nlp is not None
+        solver, lbg, ubg = self.segment_nlp
+        n_free, ng_free, k = free_nlp.nw, free_nlp.ng, len(params)
+        q_free, u_free = np.asarray(free.column("q")), np.asarray(free.column("u"))
+        solved = np.asarray(free.column("success"), bool)
+        rows, owner, lams = [], [], []
+        for i in range(k):
+            if guesses[i] is not None:
+                sides = self.full_guess(guesses[i], params[i])[None]
+            else:
+                base = self.default_guess(params[i]) if not solved[i] else self.full_guess(
+                    np.concatenate([q_free[i, 1:-1].ravel(), u_free[i].ravel()]), params[i])
+                sides = self.side_guesses(base, params[i])
+            rows.append(sides[:, :n_free])
+            owner += [i] * len(sides)
+            lam = np.zeros(len(lbg))
+            if multipliers[i] is not None:
+                lam[:ng_free] = np.asarray(multipliers[i], float)[:ng_free]
+            lams += [lam] * len(sides)
+        owner_index = np.asarray(owner)
+        try:
+            batch = solver.solve(np.concatenate(rows), params[owner_index], np.array(lams),
+                                 lbg, ubg, free_nlp.lbx, free_nlp.ubx)
+        except RuntimeError:
+            batch = None
+        accepted = np.zeros(k, bool)
+        if batch is not None:
+            starts = np.searchsorted(owner_index, np.arange(k + 1))
+            pick = np.array([a + _cheapest(batch.success[a:b], batch.f[a:b])
+                             for a, b in itertools.pairwise(starts.tolist())])
+            x, lam_red, lam_x = batch.x[pick], batch.lam_g[pick], batch.lam_x[pick]
+            w, lam_g, lam_xw = self._lifted(x, lam_red, lam_x, params, ng_free)
+            g, stationarity, gradient = (np.asarray(r) for r in self.kkt_residuals.map(k)(
+                w.T, params.T, lam_g.T, lam_xw.T))
+            accepted = batch.success[pick] & kkt_met(
+                w, params, lam_g, lam_xw, g.T, stationarity.ravel(), gradient.ravel(),
+                (self.lbg, self.ubg, self.lbx, self.ubx), self.shape.kkt_tol)
+        parts, positions = [], []
+        if accepted.any():
+            ok = np.flatnonzero(accepted)
+            q, u = self.unpack_many(w[ok], params[ok])
+            costs = (self._costs(w[ok], params[ok], u) if self.end_hessian is None
+                     else batch.f[pick][ok])
+            hessians = np.full((len(ok), self.nq, self.nq), np.nan)
+            if self.end_hessian is not None:
+                hessians = self._hessians(w[ok], lam_g[ok], params[ok], hessians)
+            elapsed = (time.perf_counter() - start) / k
+            parts.append(_solution_columns(costs, np.ones(len(ok), bool), np.full(len(ok), -1),
+                                           np.full(len(ok), elapsed), -batch.lam_p[pick][ok],
+                                           hessians, q, u))
+            positions.append(ok)
+        others = np.flatnonzero(~accepted)
+        if len(others):
+            again = to_columns([self.solve(params[i], guesses[i], multipliers[i])
+                                for i in others.tolist()])
+            assert isinstance(again, Columns)
+            parts.append(again)
+            positions.append(others)
+        joined = Columns.concat(parts)
+        order = np.empty(k, np.intp)
+        order[np.concatenate(positions)] = np.arange(k)
+        return joined.take(order)
+
+    def _lifted(self, x: np.ndarray, lam_red: np.ndarray, lam_x: np.ndarray,
+                params: np.ndarray, ng_free: int) -> tuple[np.ndarray, ...]:
+        """Solutions of :attr:`segment_nlp` (x (k, nw_free), its row and bound multipliers)
+        as points of this NLP: w with the canonical planes, λ_g and λ_x (module docstring of
+        :mod:`ocpar.ocp.obstacles`)."""
+        q, _ = self.unpack_many(x, params)
+        positions = q[..., list(self.shape.obstacle_positions)]
+        n_balls = len(ellipsoids(self.shape.obstacles))
+        count = (self.n * n_balls)
+        obstacle = lam_red[:, ng_free:]
+        tol = self.shape.kkt_tol
+        loaded = np.abs(obstacle[:, :count]) > tol * (
+            1 + np.max(np.abs(lam_red), axis=1, keepdims=True))
+        planes, _, _ = canonical_planes(self.shape.obstacles, positions, tol,
+                                        np.repeat(loaded, 3, axis=1))
+        w = np.hstack([x, planes])
+        lam_g = np.hstack([lam_red[:, :ng_free],
+                           plane_multipliers(self.shape.obstacles, positions, obstacle)])
+        return w, lam_g, np.hstack([lam_x, np.zeros((len(x), self.n_planes))])
 
     def _solve_batch(self, params: np.ndarray, guesses: np.ndarray | list[np.ndarray | None],
                      multipliers: np.ndarray | list[np.ndarray | None]) -> Columns | None:
@@ -858,21 +981,31 @@ class DmocTranscription:
             costs = batch.f
             hessians = batch.extra.reshape(k, self.nq, self.nq).transpose(0, 2, 1)
             hessians = self._hessians(batch.x, batch.lam_g, params, hessians)
-        success = np.asarray(batch.success, bool)
-        statuses = [BATCH_STATUS[ok] for ok in success.tolist()]
-        return Columns(cls=DmocSolution, length=k, fields={
-            "cost": (VALUES, np.asarray(costs, float)),
-            "status": ((SHARED, statuses[0]) if len(set(statuses)) == 1
-                       else (LISTED, statuses)),
-            "success": (VALUES, success),
-            "iterations": (VALUES, np.asarray(iterations, np.int64)),
-            "attempts": (VALUES, np.ones(k, np.int64)),
-            "solve_time_s": (VALUES, np.full(k, batch.solve_time_s / k)),
-            "cost_gradient": (STACKED, -batch.lam_p),
-            "end_hessian": (STACKED, hessians),
-            "q": (STACKED, q),
-            "u": (STACKED, u),
-        })
+        return _solution_columns(costs, np.asarray(batch.success, bool), iterations,
+                                 np.full(k, batch.solve_time_s / k), -batch.lam_p, hessians,
+                                 q, u)
+
+
+def _solution_columns(costs: np.ndarray, success: np.ndarray, iterations: np.ndarray,
+                      times: np.ndarray, gradients: np.ndarray, hessians: np.ndarray,
+                      q: np.ndarray, u: np.ndarray) -> Columns:
+    """k batched solutions as columns of :class:`DmocSolution` (one attempt each, the status
+    from ``success``)."""
+    k = len(costs)
+    statuses = [BATCH_STATUS[ok] for ok in success.tolist()]
+    return Columns(cls=DmocSolution, length=k, fields={
+        "cost": (VALUES, np.asarray(costs, float)),
+        "status": ((SHARED, statuses[0]) if len(set(statuses)) == 1
+                   else (LISTED, statuses)),
+        "success": (VALUES, success),
+        "iterations": (VALUES, np.asarray(iterations, np.int64)),
+        "attempts": (VALUES, np.ones(k, np.int64)),
+        "solve_time_s": (VALUES, np.asarray(times, float)),
+        "cost_gradient": (STACKED, gradients),
+        "end_hessian": (STACKED, hessians),
+        "q": (STACKED, q),
+        "u": (STACKED, u),
+    })
 
 
 def _cheapest(success: Sequence[bool] | np.ndarray, costs: Sequence[float] | np.ndarray
