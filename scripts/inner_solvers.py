@@ -21,8 +21,9 @@ binds for more agents), per agent in one chunk: ``batched`` (each shape's own so
 solves them), ``batched, no obstacle`` (the same tasks without the ball: the unconstrained
 batched solve) and ``ipopt`` (every shape's solver ``ipopt``), ``--repeat`` times in turn;
 each with the tasks whose path the ball binds (a segment within 1e-6 of it at the IPOPT
-optimum) and the largest relative cost difference against IPOPT. Written to
-``obstacles`` in the JSON and ``inner_solvers_obstacles.png``.
+optimum) and the largest relative cost difference against IPOPT; and the whole formation
+solve (``solve_formation``, serial, once compiled), batched and by IPOPT, ``--repeat`` times
+(median s). Written to ``obstacles`` in the JSON and ``inner_solvers_obstacles.png``.
 """
 
 from __future__ import annotations
@@ -37,7 +38,7 @@ from pathlib import Path
 import numpy as np
 
 from ocpar.examples import formation_halo, formation_mixed_fleet, formation_point_masses
-from ocpar.formation import solve_formation
+from ocpar.formation import FormationOptions, solve_formation
 from ocpar.ocp import solve_tasks
 from ocpar.ocp.batch import SOLVERS
 from ocpar.plotting import pyplot, save
@@ -82,6 +83,21 @@ def obstacle_report(repeat: int) -> dict:
     for dim, limit in OBSTACLE_CASES:
         problem = formation_mixed_fleet.make(limit=limit, obstacle=2.5, dim=dim)
         optimum = solve_formation(problem).phi
+        whole: dict[str, list[float]] = {"batched": [], "ipopt": []}
+        options = {"batched": FormationOptions(), "ipopt": FormationOptions(inner_solver="ipopt")}
+        costs = {name: solve_formation(problem, options=o).total_cost   # builds
+                 for name, o in options.items()}
+        for _ in range(repeat):
+            for name, o in options.items():
+                start = time.perf_counter()
+                solve_formation(problem, options=o)
+                whole[name].append(time.perf_counter() - start)
+        label = f"{dim}-D fleet, {limit or 'free'}, whole run"
+        report[label] = {"s": {name: statistics.median(t) for name, t in whole.items()},
+                         "total_cost": costs}
+        print(f"{label:45s} batched {report[label]['s']['batched']:.3f} s  ipopt "
+              f"{report[label]['s']['ipopt']:.3f} s  cost {costs['batched']:.10f} / "
+              f"{costs['ipopt']:.10f}", flush=True)
         for where, phi in (("initial", problem.initial_phi()), ("optimum", optimum)):
             tasks = problem.tasks(phi).items()
             chunks = {"batched": with_solver(tasks, None),
@@ -119,6 +135,7 @@ def obstacle_report(repeat: int) -> dict:
 
 def plot_obstacles(report: dict, path: Path) -> None:
     """Bars of :func:`obstacle_report`'s per-agent times, log scale."""
+    report = {label: row for label, row in report.items() if "batched" in row}
     plt = pyplot()
     fig, ax = plt.subplots(figsize=(12, 4.5))
     names = ["batched, no obstacle", "batched", "ipopt"]

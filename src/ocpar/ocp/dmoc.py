@@ -576,14 +576,21 @@ class DmocTranscription:
                 hessians[k] = np.nan
         return hessians
 
+    @property
+    def batches(self) -> bool:
+        """Whether :meth:`solve_batch` solves (its ``solver`` is not ``ipopt``)."""
+        return self.shape.chosen_solver != "ipopt"
+
     @cached_property
     def batch_solver(self) -> KktNewton | MappedNlp | None:
-        """The batched solver of this shape (None when its ``solver`` is ``ipopt``)."""
+        """The batched solver of this shape's NLP (None when its ``solver`` is ``ipopt``, or
+        with planes: their tasks are solved by :attr:`without_obstacles` and
+        :attr:`segment_nlp`)."""
         w, p = self._w, self._p
         if self.shape.chosen_solver == "newton":  # DmocShape refuses it with keep-out slots
             return KktNewton("dmoc", w, p, self.cost(w, p), self.constraints(w, p), 1,
                              self.shape.kkt_tol, post=self.end_hessian)
-        if self.shape.chosen_solver != "sqpmethod":
+        if self.shape.chosen_solver != "sqpmethod" or self.n_planes:
             return None
         return MappedNlp("dmoc_sqp", w, p, self.cost(w, p), self.constraints(w, p),
                          self.shape.kkt_tol, self.shape.max_iter, self.shape.kkt_tol,
@@ -726,8 +733,11 @@ class DmocTranscription:
 
     def prepare(self, count: int) -> None:
         """Build what solving ``count`` tasks in one :meth:`solve_batch` takes (the batched
-        solver's mapped calls), so that the first superstep does not."""
-        if self.batch_solver is not None:
+        solver's mapped calls; with planes, those of :attr:`without_obstacles`), so that the
+        first superstep does not."""
+        if self.without_obstacles is not None:
+            self.without_obstacles.prepare(count)
+        elif self.batch_solver is not None:
             self.batch_solver.prepare(count)
 
     @cached_property
@@ -735,7 +745,7 @@ class DmocTranscription:
         """The transcription of this shape without its obstacles (same solver, ``newton``
         where ``auto`` chooses it then), whose batch :meth:`solve_batch` tries first; None
         without planes or without a batched solver."""
-        if not self.n_planes or self.batch_solver is None:
+        if not self.n_planes or not self.batches:
             return None
         free = dataclasses.replace(self.shape, obstacles=(), obstacle_positions=())
         return transcription(free)   # type: ignore[return-value]
@@ -767,11 +777,11 @@ class DmocTranscription:
         obstacles, their rows inactive (with the canonical planes; ``end_hessian`` and
         ``cost_gradient`` the same, no obstacle row carrying a multiplier). Only the others
         are solved with the planes."""
-        if self.batch_solver is None:
-            return None
         params = np.asarray(params, float)
         if self.without_obstacles is not None:
             return self._screened(params, guesses, multipliers)
+        if self.batch_solver is None:
+            return None
         return self._solve_batch(params, guesses, multipliers)
 
     def _screened(self, params: np.ndarray, guesses: np.ndarray | list[np.ndarray | None],
@@ -792,8 +802,8 @@ class DmocTranscription:
         start = time.perf_counter()
         free = free_nlp.solve_batch(params, free_guesses, free_lams)
         free_time = time.perf_counter() - start
-        if free is None:
-            return self._solve_batch(params, guesses, multipliers)
+        if free is None:   # CasADi raised: the caller solves one by one
+            return None
         q = np.asarray(free.column("q"))
         kept = np.asarray(free.column("success"), bool) & self.clear_of_obstacles(q)
         if kept.all():
@@ -929,9 +939,7 @@ class DmocTranscription:
 
     def _solve_batch(self, params: np.ndarray, guesses: np.ndarray | list[np.ndarray | None],
                      multipliers: np.ndarray | list[np.ndarray | None]) -> Columns | None:
-        """:meth:`solve_batch` of the NLP with its planes (no first solve without them)."""
-        tasks = len(params)
-        owner = None   # the task of each candidate, where a task's sides make several
+        """:meth:`solve_batch` by :attr:`batch_solver` (a shape without planes)."""
         if isinstance(multipliers, np.ndarray) and multipliers.shape == (len(params), self.ng):
             lam0 = multipliers.astype(float)
         else:
@@ -946,31 +954,16 @@ class DmocTranscription:
             for k, guess in enumerate(guesses):
                 if guess is not None:
                     x0[k] = self.full_guess(guess, params[k])
-            if self.n_planes:   # each side of the obstacles a default guess enters
-                sides = [self.side_guesses(x, p) if guess is None else x[None]
-                         for x, p, guess in zip(x0, params, guesses, strict=True)]
-                owner = np.repeat(np.arange(tasks), [len(rows) for rows in sides])
-                x0 = np.concatenate(sides)
         try:
             if isinstance(self.batch_solver, KktNewton):
                 rounds = min(NEWTON_ROUNDS, self.shape.max_iter)
                 batch = self.batch_solver.solve(x0, params, lam0, self.lbx, self.ubx, rounds)
             else:
-                batch = self.batch_solver.solve(
-                    x0, params if owner is None else params[owner],
-                    lam0 if owner is None else lam0[owner], self.lbg, self.ubg, self.lbx,
-                    self.ubx)
+                assert self.batch_solver is not None
+                batch = self.batch_solver.solve(x0, params, lam0, self.lbg, self.ubg, self.lbx,
+                                                self.ubx)
         except RuntimeError:
             return None
-        if owner is not None and len(owner) > tasks:   # each task's cheapest side
-            starts = np.searchsorted(owner, np.arange(tasks + 1))
-            success = np.asarray(batch.success, bool)
-            pick = [a + _cheapest(success[a:b], batch.f[a:b])
-                    for a, b in itertools.pairwise(starts.tolist())]
-            batch = dataclasses.replace(
-                batch, x=batch.x[pick], f=batch.f[pick], lam_g=batch.lam_g[pick],
-                lam_p=batch.lam_p[pick], success=batch.success[pick], extra=batch.extra[pick],
-                iterations=None if batch.iterations is None else batch.iterations[pick])
         k = len(params)
         q, u = self.unpack_many(batch.x, params)
         iterations = np.full(k, -1) if batch.iterations is None else batch.iterations
