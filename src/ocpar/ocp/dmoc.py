@@ -79,7 +79,16 @@ without planes gets each interval's nearest-point direction
 ``end_hessian`` comes from the active set with the planes made canonical
 (:func:`~ocpar.ocp.obstacles.canonical_planes`: unique where an obstacle binds; fixed, as at
 a bound, where none does, their variables being free there). Inequalities: ``sqpmethod``
-or ``ipopt``.
+or ``ipopt``. A batch (``sqpmethod``, ``auto``'s choice) never hands the planes to a QP:
+their variables have no curvature where no row binds them, which ``qrqp`` meets as a
+singular QP (in 3-D the batch failed on most tasks that way). It solves the tasks without
+the obstacles first (:attr:`DmocTranscription.without_obstacles`: ``newton`` for a shape
+whose only inequalities were the obstacles) and keeps each solution that clears them; the
+others, from each side of the obstacles their free path enters, by one mapped ``sqpmethod``
+call on the same keep-out without planes (:func:`~ocpar.ocp.obstacles.segment_rows`: one row
+per interval, |y*|² ≥ 1 at the segment's point y* nearest the centre), lifted to this NLP
+(canonical planes, :func:`~ocpar.ocp.obstacles.plane_multipliers`) and accepted only where
+this NLP's KKT conditions hold to ``kkt_tol``; what fails goes to IPOPT, one task at a time.
 
 A time-dependent Lagrangian gives each interval its own L_d (see
 :class:`~ocpar.models.MechanicalSystem`). Holonomic constraints c(q) = 0 (e.g. a unit

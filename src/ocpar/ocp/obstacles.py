@@ -20,6 +20,12 @@ exact on the continuous path, smooth, in any dimension. A half-space is linear: 
 at the free nodes (the path is linear between nodes; the boundary nodes are data, checked
 by whoever builds the problem).
 
+The same keep-out without planes (:func:`segment_rows`): one row per interval and ellipsoid,
+|y*|² − 1 ≥ 0 at the scaled segment's point y* nearest the centre; exact too, C¹ but not C²
+where y* reaches a node. It has no variables a QP sees without curvature (a plane no row
+binds), so the batched solves use it, then return to the planes (:func:`canonical_planes`,
+:func:`plane_multipliers`) and check the answer on the planes' NLP.
+
 Which side a path passes an ellipsoid on is a discrete choice the guess of the planes and
 the path makes (:func:`side_guesses`). :func:`guess_planes` gives each interval the unit
 direction of its segment's point nearest the centre; :func:`canonical_planes` the planes
