@@ -25,6 +25,7 @@ from ocpar.formation.hierarchical import OuterObjective
 from ocpar.formation.solve import obstacle_check
 from ocpar.models import PointMass
 from ocpar.ocp import DmocShape, OcpTask, dmoc_problem, solve_tasks
+from ocpar.ocp.obstacles import plane_multipliers, segment_rows
 
 CENTRE_2D, RADIUS = np.array([1.0, 3.0]), 0.8
 
@@ -278,6 +279,33 @@ def test_end_gradient_and_hessian_with_a_binding_ball_match_finite_differences(s
         np.testing.assert_allclose(
             hessian[:, j], (up.cost_gradient - down.cost_gradient)[2 * dim:3 * dim] / (2 * eps),
             rtol=1e-5, atol=1e-5 * np.abs(hessian).max())
+
+
+def test_segment_rows_are_the_squared_segment_distance_less_one():
+    """The keep-out without planes (``segment_rows``, what the batches solve) on random
+    segments about a ball of radius 0.8: |y*|² − 1 in the ball's scaled coordinates equals
+    (distance / r)² − 1 from the closed-form segment distance, segments through the ball
+    included (negative), and its plane multipliers λ (1, 2(1 − s), 2s) make the planes'
+    ∂L/∂n vanish at the canonical plane n = y*/|y*| of a touching segment."""
+    rng = np.random.default_rng(3)
+    centre, radius = np.array([1.0, 3.0, 0.2]), 0.8
+    ball = Sphere(tuple(centre), radius)
+    a, b = ca.SX.sym("a", 3), ca.SX.sym("b", 3)
+    (row,) = segment_rows((ball,), [a, b])
+    f = ca.Function("row", [a, b], [row])
+    starts, ends = centre + rng.normal(size=(40, 3)), centre + rng.normal(size=(40, 3))
+    got = np.array([float(f(x, y)) for x, y in zip(starts, ends, strict=True)])
+    want = (segment_distances(np.stack([starts, ends], axis=1), centre)[:, 0] / radius)**2 - 1
+    np.testing.assert_allclose(got, want, rtol=1e-12, atol=1e-12)
+    assert (want < 0).any() and (want > 0).any()
+    # a segment touching the ball at its interior point s = 0.25
+    normal, along = np.array([0.0, 0.6, 0.8]), np.array([1.0, 0.0, 0.0])
+    ya, yb = normal - 0.25 * along, normal + 0.75 * along
+    path = centre + radius * np.stack([ya, yb])[None]
+    (lam_plane,) = plane_multipliers((ball,), path, np.array([[-2.0]]))
+    assert lam_plane == pytest.approx([-2.0, -2 * 2 * 0.75, -2 * 2 * 0.25])
+    grad_n = -2 * lam_plane[0] * normal + lam_plane[1] * ya + lam_plane[2] * yb
+    np.testing.assert_allclose(grad_n, 0.0, atol=1e-12)
 
 
 @pytest.fixture(scope="module")

@@ -916,8 +916,11 @@ class DmocTranscription:
             positions.append(ok)
         others = np.flatnonzero(~accepted)
         if len(others):
-            again = to_columns([self.solve(params[i], guesses[i], multipliers[i])
-                                for i in others.tolist()])
+            again = [self.solve(params[i], guesses[i], multipliers[i])
+                     for i in others.tolist()]
+            for solution in again:   # the batch's attempt failed: IPOPT's is the second
+                solution.attempts += 1
+            again = to_columns(again)
             assert isinstance(again, Columns)
             parts.append(again)
             positions.append(others)
