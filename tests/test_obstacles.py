@@ -18,12 +18,14 @@ from conftest import run_cli
 import ocpar
 from ocpar.bsp import open_backend
 from ocpar.bsp.serial import SerialBackend
+from ocpar.examples import formation_mixed_fleet
 from ocpar.examples.formation_obstacle import make
 from ocpar.formation import FormationOptions, Sphere, solve_formation
 from ocpar.formation.hierarchical import OuterObjective
 from ocpar.formation.solve import obstacle_check
 from ocpar.models import PointMass
 from ocpar.ocp import DmocShape, OcpTask, dmoc_problem, solve_tasks
+from ocpar.ocp.obstacles import plane_multipliers, segment_rows
 
 CENTRE_2D, RADIUS = np.array([1.0, 3.0]), 0.8
 
@@ -244,13 +246,13 @@ def test_the_inner_solve_keeps_the_cheaper_side(solver):
     assert segment_distances(kept.q[None], centre).min() >= radius - 1e-9
 
 
-@pytest.mark.parametrize(("solver", "dim"), [("ipopt", 2), ("ipopt", 3), ("sqpmethod", 2)])
+@pytest.mark.parametrize(("solver", "dim"), [("ipopt", 2), ("ipopt", 3), ("sqpmethod", 2),
+                                             ("sqpmethod", 3)])
 def test_end_gradient_and_hessian_with_a_binding_ball_match_finite_differences(solver, dim):
     """One point mass past a ball its straight path crosses: dJ*/dq_N (multipliers) and
     d²J*/dq_N² (the planes' active set) against central differences of J* and of dJ*/dq_N,
-    by ``solve_tasks`` (``sqpmethod``: the mapped batch, which solves the planar case; in
-    3-D its QPs meet the planes' free tangential directions and it falls back to IPOPT) and
-    by one IPOPT solve."""
+    by ``solve_tasks`` (``sqpmethod``: the mapped batch on the segment rows, lifted to the
+    planes; no IPOPT: ``iterations`` −1, one attempt) and by one IPOPT solve."""
     centre = np.array([0.5, 0.1, 0.05][:dim])
     shape = DmocShape(PointMass(dim), intervals=10, duration=1.0, solver=solver,
                       obstacles=(Sphere(tuple(centre), 0.3),))
@@ -260,6 +262,8 @@ def test_end_gradient_and_hessian_with_a_binding_ball_match_finite_differences(s
         params = np.concatenate([np.zeros(2 * dim), q_end, np.zeros(dim)])
         (solution,) = solve_tasks([OcpTask(shape, params)])
         assert solution.success
+        if solver == "sqpmethod":
+            assert (solution.attempts, solution.iterations) == (1, -1)
         return solution
 
     base = solve(end)
@@ -275,6 +279,71 @@ def test_end_gradient_and_hessian_with_a_binding_ball_match_finite_differences(s
         np.testing.assert_allclose(
             hessian[:, j], (up.cost_gradient - down.cost_gradient)[2 * dim:3 * dim] / (2 * eps),
             rtol=1e-5, atol=1e-5 * np.abs(hessian).max())
+
+
+def test_segment_rows_are_the_squared_segment_distance_less_one():
+    """The keep-out without planes (``segment_rows``, what the batches solve) on random
+    segments about a ball of radius 0.8: |y*|² − 1 in the ball's scaled coordinates equals
+    (distance / r)² − 1 from the closed-form segment distance, segments through the ball
+    included (negative), and its plane multipliers λ (1, 2(1 − s), 2s) make the planes'
+    ∂L/∂n vanish at the canonical plane n = y*/|y*| of a touching segment."""
+    rng = np.random.default_rng(3)
+    centre, radius = np.array([1.0, 3.0, 0.2]), 0.8
+    ball = Sphere(tuple(centre), radius)
+    a, b = ca.SX.sym("a", 3), ca.SX.sym("b", 3)
+    (row,) = segment_rows((ball,), [a, b])
+    f = ca.Function("row", [a, b], [row])
+    starts, ends = centre + rng.normal(size=(40, 3)), centre + rng.normal(size=(40, 3))
+    got = np.array([float(f(x, y)) for x, y in zip(starts, ends, strict=True)])
+    want = (segment_distances(np.stack([starts, ends], axis=1), centre)[:, 0] / radius)**2 - 1
+    np.testing.assert_allclose(got, want, rtol=1e-12, atol=1e-12)
+    assert (want < 0).any() and (want > 0).any()
+    # a segment touching the ball at its interior point s = 0.25
+    normal, along = np.array([0.0, 0.6, 0.8]), np.array([1.0, 0.0, 0.0])
+    ya, yb = normal - 0.25 * along, normal + 0.75 * along
+    path = centre + radius * np.stack([ya, yb])[None]
+    (lam_plane,) = plane_multipliers((ball,), path, np.array([[-2.0]]))
+    assert lam_plane == pytest.approx([-2.0, -2 * 2 * 0.75, -2 * 2 * 0.25])
+    grad_n = -2 * lam_plane[0] * normal + lam_plane[1] * ya + lam_plane[2] * yb
+    np.testing.assert_allclose(grad_n, 0.0, atol=1e-12)
+
+
+@pytest.fixture(scope="module")
+def fleet_3d():
+    """The mixed fleet in space past its ball (``formation_mixed_fleet.make(dim=3)``, no
+    thrust limit), solved by each shape's own (batched) solver and by IPOPT."""
+    problem = formation_mixed_fleet.make(limit=None, obstacle=2.5, dim=3)
+    return problem, {solver: solve_formation(problem, options=FormationOptions(
+        inner_solver=solver)) for solver in (None, "ipopt")}
+
+
+def test_the_3d_fleet_past_its_ball_is_solved_in_batches_as_ipopt_solves_it(fleet_3d):
+    """The 3-D fleet past its ball: the batched run (tasks whose unconstrained path clears
+    the ball keep it; the others by the mapped sqpmethod on the segment rows) reaches IPOPT's
+    formation (cost to 1e-9 relative, angles to 1e-7), every continuous path clears the ball
+    (closed-form segment distances) and it binds; at the optimum every inner solution equals
+    IPOPT's (cost, dJ*/dp, d²J*/dq_N²), none of them by IPOPT (one attempt, no IPOPT
+    iterations: −1 from the mapped sqpmethod, 1 Newton step)."""
+    problem, results = fleet_3d
+    batched, ipopt = results[None], results["ipopt"]
+    assert batched.status == ipopt.status == "converged", batched.message
+    assert batched.total_cost == pytest.approx(ipopt.total_cost, rel=1e-9)
+    np.testing.assert_allclose(batched.phi, ipopt.phi, atol=1e-7)
+    (ball,) = problem.obstacles
+    gaps = segment_distances(batched.trajectories, np.array(ball.center)) - ball.semi_axes[0]
+    assert -1e-9 <= gaps.min() <= 1e-9
+    binding = np.flatnonzero(gaps.min(axis=1) <= 1e-9)
+    assert len(binding) >= 2
+    tasks = problem.tasks(batched.phi).items()
+    mine = solve_tasks(tasks)
+    theirs = solve_tasks([dataclasses.replace(t, shape=dataclasses.replace(
+        t.shape, solver="ipopt")) for t in tasks])
+    for a, b in zip(mine, theirs, strict=True):
+        assert a.success and a.attempts == 1 and a.iterations in (-1, 1)
+        assert a.cost == pytest.approx(b.cost, rel=1e-9)
+        np.testing.assert_allclose(a.cost_gradient, b.cost_gradient, rtol=1e-6, atol=1e-8)
+        np.testing.assert_allclose(a.end_hessian, b.end_hessian, rtol=1e-5, atol=1e-7)
+    assert {mine[i].iterations for i in binding} == {-1}
 
 
 def test_without_obstacles_the_nlp_is_the_one_of_old():

@@ -14,7 +14,10 @@ the formation turns for it: with R = 2.5 the cost is 63.5748 (no limit), 63.9466
 the last m agents have no thrust limit: a fleet listed by kind, whose solves' cost is skewed
 by agent order (a limited agent's solve, by ``sqpmethod``, ~0.24 ms; an unlimited one's, by
 the batched Newton kernel, ~0.05 ms), what resident agents' blocks are rebalanced for
-(:mod:`ocpar.bsp.resident`).
+(:mod:`ocpar.bsp.resident`). With ``dim`` = 3 the same in space: the circle tilted by
+:data:`TILT` rad about the x1 axis and lifted to x3 = 0.5, the ball about (0, 5, 0.2), the box
+limit on each of the three axes: cost 63.3680 free, with the ball R = 2.5 63.7229 (no limit),
+64.0072 (box) and 64.1244 (norm).
 """
 
 import casadi as ca
@@ -25,16 +28,19 @@ from ocpar.models import PointMass
 from ocpar.ocp.constraints import PathConstraint
 
 LIMITS = ("box", "norm")
+#: The 3-D case's circle is tilted by this angle about the x1 axis (rad).
+TILT = 0.3
 
 
-def thrust_shape(mass: float, limit: str | None, u_max: float) -> DmocShape:
-    """One agent's DMOC shape: a planar point mass of ``mass`` with its thrust limit."""
-    common = {"model": PointMass(dim=2, mass=mass), "intervals": 20, "duration": 5.0}
+def thrust_shape(mass: float, limit: str | None, u_max: float, dim: int = 2) -> DmocShape:
+    """One agent's DMOC shape: a point mass of ``mass`` in ``dim`` dimensions with its
+    thrust limit."""
+    common = {"model": PointMass(dim=dim, mass=mass), "intervals": 20, "duration": 5.0}
     if limit is None:
         return DmocShape(**common)
     if limit == "box":
         return DmocShape(**common, solver="sqpmethod",
-                         control_bounds=((-u_max, u_max), (-u_max, u_max)))
+                         control_bounds=((-u_max, u_max),) * dim)
     if limit == "norm":
         thrust = PathConstraint(lambda u: ca.sumsqr(u), upper=u_max**2, name="thrust")
         return DmocShape(**common, solver="sqpmethod", path_constraints=(thrust,))
@@ -42,21 +48,29 @@ def thrust_shape(mass: float, limit: str | None, u_max: float) -> DmocShape:
 
 
 def make(agents: int = 12, limit: str | None = "box", u_max: float = 2.7,
-         obstacle: float | None = None, unlimited: int = 0) -> FormationProblem:
+         obstacle: float | None = None, unlimited: int = 0, dim: int = 2) -> FormationProblem:
     """``agents`` point masses of masses 0.5, 1, 1.5 in turn, thrust limit ``limit`` at ``u_max``
     (force unit) but for the last ``unlimited`` of them, and a ball of radius ``obstacle``
-    about (0, 5) to keep clear of (None: none)."""
+    about (0, 5) to keep clear of (None: none), in ``dim`` (2 or 3) dimensions."""
     if not 0 <= unlimited <= agents:
         raise ValueError(f"unlimited: {unlimited} is not between 0 and {agents} agents")
+    if dim not in (2, 3):
+        raise ValueError(f"dim: must be 2 or 3, got {dim}")
     masses = 0.5 + 0.5 * (np.arange(agents) % 3)
     limits = [limit] * (agents - unlimited) + [None] * unlimited
-    starts = np.zeros((agents, 2))
+    starts = np.zeros((agents, dim))
     starts[:, 0] = np.linspace(-3.0, 3.0, agents)
+    if dim == 2:
+        curve, centre = Circle(radius=4.0, center=np.array([0.0, 6.0])), (0.0, 5.0)
+    else:
+        axes = np.array([[1.0, 0.0, 0.0], [0.0, np.cos(TILT), np.sin(TILT)]])
+        curve = Circle(radius=4.0, center=np.array([0.0, 6.0, 0.5]), axes=axes)
+        centre = (0.0, 5.0, 0.2)
     return FormationProblem(
-        name="mixed-fleet",
-        shape=tuple(thrust_shape(float(m), lim, u_max) for m, lim in zip(masses, limits,
-                                                                          strict=True)),
-        curve=Circle(radius=4.0, center=np.array([0.0, 6.0])),
+        name="mixed-fleet" if dim == 2 else "mixed-fleet-3d",
+        shape=tuple(thrust_shape(float(m), lim, u_max, dim) for m, lim in zip(masses, limits,
+                                                                               strict=True)),
+        curve=curve,
         starts=starts,
-        obstacles=() if obstacle is None else (Sphere((0.0, 5.0), obstacle, "ball"),),
+        obstacles=() if obstacle is None else (Sphere(centre, obstacle, "ball"),),
     )

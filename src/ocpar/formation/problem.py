@@ -220,18 +220,17 @@ class FormationProblem:
     def _attach_obstacles(self) -> None:
         """Every agent's shape gets the problem's obstacles on its position entries (its
         inner problem imposes them, :mod:`ocpar.ocp.obstacles`; a shape's own are replaced,
-        so that ``dataclasses.replace(problem, obstacles=...)`` changes them all), solved by
-        IPOPT (measured on the mixed fleet's 12 agents with its ball: the whole solve 1.8 s,
-        against 46 s by ``sqpmethod``, whose mapped solves of the non-convex planes mostly
-        fail their KKT check slowly)."""
+        so that ``dataclasses.replace(problem, obstacles=...)`` changes them all), each with
+        its own solver (``auto``: ``sqpmethod``; its batch solves without the obstacles
+        first, :meth:`~ocpar.ocp.dmoc.DmocTranscription.solve_batch`)."""
         indices = self.position_indices if self.obstacles else ()
         shapes = (self.shape,) if isinstance(self.shape, DmocShape) else self.shape
         if all((shape.obstacles, shape.obstacle_positions) == (self.obstacles, indices)
                for shape in shapes):
             return   # attached already, or none
         attached = {shape: dataclasses.replace(
-            shape, obstacles=self.obstacles, obstacle_positions=indices,
-            solver="ipopt" if self.obstacles else shape.solver) for shape in set(shapes)}
+            shape, obstacles=self.obstacles, obstacle_positions=indices)
+            for shape in set(shapes)}
         object.__setattr__(self, "shape", attached[self.shape] if isinstance(
             self.shape, DmocShape) else tuple(attached[shape] for shape in self.shape))
 

@@ -47,14 +47,16 @@ AUTO_SOLVER = "auto"
 MAX_COLUMNS = 256
 
 
-def sqp_options(tol: float, max_iter: int) -> dict:
+def sqp_options(tol: float, max_iter: int, qp_max_iter: int | None = None) -> dict:
     """Silent ``sqpmethod`` + ``qrqp`` options with primal and dual tolerance ``tol``; a
-    failed QP is a failed column, never an exception."""
+    failed QP is a failed column, never an exception. ``qp_max_iter``: ``qrqp``'s active-set
+    iterations per QP at most (None: its default, 1000)."""
+    qp = {"print_iter": False, "print_header": False, "error_on_fail": False}
+    if qp_max_iter is not None:
+        qp["max_iter"] = qp_max_iter
     return {"qpsol": "qrqp", "tol_pr": tol, "tol_du": tol, "max_iter": max_iter,
             "print_header": False, "print_iteration": False, "print_status": False,
-            "print_time": False, "error_on_fail": False,
-            "qpsol_options": {"print_iter": False, "print_header": False,
-                              "error_on_fail": False}}
+            "print_time": False, "error_on_fail": False, "qpsol_options": qp}
 
 
 @dataclass
@@ -63,7 +65,8 @@ class BatchSolve:
     ``lam_g`` (k, ng), ``lam_p`` (k, np), ``success`` (k,) from the KKT check, ``extra``
     (k, m) the NLP's post-solve function at each solution (column-major entries; (k, 0) if
     it has none), ``iterations`` (k,) where the solver reports them (−1 otherwise), and
-    ``solve_time_s``, the whole call's wall time (s)."""
+    ``solve_time_s``, the whole call's wall time (s); ``lam_x`` (k, nx) the bounds'
+    multipliers where the solver has them (:class:`MappedNlp`)."""
 
     x: np.ndarray
     f: np.ndarray
@@ -73,21 +76,24 @@ class BatchSolve:
     extra: np.ndarray
     solve_time_s: float
     iterations: np.ndarray | None = None
+    lam_x: np.ndarray | None = None
 
 
 class MappedNlp:
     """The NLP min f(x, p) s.t. lbg ≤ g(x, p) ≤ ubg, lbx ≤ x ≤ ubx (SX expressions of the
     symbols ``x`` and ``p``), solved in batches by ``sqpmethod`` to tolerance ``tol`` and
     checked column by column to ``kkt_tol``. ``post``, a Function of (x*, λ_g*, p) with one
-    output, is evaluated at every solution in the same mapped call (e.g. a sensitivity)."""
+    output, is evaluated at every solution in the same mapped call (e.g. a sensitivity).
+    ``qp_max_iter`` as in :func:`sqp_options`."""
 
     def __init__(self, name: str, x: ca.SX, p: ca.SX, f: ca.SX, g: ca.SX, tol: float,
-                 max_iter: int, kkt_tol: float, post: ca.Function | None = None) -> None:
+                 max_iter: int, kkt_tol: float, post: ca.Function | None = None,
+                 qp_max_iter: int | None = None) -> None:
         self.kkt_tol = kkt_tol
         self.post = post
         self.nx, self.ng = x.numel(), g.numel()
         self.solver = ca.nlpsol(name, "sqpmethod", {"x": x, "p": p, "f": f, "g": g},
-                                sqp_options(tol, max_iter))
+                                sqp_options(tol, max_iter, qp_max_iter))
         self.residuals = kkt_residuals(name, x, p, f, g)
         self._mapped = lru_cache(maxsize=16)(self._map)
 
@@ -111,9 +117,10 @@ class MappedNlp:
         parts = [self._solve_block(x0[i:i + MAX_COLUMNS], p[i:i + MAX_COLUMNS],
                                    lam_g0[i:i + MAX_COLUMNS], lbg, ubg, lbx, ubx)
                  for i in range(0, len(p), MAX_COLUMNS)]
-        x, f, lam_g, lam_p, ok, extra = (np.concatenate(column)
-                                         for column in zip(*parts, strict=True))
-        return BatchSolve(x, f, lam_g, lam_p, ok, extra, time.perf_counter() - start)
+        x, f, lam_g, lam_p, ok, extra, lam_x = (np.concatenate(column)
+                                                for column in zip(*parts, strict=True))
+        return BatchSolve(x, f, lam_g, lam_p, ok, extra, time.perf_counter() - start,
+                          lam_x=lam_x)
 
     def _solve_block(self, x0: np.ndarray, p: np.ndarray, lam_g0: np.ndarray,
                      lbg: np.ndarray, ubg: np.ndarray, lbx: np.ndarray, ubx: np.ndarray
@@ -131,7 +138,8 @@ class MappedNlp:
             value = np.asarray(post(x.T, lam_g.T, p.T))
             extra = value.reshape(value.shape[0], len(p), -1).transpose(1, 2, 0).reshape(
                 len(p), -1)
-        return x, np.asarray(out["f"]).ravel(), lam_g, np.asarray(out["lam_p"]).T, ok, extra
+        return (x, np.asarray(out["f"]).ravel(), lam_g, np.asarray(out["lam_p"]).T, ok, extra,
+                lam_x)
 
 
 def kkt_residuals(name: str, x: ca.SX, p: ca.SX, f: ca.SX, g: ca.SX) -> ca.Function:

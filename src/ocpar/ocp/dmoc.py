@@ -79,7 +79,16 @@ without planes gets each interval's nearest-point direction
 ``end_hessian`` comes from the active set with the planes made canonical
 (:func:`~ocpar.ocp.obstacles.canonical_planes`: unique where an obstacle binds; fixed, as at
 a bound, where none does, their variables being free there). Inequalities: ``sqpmethod``
-or ``ipopt``.
+or ``ipopt``. A batch (``sqpmethod``, ``auto``'s choice) never hands the planes to a QP:
+their variables have no curvature where no row binds them, which ``qrqp`` meets as a
+singular QP (in 3-D the batch failed on most tasks that way). It solves the tasks without
+the obstacles first (:attr:`DmocTranscription.without_obstacles`: ``newton`` for a shape
+whose only inequalities were the obstacles) and keeps each solution that clears them; the
+others, from each side of the obstacles their free path enters, by one mapped ``sqpmethod``
+call on the same keep-out without planes (:func:`~ocpar.ocp.obstacles.segment_rows`: one row
+per interval, |y*|² ≥ 1 at the segment's point y* nearest the centre), lifted to this NLP
+(canonical planes, :func:`~ocpar.ocp.obstacles.plane_multipliers`) and accepted only where
+this NLP's KKT conditions hold to ``kkt_tol``; what fails goes to IPOPT, one task at a time.
 
 Elastic (phase-1) problem (optional, ``DmocShape.elastic``): the same equations and rows,
 every condition a formation's outer problem can make infeasible given slack, the cost the
@@ -105,6 +114,7 @@ from __future__ import annotations
 
 import dataclasses
 import itertools
+import time
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
 from functools import cached_property
@@ -113,7 +123,7 @@ from typing import Any
 import casadi as ca
 import numpy as np
 
-from ocpar.bsp.columns import LISTED, SHARED, STACKED, VALUES, Columns
+from ocpar.bsp.columns import LISTED, SHARED, STACKED, VALUES, Columns, to_columns
 from ocpar.models.mechanical import MechanicalSystem
 from ocpar.ocp.batch import AUTO_SOLVER, SOLVERS, KktNewton, MappedNlp, kkt_met, kkt_residuals
 from ocpar.ocp.constraints import (
@@ -139,6 +149,8 @@ from ocpar.ocp.obstacles import (
     ellipsoids,
     guess_planes,
     obstacle_rows,
+    plane_multipliers,
+    segment_rows,
     side_guesses,
 )
 from ocpar.ocp.sensitivity import cost_hessian_function
@@ -147,6 +159,15 @@ from ocpar.ocp.sensitivity import cost_hessian_function
 #: a point mass's needs one; a rigid spacecraft's from the default guess four), and at most
 #: the shape's ``max_iter``.
 NEWTON_ROUNDS = 8
+
+#: SQP iterations (at most; and the shape's ``max_iter``) and ``qrqp`` active-set iterations
+#: per QP of a solve with the obstacles' segment rows (``DmocTranscription.segment_nlp``):
+#: from the side nearest the unconstrained path it takes 3–5 (the mixed fleet in 3-D), from
+#: the far side up to ~35, each QP's active-set search up to hundreds (0.8 s for one solve
+#: of the box-limited fleet without these limits, 78 ms with them); a candidate stopped by
+#: them fails (its other sides, or IPOPT, answer).
+SEGMENT_MAX_ITER = 50
+SEGMENT_QP_MAX_ITER = 100
 
 #: Offset b of an unused keep-out slot (with normal 0: the row 0 ≥ b is never active).
 UNUSED_OFFSET = -1.0
@@ -613,14 +634,21 @@ class DmocTranscription:
                 hessians[k] = np.nan
         return hessians
 
+    @property
+    def batches(self) -> bool:
+        """Whether :meth:`solve_batch` solves (its ``solver`` is not ``ipopt``)."""
+        return self.shape.chosen_solver != "ipopt"
+
     @cached_property
     def batch_solver(self) -> KktNewton | MappedNlp | None:
-        """The batched solver of this shape (None when its ``solver`` is ``ipopt``)."""
+        """The batched solver of this shape's NLP (None when its ``solver`` is ``ipopt``, or
+        with planes: their tasks are solved by :attr:`without_obstacles` and
+        :attr:`segment_nlp`)."""
         w, p = self._w, self._p
         if self.shape.chosen_solver == "newton":  # DmocShape refuses it with keep-out slots
             return KktNewton("dmoc", w, p, self.cost(w, p), self.constraints(w, p), 1,
                              self.shape.kkt_tol, post=self.end_hessian)
-        if self.shape.chosen_solver != "sqpmethod":
+        if self.shape.chosen_solver != "sqpmethod" or self.n_planes:
             return None
         return MappedNlp("dmoc_sqp", w, p, self.cost(w, p), self.constraints(w, p),
                          self.shape.kkt_tol, self.shape.max_iter, self.shape.kkt_tol,
@@ -766,9 +794,34 @@ class DmocTranscription:
 
     def prepare(self, count: int) -> None:
         """Build what solving ``count`` tasks in one :meth:`solve_batch` takes (the batched
-        solver's mapped calls), so that the first superstep does not."""
-        if self.batch_solver is not None:
+        solver's mapped calls; with planes, those of :attr:`without_obstacles`), so that the
+        first superstep does not."""
+        if self.without_obstacles is not None:
+            self.without_obstacles.prepare(count)
+        elif self.batch_solver is not None:
             self.batch_solver.prepare(count)
+
+    @cached_property
+    def without_obstacles(self) -> DmocTranscription | None:
+        """The transcription of this shape without its obstacles (same solver, ``newton``
+        where ``auto`` chooses it then), whose batch :meth:`solve_batch` tries first; None
+        without planes or without a batched solver."""
+        if not self.n_planes or not self.batches:
+            return None
+        free = dataclasses.replace(self.shape, obstacles=(), obstacle_positions=())
+        return transcription(free)   # type: ignore[return-value]
+
+    def clear_of_obstacles(self, q: np.ndarray) -> np.ndarray:
+        """Whether each path with nodes q (k, N+1, nq) keeps every segment more than
+        ``kkt_tol`` · (the obstacle's scale) outside every obstacle (exact segment distances,
+        :meth:`~ocpar.ocp.obstacles.Ellipsoid.clearance`): (k,) bool, False where not finite."""
+        positions = q[..., list(self.shape.obstacle_positions)]
+        clear = np.all(np.isfinite(positions), axis=(1, 2))
+        for obstacle in self.shape.obstacles:
+            gap, _ = obstacle.clearance(positions[:, :-1], positions[:, 1:])
+            with np.errstate(invalid="ignore"):
+                clear &= np.all(gap > self.shape.kkt_tol * obstacle.scale, axis=1)
+        return clear
 
     def solve_batch(self, params: np.ndarray, guesses: np.ndarray | list[np.ndarray | None],
                     multipliers: np.ndarray | list[np.ndarray | None]) -> Columns | None:
@@ -777,12 +830,180 @@ class DmocTranscription:
         default guess, zero multipliers). ``success`` comes from the KKT check; ``iterations``
         counts Newton steps (``newton``) or is −1 (``sqpmethod``: a mapped call reports none);
         ``solve_time_s`` is the call's time shared equally. None if this shape's solver is
-        ``ipopt`` or CasADi raised (the caller then solves one by one)."""
+        ``ipopt`` or CasADi raised (the caller then solves one by one).
+
+        With obstacles, the tasks are first solved without them (:attr:`without_obstacles`,
+        one batch); a task whose solution there succeeds and clears every obstacle
+        (:meth:`clear_of_obstacles`) keeps it: it is a KKT point of the NLP with the
+        obstacles, their rows inactive (with the canonical planes; ``end_hessian`` and
+        ``cost_gradient`` the same, no obstacle row carrying a multiplier). Only the others
+        are solved with the planes."""
+        params = np.asarray(params, float)
+        if self.without_obstacles is not None:
+            return self._screened(params, guesses, multipliers)
         if self.batch_solver is None:
             return None
-        params = np.asarray(params, float)
-        tasks = len(params)
-        owner = None   # the task of each candidate, where a task's sides make several
+        return self._solve_batch(params, guesses, multipliers)
+
+    def _screened(self, params: np.ndarray, guesses: np.ndarray | list[np.ndarray | None],
+                  multipliers: np.ndarray | list[np.ndarray | None]) -> Columns | None:
+        """:meth:`solve_batch` with obstacles: without them first, then with them for the
+        tasks whose paths do not clear them."""
+        free_nlp = self.without_obstacles
+        assert free_nlp is not None
+        k = len(params)
+        guess_rows = list(guesses) if len(guesses) == k else [None] * k
+        lam_rows = list(multipliers) if len(multipliers) == k else [None] * k
+        n_free = free_nlp.nw
+        free_guesses = [None if g is None else
+                        (np.asarray(g, float)[:n_free] if np.size(g) == self.nw else g)
+                        for g in guess_rows]
+        free_lams = [None if m is None else np.asarray(m, float)[:free_nlp.ng]
+                     for m in lam_rows]
+        start = time.perf_counter()
+        free = free_nlp.solve_batch(params, free_guesses, free_lams)
+        free_time = time.perf_counter() - start
+        if free is None:   # CasADi raised: the caller solves one by one
+            return None
+        q = np.asarray(free.column("q"))
+        kept = np.asarray(free.column("success"), bool) & self.clear_of_obstacles(q)
+        if kept.all():
+            return free
+        rest = np.flatnonzero(~kept)
+        solved = self._solve_segments(params[rest], [guess_rows[i] for i in rest],
+                                      [lam_rows[i] for i in rest], free.take(rest))
+        if not kept.any():
+            return solved
+        done = np.flatnonzero(kept)
+        parts = free.take(done), solved
+        joined = Columns.concat(parts)
+        order = np.empty(k, np.intp)
+        order[np.concatenate([done, rest])] = np.arange(k)
+        joined = joined.take(order)
+        # the first batch's time is shared by all, the second's by the tasks it solved
+        times = np.full(k, free_time / k)
+        times[rest] += np.asarray(solved.column("solve_time_s"))
+        joined.fields["solve_time_s"] = (VALUES, times)
+        return joined
+
+    @cached_property
+    def segment_nlp(self) -> tuple[MappedNlp, np.ndarray, np.ndarray]:
+        """The NLP of :attr:`without_obstacles` with the obstacles' rows of
+        :func:`~ocpar.ocp.obstacles.segment_rows` (no planes) appended, as a
+        :class:`~ocpar.ocp.batch.MappedNlp`, and its row bounds (lbg, ubg)."""
+        free = self.without_obstacles
+        assert free is not None
+        w, p = free._w, free._p
+        positions = list(self.shape.obstacle_positions)
+        rows = segment_rows(self.shape.obstacles, [q[positions] for q in free.nodes(w, p)])
+        g = ca.vertcat(free.constraints(w, p), *rows)
+        solver = MappedNlp("dmoc_segments", w, p, free.cost(w, p), g, self.shape.kkt_tol,
+                           min(self.shape.max_iter, SEGMENT_MAX_ITER), self.shape.kkt_tol,
+                           qp_max_iter=SEGMENT_QP_MAX_ITER)
+        return (solver, np.concatenate([free.lbg, np.zeros(len(rows))]),
+                np.concatenate([free.ubg, np.full(len(rows), np.inf)]))
+
+    def _solve_segments(self, params: np.ndarray, guesses: list[np.ndarray | None],
+                        multipliers: list[np.ndarray | None], free: Columns) -> Columns:
+        """The tasks ``params`` (k, n_params) whose solutions without obstacles ``free`` do
+        not clear them: from each side of the obstacles the free path enters (a task without
+        a guess; :meth:`side_guesses`) or from its guess, solved together by
+        :attr:`segment_nlp`, each task's cheapest kept, lifted to this NLP (the planes
+        :func:`~ocpar.ocp.obstacles.canonical_planes`, the multipliers
+        :func:`~ocpar.ocp.obstacles.plane_multipliers`) and accepted where it meets this
+        NLP's KKT conditions to ``kkt_tol`` (:func:`~ocpar.ocp.batch.kkt_met`); the others
+        one by one by IPOPT (:meth:`solve`)."""
+        start = time.perf_counter()
+        free_nlp = self.without_obstacles
+        assert free_nlp is not None
+        solver, lbg, ubg = self.segment_nlp
+        n_free, ng_free, k = free_nlp.nw, free_nlp.ng, len(params)
+        q_free, u_free = np.asarray(free.column("q")), np.asarray(free.column("u"))
+        solved = np.asarray(free.column("success"), bool)
+        rows, owner, lams = [], [], []
+        for i in range(k):
+            if guesses[i] is not None:
+                sides = self.full_guess(guesses[i], params[i])[None]
+            else:
+                base = self.default_guess(params[i]) if not solved[i] else self.full_guess(
+                    np.concatenate([q_free[i, 1:-1].ravel(), u_free[i].ravel()]), params[i])
+                sides = self.side_guesses(base, params[i])
+            rows.append(sides[:, :n_free])
+            owner += [i] * len(sides)
+            lam = np.zeros(len(lbg))
+            if multipliers[i] is not None:
+                lam[:ng_free] = np.asarray(multipliers[i], float)[:ng_free]
+            lams += [lam] * len(sides)
+        owner_index = np.asarray(owner)
+        try:
+            batch = solver.solve(np.concatenate(rows), params[owner_index], np.array(lams),
+                                 lbg, ubg, free_nlp.lbx, free_nlp.ubx)
+        except RuntimeError:
+            batch = None
+        accepted = np.zeros(k, bool)
+        if batch is not None:
+            starts = np.searchsorted(owner_index, np.arange(k + 1))
+            pick = np.array([a + _cheapest(batch.success[a:b], batch.f[a:b])
+                             for a, b in itertools.pairwise(starts.tolist())])
+            x, lam_red, lam_x = batch.x[pick], batch.lam_g[pick], batch.lam_x[pick]
+            w, lam_g, lam_xw = self._lifted(x, lam_red, lam_x, params, ng_free)
+            g, stationarity, gradient = (np.asarray(r) for r in self.kkt_residuals.map(k)(
+                w.T, params.T, lam_g.T, lam_xw.T))
+            accepted = batch.success[pick] & kkt_met(
+                w, params, lam_g, lam_xw, g.T, stationarity.ravel(), gradient.ravel(),
+                (self.lbg, self.ubg, self.lbx, self.ubx), self.shape.kkt_tol)
+        parts, positions = [], []
+        if accepted.any():
+            ok = np.flatnonzero(accepted)
+            q, u = self.unpack_many(w[ok], params[ok])
+            costs = (self._costs(w[ok], params[ok], u) if self.end_hessian is None
+                     else batch.f[pick][ok])
+            hessians = np.full((len(ok), self.nq, self.nq), np.nan)
+            if self.end_hessian is not None:
+                hessians = self._hessians(w[ok], lam_g[ok], params[ok], hessians)
+            elapsed = (time.perf_counter() - start) / k
+            parts.append(_solution_columns(costs, np.ones(len(ok), bool), np.full(len(ok), -1),
+                                           np.full(len(ok), elapsed), -batch.lam_p[pick][ok],
+                                           hessians, q, u))
+            positions.append(ok)
+        others = np.flatnonzero(~accepted)
+        if len(others):
+            again = [self.solve(params[i], guesses[i], multipliers[i])
+                     for i in others.tolist()]
+            for solution in again:   # the batch's attempt failed: IPOPT's is the second
+                solution.attempts += 1
+            again = to_columns(again)
+            assert isinstance(again, Columns)
+            parts.append(again)
+            positions.append(others)
+        joined = Columns.concat(parts)
+        order = np.empty(k, np.intp)
+        order[np.concatenate(positions)] = np.arange(k)
+        return joined.take(order)
+
+    def _lifted(self, x: np.ndarray, lam_red: np.ndarray, lam_x: np.ndarray,
+                params: np.ndarray, ng_free: int) -> tuple[np.ndarray, ...]:
+        """Solutions of :attr:`segment_nlp` (x (k, nw_free), its row and bound multipliers)
+        as points of this NLP: w with the canonical planes, λ_g and λ_x (module docstring of
+        :mod:`ocpar.ocp.obstacles`)."""
+        q, _ = self.unpack_many(x, params)
+        positions = q[..., list(self.shape.obstacle_positions)]
+        n_balls = len(ellipsoids(self.shape.obstacles))
+        count = (self.n * n_balls)
+        obstacle = lam_red[:, ng_free:]
+        tol = self.shape.kkt_tol
+        loaded = np.abs(obstacle[:, :count]) > tol * (
+            1 + np.max(np.abs(lam_red), axis=1, keepdims=True))
+        planes, _, _ = canonical_planes(self.shape.obstacles, positions, tol,
+                                        np.repeat(loaded, 3, axis=1))
+        w = np.hstack([x, planes])
+        lam_g = np.hstack([lam_red[:, :ng_free],
+                           plane_multipliers(self.shape.obstacles, positions, obstacle)])
+        return w, lam_g, np.hstack([lam_x, np.zeros((len(x), self.n_planes))])
+
+    def _solve_batch(self, params: np.ndarray, guesses: np.ndarray | list[np.ndarray | None],
+                     multipliers: np.ndarray | list[np.ndarray | None]) -> Columns | None:
+        """:meth:`solve_batch` by :attr:`batch_solver` (a shape without planes)."""
         if isinstance(multipliers, np.ndarray) and multipliers.shape == (len(params), self.ng):
             lam0 = multipliers.astype(float)
         else:
@@ -797,31 +1018,16 @@ class DmocTranscription:
             for k, guess in enumerate(guesses):
                 if guess is not None:
                     x0[k] = self.full_guess(guess, params[k])
-            if self.n_planes:   # each side of the obstacles a default guess enters
-                sides = [self.side_guesses(x, p) if guess is None else x[None]
-                         for x, p, guess in zip(x0, params, guesses, strict=True)]
-                owner = np.repeat(np.arange(tasks), [len(rows) for rows in sides])
-                x0 = np.concatenate(sides)
         try:
             if isinstance(self.batch_solver, KktNewton):
                 rounds = min(NEWTON_ROUNDS, self.shape.max_iter)
                 batch = self.batch_solver.solve(x0, params, lam0, self.lbx, self.ubx, rounds)
             else:
-                batch = self.batch_solver.solve(
-                    x0, params if owner is None else params[owner],
-                    lam0 if owner is None else lam0[owner], self.lbg, self.ubg, self.lbx,
-                    self.ubx)
+                assert self.batch_solver is not None
+                batch = self.batch_solver.solve(x0, params, lam0, self.lbg, self.ubg, self.lbx,
+                                                self.ubx)
         except RuntimeError:
             return None
-        if owner is not None and len(owner) > tasks:   # each task's cheapest side
-            starts = np.searchsorted(owner, np.arange(tasks + 1))
-            success = np.asarray(batch.success, bool)
-            pick = [a + _cheapest(success[a:b], batch.f[a:b])
-                    for a, b in itertools.pairwise(starts.tolist())]
-            batch = dataclasses.replace(
-                batch, x=batch.x[pick], f=batch.f[pick], lam_g=batch.lam_g[pick],
-                lam_p=batch.lam_p[pick], success=batch.success[pick], extra=batch.extra[pick],
-                iterations=None if batch.iterations is None else batch.iterations[pick])
         k = len(params)
         q, u = self.unpack_many(batch.x, params)
         iterations = np.full(k, -1) if batch.iterations is None else batch.iterations
@@ -834,21 +1040,31 @@ class DmocTranscription:
             costs = batch.f
             hessians = batch.extra.reshape(k, self.nq, self.nq).transpose(0, 2, 1)
             hessians = self._hessians(batch.x, batch.lam_g, params, hessians)
-        success = np.asarray(batch.success, bool)
-        statuses = [BATCH_STATUS[ok] for ok in success.tolist()]
-        return Columns(cls=DmocSolution, length=k, fields={
-            "cost": (VALUES, np.asarray(costs, float)),
-            "status": ((SHARED, statuses[0]) if len(set(statuses)) == 1
-                       else (LISTED, statuses)),
-            "success": (VALUES, success),
-            "iterations": (VALUES, np.asarray(iterations, np.int64)),
-            "attempts": (VALUES, np.ones(k, np.int64)),
-            "solve_time_s": (VALUES, np.full(k, batch.solve_time_s / k)),
-            "cost_gradient": (STACKED, -batch.lam_p),
-            "end_hessian": (STACKED, hessians),
-            "q": (STACKED, q),
-            "u": (STACKED, u),
-        })
+        return _solution_columns(costs, np.asarray(batch.success, bool), iterations,
+                                 np.full(k, batch.solve_time_s / k), -batch.lam_p, hessians,
+                                 q, u)
+
+
+def _solution_columns(costs: np.ndarray, success: np.ndarray, iterations: np.ndarray,
+                      times: np.ndarray, gradients: np.ndarray, hessians: np.ndarray,
+                      q: np.ndarray, u: np.ndarray) -> Columns:
+    """k batched solutions as columns of :class:`DmocSolution` (one attempt each, the status
+    from ``success``)."""
+    k = len(costs)
+    statuses = [BATCH_STATUS[ok] for ok in success.tolist()]
+    return Columns(cls=DmocSolution, length=k, fields={
+        "cost": (VALUES, np.asarray(costs, float)),
+        "status": ((SHARED, statuses[0]) if len(set(statuses)) == 1
+                   else (LISTED, statuses)),
+        "success": (VALUES, success),
+        "iterations": (VALUES, np.asarray(iterations, np.int64)),
+        "attempts": (VALUES, np.ones(k, np.int64)),
+        "solve_time_s": (VALUES, np.asarray(times, float)),
+        "cost_gradient": (STACKED, gradients),
+        "end_hessian": (STACKED, hessians),
+        "q": (STACKED, q),
+        "u": (STACKED, u),
+    })
 
 
 def _cheapest(success: Sequence[bool] | np.ndarray, costs: Sequence[float] | np.ndarray

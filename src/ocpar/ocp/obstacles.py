@@ -20,6 +20,12 @@ exact on the continuous path, smooth, in any dimension. A half-space is linear: 
 at the free nodes (the path is linear between nodes; the boundary nodes are data, checked
 by whoever builds the problem).
 
+The same keep-out without planes (:func:`segment_rows`): one row per interval and ellipsoid,
+|y*|² − 1 ≥ 0 at the scaled segment's point y* nearest the centre; exact too, C¹ but not C²
+where y* reaches a node. It has no variables a QP sees without curvature (a plane no row
+binds), so the batched solves use it, then return to the planes (:func:`canonical_planes`,
+:func:`plane_multipliers`) and check the answer on the planes' NLP.
+
 Which side a path passes an ellipsoid on is a discrete choice the guess of the planes and
 the path makes (:func:`side_guesses`). :func:`guess_planes` gives each interval the unit
 direction of its segment's point nearest the centre; :func:`canonical_planes` the planes
@@ -218,10 +224,54 @@ def obstacle_rows(obstacles: Sequence[Obstacle], nodes: Sequence[ca.SX], planes:
             a, c = ca.DM(ball.matrix), ca.DM(ball.center)
             rows += [1 - ca.sumsqr(n)] + [ca.dot(n, a @ (nodes[node] - c)) - 1
                                           for node in (k, k + 1)]
-    for o in obstacles:
-        if isinstance(o, HalfSpace):
-            rows += [ca.dot(ca.DM(o.normal), nodes[k]) - o.offset for k in range(1, intervals)]
-    return rows
+    return rows + _half_space_rows(obstacles, nodes)
+
+
+def _half_space_rows(obstacles: Sequence[Obstacle], nodes: Sequence[ca.SX]) -> list[ca.SX]:
+    """n·r − b at the free nodes 1..N−1, per half-space among ``obstacles`` in order."""
+    return [ca.dot(ca.DM(o.normal), nodes[k]) - o.offset for o in obstacles
+            if isinstance(o, HalfSpace) for k in range(1, len(nodes) - 1)]
+
+
+def segment_rows(obstacles: Sequence[Obstacle], nodes: Sequence[ca.SX]) -> list[ca.SX]:
+    """The keep-out of :func:`obstacle_rows` without planes: per interval k, per ellipsoid
+    (in order) |y*|² − 1 ≥ 0, y* the point of the scaled segment [y(q_k), y(q_{k+1})]
+    nearest the centre (its parameter s clipped to [0, 1]); then the same half-space rows.
+    Exact (the segment clears the ellipsoid exactly when |y*| ≥ 1) and C¹ (the derivative
+    is that at fixed s: 2(1 − s) y*, 2 s y*), not C² where s reaches 0 or 1. One row per
+    interval instead of three and no plane variables: no directions of zero curvature where
+    an obstacle is far, which the planes' free variables give a QP."""
+    balls = ellipsoids(obstacles)
+    rows = []
+    for k in range(len(nodes) - 1):
+        for ball in balls:
+            a, c = ca.DM(ball.matrix), ca.DM(ball.center)
+            start, end = a @ (nodes[k] - c), a @ (nodes[k + 1] - c)
+            step = end - start
+            s = ca.fmin(ca.fmax(-ca.dot(start, step) / ca.fmax(ca.dot(step, step), 1e-300),
+                                0), 1)
+            rows.append(ca.sumsqr(start + s * step) - 1)
+    return rows + _half_space_rows(obstacles, nodes)
+
+
+def plane_multipliers(obstacles: Sequence[Obstacle], positions: np.ndarray,
+                      multipliers: np.ndarray) -> np.ndarray:
+    """The multipliers (k, 3 N m_e + half-space rows) of :func:`obstacle_rows` that go with
+    those of :func:`segment_rows` (k, N m_e + half-space rows) on paths with node positions
+    (k, N+1, d), the planes those of :func:`canonical_planes`: per interval and ellipsoid
+    λ (1, 2(1 − s), 2 s) for 1 − |n|², n·y_a − 1, n·y_b − 1 (s as in :func:`segment_rows`;
+    then ∂L/∂n = 2 λ (y* − n) = 0 where the interval binds); the half-space rows' as they
+    are."""
+    balls = ellipsoids(obstacles)
+    k, nodes = positions.shape[:2]
+    count = (nodes - 1) * len(balls)
+    if not balls:
+        return multipliers
+    s = np.stack([segment_closest(b.scaled(positions[:, :-1]), b.scaled(positions[:, 1:]))[1]
+                  for b in balls], axis=2).reshape(k, count)
+    lam = multipliers[:, :count]
+    rows = np.stack([lam, 2 * (1 - s) * lam, 2 * s * lam], axis=2).reshape(k, 3 * count)
+    return np.hstack([rows, multipliers[:, count:]])
 
 
 def _nearest_directions(ball: Ellipsoid, positions: np.ndarray
