@@ -340,3 +340,100 @@ def test_an_sqp_step_out_of_the_feasible_window_is_backtracked():
     theta = float(result.phi[0] - 2 * np.pi * order[0] / 12)
     reference, _ = reference_formation(problem, order, theta, "box", 0.615 * free_peak(12))
     assert result.total_cost == pytest.approx(reference, rel=1e-8)
+
+
+# --- obstacles and holonomic models (phase 1 robust) -----------------------------------------
+
+def _limited(problem: FormationProblem, rows: tuple) -> FormationProblem:
+    """``problem`` with every agent's shape carrying the path constraints ``rows``."""
+    import dataclasses
+    return problem.with_shapes(lambda s: dataclasses.replace(s, path_constraints=rows))
+
+
+def _infeasible(problem: FormationProblem, phi: np.ndarray) -> bool:
+    """Whether some agent's hard inner problem at ``phi`` has no solution."""
+    from ocpar.bsp.serial import SerialBackend
+    from ocpar.formation.feasibility import inner_costs
+    costs = inner_costs(problem, SerialBackend(), np.arange(problem.agents), phi).costs
+    return not np.all(np.isfinite(costs))
+
+
+def test_an_infeasible_start_past_an_obstacle_ends_converged_equal_to_the_monolithic_nlp():
+    """The obstacle example (4 masses, the disc of radius 0.8) under |u| ≤ 0.8 × the free
+    optimum's peak plus an inactive speed limit (no exact reach set): the free optimum turned
+    1.05 rad is infeasible; phase 1 (the elastic solves past the disc stop at local minima
+    above 0 for agents the hard solve serves: the hard solve decides) finds a feasible turn,
+    and the run ends converged, the disc cleared and the limit met, equal to the monolithic
+    NLP (every agent's path, planes and the coupling in one IPOPT solve) started 0.02 rad
+    from it (1e-6)."""
+    from ocpar.examples import formation_obstacle
+    from ocpar.formation import FormationOptions
+    base = formation_obstacle.make(agents=4)
+    free = solve_formation(base)
+    u_max = 0.8 * float(np.linalg.norm(free.controls, axis=2).max())
+    problem = _limited(base, (PathConstraint(lambda u: ca.sumsqr(u), upper=u_max**2,
+                                             name="thrust"),
+                              PathConstraint(lambda v: ca.sumsqr(v), upper=1e4, name="speed")))
+    assert problem.reach_sets() == []
+    phi0 = free.phi + 1.05
+    assert _infeasible(problem, phi0)
+    result = solve_formation(problem, phi0=phi0)
+    assert result.status == "converged" and "phase 1" in result.message, result.message
+    assert "obstacles cleared" in result.message
+    assert np.linalg.norm(result.controls, axis=2).max() <= u_max * (1 + 1e-9)
+    monolithic = solve_formation(problem, options=FormationOptions(mode="monolithic"),
+                                 phi0=result.phi + 0.02)
+    assert monolithic.status == "converged", monolithic.message
+    assert result.total_cost == pytest.approx(monolithic.total_cost, rel=1e-6)
+
+
+def test_an_infeasible_start_of_rigid_spacecraft_ends_converged_equal_to_the_monolithic_nlp():
+    """Three halo spacecraft (unit quaternions: a holonomic constraint at every node) under
+    |F| ≤ 0.65 × the free optimum's peak force: the free optimum turned 2.6 rad is
+    infeasible; phase 1's elastic solves keep the slackened end on |p| = 1, and the run ends
+    converged with the limit met, equal to the monolithic NLP started 0.05 rad from it
+    (1e-6)."""
+    from ocpar.examples import formation_halo
+    from ocpar.formation import FormationOptions
+    base = formation_halo.make(agents=3)
+    free = solve_formation(base)
+    u_max = 0.65 * float(np.linalg.norm(free.controls[..., :3], axis=2).max())
+    problem = _limited(base, (PathConstraint(lambda u: ca.sumsqr(u[:3]), upper=u_max**2,
+                                             name="thrust"),))
+    phi0 = free.phi + 2.6
+    assert _infeasible(problem, phi0)
+    result = solve_formation(problem, phi0=phi0)
+    assert result.status == "converged" and "phase 1" in result.message, result.message
+    assert np.linalg.norm(result.controls[..., :3], axis=2).max() <= u_max * (1 + 1e-9)
+    np.testing.assert_allclose(np.linalg.norm(result.trajectories[..., 3:], axis=2), 1.0,
+                               atol=1e-9)
+    monolithic = solve_formation(problem, options=FormationOptions(mode="monolithic"),
+                                 phi0=result.phi + 0.05)
+    assert monolithic.status == "converged", monolithic.message
+    assert result.total_cost == pytest.approx(monolithic.total_cost, rel=1e-6)
+
+
+def test_the_elastic_end_of_a_quaternion_model_stays_on_its_constraint():
+    """A halo spacecraft's elastic NLP sent beyond its force limit: the slackened end q_N +
+    a⁺ − a⁻ read from the solution has a unit quaternion (the hard row c(q) = 0 there), and
+    the slack is positive (one limit |u| ≤ 1 on force and torque together: the turn
+    competes with the move; without that row IPOPT failed on this NLP, measured)."""
+    from ocpar.examples import formation_halo
+    from ocpar.formation.feasibility import elastic_shape
+    base = formation_halo.make(agents=2)
+    u_max = 1.0
+    shape = elastic_shape(_limited(base, (PathConstraint(lambda u: ca.sumsqr(u),
+                                                         upper=u_max**2, name="effort"),)
+                                   ).common_shape)
+    nlp = dmoc_problem(shape)
+    params = base.boundary_params_rows(np.array([0]), np.array([0.3]))[0]
+    out = nlp.solver(x0=nlp.default_guess(params), p=params, lbg=nlp.lbg, ubg=nlp.ubg,
+                     lbx=nlp.lbx, ubx=nlp.ubx)
+    assert nlp.solver.stats()["success"]
+    w = np.asarray(out["x"]).ravel()
+    nq, n = 7, shape.intervals
+    start = nq * (n - 1) + 6 * n + (n + 1)   # after the inner nodes, controls and λ
+    a_plus, a_minus = w[start:start + nq], w[start + nq:start + 2 * nq]
+    end = params[2 * nq:3 * nq] + a_plus - a_minus
+    assert np.linalg.norm(end[3:]) == pytest.approx(1.0, abs=1e-9)
+    assert float(out["f"]) > 1e-3
