@@ -361,7 +361,7 @@ def _infeasible(problem: FormationProblem, phi: np.ndarray) -> bool:
 def test_an_infeasible_start_past_an_obstacle_ends_converged_equal_to_the_monolithic_nlp():
     """The obstacle example (4 masses, the disc of radius 0.8) under |u| ≤ 0.8 × the free
     optimum's peak plus an inactive speed limit (no exact reach set): the free optimum turned
-    1.05 rad is infeasible; phase 1 (the elastic solves past the disc stop at local minima
+    1.15 rad is infeasible; phase 1 (the elastic solves past the disc stop at local minima
     above 0 for agents the hard solve serves: the hard solve decides) finds a feasible turn,
     and the run ends converged, the disc cleared and the limit met, equal to the monolithic
     NLP (every agent's path, planes and the coupling in one IPOPT solve) started 0.02 rad
@@ -375,7 +375,7 @@ def test_an_infeasible_start_past_an_obstacle_ends_converged_equal_to_the_monoli
                                              name="thrust"),
                               PathConstraint(lambda v: ca.sumsqr(v), upper=1e4, name="speed")))
     assert problem.reach_sets() == []
-    phi0 = free.phi + 1.05
+    phi0 = free.phi + 1.15
     assert _infeasible(problem, phi0)
     result = solve_formation(problem, phi0=phi0)
     assert result.status == "converged" and "phase 1" in result.message, result.message
@@ -437,3 +437,27 @@ def test_the_elastic_end_of_a_quaternion_model_stays_on_its_constraint():
     end = params[2 * nq:3 * nq] + a_plus - a_minus
     assert np.linalg.norm(end[3:]) == pytest.approx(1.0, abs=1e-9)
     assert float(out["f"]) > 1e-3
+
+
+def test_past_an_obstacle_the_hard_solve_decides_where_the_elastic_one_stops_above_zero():
+    """The obstacle example (6 masses) under |u| ≤ 31.6 (0.7 × the free optimum's peak),
+    the free optimum turned 0.5236 rad: agent 3's elastic NLP stops at a local minimum of
+    total slack ~2.19 from every side of the disc, yet its hard inner problem is solved
+    (and the elastic NLP from that solution gives ~0); the measure phase 1 uses is 0."""
+    from ocpar.bsp.serial import SerialBackend
+    from ocpar.examples import formation_obstacle
+    from ocpar.formation.feasibility import elastic_problem, elastic_slacks
+    base = formation_obstacle.make()
+    free = solve_formation(base)
+    u_max = 0.7 * float(np.linalg.norm(free.controls, axis=2).max())
+    problem = _limited(base, (PathConstraint(lambda u: ca.sumsqr(u), upper=u_max**2,
+                                             name="thrust"),
+                              PathConstraint(lambda v: ca.sumsqr(v), upper=1e4, name="speed")))
+    phi = free.phi + 0.5236
+    params = problem.boundary_params_rows(np.array([3]), phi[3:4])[0]
+    elastic = dmoc_problem(elastic_problem(problem).common_shape).solve(params)
+    hard = dmoc_problem(problem.common_shape).solve(params)
+    assert elastic.success and elastic.cost > 1.0
+    assert hard.success
+    found = elastic_slacks(problem, SerialBackend(), np.array([3]), phi[3:4])
+    assert found.slack[0] == 0.0 and np.all(found.end_gradient == 0.0)
