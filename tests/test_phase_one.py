@@ -86,6 +86,69 @@ def test_the_elastic_slack_is_the_excess_over_the_lp_reach_and_its_gradient_the_
         assert sol.cost_gradient[4] == pytest.approx((up - down) / (2 * step), abs=1e-6)
 
 
+def elastic_lp(d: float, u_max: float, intervals: int = 10, duration: float = 2.0) -> float:
+    """The elastic problem of a unit mass at rest moved d under |u_k| ≤ U, written here as an
+    LP (the DMOC equations by hand, in one dimension): min a⁺ + a⁻ + T (b⁺ + b⁻) + Σ σ_k / U
+    with the end at d + a⁺ − a⁻, its velocity b⁺ − b⁻, −U − σ_k ≤ u_k ≤ U + σ_k (the slacks'
+    characteristic sizes as docs/schemes/formation.md states them)."""
+    from scipy.optimize import linprog
+    n, h = intervals, duration / intervals
+    # columns: q_1..q_{n−1}, u_0..u_{n−1}, σ_0..σ_{n−1}, a⁺, a⁻, b⁺, b⁻
+    ui, si, ends = n - 1, 2 * n - 1, 3 * n - 1
+    size = 3 * n + 3
+    rows, rhs = [], []
+    for k in range(n + 1):   # node k: m (q_k − q_{k−1})/h − m (q_{k+1} − q_k)/h + forces
+        row, known = np.zeros(size), 0.0
+        terms = ([(k, 1 / h), (k - 1, -1 / h)] if k > 0 else []) + \
+            ([(k + 1, -1 / h), (k, 1 / h)] if k < n else [])
+        for node, coef in terms:
+            if node == n:   # the slackened end d + a⁺ − a⁻
+                known += coef * d
+                row[ends:ends + 2] += [coef, -coef]
+            elif node > 0:   # q_0 = 0
+                row[node - 1] += coef
+        if k > 0:
+            row[ui + k - 1] += h / 2
+        if k < n:
+            row[ui + k] += h / 2
+        if k == n:   # − m ṽ_N, ṽ_N = b⁺ − b⁻
+            row[ends + 2:ends + 4] += [-1.0, 1.0]
+        rows.append(row)
+        rhs.append(-known)
+    ineq = []
+    for k in range(n):
+        for sign in (1.0, -1.0):
+            row = np.zeros(size)
+            row[ui + k], row[si + k] = sign, -1.0
+            ineq.append(row)
+    cost = np.zeros(size)
+    cost[si:si + n] = 1 / u_max
+    cost[ends:ends + 4] = [1.0, 1.0, duration, duration]
+    bounds = [(None, None)] * (2 * n - 1) + [(0, None)] * (n + 4)
+    out = linprog(cost, A_ub=np.array(ineq), b_ub=np.full(2 * n, u_max), A_eq=np.array(rows),
+                  b_eq=np.array(rhs), bounds=bounds, method="highs")
+    assert out.status == 0
+    return float(out.fun)
+
+
+@pytest.mark.parametrize("u_max", [1.0, 40.0])
+def test_the_elastic_slacks_are_measured_against_their_characteristic_sizes(u_max):
+    """A unit mass at rest moved 0.3 beyond its reach under a box limit U (T = 2, N = 10):
+    the elastic cost equals the LP written here with the documented weights (1 per length
+    of the end, T per velocity unit, 1/U per unit of a bound's slack). At U = 1 moving the
+    end is cheapest (s = 0.3); at U = 40 relaxing the bound is (s < 0.3): the weights, not
+    the units, decide, and the LP tells which."""
+    shape = DmocShape(PointMass(dim=2), 10, 2.0, control_bounds=((-u_max, u_max),) * 2,
+                      elastic=True)
+    reach = lp_reach(1.0, 10, 2.0, -u_max, u_max)[1]
+    d = reach + 0.3
+    sol = dmoc_problem(shape).solve(np.array([0, 0, 0, 0, d, 0, 0, 0.0]))
+    assert sol.success
+    expected = elastic_lp(d, u_max)
+    assert sol.cost == pytest.approx(expected, rel=1e-7, abs=1e-10)
+    assert (expected == pytest.approx(0.3, rel=1e-9)) == (u_max == 1.0)
+
+
 # --- a surface -------------------------------------------------------------------------------
 
 TETRAHEDRON = np.array([[1, 1, 1], [1, -1, -1], [-1, 1, -1], [-1, -1, 1]]) / np.sqrt(3)
