@@ -258,8 +258,8 @@ def inner_costs(problem: FormationProblem, backend: Backend, agents: np.ndarray,
 #: measure is in doubt are 0 exactly (:func:`elastic_slacks`).
 SLACK_TOL = 1e-8
 #: An elastic slack above :data:`SLACK_TOL` but at most this is checked by the hard solve
-#: (IPOPT can stop at "Solved_To_Acceptable_Level" short of 0: 2e-8 for a feasible agent
-#: past the obstacle example's disc).
+#: (IPOPT can stop at "Solved_To_Acceptable_Level" short of 0: 2e-8 was reported for a
+#: feasible agent past the obstacle example's disc).
 CONFIRM_SLACK = 1e-5
 #: Shifts of a family at which the total slack is evaluated (one superstep each scan) before
 #: descent: a coarse scan, and a finer one only if no descent from the first reached S = 0.
