@@ -86,6 +86,69 @@ def test_the_elastic_slack_is_the_excess_over_the_lp_reach_and_its_gradient_the_
         assert sol.cost_gradient[4] == pytest.approx((up - down) / (2 * step), abs=1e-6)
 
 
+def elastic_lp(d: float, u_max: float, intervals: int = 10, duration: float = 2.0) -> float:
+    """The elastic problem of a unit mass at rest moved d under |u_k| ≤ U, written here as an
+    LP (the DMOC equations by hand, in one dimension): min a⁺ + a⁻ + T (b⁺ + b⁻) + Σ σ_k / U
+    with the end at d + a⁺ − a⁻, its velocity b⁺ − b⁻, −U − σ_k ≤ u_k ≤ U + σ_k (the slacks'
+    characteristic sizes as docs/schemes/formation.md states them)."""
+    from scipy.optimize import linprog
+    n, h = intervals, duration / intervals
+    # columns: q_1..q_{n−1}, u_0..u_{n−1}, σ_0..σ_{n−1}, a⁺, a⁻, b⁺, b⁻
+    ui, si, ends = n - 1, 2 * n - 1, 3 * n - 1
+    size = 3 * n + 3
+    rows, rhs = [], []
+    for k in range(n + 1):   # node k: m (q_k − q_{k−1})/h − m (q_{k+1} − q_k)/h + forces
+        row, known = np.zeros(size), 0.0
+        terms = ([(k, 1 / h), (k - 1, -1 / h)] if k > 0 else []) + \
+            ([(k + 1, -1 / h), (k, 1 / h)] if k < n else [])
+        for node, coef in terms:
+            if node == n:   # the slackened end d + a⁺ − a⁻
+                known += coef * d
+                row[ends:ends + 2] += [coef, -coef]
+            elif node > 0:   # q_0 = 0
+                row[node - 1] += coef
+        if k > 0:
+            row[ui + k - 1] += h / 2
+        if k < n:
+            row[ui + k] += h / 2
+        if k == n:   # − m ṽ_N, ṽ_N = b⁺ − b⁻
+            row[ends + 2:ends + 4] += [-1.0, 1.0]
+        rows.append(row)
+        rhs.append(-known)
+    ineq = []
+    for k in range(n):
+        for sign in (1.0, -1.0):
+            row = np.zeros(size)
+            row[ui + k], row[si + k] = sign, -1.0
+            ineq.append(row)
+    cost = np.zeros(size)
+    cost[si:si + n] = 1 / u_max
+    cost[ends:ends + 4] = [1.0, 1.0, duration, duration]
+    bounds = [(None, None)] * (2 * n - 1) + [(0, None)] * (n + 4)
+    out = linprog(cost, A_ub=np.array(ineq), b_ub=np.full(2 * n, u_max), A_eq=np.array(rows),
+                  b_eq=np.array(rhs), bounds=bounds, method="highs")
+    assert out.status == 0
+    return float(out.fun)
+
+
+@pytest.mark.parametrize("u_max", [1.0, 40.0])
+def test_the_elastic_slacks_are_measured_against_their_characteristic_sizes(u_max):
+    """A unit mass at rest moved 0.3 beyond its reach under a box limit U (T = 2, N = 10):
+    the elastic cost equals the LP written here with the documented weights (1 per length
+    of the end, T per velocity unit, 1/U per unit of a bound's slack). At U = 1 moving the
+    end is cheapest (s = 0.3); at U = 40 relaxing the bound is (s < 0.3): the weights, not
+    the units, decide, and the LP tells which."""
+    shape = DmocShape(PointMass(dim=2), 10, 2.0, control_bounds=((-u_max, u_max),) * 2,
+                      elastic=True)
+    reach = lp_reach(1.0, 10, 2.0, -u_max, u_max)[1]
+    d = reach + 0.3
+    sol = dmoc_problem(shape).solve(np.array([0, 0, 0, 0, d, 0, 0, 0.0]))
+    assert sol.success
+    expected = elastic_lp(d, u_max)
+    assert sol.cost == pytest.approx(expected, rel=1e-7, abs=1e-10)
+    assert (expected == pytest.approx(0.3, rel=1e-9)) == (u_max == 1.0)
+
+
 # --- a surface -------------------------------------------------------------------------------
 
 TETRAHEDRON = np.array([[1, 1, 1], [1, -1, -1], [-1, 1, -1], [-1, -1, 1]]) / np.sqrt(3)
@@ -340,3 +403,124 @@ def test_an_sqp_step_out_of_the_feasible_window_is_backtracked():
     theta = float(result.phi[0] - 2 * np.pi * order[0] / 12)
     reference, _ = reference_formation(problem, order, theta, "box", 0.615 * free_peak(12))
     assert result.total_cost == pytest.approx(reference, rel=1e-8)
+
+
+# --- obstacles and holonomic models (phase 1 robust) -----------------------------------------
+
+def _limited(problem: FormationProblem, rows: tuple) -> FormationProblem:
+    """``problem`` with every agent's shape carrying the path constraints ``rows``."""
+    import dataclasses
+    return problem.with_shapes(lambda s: dataclasses.replace(s, path_constraints=rows))
+
+
+def _infeasible(problem: FormationProblem, phi: np.ndarray) -> bool:
+    """Whether some agent's hard inner problem at ``phi`` has no solution."""
+    from ocpar.bsp.serial import SerialBackend
+    from ocpar.formation.feasibility import inner_costs
+    costs = inner_costs(problem, SerialBackend(), np.arange(problem.agents), phi).costs
+    return not np.all(np.isfinite(costs))
+
+
+def test_an_infeasible_start_past_an_obstacle_ends_converged_equal_to_the_monolithic_nlp():
+    """The obstacle example (4 masses, the disc of radius 0.8) under |u| ≤ 0.8 × the free
+    optimum's peak plus an inactive speed limit (no exact reach set): the free optimum turned
+    1.15 rad is infeasible; phase 1 (the elastic solves past the disc stop at local minima
+    above 0 for agents the hard solve serves: the hard solve decides) finds a feasible turn,
+    and the run ends converged, the disc cleared and the limit met, equal to the monolithic
+    NLP (every agent's path, planes and the coupling in one IPOPT solve) started 0.02 rad
+    from it (1e-6)."""
+    from ocpar.examples import formation_obstacle
+    from ocpar.formation import FormationOptions
+    base = formation_obstacle.make(agents=4)
+    free = solve_formation(base)
+    u_max = 0.8 * float(np.linalg.norm(free.controls, axis=2).max())
+    problem = _limited(base, (PathConstraint(lambda u: ca.sumsqr(u), upper=u_max**2,
+                                             name="thrust"),
+                              PathConstraint(lambda v: ca.sumsqr(v), upper=1e4, name="speed")))
+    assert problem.reach_sets() == []
+    phi0 = free.phi + 1.15
+    assert _infeasible(problem, phi0)
+    result = solve_formation(problem, phi0=phi0)
+    assert result.status == "converged" and "phase 1" in result.message, result.message
+    assert "obstacles cleared" in result.message
+    assert np.linalg.norm(result.controls, axis=2).max() <= u_max * (1 + 1e-9)
+    monolithic = solve_formation(problem, options=FormationOptions(mode="monolithic"),
+                                 phi0=result.phi + 0.02)
+    assert monolithic.status == "converged", monolithic.message
+    assert result.total_cost == pytest.approx(monolithic.total_cost, rel=1e-6)
+
+
+def test_an_infeasible_start_of_rigid_spacecraft_ends_converged_equal_to_the_monolithic_nlp():
+    """Three halo spacecraft (unit quaternions: a holonomic constraint at every node) under
+    |F| ≤ 0.65 × the free optimum's peak force: the free optimum turned 2.6 rad is
+    infeasible; phase 1's elastic solves keep the slackened end on |p| = 1, and the run ends
+    converged with the limit met, equal to the monolithic NLP started 0.05 rad from it
+    (1e-6)."""
+    from ocpar.examples import formation_halo
+    from ocpar.formation import FormationOptions
+    base = formation_halo.make(agents=3)
+    free = solve_formation(base)
+    u_max = 0.65 * float(np.linalg.norm(free.controls[..., :3], axis=2).max())
+    problem = _limited(base, (PathConstraint(lambda u: ca.sumsqr(u[:3]), upper=u_max**2,
+                                             name="thrust"),))
+    phi0 = free.phi + 2.6
+    assert _infeasible(problem, phi0)
+    result = solve_formation(problem, phi0=phi0)
+    assert result.status == "converged" and "phase 1" in result.message, result.message
+    assert np.linalg.norm(result.controls[..., :3], axis=2).max() <= u_max * (1 + 1e-9)
+    np.testing.assert_allclose(np.linalg.norm(result.trajectories[..., 3:], axis=2), 1.0,
+                               atol=1e-9)
+    monolithic = solve_formation(problem, options=FormationOptions(mode="monolithic"),
+                                 phi0=result.phi + 0.05)
+    assert monolithic.status == "converged", monolithic.message
+    assert result.total_cost == pytest.approx(monolithic.total_cost, rel=1e-6)
+
+
+def test_the_elastic_end_of_a_quaternion_model_stays_on_its_constraint():
+    """A halo spacecraft's elastic NLP sent beyond its force limit: the slackened end q_N +
+    a⁺ − a⁻ read from the solution has a unit quaternion (the hard row c(q) = 0 there), and
+    the slack is positive (one limit |u| ≤ 1 on force and torque together: the turn
+    competes with the move; without that row IPOPT failed on this NLP, measured)."""
+    from ocpar.examples import formation_halo
+    from ocpar.formation.feasibility import elastic_shape
+    base = formation_halo.make(agents=2)
+    u_max = 1.0
+    shape = elastic_shape(_limited(base, (PathConstraint(lambda u: ca.sumsqr(u),
+                                                         upper=u_max**2, name="effort"),)
+                                   ).common_shape)
+    nlp = dmoc_problem(shape)
+    params = base.boundary_params_rows(np.array([0]), np.array([0.3]))[0]
+    out = nlp.solver(x0=nlp.default_guess(params), p=params, lbg=nlp.lbg, ubg=nlp.ubg,
+                     lbx=nlp.lbx, ubx=nlp.ubx)
+    assert nlp.solver.stats()["success"]
+    w = np.asarray(out["x"]).ravel()
+    nq, n = 7, shape.intervals
+    start = nq * (n - 1) + 6 * n + (n + 1)   # after the inner nodes, controls and λ
+    a_plus, a_minus = w[start:start + nq], w[start + nq:start + 2 * nq]
+    end = params[2 * nq:3 * nq] + a_plus - a_minus
+    assert np.linalg.norm(end[3:]) == pytest.approx(1.0, abs=1e-9)
+    assert float(out["f"]) > 1e-3
+
+
+def test_past_an_obstacle_the_hard_solve_decides_where_the_elastic_one_stops_above_zero():
+    """The obstacle example (6 masses) under |u| ≤ 31.6 (0.7 × the free optimum's peak),
+    the free optimum turned 0.5236 rad: agent 3's elastic NLP stops at a local minimum of
+    total slack ~2.19 from every side of the disc, yet its hard inner problem is solved
+    (and the elastic NLP from that solution gives ~0); the measure phase 1 uses is 0."""
+    from ocpar.bsp.serial import SerialBackend
+    from ocpar.examples import formation_obstacle
+    from ocpar.formation.feasibility import elastic_problem, elastic_slacks
+    base = formation_obstacle.make()
+    free = solve_formation(base)
+    u_max = 0.7 * float(np.linalg.norm(free.controls, axis=2).max())
+    problem = _limited(base, (PathConstraint(lambda u: ca.sumsqr(u), upper=u_max**2,
+                                             name="thrust"),
+                              PathConstraint(lambda v: ca.sumsqr(v), upper=1e4, name="speed")))
+    phi = free.phi + 0.5236
+    params = problem.boundary_params_rows(np.array([3]), phi[3:4])[0]
+    elastic = dmoc_problem(elastic_problem(problem).common_shape).solve(params)
+    hard = dmoc_problem(problem.common_shape).solve(params)
+    assert elastic.success and elastic.cost > 1.0
+    assert hard.success
+    found = elastic_slacks(problem, SerialBackend(), np.array([3]), phi[3:4])
+    assert found.slack[0] == 0.0 and np.all(found.end_gradient == 0.0)

@@ -251,9 +251,16 @@ def inner_costs(problem: FormationProblem, backend: Backend, agents: np.ndarray,
 # Phase 1: the elastic inner problem, any model, target and coupling
 # ----------------------------------------------------------------------------------------
 
-#: A total slack (the elastic inner problems' ℓ1 measure, mixed units) at most this counts
-#: as feasible (the batched and IPOPT solves of a feasible elastic problem return ~1e-11).
+#: A total slack at most this counts as feasible. Each slack is measured against a
+#: characteristic size (:mod:`ocpar.ocp.dmoc`: the end position's in the length unit, the end
+#: velocity's times T, a control bound's and a path row's relative to the bound), so it is
+#: 1e-8 length units or 1e-8 of a bound. Pairs the hard solve solves where the elastic
+#: measure is in doubt are 0 exactly (:func:`elastic_slacks`).
 SLACK_TOL = 1e-8
+#: An elastic slack above :data:`SLACK_TOL` but at most this is checked by the hard solve
+#: (IPOPT can stop at "Solved_To_Acceptable_Level" short of 0: 2e-8 was reported for a
+#: feasible agent past the obstacle example's disc).
+CONFIRM_SLACK = 1e-5
 #: Shifts of a family at which the total slack is evaluated (one superstep each scan) before
 #: descent: a coarse scan, and a finer one only if no descent from the first reached S = 0.
 PHASE_ONE_SCANS = (8, 64)
@@ -304,12 +311,15 @@ def elastic_problem(problem: FormationProblem) -> FormationProblem:
 @dataclass
 class Slacks:
     """The elastic measures s (p,) ≥ 0 of pairs (agent, end parameter) and ds/dz (p, d) w.r.t.
-    the end position z (length unit per length unit, etc.: the slacks' mixed units)."""
+    the end position z (the slacks' units per length unit, :data:`SLACK_TOL`); ``failed``
+    elastic solves failed (the first's words in ``first_failure``), ``solves`` the elastic
+    and hard solves made."""
 
     slack: np.ndarray
     end_gradient: np.ndarray
     failed: int = 0
     first_failure: str = ""
+    solves: int = 0
 
 
 def elastic_slacks(problem: FormationProblem, backend: Backend, agents: np.ndarray,
@@ -317,20 +327,43 @@ def elastic_slacks(problem: FormationProblem, backend: Backend, agents: np.ndarr
     """s_i of agent ``agents[k]`` ending at ``phi[k]`` (an angle, a surface's 2 parameters,
     or a slot index; rows of ``phi``), one superstep of elastic solves (0: feasible), and
     ds_i/dz from their multipliers. An elastic solve that fails (it has a solution for every
-    p) counts as +∞ with a zero gradient."""
+    p) counts as +∞ with a zero gradient. The hard solve is the truth where the elastic
+    measure is in doubt (:func:`_in_doubt`: a slack above :data:`SLACK_TOL` but at most
+    :data:`CONFIRM_SLACK`, an IPOPT stop short of 0; any slack above :data:`SLACK_TOL` of
+    an agent with obstacles, whose elastic NLP has local minima above 0): those pairs' hard
+    inner problems are solved (a second superstep, :func:`inner_costs`), and a pair it
+    solves is feasible, s = 0, ds/dz = 0."""
     agents = np.asarray(agents, dtype=np.intp)
     rows = np.asarray(phi, float).reshape(len(agents), -1)
     elastic = elastic_problem(problem)
     sols = backend.superstep_columns(solve_tasks, elastic.tasks_for(agents, rows.ravel()))
     success = np.asarray(sols.column("success"), dtype=bool)
-    slack = np.where(success, np.asarray(sols.column("cost"), dtype=float), np.inf)
+    slack = np.maximum(np.where(success, np.asarray(sols.column("cost"), dtype=float),
+                                np.inf), 0.0)
     nq, d = problem.common_shape.model.nq, problem.curve.dim
     gradient = np.asarray(sols.column("cost_gradient"))[:, 2 * nq:2 * nq + d]
     gradient = np.where(success[:, None], gradient, 0.0)
     bad = np.flatnonzero(~success)
     first = (f"agent {agents[bad[0]]} ending at phi = {rows[bad[0]].tolist()}: "
              f"{sols.column('status')[bad[0]]}") if len(bad) else ""
-    return Slacks(np.maximum(slack, 0.0), gradient, len(bad), first)
+    doubt = np.flatnonzero(_in_doubt(problem, agents, slack))
+    solves = len(agents)
+    if len(doubt):
+        hard = inner_costs(problem, backend, agents[doubt], rows[doubt])
+        solves += hard.solved
+        feasible = doubt[np.isfinite(hard.costs)]
+        slack[feasible], gradient[feasible] = 0.0, 0.0
+    return Slacks(slack, gradient, len(bad), first, solves)
+
+
+def _in_doubt(problem: FormationProblem, agents: np.ndarray, slack: np.ndarray
+              ) -> np.ndarray:
+    """Mask: the elastic slack of agent ``agents[k]``, ``slack[k]``, is to be checked by the
+    hard solve (:func:`elastic_slacks`)."""
+    above = np.isfinite(slack) & (slack > SLACK_TOL)
+    shapes = problem.shapes
+    obstacles = np.array([bool(shapes[i].obstacles) for i in range(problem.agents)])
+    return above & ((slack <= CONFIRM_SLACK) | obstacles[agents])
 
 
 def parameter_gradient(problem: FormationProblem, phi: np.ndarray, d_end: np.ndarray
@@ -410,7 +443,7 @@ class _Search:
 
     def measured(self, found: Slacks) -> Slacks:
         """``found``, its elastic solves counted (and their first failure kept)."""
-        self.solves += found.slack.size
+        self.solves += found.solves
         self.failed += found.failed
         self.first_failure = self.first_failure or found.first_failure
         return found

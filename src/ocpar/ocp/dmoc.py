@@ -96,10 +96,17 @@ total slack (ℓ1) instead of J_d. The end configuration and velocity enter as
 q_N + a⁺ − a⁻ and q̇_N + b⁺ − b⁻ (a±, b± ≥ 0, nq each), each control bound as
 lo − σ ≤ u_k[j] ≤ hi + σ and each path row as lb − σ ≤ c ≤ ub + σ (one σ ≥ 0 per control
 entry and interval, per row; the obstacle rows stay hard: the start is clear of them and the
-end and controls are free, so they can always be met); the cost is
-s = Σ a± + Σ b± + Σ σ (mixed units: length, velocity, force, the rows' own), 0 exactly
-where the hard NLP is feasible. The NLP is feasible whatever p (zero controls and any path
-meet the equations with slack), and its ``cost_gradient`` −λ_p is ds*/dp (entries
+end and controls are free, so they can always be met). With holonomic constraints the
+slackened end stays on them: c(q_N + a⁺ − a⁻) = 0 is a hard row (the slack moves the end
+along the manifold, never off it; a velocity's component normal to it is taken up by the
+end node's reaction). The cost is the total slack, each measured against a characteristic
+size so that one tolerance means the same for all:
+s = Σ a± + T Σ b± + Σ σ_u / |u|_j + Σ σ_row / |row|, the end position's in its length unit,
+the end velocity's times the duration T (a length), a control bound's and a path row's
+relative to the bound (|u|_j = max(|lo_j|, |hi_j|) over the finite ones, |row| likewise of
+the row's bounds; 1 where that is 0): 0 exactly where the hard NLP is feasible. The NLP is
+feasible whatever p (zero controls and any path meet the equations with slack), and its
+``cost_gradient`` −λ_p is ds*/dp (entries
 2nq..3nq: ds*/dq_N, the end position's). No ``end_hessian`` (NaN), no keep-out slots; the
 returned ``q`` ends at the data q_N, not at the slackened end.
 
@@ -414,6 +421,8 @@ class DmocTranscription:
         eqs.append(-end_momentum(qn, vn) + d2[n - 1](qs[n - 1], qs[n]) + f_half[n - 1] + react[n])
         if nc:
             eqs += [c(qs[k]) for k in range(1, n)]
+        if nc and shape.elastic:   # the slackened end stays on c(q) = 0 (module docstring)
+            eqs.append(c(qs[n]))
         slack = ca.SX.sym("slack", n * shape.keep_out_slots)
         keep_out = self._keep_out_rows(p[4 * nq:], qs, slack)
         # each interval's midpoint configuration, discrete velocity and control (built only
@@ -456,13 +465,13 @@ class DmocTranscription:
             row_upper = np.concatenate([free, path.upper, np.full(len(obstacle), np.inf),
                                         *([np.full(n * nu, np.inf), u_upper] if bounded
                                           else [])])
-            objective = ca.sum1(elastic)
+            objective = ca.dot(ca.DM(self._slack_weights(path)), elastic)
         else:
             elastic, objective = ca.SX.sym("elastic", 0), control_cost + penalty
         w = ca.vertcat(q_inner, u_all, lam, slack, elastic, planes)
         self.nw = w.numel()
         self.n_params = shape.n_params
-        n_eq = nq * (n + 1) + nc * (n - 1)
+        n_eq = nq * (n + 1) + nc * (n - 1 + bool(shape.elastic))
         self.n_path = path.count
         #: Inequality rows after the equations and keep-outs: the path rows, the obstacles'
         #: (elastic: each with its slack, as lower and upper rows, then the control bounds').
@@ -510,6 +519,19 @@ class DmocTranscription:
         self.path_rows = ca.Function("path", [w, p], [path.expr], ["w", "p"], ["c"])
         self.obstacle_rows = ca.Function("obstacle", [w, p], [ca.vertcat(*obstacle)],
                                          ["w", "p"], ["c"])
+
+    def _slack_weights(self, path: ConstraintRows) -> np.ndarray:
+        """The elastic cost's weight of each slack (module docstring): 1 per length unit of
+        the end position (a±), T per velocity unit of the end velocity (b±), 1 / (the
+        bound's size) per unit of a control bound's and a path row's slack (the size
+        max(|lo|, |hi|) over its finite bounds, 1 where that is 0)."""
+        nq, n = self.nq, self.n
+        ends = np.concatenate([np.ones(2 * nq), np.full(2 * nq, self.shape.duration)])
+        parts = [ends]
+        if self.shape.control_bounds is not None:
+            parts.append(np.tile(1 / _bound_sizes(self.u_lower, self.u_upper), n))
+        parts.append(1 / _bound_sizes(path.lower, path.upper))
+        return np.concatenate(parts)
 
     def _keep_out_rows(self, data: ca.SX, qs: list[ca.SX], slack: ca.SX) -> list[ca.SX]:
         """n·r(q) − b + σ at the free nodes q of each interval k, slot s (b the slot's offset
@@ -1073,6 +1095,14 @@ def _cheapest(success: Sequence[bool] | np.ndarray, costs: Sequence[float] | np.
     ``costs`` (the first of equal costs; 0 if none succeeded)."""
     ok = np.flatnonzero(np.asarray(success, bool))
     return int(ok[np.argmin(np.asarray(costs, float)[ok])]) if len(ok) else 0
+
+
+def _bound_sizes(lower: np.ndarray, upper: np.ndarray) -> np.ndarray:
+    """max(|lo|, |hi|) over the finite bounds of each entry (1 where that is 0): the size an
+    elastic slack of that bound is measured against."""
+    size = np.maximum(*(np.where(np.isfinite(b), np.abs(b), 0.0)
+                        for b in (np.asarray(lower, float), np.asarray(upper, float))))
+    return np.where(size > 0, size, 1.0)
 
 
 def _near(values: np.ndarray, lower: np.ndarray, upper: np.ndarray, tol: float) -> np.ndarray:
