@@ -224,8 +224,10 @@ def test_a_returned_path_inside_an_obstacle_is_not_converged(free):
 def test_the_inner_solve_keeps_the_cheaper_side(solver):
     """A disc just above the straight path from (0, 0) to (1, 0): the solve from the default
     guess tries both sides and keeps the cheaper, below it, whose cost is the smaller of the
-    independent NLP's from either side (to 1e-9); a warm start above it keeps its side.
-    Both the one-task solver and the batch (``sqpmethod``'s mapped call)."""
+    independent NLP's from either side (to 1e-9). A warm start below it (the straight path's
+    side) is solved from alone; one above it (the far side) with both sides too, so the
+    cheaper side still wins. Both the one-task solver and the batch (``sqpmethod``'s mapped
+    call)."""
     centre, radius = np.array([0.5, 0.1]), 0.3
     shape = DmocShape(PointMass(2), intervals=10, duration=1.0, solver=solver,
                       obstacles=(Sphere(tuple(centre), radius),))
@@ -239,11 +241,19 @@ def test_the_inner_solve_keeps_the_cheaper_side(solver):
     for solution in (one, batch):
         assert solution.success and solution.cost == pytest.approx(sides["left"], rel=1e-9)
         assert solution.q[1:-1, 1].max() < 0
-    above = np.column_stack([np.linspace(0, 1, 11), 0.5 * np.sin(np.linspace(0, np.pi, 11))])
-    warm = np.concatenate([above[1:-1].ravel(), np.zeros(20)])
-    kept = nlp.solve(params, warm)
-    assert kept.success and kept.cost == pytest.approx(sides["right"], rel=1e-9)
-    assert segment_distances(kept.q[None], centre).min() >= radius - 1e-9
+    arc = 0.5 * np.sin(np.linspace(0, np.pi, 11))
+    for sign, count in ((-1, 1), (1, 3)):   # below: the guess alone; above: and both sides
+        path = np.column_stack([np.linspace(0, 1, 11), sign * arc])
+        warm = np.concatenate([path[1:-1].ravel(), np.zeros(20)])
+        starts = nlp.start_guesses(warm, lambda: nlp.default_guess(params), params)
+        assert len(starts) == count
+        np.testing.assert_array_equal(starts[0, :38], warm)
+        kept = nlp.solve(params, warm)
+        (batch,) = solve_tasks([OcpTask(shape, params, warm_start=warm)])
+        for solution in (kept, batch):
+            assert solution.success and solution.cost == pytest.approx(sides["left"], rel=1e-9)
+            assert solution.q[1:-1, 1].max() < 0
+            assert segment_distances(solution.q[None], centre).min() >= radius - 1e-9
 
 
 @pytest.mark.parametrize(("solver", "dim"), [("ipopt", 2), ("ipopt", 3), ("sqpmethod", 2),

@@ -149,6 +149,7 @@ from ocpar.ocp.obstacles import (
     ellipsoids,
     guess_planes,
     obstacle_rows,
+    on_near_side,
     plane_multipliers,
     segment_rows,
     side_guesses,
@@ -303,6 +304,15 @@ class DmocShape:
         inequalities = (self.path_constraints or self.keep_out_slots or self.obstacles
                         or self.elastic)
         return "sqpmethod" if inequalities else "newton"
+
+    @property
+    def resolves_from_previous(self) -> bool:
+        """Whether an agent that re-solves this shape (a later superstep, its end moved)
+        starts from its previous solution (:func:`~ocpar.ocp.endpoint_agents.solve_agents`):
+        with ellipsoid obstacles, whose side a cold start finds by solving from each side
+        (:meth:`DmocTranscription.start_guesses`). Otherwise from the default guess, as
+        of old."""
+        return bool(ellipsoids(self.obstacles))
 
     @property
     def n_keep_out(self) -> int:
@@ -701,6 +711,28 @@ class DmocTranscription:
             rows.append(row)
         return np.array(rows)
 
+    def start_guesses(self, guess: np.ndarray | None, base: Callable[[], np.ndarray],
+                      params: np.ndarray) -> np.ndarray:
+        """The guesses (m, nw) a solve with ``params`` (n_params,) starts from. Without
+        ``guess``: each side of the ellipsoids the path of ``base()`` (nw,) enters
+        (:meth:`side_guesses`). With one (e.g. the agent's previous solution): the guess
+        (:meth:`full_guess`) alone where it passes every ellipsoid the path of ``base()``
+        enters on the side of that path's nearest point
+        (:func:`~ocpar.ocp.obstacles.on_near_side`), else the guess and then each side of
+        ``base()`` (the far side only where the guess is not on the near one)."""
+        if guess is None:
+            return self.side_guesses(base(), params)
+        warm = self.full_guess(guess, params)
+        if not self.n_planes:
+            return warm[None]
+        reference = base()
+        positions = list(self.shape.obstacle_positions)
+        q_base, _ = self.unpack(reference, params)
+        q_warm, _ = self.unpack(warm, params)
+        if on_near_side(self.shape.obstacles, q_base[:, positions], q_warm[:, positions]):
+            return warm[None]
+        return np.vstack([warm[None], self.side_guesses(reference, params)])
+
     def fallback_guesses(self, params: np.ndarray) -> Iterator[np.ndarray]:
         """The straight line from q_0 to q_N (projected onto the constraints, if any), zero
         controls and multipliers."""
@@ -753,11 +785,11 @@ class DmocTranscription:
 
     def solve(self, params: np.ndarray, guess: np.ndarray | None = None,
               multipliers: np.ndarray | None = None) -> DmocSolution:
-        """Solve for boundary data ``params`` from ``guess`` (default :meth:`default_guess`)
-        and constraint multipliers (default 0); a failed solve is returned, not raised."""
+        """Solve for boundary data ``params`` from ``guess`` (default :meth:`default_guess`;
+        with obstacles :meth:`start_guesses`, the cheapest kept) and constraint multipliers
+        (default 0); a failed solve is returned, not raised."""
         params = check_params(params, self.n_params, "DMOC")
-        x0 = self.side_guesses(self.default_guess(params), params) if guess is None \
-            else self.full_guess(guess, params)[None]
+        x0 = self.start_guesses(guess, lambda: self.default_guess(params), params)
         extra = {} if multipliers is None else {"lam_g0": multipliers}
         bounds = {"lbx": self.lbx, "ubx": self.ubx} if self.has_inequalities else {}
         calls = [self._checked(call_nlpsol(self.solver, x0=x, p=params, lbg=self.lbg,
@@ -906,8 +938,9 @@ class DmocTranscription:
     def _solve_segments(self, params: np.ndarray, guesses: list[np.ndarray | None],
                         multipliers: list[np.ndarray | None], free: Columns) -> Columns:
         """The tasks ``params`` (k, n_params) whose solutions without obstacles ``free`` do
-        not clear them: from each side of the obstacles the free path enters (a task without
-        a guess; :meth:`side_guesses`) or from its guess, solved together by
+        not clear them: from :meth:`start_guesses` (the free path, or the default guess where
+        the free solve failed, as the base: each side of the obstacles it enters, or the
+        task's guess and, where that passes on the far side, both sides), solved together by
         :attr:`segment_nlp`, each task's cheapest kept, lifted to this NLP (the planes
         :func:`~ocpar.ocp.obstacles.canonical_planes`, the multipliers
         :func:`~ocpar.ocp.obstacles.plane_multipliers`) and accepted where it meets this
@@ -922,12 +955,10 @@ class DmocTranscription:
         solved = np.asarray(free.column("success"), bool)
         rows, owner, lams = [], [], []
         for i in range(k):
-            if guesses[i] is not None:
-                sides = self.full_guess(guesses[i], params[i])[None]
-            else:
-                base = self.default_guess(params[i]) if not solved[i] else self.full_guess(
+            def base(i: int = i) -> np.ndarray:
+                return self.default_guess(params[i]) if not solved[i] else self.full_guess(
                     np.concatenate([q_free[i, 1:-1].ravel(), u_free[i].ravel()]), params[i])
-                sides = self.side_guesses(base, params[i])
+            sides = self.start_guesses(guesses[i], base, params[i])
             rows.append(sides[:, :n_free])
             owner += [i] * len(sides)
             lam = np.zeros(len(lbg))
