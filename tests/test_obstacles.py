@@ -17,6 +17,7 @@ from conftest import run_cli
 
 import ocpar
 from ocpar.bsp import open_backend
+from ocpar.bsp.columns import LISTED, SHARED, STACKED
 from ocpar.bsp.serial import SerialBackend
 from ocpar.examples import formation_mixed_fleet
 from ocpar.examples.formation_obstacle import make
@@ -25,7 +26,8 @@ from ocpar.formation.hierarchical import OuterObjective
 from ocpar.formation.solve import obstacle_check
 from ocpar.models import PointMass
 from ocpar.ocp import DmocShape, OcpTask, dmoc_problem, solve_tasks
-from ocpar.ocp.obstacles import plane_multipliers, segment_rows
+from ocpar.ocp.endpoint_agents import _from_previous, agent_tasks
+from ocpar.ocp.obstacles import HalfSpace, plane_multipliers, segment_rows
 
 CENTRE_2D, RADIUS = np.array([1.0, 3.0]), 0.8
 
@@ -333,7 +335,8 @@ def test_the_3d_fleet_past_its_ball_is_solved_in_batches_as_ipopt_solves_it(flee
     formation (cost to 1e-9 relative, angles to 1e-7), every continuous path clears the ball
     (closed-form segment distances) and it binds; at the optimum every inner solution equals
     IPOPT's (cost, dJ*/dp, d²J*/dq_N²), none of them by IPOPT (one attempt, no IPOPT
-    iterations: −1 from the mapped sqpmethod, 1 Newton step)."""
+    iterations: −1 from the mapped sqpmethod, 1 Newton step), and so are the run's own
+    (warm-started) agents' costs."""
     problem, results = fleet_3d
     batched, ipopt = results[None], results["ipopt"]
     assert batched.status == ipopt.status == "converged", batched.message
@@ -354,6 +357,9 @@ def test_the_3d_fleet_past_its_ball_is_solved_in_batches_as_ipopt_solves_it(flee
         np.testing.assert_allclose(a.cost_gradient, b.cost_gradient, rtol=1e-6, atol=1e-8)
         np.testing.assert_allclose(a.end_hessian, b.end_hessian, rtol=1e-5, atol=1e-7)
     assert {mine[i].iterations for i in binding} == {-1}
+    # the run's agents re-solved from their previous paths and sides (the far side tried in
+    # their first solve only): their last costs are the cold solves' from both sides
+    np.testing.assert_allclose(batched.agent_costs, [b.cost for b in theirs], rtol=1e-9)
 
 
 def test_without_obstacles_the_nlp_is_the_one_of_old():
@@ -388,3 +394,28 @@ def test_serial_mpi_and_dask_agree_bit_for_bit(tmp_path, hierarchical):
     sides = {1: "left", -1: "right", 0: None}
     assert [[sides[int(s)] for s in row] for row in arrays["obstacle_side"].values] == \
         hierarchical.obstacle_sides
+
+
+def test_only_agents_with_ellipsoids_re_solve_from_their_previous_solution():
+    """An agent's inner task starts from its previous solution where its shape has an
+    ellipsoid (and that solution is finite); elsewhere from the default guess with the
+    previous solution as its fallback, as without obstacles of old."""
+    plain = DmocShape(PointMass(2), intervals=10)
+    ball = DmocShape(PointMass(2), intervals=10, obstacles=(Sphere((1.0, 3.0), 0.8),))
+    wall = DmocShape(PointMass(2), intervals=10, obstacles=(HalfSpace((0.0, 1.0), -5.0),))
+    assert (plain.resolves_from_previous, ball.resolves_from_previous,
+            wall.resolves_from_previous) == (False, True, False)
+    previous = np.arange(12.0).reshape(3, 4)
+    previous[2, 1] = np.nan
+    fallback = (STACKED, previous)
+
+    def columns(*shapes):
+        return agent_tasks(shapes[0] if len(shapes) == 1 else list(shapes), 2,
+                           end=np.zeros((3, 2)))
+
+    assert _from_previous(columns(plain), previous, fallback) == ((SHARED, None), fallback)
+    warm, back = _from_previous(columns(ball, plain, ball), previous, fallback)
+    assert warm[0] == back[0] == LISTED
+    assert [None if w is None else w.tolist() for w in warm[1]] == [
+        previous[0].tolist(), None, None]   # the third agent's previous solve failed
+    assert [b is None for b in back[1]] == [True, False, False]
