@@ -419,3 +419,40 @@ def test_only_agents_with_ellipsoids_re_solve_from_their_previous_solution():
     assert [None if w is None else w.tolist() for w in warm[1]] == [
         previous[0].tolist(), None, None]   # the third agent's previous solve failed
     assert [b is None for b in back[1]] == [True, False, False]
+
+
+def test_the_far_side_bound_is_the_least_cost_of_reaching_the_far_half_plane():
+    """The bound that skips the far side: for the disc just above the straight path from
+    (0, 0) to (1, 0), every path with a node at y ≥ 0.4 (the far half-plane d·(q − c) ≤ −r,
+    d = (0, −1)) costs at least the least over the inner nodes k of the unconstrained DMOC
+    optimum with q_k,y ≥ 0.4, each written and solved here by IPOPT; the bound equals it
+    (1e-8), lies below the far side's optimum and above the near side's, so the batch solves
+    the near side alone and still returns the cheaper side."""
+    centre, radius, n, h = np.array([0.5, 0.1]), 0.3, 10, 0.1
+    shape = DmocShape(PointMass(2), intervals=n, duration=1.0, solver="sqpmethod",
+                      obstacles=(Sphere(tuple(centre), radius),))
+    params = np.array([0.0, 0, 0, 0, 1, 0, 0, 0])
+    nlp = dmoc_problem(shape)
+    (bound,) = nlp._far_bounds(params[None], [((0, np.array([0.0, -1.0])),)])
+    inner, u = ca.SX.sym("q", n - 1, 2), ca.SX.sym("u", n, 2)
+    nodes = [ca.DM([[0.0, 0.0]])] + [inner[k, :] for k in range(n - 1)] + [ca.DM([[1.0, 0.0]])]
+    eqs = [-(nodes[1] - nodes[0]) / h + h / 2 * u[0, :]]
+    eqs += [(nodes[k] - nodes[k - 1]) / h - (nodes[k + 1] - nodes[k]) / h
+            + h / 2 * (u[k - 1, :] + u[k, :]) for k in range(1, n)]
+    eqs.append((nodes[n] - nodes[n - 1]) / h + h / 2 * u[n - 1, :])
+    x = ca.vertcat(ca.vec(inner), ca.vec(u))
+    least = np.inf
+    for k in range(n - 1):
+        g = ca.vertcat(*[e.T for e in eqs], inner[k, 1])
+        solver = ca.nlpsol("reach", "ipopt", {"x": x, "f": h * ca.sumsqr(u), "g": g},
+                           {"ipopt.tol": 1e-12, "ipopt.print_level": 0, "print_time": False,
+                            "ipopt.bound_relax_factor": 0.0})
+        out = solver(x0=np.zeros(x.numel()), lbg=np.r_[np.zeros(2 * (n + 1)), 0.4],
+                     ubg=np.r_[np.zeros(2 * (n + 1)), np.inf])
+        least = min(least, float(out["f"]))
+    assert bound == pytest.approx(least, rel=1e-8)
+    sides = {side: independent_cost(np.zeros(2), np.array([1.0, 0.0]), centre, radius, side)
+             for side in ("left", "right")}
+    assert sides["left"] < bound <= sides["right"]
+    (solution,) = solve_tasks([OcpTask(shape, params)])
+    assert solution.success and solution.cost == pytest.approx(sides["left"], rel=1e-9)
