@@ -736,7 +736,9 @@ class DmocTranscription:
         (:meth:`full_guess`) alone where it passes every ellipsoid the path of ``base()``
         enters on the side of that path's nearest point
         (:func:`~ocpar.ocp.obstacles.on_near_side`), else the guess and then each side of
-        ``base()`` (the far side only where the guess is not on the near one)."""
+        ``base()`` (the far side only where the guess is not on the near one). A batch
+        solves the far ones only where they can be cheaper (:meth:`_in_two_rounds`); IPOPT
+        (:meth:`solve`) all of them."""
         return self._candidates(guess, base, params)[0]
 
     def _candidates(self, guess: np.ndarray | None, base: Callable[[], np.ndarray],
