@@ -12,8 +12,8 @@ attempts: 1 + nq + d² numbers and three small ones). The agent's :class:`AgentS
 on its worker: the solution is the next solve's fallback start (the failure policy of
 :func:`~ocpar.ocp.solve_tasks`), or, for a shape with ellipsoid obstacles
 (:attr:`~ocpar.ocp.DmocShape.resolves_from_previous`), its first guess: the agent re-solves
-from its previous path and side, the other side tried only where the path without obstacles
-now passes on it (:meth:`~ocpar.ocp.DmocTranscription.start_guesses`); gathered by the
+from its previous path and side, the other side tried only where it can be cheaper
+(:meth:`~ocpar.ocp.DmocTranscription.start_guesses`); gathered by the
 coordinator once, at the end. The solves are
 those of sending everything out and back each superstep, bit for bit.
 
