@@ -17,13 +17,16 @@ largest relative cost difference against IPOPT, the tasks that needed the fallba
 With obstacles (``--obstacles``, or ``--only-obstacles`` for them alone): the mixed fleet
 with its ball (radius 2.5) in 2-D and in 3-D (``formation_mixed_fleet.make(dim=3)``), free,
 box- and norm-limited, at the initial angles and at the formation's optimum (where the ball
-binds for more agents), per agent in one chunk: ``batched`` (each shape's own solver, as a run
-solves them), ``batched, no obstacle`` (the same tasks without the ball: the unconstrained
-batched solve) and ``ipopt`` (every shape's solver ``ipopt``), ``--repeat`` times in turn;
-each with the tasks whose path the ball binds (a segment within 1e-6 of it at the IPOPT
-optimum) and the largest relative cost difference against IPOPT; and the whole formation
-solve (``solve_formation``, serial, once compiled), batched and by IPOPT, ``--repeat`` times
-(median s). Written to ``obstacles`` in the JSON and ``inner_solvers_obstacles.png``.
+binds for more agents), per agent in one chunk: ``batched`` (each shape's own solver, from
+the default guess: an agent's first solve), ``batched, warm`` (the same, each task started
+from its solution at angles moved by :data:`WARM_STEP`: a later superstep's re-solve),
+``batched, no obstacle`` (the same tasks without the ball: the unconstrained batched solve)
+and ``ipopt`` (every shape's solver ``ipopt``), ``--repeat`` times in turn; each with the
+tasks whose path the ball binds (a segment within 1e-6 of it at the IPOPT optimum) and the
+largest relative cost difference against IPOPT; and the whole formation solve
+(``solve_formation``, serial, once compiled), batched, batched without the ball and by
+IPOPT, ``--repeat`` times (median s, and per inner solve: that over the run's inner
+solves). Written to ``obstacles`` in the JSON and ``inner_solvers_obstacles.png``.
 """
 
 from __future__ import annotations
@@ -61,6 +64,9 @@ def tasks_with(problem, solver: str) -> list | None:
         return None
 
 
+#: The warm chunk's tasks start from the solutions at the angles moved by this (rad): a later
+#: superstep's re-solve (each agent from its previous path and side).
+WARM_STEP = 1e-3
 #: The fleet with its ball: (dimension, thrust limit).
 OBSTACLE_CASES = [(dim, limit) for dim in (3, 2) for limit in (None, "box", "norm")]
 
@@ -83,24 +89,38 @@ def obstacle_report(repeat: int) -> dict:
     for dim, limit in OBSTACLE_CASES:
         problem = formation_mixed_fleet.make(limit=limit, obstacle=2.5, dim=dim)
         optimum = solve_formation(problem).phi
-        whole: dict[str, list[float]] = {"batched": [], "ipopt": []}
-        options = {"batched": FormationOptions(), "ipopt": FormationOptions(inner_solver="ipopt")}
-        costs = {name: solve_formation(problem, options=o).total_cost   # builds
-                 for name, o in options.items()}
+        runs = {"batched": (problem, FormationOptions()),
+                "batched, no obstacle": (formation_mixed_fleet.make(limit=limit, dim=dim),
+                                         FormationOptions()),
+                "ipopt": (problem, FormationOptions(inner_solver="ipopt"))}
+        whole: dict[str, list[float]] = {name: [] for name in runs}
+        results = {name: solve_formation(p, options=o) for name, (p, o) in runs.items()}  # builds
         for _ in range(repeat):
-            for name, o in options.items():
+            for name, (p, o) in runs.items():
                 start = time.perf_counter()
-                solve_formation(problem, options=o)
+                solve_formation(p, options=o)
                 whole[name].append(time.perf_counter() - start)
         label = f"{dim}-D fleet, {limit or 'free'}, whole run"
-        report[label] = {"s": {name: statistics.median(t) for name, t in whole.items()},
-                         "total_cost": costs}
-        print(f"{label:45s} batched {report[label]['s']['batched']:.3f} s  ipopt "
-              f"{report[label]['s']['ipopt']:.3f} s  cost {costs['batched']:.10f} / "
-              f"{costs['ipopt']:.10f}", flush=True)
+        seconds = {name: statistics.median(t) for name, t in whole.items()}
+        solves = {name: r.inner_solves for name, r in results.items()}
+        per_solve = {name: seconds[name] / solves[name] * 1e3 for name in runs}
+        report[label] = {"s": seconds, "inner_solves": solves, "ms_per_agent_solve": per_solve,
+                         "batched / no obstacle": per_solve["batched"]
+                         / per_solve["batched, no obstacle"],
+                         "total_cost": {name: r.total_cost for name, r in results.items()}}
+        print(f"{label:45s} " + "  ".join(
+            f"{name} {seconds[name]:.3f} s ({solves[name]} solves, {per_solve[name]:.3f} ms "
+            f"each)" for name in runs) + f"  batched/no obstacle per solve "
+            f"{report[label]['batched / no obstacle']:.2f}x  cost "
+            f"{results['batched'].total_cost:.10f} / {results['ipopt'].total_cost:.10f}",
+            flush=True)
         for where, phi in (("initial", problem.initial_phi()), ("optimum", optimum)):
             tasks = problem.tasks(phi).items()
+            near = solve_tasks(with_solver(problem.tasks(phi + WARM_STEP).items(), None))
             chunks = {"batched": with_solver(tasks, None),
+                      "batched, warm": [dataclasses.replace(t, warm_start=np.concatenate(
+                          [s.q[1:-1].ravel(), s.u.ravel()]))
+                          for t, s in zip(with_solver(tasks, None), near, strict=True)],
                       "batched, no obstacle": with_solver(tasks, None, obstacles=False),
                       "ipopt": with_solver(tasks, "ipopt")}
             solutions = {name: solve_tasks(chunk) for name, chunk in chunks.items()}  # builds
@@ -125,6 +145,8 @@ def obstacle_report(repeat: int) -> dict:
             row = report[label]
             ratio = row["batched"]["ms_per_agent"] / row["batched, no obstacle"]["ms_per_agent"]
             row["batched / no obstacle"] = ratio
+            row["batched, warm / no obstacle"] = (row["batched, warm"]["ms_per_agent"]
+                                                  / row["batched, no obstacle"]["ms_per_agent"])
             print(f"{label:45s} " + "  ".join(
                 f"{name} {r['ms_per_agent']:.4f} ms" for name, r in row.items()
                 if isinstance(r, dict)) + f"  batched/no obstacle {ratio:.1f}x  cost vs IPOPT "

@@ -17,6 +17,7 @@ from conftest import run_cli
 
 import ocpar
 from ocpar.bsp import open_backend
+from ocpar.bsp.columns import LISTED, SHARED, STACKED
 from ocpar.bsp.serial import SerialBackend
 from ocpar.examples import formation_mixed_fleet
 from ocpar.examples.formation_obstacle import make
@@ -25,7 +26,8 @@ from ocpar.formation.hierarchical import OuterObjective
 from ocpar.formation.solve import obstacle_check
 from ocpar.models import PointMass
 from ocpar.ocp import DmocShape, OcpTask, dmoc_problem, solve_tasks
-from ocpar.ocp.obstacles import plane_multipliers, segment_rows
+from ocpar.ocp.endpoint_agents import _from_previous, agent_tasks
+from ocpar.ocp.obstacles import HalfSpace, plane_multipliers, segment_rows
 
 CENTRE_2D, RADIUS = np.array([1.0, 3.0]), 0.8
 
@@ -224,8 +226,10 @@ def test_a_returned_path_inside_an_obstacle_is_not_converged(free):
 def test_the_inner_solve_keeps_the_cheaper_side(solver):
     """A disc just above the straight path from (0, 0) to (1, 0): the solve from the default
     guess tries both sides and keeps the cheaper, below it, whose cost is the smaller of the
-    independent NLP's from either side (to 1e-9); a warm start above it keeps its side.
-    Both the one-task solver and the batch (``sqpmethod``'s mapped call)."""
+    independent NLP's from either side (to 1e-9). A warm start below it (the straight path's
+    side) is solved from alone; one above it (the far side) with both sides too, so the
+    cheaper side still wins. Both the one-task solver and the batch (``sqpmethod``'s mapped
+    call)."""
     centre, radius = np.array([0.5, 0.1]), 0.3
     shape = DmocShape(PointMass(2), intervals=10, duration=1.0, solver=solver,
                       obstacles=(Sphere(tuple(centre), radius),))
@@ -239,11 +243,19 @@ def test_the_inner_solve_keeps_the_cheaper_side(solver):
     for solution in (one, batch):
         assert solution.success and solution.cost == pytest.approx(sides["left"], rel=1e-9)
         assert solution.q[1:-1, 1].max() < 0
-    above = np.column_stack([np.linspace(0, 1, 11), 0.5 * np.sin(np.linspace(0, np.pi, 11))])
-    warm = np.concatenate([above[1:-1].ravel(), np.zeros(20)])
-    kept = nlp.solve(params, warm)
-    assert kept.success and kept.cost == pytest.approx(sides["right"], rel=1e-9)
-    assert segment_distances(kept.q[None], centre).min() >= radius - 1e-9
+    arc = 0.5 * np.sin(np.linspace(0, np.pi, 11))
+    for sign, count in ((-1, 1), (1, 3)):   # below: the guess alone; above: and both sides
+        path = np.column_stack([np.linspace(0, 1, 11), sign * arc])
+        warm = np.concatenate([path[1:-1].ravel(), np.zeros(20)])
+        starts = nlp.start_guesses(warm, lambda: nlp.default_guess(params), params)
+        assert len(starts) == count
+        np.testing.assert_array_equal(starts[0, :38], warm)
+        kept = nlp.solve(params, warm)
+        (batch,) = solve_tasks([OcpTask(shape, params, warm_start=warm)])
+        for solution in (kept, batch):
+            assert solution.success and solution.cost == pytest.approx(sides["left"], rel=1e-9)
+            assert solution.q[1:-1, 1].max() < 0
+            assert segment_distances(solution.q[None], centre).min() >= radius - 1e-9
 
 
 @pytest.mark.parametrize(("solver", "dim"), [("ipopt", 2), ("ipopt", 3), ("sqpmethod", 2),
@@ -323,7 +335,8 @@ def test_the_3d_fleet_past_its_ball_is_solved_in_batches_as_ipopt_solves_it(flee
     formation (cost to 1e-9 relative, angles to 1e-7), every continuous path clears the ball
     (closed-form segment distances) and it binds; at the optimum every inner solution equals
     IPOPT's (cost, dJ*/dp, d²J*/dq_N²), none of them by IPOPT (one attempt, no IPOPT
-    iterations: −1 from the mapped sqpmethod, 1 Newton step)."""
+    iterations: −1 from the mapped sqpmethod, 1 Newton step), and so are the run's own
+    (warm-started) agents' costs."""
     problem, results = fleet_3d
     batched, ipopt = results[None], results["ipopt"]
     assert batched.status == ipopt.status == "converged", batched.message
@@ -344,6 +357,9 @@ def test_the_3d_fleet_past_its_ball_is_solved_in_batches_as_ipopt_solves_it(flee
         np.testing.assert_allclose(a.cost_gradient, b.cost_gradient, rtol=1e-6, atol=1e-8)
         np.testing.assert_allclose(a.end_hessian, b.end_hessian, rtol=1e-5, atol=1e-7)
     assert {mine[i].iterations for i in binding} == {-1}
+    # the run's agents re-solved from their previous paths and sides (the far side tried in
+    # their first solve only): their last costs are the cold solves' from both sides
+    np.testing.assert_allclose(batched.agent_costs, [b.cost for b in theirs], rtol=1e-9)
 
 
 def test_without_obstacles_the_nlp_is_the_one_of_old():
@@ -378,3 +394,65 @@ def test_serial_mpi_and_dask_agree_bit_for_bit(tmp_path, hierarchical):
     sides = {1: "left", -1: "right", 0: None}
     assert [[sides[int(s)] for s in row] for row in arrays["obstacle_side"].values] == \
         hierarchical.obstacle_sides
+
+
+def test_only_agents_with_ellipsoids_re_solve_from_their_previous_solution():
+    """An agent's inner task starts from its previous solution where its shape has an
+    ellipsoid (and that solution is finite); elsewhere from the default guess with the
+    previous solution as its fallback, as without obstacles of old."""
+    plain = DmocShape(PointMass(2), intervals=10)
+    ball = DmocShape(PointMass(2), intervals=10, obstacles=(Sphere((1.0, 3.0), 0.8),))
+    wall = DmocShape(PointMass(2), intervals=10, obstacles=(HalfSpace((0.0, 1.0), -5.0),))
+    assert (plain.resolves_from_previous, ball.resolves_from_previous,
+            wall.resolves_from_previous) == (False, True, False)
+    previous = np.arange(12.0).reshape(3, 4)
+    previous[2, 1] = np.nan
+    fallback = (STACKED, previous)
+
+    def columns(*shapes):
+        return agent_tasks(shapes[0] if len(shapes) == 1 else list(shapes), 2,
+                           end=np.zeros((3, 2)))
+
+    assert _from_previous(columns(plain), previous, fallback) == ((SHARED, None), fallback)
+    warm, back = _from_previous(columns(ball, plain, ball), previous, fallback)
+    assert warm[0] == back[0] == LISTED
+    assert [None if w is None else w.tolist() for w in warm[1]] == [
+        previous[0].tolist(), None, None]   # the third agent's previous solve failed
+    assert [b is None for b in back[1]] == [True, False, False]
+
+
+def test_the_far_side_bound_is_the_least_cost_of_reaching_the_far_half_plane():
+    """The bound that skips the far side: for the disc just above the straight path from
+    (0, 0) to (1, 0), every path with a node at y ≥ 0.4 (the far half-plane d·(q − c) ≤ −r,
+    d = (0, −1)) costs at least the least over the inner nodes k of the unconstrained DMOC
+    optimum with q_k,y ≥ 0.4, each written and solved here by IPOPT; the bound equals it
+    (1e-8), lies below the far side's optimum and above the near side's, so the batch solves
+    the near side alone and still returns the cheaper side."""
+    centre, radius, n, h = np.array([0.5, 0.1]), 0.3, 10, 0.1
+    shape = DmocShape(PointMass(2), intervals=n, duration=1.0, solver="sqpmethod",
+                      obstacles=(Sphere(tuple(centre), radius),))
+    params = np.array([0.0, 0, 0, 0, 1, 0, 0, 0])
+    nlp = dmoc_problem(shape)
+    (bound,) = nlp._far_bounds(params[None], [((0, np.array([0.0, -1.0])),)])
+    inner, u = ca.SX.sym("q", n - 1, 2), ca.SX.sym("u", n, 2)
+    nodes = [ca.DM([[0.0, 0.0]])] + [inner[k, :] for k in range(n - 1)] + [ca.DM([[1.0, 0.0]])]
+    eqs = [-(nodes[1] - nodes[0]) / h + h / 2 * u[0, :]]
+    eqs += [(nodes[k] - nodes[k - 1]) / h - (nodes[k + 1] - nodes[k]) / h
+            + h / 2 * (u[k - 1, :] + u[k, :]) for k in range(1, n)]
+    eqs.append((nodes[n] - nodes[n - 1]) / h + h / 2 * u[n - 1, :])
+    x = ca.vertcat(ca.vec(inner), ca.vec(u))
+    least = np.inf
+    for k in range(n - 1):
+        g = ca.vertcat(*[e.T for e in eqs], inner[k, 1])
+        solver = ca.nlpsol("reach", "ipopt", {"x": x, "f": h * ca.sumsqr(u), "g": g},
+                           {"ipopt.tol": 1e-12, "ipopt.print_level": 0, "print_time": False,
+                            "ipopt.bound_relax_factor": 0.0})
+        out = solver(x0=np.zeros(x.numel()), lbg=np.r_[np.zeros(2 * (n + 1)), 0.4],
+                     ubg=np.r_[np.zeros(2 * (n + 1)), np.inf])
+        least = min(least, float(out["f"]))
+    assert bound == pytest.approx(least, rel=1e-8)
+    sides = {side: independent_cost(np.zeros(2), np.array([1.0, 0.0]), centre, radius, side)
+             for side in ("left", "right")}
+    assert sides["left"] < bound <= sides["right"]
+    (solution,) = solve_tasks([OcpTask(shape, params)])
+    assert solution.success and solution.cost == pytest.approx(sides["left"], rel=1e-9)

@@ -132,7 +132,15 @@ import numpy as np
 
 from ocpar.bsp.columns import LISTED, SHARED, STACKED, VALUES, Columns, to_columns
 from ocpar.models.mechanical import MechanicalSystem
-from ocpar.ocp.batch import AUTO_SOLVER, SOLVERS, KktNewton, MappedNlp, kkt_met, kkt_residuals
+from ocpar.ocp.batch import (
+    AUTO_SOLVER,
+    SOLVERS,
+    BatchSolve,
+    KktNewton,
+    MappedNlp,
+    kkt_met,
+    kkt_residuals,
+)
 from ocpar.ocp.constraints import (
     CompiledConstraint,
     CompiledFunction,
@@ -150,12 +158,15 @@ from ocpar.ocp.contract import (
 )
 from ocpar.ocp.ipopt import ipopt_options
 from ocpar.ocp.obstacles import (
+    SIDE_OBSTACLES,
     Obstacle,
     canonical_planes,
     check_obstacles,
     ellipsoids,
+    entered,
     guess_planes,
     obstacle_rows,
+    on_near_side,
     plane_multipliers,
     segment_rows,
     side_guesses,
@@ -175,6 +186,13 @@ NEWTON_ROUNDS = 8
 #: them fails (its other sides, or IPOPT, answer).
 SEGMENT_MAX_ITER = 50
 SEGMENT_QP_MAX_ITER = 100
+#: The segment rows' ``sqpmethod`` stops at ``kkt_tol`` times this (its answers are still
+#: accepted by the KKT check at ``kkt_tol``): started from an agent's previous solution
+#: (:meth:`DmocTranscription.start_guesses`) it would stop at its first iterate within
+#: ``kkt_tol``, ~1e-10 off, where a cold start's last step lands at rounding; the outer
+#: Newton's test (1e-12 on the summed gradient) then took two more supersteps on the 2-D
+#: fleet. Below rounding, it stops when its steps vanish: ~5–10 % more time per warm solve.
+SEGMENT_TOL_FACTOR = 1e-5
 
 #: Offset b of an unused keep-out slot (with normal 0: the row 0 ≥ b is never active).
 UNUSED_OFFSET = -1.0
@@ -310,6 +328,15 @@ class DmocShape:
         inequalities = (self.path_constraints or self.keep_out_slots or self.obstacles
                         or self.elastic)
         return "sqpmethod" if inequalities else "newton"
+
+    @property
+    def resolves_from_previous(self) -> bool:
+        """Whether an agent that re-solves this shape (a later superstep, its end moved)
+        starts from its previous solution (:func:`~ocpar.ocp.endpoint_agents.solve_agents`):
+        with ellipsoid obstacles, whose side a cold start finds by solving from each side
+        (:meth:`DmocTranscription.start_guesses`). Otherwise from the default guess, as
+        of old."""
+        return bool(ellipsoids(self.obstacles))
 
     @property
     def n_keep_out(self) -> int:
@@ -723,6 +750,124 @@ class DmocTranscription:
             rows.append(row)
         return np.array(rows)
 
+    def start_guesses(self, guess: np.ndarray | None, base: Callable[[], np.ndarray],
+                      params: np.ndarray) -> np.ndarray:
+        """The guesses (m, nw) a solve with ``params`` (n_params,) starts from. Without
+        ``guess``: each side of the ellipsoids the path of ``base()`` (nw,) enters
+        (:meth:`side_guesses`). With one (e.g. the agent's previous solution): the guess
+        (:meth:`full_guess`) alone where it passes every ellipsoid the path of ``base()``
+        enters on the side of that path's nearest point
+        (:func:`~ocpar.ocp.obstacles.on_near_side`), else the guess and then each side of
+        ``base()`` (the far side only where the guess is not on the near one). A batch
+        solves the far ones only where they can be cheaper (:meth:`_in_two_rounds`); IPOPT
+        (:meth:`solve`) all of them."""
+        return self._candidates(guess, base, params)[0]
+
+    def _candidates(self, guess: np.ndarray | None, base: Callable[[], np.ndarray],
+                    params: np.ndarray) -> tuple[np.ndarray, list[tuple[tuple[int, np.ndarray],
+                                                                        ...]]]:
+        """:meth:`start_guesses` and, for each, the ellipsoids it passes on the far side of
+        the path of ``base()``: (index among the ellipsoids, the unit direction (d,) in the
+        scaled space of that path's point nearest the centre) pairs, () on the near side."""
+        if guess is not None:
+            warm = self.full_guess(guess, params)
+            if not self.n_planes:
+                return warm[None], [()]
+        reference = base()
+        if not self.n_planes:
+            return self.side_guesses(reference, params), [()]
+        positions = list(self.shape.obstacle_positions)
+        q_base, _ = self.unpack(reference, params)
+        hits = entered(self.shape.obstacles, q_base[:, positions])
+        signs = list(itertools.product((1.0, -1.0), repeat=min(len(hits), SIDE_OBSTACLES)))
+        far = [tuple(hit for hit, sign in zip(hits, row, strict=False) if sign < 0)
+               for row in signs] if hits else [()]
+        if guess is None:
+            return self.side_guesses(reference, params), far
+        q_warm, _ = self.unpack(warm, params)
+        if on_near_side(self.shape.obstacles, q_base[:, positions], q_warm[:, positions]):
+            return warm[None], [()]
+        balls = ellipsoids(self.shape.obstacles)
+        warm_far = tuple((e, d) for e, d in hits if not on_near_side(
+            (balls[e],), q_base[:, positions], q_warm[:, positions]))
+        return (np.vstack([warm[None], self.side_guesses(reference, params)]),
+                [warm_far, *far])
+
+    @cached_property
+    def _quadratic_core(self) -> tuple[DmocTranscription, np.ndarray] | None:
+        """Where this shape's NLP without obstacles, control bounds and path constraints is
+        a QP with constant Hessian H and constraint Jacobian A in w (linear dynamics and a
+        quadratic cost: point masses): its transcription and the blocks (N−1, d, d) of
+        M = the w block of [[H, Aᵀ], [A, 0]]⁻¹ at each inner node's obstacle positions. On
+        that NLP's feasible set J(w) = J* + ½ (w − w*)ᵀ H (w − w*), so the least cost with
+        a linear row aᵀw ≤ aᵀw* − γ (γ > 0) is J* + γ² / (2 aᵀ M a), and the limits and the
+        obstacles only add constraints (:meth:`_far_bounds`). None otherwise (also elastic
+        or keep-out shapes)."""
+        shape = self.shape
+        if not self.n_planes or shape.elastic or shape.keep_out_slots:
+            return None
+        core = transcription(dataclasses.replace(
+            shape, obstacles=(), obstacle_positions=(), control_bounds=None,
+            path_constraints=(), solver=AUTO_SOLVER))
+        w, p = core._w, core._p   # type: ignore[attr-defined]
+        cost, rows = core.cost(w, p), core.constraints(w, p)  # type: ignore[attr-defined]
+        try:
+            if not (ca.is_quadratic(cost, w) and ca.is_linear(rows, w)):
+                return None
+        except RuntimeError:
+            return None
+        hessian, jacobian = ca.hessian(cost, w)[0], ca.jacobian(rows, w)
+        if ca.depends_on(hessian, p) or ca.depends_on(jacobian, p):
+            return None
+        matrices = ca.Function("qp", [w, p], [hessian, jacobian])(np.zeros(w.numel()),
+                                                                 np.zeros(p.numel()))
+        h, a = (np.asarray(m, float) for m in matrices)
+        nw, ng = h.shape[0], a.shape[0]
+        try:
+            inverse = np.linalg.inv(np.block([[h, a.T], [a, np.zeros((ng, ng))]]))[:nw, :nw]
+        except np.linalg.LinAlgError:
+            return None
+        index = [[k * self.nq + i for i in shape.obstacle_positions] for k in range(self.n - 1)]
+        return core, np.stack([inverse[np.ix_(rows_k, rows_k)] for rows_k in index])  # type: ignore[return-value]
+
+    def _far_bounds(self, params: np.ndarray,
+                    far: list[tuple[tuple[int, np.ndarray], ...]]) -> np.ndarray:
+        """Lower bounds (m,) on the cost of every path (limits and obstacles included) that
+        reaches, at a node, the far half-space {y : d·y ≤ −1} (scaled) of one of the
+        ellipsoids ``far[j]`` names (pairs (e, d) of :meth:`_candidates`), with ``params``
+        (m, n_params): the largest over those ellipsoids of J* + min_k max(γ_k, 0)² /
+        (2 bᵀ M_k b), γ_k = 1 + d·y(q*_k) at the optimum q* of :attr:`_quadratic_core`
+        (boundary nodes fixed: a boundary node there gives J*), b = Aᵀ_e d. −inf where the
+        shape has no such core or it fails."""
+        bounds = np.full(len(params), -np.inf)
+        core = self._quadratic_core
+        if core is None or not len(params):
+            return bounds
+        nlp, blocks = core
+        solved = nlp.solve_batch(params, [None] * len(params), [None] * len(params))
+        if solved is None:
+            return bounds
+        ok = np.asarray(solved.column("success"), bool)
+        costs, q = np.asarray(solved.column("cost"), float), np.asarray(solved.column("q"))
+        positions = q[..., list(self.shape.obstacle_positions)]
+        balls = ellipsoids(self.shape.obstacles)
+        for j, hits in enumerate(far):
+            if not ok[j] or not hits:
+                continue
+            best = -np.inf
+            for e, d in hits:
+                ball = balls[e]
+                gap = 1.0 + ball.scaled(positions[j]) @ d    # (N+1,)
+                if np.any(gap[[0, -1]] <= 0):
+                    best = max(best, costs[j])
+                    continue
+                b = ball.matrix.T @ d
+                spread = np.einsum("i,kij,j->k", b, blocks, b)
+                inner = np.maximum(gap[1:-1], 0.0)
+                best = max(best, costs[j] + float(np.min(inner**2 / (2 * spread))))
+            bounds[j] = best
+        return bounds
+
     def fallback_guesses(self, params: np.ndarray) -> Iterator[np.ndarray]:
         """The straight line from q_0 to q_N (projected onto the constraints, if any), zero
         controls and multipliers."""
@@ -775,11 +920,11 @@ class DmocTranscription:
 
     def solve(self, params: np.ndarray, guess: np.ndarray | None = None,
               multipliers: np.ndarray | None = None) -> DmocSolution:
-        """Solve for boundary data ``params`` from ``guess`` (default :meth:`default_guess`)
-        and constraint multipliers (default 0); a failed solve is returned, not raised."""
+        """Solve for boundary data ``params`` from ``guess`` (default :meth:`default_guess`;
+        with obstacles :meth:`start_guesses`, the cheapest kept) and constraint multipliers
+        (default 0); a failed solve is returned, not raised."""
         params = check_params(params, self.n_params, "DMOC")
-        x0 = self.side_guesses(self.default_guess(params), params) if guess is None \
-            else self.full_guess(guess, params)[None]
+        x0 = self.start_guesses(guess, lambda: self.default_guess(params), params)
         extra = {} if multipliers is None else {"lam_g0": multipliers}
         bounds = {"lbx": self.lbx, "ubx": self.ubx} if self.has_inequalities else {}
         calls = [self._checked(call_nlpsol(self.solver, x0=x, p=params, lbg=self.lbg,
@@ -919,7 +1064,8 @@ class DmocTranscription:
         positions = list(self.shape.obstacle_positions)
         rows = segment_rows(self.shape.obstacles, [q[positions] for q in free.nodes(w, p)])
         g = ca.vertcat(free.constraints(w, p), *rows)
-        solver = MappedNlp("dmoc_segments", w, p, free.cost(w, p), g, self.shape.kkt_tol,
+        solver = MappedNlp("dmoc_segments", w, p, free.cost(w, p), g,
+                           self.shape.kkt_tol * SEGMENT_TOL_FACTOR,
                            min(self.shape.max_iter, SEGMENT_MAX_ITER), self.shape.kkt_tol,
                            qp_max_iter=SEGMENT_QP_MAX_ITER)
         return (solver, np.concatenate([free.lbg, np.zeros(len(rows))]),
@@ -928,8 +1074,9 @@ class DmocTranscription:
     def _solve_segments(self, params: np.ndarray, guesses: list[np.ndarray | None],
                         multipliers: list[np.ndarray | None], free: Columns) -> Columns:
         """The tasks ``params`` (k, n_params) whose solutions without obstacles ``free`` do
-        not clear them: from each side of the obstacles the free path enters (a task without
-        a guess; :meth:`side_guesses`) or from its guess, solved together by
+        not clear them: from :meth:`start_guesses` (the free path, or the default guess where
+        the free solve failed, as the base: each side of the obstacles it enters, or the
+        task's guess and, where that passes on the far side, both sides), solved together by
         :attr:`segment_nlp`, each task's cheapest kept, lifted to this NLP (the planes
         :func:`~ocpar.ocp.obstacles.canonical_planes`, the multipliers
         :func:`~ocpar.ocp.obstacles.plane_multipliers`) and accepted where it meets this
@@ -938,30 +1085,26 @@ class DmocTranscription:
         start = time.perf_counter()
         free_nlp = self.without_obstacles
         assert free_nlp is not None
-        solver, lbg, ubg = self.segment_nlp
+        lbg = self.segment_nlp[1]
         n_free, ng_free, k = free_nlp.nw, free_nlp.ng, len(params)
         q_free, u_free = np.asarray(free.column("q")), np.asarray(free.column("u"))
         solved = np.asarray(free.column("success"), bool)
-        rows, owner, lams = [], [], []
+        rows, owner, lams, far = [], [], [], []
         for i in range(k):
-            if guesses[i] is not None:
-                sides = self.full_guess(guesses[i], params[i])[None]
-            else:
-                base = self.default_guess(params[i]) if not solved[i] else self.full_guess(
+            def base(i: int = i) -> np.ndarray:
+                return self.default_guess(params[i]) if not solved[i] else self.full_guess(
                     np.concatenate([q_free[i, 1:-1].ravel(), u_free[i].ravel()]), params[i])
-                sides = self.side_guesses(base, params[i])
+            sides, far_of = self._candidates(guesses[i], base, params[i])
             rows.append(sides[:, :n_free])
             owner += [i] * len(sides)
+            far += far_of
             lam = np.zeros(len(lbg))
             if multipliers[i] is not None:
                 lam[:ng_free] = np.asarray(multipliers[i], float)[:ng_free]
             lams += [lam] * len(sides)
         owner_index = np.asarray(owner)
-        try:
-            batch = solver.solve(np.concatenate(rows), params[owner_index], np.array(lams),
-                                 lbg, ubg, free_nlp.lbx, free_nlp.ubx)
-        except RuntimeError:
-            batch = None
+        batch = self._in_two_rounds(np.concatenate(rows), params, owner_index,
+                                    np.array(lams), far)
         accepted = np.zeros(k, bool)
         if batch is not None:
             starts = np.searchsorted(owner_index, np.arange(k + 1))
@@ -1002,6 +1145,42 @@ class DmocTranscription:
         order = np.empty(k, np.intp)
         order[np.concatenate(positions)] = np.arange(k)
         return joined.take(order)
+
+    def _in_two_rounds(self, x0: np.ndarray, params: np.ndarray, owner: np.ndarray,
+                       lam0: np.ndarray, far: list[tuple[tuple[int, np.ndarray], ...]]
+                       ) -> BatchSolve | None:
+        """The candidates x0 (m, nw without planes) of the tasks ``owner`` (m,) with
+        ``params`` (k, n_params) solved by :attr:`segment_nlp`: first those on the near
+        side of every ellipsoid (``far`` (m,) empty), then each far one only where it can be
+        cheaper: its task's near candidates all failed, or the lower bound of
+        :meth:`_far_bounds` on every path reaching its far half-space is below their best
+        cost. Candidates not solved are failed rows (NaN). None if CasADi raised."""
+        solver, lbg, ubg = self.segment_nlp
+        free_nlp = self.without_obstacles
+        assert free_nlp is not None
+        near = np.array([not f for f in far], bool)
+        first = np.flatnonzero(near)
+        try:
+            part = solver.solve(x0[first], params[owner[first]], lam0[first], lbg, ubg,
+                                free_nlp.lbx, free_nlp.ubx)
+        except RuntimeError:
+            return None
+        full = _rows_of(part, len(x0), first)
+        best = np.full(len(params), np.inf)
+        np.minimum.at(best, owner[first], np.where(part.success, part.f, np.inf))
+        later = np.flatnonzero(~near)
+        if len(later):
+            bounds = self._far_bounds(params[owner[later]], [far[j] for j in later])
+            later = later[~(bounds >= best[owner[later]])]
+        if len(later):
+            try:
+                part = solver.solve(x0[later], params[owner[later]], lam0[later], lbg, ubg,
+                                    free_nlp.lbx, free_nlp.ubx)
+            except RuntimeError:
+                return None
+            for name in ("x", "f", "lam_g", "lam_p", "success", "lam_x"):
+                getattr(full, name)[later] = getattr(part, name)
+        return full
 
     def _lifted(self, x: np.ndarray, lam_red: np.ndarray, lam_x: np.ndarray,
                 params: np.ndarray, ng_free: int) -> tuple[np.ndarray, ...]:
@@ -1087,6 +1266,20 @@ def _solution_columns(costs: np.ndarray, success: np.ndarray, iterations: np.nda
         "q": (STACKED, q),
         "u": (STACKED, u),
     })
+
+
+def _rows_of(part: BatchSolve, m: int, rows: np.ndarray) -> BatchSolve:
+    """``part``, the solves of ``rows`` of m candidates, as m rows (the others failed, NaN)."""
+    def spread(values: np.ndarray, fill: float | bool) -> np.ndarray:
+        out = np.full((m, *values.shape[1:]), fill, dtype=values.dtype)
+        out[rows] = values
+        return out
+    assert part.lam_x is not None
+    return BatchSolve(spread(part.x, np.nan), spread(part.f, np.nan),
+                      spread(part.lam_g, np.nan), spread(part.lam_p, np.nan),
+                      spread(np.asarray(part.success, bool), False),
+                      spread(part.extra, np.nan), part.solve_time_s,
+                      lam_x=spread(part.lam_x, np.nan))
 
 
 def _cheapest(success: Sequence[bool] | np.ndarray, costs: Sequence[float] | np.ndarray

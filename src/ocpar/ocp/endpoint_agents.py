@@ -10,7 +10,11 @@ an :class:`AgentOutcome` (J*, dJ*/dq_N, the end Hessian's position block, succes
 attempts: 1 + nq + d² numbers and three small ones). The agent's :class:`AgentState` (its
 :class:`~ocpar.ocp.DmocSolution`: paths, controls, multipliers; and its boundary data) stays
 on its worker: the solution is the next solve's fallback start (the failure policy of
-:func:`~ocpar.ocp.solve_tasks`), gathered by the coordinator once, at the end. The solves are
+:func:`~ocpar.ocp.solve_tasks`), or, for a shape with ellipsoid obstacles
+(:attr:`~ocpar.ocp.DmocShape.resolves_from_previous`), its first guess: the agent re-solves
+from its previous path and side, the other side tried only where it can be cheaper
+(:meth:`~ocpar.ocp.DmocTranscription.start_guesses`); gathered by the
+coordinator once, at the end. The solves are
 those of sending everything out and back each superstep, bit for bit.
 
 In the transcription layer (not the formation's package) so that a worker that has imported
@@ -79,17 +83,20 @@ def solve_agents(tasks: Columns, states: Columns | None) -> tuple[Columns, Colum
     k = len(tasks)
     d = int(tasks.column("positions")[0])  # the curve's dimension: every agent's
     fallback: tuple[str, object] = (SHARED, None)
+    warm: tuple[str, object] = (SHARED, None)
     if states is None:
         params = np.asarray(tasks.column("params"), float)
     else:
         q, u = np.asarray(states.column("q")), np.asarray(states.column("u"))
-        fallback = (STACKED, np.hstack([q[:, 1:-1].reshape(k, -1), u.reshape(k, -1)]))
+        previous = np.hstack([q[:, 1:-1].reshape(k, -1), u.reshape(k, -1)])
+        fallback = (STACKED, previous)
         params = np.array(states.column("params"), float)
         start = 2 * (params.shape[1] // 4)   # q_N's first entry in p = (q_0, q̇_0, q_N, q̇_N)
         params[:, start: start + d] = tasks.column("end")
+        warm, fallback = _from_previous(tasks, previous, fallback)
     inner = Columns(cls=OcpTask, length=k, fields={
         "shape": tasks.fields["shape"], "params": (STACKED, params),
-        "warm_start": (SHARED, None), "multipliers": (SHARED, None), "fallback": fallback})
+        "warm_start": warm, "multipliers": (SHARED, None), "fallback": fallback})
     solutions = to_columns(run_chunk(INNER_KERNEL, inner).results)
     assert isinstance(solutions, Columns)
     nq = params.shape[1] // 4
@@ -106,6 +113,25 @@ def solve_agents(tasks: Columns, states: Columns | None) -> tuple[Columns, Colum
     states = Columns(cls=AgentState, length=k,
                      fields=solutions.fields | {"params": (STACKED, params)})
     return outcome, states
+
+
+def _from_previous(tasks: Columns, previous: np.ndarray, fallback: tuple[str, object]
+                   ) -> tuple[tuple[str, object], tuple[str, object]]:
+    """The inner tasks' ``warm_start`` and ``fallback`` columns: an agent whose shape
+    :attr:`~ocpar.ocp.DmocShape.resolves_from_previous` (obstacles) starts from its previous
+    solution ``previous`` (k, nw) where that is finite (no fallback: it is that solution);
+    the others from the default guess with ``previous`` as their fallback, as of old."""
+    kind, shapes = tasks.fields["shape"]
+    rows = [shapes] * len(tasks) if kind == SHARED else list(shapes)
+    finite = np.all(np.isfinite(previous), axis=1)
+    warm = [shape.resolves_from_previous and bool(ok) for shape, ok in zip(rows, finite,
+                                                                          strict=True)]
+    if not any(warm):
+        return (SHARED, None), fallback
+    if all(warm):
+        return (STACKED, previous), (SHARED, None)
+    return ((LISTED, [p if w else None for p, w in zip(previous, warm, strict=True)]),
+            (LISTED, [None if w else p for p, w in zip(previous, warm, strict=True)]))
 
 
 def agent_tasks(shapes: DmocShape | Sequence[DmocShape], positions: int,

@@ -346,6 +346,34 @@ def canonical_planes(obstacles: Sequence[Obstacle], positions: np.ndarray, tol: 
             np.stack(frozen, axis=2).reshape(k, -1))
 
 
+def entered(obstacles: Sequence[Obstacle], positions: np.ndarray
+            ) -> list[tuple[int, np.ndarray]]:
+    """The ellipsoids a path with node positions (N+1, d) enters, in order: (index among
+    :func:`ellipsoids`, the unit direction (d,) in the scaled space of the path's point nearest the
+    centre, the side the path passes it on)."""
+    hits = []
+    for e, ball in enumerate(ellipsoids(obstacles)):
+        size, direction = _nearest_directions(ball, positions[None])
+        j = int(np.argmin(size[0]))
+        if size[0, j] < 1:
+            hits.append((e, direction[0, j]))
+    return hits
+
+
+def on_near_side(obstacles: Sequence[Obstacle], reference: np.ndarray,
+                 positions: np.ndarray) -> bool:
+    """Whether a path with node positions ``positions`` (N+1, d) passes every ellipsoid that
+    the path ``reference`` (N+1, d) enters on the side of ``reference``'s point nearest its
+    centre (the scaled directions of the two paths' nearest points at an acute angle; True
+    where ``reference`` enters none): the side :func:`side_guesses` tries first."""
+    balls = ellipsoids(obstacles)
+    for e, side in entered(obstacles, reference):
+        size, direction = _nearest_directions(balls[e], positions[None])
+        if not float(direction[0, int(np.argmin(size[0]))] @ side) > 0:
+            return False
+    return True
+
+
 def side_guesses(obstacles: Sequence[Obstacle], positions: np.ndarray
                  ) -> list[tuple[np.ndarray, np.ndarray]]:
     """The guesses (path (N+1, d), plane block (N m_e d,)) whose sides to try, from a guess
@@ -356,12 +384,7 @@ def side_guesses(obstacles: Sequence[Obstacle], positions: np.ndarray
     :data:`PUSH_RADIUS` (the others pushed to their nearest side), each interval's plane
     the direction of its nearest point, or u where it still cuts the ellipsoid."""
     balls = ellipsoids(obstacles)
-    hits = []
-    for e, ball in enumerate(balls):
-        size, direction = _nearest_directions(ball, positions[None])
-        j = int(np.argmin(size[0]))
-        if size[0, j] < 1:
-            hits.append((e, direction[0, j]))
+    hits = entered(obstacles, positions)
     if not hits:
         return [(positions, guess_planes(obstacles, positions[None])[0])]
     guesses = []
