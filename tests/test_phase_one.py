@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import itertools
 import json
+import re
 
 import casadi as ca
 import numpy as np
@@ -524,3 +525,21 @@ def test_past_an_obstacle_the_hard_solve_decides_where_the_elastic_one_stops_abo
     assert hard.success
     found = elastic_slacks(problem, SerialBackend(), np.array([3]), phi[3:4])
     assert found.slack[0] == 0.0 and np.all(found.end_gradient == 0.0)
+
+
+def test_a_shift_search_stopped_at_a_jump_of_j_says_it_is_no_stationary_point():
+    """The obstacle example of the test above started 0.95 rad turned: the shift search ends
+    where a step downhill raises J (an agent's optimum passes the disc on its other side
+    beyond it), a local minimum with |dJ/dθ| far from 0; the message says so instead of
+    claiming a stationary point."""
+    from ocpar.examples import formation_obstacle
+    base = formation_obstacle.make(agents=4)
+    free = solve_formation(base)
+    u_max = 0.8 * float(np.linalg.norm(free.controls, axis=2).max())
+    problem = _limited(base, (PathConstraint(lambda u: ca.sumsqr(u), upper=u_max**2,
+                                             name="thrust"),
+                              PathConstraint(lambda v: ca.sumsqr(v), upper=1e4, name="speed")))
+    result = solve_formation(problem, phi0=free.phi + 0.95)
+    assert result.status == "converged", result.message
+    slope = float(re.search(r"dJ/dtheta = (\S+), not a stationary point", result.message)[1])
+    assert abs(slope) > 1.0 and "a jump of J" in result.message

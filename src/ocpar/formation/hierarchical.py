@@ -479,10 +479,29 @@ def _shift_newton(objective: OuterObjective, family: ShiftFamily, tol: float,
             theta, value, slope, scale, curvature = trial, t_value, t_slope, t_scale, t_curvature
             shrink = 1.0
             if abs(step) <= tol * (1 + abs(theta)):
-                return family.angles(theta)[0], iteration + 1, True, "step below tolerance"
+                return family.angles(theta)[0], iteration + 1, True, _step_stop(
+                    theta, slope, tol * scale, low, high)
         else:
             shrink /= 2
     return family.angles(theta)[0], max_iterations, False, "iteration limit reached"
+
+
+def _step_stop(theta: float, slope: float, slope_tol: float, low: float, high: float) -> str:
+    """Why a shift search whose last accepted step was below tolerance stopped: at a
+    stationary θ; or, dJ/dθ not small, at the bound of the shifts where every inner problem
+    has a solution that it points past; or at a jump of J (the steps downhill raise J: an
+    agent's inner optimum changes branch there, e.g. the side it passes an obstacle on).
+    Either of the last two is a local minimum of J over the feasible shifts, not a
+    stationary point, and the message says so."""
+    if abs(slope) <= slope_tol:
+        return "step below tolerance"
+    bound = high if slope < 0 else low
+    where = (f"the edge of the feasible shifts (beyond {bound:.6g} rad an agent's inner "
+             f"problem has no solution)" if np.isfinite(bound) else
+             "a jump of J (a step downhill raises it: an agent's inner optimum changes "
+             "branch there, e.g. its side of an obstacle)")
+    return (f"step below tolerance at {where}: a local minimum at theta = {theta:.6g} rad "
+            f"with dJ/dtheta = {slope:.3g}, not a stationary point")
 
 
 def tangent_newton(objective: OuterObjective, phi: np.ndarray, tol: float,
