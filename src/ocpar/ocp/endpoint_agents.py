@@ -122,13 +122,16 @@ def _from_previous(tasks: Columns, previous: np.ndarray, fallback: tuple[str, ob
     solution ``previous`` (k, nw) where that is finite (no fallback: it is that solution);
     the others from the default guess with ``previous`` as their fallback, as of old."""
     kind, shapes = tasks.fields["shape"]
-    rows = [shapes] * len(tasks) if kind == SHARED else list(shapes)
-    finite = np.all(np.isfinite(previous), axis=1)
-    warm = [shape.resolves_from_previous and bool(ok) for shape, ok in zip(rows, finite,
-                                                                          strict=True)]
-    if not any(warm):
+    if kind == SHARED:
+        resolves = np.full(len(tasks), shapes.resolves_from_previous)
+    else:   # once per distinct shape (a fleet shares a few)
+        flags: dict[int, bool] = {}
+        resolves = np.fromiter((flags.setdefault(id(shape), shape.resolves_from_previous)
+                                for shape in shapes), bool, count=len(tasks))
+    if not resolves.any():
         return (SHARED, None), fallback
-    if all(warm):
+    warm = resolves & np.all(np.isfinite(previous), axis=1)
+    if warm.all():
         return (STACKED, previous), (SHARED, None)
     return ((LISTED, [p if w else None for p, w in zip(previous, warm, strict=True)]),
             (LISTED, [None if w else p for p, w in zip(previous, warm, strict=True)]))
