@@ -186,7 +186,11 @@ def test_ctrl_c_is_one_line_and_keeps_the_checkpoint(tmp_path):
         [sys.executable, "-m", "ocpar.macs", "--problem", "goddard", "--max-evals", "1000000",
          "--backend", "dask", "--workers", "2", "--checkpoint", str(checkpoint)],
         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=tmp_path,
-        start_new_session=True)
+        start_new_session=True,
+        # as a terminal's foreground job: SIGINT not ignored, even where this test run was
+        # started in the background (a non-interactive shell's `cmd &` ignores SIGINT, and
+        # the run would inherit that)
+        preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     lines = [proc.stdout.readline() for _ in range(3)]  # dashboard, description, iteration
     assert lines[2].startswith("iteration"), lines
     os.killpg(proc.pid, signal.SIGINT)
