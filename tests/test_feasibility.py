@@ -255,9 +255,12 @@ def test_monolithic_never_calls_an_infeasible_iterate_converged():
 
 # --- the command line and TOML ---------------------------------------------------------------
 
-def run_config(tmp_path, body: str, capsys) -> tuple[int, str]:
+def run_config(tmp_path, body: str, capsys, problem: str = "feasibility_problems:fleet"
+               ) -> tuple[int, str]:
+    """``ocpar run`` of a formation TOML file (``problem``, output ``tmp_path``/out, then
+    ``body``): its exit status and output."""
     path = tmp_path / "fleet.toml"
-    path.write_text(f'scheme = "formation"\nproblem = "feasibility_problems:fleet"\n'
+    path.write_text(f'scheme = "formation"\nproblem = "{problem}"\n'
                     f'output = "{tmp_path / "out"}"\n{body}')
     capsys.readouterr()
     try:

@@ -15,9 +15,8 @@ import pytest
 from phase_one_problems import DURATION, INTERVALS, MASSES, STARTS, U, reassignable
 from scipy.optimize import minimize
 from scipy.spatial.transform import Rotation
-from test_feasibility import lp_reach
+from test_feasibility import lp_reach, run_config
 
-from ocpar.__main__ import main as ocpar_main
 from ocpar.formation import (
     DmocShape,
     Ellipse,
@@ -313,16 +312,8 @@ def test_slots_with_no_feasible_assignment_are_refused_in_one_line_with_the_slac
     its LP reach 0.5; the heavy one misses slot 1 by 0.3 − 1/6 and 0.2 − 1/6): the least
     total slack is 0.1. The run writes result.json and its picture, exits 3 (failed)."""
     reach = lp_reach(MASSES[0], INTERVALS, DURATION, -U, U)[1]
-    path = tmp_path / "slots.toml"
-    path.write_text(f'scheme = "formation"\nproblem = "phase_one_problems:unassignable"\n'
-                    f'output = "{tmp_path / "out"}"\n')
-    capsys.readouterr()
-    try:
-        code = ocpar_main(["run", str(path)])
-    except SystemExit as exc:
-        code = exc.code
-    out, err = capsys.readouterr()
-    assert code == 3 and "Traceback" not in out + err, out + err
+    code, text = run_config(tmp_path, "", capsys, problem="phase_one_problems:unassignable")
+    assert code == 3 and "Traceback" not in text, text
     summary = json.loads((tmp_path / "out" / "result.json").read_text())
     assert summary["status"] == "failed" and "\n" not in summary["message"]
     assert "no feasible formation" in summary["message"]
@@ -422,7 +413,23 @@ def _infeasible(problem: FormationProblem, phi: np.ndarray) -> bool:
     return not np.all(np.isfinite(costs))
 
 
-def test_an_infeasible_start_past_an_obstacle_ends_converged_equal_to_the_monolithic_nlp():
+@pytest.fixture(scope="module")
+def limited_past_the_disc():
+    """The obstacle example (4 masses past its disc) under |u| ≤ u_max = 0.8 × its free
+    optimum's peak plus an inactive speed limit (no exact reach set): (problem, the free
+    optimum, u_max)."""
+    from ocpar.examples import formation_obstacle
+    base = formation_obstacle.make(agents=4)
+    free = solve_formation(base)
+    u_max = 0.8 * float(np.linalg.norm(free.controls, axis=2).max())
+    problem = _limited(base, (PathConstraint(lambda u: ca.sumsqr(u), upper=u_max**2,
+                                             name="thrust"),
+                              PathConstraint(lambda v: ca.sumsqr(v), upper=1e4, name="speed")))
+    return problem, free, u_max
+
+
+def test_an_infeasible_start_past_an_obstacle_ends_converged_equal_to_the_monolithic_nlp(
+        limited_past_the_disc):
     """The obstacle example (4 masses, the disc of radius 0.8) under |u| ≤ 0.8 × the free
     optimum's peak plus an inactive speed limit (no exact reach set): the free optimum turned
     1.15 rad is infeasible; phase 1 (the elastic solves past the disc stop at local minima
@@ -430,14 +437,8 @@ def test_an_infeasible_start_past_an_obstacle_ends_converged_equal_to_the_monoli
     and the run ends converged, the disc cleared and the limit met, equal to the monolithic
     NLP (every agent's path, planes and the coupling in one IPOPT solve) started 0.02 rad
     from it (1e-6)."""
-    from ocpar.examples import formation_obstacle
     from ocpar.formation import FormationOptions
-    base = formation_obstacle.make(agents=4)
-    free = solve_formation(base)
-    u_max = 0.8 * float(np.linalg.norm(free.controls, axis=2).max())
-    problem = _limited(base, (PathConstraint(lambda u: ca.sumsqr(u), upper=u_max**2,
-                                             name="thrust"),
-                              PathConstraint(lambda v: ca.sumsqr(v), upper=1e4, name="speed")))
+    problem, free, u_max = limited_past_the_disc
     assert problem.reach_sets() == []
     phi0 = free.phi + 1.15
     assert _infeasible(problem, phi0)
@@ -527,18 +528,13 @@ def test_past_an_obstacle_the_hard_solve_decides_where_the_elastic_one_stops_abo
     assert found.slack[0] == 0.0 and np.all(found.end_gradient == 0.0)
 
 
-def test_a_shift_search_stopped_at_a_jump_of_j_says_it_is_no_stationary_point():
+def test_a_shift_search_stopped_at_a_jump_of_j_says_it_is_no_stationary_point(
+        limited_past_the_disc):
     """The obstacle example of the test above started 0.95 rad turned: the shift search ends
     where a step downhill raises J (an agent's optimum passes the disc on its other side
     beyond it), a local minimum with |dJ/dθ| far from 0; the message says so instead of
     claiming a stationary point."""
-    from ocpar.examples import formation_obstacle
-    base = formation_obstacle.make(agents=4)
-    free = solve_formation(base)
-    u_max = 0.8 * float(np.linalg.norm(free.controls, axis=2).max())
-    problem = _limited(base, (PathConstraint(lambda u: ca.sumsqr(u), upper=u_max**2,
-                                             name="thrust"),
-                              PathConstraint(lambda v: ca.sumsqr(v), upper=1e4, name="speed")))
+    problem, free, _ = limited_past_the_disc
     result = solve_formation(problem, phi0=free.phi + 0.95)
     assert result.status == "converged", result.message
     slope = float(re.search(r"dJ/dtheta = (\S+), not a stationary point", result.message)[1])
