@@ -5,9 +5,11 @@ under ``mpirun -n 2``; the results equal those of the hand-written models."""
 
 from __future__ import annotations
 
+import dataclasses
 import importlib
 import json
 import pickle
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -15,7 +17,7 @@ from pathlib import Path
 import casadi as ca
 import numpy as np
 import pytest
-from conftest import run_ocpar
+from conftest import REPO, run_ocpar
 
 from ocpar.bsp import open_backend
 from ocpar.examples import pursuit_van_der_pol as van_der_pol
@@ -26,6 +28,7 @@ from ocpar.models import (
     ExpressionOde,
     MechanicalSystem,
     OdeModel,
+    PointMass,
     RelativeRigidSpacecraft,
     lagrangian_model,
     ode_model,
@@ -37,7 +40,8 @@ from ocpar.pursuit import PursuitSettings, solve_pursuit
 #: The user's module: a van der Pol pursuit, a double-integrator MACS problem and a formation
 #: of point masses, every model built from CasADi expressions (nothing to install).
 USER_MODULE = '''
-"""A user's problems with models written as CasADi expressions."""
+"""A user's problems with models written as CasADi expressions (and functions of its own:
+agent 0's control law, a path constraint, MACS objectives)."""
 from functools import partial
 
 import casadi as ca
@@ -46,6 +50,7 @@ import numpy as np
 from ocpar.formation import Circle, DmocShape, FormationProblem
 from ocpar.macs import MacsProblem, Objective
 from ocpar.models import PointMass, lagrangian_model, ode_model
+from ocpar.ocp.constraints import PathConstraint
 from ocpar.pursuit import ControlLaw, PursuitProblem
 
 
@@ -61,11 +66,17 @@ def flat_law(duration, t):
     return np.array([a - (1 - x1**2) * v + x1])
 
 
+def speed(x):
+    return x[1]
+
+
 def make_pursuit(samples=41, duration=4.0):
     return PursuitProblem(
-        name="van-der-pol", model=van_der_pol(), duration=duration, samples=samples,
+        name="van-der-pol-floor", model=van_der_pol(), duration=duration, samples=samples,
         initial_state=np.array([1.0, 0.0]), target_components=(0, 1), target=np.zeros(2),
-        plan=ControlLaw(partial(flat_law, duration)), integrator="rk4")
+        plan=ControlLaw(partial(flat_law, duration)), integrator="rk4",
+        path_constraints=(PathConstraint(speed, lower=-0.4, upper=np.inf,
+                                         name="velocity floor"),))
 
 
 def make_macs(distance=1.0):
@@ -227,13 +238,14 @@ MACS = MacsSettings(max_evaluations=300, seed=1)
 
 
 def test_results_equal_the_hand_written_models(serial_results, user):
-    """Van der Pol as the packaged example's class gives the same pursuit to 1e-12; the
-    Lagrangian point mass the built-in PointMass's formation."""
-    example = solve_pursuit(van_der_pol.make(), PURSUIT, reference=False)
+    """Van der Pol with its speed floor as the packaged example's class gives the same
+    pursuit to 1e-12; the Lagrangian point mass the built-in PointMass's formation."""
+    example = solve_pursuit(van_der_pol.make_speed_limited(), PURSUIT, reference=False)
     ours = serial_results["pursuit"]
     assert ours.stop_reason == example.stop_reason == "certified_within_epsilon"
     assert ours.cost == pytest.approx(example.cost, rel=1e-12)
     np.testing.assert_allclose(ours.u, example.u, atol=1e-10)
+    assert ours.x[:, 1].min() == pytest.approx(-0.4, abs=1e-8)   # the floor is active
     builtin = solve_formation(user.make_formation(builtin=True))
     formation = serial_results["formation"]
     assert formation.converged and builtin.converged
@@ -305,3 +317,18 @@ def test_by_reference_on_two_workers(backend, user_site, serial_results, dask_cl
     assert data["workers"] == 2 and data["backend"] == backend
     assert data["total_cost"] == serial_results["formation"].total_cost
     assert data["phi"] == serial_results["formation"].phi.tolist()
+
+
+def test_the_pages_example_runs():
+    """docs/user-problems.md's "A model in a few lines" as written: its oscillator is an
+    OdeModel and its formation of 80 kg masses costs what PointMass(mass=80)'s does."""
+    text = (REPO / "docs" / "user-problems.md").read_text()
+    section = text[text.index("### A model in a few lines"):text.index("### Names and units")]
+    page: dict = {}
+    exec(re.search(r"```python\n(.*?)```", section, re.S).group(1), page)
+    check_ode_model(page["oscillator"])
+    problem = page["make"]()
+    builtin = dataclasses.replace(problem, shape=DmocShape(PointMass(dim=2, mass=80.0), 10, 1.0))
+    ours, theirs = solve_formation(problem), solve_formation(builtin)
+    assert ours.converged and theirs.converged
+    assert ours.total_cost == pytest.approx(theirs.total_cost, rel=1e-12)
