@@ -257,7 +257,8 @@ def test_results_equal_the_hand_written_models(serial_results, user):
 def test_on_a_dask_cluster_whose_workers_cannot_import_the_module(dask_cluster, user,
                                                                   serial_results):
     """The workers lack the user's module (checked), yet every scheme's run of its problems
-    is bitwise the serial run: the models travel as ocpar objects."""
+    is bitwise the serial run: the models travel as ocpar objects, and a worker builds a
+    shape's transcription once however often its model arrives."""
     from distributed import Client
 
     with Client(dask_cluster) as client, pytest.raises(ModuleNotFoundError, match=MODULE):
@@ -267,6 +268,13 @@ def test_on_a_dask_cluster_whose_workers_cannot_import_the_module(dask_cluster, 
         macs = solve_macs(user.make_macs(), MACS, backend)
         formation = solve_formation(user.make_formation(), backend)
         busy = np.sum([t.worker_tasks for t in backend.traces], axis=0)
+        # a second run's shapes arrive as new objects of equal content: nothing is rebuilt
+        before = backend.superstep("ocpar.ocp:cache_report", [None, None])
+        again = solve_pursuit(user.make_pursuit(), PURSUIT, backend, reference=False)
+        after = backend.superstep("ocpar.ocp:cache_report", [None, None])
+    assert [a["builds"] for a in after] == [b["builds"] for b in before]
+    assert sum(a["hits"] for a in after) > sum(b["hits"] for b in before)
+    np.testing.assert_array_equal(again.u, pursuit.u)
     assert len(busy) == 2 and np.all(busy > 0)   # both workers solved inner problems
     serial = serial_results
     assert pursuit.headlines == serial["pursuit"].headlines
