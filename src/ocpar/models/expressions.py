@@ -132,11 +132,6 @@ def _bounds(bounds: tuple[Bound, Bound] | None, n: int, label: str
     return tuple(map(float, lower)), tuple(map(float, upper))
 
 
-def _strings(value: Strings | None) -> str | tuple[str, ...] | None:
-    """Names or units as a hashable value: a string kept, a sequence as a tuple."""
-    return value if value is None or isinstance(value, str) else tuple(value)
-
-
 @dataclass(frozen=True)
 class ExpressionOde:
     """A controlled ODE ẋ = f(x, u) with running cost g(x, u) (an
@@ -180,12 +175,13 @@ class ExpressionOde:
 
 
 def ode_model(x: ca.SX | ca.MX, u: ca.SX | ca.MX, rhs: Expression, cost: Expression = 0.0, *,
-        state_bounds: tuple[Bound, Bound] | None = None,
-        control_bounds: tuple[Bound, Bound] | None = None,
-        state_names: Sequence[str] | None = None, control_names: Sequence[str] | None = None,
-        state_units: Strings | None = None, control_units: Strings | None = None,
-        time_unit: str = "1", cost_unit: str = "1",
-        position_indices: Sequence[int] | None = None) -> ExpressionOde:
+              state_bounds: tuple[Bound, Bound] | None = None,
+              control_bounds: tuple[Bound, Bound] | None = None,
+              state_names: Sequence[str] | None = None,
+              control_names: Sequence[str] | None = None,
+              state_units: Strings | None = None, control_units: Strings | None = None,
+              time_unit: str = "1", cost_unit: str = "1",
+              position_indices: Sequence[int] | None = None) -> ExpressionOde:
     """The model ẋ = ``rhs``, running cost ``cost``, of the state symbols ``x`` (nx, 1) and
     control symbols ``u`` (nu, 1) (``casadi.SX.sym`` or ``casadi.MX.sym``): ``rhs`` an
     expression (nx, 1) (or a list of nx), ``cost`` a scalar (default 0: MACS problems give
@@ -207,11 +203,24 @@ def ode_model(x: ca.SX | ca.MX, u: ca.SX | ca.MX, rhs: Expression, cost: Express
                           [("rhs", rhs, (nx, 1)), ("cost", cost, (1, 1))])
     model = ExpressionOde(function, nx, nu, *_bounds(state_bounds, nx, "state_bounds"),
                           *_bounds(control_bounds, nu, "control_bounds"),
-                          _strings(state_names), _strings(control_names),  # type: ignore[arg-type]
-                          _strings(state_units), _strings(control_units), time_unit, cost_unit,
-                          _indices(position_indices, nx))
+                          **_labels(nx, state_names, control_names, state_units, control_units,
+                                    time_unit, cost_unit, position_indices))
     check_labels(model, nx, nu, "ode_model")
     return model
+
+
+def _labels(n: int, state_names: Sequence[str] | None, control_names: Sequence[str] | None,
+            state_units: Strings | None, control_units: Strings | None, time_unit: str,
+            cost_unit: str, position_indices: Sequence[int] | None) -> dict[str, Any]:
+    """The names, units and position entries of a model of ``n`` state entries, as its
+    fields (sequences as tuples: hashable; checked by :func:`check_labels` once built)."""
+    def strings(value: Strings | None) -> str | tuple[str, ...] | None:
+        return value if value is None or isinstance(value, str) else tuple(value)
+
+    return {"state_names": strings(state_names), "control_names": strings(control_names),
+            "state_units": strings(state_units), "control_units": strings(control_units),
+            "time_unit": time_unit, "cost_unit": cost_unit,
+            "position_indices": _indices(position_indices, n)}
 
 
 def _indices(indices: Sequence[int] | None, n: int) -> tuple[int, ...] | None:
@@ -298,14 +307,15 @@ def _projection_step(text: str) -> ca.Function:
 
 
 def lagrangian_model(q: ca.SX | ca.MX, qdot: ca.SX | ca.MX, L: Expression,
-               u: ca.SX | ca.MX, force: Expression, *, constraints: Expression | None = None,
-               state_names: Sequence[str] | None = None,
-               control_names: Sequence[str] | None = None,
-               state_units: Strings | None = None, control_units: Strings | None = None,
-               time_unit: str = "1", cost_unit: str = "1",
-               position_indices: Sequence[int] | None = None,
-               cost_parts: Mapping[str, tuple[int, int]] | None = None
-               ) -> ExpressionLagrangian:
+                     u: ca.SX | ca.MX, force: Expression, *,
+                     constraints: Expression | None = None,
+                     state_names: Sequence[str] | None = None,
+                     control_names: Sequence[str] | None = None,
+                     state_units: Strings | None = None, control_units: Strings | None = None,
+                     time_unit: str = "1", cost_unit: str = "1",
+                     position_indices: Sequence[int] | None = None,
+                     cost_parts: Mapping[str, tuple[int, int]] | None = None
+                     ) -> ExpressionLagrangian:
     """The mechanical system of Lagrangian ``L`` (a scalar of the configuration symbols ``q``
     (nq, 1) and velocity symbols ``qdot`` (nq, 1)), generalised force ``force`` (nq, 1) of q
     and the control symbols ``u`` (nu, 1), and optional holonomic ``constraints`` c(q) = 0
@@ -339,9 +349,9 @@ def lagrangian_model(q: ca.SX | ca.MX, qdot: ca.SX | ca.MX, L: Expression,
     if any(not 0 <= a < b <= nu for _, a, b in groups):
         raise ValueError(f"cost_parts: each (first, last) needs 0 <= first < last <= {nu}, "
                          f"got {dict(cost_parts or {})!r}")
-    model = ExpressionLagrangian(lag, forces, held, nq, nu, nc, _strings(state_names),  # type: ignore[arg-type]
-                                 _strings(control_names), _strings(state_units),  # type: ignore[arg-type]
-                                 _strings(control_units), time_unit, cost_unit,
-                                 _indices(position_indices, nq), groups)
+    model = ExpressionLagrangian(lag, forces, held, nq, nu, nc, cost_groups=groups,
+                                 **_labels(nq, state_names, control_names, state_units,
+                                           control_units, time_unit, cost_unit,
+                                           position_indices))
     check_labels(model, nq, nu, "lagrangian_model")
     return model
