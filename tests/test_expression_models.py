@@ -173,6 +173,20 @@ def test_mx_and_function_terms_give_the_sx_model():
                                                                                       0.7))
 
 
+def test_a_tabulated_mx_model_keeps_its_table():
+    """An MX interpolant (tabulated data) stays a call inside the SX function: the model
+    evaluates it, on numbers and on SX symbols, after a pickle too."""
+    x, u = ca.MX.sym("x", 2), ca.MX.sym("u")
+    table = ca.interpolant("drag", "linear", [[0.0, 1.0, 2.0, 3.0]], [0.0, 1.0, 4.0, 9.0])
+    model = pickle.loads(pickle.dumps(ode_model(x, u, ca.vertcat(x[1], -table(x[1]) + u))))
+    check_ode_model(model)
+    np.testing.assert_allclose(np.asarray(model.rhs([0.0, 1.5], 1.0)).ravel(), [1.5, -1.5],
+                               rtol=1e-15)
+    xs, us = symbols()
+    slope = ca.Function("slope", [xs, us], [ca.jacobian(model.rhs(xs, us)[1], xs)])
+    np.testing.assert_allclose(np.asarray(slope([0.0, 2.5], 0.0)).ravel(), [0.0, -5.0])
+
+
 @pytest.mark.parametrize(("build", "message"), [
     (lambda x, u: ode_model(x * 2, u, [x[1], u]), "x: must be a column of CasADi symbols"),
     (lambda x, u: ode_model(x, u, [x[1]]), r"rhs: shape \(1, 1\), expected \(2, 1\)"),

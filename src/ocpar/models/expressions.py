@@ -11,7 +11,8 @@ worker) without importing the module that built it, and equal content compares a
 equal, so a worker builds a shape's transcription once however often it receives it.
 
 Expressions may be ``casadi.SX`` or ``casadi.MX`` (MX is expanded to SX: the transcriptions
-evaluate models on SX symbols), numbers, or lists of them (stacked as a column); each may also
+evaluate models on SX symbols; functions inside that have no SX form, e.g. an interpolant of
+tabulated data, stay calls), numbers, or lists of them (stacked as a column); each may also
 be a ``casadi.Function`` of the same arguments, called on the symbols.
 """
 
