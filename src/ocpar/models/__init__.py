@@ -1,7 +1,14 @@
 """Models: mechanical systems (Lagrangians, for DMOC) and controlled ODEs (for multiple
-shooting), as small hashable value objects."""
+shooting), as small hashable value objects; :func:`ode_model` and :func:`lagrangian_model`
+build either from CasADi expressions (:mod:`ocpar.models.expressions`)."""
 
 from ocpar.models.crtbp import Crtbp, HaloOrbit, halo_orbit
+from ocpar.models.expressions import (
+    ExpressionLagrangian,
+    ExpressionOde,
+    lagrangian_model,
+    ode_model,
+)
 from ocpar.models.goddard import GoddardAscent
 from ocpar.models.mechanical import MechanicalSystem
 from ocpar.models.ode import OdeModel
@@ -12,6 +19,8 @@ from ocpar.models.rigid_spacecraft import RelativeRigidSpacecraft
 
 __all__ = [
     "Crtbp",
+    "ExpressionLagrangian",
+    "ExpressionOde",
     "GoddardAscent",
     "HaloOrbit",
     "MechanicalSystem",
@@ -21,4 +30,6 @@ __all__ = [
     "PointMass",
     "RelativeRigidSpacecraft",
     "halo_orbit",
+    "lagrangian_model",
+    "ode_model",
 ]
