@@ -29,6 +29,7 @@ import pytest
 from conftest import run_cli
 
 import ocpar
+from ocpar.__main__ import main as ocpar_main
 from ocpar.examples.pursuit_min_time import make
 from ocpar.ocp import MsShape, ms_problem
 from ocpar.pursuit import PursuitSettings, solve_pursuit
@@ -147,3 +148,17 @@ def test_command_line_under_mpirun_gives_the_serial_answer(min_time, tmp_path):
         "ocpar.pursuit: error: mode pbms: the pursuit train needs a fixed final time (its "
         "agents intercept each other on one clock); solve a free final time with mode ms "
         "(--mode ms)"]
+
+
+def test_packaged_example_runs_as_it_is(tmp_path, capsys):
+    """``ocpar run pursuit-min-time`` (N = 301, the switch on a sample) with the energy set:
+    the discrete time + energy optimum to 1e-8, in result.json."""
+    out = tmp_path / "run"
+    assert ocpar_main(["run", "pursuit-min-time", "--set", "energy=4", "--set",
+                       f"output={out}", "--set", "quiet=true"]) == 0
+    capsys.readouterr()
+    data = json.loads((out / "result.json").read_text())
+    final_time, cost = discrete_time_energy(4.0, 1.0, 300)
+    assert data["status"] == "converged" and data["mode"] == "ms"
+    assert data["final_time"] == pytest.approx(final_time, abs=1e-8)
+    assert data["time_and_energy"] == pytest.approx(cost, abs=1e-8)
