@@ -30,6 +30,7 @@ from conftest import run_cli
 
 import ocpar
 from ocpar.__main__ import main as ocpar_main
+from ocpar.bsp.columns import from_columns
 from ocpar.examples.pursuit_min_time import make
 from ocpar.ocp import MsShape, ms_problem
 from ocpar.pursuit import PursuitSettings, solve_pursuit
@@ -109,6 +110,24 @@ def test_ms_shape_free_time_gradient_and_guess():
     step = 1e-5
     plus, minus = (ms.solve(params + np.array([d, 0, 0, 0]), sol.w).cost for d in (step, -step))
     assert sol.cost_gradient[0] == pytest.approx((plus - minus) / (2 * step), rel=1e-6)
+
+
+def test_warm_started_newton_re_solves_move_the_final_time():
+    """A ``warm_start`` free-time shape re-solves nearby starts by Newton steps on the KKT
+    system (IPOPT if they fail), T included: batched bitwise as one by one, equal to cold
+    IPOPT solves to 1e-8."""
+    model = make(energy=4.0).model
+    options = {"final_time": (1.0, 5.0), "time_weight": 1.0}
+    cold = ms_problem(MsShape(model, 20, 0.15, (0, 1), "rk4", **options))
+    warm = ms_problem(MsShape(model, 20, 0.15, (0, 1), "rk4", warm_start=True, **options))
+    start = cold.solve(np.array([1.0, 0.0, 0.0, 0.0]))
+    params = np.array([[1.0 + d, 0.0, 0.0, 0.0] for d in (0.0, 0.01, -0.02)])
+    batch = from_columns(warm.solve_batch(params, [start.w] * 3, [start.lam_g] * 3))
+    for p, sol in zip(params, batch, strict=True):
+        assert sol.success
+        assert sol.final_time == warm.solve(p, start.w, start.lam_g).final_time
+        assert sol.final_time == pytest.approx(cold.solve(p).final_time, abs=1e-8)
+    assert batch[1].final_time > batch[0].final_time > batch[2].final_time
 
 
 def test_bad_free_time_input_is_one_line():
