@@ -224,21 +224,21 @@ class MsTranscription:
         x_free = ca.SX.sym("x", nx, n)
         u = ca.SX.sym("u", nu, n)
         x = ca.horzcat(p[:nx], x_free)
-        if shape.final_time is None:
-            phi = step_function(model, shape.step, shape.integrator)
-            steps = [phi(x[:, j], u[:, j]) for j in range(n)]
-            step, timed = shape.step, []
-        else:  # the horizon T is w's last entry, every step T/N
-            horizon = ca.SX.sym("T")
-            phi, step, timed = timed_step_function(model, shape.integrator), horizon / n, [horizon]
+        # a free final time: the horizon T, w's last entry, every step T/N
+        horizon = [] if shape.final_time is None else [ca.SX.sym("T")]
+        if horizon:
+            phi, step = timed_step_function(model, shape.integrator), horizon[0] / n
             steps = [phi(x[:, j], u[:, j], step) for j in range(n)]
+        else:
+            phi, step = step_function(model, shape.step, shape.integrator), shape.step
+            steps = [phi(x[:, j], u[:, j]) for j in range(n)]
         gaps = [x[:, j + 1] - nxt for j, (nxt, _) in enumerate(steps)]
         terminal = [x[i, n] - p[nx + k] for k, i in enumerate(shape.terminal)]
         cost = step * ca.sum1(ca.vertcat(*[rate for _, rate in steps]))
-        if timed:
-            cost += shape.time_weight * timed[0]
+        if horizon:
+            cost += shape.time_weight * horizon[0]
 
-        self.w = ca.vertcat(ca.vec(x_free), ca.vec(u), *timed)
+        self.w = ca.vertcat(ca.vec(x_free), ca.vec(u), *horizon)
         self.p = p
         self.n_params = shape.n_params
         self.nw = self.w.numel()
