@@ -225,12 +225,13 @@ class PursuitProblem:
     def times(self, final_time: float | None = None) -> np.ndarray:
         """Sample times j T/(N−1) (N,) of a trajectory of horizon ``final_time`` T (default
         ``duration``: :attr:`grid`; not finite: :attr:`grid` too, a failed solve's)."""
-        horizon = self._horizon(final_time)
+        horizon = self.horizon(final_time)
         if not math.isfinite(horizon):
             return self.grid
         return np.arange(self.samples) * (horizon / (self.samples - 1))
 
-    def _horizon(self, final_time: float | None) -> float:
+    def horizon(self, final_time: float | None = None) -> float:
+        """The horizon T of a trajectory: ``final_time``, or ``duration`` when None."""
         return self.duration if final_time is None else float(final_time)
 
     @property
@@ -256,7 +257,7 @@ class PursuitProblem:
         ``final_time`` T (default ``duration``) as multiple shooting integrates it:
         h Σ_j g(x_j, u_j) with Euler, each step's RK4 quadrature with RK4
         (:func:`~ocpar.ocp.multiple_shooting.step_function`), h = T/(N−1); plus w T."""
-        horizon = self._horizon(final_time)
+        horizon = self.horizon(final_time)
         step = horizon / (self.samples - 1)
         phi = step_function(self.model, step, self.integrator).map(len(u))
         rates = phi(np.asarray(x)[:-1].T, np.asarray(u).T)[1]

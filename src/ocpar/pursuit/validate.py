@@ -23,7 +23,7 @@ def discrete_residual(problem: PursuitProblem, x: np.ndarray, u: np.ndarray,
     their bounds along the trajectory x (N, nx), u (N−1, nu) of horizon ``final_time`` T
     (h = T/(N−1); default the problem's ``duration``), each in its own unit; NaN or a T
     outside a free final time's bounds: inf."""
-    horizon = problem.duration if final_time is None else float(final_time)
+    horizon = problem.horizon(final_time)
     if problem.final_time is not None and not (
             problem.final_time[0] <= horizon <= problem.final_time[1]):
         return float("inf")
@@ -51,7 +51,7 @@ def rk_check(problem: PursuitProblem, u: np.ndarray, final_time: float | None = 
     h = T/(N−1) of real time (T: ``final_time``, default the problem's ``duration``)."""
     rhs = BufferedFunction(ode_functions(problem.model)[0])
     y = problem.initial_state.copy()
-    step = (problem.duration if final_time is None else float(final_time)) / len(u)
+    step = problem.horizon(final_time) / len(u)
     for uj in u:
         y = solve_ivp(lambda _t, s, uj=uj: rhs(s, uj)[0], (0.0, step),
                       y, rtol=RESIM_RTOL, atol=RESIM_ATOL).y[:, -1]
