@@ -49,6 +49,9 @@ EXAMPLES = {
         "--case", "2", "--samples", "501", "--window", "60", "--update", "32",
         "--mode", "pbms", "--epsilon", "0.001", "--finish", "train",
         "--output", "runs/pursuit-case2"]),
+    "pursuit-min-time": ("pursuit", [
+        "--problem", "min-time", "--samples", "301", "--energy", "0.0", "--mode", "ms",
+        "--output", "runs/pursuit-min-time"]),
     "macs-goddard": ("macs", [
         "--problem", "goddard", "--seed", "0", "--max-evals", "10000", "--population", "10",
         "--archive", "10", "--output", "runs/macs-goddard"]),

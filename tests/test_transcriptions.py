@@ -4,7 +4,8 @@ run on each, as rockit's tests/test_methods.py runs every method on every proble
 The problem is the double integrator's minimum energy, q̈ = u, min ∫ u² dt over a fixed
 horizon T between boundary data (q_0, v_0) and (q_T, v_T); its optimum is, per axis,
 12 a²/T³ − 12 a b/T² + 4 b²/T with a = q_T − q_0 − v_0 T and b = v_T − v_0 (12 d²/T³ from
-rest to rest).
+rest to rest). With a free final time and the cost w T + ∫ u² dt, the optimum is that
+closed form plus w T minimised over T (a scalar minimisation).
 """
 
 from __future__ import annotations
@@ -18,6 +19,7 @@ from dataclasses import dataclass
 import casadi as ca
 import numpy as np
 import pytest
+from scipy.optimize import minimize_scalar
 
 from ocpar.bsp.columns import SHARED, STACKED, to_columns
 from ocpar.models import PointMass
@@ -78,6 +80,11 @@ DMOC_P = np.array([0.0, 0.0, 1.0, 0.5, 3.0, 1.0, 0.0, -1.0])
 # the line: p = (q_0, v_0, q_T, v_T)
 LINE_P = np.array([0.0, 0.5, 1.0, -1.0])
 LINE_EXACT = minimum_energy(0.0, 0.5, 1.0, -1.0, DURATION)
+#: The line's problem with a free final time in FREE_TIME and the cost T + ∫ u² dt.
+FREE_TIME = (0.5, 10.0)
+FREE_EXACT = float(minimize_scalar(lambda t: t + minimum_energy(0.0, 0.5, 1.0, -1.0, t),
+                                   bounds=FREE_TIME, method="bounded",
+                                   options={"xatol": 1e-12}).fun)
 
 CASES = [
     # midpoint discrete Lagrangian: O(h²)
@@ -89,6 +96,10 @@ CASES = [
     # RK4 steps, controls held on each interval: O(h²) from the controls
     Case("ms-rk4", lambda n, **o: MsShape(DoubleIntegrator(), n, DURATION / n, (0, 1), "rk4",
                                           **o), LINE_P, LINE_EXACT, 2.0, (10, 40)),
+    # the same with a free final time (T the NLP's last variable): O(h²)
+    Case("ms-rk4-free-time", lambda n, **o: MsShape(
+        DoubleIntegrator(), n, DURATION / n, (0, 1), "rk4", final_time=FREE_TIME,
+        time_weight=1.0, **o), LINE_P, FREE_EXACT, 2.0, (10, 40)),
     # quadratic states, constant controls per element: O(h²) from the controls
     Case("dfet", lambda n, **o: DfetOcpShape(DoubleIntegrator(), n, 2, 0, ((-50.0, 50.0),),
                                              (DURATION, DURATION), (0, 1), **o),
@@ -211,6 +222,10 @@ def constrained_shape(name: str, limit: str, n: int):
                                     path_constraints=(constraint,)),
         "ms-rk4": lambda: MsShape(DoubleIntegrator(), n, DURATION / n, (0, 1), "rk4",
                                   path_constraints=(constraint,)),
+        # T an NLP variable pinned by equal bounds: the free-time NLP on the closed forms
+        "ms-rk4-free-time": lambda: MsShape(
+            DoubleIntegrator(), n, DURATION / n, (0, 1), "rk4",
+            path_constraints=(constraint,), final_time=(DURATION, DURATION)),
         "dfet": lambda: DfetOcpShape(DoubleIntegrator(), n, 2, 0, ((-50.0, 50.0),),
                                      (DURATION, DURATION), (0, 1),
                                      path_constraints=(constraint,)),

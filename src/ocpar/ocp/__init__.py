@@ -13,8 +13,8 @@ batched form (one mapped solver call per chunk where the transcription offers
 
 - :mod:`ocpar.ocp.dmoc`: discrete mechanics and optimal control (Lagrangian systems),
   p = (q_0, q̇_0, q_N, q̇_N);
-- :mod:`ocpar.ocp.multiple_shooting`: direct multiple shooting, Euler or RK4 (ODE models),
-  p = (x_0, target);
+- :mod:`ocpar.ocp.multiple_shooting`: direct multiple shooting, Euler or RK4 (ODE models,
+  fixed or free final time), p = (x_0, target);
 - :mod:`ocpar.ocp.dfet_ocp`: direct finite elements in time (ODE models, free or fixed final
   time), p = (x_0, target); :mod:`ocpar.ocp.dfet` holds its weak form and the state solver
   that MACS uses.

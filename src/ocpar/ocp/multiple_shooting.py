@@ -14,6 +14,13 @@ Decision variables w = (x_1..x_N, u_0..u_{N-1}); states and controls are bounded
 model's bounds (controls only if the model has ``control_bounds``).
 A guess is a w; the default holds x_0 with zero controls.
 
+Free final time (optional, ``MsShape.final_time`` = (T_min, T_max)): the horizon T is one more
+decision variable, the last entry of w, bounded by [T_min, T_max]; every step is h = T/N (the
+grid is τ_j = j/N of the real time T: a time scaling, no extra state), and the cost gains
+``time_weight`` · T (with a zero running cost and weight 1: minimum time). ``step`` is then
+the nominal step, the default guess's T = N·step (clipped to the bounds). A fixed-time shape
+(``final_time`` None) is the NLP above, unchanged.
+
 Path constraints (optional, ``MsShape.path_constraints``, :mod:`ocpar.ocp.constraints`):
 functions of ``x`` and ``u``. One that names ``u`` is imposed at (x_j, u_j), j = 0..N−1, the
 sample where each control starts (x_0 is data); one of ``x`` alone at the free samples
@@ -88,7 +95,10 @@ class MsShape:
     first runs ``local_solver`` (one of :data:`LOCAL_SOLVERS`), then IPOPT tuned for guesses
     close to the solution of a well-scaled problem (:data:`WARM_START_OPTIONS`).
     ``path_constraints``: :class:`~ocpar.ocp.constraints.PathConstraint` objects of ``x``
-    and ``u`` (module docstring), compiled when the shape is built.
+    and ``u`` (module docstring), compiled when the shape is built. ``final_time``
+    (T_min, T_max), 0 < T_min ≤ T_max, frees the horizon T within them, and ``time_weight``
+    (≥ 0, only with ``final_time``) adds weight · T to the cost (module docstring; None:
+    fixed T = N·step).
     """
 
     model: OdeModel
@@ -101,10 +111,18 @@ class MsShape:
     warm_start: bool = False
     local_solver: str = "newton"
     path_constraints: tuple[PathConstraint | CompiledConstraint, ...] = ()
+    final_time: tuple[float, float] | None = None
+    time_weight: float = 0.0
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "path_constraints", compile_constraints(
             self.path_constraints, {"x": self.model.nx, "u": self.model.nu}))
+        if self.final_time is not None:
+            object.__setattr__(self, "final_time", check_final_time(self.final_time))
+        if not (np.isfinite(self.time_weight) and self.time_weight >= 0):
+            raise ValueError(f"time_weight must be a finite number >= 0, got {self.time_weight}")
+        if self.time_weight and self.final_time is None:
+            raise ValueError("time_weight applies only to a free final time (final_time)")
         if self.intervals < 1:
             raise ValueError(f"multiple shooting needs at least 1 interval, got {self.intervals}")
         if not self.step > 0:
@@ -133,7 +151,9 @@ class MsSolution(InnerSolution):
     controls ``u`` (N, nu); ``cost_gradient`` dJ*/dp (nx + len(terminal), from the NLP
     multipliers); ``constraint_violation`` = max |continuity or terminal residual| and the
     path rows' excess over their bounds; ``w`` and
-    ``lam_g`` the NLP solution and constraint multipliers (to warm-start a similar solve)."""
+    ``lam_g`` the NLP solution and constraint multipliers (to warm-start a similar solve);
+    ``final_time`` the horizon T of x and u (N·step with a fixed final time; NaN on
+    failure)."""
 
     x: np.ndarray
     u: np.ndarray
@@ -141,6 +161,18 @@ class MsSolution(InnerSolution):
     constraint_violation: float
     w: np.ndarray
     lam_g: np.ndarray
+    final_time: float = float("nan")
+
+
+def check_final_time(bounds: object) -> tuple[float, float]:
+    """``bounds`` as (T_min, T_max) with 0 < T_min ≤ T_max finite, or one ValueError."""
+    try:
+        lower, upper = (float(b) for b in bounds)  # type: ignore[union-attr]
+    except (TypeError, ValueError):
+        raise ValueError(f"final_time: need (T_min, T_max), got {bounds!r}") from None
+    if not (np.isfinite(upper) and 0 < lower <= upper):
+        raise ValueError(f"final_time: need finite 0 < T_min <= T_max, got {(lower, upper)}")
+    return lower, upper
 
 
 def step_function(model: OdeModel, step: float, integrator: str) -> ca.Function:
@@ -148,6 +180,21 @@ def step_function(model: OdeModel, step: float, integrator: str) -> ca.Function:
     constant, and the step's mean running cost, its integral by the same rule over h (module
     docstring; the cost is h Σ_j of it, Euler's exactly the paper's h Σ_j g(x_j, u_j))."""
     x, u = ca.SX.sym("x", model.nx), ca.SX.sym("u", model.nu)
+    nxt, rate = step_expressions(model, x, u, step, integrator)
+    return ca.Function("Phi", [x, u], [nxt, rate], ["x", "u"], ["next", "mean_rate"])
+
+
+def timed_step_function(model: OdeModel, integrator: str) -> ca.Function:
+    """(x, u, h) -> (Φ_h(x, u), c_h(x, u)/h): :func:`step_function` with the step h an input
+    (a free final time's h = T/N)."""
+    x, u, h = ca.SX.sym("x", model.nx), ca.SX.sym("u", model.nu), ca.SX.sym("h")
+    nxt, rate = step_expressions(model, x, u, h, integrator)
+    return ca.Function("Phi_h", [x, u, h], [nxt, rate], ["x", "u", "h"], ["next", "mean_rate"])
+
+
+def step_expressions(model: OdeModel, x: ca.SX, u: ca.SX, step: float | ca.SX,
+                     integrator: str) -> tuple[ca.SX, ca.SX]:
+    """Φ_h(x, u) and the step's mean running cost (:func:`step_function`), as expressions."""
     if integrator == "euler":
         nxt = x + step * model.rhs(x, u)
         rate = model.running_cost(x, u)
@@ -162,7 +209,7 @@ def step_function(model: OdeModel, step: float, integrator: str) -> ca.Function:
         nxt = x + step / 6 * (k1 + 2 * k2 + 2 * k3 + k4)
         g = [model.running_cost(stage, u) for stage in (x, x2, x3, x4)]
         rate = (g[0] + 2 * g[1] + 2 * g[2] + g[3]) / 6
-    return ca.Function("Phi", [x, u], [nxt, rate], ["x", "u"], ["next", "mean_rate"])
+    return nxt, rate
 
 
 class MsTranscription:
@@ -173,18 +220,25 @@ class MsTranscription:
         model, n = shape.model, shape.intervals
         nx, nu = model.nx, model.nu
         self.nx, self.nu, self.n = nx, nu, n
-        phi = step_function(model, shape.step, shape.integrator)
-
         p = ca.SX.sym("p", nx + len(shape.terminal))
         x_free = ca.SX.sym("x", nx, n)
         u = ca.SX.sym("u", nu, n)
         x = ca.horzcat(p[:nx], x_free)
-        steps = [phi(x[:, j], u[:, j]) for j in range(n)]
+        # a free final time: the horizon T, w's last entry, every step T/N
+        horizon = [] if shape.final_time is None else [ca.SX.sym("T")]
+        if horizon:
+            phi, step = timed_step_function(model, shape.integrator), horizon[0] / n
+            steps = [phi(x[:, j], u[:, j], step) for j in range(n)]
+        else:
+            phi, step = step_function(model, shape.step, shape.integrator), shape.step
+            steps = [phi(x[:, j], u[:, j]) for j in range(n)]
         gaps = [x[:, j + 1] - nxt for j, (nxt, _) in enumerate(steps)]
         terminal = [x[i, n] - p[nx + k] for k, i in enumerate(shape.terminal)]
-        cost = shape.step * ca.sum1(ca.vertcat(*[rate for _, rate in steps]))
+        cost = step * ca.sum1(ca.vertcat(*[rate for _, rate in steps]))
+        if horizon:
+            cost += shape.time_weight * horizon[0]
 
-        self.w = ca.vertcat(ca.vec(x_free), ca.vec(u))
+        self.w = ca.vertcat(ca.vec(x_free), ca.vec(u), *horizon)
         self.p = p
         self.n_params = shape.n_params
         self.nw = self.w.numel()
@@ -201,8 +255,12 @@ class MsTranscription:
         self.ubg = np.concatenate([np.zeros(self.ng - path.count), path.upper])
         lower, upper = model.state_bounds()
         u_lower, u_upper = control_bounds(model)
-        self.lbw = np.concatenate([np.tile(lower, n), np.tile(u_lower, n)])
-        self.ubw = np.concatenate([np.tile(upper, n), np.tile(u_upper, n)])
+        lbw = [np.tile(lower, n), np.tile(u_lower, n)]
+        ubw = [np.tile(upper, n), np.tile(u_upper, n)]
+        if shape.final_time is not None:
+            lbw.append([shape.final_time[0]])
+            ubw.append([shape.final_time[1]])
+        self.lbw, self.ubw = np.concatenate(lbw), np.concatenate(ubw)
 
     @cached_property
     def solver(self) -> ca.Function:
@@ -241,20 +299,32 @@ class MsTranscription:
     def _newton_function(self) -> ca.Function:
         return kkt_newton_function("ms", self.w, self.p, self.cost, self.g, NEWTON_STEPS)
 
-    def pack(self, x: np.ndarray, u: np.ndarray) -> np.ndarray:
-        """w from states x (N+1, nx) (x_0 is dropped) and controls u (N, nu)."""
-        return np.concatenate([np.asarray(x)[1:].ravel(), np.asarray(u).ravel()])
+    def pack(self, x: np.ndarray, u: np.ndarray, final_time: float | None = None) -> np.ndarray:
+        """w from states x (N+1, nx) (x_0 is dropped) and controls u (N, nu), and with a free
+        final time the horizon T (default N·step)."""
+        parts = [np.asarray(x)[1:].ravel(), np.asarray(u).ravel()]
+        if self.shape.final_time is not None:
+            nominal = self.n * self.shape.step if final_time is None else final_time
+            parts.append([nominal])
+        return np.concatenate(parts)
 
     def unpack(self, w: np.ndarray, x0: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """States (N+1, nx) including x0, and controls (N, nu), from w."""
         n, nx = self.n, self.nx
         x = np.vstack([x0, np.asarray(w[: nx * n]).reshape(n, nx)])
-        return x, np.asarray(w[nx * n :]).reshape(n, self.nu)
+        return x, np.asarray(w[nx * n : (nx + self.nu) * n]).reshape(n, self.nu)
+
+    def final_time(self, w: np.ndarray) -> float:
+        """The horizon T of w: its last entry with a free final time, else N·step."""
+        return float(w[-1]) if self.shape.final_time is not None else self.n * self.shape.step
 
     def default_guess(self, params: np.ndarray) -> np.ndarray:
-        """x_0 held at every sample, zero controls."""
+        """x_0 held at every sample, zero controls (and T = N·step clipped to its bounds)."""
         x0 = np.asarray(params, float)[: self.nx]
-        return self.pack(np.tile(x0, (self.n + 1, 1)), np.zeros((self.n, self.nu)))
+        nominal = self.n * self.shape.step
+        if self.shape.final_time is not None:
+            nominal = float(np.clip(nominal, *self.shape.final_time))
+        return self.pack(np.tile(x0, (self.n + 1, 1)), np.zeros((self.n, self.nu)), nominal)
 
     def fallback_guesses(self, params: np.ndarray) -> Iterator[np.ndarray]:
         """None: a scheme brings its own fallback (e.g. the leader's trajectory)."""
@@ -362,7 +432,8 @@ class MsTranscription:
         return MsSolution(cost=float(cost[0]), status=status, success=True,
                           iterations=steps, attempts=1, solve_time_s=elapsed,
                           x=x, u=u, cost_gradient=cost_gradient,
-                          constraint_violation=violation, w=w, lam_g=lam)
+                          constraint_violation=violation, w=w, lam_g=lam,
+                          final_time=self.final_time(w))
 
     def _solve_with(self, solver: ca.Function, params: np.ndarray, guess: np.ndarray,
                     multipliers: np.ndarray | None) -> MsSolution:
@@ -377,7 +448,7 @@ class MsTranscription:
         return MsSolution(
             **call.common, x=x, u=u, cost_gradient=call.cost_gradient,
             constraint_violation=self._violation(g),
-            w=w, lam_g=np.asarray(out["lam_g"]).ravel())
+            w=w, lam_g=np.asarray(out["lam_g"]).ravel(), final_time=self.final_time(w))
 
     def _violation(self, g: np.ndarray) -> float:
         """max |continuity or terminal residual| and the path rows' excess over their
@@ -395,7 +466,8 @@ class MsTranscription:
         return MsSolution(cost=float("nan"), status=status, success=False, iterations=0,
                           attempts=1, solve_time_s=elapsed, x=x, u=u,
                           cost_gradient=np.full(params.shape, np.nan),
-                          constraint_violation=float("inf"), w=w, lam_g=np.full(self.ng, np.nan))
+                          constraint_violation=float("inf"), w=w, lam_g=np.full(self.ng, np.nan),
+                          final_time=float("nan"))
 
 
 def ms_problem(shape: MsShape) -> MsTranscription:

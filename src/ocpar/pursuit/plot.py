@@ -42,19 +42,22 @@ def plot_trajectories(problem: PursuitProblem, result: PursuitResult, path: Path
     fig, axes = subplots(nx + nu, 1, figsize=(7.5, 1.55 * (nx + nu) + 2.2), sharex=True,
                          squeeze=False)
     axes = axes[:, 0]
-    t = np.asarray(problem.grid, float)
-    returned = result.label(result.headline) if result.status == "converged" else result.status
+    # real time: the answer's (a free final time's T found), agent 0's its plan's
+    t, t_plan = np.asarray(result.time, float), np.asarray(problem.grid, float)
+    returned = (result.label(result.headline) + result.final_time_text()
+                if result.status == "converged" else result.status)
     answer = f"answer, {answer_source(result)}: {returned}"
-    curves = [("agent 0's plan (initial feasible)", result.initial_x, "tab:orange", "-", 1.0),
-              (answer, result.x, "tab:blue", "-", 1.6)]
+    curves = [("agent 0's plan (initial feasible)", t_plan, result.initial_x, "tab:orange",
+               "-", 1.0),
+              (answer, t, result.x, "tab:blue", "-", 1.6)]
     if result.reference_x is not None:
         curves.append((f"reference: full-horizon MS from agent 0's plan: "
                        f"{result.label(result.reference_headline)}",
-                       result.reference_x, "k", "--", 0.8))
+                       t, result.reference_x, "k", "--", 0.8))
     targets = dict(zip(problem.target_components, problem.target, strict=True))
     for i, ax in enumerate(axes[:nx]):
-        for name, x, colour, style, width in curves:
-            ax.plot(t, np.asarray(x)[:, i], style, color=colour, lw=width, label=name)
+        for name, times, x, colour, style, width in curves:
+            ax.plot(times, np.asarray(x)[:, i], style, color=colour, lw=width, label=name)
         if i in targets:
             ax.plot(t[-1], targets[i], "o", color="tab:red", ms=4, label="target set")
         ax.set_ylabel(states[i].label, fontsize=9)

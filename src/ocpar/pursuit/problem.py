@@ -1,9 +1,12 @@
-"""The pursuit problem (the local-pursuit paper's Problem 1 with T fixed and no Mayer term):
+"""The pursuit problem (the local-pursuit paper's Problem 1 with no Mayer term):
 
-    min Σ_j h g(x_j, u_j)   s.t.   x_{j+1} = Φ_h(x_j, u_j),  x_0 = x_I,  x_N[i] = target_i (i ∈ S),
+    min Σ_j h g(x_j, u_j) + w T   s.t.   x_{j+1} = Φ_h(x_j, u_j),  x_0 = x_I,
+                                         x_N[i] = target_i (i ∈ S),
 
 with N samples over [0, T] (h = T/(N−1)), state and control bounds from the model, and agent 0's
-feasible plan. Everything is checked when the problem is built: one ValueError naming the field.
+feasible plan. T is fixed (the ``duration``, w = 0) or free in [T_min, T_max] (``final_time``,
+w the ``time_weight``; agent 0's plan then runs over the ``duration``). Everything is checked
+when the problem is built: one ValueError naming the field.
 """
 
 from __future__ import annotations
@@ -28,7 +31,7 @@ from ocpar.ocp.constraints import (
     check_smooth,
     compile_constraints,
 )
-from ocpar.ocp.multiple_shooting import INTEGRATORS, step_function
+from ocpar.ocp.multiple_shooting import INTEGRATORS, check_final_time, step_function
 
 #: Accuracy of the integration of a control law for agent 0 (scipy's RK45).
 LAW_RTOL, LAW_ATOL = 1e-11, 1e-13
@@ -75,7 +78,7 @@ class SampledPlan:
 
 @dataclass(frozen=True, eq=False)
 class PursuitProblem:
-    """A fixed-horizon optimal control problem for pursuit-based multiple shooting.
+    """An optimal control problem for pursuit-based multiple shooting.
 
     ``model`` the ODE with its running cost and bounds (:class:`ocpar.models.OdeModel`);
     ``duration`` T and ``samples`` N (h = T/(N−1)); ``initial_state`` x_I (nx,);
@@ -86,7 +89,12 @@ class PursuitProblem:
     controls re-simulated accurately; ``integrator`` Φ_h, ``"euler"`` or ``"rk4"``;
     ``path_constraints`` :class:`~ocpar.ocp.constraints.PathConstraint` objects of ``x`` and
     ``u`` that every agent's trajectory meets (at the samples, as
-    :class:`~ocpar.ocp.MsShape` imposes them; agent 0's plan must meet them too).
+    :class:`~ocpar.ocp.MsShape` imposes them; agent 0's plan must meet them too);
+    ``final_time`` (T_min, T_max): a free final time T in these bounds (model's time unit;
+    None: T = ``duration``, fixed), agent 0's plan then runs over ``duration`` (within them),
+    and ``time_weight`` w ≥ 0 adds w T to the cost (w = 1 with a zero running cost: minimum
+    time). A free final time is solved by the full-horizon MS (``mode="ms"``); the train
+    refuses it (:func:`~ocpar.pursuit.solve.check_mode`).
     """
 
     model: OdeModel
@@ -103,6 +111,8 @@ class PursuitProblem:
     checks: tuple[FinalValue, ...] = field(default=())
     integrator: str = "euler"
     path_constraints: tuple[PathConstraint | CompiledConstraint, ...] = ()
+    final_time: tuple[float, float] | None = None
+    time_weight: float = 0.0
 
     def __post_init__(self) -> None:
         check_ode_model(self.model)
@@ -118,6 +128,7 @@ class PursuitProblem:
             raise ValueError(f"samples: must be an integer >= 3, got {self.samples!r}")
         if self.integrator not in INTEGRATORS:
             raise ValueError(f"integrator: {self.integrator!r} is not one of {INTEGRATORS}")
+        self._check_final_time()
         lower, upper = self.model.state_bounds()
         lower, upper = np.asarray(lower, float), np.asarray(upper, float)
         x0 = as_array("initial_state", self.initial_state, (nx,))
@@ -142,6 +153,22 @@ class PursuitProblem:
         for label in ("cost_name", "cost_unit"):
             if not isinstance(getattr(self, label), str):
                 raise ValueError(f"{label}: must be a string")
+
+    def _check_final_time(self) -> None:
+        """A free final time's bounds hold the plan's ``duration``; a time weight needs one."""
+        if not (isinstance(self.time_weight, numbers.Real) and math.isfinite(self.time_weight)
+                and self.time_weight >= 0):
+            raise ValueError(f"time_weight: must be a finite number >= 0, got "
+                             f"{self.time_weight!r}")
+        if self.final_time is None:
+            if self.time_weight:
+                raise ValueError("time_weight: applies only to a free final time (final_time)")
+            return
+        lower, upper = check_final_time(self.final_time)
+        if not lower <= self.duration <= upper:
+            raise ValueError(f"duration: agent 0's horizon {self.duration!r} must lie within "
+                             f"final_time {(lower, upper)}")
+        object.__setattr__(self, "final_time", (lower, upper))
 
     def _check_plan(self) -> np.ndarray:
         """Check agent 0's plan (shapes, finiteness, bounds, x_I); return its first control."""
@@ -181,14 +208,31 @@ class PursuitProblem:
         return ode_functions(self.model)
 
     @property
+    def free_time(self) -> bool:
+        """Whether the final time is free (``final_time`` given)."""
+        return self.final_time is not None
+
+    @property
     def step(self) -> float:
-        """h = T/(N−1), in the model's time unit."""
+        """h = T/(N−1) of agent 0's plan (T = ``duration``), in the model's time unit."""
         return self.duration / (self.samples - 1)
 
     @property
     def grid(self) -> np.ndarray:
-        """Sample times t_j = j h, (N,)."""
+        """Agent 0's sample times t_j = j h, (N,)."""
         return np.arange(self.samples) * self.step
+
+    def times(self, final_time: float | None = None) -> np.ndarray:
+        """Sample times j T/(N−1) (N,) of a trajectory of horizon ``final_time`` T (default
+        ``duration``: :attr:`grid`; not finite: :attr:`grid` too, a failed solve's)."""
+        horizon = self.horizon(final_time)
+        if not math.isfinite(horizon):
+            return self.grid
+        return np.arange(self.samples) * (horizon / (self.samples - 1))
+
+    def horizon(self, final_time: float | None = None) -> float:
+        """The horizon T of a trajectory: ``final_time``, or ``duration`` when None."""
+        return self.duration if final_time is None else float(final_time)
 
     @property
     def headline_name(self) -> str:
@@ -208,18 +252,23 @@ class PursuitProblem:
         """The cost's ``result.json`` key, e.g. ``fuel_kg``."""
         return snake_case(f"{self.cost_name} {self.cost_unit}")
 
-    def cost(self, x: np.ndarray, u: np.ndarray) -> float:
-        """The cost of states x (N, nx) and controls u (N−1, nu) as multiple shooting
-        integrates it: h Σ_j g(x_j, u_j) with Euler, each step's RK4 quadrature with RK4
-        (:func:`~ocpar.ocp.multiple_shooting.step_function`)."""
-        phi = step_function(self.model, self.step, self.integrator).map(len(u))
+    def cost(self, x: np.ndarray, u: np.ndarray, final_time: float | None = None) -> float:
+        """The cost of states x (N, nx) and controls u (N−1, nu) over the horizon
+        ``final_time`` T (default ``duration``) as multiple shooting integrates it:
+        h Σ_j g(x_j, u_j) with Euler, each step's RK4 quadrature with RK4
+        (:func:`~ocpar.ocp.multiple_shooting.step_function`), h = T/(N−1); plus w T."""
+        horizon = self.horizon(final_time)
+        step = horizon / (self.samples - 1)
+        phi = step_function(self.model, step, self.integrator).map(len(u))
         rates = phi(np.asarray(x)[:-1].T, np.asarray(u).T)[1]
-        return float(self.step * np.sum(np.asarray(rates)))
+        return float(step * np.sum(np.asarray(rates))) + self.time_weight * horizon
 
-    def headline_value(self, x: np.ndarray, u: np.ndarray) -> float:
-        """The headline of a trajectory: its final value, or its cost."""
+    def headline_value(self, x: np.ndarray, u: np.ndarray,
+                       final_time: float | None = None) -> float:
+        """The headline of a trajectory of horizon ``final_time`` (default ``duration``): its
+        final value, or its cost."""
         if self.headline is None:
-            return self.cost(x, u)
+            return self.cost(x, u, final_time)
         return float(self.headline.of_state(np.asarray(x)[-1]))
 
     def improvement(self, previous: float, current: float) -> float:

@@ -34,7 +34,9 @@ class PursuitResult(RunResult):
     is at least as good); the train's own figures are kept beside it (``train_headline``,
     ``train_cost``, ``train_remaining`` and ``train_remaining_method``; its agents are
     ``agents``), with ``windows`` the (N_Δ, N_δ) it ran with, widened after each stall.
-    ``time`` (N,) the sample times t_j (the model's time unit, ``time_unit``); ``states``
+    ``time`` (N,) the sample times t_j of the answer, in real time (the model's time unit,
+    ``time_unit``): j T/(N−1) with ``final_time`` T, the problem's duration or, with
+    ``free_final_time``, the T found (``plan_time`` (N,) agent 0's sample times); ``states``
     and ``controls`` the names and units of the model's entries
     (:mod:`ocpar.models.labels`; None: the defaults). Wall times in s.
     """
@@ -78,6 +80,9 @@ class PursuitResult(RunResult):
     train_remaining_method: str | None = None
     windows: list[tuple[int, int]] = field(default_factory=list)
     time_unit: str = DIMENSIONLESS
+    final_time: float | None = None
+    free_final_time: bool = False
+    plan_time: np.ndarray | None = None
     states: Labels | None = None
     controls: Labels | None = None
     #: the common count of inner solves is the catch-up (and full-horizon) solves
@@ -99,12 +104,20 @@ class PursuitResult(RunResult):
 
     def headline_title(self) -> str:
         """The returned headline, for the plots' titles (:meth:`~ocpar.results.RunResult.title`)."""
-        return self.label(self.headline)
+        return self.label(self.headline) + self.final_time_text()
+
+    def final_time_text(self) -> str:
+        """', final time T <unit>' with a free final time, else ''."""
+        if not self.free_final_time:
+            return ""
+        unit = "" if self.time_unit == DIMENSIONLESS else f" {self.time_unit}"
+        return f", final time {self.final_time:.6f}{unit}"
 
     def headline_keys(self) -> tuple[str, ...]:
         """The headline figure's and the cost's keys (null unless converged; the per-agent
-        figures stay: they are the train's history)."""
-        return (self.headline_key, self.cost_key)
+        figures stay: they are the train's history); a free final time's T too."""
+        return (self.headline_key, self.cost_key) + (
+            ("final_time",) if self.free_final_time else ())
 
     def scheme_fields(self) -> dict:
         """Pursuit's fields of ``result.json`` (the trajectories and the per-agent headlines
@@ -116,6 +129,8 @@ class PursuitResult(RunResult):
         return {
             "samples": self.samples,
             "mode": self.mode,
+            "final_time": self.final_time,
+            "free_final_time": self.free_final_time,
             "window": self.window,
             "update": self.update,
             "epsilon": self.epsilon,
@@ -158,8 +173,9 @@ class PursuitResult(RunResult):
         (state_component) x_I; ``plan_state`` (time, state_component) agent 0's trajectory;
         ``reference_state`` the full-horizon MS solution's (when solved); ``agent_headline``
         (agent) the headline of each of the finest level's finished agents, agent 0 first
-        (a cost-headline problem: its cost). Units: the model's (:mod:`ocpar.models.labels`)
-        and the headline's."""
+        (a cost-headline problem: its cost); with a free final time ``plan_time`` (time)
+        agent 0's sample times (``time`` is the answer's). Units: the model's
+        (:mod:`ocpar.models.labels`) and the headline's."""
         x, u = np.asarray(self.x, float), np.asarray(self.u, float)
         states = self.states or Labels(tuple(f"x{i}" for i in range(x.shape[1])),
                                        (DIMENSIONLESS,) * x.shape[1])
@@ -182,6 +198,9 @@ class PursuitResult(RunResult):
                                     f"{self.headline_name} of each finished agent "
                                     "(finest level)"),
         })
+        if self.free_final_time and self.plan_time is not None:
+            out["plan_time"] = array("time", np.asarray(self.plan_time, float), self.time_unit,
+                                     "agent 0's sample times (its horizon is the plan's)")
         if self.reference_x is not None:
             out["reference_state"] = array("time state_component", self.reference_x,
                                            states, "full-horizon MS solution's trajectory")
@@ -194,6 +213,8 @@ class PursuitResult(RunResult):
         checks = "".join(f", {name} {value:.4g}" for name, value in self.rk_checks.items())
         cost = (f", {self.cost_key} {self.cost:.6f}" if self.headline_key != self.cost_key
                 else "")  # the cost only where the headline is another figure
+        if self.converged:
+            cost += self.final_time_text()
         figures = (f"{self.headline_name} {self.headline:.6f}{unit}{cost}" if self.converged
                    else f"{self.headline_name} — {self.not_reached()}")
         if self.result_source == "full_horizon":

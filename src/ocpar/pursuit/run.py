@@ -10,18 +10,23 @@ from typing import ClassVar
 from ocpar.bsp import Backend
 from ocpar.cli import Progress
 from ocpar.driver import PROBLEM_GROUP, SchemeRun
-from ocpar.examples import pursuit_orbit_transfer
+from ocpar.examples import pursuit_min_time, pursuit_orbit_transfer
 from ocpar.options import option, project
 from ocpar.pursuit.problem import PursuitProblem
 from ocpar.pursuit.result import PursuitResult
 from ocpar.pursuit.slp import PursuitSettings
-from ocpar.pursuit.solve import MODES, solve_pursuit
+from ocpar.pursuit.solve import MODES, check_mode, solve_pursuit
 from ocpar.references import is_reference
 
 #: The scheme's public problem type: what a ``--problem package.module:factory`` returns.
 PROBLEM_TYPE = PursuitProblem
 #: The built-in example (the paper's orbit transfer, by ``--case`` and ``--samples``).
 EXAMPLE = "orbit-transfer"
+#: The built-in free-final-time example (a double integrator, by ``--samples`` and
+#: ``--energy``; ``--mode ms``).
+MIN_TIME = "min-time"
+#: Each built-in example's own options (``samples`` applies to both).
+EXAMPLE_OPTIONS = {EXAMPLE: ("case",), MIN_TIME: ("energy",)}
 #: Largest N: PBMS keeps about N/N_Δ agents of N samples each in flight.
 MAX_SAMPLES = 100_001
 
@@ -40,13 +45,19 @@ class PursuitRun(SchemeRun, PursuitSettings):
     problem_type: ClassVar[type] = PROBLEM_TYPE
 
     problem: str = option(
-        EXAMPLE, f"{EXAMPLE} (the paper's, by --case and --samples), or package.module:factory "
-        "returning the scheme's problem type (docs/user-problems.md)", group=PROBLEM_GROUP)
+        EXAMPLE, f"{EXAMPLE} (the paper's, by --case and --samples), {MIN_TIME} (a double "
+        "integrator to rest in free final time, by --samples and --energy; --mode ms), or "
+        "package.module:factory returning the scheme's problem type (docs/user-problems.md)",
+        group=PROBLEM_GROUP)
     case: int = option(1, f"{EXAMPLE}: 1: R_T = 12.7778 Mm (guess eq. 16); 2: R_T = 23.642 Mm "
                        "(eq. 20)", choices=sorted(pursuit_orbit_transfer.CASE_RADIUS),
                        group=PROBLEM_GROUP)
-    samples: int = option(301, f"{EXAMPLE}: samples N over T = 300 min (h = T/(N-1))", low=1,
-                          high=MAX_SAMPLES, metavar="N", group=PROBLEM_GROUP)
+    samples: int = option(301, f"built-in examples: samples N (h = T/(N-1); {EXAMPLE}: over "
+                          "T = 300 min)", low=1, high=MAX_SAMPLES, metavar="N",
+                          group=PROBLEM_GROUP)
+    energy: float = option(0.0, f"{MIN_TIME}: weight c of the energy c*integral(u^2/2) beside "
+                           "the final time (0: minimum time)", low=0, metavar="C",
+                           group=PROBLEM_GROUP)
     mode: str = option("pbms", "pbms, or ms (one NLP over the whole horizon)", choices=MODES)
     no_reference: bool = option(False, "with pbms: do not also solve the full-horizon MS for "
                                 "comparison")
@@ -56,17 +67,22 @@ class PursuitRun(SchemeRun, PursuitSettings):
         if self.no_reference and self.mode != "pbms":
             raise ValueError(f"--no-reference only applies to --mode pbms, not {self.mode}")
         if is_reference(self.problem):
-            for key in ("case", "samples"):
+            for key in ("case", "samples", "energy"):
                 if key in given:
-                    raise ValueError(f"--{key} only applies to the built-in {EXAMPLE}; pass "
+                    raise ValueError(f"--{key} only applies to the built-in examples; pass "
                                      f"--problem-arg {key}=... to your factory instead")
             return
-        if self.problem != EXAMPLE:
-            raise ValueError(f"--problem: unknown example {self.problem!r}; give {EXAMPLE} or "
-                             "package.module:factory")
+        if self.problem not in EXAMPLE_OPTIONS:
+            raise ValueError(f"--problem: unknown example {self.problem!r}; give "
+                             f"{' or '.join(EXAMPLE_OPTIONS)}, or package.module:factory")
+        for example, keys in EXAMPLE_OPTIONS.items():
+            for key in keys:
+                if key in given and example != self.problem:
+                    raise ValueError(f"--{key} only applies to the built-in {example}")
         self.check_problem(self.build_example())
 
     def check_problem(self, problem: PursuitProblem) -> None:
+        check_mode(problem, self.mode)
         self.settings().check(problem.samples)
 
     def settings(self) -> PursuitSettings:
@@ -74,12 +90,16 @@ class PursuitRun(SchemeRun, PursuitSettings):
         return project(self, PursuitSettings)
 
     def build_example(self) -> PursuitProblem:
+        if self.problem == MIN_TIME:
+            return pursuit_min_time.make(samples=self.samples, energy=self.energy)
         return pursuit_orbit_transfer.make(case=self.case, samples=self.samples)
 
     def describe(self, problem: PursuitProblem) -> str:
         levels = f", {self.levels} levels" if self.levels > 1 else ""
-        return (f"{problem.name}, N = {problem.samples}, mode {self.mode}, N_Δ = {self.window}, "
-                f"N_δ = {self.update}{levels}")
+        free = (f", free final time in [{problem.final_time[0]:g}, {problem.final_time[1]:g}]"
+                if problem.final_time is not None else "")
+        return (f"{problem.name}, N = {problem.samples}{free}, mode {self.mode}, N_Δ = "
+                f"{self.window}, N_δ = {self.update}{levels}")
 
     def solve(self, problem: PursuitProblem, backend: Backend,
               progress: Progress) -> PursuitResult:

@@ -182,13 +182,16 @@ def remaining_improvement(progress: Sequence[float]) -> float:
 def full_horizon_task(problem: PursuitProblem, x: np.ndarray, u: np.ndarray,
                       fallback: tuple[np.ndarray, np.ndarray] | None = None) -> OcpTask:
     """Plain multiple shooting over [0, T] with N samples (one NLP, IPOPT) from the trajectory
-    ``x`` (N, nx), ``u`` (N−1, nu); ``fallback`` a second (x, u) to start from if that fails."""
+    ``x`` (N, nx), ``u`` (N−1, nu); ``fallback`` a second (x, u) to start from if that fails.
+    With a free final time T is free within its bounds (the guesses' T: ``duration``)."""
     shape = MsShape(problem.model, problem.samples - 1, problem.step,
                     problem.target_components, problem.integrator,
-                    path_constraints=problem.path_constraints)
+                    path_constraints=problem.path_constraints, final_time=problem.final_time,
+                    time_weight=problem.time_weight)
 
     def guess(x: np.ndarray, u: np.ndarray) -> np.ndarray:
-        return np.concatenate([np.asarray(x)[1:].ravel(), np.asarray(u).ravel()])
+        horizon = [problem.duration] if problem.free_time else []
+        return np.concatenate([np.asarray(x)[1:].ravel(), np.asarray(u).ravel(), horizon])
 
     return OcpTask(shape, np.concatenate([problem.initial_state, problem.target]), guess(x, u),
                    fallback=None if fallback is None else guess(*fallback))

@@ -24,6 +24,18 @@ MODES = ("pbms", "ms")
 REFERENCE_MAX_SAMPLES = 1001
 
 
+def check_mode(problem: PursuitProblem, mode: str) -> None:
+    """ValueError unless ``mode`` is one of :data:`MODES` and applies to ``problem``: the train
+    (``pbms``) is the paper's sampled local pursuit, whose agents leave Δ apart and intercept
+    each other on one clock over a fixed horizon; a free final time is solved by ``ms``."""
+    if mode not in MODES:
+        raise ValueError(f"unknown mode {mode!r}; choose one of {', '.join(MODES)}")
+    if mode == "pbms" and problem.free_time:
+        raise ValueError("mode pbms: the pursuit train needs a fixed final time (its agents "
+                         "intercept each other on one clock); solve a free final time with "
+                         "mode ms (--mode ms)")
+
+
 def solve_full_horizon(problem: PursuitProblem, backend: Backend) -> MsSolution:
     """Plain multiple shooting over [0, T] with N samples, from agent 0's trajectory, as one
     task on the backend."""
@@ -45,10 +57,11 @@ def solve_pursuit(
     With ``reference`` (and N ≤ 1001) a PBMS run also solves the full-horizon MS problem
     afterwards, for comparison. ``progress`` gets one line per superstep. The returned
     trajectory is checked as returned: a run is converged only if it meets the dynamics, the
-    target set and the path constraints to :data:`~ocpar.pursuit.slp.FEASIBILITY_TOL`.
+    target set and the path constraints to :data:`~ocpar.pursuit.slp.FEASIBILITY_TOL`. A
+    free final time takes ``mode="ms"`` (:func:`check_mode`); the result's ``time`` is then
+    the found T's grid.
     """
-    if mode not in MODES:
-        raise ValueError(f"unknown mode {mode!r}; choose one of {', '.join(MODES)}")
+    check_mode(problem, mode)
     settings = settings or PursuitSettings()
     settings.check(problem.samples)
     backend = backend or SerialBackend()
@@ -59,7 +72,9 @@ def solve_pursuit(
 
     if mode == "ms":
         sol = solve_full_horizon(problem, backend)
+        # a fixed horizon is the problem's (N·h may differ from it in the last bit)
         x, u = sol.x, sol.u
+        final_time = sol.final_time if problem.free_time else problem.duration
         status = "converged" if sol.success else "failed"
         message, agents, solves = sol.status, 0, 1
         failed, in_flight, headlines = int(not sol.success), 1, []
@@ -68,7 +83,7 @@ def solve_pursuit(
         remaining_method, certificate, train = None, None, {}
     else:
         outcome = run_levels(problem, settings, backend, progress)
-        x, u = outcome.x, outcome.u
+        x, u, final_time = outcome.x, outcome.u, problem.duration
         status = "converged" if outcome.converged else "not_converged"
         message, agents = outcome.message, sum(outcome.agents_per_level)
         solves = outcome.subproblem_solves
@@ -94,8 +109,8 @@ def solve_pursuit(
             reference_headline, reference_x = problem.headline_value(ref.x, ref.u), ref.x
         timings["reference_s"] = time.perf_counter() - start - wall
     checking = time.perf_counter()
-    check = rk_check(problem, u)
-    violation = discrete_residual(problem, x, u)
+    check = rk_check(problem, u, final_time)
+    violation = discrete_residual(problem, x, u, final_time)
     timings["verification_s"] = time.perf_counter() - checking
     if status == "converged" and not violation <= FEASIBILITY_TOL:
         status = "not_converged"
@@ -113,15 +128,17 @@ def solve_pursuit(
         levels=settings.levels,
         backend=backend.name, workers=backend.workers, status=status, message=message,
         headline_key=problem.headline_key, headline_name=problem.headline_name,
-        headline_unit=problem.headline_unit, headline=problem.headline_value(x, u),
-        cost_key=problem.cost_key, cost=problem.cost(x, u),
+        headline_unit=problem.headline_unit,
+        headline=problem.headline_value(x, u, final_time),
+        cost_key=problem.cost_key, cost=problem.cost(x, u, final_time),
         agents=agents, subproblem_solves=solves, failed_solves=failed, retries=retries,
         max_agents_in_flight=in_flight,
         constraint_violation=violation,
         rk_terminal_error=check.terminal_error, rk_checks=check.values,
         wall_time_s=wall, timings=timings, x=x, u=u, initial_x=initial_x,
         headlines=headlines,
-        time=problem.grid, time_unit=time_unit(problem.model),
+        time=problem.times(final_time), time_unit=time_unit(problem.model),
+        final_time=final_time, free_final_time=problem.free_time, plan_time=problem.grid,
         states=state_labels(problem.model, problem.model.nx),
         controls=control_labels(problem.model, problem.model.nu),
         reference_headline=reference_headline, reference_x=reference_x, trace=trace,
