@@ -18,7 +18,7 @@ import ocpar
 from ocpar.driver import main
 from ocpar.examples import formation_point_masses, macs_double_integrator
 from ocpar.examples.pursuit_orbit_transfer import make as make_transfer
-from ocpar.formation import solve_formation
+from ocpar.formation import Circle, DmocShape, FormationProblem, solve_formation
 from ocpar.formation.run import FormationRun
 from ocpar.formation.verify import verify_formation
 from ocpar.macs import MacsSettings, solve_macs
@@ -117,6 +117,57 @@ def test_a_dimensional_fleet_s_arrays_carry_its_si_units(tmp_path):
         assert quantity(1.0, ds[name].attrs["units"]).to(unit).magnitude == \
             pytest.approx(1.0, rel=1e-15), name
     assert ds["q_component_units"].values.tolist() == ["m", "m"]
+
+
+@dataclasses.dataclass(frozen=True)
+class Unicycle:
+    """A planar rigid body: position (m, m) and heading (rad), pushed by a force (N, N) and
+    turned by a torque (N*m), time in s; L = ½ m |ẋ|² + ½ I θ̇² with m = 1 kg, I = 1 kg m²."""
+
+    nq: int = 3
+    nu: int = 3
+    state_names: tuple[str, ...] = ("x", "y", "heading")
+    state_units: tuple[str, ...] = ("m", "m", "rad")
+    control_units: tuple[str, ...] = ("N", "N", "N*m")
+    time_unit: str = "s"
+    position_indices: tuple[int, ...] = (0, 1)
+
+    def lagrangian(self, q, qdot, interval=0):
+        return 0.5 * (qdot.T @ qdot)
+
+    def generalized_force(self, q, u):
+        return u
+
+
+def test_a_mixed_unit_fleet_s_velocity_is_each_entry_per_second(tmp_path):
+    """A unicycle-like model in (m, m, rad) over s: its velocity entries are m/s, m/s and
+    rad/s (each entry's unit over the time's, not the configuration's units copied), so
+    pint converts the heading rate to deg/s as 180/π times the node differences over h."""
+    problem = FormationProblem(
+        name="unicycles", shape=DmocShape(Unicycle(), intervals=10, duration=2.0),
+        curve=Circle(radius=10.0, center=np.array([100.0, 100.0])),
+        starts=np.column_stack([np.linspace(-30.0, 30.0, 4), np.zeros(4), np.zeros(4)]),
+        final_attitude=np.array([0.5]))
+    result = solve_formation(problem)
+    assert result.converged
+    ds, _ = written(result, tmp_path)
+    assert ds["q_component_units"].values.tolist() == ["m", "m", "rad"]
+    assert ds["configuration"].attrs["units_by_component"] == "q_component_units"
+    velocity = ds["velocity"]
+    assert velocity.attrs["units_by_component"] == "velocity_units"
+    assert ds["velocity_units"].dims == ("q_component",)
+    assert ds["velocity_units"].values.tolist() == ["m/s", "m/s", "rad/s"]
+    assert ds["u_component_units"].values.tolist() == ["N", "N", "N*m"]
+    heading = result.trajectories[:, :, 2]
+    unit = ds["velocity_units"].sel(q_component="heading").item()
+    rate = UNITS.Quantity(velocity.sel(q_component="heading").values, unit).to("deg/s")
+    np.testing.assert_allclose(rate.magnitude, np.degrees(np.diff(heading, axis=1) / 0.2),
+                               rtol=1e-12)
+    assert np.abs(rate.magnitude).max() > 1.0   # the heading turns by 0.5 rad
+    speed = UNITS.Quantity(velocity.sel(q_component="x").values,
+                           ds["velocity_units"].sel(q_component="x").item()).to("km/h")
+    np.testing.assert_allclose(speed.magnitude, 3.6 * np.diff(result.trajectories[:, :, 0],
+                                                              axis=1) / 0.2, rtol=1e-12)
 
 
 def test_the_per_agent_violation_is_the_perturbed_agents_momentum_residual():

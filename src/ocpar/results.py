@@ -52,19 +52,21 @@ Array = tuple[tuple[str, ...], np.ndarray, dict[str, Any]]
 CONVENTIONS = "CF-1.10"
 
 
-def array(dims: str, values: Any, units: str | Labels, long_name: str, **attrs: Any) -> Array:
+def array(dims: str, values: Any, units: str | Labels, long_name: str, *,
+          entry_units: str | None = None, **attrs: Any) -> Array:
     """A Dataset variable: ``dims`` space-separated dimension names ('' for a scalar),
     ``values`` an array of that many axes, its ``units`` (a string a unit library parses,
     '1' for a nondimensional number or an index; or the :class:`~ocpar.models.labels.Labels`
     of its last dimension's entries: their common unit, or, where they differ, no ``units``
-    and ``units_by_component`` naming the coordinate ``<last dimension>_units`` that holds
-    them, :func:`components`) and ``long_name``; ``attrs`` more attributes (netCDF values:
-    strings, numbers, lists of them)."""
+    and ``units_by_component`` naming the coordinate that holds them: ``entry_units``, a
+    derived quantity's own (:func:`derived_units`, e.g. ``velocity_units``), by default
+    ``<last dimension>_units``, the entries' own (:func:`components`)) and ``long_name``;
+    ``attrs`` more attributes (netCDF values: strings, numbers, lists of them)."""
     names = tuple(dims.split())
     if not isinstance(units, str):
         unit = units.unit
         unit_attrs = ({"units": unit} if unit is not None
-                      else {"units_by_component": f"{names[-1]}_units"})
+                      else {"units_by_component": entry_units or f"{names[-1]}_units"})
     else:
         unit_attrs = {"units": units}
     return (names, np.asarray(values), {**unit_attrs, "long_name": long_name, **attrs})
@@ -82,15 +84,29 @@ def components(dim: str, labels: Labels, long_name: str) -> dict[str, Array]:
             f"{dim}_units": array(dim, text(labels.units), "1", f"units of each {long_name}")}
 
 
+def derived_units(name: str, dim: str, labels: Labels) -> dict[str, Array]:
+    """The coordinate ``<name>_units`` along ``dim``: the units of each entry of the variable
+    ``name``, a quantity derived from ``dim``'s entries in units of its own (``labels``,
+    e.g. :meth:`Labels.per <ocpar.models.labels.Labels.per>`: a velocity's m/s, m/s, rad/s
+    beside the configuration's m, m, rad), which that variable's ``units_by_component``
+    names (:func:`array`'s ``entry_units``); none where its entries share one unit (then
+    its ``units`` says it)."""
+    if labels.unit is not None:
+        return {}
+    return {f"{name}_units": array(dim, text(labels.units), "1", f"units of each {name} entry")}
+
+
 def coordinates(variables: dict[str, Array]) -> list[str]:
     """The names of ``variables`` that are coordinates besides those named like their
     dimension: each ``<dim>_units`` of a dimension's entries (:func:`components`), each
-    variable another names as its ``bounds`` and each one another names in its
-    ``coordinates`` attribute (e.g. each member's own node times). The array file lists them
-    in its global ``coordinates`` attribute, which xarray reads."""
+    variable another names as its ``bounds``, its ``units_by_component``
+    (:func:`derived_units`) or in its ``coordinates`` attribute (e.g. each member's own node
+    times). The array file lists them in its global ``coordinates`` attribute, which xarray
+    reads."""
     dims = {d for dims, _, _ in variables.values() for d in dims}
     named = {n for _, _, attrs in variables.values()
-             for n in [attrs.get("bounds", ""), *attrs.get("coordinates", "").split()] if n}
+             for n in [attrs.get("bounds", ""), attrs.get("units_by_component", ""),
+                       *attrs.get("coordinates", "").split()] if n}
     return [name for name in variables
             if name in named or (name.endswith("_units") and name[:-6] in dims)]
 

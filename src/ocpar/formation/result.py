@@ -18,11 +18,19 @@ from ocpar.models.labels import (
     control_labels,
     cost_unit,
     mass_unit,
-    rate,
     state_labels,
     time_unit,
 )
-from ocpar.results import Array, RunResult, array, categories, components, text, time_axes
+from ocpar.results import (
+    Array,
+    RunResult,
+    array,
+    categories,
+    components,
+    derived_units,
+    text,
+    time_axes,
+)
 
 #: Names of the position entries in the array file's ``q_component`` labels (others: q<i>),
 #: unless the model names its entries (``state_names``, :mod:`ocpar.models.labels`).
@@ -55,7 +63,7 @@ class Units:
     @property
     def velocity(self) -> Labels:
         """The velocities' names and units (the configuration's per time unit)."""
-        return Labels(self.state.names, tuple(rate(u, self.time) for u in self.state.units))
+        return self.state.per(self.time)
 
 
 @dataclass
@@ -340,10 +348,13 @@ def run_arrays(nodes: int, duration: float, units: Units, model_names: list[str]
     """The array file's variables that are the run's, not an agent's: the coordinates
     ``time`` of the ``nodes`` nodes over ``duration``, ``interval_time``
     (:func:`~ocpar.results.time_axes`), ``q_component`` and ``u_component`` (names and
-    units, ``units``), ``axis`` (the names of the configuration's ``positions`` entries,
-    where known) and ``model_name`` (where the agents' models are known)."""
+    units, ``units``), ``velocity_units`` (where the velocity's entries differ in unit,
+    :func:`~ocpar.results.derived_units`), ``axis`` (the names of the configuration's
+    ``positions`` entries, where known) and ``model_name`` (where the agents' models are
+    known)."""
     out = (time_axes(np.linspace(0.0, duration, nodes), units.time)
            | components("q_component", units.state, "configuration entry")
+           | derived_units("velocity", "q_component", units.velocity)
            | components("u_component", units.control, "control entry"))
     if positions:
         out["axis"] = array("axis", text(units.state.names[i] for i in positions), "1",
@@ -396,7 +407,8 @@ def agent_arrays(records: AgentRecords, duration: float, positions: tuple[int, .
         "configuration": array("agent time q_component", q, units.state,
                                "configuration q_k at the nodes (the DMOC node path)"),
         "velocity": array("agent interval_time q_component", np.diff(q, axis=1) / h,
-                          units.velocity, "velocity (q_{k+1} - q_k)/h on each interval"),
+                          units.velocity, "velocity (q_{k+1} - q_k)/h on each interval",
+                          entry_units="velocity_units"),
         "cost": array("agent", records.cost, units.cost, "inner optimal cost J_i"),
         "phi": array("agent" if np.ndim(records.phi) == 1 else "agent parameter",
                      records.phi, "rad" if on_circle else "1",
