@@ -268,9 +268,31 @@ def test_macs_arrays_are_the_front_decisions_and_trajectories(tmp_path):
     # each trajectory starts at x_0 and ends where the transcription's final state is, at t_f
     states, times = ds["state"].values, ds["state_time"].values
     assert states.shape[0] == times.shape[0] == k
-    np.testing.assert_allclose(states[:, 0, 0], np.broadcast_to(
+    np.testing.assert_allclose(states[:, 0], np.broadcast_to(
         problem.shape.initial_state, (k, len(problem.shape.initial_state))), atol=1e-9)
-    np.testing.assert_allclose(times[:, -1, -1], result.decisions[:, -1], rtol=1e-14)
+    np.testing.assert_allclose(times[:, -1], result.decisions[:, -1], rtol=1e-14)
+    # the states by normalised time, as the controls: the state nodes are each element's
+    # Gauss-Lobatto nodes (order l = 3: its ends and ±1/sqrt(5)), right-continuous at the
+    # elements' ends, t_f the last element's end; each element's own end beside them
+    order, n = problem.order, problem.elements
+    assert ds["state"].dims == ("member", "state_fraction", "state_component")
+    assert ds["state_time"].dims == ("member", "state_fraction")
+    assert order == 3
+    lobatto = (np.array([-1, -1 / np.sqrt(5), 1 / np.sqrt(5), 1]) + 1) / 2
+    expected = np.append(((np.arange(n)[:, None] + lobatto[:-1]) / n).ravel(), 1.0)
+    np.testing.assert_allclose(ds["state_fraction"].values, expected, rtol=0, atol=1e-15)
+    np.testing.assert_allclose(times, result.decisions[:, -1:] * expected, rtol=1e-14)
+    nodes = np.asarray(result.states)   # (k, N, l+1, nx): element by element
+    mid = ds["state"].sel(state_fraction=0.49, method="nearest")   # t_f/2: element 2's start
+    np.testing.assert_array_equal(mid.values, nodes[:, n // 2, 0])
+    np.testing.assert_array_equal(ds["state"].sel(state_fraction=1.0).values, nodes[:, -1, -1])
+    np.testing.assert_array_equal(ds["element_end_state"].values, nodes[:, :, -1])
+    np.testing.assert_allclose(ds["element_end_fraction"].values, (np.arange(n) + 1) / n)
+    np.testing.assert_allclose(result.state_times[:, 1, 1],
+                               result.decisions[:, -1] * (1 + lobatto[1]) / n, rtol=1e-14)
+    # the discontinuity at the elements' ends: small, but there (the states are DFET's)
+    jump = np.abs(ds["state"].values[:, order:-1:order] - nodes[:, :-1, -1]).max()
+    assert 0 < jump < 1e-2
     assert ds["refined"].values.tolist() == np.asarray(result.refined, int).tolist()
     assert ds["stationarity"].values.tobytes() == np.asarray(result.stationarity,
                                                                float).tobytes()
