@@ -18,9 +18,11 @@ Statuses (the same words in every scheme):
 * ``cancelled``: stopped by its stop file at a superstep boundary (``ocpar cancel``); such a
   run writes no result.json, its checkpoint resumes it.
 
-Unless the status is ``converged``, a result reports none of its scheme's headline figures
-(:attr:`RunResult.headline_fields`: null in ``result.json``, "not reached" in the summary), and
-its plots' titles say its status and why (:meth:`RunResult.title`).
+Unless the status is ``converged``, a result reports none of its scheme's headline figures:
+not in Python (:meth:`RunResult.headline_attributes` are NaN or None, the values the last
+iterate had kept apart in :attr:`RunResult.last_iterate`), not in ``result.json``
+(:attr:`RunResult.headline_fields`: null), not in the summary ("not reached", no sentinel
+numbers), and its plots' titles say its status and why (:meth:`RunResult.title`).
 
 A result is written as three files (:mod:`ocpar.result_files`): ``result.json`` the summary
 (:meth:`RunResult.to_dict`), ``result.nc`` its arrays (:meth:`RunResult.dataset`: trajectories
@@ -29,8 +31,9 @@ and per-agent data, named dimensions, units) and ``trace.json`` the per-superste
 
 from __future__ import annotations
 
+import math
 from collections.abc import Iterable, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, ClassVar
 
@@ -141,6 +144,12 @@ def categories(values: Sequence[str]) -> tuple[np.ndarray, list[str]]:
     return codes, list(index)
 
 
+def _reached(value: Any) -> bool:
+    """Whether ``value`` is a figure (not None, not NaN)."""
+    return value is not None and not (isinstance(value, float | np.floating)
+                                      and math.isnan(value))
+
+
 #: Exit status of a run by its status (2 is bad usage, before anything runs).
 EXIT_STATUS = {"converged": 0, "not_converged": 1, "failed": 3, "cancelled": 4,
                "separation_not_met": 5, "obstacles_not_cleared": 6}
@@ -153,9 +162,13 @@ class RunResult:
     objective evaluations, each a DFET solve); ``failed_solves`` those that failed for good;
     ``retries`` extra attempts made; ``wall_time_s`` the run's wall time (s); ``trace`` one
     record per superstep; ``timings`` where the run's time went, by phase (s,
-    :mod:`ocpar.timing`: a scheme gives ``verification_s``, the driver the others). A scheme's
-    result adds its own fields (:meth:`scheme_fields`, the summary's) and arrays
-    (:meth:`arrays`, the array file's)."""
+    :mod:`ocpar.timing`: a scheme gives ``verification_s``, the driver the others);
+    ``last_iterate`` the headline figures of a run that is not ``converged``, by attribute
+    name, as its last iterate had them (e.g. ``last_iterate["total_cost"]``): for tools that
+    study a failure, never a headline (the attributes themselves are NaN or None,
+    :meth:`headline_attributes`; empty for a converged run). A scheme's result adds its own
+    fields (:meth:`scheme_fields`, the summary's) and arrays (:meth:`arrays`, the array
+    file's)."""
 
     scheme: ClassVar[str]
     #: The scheme's headline figures, keys of ``result.json``: written as null unless the
@@ -176,11 +189,35 @@ class RunResult:
     message: str = ""
     trace: list[SuperstepTrace] = field(default_factory=list)
     timings: dict[str, float] = field(default_factory=dict)
+    last_iterate: dict[str, Any] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
         if self.status not in self.statuses:
             raise ValueError(f"a {self.scheme} run's status {self.status!r} is not one of "
                              f"{', '.join(self.statuses)}")
+        if self.status != "converged":   # (a scheme may give ``converged`` its own meaning)
+            self._withhold_headlines()
+
+    def headline_attributes(self) -> tuple[str, ...]:
+        """The attributes holding the headline figures (:attr:`headline_fields` unless a
+        scheme names others): NaN (None where the attribute may be None; a dict of figures:
+        each NaN) unless the status is ``converged``."""
+        return self.headline_fields
+
+    def _withhold_headlines(self) -> None:
+        """Move each headline figure the run did not reach into :attr:`last_iterate` and
+        leave NaN or None in its place (a figure already withheld stays as it was kept)."""
+        types = {f.name: str(f.type) for f in fields(self)}
+        for name in self.headline_attributes():
+            value = getattr(self, name)
+            if isinstance(value, dict):
+                if any(_reached(v) for v in value.values()):
+                    self.last_iterate[name] = dict(value)
+                setattr(self, name, dict.fromkeys(value, math.nan))
+                continue
+            if _reached(value):
+                self.last_iterate[name] = value
+            setattr(self, name, None if "None" in types[name] else math.nan)
 
     @property
     def supersteps(self) -> int:

@@ -47,7 +47,8 @@ class MacsResult(RunResult):
     """
 
     scheme: ClassVar[str] = "macs"
-    #: The front's quality: null in ``result.json`` unless the run converged (a front).
+    #: The front's quality: None in Python (the last iterate's in ``last_iterate``) and null
+    #: in ``result.json`` unless the run converged.
     headline_fields: ClassVar[tuple[str, ...]] = ("gd", "igd", "hv")
 
     seed: int
