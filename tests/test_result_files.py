@@ -23,6 +23,7 @@ from ocpar.formation.run import FormationRun
 from ocpar.formation.verify import verify_formation
 from ocpar.macs import MacsSettings, solve_macs
 from ocpar.models import PointMass
+from ocpar.models.labels import derived
 from ocpar.pursuit import PursuitSettings, solve_pursuit
 from ocpar.result_files import ARRAYS_FILE, SUMMARY_FILE, TRACE_FILE, load_trace, write_result
 
@@ -117,6 +118,22 @@ def test_a_dimensional_fleet_s_arrays_carry_its_si_units(tmp_path):
         assert quantity(1.0, ds[name].attrs["units"]).to(unit).magnitude == \
             pytest.approx(1.0, rel=1e-15), name
     assert ds["q_component_units"].values.tolist() == ["m", "m"]
+
+
+@pytest.mark.parametrize("factors", [
+    (("m", 1), ("s", -1)), (("m", 1), ("s", -2)), (("kg", 1), ("m", 1), ("s", -2)),
+    (("kg*m/s**2", 2), ("s", 1)), (("rad", 1), ("min", -1)), (("1", 1), ("s", -1)),
+    (("Mm/min", 1), ("min", -1)), (("N*m", 1), ("rad", -1), ("s", -2)), (("1", 3), ("1", -1)),
+])
+def test_a_derived_unit_is_the_product_of_powers_pint_computes(factors):
+    """``derived`` writes the product of powers of its factors as a string that pint parses
+    to what pint's own arithmetic on the factors gives."""
+    expected = UNITS.parse_units("1")
+    for unit, exponent in factors:
+        expected *= UNITS.parse_units(unit) ** exponent
+    got = UNITS.parse_units(derived(*factors))
+    assert UNITS.Quantity(1.0, got).to(expected).magnitude == pytest.approx(1.0, rel=1e-15)
+    assert got.dimensionality == expected.dimensionality
 
 
 @dataclasses.dataclass(frozen=True)
