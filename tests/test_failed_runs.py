@@ -56,6 +56,8 @@ def test_a_pursuit_run_to_an_unreachable_target_reports_no_cost(tmp_path, monkey
     assert data["cost"] is None and data[result.cost_key] is None
     assert ds.sizes["agent"] == 7  # the train's history stays: agents 0 to 6
     assert "not reached (not_converged: " in result.summary()
+    assert math.isnan(result.headline) and math.isnan(result.cost)
+    assert_no_sentinel(result.summary())
     why = (f"{result.failed_solves} of {result.subproblem_solves} subproblem solves failed, "
            f"the first agent 1 at sample 20: Infeasible_Problem_Detected")
     assert result.message.startswith(why)
@@ -83,6 +85,9 @@ def test_a_macs_run_with_no_feasible_point_reports_no_front_metrics(tmp_path, mo
     assert data["gd"] is None and data["igd"] is None and data["hv"] is None
     summary = result.summary()
     assert "not reached (failed: no feasible archive member" in summary
+    assert result.gd is None and result.hv is None
+    assert result.last_iterate == {"hv": 0.0}   # an empty archive's: no GD, IGD against it
+    assert_no_sentinel(summary)
     assert "HV 0" not in summary
     why = (f"no feasible archive member: all {result.failed_searches} searches failed "
            f"({result.evaluations} evaluations), the first Infeasible_Problem_Detected")
