@@ -7,6 +7,7 @@ import contextlib
 import importlib.util
 import json
 import os
+import re
 import socket
 import subprocess
 import sys
@@ -50,6 +51,13 @@ def assert_result_contract(directory: Path) -> None:
         check = subprocess.run([sys.executable, str(checker), str(directory)],
                                capture_output=True, text=True)
         assert check.returncode == 0, check.stdout
+
+
+def assert_no_sentinel(summary: str) -> None:
+    """No figure line of ``summary`` (its status line quotes the message) prints a sentinel:
+    no -1, nan or inf standing for a number the run has not got."""
+    for line in summary.splitlines()[1:]:
+        assert not re.search(r"(?<![\w.])(-1|nan|inf)(?![\w.])", line), line
 
 
 def free_port() -> int:

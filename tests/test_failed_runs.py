@@ -1,5 +1,7 @@
-"""A run reports no figure it did not reach, in every scheme: made to fail honestly through
-the public API, its result file has null headline figures, its summary says "not reached",
+"""A run reports no figure it did not reach, in every scheme: made to fail or stopped early
+honestly through the public API, its Python result holds no headline figure (NaN or None, the
+last iterate's kept apart in ``last_iterate``), its result file has null headline figures,
+its summary says "not reached" and prints no sentinel number,
 its status line names the first failed solve and how many, and its plots' titles say its
 status and why. (The formation's: tests/test_verify.py,
 test_a_failed_run_reports_no_cost_and_its_plot_says_why.)"""
@@ -8,14 +10,17 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import math
 
 import numpy as np
 import pytest
+from conftest import assert_no_sentinel
 
 import ocpar
 import ocpar.macs.plot
 import ocpar.pursuit.plot
-from ocpar.examples import macs_double_integrator, pursuit_van_der_pol
+from ocpar.examples import formation_point_masses, macs_double_integrator, pursuit_van_der_pol
+from ocpar.formation import FormationOptions, solve_formation
 from ocpar.macs import MacsSettings, solve_macs
 from ocpar.macs.run import MacsRun
 from ocpar.pursuit import PursuitSettings, solve_pursuit
@@ -51,6 +56,8 @@ def test_a_pursuit_run_to_an_unreachable_target_reports_no_cost(tmp_path, monkey
     assert data["cost"] is None and data[result.cost_key] is None
     assert ds.sizes["agent"] == 7  # the train's history stays: agents 0 to 6
     assert "not reached (not_converged: " in result.summary()
+    assert math.isnan(result.headline) and math.isnan(result.cost)
+    assert_no_sentinel(result.summary())
     why = (f"{result.failed_solves} of {result.subproblem_solves} subproblem solves failed, "
            f"the first agent 1 at sample 20: Infeasible_Problem_Detected")
     assert result.message.startswith(why)
@@ -78,6 +85,9 @@ def test_a_macs_run_with_no_feasible_point_reports_no_front_metrics(tmp_path, mo
     assert data["gd"] is None and data["igd"] is None and data["hv"] is None
     summary = result.summary()
     assert "not reached (failed: no feasible archive member" in summary
+    assert result.gd is None and result.hv is None
+    assert result.last_iterate == {"hv": 0.0}   # an empty archive's: no GD, IGD against it
+    assert_no_sentinel(summary)
     assert "HV 0" not in summary
     why = (f"no feasible archive member: all {result.failed_searches} searches failed "
            f"({result.evaluations} evaluations), the first Infeasible_Problem_Detected")
@@ -102,3 +112,52 @@ def test_the_title_is_the_headline_only_if_converged(status):
     assert result.title() == f"cost {result.headline:.6f}"
     other = dataclasses.replace(result, status=status, message="why; more")
     assert other.title() == f"{status.replace('_', ' ')}: why"
+
+
+def test_a_formation_run_capped_at_too_few_outer_iterations_holds_no_cost(tmp_path):
+    """The paper's point masses (12) with one outer iteration where the optimum takes 4: not
+    converged, and no total cost anywhere as a headline: NaN in Python (and each cost part),
+    null in result.json, "not reached" in the summary; the last iterate's cost is kept
+    apart (``last_iterate``): the sum of the returned paths' costs, above the optimum."""
+    problem = formation_point_masses.make(agents=12)
+    optimum = solve_formation(problem)
+    assert optimum.converged and optimum.outer_iterations > 1
+    result = solve_formation(problem, options=FormationOptions(max_outer_iterations=1))
+    assert result.status == "not_converged" and result.outer_iterations == 1
+    assert math.isnan(result.total_cost) and math.isnan(result.unconstrained_cost)
+    assert all(math.isnan(v) for v in result.cost_parts.values())
+    reached = result.last_iterate["total_cost"]
+    assert reached == pytest.approx(float(np.sum(result.agent_costs)), rel=1e-12)
+    assert reached > optimum.total_cost * (1 + 1e-6)   # not the optimum: no headline
+    assert set(result.last_iterate) == {"total_cost"}   # no separation: no unconstrained cost
+    data = json.loads(write_result(result, tmp_path)[0].read_text())
+    assert data["total_cost"] is None and data["outer_iterations"] == 1
+    summary = result.summary()
+    assert "total cost — not reached (not_converged: iteration limit reached)" in summary
+    assert "outer iterations 1 " in summary
+    assert_no_sentinel(summary)
+    assert optimum.last_iterate == {}   # a converged run keeps its figures as headlines
+    assert "not reached" not in optimum.summary()
+
+
+def test_a_macs_run_stopped_before_its_refinement_holds_no_front_metrics(tmp_path):
+    """The double integrator with the final refinement skipped (no member's stationarity
+    checked): not converged; GD, IGD and HV are None in Python and null in result.json, the
+    last iterate's kept apart, equal to the metrics of the front it returned."""
+    from ocpar.macs.metrics import generational_distance, hypervolume
+
+    problem = macs_double_integrator.make()
+    result = solve_macs(problem, MacsSettings(max_evaluations=150, archive_size=5, seed=1,
+                                              no_refine=True))
+    assert result.status == "not_converged" and len(result.front) >= 2
+    assert result.gd is None and result.igd is None and result.hv is None
+    assert set(result.last_iterate) == {"gd", "igd", "hv"}
+    assert result.last_iterate["gd"] == generational_distance(
+        result.front, problem.reference_front, interpolate=True)
+    assert result.last_iterate["hv"] == hypervolume(result.front, problem.reference_front)
+    data = json.loads(write_result(result, tmp_path)[0].read_text())
+    assert data["gd"] is None and data["igd"] is None and data["hv"] is None
+    summary = result.summary()
+    assert "GD, IGD, HV not reached (not_converged: the final refinement was skipped" in summary
+    assert "HV of the objectives" not in summary
+    assert_no_sentinel(summary)

@@ -101,7 +101,9 @@ def test_pursuit_retries_from_the_leaders_trajectory(inject):
     inject("0.3:2")
     faulty = solve_pursuit(problem, settings, reference=False)
     assert faulty.retries > 0 and faulty.failed_solves == 0
-    assert faulty.headline == pytest.approx(clean.headline, abs=1e-6)  # final mass, kg
+    # stopped at its agent budget: no headline; the train's last agent's final mass, kg
+    assert clean.status == faulty.status == "not_converged"
+    assert faulty.train_headline == pytest.approx(clean.train_headline, abs=1e-6)
 
 
 def test_macs_rejects_failed_searches_and_still_finds_the_front(inject):
@@ -110,7 +112,11 @@ def test_macs_rejects_failed_searches_and_still_finds_the_front(inject):
     result = solve_macs(make_problem("goddard"), settings)
     assert result.failed_searches > 5
     assert result.to_dict()["failed_solves"] == result.failed_searches
-    assert result.gd < 0.05 and result.hv > 0.7
+    # 1,500 evaluations leave some members short of Pareto stationarity: not converged, so
+    # the front's quality is no headline (None), but the front found is kept beside it
+    assert result.status == "not_converged" and result.gd is None
+    front = result.last_iterate
+    assert front["gd"] < 0.05 and front["hv"] > 0.7
 
 
 def test_a_dask_worker_killed_in_the_middle_of_a_superstep_is_replaced():

@@ -12,6 +12,7 @@ import re
 import casadi as ca
 import numpy as np
 import pytest
+from conftest import assert_no_sentinel
 from feasibility_problems import DURATION, INTERVALS, build, fleet, free_peak, masses
 from scipy.optimize import linprog
 
@@ -23,6 +24,7 @@ from ocpar.models import PointMass
 from ocpar.ocp import DmocShape
 from ocpar.ocp.constraints import PathConstraint
 from ocpar.ocp.reach import rest_to_rest_reach
+from ocpar.result_files import write_result
 
 H = DURATION / INTERVALS
 CENTRE, RADIUS = np.array([0.0, 6.0]), 4.0
@@ -243,14 +245,26 @@ def test_without_an_exact_reach_set_failed_solves_are_rejected_steps():
                                               rel=1e-9)
 
 
-def test_monolithic_never_calls_an_infeasible_iterate_converged():
+def test_monolithic_never_calls_an_infeasible_iterate_converged(solved, tmp_path):
     """Monolithic mode stopped after 3 IPOPT iterations: its point breaks the constraints;
-    the status is not converged and the message says by how much."""
-    result = solve_formation(fleet("norm"), options=FormationOptions(
+    the status is failed and the message says by how much. Its cost, far below the optimum
+    (an infeasible point is cheaper), is no headline anywhere: NaN in Python, null in
+    result.json, "not reached" in the summary; kept apart as the last iterate's only."""
+    problem, optimum, _ = solved["norm"]
+    result = solve_formation(problem, options=FormationOptions(
         mode="monolithic", max_outer_iterations=3))
     assert result.status == "failed"
     assert re.search(r"breaks the constraints by [0-9.e+-]+: an infeasible iterate",
                      result.message), result.message
+    assert np.isnan(result.total_cost) and optimum.converged
+    unreached = result.last_iterate["total_cost"]
+    assert unreached == pytest.approx(float(np.sum(result.agent_costs)), rel=1e-12)
+    assert unreached < 0.5 * optimum.total_cost   # what the headline would have misstated
+    data = json.loads(write_result(result, tmp_path)[0].read_text())
+    assert data["total_cost"] is None and data["outer_iterations"] == 3
+    summary = result.summary()
+    assert "total cost — not reached (failed: Maximum_Iterations_Exceeded)" in summary
+    assert_no_sentinel(summary)
 
 
 # --- the command line and TOML ---------------------------------------------------------------

@@ -28,6 +28,7 @@ from ocpar.examples import (
 from ocpar.formation import DmocShape, FormationProblem, PlaneCurve, solve_formation
 from ocpar.macs import MacsSettings, solve_macs
 from ocpar.models import PointMass
+from ocpar.models.labels import time_unit
 from ocpar.pursuit import PursuitSettings, solve_pursuit
 
 
@@ -128,13 +129,19 @@ def test_components_default_to_nondimensional_and_read_a_models_names():
     class Named:
         state_names = ("r", "v")
         state_units = ("Mm", "Mm/min")
-        time_units = "min"
+        time_unit = "min"
 
     assert [c.label for c in ocpar.plotting.components(object(), "state", 2, "x")] == [
         "$x_{1}$ (nondimensional)", "$x_{2}$ (nondimensional)"]
     assert [c.label for c in ocpar.plotting.components(Named(), "state", 2, "x")] == [
         "r (Mm)", "v (Mm/min)"]
     assert ocpar.plotting.components(Named(), "time", 1, "t")[0].label == "$t$ (min)"
+    # the members the result files read, and only those: the axes say what the files say
+    time = ocpar.plotting.components(Named(), "time", 1, "t")[0]
+    assert time_unit(Named()) == "min" == time.unit
+    plural = type("Plural", (), {"time_units": "min"})()
+    assert time_unit(plural) == "1"
+    assert ocpar.plotting.components(plural, "time", 1, "t")[0].unit == "nondimensional"
     # a problem's names and units come first, the model's fill in what it lacks
     problem = type("Problem", (), {"state_units": "km"})()
     assert [c.label for c in ocpar.plotting.components((problem, Named()), "state", 2, "x")

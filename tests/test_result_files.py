@@ -18,11 +18,12 @@ import ocpar
 from ocpar.driver import main
 from ocpar.examples import formation_point_masses, macs_double_integrator
 from ocpar.examples.pursuit_orbit_transfer import make as make_transfer
-from ocpar.formation import solve_formation
+from ocpar.formation import Circle, DmocShape, FormationProblem, solve_formation
 from ocpar.formation.run import FormationRun
 from ocpar.formation.verify import verify_formation
 from ocpar.macs import MacsSettings, solve_macs
 from ocpar.models import PointMass
+from ocpar.models.labels import derived
 from ocpar.pursuit import PursuitSettings, solve_pursuit
 from ocpar.result_files import ARRAYS_FILE, SUMMARY_FILE, TRACE_FILE, load_trace, write_result
 
@@ -117,6 +118,73 @@ def test_a_dimensional_fleet_s_arrays_carry_its_si_units(tmp_path):
         assert quantity(1.0, ds[name].attrs["units"]).to(unit).magnitude == \
             pytest.approx(1.0, rel=1e-15), name
     assert ds["q_component_units"].values.tolist() == ["m", "m"]
+
+
+@pytest.mark.parametrize("factors", [
+    (("m", 1), ("s", -1)), (("m", 1), ("s", -2)), (("kg", 1), ("m", 1), ("s", -2)),
+    (("kg*m/s**2", 2), ("s", 1)), (("rad", 1), ("min", -1)), (("1", 1), ("s", -1)),
+    (("Mm/min", 1), ("min", -1)), (("N*m", 1), ("rad", -1), ("s", -2)), (("1", 3), ("1", -1)),
+])
+def test_a_derived_unit_is_the_product_of_powers_pint_computes(factors):
+    """``derived`` writes the product of powers of its factors as a string that pint parses
+    to what pint's own arithmetic on the factors gives."""
+    expected = UNITS.parse_units("1")
+    for unit, exponent in factors:
+        expected *= UNITS.parse_units(unit) ** exponent
+    got = UNITS.parse_units(derived(*factors))
+    assert UNITS.Quantity(1.0, got).to(expected).magnitude == pytest.approx(1.0, rel=1e-15)
+    assert got.dimensionality == expected.dimensionality
+
+
+@dataclasses.dataclass(frozen=True)
+class Unicycle:
+    """A planar rigid body: position (m, m) and heading (rad), pushed by a force (N, N) and
+    turned by a torque (N*m), time in s; L = ½ m |ẋ|² + ½ I θ̇² with m = 1 kg, I = 1 kg m²."""
+
+    nq: int = 3
+    nu: int = 3
+    state_names: tuple[str, ...] = ("x", "y", "heading")
+    state_units: tuple[str, ...] = ("m", "m", "rad")
+    control_units: tuple[str, ...] = ("N", "N", "N*m")
+    time_unit: str = "s"
+    position_indices: tuple[int, ...] = (0, 1)
+
+    def lagrangian(self, q, qdot, interval=0):
+        return 0.5 * (qdot.T @ qdot)
+
+    def generalized_force(self, q, u):
+        return u
+
+
+def test_a_mixed_unit_fleet_s_velocity_is_each_entry_per_second(tmp_path):
+    """A unicycle-like model in (m, m, rad) over s: its velocity entries are m/s, m/s and
+    rad/s (each entry's unit over the time's, not the configuration's units copied), so
+    pint converts the heading rate to deg/s as 180/π times the node differences over h."""
+    problem = FormationProblem(
+        name="unicycles", shape=DmocShape(Unicycle(), intervals=10, duration=2.0),
+        curve=Circle(radius=10.0, center=np.array([100.0, 100.0])),
+        starts=np.column_stack([np.linspace(-30.0, 30.0, 4), np.zeros(4), np.zeros(4)]),
+        final_attitude=np.array([0.5]))
+    result = solve_formation(problem)
+    assert result.converged
+    ds, _ = written(result, tmp_path)
+    assert ds["q_component_units"].values.tolist() == ["m", "m", "rad"]
+    assert ds["configuration"].attrs["units_by_component"] == "q_component_units"
+    velocity = ds["velocity"]
+    assert velocity.attrs["units_by_component"] == "velocity_units"
+    assert ds["velocity_units"].dims == ("q_component",)
+    assert ds["velocity_units"].values.tolist() == ["m/s", "m/s", "rad/s"]
+    assert ds["u_component_units"].values.tolist() == ["N", "N", "N*m"]
+    heading = result.trajectories[:, :, 2]
+    unit = ds["velocity_units"].sel(q_component="heading").item()
+    rate = UNITS.Quantity(velocity.sel(q_component="heading").values, unit).to("deg/s")
+    np.testing.assert_allclose(rate.magnitude, np.degrees(np.diff(heading, axis=1) / 0.2),
+                               rtol=1e-12)
+    assert np.abs(rate.magnitude).max() > 1.0   # the heading turns by 0.5 rad
+    speed = UNITS.Quantity(velocity.sel(q_component="x").values,
+                           ds["velocity_units"].sel(q_component="x").item()).to("km/h")
+    np.testing.assert_allclose(speed.magnitude, 3.6 * np.diff(result.trajectories[:, :, 0],
+                                                              axis=1) / 0.2, rtol=1e-12)
 
 
 def test_the_per_agent_violation_is_the_perturbed_agents_momentum_residual():
@@ -217,9 +285,31 @@ def test_macs_arrays_are_the_front_decisions_and_trajectories(tmp_path):
     # each trajectory starts at x_0 and ends where the transcription's final state is, at t_f
     states, times = ds["state"].values, ds["state_time"].values
     assert states.shape[0] == times.shape[0] == k
-    np.testing.assert_allclose(states[:, 0, 0], np.broadcast_to(
+    np.testing.assert_allclose(states[:, 0], np.broadcast_to(
         problem.shape.initial_state, (k, len(problem.shape.initial_state))), atol=1e-9)
-    np.testing.assert_allclose(times[:, -1, -1], result.decisions[:, -1], rtol=1e-14)
+    np.testing.assert_allclose(times[:, -1], result.decisions[:, -1], rtol=1e-14)
+    # the states by normalised time, as the controls: the state nodes are each element's
+    # Gauss-Lobatto nodes (order l = 3: its ends and ±1/sqrt(5)), right-continuous at the
+    # elements' ends, t_f the last element's end; each element's own end beside them
+    order, n = problem.order, problem.elements
+    assert ds["state"].dims == ("member", "state_fraction", "state_component")
+    assert ds["state_time"].dims == ("member", "state_fraction")
+    assert order == 3
+    lobatto = (np.array([-1, -1 / np.sqrt(5), 1 / np.sqrt(5), 1]) + 1) / 2
+    expected = np.append(((np.arange(n)[:, None] + lobatto[:-1]) / n).ravel(), 1.0)
+    np.testing.assert_allclose(ds["state_fraction"].values, expected, rtol=0, atol=1e-15)
+    np.testing.assert_allclose(times, result.decisions[:, -1:] * expected, rtol=1e-14)
+    nodes = np.asarray(result.states)   # (k, N, l+1, nx): element by element
+    mid = ds["state"].sel(state_fraction=0.49, method="nearest")   # t_f/2: element 2's start
+    np.testing.assert_array_equal(mid.values, nodes[:, n // 2, 0])
+    np.testing.assert_array_equal(ds["state"].sel(state_fraction=1.0).values, nodes[:, -1, -1])
+    np.testing.assert_array_equal(ds["element_end_state"].values, nodes[:, :, -1])
+    np.testing.assert_allclose(ds["element_end_fraction"].values, (np.arange(n) + 1) / n)
+    np.testing.assert_allclose(result.state_times[:, 1, 1],
+                               result.decisions[:, -1] * (1 + lobatto[1]) / n, rtol=1e-14)
+    # the discontinuity at the elements' ends: small, but there (the states are DFET's)
+    jump = np.abs(ds["state"].values[:, order:-1:order] - nodes[:, :-1, -1]).max()
+    assert 0 < jump < 1e-2
     assert ds["refined"].values.tolist() == np.asarray(result.refined, int).tolist()
     assert ds["stationarity"].values.tobytes() == np.asarray(result.stationarity,
                                                                float).tobytes()

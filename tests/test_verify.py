@@ -7,10 +7,12 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import math
 
 import casadi as ca
 import numpy as np
 import pytest
+from conftest import assert_no_sentinel
 from scipy.optimize import minimize_scalar
 
 from ocpar.examples.formation_mixed_fleet import make as make_fleet
@@ -177,6 +179,10 @@ def test_a_failed_run_reports_no_cost_and_its_plot_says_why(tmp_path):
     assert data["verification"]["passed"] is False
     assert "not reached (failed: " in result.summary()
     assert "total cost 0" not in result.summary()
+    assert math.isnan(result.total_cost) and result.last_iterate["total_cost"] > 0
+    # stopped by a failed inner solve: its outer iterations are not known, and said so
+    assert result.outer_iterations is None and data["outer_iterations"] is None
+    assert "outer iterations —" in result.summary()
     title = result.title()
     # the start scan (feasibility) finds every shift's solves failing: the why is in the title,
     # the solver's own words in the message
@@ -280,8 +286,9 @@ def test_columns_evaluated_with_numpy_equal_casadi():
 
 def test_pursuit_stopped_at_its_agent_budget_reports_no_final_mass():
     """The same mechanism (:class:`ocpar.results.RunResult`) in the pursuit scheme: a train
-    stopped at ``max_agents`` (not converged) writes its final mass and fuel as null and says
-    "not reached"; its per-agent history stays."""
+    stopped at ``max_agents`` (not converged) holds its final mass and fuel as NaN in Python
+    (the train's last agent's, which it returned, kept apart as the last iterate's), writes
+    them as null and says "not reached"; its per-agent history stays."""
     from ocpar.examples.pursuit_orbit_transfer import make
     from ocpar.pursuit import PursuitSettings, solve_pursuit
 
@@ -289,8 +296,14 @@ def test_pursuit_stopped_at_its_agent_budget_reports_no_final_mass():
                            PursuitSettings(window=32, update=16, max_agents=12,
                                            certify_samples=0),
                            reference=False)
-    assert result.status == "not_converged" and np.isfinite(result.headline)
+    assert (result.status, result.stop_reason) == ("not_converged", "max_agents")
+    assert np.isnan(result.headline) and np.isnan(result.cost)
+    assert result.last_iterate["headline"] == result.train_headline == result.headlines[-1]
+    assert result.last_iterate["cost"] == result.train_cost
+    assert 400 < result.last_iterate["headline"] < 525   # a final mass (kg), below the start's
     data = result.to_dict()
     assert data["final_mass_kg"] is None and data["fuel_kg"] is None
     np.testing.assert_array_equal(result.dataset()["agent_headline"], result.headlines)
-    assert "final mass — not reached (not_converged: " in result.summary()
+    summary = result.summary()
+    assert "final mass — not reached (not_converged: " in summary
+    assert_no_sentinel(summary)

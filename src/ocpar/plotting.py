@@ -42,10 +42,11 @@ def components(source: Any, kind: str, size: int, symbol: str) -> list[Component
     """Names and units of the ``size`` components of ``kind`` (``state``, ``control``,
     ``configuration`` (a mechanical system's q: its ``state_*`` members) or ``time``) of
     ``source``, a problem or model or a tuple of them searched in turn (e.g. ``(problem,
-    model)``): the first one's ``<kind>_names`` and ``<kind>_units`` (or ``<kind>_unit``; a
-    sequence, or one string for all) that it has, as :mod:`ocpar.models.labels` reads them
-    for the result files; else ``symbol`` with subscripts 1 … size (``symbol`` alone for one
-    component); unit '1' (or none) is shown as :data:`NONDIMENSIONAL`."""
+    model)``): the first one's ``<kind>_names`` and ``<kind>_units`` (``time_unit`` for the
+    time; a sequence, or one string for all) that it has, the members
+    :mod:`ocpar.models.labels` reads for the result files; else ``symbol`` with subscripts
+    1 … size (``symbol`` alone for one component); unit '1' (or none) is shown as
+    :data:`NONDIMENSIONAL`."""
     sources = source if isinstance(source, tuple) else (source,)
     kinds = (kind, "state") if kind == "configuration" else (kind,)
 
@@ -53,7 +54,7 @@ def components(source: Any, kind: str, size: int, symbol: str) -> list[Component
         return next((value for s in sources for k in kinds for field in fields
                      if (value := getattr(s, f"{k}_{field}", None)) is not None), None)
 
-    names, units = first("names"), first("units", "unit")
+    names, units = first("names"), first("unit" if kind == "time" else "units")
     if names is None:
         names = ([f"${symbol}$"] if size == 1
                  else [f"${symbol}_{{{i + 1}}}$" for i in range(size)])

@@ -18,9 +18,11 @@ Statuses (the same words in every scheme):
 * ``cancelled``: stopped by its stop file at a superstep boundary (``ocpar cancel``); such a
   run writes no result.json, its checkpoint resumes it.
 
-Unless the status is ``converged``, a result reports none of its scheme's headline figures
-(:attr:`RunResult.headline_fields`: null in ``result.json``, "not reached" in the summary), and
-its plots' titles say its status and why (:meth:`RunResult.title`).
+Unless the status is ``converged``, a result reports none of its scheme's headline figures:
+not in Python (:meth:`RunResult.headline_attributes` are NaN or None, the values the last
+iterate had kept apart in :attr:`RunResult.last_iterate`), not in ``result.json``
+(:attr:`RunResult.headline_fields`: null), not in the summary ("not reached", no sentinel
+numbers), and its plots' titles say its status and why (:meth:`RunResult.title`).
 
 A result is written as three files (:mod:`ocpar.result_files`): ``result.json`` the summary
 (:meth:`RunResult.to_dict`), ``result.nc`` its arrays (:meth:`RunResult.dataset`: trajectories
@@ -29,8 +31,9 @@ and per-agent data, named dimensions, units) and ``trace.json`` the per-superste
 
 from __future__ import annotations
 
+import math
 from collections.abc import Iterable, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, ClassVar
 
@@ -52,19 +55,21 @@ Array = tuple[tuple[str, ...], np.ndarray, dict[str, Any]]
 CONVENTIONS = "CF-1.10"
 
 
-def array(dims: str, values: Any, units: str | Labels, long_name: str, **attrs: Any) -> Array:
+def array(dims: str, values: Any, units: str | Labels, long_name: str, *,
+          entry_units: str | None = None, **attrs: Any) -> Array:
     """A Dataset variable: ``dims`` space-separated dimension names ('' for a scalar),
     ``values`` an array of that many axes, its ``units`` (a string a unit library parses,
     '1' for a nondimensional number or an index; or the :class:`~ocpar.models.labels.Labels`
     of its last dimension's entries: their common unit, or, where they differ, no ``units``
-    and ``units_by_component`` naming the coordinate ``<last dimension>_units`` that holds
-    them, :func:`components`) and ``long_name``; ``attrs`` more attributes (netCDF values:
-    strings, numbers, lists of them)."""
+    and ``units_by_component`` naming the coordinate that holds them: ``entry_units``, a
+    derived quantity's own (:func:`derived_units`, e.g. ``velocity_units``), by default
+    ``<last dimension>_units``, the entries' own (:func:`components`)) and ``long_name``;
+    ``attrs`` more attributes (netCDF values: strings, numbers, lists of them)."""
     names = tuple(dims.split())
     if not isinstance(units, str):
         unit = units.unit
         unit_attrs = ({"units": unit} if unit is not None
-                      else {"units_by_component": f"{names[-1]}_units"})
+                      else {"units_by_component": entry_units or f"{names[-1]}_units"})
     else:
         unit_attrs = {"units": units}
     return (names, np.asarray(values), {**unit_attrs, "long_name": long_name, **attrs})
@@ -82,15 +87,29 @@ def components(dim: str, labels: Labels, long_name: str) -> dict[str, Array]:
             f"{dim}_units": array(dim, text(labels.units), "1", f"units of each {long_name}")}
 
 
+def derived_units(name: str, dim: str, labels: Labels) -> dict[str, Array]:
+    """The coordinate ``<name>_units`` along ``dim``: the units of each entry of the variable
+    ``name``, a quantity derived from ``dim``'s entries in units of its own (``labels``,
+    e.g. :meth:`Labels.per <ocpar.models.labels.Labels.per>`: a velocity's m/s, m/s, rad/s
+    beside the configuration's m, m, rad), which that variable's ``units_by_component``
+    names (:func:`array`'s ``entry_units``); none where its entries share one unit (then
+    its ``units`` says it)."""
+    if labels.unit is not None:
+        return {}
+    return {f"{name}_units": array(dim, text(labels.units), "1", f"units of each {name} entry")}
+
+
 def coordinates(variables: dict[str, Array]) -> list[str]:
     """The names of ``variables`` that are coordinates besides those named like their
     dimension: each ``<dim>_units`` of a dimension's entries (:func:`components`), each
-    variable another names as its ``bounds`` and each one another names in its
-    ``coordinates`` attribute (e.g. each member's own node times). The array file lists them
-    in its global ``coordinates`` attribute, which xarray reads."""
+    variable another names as its ``bounds``, its ``units_by_component``
+    (:func:`derived_units`) or in its ``coordinates`` attribute (e.g. each member's own node
+    times). The array file lists them in its global ``coordinates`` attribute, which xarray
+    reads."""
     dims = {d for dims, _, _ in variables.values() for d in dims}
     named = {n for _, _, attrs in variables.values()
-             for n in [attrs.get("bounds", ""), *attrs.get("coordinates", "").split()] if n}
+             for n in [attrs.get("bounds", ""), attrs.get("units_by_component", ""),
+                       *attrs.get("coordinates", "").split()] if n}
     return [name for name in variables
             if name in named or (name.endswith("_units") and name[:-6] in dims)]
 
@@ -125,6 +144,12 @@ def categories(values: Sequence[str]) -> tuple[np.ndarray, list[str]]:
     return codes, list(index)
 
 
+def _reached(value: Any) -> bool:
+    """Whether ``value`` is a figure (not None, not NaN)."""
+    return value is not None and not (isinstance(value, float | np.floating)
+                                      and math.isnan(value))
+
+
 #: Exit status of a run by its status (2 is bad usage, before anything runs).
 EXIT_STATUS = {"converged": 0, "not_converged": 1, "failed": 3, "cancelled": 4,
                "separation_not_met": 5, "obstacles_not_cleared": 6}
@@ -137,9 +162,13 @@ class RunResult:
     objective evaluations, each a DFET solve); ``failed_solves`` those that failed for good;
     ``retries`` extra attempts made; ``wall_time_s`` the run's wall time (s); ``trace`` one
     record per superstep; ``timings`` where the run's time went, by phase (s,
-    :mod:`ocpar.timing`: a scheme gives ``verification_s``, the driver the others). A scheme's
-    result adds its own fields (:meth:`scheme_fields`, the summary's) and arrays
-    (:meth:`arrays`, the array file's)."""
+    :mod:`ocpar.timing`: a scheme gives ``verification_s``, the driver the others);
+    ``last_iterate`` the headline figures of a run that is not ``converged``, by attribute
+    name, as its last iterate had them (e.g. ``last_iterate["total_cost"]``): for tools that
+    study a failure, never a headline (the attributes themselves are NaN or None,
+    :meth:`headline_attributes`; empty for a converged run). A scheme's result adds its own
+    fields (:meth:`scheme_fields`, the summary's) and arrays (:meth:`arrays`, the array
+    file's)."""
 
     scheme: ClassVar[str]
     #: The scheme's headline figures, keys of ``result.json``: written as null unless the
@@ -160,11 +189,35 @@ class RunResult:
     message: str = ""
     trace: list[SuperstepTrace] = field(default_factory=list)
     timings: dict[str, float] = field(default_factory=dict)
+    last_iterate: dict[str, Any] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
         if self.status not in self.statuses:
             raise ValueError(f"a {self.scheme} run's status {self.status!r} is not one of "
                              f"{', '.join(self.statuses)}")
+        if self.status != "converged":   # (a scheme may give ``converged`` its own meaning)
+            self._withhold_headlines()
+
+    def headline_attributes(self) -> tuple[str, ...]:
+        """The attributes holding the headline figures (:attr:`headline_fields` unless a
+        scheme names others): NaN (None where the attribute may be None; a dict of figures:
+        each NaN) unless the status is ``converged``."""
+        return self.headline_fields
+
+    def _withhold_headlines(self) -> None:
+        """Move each headline figure the run did not reach into :attr:`last_iterate` and
+        leave NaN or None in its place (a figure already withheld stays as it was kept)."""
+        types = {f.name: str(f.type) for f in fields(self)}
+        for name in self.headline_attributes():
+            value = getattr(self, name)
+            if isinstance(value, dict):
+                if any(_reached(v) for v in value.values()):
+                    self.last_iterate[name] = dict(value)
+                setattr(self, name, dict.fromkeys(value, math.nan))
+                continue
+            if _reached(value):
+                self.last_iterate[name] = value
+            setattr(self, name, None if "None" in types[name] else math.nan)
 
     @property
     def supersteps(self) -> int:

@@ -18,11 +18,19 @@ from ocpar.models.labels import (
     control_labels,
     cost_unit,
     mass_unit,
-    rate,
     state_labels,
     time_unit,
 )
-from ocpar.results import Array, RunResult, array, categories, components, text, time_axes
+from ocpar.results import (
+    Array,
+    RunResult,
+    array,
+    categories,
+    components,
+    derived_units,
+    text,
+    time_axes,
+)
 
 #: Names of the position entries in the array file's ``q_component`` labels (others: q<i>),
 #: unless the model names its entries (``state_names``, :mod:`ocpar.models.labels`).
@@ -55,7 +63,7 @@ class Units:
     @property
     def velocity(self) -> Labels:
         """The velocities' names and units (the configuration's per time unit)."""
-        return Labels(self.state.names, tuple(rate(u, self.time) for u in self.state.units))
+        return self.state.per(self.time)
 
 
 @dataclass
@@ -107,7 +115,8 @@ class FormationResult(RunResult):
     controls (``result.json`` carries each agent's ``peak_thrust`` max_k |u_k|, force
     unit); ``cost_parts`` the total cost split by
     control groups where the model names them (e.g. ``translational_cost``,
-    ``rotational_cost``); ``coupling_residual``
+    ``rotational_cost``); ``outer_iterations`` the outer solver's iterations (None where it
+    stopped on a failed inner solve, unknown); ``coupling_residual``
     max_k |c_k(φ)|, the scaled coupling c = (ℓ²/n³) dG/dφ as the outer problem imposes it
     (:mod:`ocpar.formation.couplings.potential`), at the parameters located from the returned end
     points (``verification``: :class:`~ocpar.formation.verify.Verification`, whose checks
@@ -145,7 +154,9 @@ class FormationResult(RunResult):
     """
 
     scheme: ClassVar[str] = "formation"
-    #: Null in ``result.json`` unless converged (with the cost parts, :meth:`headline_keys`).
+    #: NaN in Python and null in ``result.json`` unless converged (with the cost parts,
+    #: :meth:`headline_keys`, :meth:`headline_attributes`; the last iterate's in
+    #: ``last_iterate``).
     headline_fields: ClassVar[tuple[str, ...]] = ("total_cost", "unconstrained_cost")
     statuses: ClassVar[tuple[str, ...]] = (*RunResult.statuses, "separation_not_met",
                                            "obstacles_not_cleared")
@@ -156,7 +167,7 @@ class FormationResult(RunResult):
     phi: np.ndarray
     agent_costs: np.ndarray | None
     trajectories: np.ndarray | None
-    outer_iterations: int
+    outer_iterations: int | None
     separation: ClosestApproach
     cost_parts: dict[str, float] = field(default_factory=dict)
     coupling_residual: float = math.nan
@@ -186,6 +197,10 @@ class FormationResult(RunResult):
     def headline_keys(self) -> tuple[str, ...]:
         """:attr:`headline_fields` and the cost parts' keys."""
         return self.headline_fields + tuple(self.cost_parts)
+
+    def headline_attributes(self) -> tuple[str, ...]:
+        """:attr:`headline_fields` and ``cost_parts`` (each part NaN unless converged)."""
+        return (*self.headline_fields, "cost_parts")
 
     def headline_title(self) -> str:
         """The total cost, for the plot's title (:meth:`~ocpar.results.RunResult.title`)."""
@@ -307,12 +322,23 @@ class FormationResult(RunResult):
         c = self.obstacle_clearance
         if c is None:
             return ""
+        if c.agent < 0:
+            return "min obstacle clearance — (no finite paths; obstacles in the inner problems)\n"
         return (f"min obstacle clearance {c.distance:.6g} (agent {c.agent}, obstacle "
                 f"{c.obstacle} at t = {c.time:.6g}; obstacles in the inner problems)\n")
 
+    def _separation_summary(self) -> str:
+        """The summary's words on the closest approach ('—' where there is none: fewer than
+        two agents, or no finite paths)."""
+        c = self.separation
+        if c.agents[0] < 0:
+            return "min separation —"
+        return (f"min separation {c.distance:.6g} (agents {c.agents[0]} and {c.agents[1]} "
+                f"at t = {c.time:.6g})")
+
     def summary(self) -> str:
         """A few lines for people: the headline numbers of the run."""
-        equidistance = (f"equidistance error {self.equidistance_error:.1e} rad   "
+        equidistance = (f"equidistance error {_shown(self.equidistance_error, '.1e')} rad   "
                         if self.on_circle else "")
         parts = "".join(f"{name.replace('_', ' ')} {value:.6e}   "
                         for name, value in self.cost_parts.items())
@@ -321,13 +347,10 @@ class FormationResult(RunResult):
         return (
             f"status {self.status} ({self.message})\n"
             f"{cost}"
-            f"{equidistance}coupling residual {self.coupling_residual:.1e}\n"
-            f"min separation {self.separation.distance:.6g} (agents "
-            f"{self.separation.agents[0]} and {self.separation.agents[1]} at t = "
-            f"{self.separation.time:.6g})"
-            f"{self._required_summary()}\n"
+            f"{equidistance}coupling residual {_shown(self.coupling_residual, '.1e')}\n"
+            f"{self._separation_summary()}{self._required_summary()}\n"
             f"{self._obstacle_summary()}"
-            f"outer iterations {self.outer_iterations}   supersteps {self.supersteps}   "
+            f"outer iterations {_count(self.outer_iterations)}   supersteps {self.supersteps}   "
             f"inner solves {self.inner_solves} (failed {self.failed_solves}, retries "
             f"{self.retries})\n"
             f"wall time {self.wall_time_s:.2f} s on {self.workers} {self.backend} worker(s), "
@@ -340,10 +363,13 @@ def run_arrays(nodes: int, duration: float, units: Units, model_names: list[str]
     """The array file's variables that are the run's, not an agent's: the coordinates
     ``time`` of the ``nodes`` nodes over ``duration``, ``interval_time``
     (:func:`~ocpar.results.time_axes`), ``q_component`` and ``u_component`` (names and
-    units, ``units``), ``axis`` (the names of the configuration's ``positions`` entries,
-    where known) and ``model_name`` (where the agents' models are known)."""
+    units, ``units``), ``velocity_units`` (where the velocity's entries differ in unit,
+    :func:`~ocpar.results.derived_units`), ``axis`` (the names of the configuration's
+    ``positions`` entries, where known) and ``model_name`` (where the agents' models are
+    known)."""
     out = (time_axes(np.linspace(0.0, duration, nodes), units.time)
            | components("q_component", units.state, "configuration entry")
+           | derived_units("velocity", "q_component", units.velocity)
            | components("u_component", units.control, "control entry"))
     if positions:
         out["axis"] = array("axis", text(units.state.names[i] for i in positions), "1",
@@ -396,7 +422,8 @@ def agent_arrays(records: AgentRecords, duration: float, positions: tuple[int, .
         "configuration": array("agent time q_component", q, units.state,
                                "configuration q_k at the nodes (the DMOC node path)"),
         "velocity": array("agent interval_time q_component", np.diff(q, axis=1) / h,
-                          units.velocity, "velocity (q_{k+1} - q_k)/h on each interval"),
+                          units.velocity, "velocity (q_{k+1} - q_k)/h on each interval",
+                          entry_units="velocity_units"),
         "cost": array("agent", records.cost, units.cost, "inner optimal cost J_i"),
         "phi": array("agent" if np.ndim(records.phi) == 1 else "agent parameter",
                      records.phi, "rad" if on_circle else "1",
@@ -461,6 +488,16 @@ def _obstacle_sides(sides: list[list[str | list[float] | None]],
     return array("agent obstacle axis", values, "1",
                  "unit vector from the obstacle's centre to the agent's closest point "
                  "(scaled space); NaN: none")
+
+
+def _count(n: int | None) -> str:
+    """A count for the summary: '—' where it is not known (None)."""
+    return "—" if n is None else str(n)
+
+
+def _shown(x: float, spec: str) -> str:
+    """A figure for the summary in format ``spec``: '—' where it is not finite."""
+    return format(x, spec) if math.isfinite(x) else "—"
 
 
 def _finite_or_none(x: float) -> float | None:

@@ -477,7 +477,7 @@ def solve_formation(
             **common, status="failed", message=f"ordering: {exc}", total_cost=math.nan,
             phi=np.full(problem.parameter_shape, np.nan), agent_costs=np.full(n, np.nan),
             trajectories=np.full((n, shape.intervals + 1, shape.model.nq), np.nan),
-            outer_iterations=-1, inner_solves=0, failed_solves=0,
+            outer_iterations=None, inner_solves=0, failed_solves=0,
             wall_time_s=time.perf_counter() - start,
             separation=problem.closest_approach(np.full((n, 2, shape.model.nq), np.nan)),
             trace=backend.traces[first_trace:],
@@ -547,7 +547,7 @@ def solve_formation(
             message += (f"; the start was infeasible: phase 1 (elastic inner problems, "
                         f"{objective.phase_one.inner_solves} solves) found a feasible one")
     except InnerSolveFailed as exc:
-        phi, iterations, status, message = objective.last_phi, -1, "failed", str(exc)
+        phi, iterations, status, message = objective.last_phi, None, "failed", str(exc)
         if isinstance(exc, NoFeasibleFormation):   # refused: the paths are no answer to check
             refusal = message
     inner_solves = ordering_solves + objective.inner_solves

@@ -27,10 +27,11 @@ class MacsResult(RunResult):
     ideal and nadir; None when the problem has no reference front); ``hv`` the hypervolume
     normalised by the reference front, or without one by the final front itself (None if that
     has no extent); ``decisions`` the members' decision vectors (controls and t_f);
-    ``states`` (k, N, l+1, nx) each member's DFET state nodes per element at
-    ``state_times`` (k, N, l+1) (its trajectory, in the array file only);
-    ``control_fractions`` (N (m+1),) the control nodes' times as fractions t/t_f of each
-    member's t_f (the decision's controls at them, element by element); ``time_unit``,
+    ``states`` (k, N, l+1, nx) each member's DFET state nodes per element (its trajectory,
+    in the array file only) at ``state_fractions`` (N, l+1) of its t_f (the Gauss–Lobatto
+    nodes: each element's first and last at its ends; :attr:`state_times` (k, N, l+1) the
+    times); ``control_fractions`` (N (m+1),) the control nodes' times as fractions t/t_f of
+    each member's t_f (the decision's controls at them, element by element); ``time_unit``,
     ``states_labels`` and ``controls_labels`` the model's units and names
     (:mod:`ocpar.models.labels`; None: the defaults), ``objective_units`` each objective's;
     ``objective_names`` m labels; ``reference_front`` the problem's (not written to JSON).
@@ -46,7 +47,8 @@ class MacsResult(RunResult):
     """
 
     scheme: ClassVar[str] = "macs"
-    #: The front's quality: null in ``result.json`` unless the run converged (a front).
+    #: The front's quality: None in Python (the last iterate's in ``last_iterate``) and null
+    #: in ``result.json`` unless the run converged.
     headline_fields: ClassVar[tuple[str, ...]] = ("gd", "igd", "hv")
 
     seed: int
@@ -54,7 +56,7 @@ class MacsResult(RunResult):
     front_transcribed: np.ndarray
     decisions: np.ndarray
     states: np.ndarray
-    state_times: np.ndarray
+    state_fractions: np.ndarray
     evaluations: int
     iterations: int
     failed_searches: int
@@ -86,6 +88,13 @@ class MacsResult(RunResult):
         super().__post_init__()
         self.inner_solves = self.evaluations
         self.failed_solves = self.failed_searches
+
+    @property
+    def state_times(self) -> np.ndarray:
+        """(k, N, l+1) each member's state nodes' times: its t_f times
+        :attr:`state_fractions`."""
+        return (np.asarray(self.decisions, float)[:, -1:, None]
+                * np.asarray(self.state_fractions, float))
 
     def scheme_fields(self) -> dict:
         """MACS's fields of ``result.json``: the front and its quality (the decisions and
@@ -120,14 +129,17 @@ class MacsResult(RunResult):
         """The array file's variables, per archive member (sorted by J1): the coordinates
         ``objective`` (the names, with ``objective_units``), ``state_component`` and
         ``control_component`` (the model's names, with their ``*_units``),
-        ``control_fraction`` (the control nodes' times as fractions of t_f, the same for
-        every member); ``front`` (member, objective) re-simulated and ``front_transcribed``
+        ``control_fraction`` and ``state_fraction`` (the control nodes' and the state
+        nodes' times as fractions of t_f, the same for every member); ``front`` (member,
+        objective) re-simulated and ``front_transcribed``
         the DFET's; ``decision`` (member, decision_entry) the decision vector (control
         nodes, then t_f); ``final_time`` (member) t_f; ``control`` (member,
         control_fraction, control_component) the decision's controls at ``control_time``
-        (member, control_fraction); ``state`` (member, element, state_node,
-        state_component) the DFET trajectory at ``state_time`` (member, element,
-        state_node); after the final refinement ``refined``, ``moved``, ``settled``,
+        (member, control_fraction); ``state`` (member, state_fraction, state_component)
+        the DFET trajectory at ``state_time`` (member, state_fraction), right-continuous
+        (:func:`state_arrays`), with ``element_end_state`` (member, element,
+        state_component) each element's own last node at ``element_end_fraction``
+        (element); after the final refinement ``refined``, ``moved``, ``settled``,
         ``converged`` (int8 flags), ``improvement``, ``stationarity`` and ``tradeoff``
         (member, objective). Units: the problem's (:mod:`ocpar.models.labels`,
         :class:`~ocpar.macs.Objective`'s ``unit``)."""
@@ -157,11 +169,8 @@ class MacsResult(RunResult):
             "decision": array("member decision_entry", decisions, "1",
                               "decision vector: control nodes, then t_f (each in its unit)"),
             "final_time": array("member", decisions[:, -1], t, "final time t_f"),
-            "state": array("member element state_node state_component", states,
-                           state_labels, "DFET state nodes (the member's trajectory)",
-                           coordinates="state_time"),
-            "state_time": array("member element state_node", self.state_times, t,
-                                "time of each state node"),
+            **state_arrays(states, np.asarray(self.state_fractions, float), decisions[:, -1],
+                           state_labels, t),
         }
         if fractions is not None:
             nu = (len(self.controls_labels.names) if self.controls_labels is not None
@@ -257,3 +266,36 @@ class MacsResult(RunResult):
                    (("GD", self.gd, ".3e"), ("IGD", self.igd, ".3e"), ("HV", self.hv, ".6f"))
                    if value is not None]
         return "   ".join(figures) or "no quality figures (no reference front)"
+
+
+def state_arrays(states: np.ndarray, fractions: np.ndarray, final_times: np.ndarray,
+                 labels: Labels, time_unit: str) -> dict[str, Array]:
+    """The array file's variables of the members' DFET states ``states`` (k, N, l+1, nx) at
+    ``fractions`` (N, l+1) of their ``final_times`` (k,). DFET's states are discontinuous
+    across elements (each element its own polynomial, its first and last node at its ends),
+    so a time t_j = j t_f/N between elements has two values; ``state`` (member,
+    state_fraction, state_component) is right-continuous, as a control on ``interval_time``
+    is: at each element's nodes but its last, and t_f (the last element's last node), so that
+    ``state_fraction`` (N l + 1,) is a 1-D coordinate (``state.sel(state_fraction=0.5,
+    method="nearest")``) with ``state_time`` (member, state_fraction) each member's times;
+    ``element_end_state`` (member, element, state_component) every element's own last node
+    (the left limit at ``element_end_fraction`` (j+1)/N; its jump to ``state`` there is the
+    transcription's discontinuity)."""
+    k, n, nodes, nx = states.shape
+    inner = states[:, :, :-1].reshape(k, n * (nodes - 1), nx)
+    state = np.concatenate([inner, states[:, -1, -1:]], axis=1)
+    fraction = np.concatenate([fractions[:, :-1].ravel(), fractions[-1, -1:]])
+    return {
+        "state_fraction": array("state_fraction", fraction, "1",
+                                "time of each state node as a fraction of t_f"),
+        "state": array("member state_fraction state_component", state, labels,
+                       "DFET state nodes (the member's trajectory; right-continuous at "
+                       "the elements' ends)", coordinates="state_time"),
+        "state_time": array("member state_fraction", final_times[:, None] * fraction,
+                            time_unit, "time of each state node"),
+        "element_end_fraction": array("element", fractions[:, -1], "1",
+                                      "each element's end as a fraction of t_f"),
+        "element_end_state": array("member element state_component", states[:, :, -1],
+                                   labels, "each element's own state at its end (the left "
+                                   "limit there)", coordinates="element_end_fraction"),
+    }

@@ -123,9 +123,7 @@ def solve_macs(
             -1, dfet.nz - dfet.decision_slice.start),
         states=np.array([dfet.state_nodes_of(mb.z) for mb in members]).reshape(
             -1, dfet.n, problem.shape.order + 1, dfet.nx),
-        state_times=((np.arange(dfet.n)[None, :, None] + (dfet.state_nodes + 1) / 2)
-                     * np.array([dfet.final_time(mb.z) for mb in members]).reshape(-1, 1, 1)
-                     / dfet.n),
+        state_fractions=(np.arange(dfet.n)[:, None] + (dfet.state_nodes + 1) / 2) / dfet.n,
         control_fractions=((np.arange(dfet.n)[:, None] + (dfet.control_nodes + 1) / 2)
                            / dfet.n).ravel(),
         time_unit=time_unit(problem.model),

@@ -36,6 +36,12 @@ class Labels:
         distinct = set(self.units)
         return distinct.pop() if len(distinct) == 1 else None if distinct else DIMENSIONLESS
 
+    def per(self, time: str, order: int = 1) -> Labels:
+        """The labels of these entries' ``order``-th time derivative (velocity: 1,
+        acceleration: 2), each entry's unit divided by ``time`` to that power
+        (:func:`derived`): (m, m, rad) per s is (m/s, m/s, rad/s)."""
+        return Labels(self.names, tuple(derived((u, 1), (time, -order)) for u in self.units))
+
 
 def _labels(model: object, kind: str, n: int, default: tuple[str, ...]) -> Labels:
     """``model``'s ``<kind>_names`` and ``<kind>_units`` for its ``n`` entries, defaulting to
@@ -89,15 +95,6 @@ def mass_unit(model: object) -> str:
     return _unit(model, "mass_unit")
 
 
-def rate(unit: str, time: str) -> str:
-    """The unit of a ``unit`` per ``time``, e.g. 'm/s', '(kg*m)/s'; '1' over '1' is '1'."""
-    if time == DIMENSIONLESS:
-        return unit
-    if unit == DIMENSIONLESS:
-        return f"1/{time}"
-    return f"{unit}/{time}" if unit.isalnum() else f"({unit})/{time}"
-
-
 def check_labels(model: object, nx: int, nu: int, field: str = "model") -> None:
     """Raise one ValueError (prefixed by ``field``) unless ``model``'s optional names and
     units (module docstring) fit its ``nx`` state and ``nu`` control entries."""
@@ -110,8 +107,20 @@ def check_labels(model: object, nx: int, nu: int, field: str = "model") -> None:
         raise ValueError(f"{field}: {exc}") from None
 
 
-def product(*units: str) -> str:
-    """The unit of a product of quantities in ``units``, e.g. 'kg*m*s**-2'; the '1' factors
-    (and ``1**-2``) left out, '1' if all are."""
-    kept = [u for u in units if u.split("**")[0] != DIMENSIONLESS]
-    return "*".join(kept) or DIMENSIONLESS
+def derived(*factors: tuple[str, int]) -> str:
+    """The unit of a product of powers of units, each factor (unit, exponent): e.g.
+    ``derived(("m", 1), ("s", -1))`` is 'm/s', ``derived(("kg", 1), ("m", 1), ("s", -2))``
+    'kg*m/s**2', ``derived(("N", 2), ("s", 1))`` 'N**2*s'. The one place a derived
+    quantity's unit (a velocity's, a force's, a cost's) is formed: '1' factors and zero
+    exponents are left out, a compound unit is parenthesised, '1' if nothing is left."""
+    def power(unit: str, exponent: int) -> str:
+        base = unit if unit.replace("_", "").isalnum() else f"({unit})"
+        return base if exponent == 1 else f"{base}**{exponent}"
+
+    kept = [(u.strip(), e) for u, e in factors if e != 0 and u.strip() != DIMENSIONLESS]
+    above = "*".join(power(u, e) for u, e in kept if e > 0)
+    below = [power(u, -e) for u, e in kept if e < 0]
+    if not below:
+        return above or DIMENSIONLESS
+    over = below[0] if len(below) == 1 else f"({'*'.join(below)})"
+    return f"{above or DIMENSIONLESS}/{over}"

@@ -6,7 +6,7 @@ from dataclasses import dataclass
 
 import casadi as ca
 
-from ocpar.models.labels import product
+from ocpar.models.labels import derived
 
 
 @dataclass(frozen=True)
@@ -44,13 +44,12 @@ class PointMass:
     @property
     def control_units(self) -> str:
         """The force's unit, mass · length / time² ('1' nondimensional)."""
-        return product(self.mass_unit, self.length_unit, f"{self.time_unit}**-2")
+        return derived((self.mass_unit, 1), (self.length_unit, 1), (self.time_unit, -2))
 
     @property
     def cost_unit(self) -> str:
         """The unit of the cost ∫|u|² dt: force² · time."""
-        force = self.control_units
-        return product(force if force == "1" else f"({force})**2", self.time_unit)
+        return derived((self.control_units, 2), (self.time_unit, 1))
 
     @property
     def position_indices(self) -> tuple[int, ...]:

@@ -16,7 +16,8 @@ class PursuitResult(RunResult):
     """Outcome of :func:`ocpar.pursuit.solve_pursuit`.
 
     The headline (named by the problem: ``headline_name`` in ``headline_unit``, written to
-    ``result.json`` under ``headline_key``, e.g. the final mass in kg) of the result, of every
+    ``result.json`` under ``headline_key``, e.g. the final mass in kg; NaN, as ``cost`` is,
+    unless the run converged: then in ``last_iterate``) of the result, of every
     finished agent (``headlines``, agent 0 first) and of the full-horizon MS solution when
     computed; ``cost`` Σ h g (under ``cost_key``); ``rk_checks`` the problem's checks of the
     re-simulated final state by key; with PBMS, ``stop_reason`` (one of
@@ -112,6 +113,11 @@ class PursuitResult(RunResult):
             return ""
         unit = "" if self.time_unit == DIMENSIONLESS else f" {self.time_unit}"
         return f", final time {self.final_time:.6f}{unit}"
+
+    def headline_attributes(self) -> tuple[str, ...]:
+        """``headline`` and ``cost``: NaN unless converged (the last iterate's in
+        ``last_iterate``; the train's own figures stay, named as the train's)."""
+        return ("headline", "cost")
 
     def headline_keys(self) -> tuple[str, ...]:
         """The headline figure's and the cost's keys (null unless converged; the per-agent
