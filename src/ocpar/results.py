@@ -137,7 +137,9 @@ class RunResult:
     objective evaluations, each a DFET solve); ``failed_solves`` those that failed for good;
     ``retries`` extra attempts made; ``wall_time_s`` the run's wall time (s); ``trace`` one
     record per superstep; ``timings`` where the run's time went, by phase (s,
-    :mod:`ocpar.timing`: a scheme gives ``verification_s``, the driver the others). A scheme's
+    :mod:`ocpar.timing`: a scheme gives ``verification_s``, the driver the others);
+    ``solver_options`` the inner solvers' options, the run's and those used
+    (:func:`ocpar.ocp.solver_options.used`; empty where a scheme does not say). A scheme's
     result adds its own fields (:meth:`scheme_fields`, the summary's) and arrays
     (:meth:`arrays`, the array file's)."""
 
@@ -160,6 +162,7 @@ class RunResult:
     message: str = ""
     trace: list[SuperstepTrace] = field(default_factory=list)
     timings: dict[str, float] = field(default_factory=dict)
+    solver_options: dict[str, Any] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
         if self.status not in self.statuses:
@@ -249,7 +252,7 @@ class RunResult:
             "supersteps": self.supersteps, "inner_solves": self.inner_solves,
             "failed_solves": self.failed_solves, "retries": self.retries,
             "wall_time_s": self.wall_time_s, **fields,
-            "timings": self.all_timings(),
+            "solver_options": self.solver_options, "timings": self.all_timings(),
         }
 
     def all_timings(self) -> dict[str, float]:
