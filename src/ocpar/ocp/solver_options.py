@@ -28,7 +28,9 @@ options through :func:`ipopt`, :func:`sqpmethod` and :func:`newton`.
 from __future__ import annotations
 
 import contextlib
+import ctypes
 import difflib
+import io
 import math
 import os
 import re
@@ -70,6 +72,8 @@ SOLVER_OPTIONS_HELP = (
 #: CasADi's option types, as the scalar Python types they take.
 CASADI_TYPES = {"OT_INT": int, "OT_DOUBLE": float, "OT_BOOL": bool, "OT_STRING": str}
 TYPE_WORDS = {int: "an integer", float: "a number", bool: "true or false", str: "a string"}
+#: The C library (its ``fflush``: IPOPT prints through C's buffered stdout).
+_C = ctypes.CDLL(None)
 
 
 def solver_options(given: Mapping[str, Any] | SolverOptions | None) -> SolverOptions:
@@ -317,17 +321,23 @@ def _check_sqpmethod(settings: dict) -> None:
 
 @contextlib.contextmanager
 def _captured_stdout() -> Iterator[Any]:
-    """File descriptor 1 into a temporary file for the block (what IPOPT prints there);
-    yields a function that reads what was printed."""
+    """What IPOPT prints in the block, kept from the process's stdout: CasADi's Python
+    interface sends it to ``sys.stdout``, IPOPT's own journal may go to file descriptor 1
+    through C's buffered stdout (flushed before and after); yields a function that reads
+    what was printed."""
     sys.stdout.flush()
+    _C.fflush(None)
     saved = os.dup(1)
+    python = io.StringIO()
     with tempfile.TemporaryFile(mode="w+b") as sink:
         os.dup2(sink.fileno(), 1)
         text: list[str] = []
         try:
-            yield lambda: "".join(text)
+            with contextlib.redirect_stdout(python):
+                yield lambda: "".join(text)
         finally:
+            _C.fflush(None)
             os.dup2(saved, 1)
             os.close(saved)
         sink.seek(0)
-        text.append(sink.read().decode("utf-8", "replace"))
+        text += [python.getvalue(), sink.read().decode("utf-8", "replace")]

@@ -63,6 +63,12 @@ CREATE INDEX IF NOT EXISTS jobs_by_state ON jobs (state, submitted);
 DEFAULT_LIMITS = {"max_jobs": 2, "max_agents": 100_000, "max_evaluations": 100_000,
                   "wall_time": 3600.0}
 
+#: The solver options a job may set unless the operator says otherwise (``ocpar serve
+#: --allow-solver-option``): every inner solver's, but those that name files or libraries on
+#: the server (:data:`~ocpar.ocp.solver_options.HOST_FILE_OPTIONS`), which only a pattern
+#: without wildcards allows.
+DEFAULT_SOLVER_OPTIONS = ("ipopt.*", "sqpmethod.*", "qrqp.*", "newton.*")
+
 
 @dataclass(frozen=True)
 class Token:
