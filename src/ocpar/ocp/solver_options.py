@@ -31,9 +31,11 @@ import contextlib
 import ctypes
 import difflib
 import io
+import json
 import math
 import os
 import re
+import subprocess
 import sys
 import tempfile
 from collections.abc import Iterator, Mapping
@@ -62,6 +64,8 @@ FIXED_SQPMETHOD = frozenset({"qpsol"})
 HOST_FILE_OPTIONS = frozenset({"ipopt.output_file", "ipopt.option_file_name",
                                "ipopt.file_append", "ipopt.file_print_level", "ipopt.hsllib",
                                "ipopt.pardisolib"})
+#: IPOPT's linear solver that CasADi's build always has (others are tried when asked for).
+BUILT_IN_LINEAR_SOLVER = "mumps"
 #: The command line's help of ``--solver-option`` (each scheme adds where its options go).
 SOLVER_OPTIONS_HELP = (
     "an inner solver's own option SOLVER.NAME=VALUE: ipopt.NAME (any IPOPT option: ipopt.tol, "
@@ -269,20 +273,46 @@ def _check_ipopt(options: dict[str, Scalar]) -> None:
             refused = str(exc)
     if refused is not None:
         raise ValueError(_ipopt_refusal(options, said(), refused))
-    quiet = {k: v for k, v in options.items() if f"ipopt.{k}" not in HOST_FILE_OPTIONS}
+    loading = {k: v for k, v in options.items()
+               if f"ipopt.{k}" in HOST_FILE_OPTIONS or k == "linear_solver"}
+    if options.get("linear_solver", BUILT_IN_LINEAR_SOLVER) != BUILT_IN_LINEAR_SOLVER and \
+            not _loads(tuple(sorted(loading.items()))):
+        raise ValueError(f"solver option ipopt.linear_solver: {options['linear_solver']!r} "
+                         f"cannot be loaded on this host (IPOPT refused it when solving; "
+                         f"{BUILT_IN_LINEAR_SOLVER} is built in)")
+    quiet = {k: v for k, v in options.items() if k not in loading}
     quiet |= {"print_level": 0, "sb": "yes"}
     solver = ca.nlpsol("check", "ipopt", _tiny_nlp(), ipopt_options(1e-8, 100) | {
         "ipopt": ipopt_options(1e-8, 100)["ipopt"] | quiet})
     with _captured_stdout():
         solver(x0=0.5, lbg=0, ubg=math.inf)
-    status = solver.stats()["return_status"]
-    if status == "Invalid_Option":
-        if "linear_solver" in options:
-            raise ValueError(f"solver option ipopt.linear_solver: "
-                             f"{options['linear_solver']!r} cannot be loaded on this host "
-                             "(IPOPT refused it when solving; mumps is built in)")
+    if solver.stats()["return_status"] == "Invalid_Option":
         raise ValueError(f"solver options {', '.join(f'ipopt.{k}' for k in options)}: IPOPT "
                          "refused them when solving (Invalid_Option)")
+
+
+#: Solves the tiny NLP with IPOPT's options (JSON, argv[1]); exit status 3 if it refused them.
+LOAD_PROBE = """
+import json, sys, casadi as ca
+x = ca.SX.sym("x")
+s = ca.nlpsol("probe", "ipopt", {"x": x, "f": (x - 1) ** 2}, {"print_time": False,
+              "ipopt": {"print_level": 0, "sb": "yes", **json.loads(sys.argv[1])}})
+s(x0=0)
+sys.exit(3 if s.stats()["return_status"] == "Invalid_Option" else 0)
+"""
+
+
+@cache
+def _loads(options: tuple[tuple[str, Scalar], ...]) -> bool:
+    """Whether IPOPT solves with the linear solver and library ``options``, tried in a
+    process of its own: after failing to load HSL's MA97, IPOPT 3.14 crashes the process
+    at its next solve (seen here), and the process that checks may be a server's."""
+    try:
+        probe = subprocess.run([sys.executable, "-c", LOAD_PROBE, json.dumps(dict(options))],
+                               capture_output=True, timeout=120)
+    except subprocess.TimeoutExpired:
+        return False
+    return probe.returncode == 0
 
 
 def _ipopt_refusal(options: dict[str, Scalar], said: str, error: str) -> str:
