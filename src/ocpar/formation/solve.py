@@ -463,12 +463,13 @@ def solve_formation(
     building = time.perf_counter()
     if options.mode == "hierarchical":   # the workers' inner solvers, apart from the solve
         prepare_workers(problem, backend)
+    record = solver_record(problem, options)   # (this process's transcriptions: built here)
     built = time.perf_counter() - building
     first_trace = len(backend.traces)
     start = time.perf_counter()
     common = {"problem": problem.name, "agents": problem.agents, "backend": backend.name,
               "workers": backend.workers, "mode": options.mode, "on_circle": problem.on_circle,
-              "solver_options": solver_record(problem, options)}
+              "solver_options": record}
     ordering_solves, choice, chosen, ordered = 0, None, None, None
     try:
         if slots:
@@ -673,8 +674,7 @@ def solver_record(problem: FormationProblem, options: FormationOptions) -> dict:
     """result.json's ``solver_options``: the run's, and by DMOC shape (``dmoc``, or
     ``dmoc[k]`` for the k-th distinct shape of a mixed fleet) the options its solvers are
     built with (:func:`ocpar.ocp.solver_options.used`)."""
-    shapes = [problem.shape] if isinstance(problem.shape, DmocShape) else list(
-        dict.fromkeys({id(s): s for s in problem.shape}.values()))
+    shapes = list(problem.agents_by_shape())
     settings = {"dmoc" if len(shapes) == 1 else f"dmoc[{k}]": transcription(s).solver_settings
                 for k, s in enumerate(shapes)}
     return used(solver_options(options.solver_options), settings)
