@@ -257,6 +257,12 @@ def create_app(settings: Settings) -> FastAPI:
                              if config is None else
                              "config: expected an example name or an object of keys")
             run = run.with_overrides(overrides, "set")
+            # before the options are checked: a check may load what an option names
+            for name in run.options.get("solver_options", {}):
+                if not solver_option_allowed(name, settings.allow_solver_option):
+                    raise refuse(f"solver_options: {name} is not allowed on this server (the "
+                                 "operator allows solver options with ocpar serve "
+                                 "--allow-solver-option)")
             argv = run.argv()
             options, _ = check_options(options_class(run.scheme), argv)
         except (ConfigError, ValueError) as exc:
@@ -267,11 +273,6 @@ def create_app(settings: Settings) -> FastAPI:
                 fnmatchcase(options.problem, pattern) for pattern in settings.allow_problem):
             raise refuse(f"problem: {options.problem!r} is not allowed on this server (the "
                          "operator allows references with ocpar serve --allow-problem)")
-        for name in getattr(options, "solver_options", {}):
-            if not solver_option_allowed(name, settings.allow_solver_option):
-                raise refuse(f"solver_options: {name} is not allowed on this server (the "
-                             "operator allows solver options with ocpar serve "
-                             "--allow-solver-option)")
         check_limits(run.scheme, options, None, token)
         try:
             memory.check(run.scheme, options, None, settings.max_job_memory)
