@@ -269,3 +269,36 @@ def test_service_refuses_bad_and_disallowed_options(tmp_path):
     assert strict({"ipopt.tol": 1e-8})[0] == 201
     status, detail = strict({"ipopt.print_level": 5})
     assert status == 422 and detail.startswith("solver_options: ipopt.print_level is not allowed")
+
+
+def test_dfet_ocp_takes_ipopt_options():
+    from test_dfet import final_time
+    from test_transcriptions import DoubleIntegrator
+
+    from ocpar.ocp import DfetOcpShape, solve_task
+
+    def solve(**options):
+        shape = DfetOcpShape(DoubleIntegrator(), 4, 2, 0, ((-1.0, 1.0),), (0.5, 5.0), (0, 1),
+                             terminal_cost=final_time, running_cost=False,
+                             solver_options=options)
+        return solve_task(OcpTask(shape, np.array([0.0, 0.0, 1.0, 0.0])))
+
+    default, capped = solve(), solve(**{"ipopt.max_iter": 2})
+    assert default.success and default.final_time == pytest.approx(2.0, abs=1e-7)
+    assert not capped.success and "Maximum_Iterations_Exceeded" in capped.status
+
+
+def test_macs_searches_take_ipopt_options():
+    from ocpar.macs.local_search import SearchTask, run_search
+    from ocpar.macs.problems import make_problem
+    from ocpar.ocp import dfet_problem
+
+    problem = make_problem("double-integrator")
+    dfet = dfet_problem(problem.shape)
+    middle = (dfet.p_lower + dfet.p_upper) / 2
+    default = run_search(SearchTask(problem, "restore", p0=middle))
+    capped = run_search(SearchTask(problem, "restore", p0=middle,
+                                   solver_options=solver_options({"ipopt.max_iter": 1})))
+    assert default.feasible and default.iterations > 1
+    assert not capped.feasible and capped.status == "Maximum_Iterations_Exceeded"
+    assert capped.iterations == 1
