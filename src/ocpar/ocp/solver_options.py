@@ -102,9 +102,9 @@ def of(options: SolverOptions, solver: str) -> dict[str, Scalar]:
 
 
 def ipopt(options: SolverOptions, tol: float, max_iter: int, **extra: Any) -> dict:
-    """``nlpsol`` options of IPOPT: the transcription's (:func:`~ocpar.ocp.ipopt.
-    ipopt_options` of ``tol``, ``max_iter`` and ``extra``) with the user's ``ipopt.*`` over
-    them; with none, exactly the transcription's."""
+    """``nlpsol`` options of IPOPT: the transcription's
+    (:func:`~ocpar.ocp.ipopt.ipopt_options` of ``tol``, ``max_iter`` and ``extra``) with the
+    user's ``ipopt.*`` over them; with none, exactly the transcription's."""
     settings = ipopt_options(tol, max_iter, **extra)
     settings["ipopt"] |= of(options, "ipopt")
     return settings
