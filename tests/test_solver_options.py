@@ -246,8 +246,8 @@ def test_service_refuses_bad_and_disallowed_options(tmp_path):
     from ocpar.service.web.store import Store, Token
     from ocpar.service.web.tokens import issue
 
-    def server(settings: Settings):
-        secret = issue(Store(settings.state_dir), Token("alice"))
+    def server(settings: Settings, token: Token | None = None):
+        secret = issue(Store(settings.state_dir), token or Token("alice"))
         client = TestClient(create_app(settings))   # no lifespan: no job starts
 
         def submit(options: dict) -> tuple[int, str]:
@@ -269,6 +269,13 @@ def test_service_refuses_bad_and_disallowed_options(tmp_path):
     assert strict({"ipopt.tol": 1e-8})[0] == 201
     status, detail = strict({"ipopt.print_level": 5})
     assert status == 422 and detail.startswith("solver_options: ipopt.print_level is not allowed")
+    # a token's own list, within the server's
+    bob = server(Settings(state_dir=tmp_path / "c"), Token("bob", solver_options=("ipopt.tol",)))
+    assert bob({"ipopt.tol": 1e-8})[0] == 201
+    assert bob({"ipopt.max_iter": 10}) == (
+        422, "solver_options: ipopt.max_iter is not allowed to this token (ocpar serve token "
+        "add --allow-solver-option)")
+    assert Store(tmp_path / "c").token("bob").solver_options == ("ipopt.tol",)
 
 
 def test_dfet_ocp_takes_ipopt_options():

@@ -263,6 +263,10 @@ def create_app(settings: Settings) -> FastAPI:
                     raise refuse(f"solver_options: {name} is not allowed on this server (the "
                                  "operator allows solver options with ocpar serve "
                                  "--allow-solver-option)")
+                if token.solver_options is not None and not solver_option_allowed(
+                        name, token.solver_options):
+                    raise refuse(f"solver_options: {name} is not allowed to this token (ocpar "
+                                 "serve token add --allow-solver-option)")
             argv = run.argv()
             options, _ = check_options(options_class(run.scheme), argv)
         except (ConfigError, ValueError) as exc:

@@ -130,6 +130,10 @@ def register(commands: Any) -> None:
         add.add_argument("--" + flag.replace("_", "-"), type=limit(kind), metavar=meta,
                          default=DEFAULT_LIMITS[flag],
                          help=f"{text} (default {DEFAULT_LIMITS[flag]:g}; none: unlimited)")
+    add.add_argument("--allow-solver-option", action="append", default=[], metavar="PATTERN",
+                     help="its jobs may set only the solver options SOLVER.NAME matching "
+                          "PATTERN (fnmatch), within the server's --allow-solver-option; "
+                          "repeat for more; 'none': no solver option (default: the server's)")
     add_state_dir(add, argparse.SUPPRESS)
     add.set_defaults(handler=token_add)
     listing = token_actions.add_parser("list", prog=f"{PROG} token list",
@@ -214,7 +218,8 @@ def token_add(args: argparse.Namespace) -> int:
     from ocpar.service.web.tokens import issue
 
     token = Token(args.name, args.max_jobs, args.max_agents, args.max_evaluations,
-                  args.wall_time)
+                  args.wall_time, None if not args.allow_solver_option
+                  else solver_option_patterns(args.allow_solver_option))
     try:
         secret = issue(Store(state_dir(args)), token)
     except ValueError as exc:
@@ -243,6 +248,8 @@ def token_list(args: argparse.Namespace) -> int:
         limits = [f"{name.replace('_', '-')} "
                   f"{'none' if (value := getattr(token, name)) is None else f'{value:g}'}"
                   for name in ("max_jobs", "max_agents", "max_evaluations", "wall_time")]
+        if token.solver_options is not None:
+            limits.append(f"solver-options {' '.join(token.solver_options) or 'none'}")
         print(f"{token.name:24} {', '.join(limits)}")
     return 0
 
