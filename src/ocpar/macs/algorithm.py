@@ -253,8 +253,8 @@ class Macs:
 
     def initialise(self) -> None:
         """Restore feasibility of the Latin-hypercube population; seed the archive."""
-        tasks = [self._task("restore", p0=a.decision,
-                            restoration=self.settings.restoration) for a in self.agents]
+        tasks = [self._task("restore", p0=a.decision, restoration=self.settings.restoration)
+                 for a in self.agents]
         results = self._superstep(tasks)
         for agent, result in zip(self.agents, results, strict=True):
             if result.feasible:
@@ -273,16 +273,15 @@ class Macs:
         for agent in self.agents:
             weights = self.weights[agent.subproblem]
             if agent.fresh and agent.z is not None:
-                task = self._task("scalarised", z0=agent.z, weights=weights,
-                                  utopia=utopia)
+                task = self._task("scalarised", z0=agent.z, weights=weights, utopia=utopia)
             elif unpolished:
                 member = unpolished.pop(0)
                 member.optimised = True  # claimed: polished by this search
                 task = self._task("scalarised", z0=member.z,
                                   weights=self.weights[self.equal], utopia=utopia)
             else:
-                task = self._task("scalarised", p0=self._neighbour(agent),
-                                  weights=weights, utopia=utopia)
+                task = self._task("scalarised", p0=self._neighbour(agent), weights=weights,
+                                  utopia=utopia)
             tasks.append(task)
         results = self._superstep(tasks)
         scale = self._scale()
@@ -417,8 +416,8 @@ class Macs:
             self.archive.members = []
             self.archive.add(candidates)
         members = self.archive.members
-        measured = self._superstep([self._task("stationarity", z0=member.z,
-                                               span=span) for member in members])
+        measured = self._superstep([self._task("stationarity", z0=member.z, span=span)
+                                    for member in members])
         for member, result in zip(members, measured, strict=True):
             failed = result.stationarity is None  # a failed task: the residual is unknown
             member.stationarity = np.nan if failed else result.stationarity
