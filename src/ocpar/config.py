@@ -30,7 +30,10 @@ too, so a new option has its key without any change here. Values:
   it out;
 * ``problem = "package.module:factory"`` names a problem factory (:mod:`ocpar.references`),
   and the table ``[problem_args]`` (after every top-level key, as TOML requires) its keyword
-  arguments, scalars each: ``--problem-arg KEY=VALUE`` on the command line.
+  arguments, scalars each: ``--problem-arg KEY=VALUE`` on the command line;
+* the table ``[solver_options]`` sets the inner solvers' own options (``ipopt.tol = 1e-8``,
+  or a sub-table ``[solver_options.ipopt]``; :mod:`ocpar.ocp.solver_options`):
+  ``--solver-option ipopt.tol=1e-8`` on the command line.
 
 * an option that takes a list of numbers gets a TOML array of numbers
   (``initial_angles = [0.1, 0.6]``), numbers separated by commas on the command line;
@@ -60,7 +63,7 @@ from importlib import resources
 from pathlib import Path
 from typing import Any
 
-from ocpar.options import option_specs, parse_value, toml_scalar
+from ocpar.options import is_key, option_specs, parse_value, toml_scalar
 
 #: The schemes a configuration can run, and the module of each one's options dataclass.
 SCHEMES = {
@@ -82,6 +85,7 @@ class Option:
     key: str     # max_evals
     flag: str    # --max-evals
     kind: str    # "flag", "integer", "number", "string", "table" or "list"
+    dotted: bool = False   # a table whose keys are dotted names (ipopt.tol)
 
 
 @dataclass(frozen=True)
@@ -157,7 +161,7 @@ def scheme_parser(scheme: str) -> argparse.ArgumentParser:
 @cache
 def scheme_options(scheme: str) -> dict[str, Option]:
     """Every option of the scheme by configuration key."""
-    return {key: Option(key, spec.flag, spec.kind)
+    return {key: Option(key, spec.flag, spec.kind, spec.dotted)
             for key, spec in option_specs(scheme_class(scheme)).items()}
 
 
@@ -215,15 +219,32 @@ def check_value(scheme: str, key: str, value: Any, where: str) -> Any:
             isinstance(x, int | float) and not isinstance(x, bool) for x in value)):
         raise ConfigError(f"{where}: {key}: expected {EXPECTED[kind]}, got an array of "
                           f"{len(value)} item(s) not all numbers")
+    if kind == "table" and options[key].dotted:
+        value = dotted_table(value, key, where)
     if kind == "table":
         for name, item in value.items():
-            if not name.isidentifier():
+            if not is_key(name, options[key].dotted):
                 raise ConfigError(f"{where}: {key}: {name!r} is not a Python name (a keyword "
-                                  "argument of the factory)")
+                                  "argument of the factory)" if not options[key].dotted else
+                                  f"{where}: {key}: {name!r} is not names joined by dots")
             if not isinstance(item, bool | int | float | str):
                 raise ConfigError(f"{where}: {key}.{name}: expected a scalar, got "
                                   f"{_describe(item)}")
     return value
+
+
+def dotted_table(value: Mapping[str, Any], key: str, where: str) -> dict[str, Any]:
+    """A table of dotted keys with its sub-tables' entries as ``SUB.NAME`` keys (``[KEY.ipopt]
+    tol = 1e-8`` → ``{"ipopt.tol": 1e-8}``), one level deep."""
+    flat: dict[str, Any] = {}
+    for name, item in value.items():
+        entries = item.items() if isinstance(item, dict) else [(None, item)]
+        for sub, entry in entries:
+            full = name if sub is None else f"{name}.{sub}"
+            if full in flat:
+                raise ConfigError(f"{where}: {key}.{full}: given more than once")
+            flat[full] = entry
+    return flat
 
 
 def from_mapping(data: Mapping[str, Any], source: str) -> RunConfig:

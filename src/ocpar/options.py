@@ -6,7 +6,8 @@ and Python (construct the dataclass) are all read from it. The field's type says
 is written: ``bool`` a flag (``--quiet``; TOML ``true``/``false``), ``int`` and ``float`` a
 number, ``str`` a string, ``tuple[float, ...]`` a list of numbers (``--initial-angles
 0.1,0.2,0.3``; a TOML array), ``X | None`` an option that may stay unset, ``dict`` a table of
-keyword arguments (``--problem-arg KEY=VALUE`` repeated; a TOML table).
+keyword arguments (``--problem-arg KEY=VALUE`` repeated; a TOML table; with ``dotted``
+its keys are dotted names, ``--solver-option ipopt.tol=1e-8``, a TOML table of sub-tables).
 
 >>> from dataclasses import dataclass
 >>> @dataclass(frozen=True)
@@ -37,14 +38,16 @@ def option(default: Any = MISSING, help: str = "", *, name: str | None = None,
            flag: str | None = None, choices: typing.Iterable[Any] | None = None,
            low: float | None = None, high: float | None = None, above: float | None = None,
            metavar: str | None = None, group: str | None = None,
-           default_factory: Any = MISSING) -> Any:
+           default_factory: Any = MISSING, dotted: bool = False) -> Any:
     """A dataclass field that is also an option: ``name`` its configuration key (default: the
     field's name), ``flag`` its command-line flag (default ``--`` + name with dashes),
     ``choices`` the values allowed, ``low``/``high`` inclusive bounds, ``above`` an exclusive
-    lower bound, ``group`` the heading of ``--help`` it is listed under."""
+    lower bound, ``group`` the heading of ``--help`` it is listed under; ``dotted``: a table
+    whose keys are dotted names (``ipopt.tol``)."""
     metadata = {"help": help, "name": name, "flag": flag,
                 "choices": tuple(choices) if choices is not None else None,
-                "low": low, "high": high, "above": above, "metavar": metavar, "group": group}
+                "low": low, "high": high, "above": above, "metavar": metavar, "group": group,
+                "dotted": dotted}
     if default_factory is not MISSING:
         return field(default_factory=default_factory, metadata={"option": metadata})
     return field(default=default, metadata={"option": metadata})
@@ -67,6 +70,7 @@ class OptionSpec:
     above: float | None
     metavar: str | None
     group: str | None
+    dotted: bool = False   # a table whose keys are dotted names (ipopt.tol)
 
     def check(self, value: Any) -> Any:
         """``value`` (already of the option's type) if it is in range; else ValueError with a
@@ -159,7 +163,7 @@ def option_specs(cls: type) -> dict[str, OptionSpec]:
             field=f.name, key=key, flag=meta["flag"] or "--" + key.replace("_", "-"),
             kind=kind, optional=optional, default=default, help=meta["help"],
             choices=meta["choices"], low=meta["low"], high=meta["high"], above=meta["above"],
-            metavar=meta["metavar"], group=meta["group"])
+            metavar=meta["metavar"], group=meta["group"], dotted=meta["dotted"])
     return specs
 
 
@@ -184,14 +188,15 @@ def toml_scalar(value: bool | int | float | str) -> str:
     return json.dumps(value, ensure_ascii=False)
 
 
-def parse_table(items: list[str], flag: str) -> dict[str, Any]:
+def parse_table(items: list[str], flag: str, dotted: bool = False) -> dict[str, Any]:
     """Repeated ``KEY=VALUE`` items of ``flag`` as a dict (VALUE a TOML scalar, or else a
-    string: :func:`parse_value`)."""
+    string: :func:`parse_value`); with ``dotted`` KEY is Python names joined by dots."""
     table: dict[str, Any] = {}
     for item in items:
         key, sep, text = item.partition("=")
-        if not sep or not key.isidentifier():
-            raise ValueError(f"{flag}: expected KEY=VALUE with KEY a Python name, got {item!r}")
+        if not sep or not is_key(key, dotted):
+            what = "Python names joined by dots" if dotted else "a Python name"
+            raise ValueError(f"{flag}: expected KEY=VALUE with KEY {what}, got {item!r}")
         if key in table:
             raise ValueError(f"{flag}: {key} is given more than once")
         value = parse_value(text)
@@ -199,6 +204,12 @@ def parse_table(items: list[str], flag: str) -> dict[str, Any]:
             raise ValueError(f"{flag}: {key}: expected a scalar, got {text!r}")
         table[key] = value
     return table
+
+
+def is_key(key: str, dotted: bool = False) -> bool:
+    """Whether ``key`` is a table's key: a Python name (with ``dotted``, names joined by
+    dots)."""
+    return all(part.isidentifier() for part in (key.split(".") if dotted else [key]))
 
 
 def add_options(parser: argparse.ArgumentParser, cls: type) -> None:
@@ -242,8 +253,8 @@ def options_from_namespace(cls: type, namespace: argparse.Namespace) -> tuple[An
     for key, spec in option_specs(cls).items():
         if key in given:
             value = given[key]
-            values[spec.field] = parse_table(value, spec.flag) if spec.kind == "table" \
-                else value
+            values[spec.field] = parse_table(value, spec.flag, spec.dotted) \
+                if spec.kind == "table" else value
     return cls(**values), frozenset(k for k in given if k in option_specs(cls))
 
 

@@ -166,9 +166,10 @@ class RunResult:
     ``last_iterate`` the headline figures of a run that is not ``converged``, by attribute
     name, as its last iterate had them (e.g. ``last_iterate["total_cost"]``): for tools that
     study a failure, never a headline (the attributes themselves are NaN or None,
-    :meth:`headline_attributes`; empty for a converged run). A scheme's result adds its own
-    fields (:meth:`scheme_fields`, the summary's) and arrays (:meth:`arrays`, the array
-    file's)."""
+    :meth:`headline_attributes`; empty for a converged run); ``solver_options`` the inner
+    solvers' options, the run's and those used (:func:`ocpar.ocp.solver_options.used`; empty
+    where a scheme does not say). A scheme's result adds its own fields (:meth:`scheme_fields`,
+    the summary's) and arrays (:meth:`arrays`, the array file's)."""
 
     scheme: ClassVar[str]
     #: The scheme's headline figures, keys of ``result.json``: written as null unless the
@@ -190,6 +191,7 @@ class RunResult:
     trace: list[SuperstepTrace] = field(default_factory=list)
     timings: dict[str, float] = field(default_factory=dict)
     last_iterate: dict[str, Any] = field(default_factory=dict)
+    solver_options: dict[str, Any] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
         if self.status not in self.statuses:
@@ -302,7 +304,7 @@ class RunResult:
             "supersteps": self.supersteps, "inner_solves": self.inner_solves,
             "failed_solves": self.failed_solves, "retries": self.retries,
             "wall_time_s": self.wall_time_s, **fields,
-            "timings": self.all_timings(),
+            "solver_options": self.solver_options, "timings": self.all_timings(),
         }
 
     def all_timings(self) -> dict[str, float]:

@@ -29,7 +29,7 @@ import numpy as np
 from ocpar.formation.keep_out.separation import close_pairs
 from ocpar.formation.problem import FormationProblem
 from ocpar.ocp import DmocTranscription, dmoc_problem
-from ocpar.ocp.ipopt import ipopt_options
+from ocpar.ocp.solver_options import ipopt
 
 
 @dataclass
@@ -131,7 +131,9 @@ def _solve(problem: FormationProblem, phi0: np.ndarray, tol: float, max_iteratio
     # IPOPT relaxes inequalities by 1e-8 (relative) unless told not to
     exact = ({"bound_relax_factor": 0.0}
              if any(d.has_inequalities for d in dmocs) or len(pairs) else {})
-    solver = ca.nlpsol("formation", "ipopt", nlp, ipopt_options(tol, max_iterations, **exact))
+    # the user's ipopt.* solver options, as the first agent's shape has them
+    solver = ca.nlpsol("formation", "ipopt", nlp, ipopt(
+        problem.common_shape.solver_options, tol, max_iterations, **exact))
 
     if x0 is None:
         x0 = np.concatenate([_start(dmocs[i], problem.boundary_params(i, phi0[i]))

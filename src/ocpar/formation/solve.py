@@ -51,6 +51,9 @@ from ocpar.formation.verify import (
     verify_formation,
 )
 from ocpar.ocp.batch import AUTO_SOLVER, SOLVERS
+from ocpar.ocp.contract import transcription
+from ocpar.ocp.dmoc import DmocShape
+from ocpar.ocp.solver_options import SOLVER_OPTIONS_HELP, merged, solver_options, used
 from ocpar.options import numbers, option
 
 MODES = ("hierarchical", "monolithic")
@@ -102,6 +105,9 @@ class FormationOptions:
     problem's obstacles are in every agent's inner problem
     (:mod:`ocpar.formation.keep_out.obstacles`), in both modes; the returned paths are
     checked against them (``obstacles_not_cleared`` if one is inside one).
+    ``solver_options``: the inner solvers' own options by ``SOLVER.NAME``
+    (:mod:`ocpar.ocp.solver_options`), set over each shape's own ``solver_options`` for this
+    solve (``ipopt.*`` also in the monolithic NLP); checked when the options are made.
     """
 
     mode: str = option("hierarchical", "hierarchical, or monolithic (one NLP, for reference)",
@@ -162,6 +168,10 @@ class FormationOptions:
         "the formation's rotation optimised in the outer problem (with --mode monolithic: "
         "separating planes in the one NLP); start or final positions closer than this are "
         "refused", above=0, metavar="D")
+    solver_options: dict = option(  # noqa: RUF009 (option() is a dataclass field)
+        default_factory=dict, help=SOLVER_OPTIONS_HELP + "; over the problem's "
+        "DmocShape.solver_options (ipopt.* also in --mode monolithic)",
+        flag="--solver-option", metavar="SOLVER.NAME=VALUE", dotted=True)
     separation_rounds: int = option(30, "separation rounds (supersteps of keep-out solves) "
                                     "at most, with --min-separation", low=1)
     separation: str = option("exact", "with --min-separation in the hierarchical mode: exact "
@@ -180,6 +190,7 @@ class FormationOptions:
         "every agent's initial angle; curves only)", metavar="RAD")
 
     def __post_init__(self) -> None:
+        object.__setattr__(self, "solver_options", dict(solver_options(self.solver_options)))
         if self.mode not in MODES:
             raise ValueError(f"unknown mode {self.mode!r}; choose one of {', '.join(MODES)}")
         if self.outer not in OUTER_SOLVERS:
@@ -435,6 +446,7 @@ def solve_formation(
             shape.solver != options.inner_solver for shape in problem.shapes):
         problem = problem.with_shapes(
             lambda shape: dataclasses.replace(shape, solver=options.inner_solver))
+    problem = with_solver_options(problem, options.solver_options)
     slots = isinstance(problem.curve, Slots)   # then the assignment chooses φ: no φ0
     if phi0 is None:
         phi0 = given_start(problem, options)
@@ -451,11 +463,13 @@ def solve_formation(
     building = time.perf_counter()
     if options.mode == "hierarchical":   # the workers' inner solvers, apart from the solve
         prepare_workers(problem, backend)
+    record = solver_record(problem, options)   # (this process's transcriptions: built here)
     built = time.perf_counter() - building
     first_trace = len(backend.traces)
     start = time.perf_counter()
     common = {"problem": problem.name, "agents": problem.agents, "backend": backend.name,
-              "workers": backend.workers, "mode": options.mode, "on_circle": problem.on_circle}
+              "workers": backend.workers, "mode": options.mode, "on_circle": problem.on_circle,
+              "solver_options": record}
     ordering_solves, choice, chosen, ordered = 0, None, None, None
     try:
         if slots:
@@ -638,6 +652,32 @@ def solve_formation(
         **discrete,
         **extra,
     )
+
+
+def with_solver_options(problem: FormationProblem, given: dict) -> FormationProblem:
+    """``problem`` with the solver options ``given`` set over each shape's own (one new
+    shape per distinct shape object, not one per agent)."""
+    if not given:
+        return problem
+    changed: dict[int, DmocShape] = {}
+
+    def change(shape: DmocShape) -> DmocShape:
+        if id(shape) not in changed:
+            changed[id(shape)] = dataclasses.replace(
+                shape, solver_options=merged(shape.solver_options, given))
+        return changed[id(shape)]
+
+    return problem.with_shapes(change)
+
+
+def solver_record(problem: FormationProblem, options: FormationOptions) -> dict:
+    """result.json's ``solver_options``: the run's, and by DMOC shape (``dmoc``, or
+    ``dmoc[k]`` for the k-th distinct shape of a mixed fleet) the options its solvers are
+    built with (:func:`ocpar.ocp.solver_options.used`)."""
+    shapes = list(problem.agents_by_shape())
+    settings = {"dmoc" if len(shapes) == 1 else f"dmoc[{k}]": transcription(s).solver_settings
+                for k, s in enumerate(shapes)}
+    return used(solver_options(options.solver_options), settings)
 
 
 def ordering_note(ordered: OrderingResult | None) -> str:

@@ -13,6 +13,7 @@ from __future__ import annotations
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from itertools import pairwise
+from typing import Any
 
 import numpy as np
 from scipy.stats import qmc
@@ -28,6 +29,7 @@ from ocpar.macs.local_search import (
 )
 from ocpar.macs.problem import MacsProblem
 from ocpar.ocp import dfet_problem
+from ocpar.ocp.solver_options import SOLVER_OPTIONS_HELP, solver_options
 from ocpar.options import option
 
 #: Most agents: each runs one local search per superstep (the paper used 10).
@@ -64,7 +66,9 @@ class MacsSettings:
     ``max_contractions`` (max_contr_ratio); ``contraction`` is the factor applied to ρ on a
     failed local search, ``seed`` the master seed, ``restoration`` how a restoration's IPOPT
     stops (:data:`~ocpar.macs.local_search.RESTORATIONS`), ``no_refine`` skips the final
-    refinement of the archive (:meth:`Macs.refine`)."""
+    refinement of the archive (:meth:`Macs.refine`), ``solver_options`` IPOPT's own options
+    of every local search by ``ipopt.NAME`` (:mod:`ocpar.ocp.solver_options`; the searches
+    are IPOPT's alone), checked when the settings are made."""
 
     max_evaluations: int = option(10_000, "budget of objective evaluations, more than "
                                   "--population", name="max_evals", low=1)
@@ -90,8 +94,17 @@ class MacsSettings:
     no_refine: bool = option(False, "skip the final refinement (every archive member re-solved "
                              "once by an ε-constraint NLP, with its Pareto-stationarity "
                              "residual)")
+    solver_options: dict = option(  # noqa: RUF009 (option() is a dataclass field)
+        default_factory=dict, help=SOLVER_OPTIONS_HELP + "; MACS's local searches are "
+        "IPOPT's: ipopt.* only", flag="--solver-option", metavar="SOLVER.NAME=VALUE",
+        dotted=True)
 
     def __post_init__(self) -> None:
+        checked = solver_options(self.solver_options)
+        if others := [key for key, _ in checked if not key.startswith("ipopt.")]:
+            raise ValueError(f"solver option {others[0]}: MACS's local searches are solved "
+                             "by IPOPT alone (ipopt.* options only)")
+        object.__setattr__(self, "solver_options", dict(checked))
         checks = [
             (self.max_evaluations >= 1, "max_evaluations must be >= 1"),
             (self.population >= 4, "population must be >= 4 (differential evolution)"),
@@ -183,6 +196,7 @@ class Macs:
         indicator: Callable[[np.ndarray], float] | None = None,
     ) -> None:
         self.problem, self.settings, self.backend = problem, settings, backend
+        self.solver_options = solver_options(settings.solver_options)
         self.progress, self.indicator = progress, indicator
         dfet = dfet_problem(problem.shape)
         self.lower, self.upper = dfet.p_lower, dfet.p_upper
@@ -206,6 +220,10 @@ class Macs:
         ]
 
     # -- supersteps -------------------------------------------------------------------------
+    def _task(self, kind: str, **fields: Any) -> SearchTask:
+        """A task of ``kind`` on this run's problem, with its solver options."""
+        return SearchTask(self.problem, kind, solver_options=self.solver_options, **fields)
+
     def _superstep(self, tasks: list[SearchTask]) -> list[SearchResult]:
         kinds = [task_kind(task) for task in tasks]
         results = self.backend.superstep(run_search, tasks, costs=self.costs.estimate(kinds))
@@ -235,8 +253,8 @@ class Macs:
 
     def initialise(self) -> None:
         """Restore feasibility of the Latin-hypercube population; seed the archive."""
-        tasks = [SearchTask(self.problem, "restore", p0=a.decision,
-                            restoration=self.settings.restoration) for a in self.agents]
+        tasks = [self._task("restore", p0=a.decision, restoration=self.settings.restoration)
+                 for a in self.agents]
         results = self._superstep(tasks)
         for agent, result in zip(self.agents, results, strict=True):
             if result.feasible:
@@ -255,16 +273,15 @@ class Macs:
         for agent in self.agents:
             weights = self.weights[agent.subproblem]
             if agent.fresh and agent.z is not None:
-                task = SearchTask(self.problem, "scalarised", z0=agent.z, weights=weights,
-                                  utopia=utopia)
+                task = self._task("scalarised", z0=agent.z, weights=weights, utopia=utopia)
             elif unpolished:
                 member = unpolished.pop(0)
                 member.optimised = True  # claimed: polished by this search
-                task = SearchTask(self.problem, "scalarised", z0=member.z,
+                task = self._task("scalarised", z0=member.z,
                                   weights=self.weights[self.equal], utopia=utopia)
             else:
-                task = SearchTask(self.problem, "scalarised", p0=self._neighbour(agent),
-                                  weights=weights, utopia=utopia)
+                task = self._task("scalarised", p0=self._neighbour(agent), weights=weights,
+                                  utopia=utopia)
             tasks.append(task)
         results = self._superstep(tasks)
         scale = self._scale()
@@ -321,7 +338,7 @@ class Macs:
             mask = agent.rng.random(len(mutant)) < self.settings.crossover
             mask[agent.rng.integers(len(mutant))] = True
             candidate = np.clip(np.where(mask, mutant, agent.decision), self.lower, self.upper)
-            tasks.append(SearchTask(self.problem, "restore", p0=candidate,
+            tasks.append(self._task("restore", p0=candidate,
                                     restoration=self.settings.restoration))
         results = self._superstep(tasks)
         scale = self._scale()
@@ -369,7 +386,7 @@ class Macs:
                    if checked.get(lines[i]) != key or moved.intersection((lines[i], *key))]
             if not due:
                 break
-            tasks = [SearchTask(self.problem, "refine", z0=members[j].z, span=span,
+            tasks = [self._task("refine", z0=members[j].z, span=span,
                                 epsilon=members[i].objectives)
                      for i in due for j in (i, *neighbours[i])]
             results = iter(self._superstep(tasks))
@@ -399,8 +416,8 @@ class Macs:
             self.archive.members = []
             self.archive.add(candidates)
         members = self.archive.members
-        measured = self._superstep([SearchTask(self.problem, "stationarity", z0=member.z,
-                                               span=span) for member in members])
+        measured = self._superstep([self._task("stationarity", z0=member.z, span=span)
+                                    for member in members])
         for member, result in zip(members, measured, strict=True):
             failed = result.stationarity is None  # a failed task: the residual is unknown
             member.stationarity = np.nan if failed else result.stationarity

@@ -34,7 +34,7 @@ from ocpar.macs.objectives import objective_functions
 from ocpar.macs.problem import MacsProblem
 from ocpar.ocp import DfetTranscription, dfet_problem
 from ocpar.ocp.batch import BufferedFunction
-from ocpar.ocp.ipopt import ipopt_options
+from ocpar.ocp.solver_options import SolverOptions, ipopt
 
 #: A result counts as feasible when IPOPT succeeds and max |g| ≤ this (the paper's tol_con).
 FEASIBILITY_TOL = 1e-6
@@ -91,7 +91,8 @@ class SearchTask:
     its point must dominate or equal; None: those of its start) or "stationarity" (of the
     point ``z0``, with ``span``); the start is ``z0`` (full NLP vector) or, if None, the
     decision vector ``p0`` (controls and t_f) from which the states are integrated. The
-    result is clipped to the bounds (IPOPT relaxes them by ~1e-8)."""
+    result is clipped to the bounds (IPOPT relaxes them by ~1e-8). ``solver_options``: IPOPT's
+    own options over :func:`search_settings`' defaults (:mod:`ocpar.ocp.solver_options`)."""
 
     problem: MacsProblem
     kind: str
@@ -102,6 +103,7 @@ class SearchTask:
     restoration: str = "centred"
     span: np.ndarray | None = None
     epsilon: np.ndarray | None = None
+    solver_options: SolverOptions = ()
 
 
 @dataclass
@@ -125,11 +127,24 @@ class SearchResult:
     tradeoff: np.ndarray | None = None
 
 
-class InnerSolvers:
-    """The DFET transcription of a problem with its two solvers and J(z) as a function."""
+def search_settings(options: SolverOptions = ()) -> dict[str, dict]:
+    """The ``nlpsol`` options of the inner NLPs by kind (``scalarised``, ``restore``,
+    ``restore_feasible``, ``refine``): IPOPT to 1e-8 in :data:`MAX_ITER` iterations (the
+    searches from :data:`SEARCH_MU_INIT`; a ``feasible`` restoration with
+    :data:`FEASIBLE_RESTORATION_OPTIONS`), the user's ``ipopt.*`` ``options`` over them."""
+    return {"scalarised": ipopt(options, 1e-8, MAX_ITER, mu_init=SEARCH_MU_INIT),
+            "restore": ipopt(options, 1e-8, MAX_ITER),
+            "restore_feasible": ipopt(options, 1.0, MAX_ITER, **FEASIBLE_RESTORATION_OPTIONS),
+            "refine": ipopt(options, 1e-8, MAX_ITER, mu_init=SEARCH_MU_INIT)}
 
-    def __init__(self, problem: MacsProblem) -> None:
+
+class InnerSolvers:
+    """The DFET transcription of a problem with its two solvers and J(z) as a function;
+    ``options`` the user's IPOPT options (:func:`search_settings`)."""
+
+    def __init__(self, problem: MacsProblem, options: SolverOptions = ()) -> None:
         self.problem = problem
+        self.settings = search_settings(options)
         self.dfet: DfetTranscription = dfet_problem(problem.shape)
         self.functions = objective_functions(problem)
         z = self.dfet.z
@@ -156,15 +171,13 @@ class InnerSolvers:
         epsilon = {"x": z, "p": ca.vertcat(eps, span),
                    "f": objectives[REFINED_OBJECTIVE] / span[REFINED_OBJECTIVE],
                    "g": ca.vertcat(g, (objectives - eps) / span)}
-        self.epsilon = ca.nlpsol("eps", "ipopt", epsilon,
-                                 ipopt_options(1e-8, MAX_ITER, mu_init=SEARCH_MU_INIT))
+        self.epsilon = ca.nlpsol("eps", "ipopt", epsilon, self.settings["refine"])
         # ∂J/∂z (m, nz) and ∂g/∂z (ng, nz), dense, for the stationarity measure
         self._jacobians = BufferedFunction(ca.Function(
             "dJg", [z], [ca.densify(ca.jacobian(objectives, z)), ca.densify(ca.jacobian(g, z))]))
-        opts = ipopt_options(1e-8, MAX_ITER)
-        self.scalarised = ca.nlpsol("ps", "ipopt", scalarised,
-                                    ipopt_options(1e-8, MAX_ITER, mu_init=SEARCH_MU_INIT))
-        self.restore = ca.nlpsol("restore", "ipopt", {"x": z, "f": 0, "g": g}, opts)
+        self.scalarised = ca.nlpsol("ps", "ipopt", scalarised, self.settings["scalarised"])
+        self.restore = ca.nlpsol("restore", "ipopt", {"x": z, "f": 0, "g": g},
+                                 self.settings["restore"])
 
     def violation(self, z: np.ndarray) -> float:
         """max over g's rows of how far z breaks its bounds (0 when feasible)."""
@@ -176,7 +189,7 @@ class InnerSolvers:
         """The restoration that stops at the first feasible point, built on first use."""
         return ca.nlpsol("restore_feasible", "ipopt", {"x": self.dfet.z, "f": 0,
                                                        "g": self._g},
-                         ipopt_options(1.0, MAX_ITER, **FEASIBLE_RESTORATION_OPTIONS))
+                         self.settings["restore_feasible"])
 
     def consistent(self, z: np.ndarray, objectives: np.ndarray) -> bool:
         """The transcription's objectives agree with an accurate re-simulation of z's
@@ -397,12 +410,13 @@ class InnerSolvers:
 
 
 @lru_cache(maxsize=8)
-def inner_solvers(problem: MacsProblem) -> InnerSolvers:
-    """This process's inner solvers of ``problem``: built once, then reused."""
-    return InnerSolvers(problem)
+def inner_solvers(problem: MacsProblem, options: SolverOptions = ()) -> InnerSolvers:
+    """This process's inner solvers of ``problem`` with IPOPT's ``options``: built once,
+    then reused."""
+    return InnerSolvers(problem, options)
 
 
 def run_search(task: SearchTask) -> SearchResult:
     """Engine kernel: one local search or restoration with this process's cached solvers. A
     failed search is infeasible and the algorithm rejects it (the paper's penalty)."""
-    return inner_solvers(task.problem).run(task)
+    return inner_solvers(task.problem, task.solver_options).run(task)

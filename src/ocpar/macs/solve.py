@@ -12,13 +12,14 @@ from ocpar.bsp import Backend
 from ocpar.bsp.serial import SerialBackend
 from ocpar.macs.algorithm import Macs, MacsOutcome, MacsSettings
 from ocpar.macs.archive import Member
-from ocpar.macs.local_search import STATIONARITY_TOL
+from ocpar.macs.local_search import STATIONARITY_TOL, search_settings
 from ocpar.macs.metrics import generational_distance, hypervolume, inverted_generational_distance
 from ocpar.macs.objectives import objective_functions
 from ocpar.macs.problem import MacsProblem
 from ocpar.macs.result import MacsResult
 from ocpar.models.labels import control_labels, state_labels, time_unit
 from ocpar.ocp import dfet_problem
+from ocpar.ocp.solver_options import used
 
 
 def resimulated_objectives(problem: MacsProblem, z: np.ndarray) -> np.ndarray:
@@ -144,4 +145,7 @@ def solve_macs(
         history=history,
         **refinement_fields(members, outcome.refinement_evaluations),
         trace=backend.traces[first_trace:],
+        solver_options=used(macs.solver_options, {
+            kind: {"ipopt": value}
+            for kind, value in search_settings(macs.solver_options).items()}),
     )

@@ -36,6 +36,8 @@ from typing import Any
 import casadi as ca
 import numpy as np
 
+from ocpar.ocp.solver_options import SolverOptions, sqpmethod
+
 #: Solver names a transcription's ``solver`` option accepts: ``newton`` (:class:`KktNewton`)
 #: or ``sqpmethod`` (:class:`MappedNlp`), both batched with IPOPT as fallback, or ``ipopt`` (one
 #: IPOPT call per task).
@@ -84,16 +86,17 @@ class MappedNlp:
     symbols ``x`` and ``p``), solved in batches by ``sqpmethod`` to tolerance ``tol`` and
     checked column by column to ``kkt_tol``. ``post``, a Function of (x*, λ_g*, p) with one
     output, is evaluated at every solution in the same mapped call (e.g. a sensitivity).
-    ``qp_max_iter`` as in :func:`sqp_options`."""
+    ``qp_max_iter`` as in :func:`sqp_options`; ``options`` the user's ``sqpmethod.*`` and
+    ``qrqp.*`` solver options over these (:mod:`ocpar.ocp.solver_options`)."""
 
     def __init__(self, name: str, x: ca.SX, p: ca.SX, f: ca.SX, g: ca.SX, tol: float,
                  max_iter: int, kkt_tol: float, post: ca.Function | None = None,
-                 qp_max_iter: int | None = None) -> None:
+                 qp_max_iter: int | None = None, options: SolverOptions = ()) -> None:
         self.kkt_tol = kkt_tol
         self.post = post
         self.nx, self.ng = x.numel(), g.numel()
         self.solver = ca.nlpsol(name, "sqpmethod", {"x": x, "p": p, "f": f, "g": g},
-                                sqp_options(tol, max_iter, qp_max_iter))
+                                sqpmethod(options, sqp_options(tol, max_iter, qp_max_iter)))
         self.residuals = kkt_residuals(name, x, p, f, g)
         self._mapped = lru_cache(maxsize=16)(self._map)
 

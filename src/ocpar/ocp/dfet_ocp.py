@@ -34,7 +34,7 @@ from ocpar.ocp.constraints import (
 )
 from ocpar.ocp.contract import InnerSolution, call_nlpsol, check_params, transcription
 from ocpar.ocp.dfet import DfetShape, DfetTranscription
-from ocpar.ocp.ipopt import ipopt_options
+from ocpar.ocp.solver_options import SolverOptions, ipopt, solver_options
 
 
 @dataclass(frozen=True)
@@ -47,7 +47,9 @@ class DfetOcpShape:
     CasADi symbols (a module-level function, so that the shape pickles); ``running_cost``
     whether the model's g(x, u) is integrated; ``tol``/``max_iter`` IPOPT's settings;
     ``path_constraints`` :class:`~ocpar.ocp.constraints.PathConstraint` objects of ``x`` and
-    ``u`` (module docstring), compiled when the shape is built."""
+    ``u`` (module docstring), compiled when the shape is built; ``solver_options`` IPOPT's
+    own options over these (``ipopt.tol``, ``ipopt.linear_solver``, …;
+    :mod:`ocpar.ocp.solver_options`), checked when the shape is built."""
 
     model: OdeModel
     elements: int
@@ -61,8 +63,10 @@ class DfetOcpShape:
     tol: float = 1e-10
     max_iter: int = 500
     path_constraints: tuple[PathConstraint | CompiledConstraint, ...] = ()
+    solver_options: SolverOptions = ()
 
     def __post_init__(self) -> None:
+        object.__setattr__(self, "solver_options", solver_options(self.solver_options))
         object.__setattr__(self, "path_constraints", compile_constraints(
             self.path_constraints, {"x": self.model.nx, "u": self.model.nu}))
         self.dynamics_shape()  # checks the grid, the bounds and the final components
@@ -133,13 +137,19 @@ class DfetOcpTranscription:
         self.nz, self.ng = dfet.nz, dfet.ng + path.count
 
     @cached_property
+    def solver_settings(self) -> dict[str, dict]:
+        """The options this shape's solver is built with (defaults and the shape's
+        ``solver_options``): ``ipopt``, ``nlpsol``'s."""
+        # IPOPT relaxes inequalities by 1e-8 (relative) unless told not to
+        exact = {"bound_relax_factor": 0.0} if self.n_path else {}
+        return {"ipopt": ipopt(self.shape.solver_options, self.shape.tol, self.shape.max_iter,
+                               **exact)}
+
+    @cached_property
     def solver(self) -> ca.Function:
         """IPOPT solver of this shape, built on first use and then reused."""
         nlp = {"x": self.z, "p": self.p, "f": self.cost, "g": self.g}
-        # IPOPT relaxes inequalities by 1e-8 (relative) unless told not to
-        exact = {"bound_relax_factor": 0.0} if self.n_path else {}
-        return ca.nlpsol("dfet_ocp", "ipopt", nlp,
-                         ipopt_options(self.shape.tol, self.shape.max_iter, **exact))
+        return ca.nlpsol("dfet_ocp", "ipopt", nlp, self.solver_settings["ipopt"])
 
     def default_guess(self, params: np.ndarray) -> np.ndarray:
         """States on the straight line in time from x_0 to the target (free components held

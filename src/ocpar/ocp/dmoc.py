@@ -140,6 +140,7 @@ from ocpar.ocp.batch import (
     MappedNlp,
     kkt_met,
     kkt_residuals,
+    sqp_options,
 )
 from ocpar.ocp.constraints import (
     CompiledConstraint,
@@ -156,7 +157,6 @@ from ocpar.ocp.contract import (
     check_params,
     transcription,
 )
-from ocpar.ocp.ipopt import ipopt_options
 from ocpar.ocp.obstacles import (
     SIDE_OBSTACLES,
     Obstacle,
@@ -172,6 +172,13 @@ from ocpar.ocp.obstacles import (
     side_guesses,
 )
 from ocpar.ocp.sensitivity import cost_hessian_function
+from ocpar.ocp.solver_options import (
+    SolverOptions,
+    ipopt,
+    newton,
+    solver_options,
+    sqpmethod,
+)
 
 #: Newton steps the ``newton`` solver takes on a batch at most (one per call: a QP such as
 #: a point mass's needs one; a rigid spacecraft's from the default guess four), and at most
@@ -235,6 +242,9 @@ class DmocShape:
     configuration entries ``obstacle_positions`` (default: the first d, d the obstacles'
     dimension). ``elastic``: the phase-1 NLP of this shape instead (module docstring; its
     ``cost`` the total slack s ≥ 0, 0 where the shape's NLP is feasible).
+    ``solver_options``: the inner solvers' own options (``ipopt.tol``, ``sqpmethod.max_iter``,
+    ``newton.kkt_tol``, …; :mod:`ocpar.ocp.solver_options`) over the defaults above, checked
+    when the shape is built and stored as sorted (name, value) pairs.
     """
 
     model: MechanicalSystem
@@ -252,8 +262,10 @@ class DmocShape:
     obstacles: tuple[Obstacle, ...] = ()
     obstacle_positions: tuple[int, ...] = ()
     elastic: bool = False
+    solver_options: SolverOptions = ()
 
     def __post_init__(self) -> None:
+        object.__setattr__(self, "solver_options", solver_options(self.solver_options))
         nq, nu = self.model.nq, self.model.nu
         sizes = {"q": nq, "v": nq, "u": nu}
         object.__setattr__(self, "path_constraints", compile_constraints(
@@ -590,11 +602,25 @@ class DmocTranscription:
         """IPOPT solver of this shape, built on first use and then reused."""
         w, p = self._w, self._p
         nlp = {"x": w, "p": p, "f": self.cost(w, p), "g": self.constraints(w, p)}
+        return ca.nlpsol("dmoc", "ipopt", nlp, self.solver_settings["ipopt"])
+
+    @cached_property
+    def solver_settings(self) -> dict[str, dict]:
+        """The options this shape's solvers are built with (defaults and the shape's
+        ``solver_options``), by solver: ``ipopt`` (``nlpsol``'s) and the batched solver's,
+        ``newton`` (``kkt_tol``, ``max_iter``: Newton steps at most) or ``sqpmethod``."""
+        shape, given = self.shape, self.shape.solver_options
         # IPOPT relaxes inequalities by 1e-8 (relative) unless told not to: a keep-out and a
         # control bound are exact
         exact = {"bound_relax_factor": 0.0} if self.has_inequalities else {}
-        return ca.nlpsol("dmoc", "ipopt", nlp,
-                         ipopt_options(self.shape.tol, self.shape.max_iter, **exact))
+        settings = {"ipopt": ipopt(given, shape.tol, shape.max_iter, **exact)}
+        if shape.chosen_solver == "newton":
+            settings["newton"] = {
+                "kkt_tol": newton(given, "kkt_tol", shape.kkt_tol),
+                "max_iter": newton(given, "max_iter", min(NEWTON_ROUNDS, shape.max_iter))}
+        elif shape.chosen_solver == "sqpmethod":
+            settings["sqpmethod"] = sqpmethod(given, sqp_options(shape.kkt_tol, shape.max_iter))
+        return settings
 
     @cached_property
     def kkt_residuals(self) -> ca.Function:
@@ -696,12 +722,12 @@ class DmocTranscription:
         w, p = self._w, self._p
         if self.shape.chosen_solver == "newton":  # DmocShape refuses it with keep-out slots
             return KktNewton("dmoc", w, p, self.cost(w, p), self.constraints(w, p), 1,
-                             self.shape.kkt_tol, post=self.end_hessian)
+                             self.solver_settings["newton"]["kkt_tol"], post=self.end_hessian)
         if self.shape.chosen_solver != "sqpmethod" or self.n_planes:
             return None
         return MappedNlp("dmoc_sqp", w, p, self.cost(w, p), self.constraints(w, p),
                          self.shape.kkt_tol, self.shape.max_iter, self.shape.kkt_tol,
-                         post=self.end_hessian)
+                         post=self.end_hessian, options=self.shape.solver_options)
 
     def default_guess(self, params: np.ndarray) -> np.ndarray:
         """Cubic Hermite path through the boundary data (projected onto the constraints, if
@@ -1067,7 +1093,7 @@ class DmocTranscription:
         solver = MappedNlp("dmoc_segments", w, p, free.cost(w, p), g,
                            self.shape.kkt_tol * SEGMENT_TOL_FACTOR,
                            min(self.shape.max_iter, SEGMENT_MAX_ITER), self.shape.kkt_tol,
-                           qp_max_iter=SEGMENT_QP_MAX_ITER)
+                           qp_max_iter=SEGMENT_QP_MAX_ITER, options=self.shape.solver_options)
         return (solver, np.concatenate([free.lbg, np.zeros(len(rows))]),
                 np.concatenate([free.ubg, np.full(len(rows), np.inf)]))
 
@@ -1221,7 +1247,7 @@ class DmocTranscription:
                     x0[k] = self.full_guess(guess, params[k])
         try:
             if isinstance(self.batch_solver, KktNewton):
-                rounds = min(NEWTON_ROUNDS, self.shape.max_iter)
+                rounds = self.solver_settings["newton"]["max_iter"]
                 batch = self.batch_solver.solve(x0, params, lam0, self.lbx, self.ubx, rounds)
             else:
                 assert self.batch_solver is not None

@@ -58,7 +58,13 @@ from ocpar.ocp.constraints import (
     compile_constraints,
 )
 from ocpar.ocp.contract import InnerSolution, call_nlpsol, check_params, transcription
-from ocpar.ocp.ipopt import ipopt_options
+from ocpar.ocp.solver_options import (
+    SolverOptions,
+    ipopt,
+    newton,
+    solver_options,
+    sqpmethod,
+)
 
 INTEGRATORS = ("euler", "rk4")
 #: Local solvers for warm-started re-solves (see the module docstring). Measured on the
@@ -98,7 +104,10 @@ class MsShape:
     and ``u`` (module docstring), compiled when the shape is built. ``final_time``
     (T_min, T_max), 0 < T_min ≤ T_max, frees the horizon T within them, and ``time_weight``
     (≥ 0, only with ``final_time``) adds weight · T to the cost (module docstring; None:
-    fixed T = N·step).
+    fixed T = N·step). ``solver_options``: the
+    inner solvers' own options (``ipopt.tol``, ``sqpmethod.tol_pr``, ``newton.kkt_tol``,
+    ``newton.max_iter``, …; :mod:`ocpar.ocp.solver_options`) over these defaults (``tol``
+    is IPOPT's, ``sqpmethod``'s and Newton's), checked when the shape is built.
     """
 
     model: OdeModel
@@ -113,8 +122,10 @@ class MsShape:
     path_constraints: tuple[PathConstraint | CompiledConstraint, ...] = ()
     final_time: tuple[float, float] | None = None
     time_weight: float = 0.0
+    solver_options: SolverOptions = ()
 
     def __post_init__(self) -> None:
+        object.__setattr__(self, "solver_options", solver_options(self.solver_options))
         object.__setattr__(self, "path_constraints", compile_constraints(
             self.path_constraints, {"x": self.model.nx, "u": self.model.nu}))
         if self.final_time is not None:
@@ -139,6 +150,33 @@ class MsShape:
     def n_params(self) -> int:
         """Length of p = (x_0, target)."""
         return self.model.nx + len(self.terminal)
+
+    @property
+    def newton_first(self) -> bool:
+        """Whether a re-solve from a guess starts with Newton steps (a ``warm_start`` shape
+        whose local solver is ``newton``, without path constraints: Newton takes equalities
+        only)."""
+        return self.warm_start and self.local_solver == "newton" and not self.path_constraints
+
+    def solver_settings(self) -> dict[str, dict]:
+        """The options this shape's solvers are built with (defaults and the shape's
+        ``solver_options``), by solver: ``ipopt`` (``nlpsol``'s), and for a ``warm_start``
+        shape its local solver's: ``newton`` (``kkt_tol``; ``max_iter``, Newton steps at
+        most, in calls of :data:`NEWTON_STEPS`) or ``sqpmethod``."""
+        given = self.solver_options
+        extra = WARM_START_OPTIONS if self.warm_start else {}
+        # IPOPT relaxes bounds and inequalities by 1e-8 (relative) unless told not to: a
+        # solution would break |u| <= 1 by 5e-9
+        extra = extra | {"bound_relax_factor": 0.0}
+        settings = {"ipopt": ipopt(given, self.tol, self.max_iter, **extra)}
+        if self.newton_first:
+            settings["newton"] = {
+                "kkt_tol": newton(given, "kkt_tol", self.tol),
+                "max_iter": newton(given, "max_iter", NEWTON_ROUNDS * NEWTON_STEPS)}
+        elif self.warm_start:
+            settings["sqpmethod"] = sqpmethod(given, SQP_OPTIONS | {"tol_pr": self.tol,
+                                                                   "tol_du": self.tol})
+        return settings
 
     def build(self) -> MsTranscription:
         """The transcription of this shape (see :func:`~ocpar.ocp.transcription`)."""
@@ -263,15 +301,15 @@ class MsTranscription:
         self.lbw, self.ubw = np.concatenate(lbw), np.concatenate(ubw)
 
     @cached_property
+    def solver_settings(self) -> dict[str, dict]:
+        """:meth:`MsShape.solver_settings`, once."""
+        return self.shape.solver_settings()
+
+    @cached_property
     def solver(self) -> ca.Function:
         """IPOPT solver of this shape, built on first use and then reused."""
         nlp = {"x": self.w, "p": self.p, "f": self.cost, "g": self.g}
-        extra = WARM_START_OPTIONS if self.shape.warm_start else {}
-        # IPOPT relaxes bounds and inequalities by 1e-8 (relative) unless told not to: a
-        # solution would break |u| <= 1 by 5e-9
-        extra = extra | {"bound_relax_factor": 0.0}
-        return ca.nlpsol("ms", "ipopt", nlp,
-                         ipopt_options(self.shape.tol, self.shape.max_iter, **extra))
+        return ca.nlpsol("ms", "ipopt", nlp, self.solver_settings["ipopt"])
 
     @cached_property
     def resolver(self) -> ca.Function:
@@ -279,8 +317,7 @@ class MsTranscription:
         guess near the solution it needs no barrier iterations; on the pursuit subproblems
         ~1.5 ms instead of IPOPT's ~3 ms, same optimum to ~1e-13."""
         nlp = {"x": self.w, "p": self.p, "f": self.cost, "g": self.g}
-        return ca.nlpsol("ms_sqp", "sqpmethod", nlp, SQP_OPTIONS | {
-            "tol_pr": self.shape.tol, "tol_du": self.shape.tol})
+        return ca.nlpsol("ms_sqp", "sqpmethod", nlp, self.solver_settings["sqpmethod"])
 
     @cached_property
     def newton(self) -> BufferedFunction:
@@ -397,21 +434,23 @@ class MsTranscription:
 
     @property
     def _newton_first(self) -> bool:
-        """Whether a re-solve from a guess starts with Newton steps (a ``warm_start`` shape
-        whose local solver is ``newton``, without path constraints: Newton takes equalities
-        only)."""
-        return self.shape.warm_start and self.shape.local_solver == "newton" and not self.n_path
+        """:attr:`MsShape.newton_first`."""
+        return self.shape.newton_first
 
     def _solve_newton(self, params: np.ndarray, guess: np.ndarray,
                       multipliers: np.ndarray | None,
                       first_round: tuple[list[np.ndarray], float] | None) -> MsSolution:
-        """Up to :data:`NEWTON_ROUNDS` calls of :attr:`newton` (the first one's outputs and
+        """Up to :data:`NEWTON_ROUNDS` calls of :attr:`newton` (or the shape's
+        ``newton.max_iter`` steps, rounded up to whole calls; the first call's outputs and
         time per solve possibly given: ``first_round``); success when the KKT residuals
-        (‖∇_w L‖∞, max |g|) are within ``tol`` and w within its bounds."""
+        (‖∇_w L‖∞, max |g|) are within ``tol`` (or ``newton.kkt_tol``) and w within its
+        bounds."""
         start = time.perf_counter()
         w, lam = guess, np.zeros(self.ng) if multipliers is None else multipliers
         status, steps = "Newton_Not_Converged", 0
-        for _ in range(NEWTON_ROUNDS):
+        settings = self.solver_settings["newton"]
+        tol = settings["kkt_tol"]
+        for _ in range(-(-settings["max_iter"] // NEWTON_STEPS)):
             steps += NEWTON_STEPS
             if first_round is not None and steps == NEWTON_STEPS:
                 w, lam, cost, g, dual, cost_gradient = first_round[0]
@@ -421,7 +460,7 @@ class MsTranscription:
             if not (np.all(np.isfinite(w)) and np.all(np.isfinite(lam))):
                 status = "Newton_Diverged"
                 break
-            if dual[0] <= self.shape.tol and violation <= self.shape.tol:
+            if dual[0] <= tol and violation <= tol:
                 inside = np.all(w >= self.lbw) and np.all(w <= self.ubw)
                 status = "Solve_Succeeded" if inside else "Newton_Out_Of_Bounds"
                 break

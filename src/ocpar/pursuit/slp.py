@@ -39,8 +39,9 @@ do not depend on the backend or the worker count.
 from __future__ import annotations
 
 import dataclasses
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 
@@ -48,6 +49,7 @@ from ocpar.bsp import Backend
 from ocpar.models.ode import control_bounds
 from ocpar.ocp import MsShape, MsSolution, OcpTask, solve_task, solve_tasks
 from ocpar.ocp.multiple_shooting import LOCAL_SOLVERS
+from ocpar.ocp.solver_options import SOLVER_OPTIONS_HELP, solver_options
 from ocpar.options import option
 from ocpar.pursuit.problem import PursuitProblem, SampledPlan
 from ocpar.pursuit.validate import discrete_residual
@@ -66,7 +68,10 @@ class PursuitSettings:
     the largest N whose stop is certified by a full-horizon MS solve (module docstring; 0:
     never), ``local_solver`` the subproblems' solver from the leader's plan (IPOPT if it
     fails; see :class:`~ocpar.ocp.MsShape`), ``finish`` how a run whose horizon fits ends
-    (:data:`FINISHES`: the full-horizon MS after the first agent, or the paper's train)."""
+    (:data:`FINISHES`: the full-horizon MS after the first agent, or the paper's train);
+    ``solver_options`` the inner solvers' own options by ``SOLVER.NAME``
+    (:mod:`ocpar.ocp.solver_options`: ``ipopt.*``, ``sqpmethod.*``, ``qrqp.*``, ``newton.*``)
+    of every multiple-shooting NLP, checked when the settings are made."""
 
     window: int = option(60, "samples per catch-up problem N_Δ (Δ = (N_Δ-1)h)", low=2,
                          metavar="N_DELTA")
@@ -98,6 +103,13 @@ class PursuitSettings:
                          "until it is itself within EPS of that optimum (the paper's scheme, "
                          "certified); either way the better answer is returned",
                          choices=FINISHES)
+    solver_options: dict = option(  # noqa: RUF009 (option() is a dataclass field)
+        default_factory=dict, help=SOLVER_OPTIONS_HELP + "; of every multiple-shooting NLP "
+        "(the agents' and the full horizon's)", flag="--solver-option",
+        metavar="SOLVER.NAME=VALUE", dotted=True)
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "solver_options", dict(solver_options(self.solver_options)))
 
     def check(self, samples: int) -> None:
         """Raise ValueError unless 1 ≤ N_δ < N_Δ < N."""
@@ -179,15 +191,32 @@ def remaining_improvement(progress: Sequence[float]) -> float:
     return recent * ratio / (1 - ratio)
 
 
+def full_horizon_shape(problem: PursuitProblem, options: Mapping[str, Any] | None = None
+                       ) -> MsShape:
+    """The full-horizon MS NLP's shape, with the solver ``options``."""
+    return MsShape(problem.model, problem.samples - 1, problem.step, problem.target_components,
+                   problem.integrator, path_constraints=problem.path_constraints,
+                   final_time=problem.final_time, time_weight=problem.time_weight,
+                   solver_options=solver_options(options))
+
+
+def window_shape(problem: PursuitProblem, settings: PursuitSettings, intervals: int) -> MsShape:
+    """An agent's subproblem shape with ``intervals`` intervals: warm-started by the
+    settings' local solver, with their solver options."""
+    return MsShape(problem.model, intervals, problem.step, problem.target_components,
+                   problem.integrator, warm_start=True, local_solver=settings.local_solver,
+                   path_constraints=problem.path_constraints,
+                   solver_options=solver_options(settings.solver_options))
+
+
 def full_horizon_task(problem: PursuitProblem, x: np.ndarray, u: np.ndarray,
-                      fallback: tuple[np.ndarray, np.ndarray] | None = None) -> OcpTask:
+                      fallback: tuple[np.ndarray, np.ndarray] | None = None,
+                      options: Mapping[str, Any] | None = None) -> OcpTask:
     """Plain multiple shooting over [0, T] with N samples (one NLP, IPOPT) from the trajectory
-    ``x`` (N, nx), ``u`` (N−1, nu); ``fallback`` a second (x, u) to start from if that fails.
-    With a free final time T is free within its bounds (the guesses' T: ``duration``)."""
-    shape = MsShape(problem.model, problem.samples - 1, problem.step,
-                    problem.target_components, problem.integrator,
-                    path_constraints=problem.path_constraints, final_time=problem.final_time,
-                    time_weight=problem.time_weight)
+    ``x`` (N, nx), ``u`` (N−1, nu); ``fallback`` a second (x, u) to start from if that fails;
+    ``options`` the solver options (``PursuitSettings.solver_options``). With a free final time
+    T is free within its bounds (the guesses' T: ``duration``)."""
+    shape = full_horizon_shape(problem, options)
 
     def guess(x: np.ndarray, u: np.ndarray) -> np.ndarray:
         horizon = [problem.duration] if problem.free_time else []
@@ -314,11 +343,8 @@ class PursuitTrain:
         """The subproblem shape with ``intervals`` intervals (made once per train)."""
         shape = self._shapes.get(intervals)
         if shape is None:
-            problem = self.problem
-            shape = self._shapes[intervals] = MsShape(
-                problem.model, intervals, problem.step, problem.target_components,
-                problem.integrator, warm_start=True, local_solver=self.settings.local_solver,
-                path_constraints=problem.path_constraints)
+            shape = self._shapes[intervals] = window_shape(self.problem, self.settings,
+                                                           intervals)
         return shape
 
     def _new_agent(self) -> Agent:
@@ -470,7 +496,8 @@ class PursuitTrain:
         to :data:`FEASIBILITY_TOL` (:func:`~ocpar.pursuit.validate.discrete_residual`). A
         failure is noted and leaves the extrapolated estimate in charge."""
         sol = solve(full_horizon_task(self.problem, agent.x, agent.u,
-                                      fallback=(self.initial.x, self.initial.u)))
+                                      fallback=(self.initial.x, self.initial.u),
+                                      options=self.settings.solver_options))
         self.solves += 1
         self.retries += sol.attempts - 1
         total = self.agents_before + agent.index

@@ -9,13 +9,16 @@ from ocpar.bsp import Backend
 from ocpar.bsp.serial import SerialBackend
 from ocpar.models.labels import control_labels, state_labels, time_unit
 from ocpar.ocp import MsSolution, solve_task
+from ocpar.ocp.solver_options import solver_options, used
 from ocpar.pursuit.problem import PursuitProblem
 from ocpar.pursuit.result import PursuitResult
 from ocpar.pursuit.slp import (
     FEASIBILITY_TOL,
     PursuitSettings,
+    full_horizon_shape,
     full_horizon_task,
     run_levels,
+    window_shape,
 )
 from ocpar.pursuit.validate import discrete_residual, rk_check
 
@@ -36,10 +39,12 @@ def check_mode(problem: PursuitProblem, mode: str) -> None:
                          "mode ms (--mode ms)")
 
 
-def solve_full_horizon(problem: PursuitProblem, backend: Backend) -> MsSolution:
+def solve_full_horizon(problem: PursuitProblem, backend: Backend,
+                       settings: PursuitSettings | None = None) -> MsSolution:
     """Plain multiple shooting over [0, T] with N samples, from agent 0's trajectory, as one
-    task on the backend."""
-    task = full_horizon_task(problem, *problem.feasible_trajectory())
+    task on the backend (with the ``settings``' solver options)."""
+    task = full_horizon_task(problem, *problem.feasible_trajectory(),
+                             options=None if settings is None else settings.solver_options)
     return backend.superstep(solve_task, [task])[0]
 
 
@@ -71,9 +76,9 @@ def solve_pursuit(
     reference_headline, reference_x = None, None
 
     if mode == "ms":
-        sol = solve_full_horizon(problem, backend)
-        # a fixed horizon is the problem's (N·h may differ from it in the last bit)
+        sol = solve_full_horizon(problem, backend, settings)
         x, u = sol.x, sol.u
+        # a fixed horizon is the problem's (N·h may differ from it in the last bit)
         final_time = sol.final_time if problem.free_time else problem.duration
         status = "converged" if sol.success else "failed"
         message, agents, solves = sol.status, 0, 1
@@ -104,7 +109,7 @@ def solve_pursuit(
     wall = time.perf_counter() - start
     timings = {}
     if mode == "pbms" and reference and problem.samples <= REFERENCE_MAX_SAMPLES:
-        ref = solve_full_horizon(problem, backend)
+        ref = solve_full_horizon(problem, backend, settings)
         if ref.success:
             reference_headline, reference_x = problem.headline_value(ref.x, ref.u), ref.x
         timings["reference_s"] = time.perf_counter() - start - wall
@@ -145,4 +150,17 @@ def solve_pursuit(
         stop_reason=stop_reason, estimated_remaining=remaining,
         remaining_method=remaining_method, certificate_headline=certificate,
         agents_per_level=agents_per_level, **train,
+        solver_options=solver_record(problem, settings, mode),
     )
+
+
+def solver_record(problem: PursuitProblem, settings: PursuitSettings, mode: str) -> dict:
+    """result.json's ``solver_options``: the run's, and the options the agents' subproblems
+    (``window``, PBMS: N_Δ samples) and the full-horizon MS NLP (``full_horizon``) are built
+    with (:func:`ocpar.ocp.solver_options.used`)."""
+    settings_by_nlp = {"full_horizon": full_horizon_shape(
+        problem, settings.solver_options).solver_settings()}
+    if mode == "pbms":
+        settings_by_nlp = {"window": window_shape(problem, settings, settings.window - 1)
+                           .solver_settings()} | settings_by_nlp
+    return used(solver_options(settings.solver_options), settings_by_nlp)

@@ -6,7 +6,8 @@ configuration exactly as ``ocpar run`` does (:func:`ocpar.config.from_mapping`,
 :meth:`~ocpar.config.RunConfig.with_overrides`, the scheme's own command line through
 :func:`ocpar.driver.check_options`), the problem reference against the operator's allow-list
 (loaded, so that a reference that does not give a problem is refused before a job id is
-returned) and the token's limits; nothing of a request is imported or unpickled but an
+returned), the solver options against the operator's (:func:`solver_option_allowed`) and
+the token's limits; nothing of a request is imported or unpickled but an
 allowed reference, and the job's memory estimate against the server's limit
 (:mod:`ocpar.service.web.memory`). ``GET /`` and ``/static`` serve the page (no token needed).
 
@@ -38,6 +39,7 @@ from ocpar import __version__
 from ocpar.config import ConfigError, RunConfig, examples, from_mapping, load_config
 from ocpar.config import scheme_class as options_class
 from ocpar.driver import check_options, resolve_problem
+from ocpar.ocp.solver_options import HOST_FILE_OPTIONS
 from ocpar.references import is_reference
 from ocpar.service.client import SERVICE_OPTIONS
 from ocpar.service.jobs import JOB_ID, has_checkpoint, new_job_id, supersteps_done
@@ -160,6 +162,15 @@ def refuse(detail: str, status: int = 422) -> HTTPException:
     return HTTPException(status, " ".join(str(detail).split()))
 
 
+def solver_option_allowed(name: str, patterns: tuple[str, ...]) -> bool:
+    """Whether the solver option ``name`` (``SOLVER.NAME``) matches one of the operator's
+    ``patterns``; one that names files or libraries on the server
+    (:data:`~ocpar.ocp.solver_options.HOST_FILE_OPTIONS`) only a pattern equal to it."""
+    if name in HOST_FILE_OPTIONS:
+        return name in patterns
+    return any(fnmatchcase(name, pattern) for pattern in patterns)
+
+
 def create_app(settings: Settings) -> FastAPI:
     """The server's application: the job API over the store in ``settings.state_dir``, whose
     jobs a :class:`~ocpar.service.web.runner.Runner` starts while the application runs."""
@@ -246,6 +257,16 @@ def create_app(settings: Settings) -> FastAPI:
                              if config is None else
                              "config: expected an example name or an object of keys")
             run = run.with_overrides(overrides, "set")
+            # before the options are checked: a check may load what an option names
+            for name in run.options.get("solver_options", {}):
+                if not solver_option_allowed(name, settings.allow_solver_option):
+                    raise refuse(f"solver_options: {name} is not allowed on this server (the "
+                                 "operator allows solver options with ocpar serve "
+                                 "--allow-solver-option)")
+                if token.solver_options is not None and not solver_option_allowed(
+                        name, token.solver_options):
+                    raise refuse(f"solver_options: {name} is not allowed to this token (ocpar "
+                                 "serve token add --allow-solver-option)")
             argv = run.argv()
             options, _ = check_options(options_class(run.scheme), argv)
         except (ConfigError, ValueError) as exc:

@@ -38,7 +38,7 @@ from typing import Any
 
 from ocpar.service.coordinator import dask_options
 from ocpar.service.jobs import has_checkpoint, outcome, run_command, supersteps_done
-from ocpar.service.web.store import Store
+from ocpar.service.web.store import DEFAULT_SOLVER_OPTIONS, Store
 from ocpar.service.web.warm import WarmPool
 
 log = logging.getLogger("ocpar.serve")
@@ -58,6 +58,8 @@ class Settings:
     scheduler: str | None = None   # an existing Dask cluster instead of the embedded one
     max_running: int = 2           # jobs running at once, over all tokens
     allow_problem: tuple[str, ...] = ()  # fnmatch patterns of module:factory references
+    # fnmatch patterns of the solver options (SOLVER.NAME) a job may set
+    allow_solver_option: tuple[str, ...] = DEFAULT_SOLVER_OPTIONS
     grace: float = 30.0            # s between a wall-time stop request and the kill
     max_job_memory: int | None = None  # bytes a job's estimate may reach (None: no limit)
     poll: float = 0.2              # s between the supervisor's rounds

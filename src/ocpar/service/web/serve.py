@@ -24,7 +24,7 @@ from pathlib import Path
 from typing import Any
 
 from ocpar.cli import fail, positive_int
-from ocpar.service.web.store import DEFAULT_LIMITS
+from ocpar.service.web.store import DEFAULT_LIMITS, DEFAULT_SOLVER_OPTIONS
 
 PROG = "ocpar serve"
 #: The state directory (database and jobs) unless --state-dir or $OCPAR_SERVER_DIR says.
@@ -92,6 +92,14 @@ def register(commands: Any) -> None:
                         help="allow problem references module:factory matching PATTERN "
                              "(fnmatch, e.g. 'mypkg.problems:*'); repeat for more. Built-in "
                              "examples are always allowed")
+    parser.add_argument("--allow-solver-option", action="append", default=[],
+                        metavar="PATTERN",
+                        help="allow jobs to set the solver options SOLVER.NAME matching "
+                             "PATTERN (fnmatch, e.g. 'ipopt.*tol'); repeat for more; 'none': "
+                             "no solver option. Default: "
+                             f"{' '.join(DEFAULT_SOLVER_OPTIONS)}; options that name files "
+                             "or libraries on this host (ipopt.output_file, ipopt.hsllib, ...) "
+                             "only by their exact name")
     parser.add_argument("--wall-time-grace", type=positive_float, default=30.0, metavar="S",
                         help="seconds a job over its token's wall time has to stop at a "
                              "superstep boundary before it is killed (default 30)")
@@ -122,6 +130,10 @@ def register(commands: Any) -> None:
         add.add_argument("--" + flag.replace("_", "-"), type=limit(kind), metavar=meta,
                          default=DEFAULT_LIMITS[flag],
                          help=f"{text} (default {DEFAULT_LIMITS[flag]:g}; none: unlimited)")
+    add.add_argument("--allow-solver-option", action="append", default=[], metavar="PATTERN",
+                     help="its jobs may set only the solver options SOLVER.NAME matching "
+                          "PATTERN (fnmatch), within the server's --allow-solver-option; "
+                          "repeat for more; 'none': no solver option (default: the server's)")
     add_state_dir(add, argparse.SUPPRESS)
     add.set_defaults(handler=token_add)
     listing = token_actions.add_parser("list", prog=f"{PROG} token list",
@@ -170,6 +182,7 @@ def serve(args: argparse.Namespace) -> int:
     settings = Settings(state_dir=state_dir(args), backend=args.backend, workers=args.workers,
                         scheduler=args.scheduler, max_running=args.max_running,
                         allow_problem=tuple(args.allow_problem), grace=args.wall_time_grace,
+                        allow_solver_option=solver_option_patterns(args.allow_solver_option),
                         max_job_memory=memory_limit(args.max_job_memory, default_limit()))
     app = create_app(settings)
     scheme = "https" if args.ssl_certfile else "http"
@@ -182,6 +195,14 @@ def serve(args: argparse.Namespace) -> int:
                 ssl_keyfile=args.ssl_keyfile, log_level="warning",
                 timeout_graceful_shutdown=SHUTDOWN_GRACE)
     return 0
+
+
+def solver_option_patterns(given: list[str]) -> tuple[str, ...]:
+    """The solver options' allow-list of ``--allow-solver-option`` (none given: the default;
+    ``none``: no option)."""
+    if not given:
+        return DEFAULT_SOLVER_OPTIONS
+    return () if given == ["none"] else tuple(given)
 
 
 def memory_limit(gigabytes: Any, default: int) -> int | None:
@@ -197,7 +218,8 @@ def token_add(args: argparse.Namespace) -> int:
     from ocpar.service.web.tokens import issue
 
     token = Token(args.name, args.max_jobs, args.max_agents, args.max_evaluations,
-                  args.wall_time)
+                  args.wall_time, None if not args.allow_solver_option
+                  else solver_option_patterns(args.allow_solver_option))
     try:
         secret = issue(Store(state_dir(args)), token)
     except ValueError as exc:
@@ -226,6 +248,8 @@ def token_list(args: argparse.Namespace) -> int:
         limits = [f"{name.replace('_', '-')} "
                   f"{'none' if (value := getattr(token, name)) is None else f'{value:g}'}"
                   for name in ("max_jobs", "max_agents", "max_evaluations", "wall_time")]
+        if token.solver_options is not None:
+            limits.append(f"solver-options {' '.join(token.solver_options) or 'none'}")
         print(f"{token.name:24} {', '.join(limits)}")
     return 0
 

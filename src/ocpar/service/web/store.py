@@ -29,7 +29,8 @@ CREATE TABLE IF NOT EXISTS tokens (
     max_agents INTEGER,         -- formation agents / pursuit max_agents per job
     max_evaluations INTEGER,    -- MACS max_evals per job
     wall_time REAL,             -- seconds a job may run before it is cancelled
-    created REAL NOT NULL
+    created REAL NOT NULL,
+    solver_options TEXT         -- JSON list of the solver options' patterns (NULL: the server's)
 );
 CREATE TABLE IF NOT EXISTS jobs (
     id TEXT PRIMARY KEY,
@@ -63,17 +64,25 @@ CREATE INDEX IF NOT EXISTS jobs_by_state ON jobs (state, submitted);
 DEFAULT_LIMITS = {"max_jobs": 2, "max_agents": 100_000, "max_evaluations": 100_000,
                   "wall_time": 3600.0}
 
+#: The solver options a job may set unless the operator says otherwise (``ocpar serve
+#: --allow-solver-option``): every inner solver's, but those that name files or libraries on
+#: the server (:data:`~ocpar.ocp.solver_options.HOST_FILE_OPTIONS`), which only a pattern
+#: without wildcards allows.
+DEFAULT_SOLVER_OPTIONS = ("ipopt.*", "sqpmethod.*", "qrqp.*", "newton.*")
+
 
 @dataclass(frozen=True)
 class Token:
     """A client's token (by name) and its limits (None: unlimited; the defaults:
-    :data:`DEFAULT_LIMITS`)."""
+    :data:`DEFAULT_LIMITS`); ``solver_options`` the fnmatch patterns of the solver options
+    its jobs may set, within the server's (None: the server's)."""
 
     name: str
     max_jobs: int | None = DEFAULT_LIMITS["max_jobs"]
     max_agents: int | None = DEFAULT_LIMITS["max_agents"]
     max_evaluations: int | None = DEFAULT_LIMITS["max_evaluations"]
     wall_time: float | None = DEFAULT_LIMITS["wall_time"]
+    solver_options: tuple[str, ...] | None = None
 
 
 class Store:
@@ -88,6 +97,9 @@ class Store:
         try:
             db.execute("PRAGMA journal_mode=WAL")
             db.executescript(SCHEMA)
+            columns = {row[1] for row in db.execute("PRAGMA table_info(tokens)")}
+            if "solver_options" not in columns:   # a database of an earlier version
+                db.execute("ALTER TABLE tokens ADD COLUMN solver_options TEXT")
         finally:
             db.close()
 
@@ -117,9 +129,13 @@ class Store:
         is taken)."""
         try:
             with self.connect() as db:
-                db.execute("INSERT INTO tokens VALUES (?, ?, ?, ?, ?, ?, ?)",
+                db.execute("INSERT INTO tokens (name, hash, max_jobs, max_agents, "
+                           "max_evaluations, wall_time, created, solver_options) "
+                           "VALUES (?, ?, ?, ?, ?, ?, ?, ?)",
                            (token.name, digest, token.max_jobs, token.max_agents,
-                            token.max_evaluations, token.wall_time, time.time()))
+                            token.max_evaluations, token.wall_time, time.time(),
+                            None if token.solver_options is None
+                            else json.dumps(list(token.solver_options))))
         except sqlite3.IntegrityError:
             raise ValueError(f"a token named {token.name!r} exists already") from None
 
@@ -204,5 +220,6 @@ class Store:
 
 
 def _token(row: sqlite3.Row) -> Token:
+    patterns = row["solver_options"]
     return Token(row["name"], row["max_jobs"], row["max_agents"], row["max_evaluations"],
-                 row["wall_time"])
+                 row["wall_time"], None if patterns is None else tuple(json.loads(patterns)))
