@@ -38,7 +38,6 @@ from ocpar.formation.problem import FormationProblem
 from ocpar.formation.result import AgentRecords, Units, agent_arrays
 from ocpar.formation.verify import AgentChecks, agent_checks
 from ocpar.ocp.contract import Shape
-from ocpar.ocp.dmoc import DmocShape
 
 #: A run writes its agents' variables in parts from this many agents on (with more than one
 #: worker, where they share the output directory's file system): below, the coordinator
@@ -114,9 +113,8 @@ def finish_agents(tasks: Columns, states: Columns) -> Columns:
         tasks.fields[name][1] for name in ("positions", "dim", "duration", "on_circle",
                                            "model_names", "cost_groups", "directory",
                                            "width", "units"))
-    nq = q.shape[2]
-    checks = agent_checks(shapes, q, u, params[:, :nq], params[:, nq:2 * nq],
-                          params[:, 2 * nq + dim:3 * nq], params[:, 3 * nq:], dim, first)
+    checks = agent_checks(shapes, q, u, params, dim, first)
+    ends = shapes[0].boundary_size + shapes[0].end_position_entries(dim)
     cost = np.asarray(states.column("cost"), float)
     squares = (np.column_stack([np.sum(u[..., a:b] ** 2, axis=(1, 2))
                                 for a, b in cost_groups.values()])
@@ -126,7 +124,7 @@ def finish_agents(tasks: Columns, states: Columns) -> Columns:
         start = time.perf_counter()
         write_part(Path(directory), first, width, AgentRecords(
             first=first, q=q, u=u, cost=cost, phi=np.asarray(tasks.column("phi"), float),
-            target=params[:, 2 * nq:2 * nq + dim],
+            target=params[:, ends],
             model=np.array([model_names.index(type(s.model).__name__) for s in shapes],
                            np.int16),
             mass=np.array([float(getattr(s.model, "mass", math.nan)) for s in shapes]),
@@ -144,7 +142,8 @@ def finish_agents(tasks: Columns, states: Columns) -> Columns:
         "path": _paths(checks, first, k),
         "violation": (STACKED, checks.violation),
         "positions": (STACKED, np.ascontiguousarray(q[..., list(positions)])),
-        "end": (STACKED, np.ascontiguousarray(q[:, -1, :dim])),
+        "end": (STACKED, np.ascontiguousarray(
+            q[:, -1, shapes[0].end_position_entries(dim)])),
         "cost": (STACKED, cost),
         "cost_parts": (STACKED, squares),
         "written": (STACKED, np.full(k, written)),
@@ -157,7 +156,7 @@ def finish_agents(tasks: Columns, states: Columns) -> Columns:
     return Columns(cls=AgentFinish, length=k, fields=rows)
 
 
-def _per_agent(values: dict[DmocShape, np.ndarray], agents: dict[DmocShape, np.ndarray],
+def _per_agent(values: dict[Shape, np.ndarray], agents: dict[Shape, np.ndarray],
                first: int, k: int) -> np.ndarray:
     """Per-shape values of ``k`` agents (the first ``first``) as one value per agent, NaN
     for an agent whose shape has none."""
@@ -238,7 +237,7 @@ def finish(problem: FormationProblem, agents: ResidentSet, phi: np.ndarray,
         Path(output).mkdir(parents=True, exist_ok=True)
         directory = str(Path(output).resolve())
     tasks = Columns(cls=FinishTask, length=n, fields={
-        "shape": ((SHARED, problem.shape) if isinstance(problem.shape, DmocShape)
+        "shape": ((SHARED, problem.shape) if not isinstance(problem.shape, tuple)
                   else (LISTED, list(problem.shape))),
         "agent": (STACKED, np.arange(n)),
         "phi": (STACKED, np.reshape(phi, problem.parameter_shape)),
@@ -248,7 +247,7 @@ def finish(problem: FormationProblem, agents: ResidentSet, phi: np.ndarray,
             type(s.model).__name__ for s in problem.agents_by_shape()))),
         "cost_groups": (SHARED, groups), "directory": (SHARED, directory),
         "width": (SHARED, len(str(n - 1))),
-        "units": (SHARED, Units.of(shape.model, shape.model.nq, shape.model.nu,
+        "units": (SHARED, Units.of(shape.model, shape.node_size, shape.model.nu,
                                    problem.position_indices))})
     rows = agents.apply(finish_agents, tasks)
     paths = rows.column("path")
@@ -257,7 +256,7 @@ def finish(problem: FormationProblem, agents: ResidentSet, phi: np.ndarray,
     attitude = np.asarray(rows.column("attitude"))
     checks = AgentChecks(
         start=np.asarray(rows.column("start")),
-        attitude=attitude if len(problem.final_attitude) else None,
+        attitude=None if np.all(np.isnan(attitude)) else attitude,
         momentum=np.asarray(rows.column("momentum")),
         dynamics=np.asarray(rows.column("dynamics")),
         bounds={s: bounds[a] for s, a in by_shape.items() if s.control_bounds is not None},
@@ -281,6 +280,6 @@ def finish(problem: FormationProblem, agents: ResidentSet, phi: np.ndarray,
 def cost_groups(problem: FormationProblem) -> dict[str, tuple[int, int]]:
     """The model's named control groups (name → (first, last + 1) control columns) whose
     cost parts h Σ|u|² the run reports; none where an agent has a running cost of its own."""
-    if any(shape.running_cost is not None for shape in set(problem.shapes)):
+    if any(getattr(shape, "running_cost", None) is not None for shape in set(problem.shapes)):
         return {}
     return dict(getattr(problem.common_shape.model, "cost_parts", {}))

@@ -94,7 +94,7 @@ class Fleet:
             model[agents] = names.index(name)
             mass[agents] = float(getattr(shape_i.model, "mass", math.nan))
         return cls(shape.duration, problem.position_indices, targets, model, names, mass,
-                   shape.model.nq, Units.of(shape.model, shape.model.nq, shape.model.nu,
+                   shape.node_size, Units.of(shape.model, shape.node_size, shape.model.nu,
                                             problem.position_indices))
 
 
