@@ -220,6 +220,13 @@ class FormationProblem:
                             ("final_attitude", (0,))):
             object.__setattr__(self, name, np.zeros(empty))
 
+    @property
+    def end_position_params(self) -> np.ndarray:
+        """The entries (d,) of an agent's boundary data p that are its end position (what
+        the target fixes): DMOC's first d of q_N, an ODE agent's position entries of x̄_N."""
+        shape = self.common_shape
+        return shape.boundary_size + shape.end_position_entries(self.curve.dim)
+
     def end_states(self, agents: np.ndarray) -> np.ndarray:
         """ODE agents' end states (len(agents), nx) without their positions (0 there, and at
         free entries): ``final_state`` in the non-position entries."""

@@ -273,6 +273,8 @@ def check_applicable(problem: FormationProblem, options: FormationOptions) -> No
     calls it before starting workers (:func:`solve_formation` calls it too). With obstacles,
     a formation whose targets clear them must exist among the initial angles' family
     (:meth:`~ocpar.formation.FormationProblem.clear_start`: a rotation on a circle)."""
+    if problem.ode_agents:
+        _check_ode_applicable(options)
     if isinstance(problem.curve, Surface) and options.mode != "hierarchical":
         raise ValueError("surfaces apply to the hierarchical mode only")
     if isinstance(problem.curve, Slots) and options.mode != "hierarchical":
@@ -310,6 +312,19 @@ def check_applicable(problem: FormationProblem, options: FormationOptions) -> No
                                              problem.initial_phi())[:, 2 * nq:3 * nq]
         check_separation_feasible(problem.positions(problem.starts), problem.positions(final),
                                   options.min_separation)
+
+
+def _check_ode_applicable(options: FormationOptions) -> None:
+    """What ODE agents (:class:`~ocpar.ocp.MsEndpointShape`) do not offer yet: ValueError
+    naming the option."""
+    if options.mode == "monolithic":
+        raise ValueError("mode: the monolithic reference NLP is DMOC's; ODE agents "
+                         "(MsEndpointShape) are solved hierarchically only")
+    if options.min_separation is not None:
+        raise ValueError("min_separation: not yet for ODE agents (MsEndpointShape)")
+    if options.ordering == "optimal":
+        raise ValueError("ordering: 'optimal' is not yet for ODE agents (MsEndpointShape); "
+                         "use ordering 'keep'")
 
 
 def obstacle_check(problem: FormationProblem, positions: np.ndarray, status: str,
@@ -476,10 +491,10 @@ def solve_formation(
         return FormationResult(
             **common, status="failed", message=f"ordering: {exc}", total_cost=math.nan,
             phi=np.full(problem.parameter_shape, np.nan), agent_costs=np.full(n, np.nan),
-            trajectories=np.full((n, shape.intervals + 1, shape.model.nq), np.nan),
+            trajectories=np.full((n, shape.intervals + 1, shape.node_size), np.nan),
             outer_iterations=-1, inner_solves=0, failed_solves=0,
             wall_time_s=time.perf_counter() - start,
-            separation=problem.closest_approach(np.full((n, 2, shape.model.nq), np.nan)),
+            separation=problem.closest_approach(np.full((n, 2, shape.node_size), np.nan)),
             trace=backend.traces[first_trace:],
             fleet=Fleet.of(problem, np.full(problem.parameter_shape, np.nan)))
     discrete = discrete_choice(problem, choice, phi0)
