@@ -53,3 +53,25 @@ class Unicycle:
 
     def state_bounds(self) -> tuple[np.ndarray, np.ndarray]:
         return np.full(4, -np.inf), np.full(4, np.inf)
+
+    def guess(self, starts: np.ndarray, ends: np.ndarray, times: np.ndarray
+              ) -> tuple[np.ndarray, np.ndarray]:
+        """A first guess from starts (k, 4) to end positions ``ends`` (k, 4; their heading
+        and speed not read) at ``times`` (N+1,) from 0 to T: along the straight line, heading
+        along it, speed 6 D s (1 − s) / T (s = t/T: a double integrator's least-effort
+        profile over the distance D), a = dv/dt at each interval's start, ω = 0; states
+        (k, N+1, 4), controls (k, N, 2). At rest the unicycle's linearisation cannot move
+        sideways: a Newton step from a guess at rest meets a singular KKT matrix."""
+        total = times[-1]
+        s = times / total
+        delta = ends[:, :2] - starts[:, :2]
+        distance = np.linalg.norm(delta, axis=1)
+        along = (3 * s**2 - 2 * s**3)[None, :, None] * delta[:, None]
+        heading = np.arctan2(delta[:, 1], delta[:, 0])
+        speed = 6 * distance[:, None] * (s * (1 - s))[None] / total
+        states = np.concatenate([starts[:, None, :2] + along,
+                                 np.broadcast_to(heading[:, None, None], (*along.shape[:2], 1)),
+                                 speed[..., None]], axis=2)
+        accel = 6 * distance[:, None] * (1 - 2 * s[:-1])[None] / total**2
+        controls = np.stack([accel, np.zeros_like(accel)], axis=2)
+        return states, controls

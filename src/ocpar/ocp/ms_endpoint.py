@@ -292,8 +292,10 @@ class MsEndpointTranscription:
     # guesses
 
     def default_guess(self, params: np.ndarray) -> np.ndarray:
-        """The states on the straight line from x_0 to x̄_N (free end entries held at x_0's
-        value), zero controls."""
+        """The model's ``guess(starts, ends, times)`` where it has one (states (k, N+1, nx)
+        and controls (k, N, nu) from starts and ends (k, nx) at the node times); else the
+        states on the straight line from x_0 to x̄_N (free end entries held at x_0's value),
+        zero controls."""
         return self.default_guesses(np.asarray(params, float)[None])[0]
 
     def default_guesses(self, params: np.ndarray) -> np.ndarray:
@@ -302,6 +304,11 @@ class MsEndpointTranscription:
         x0, xn = params[:, :nx], params[:, nx:].copy()
         free = list(self.shape.free_end)
         xn[:, free] = x0[:, free]
+        guess = getattr(self.shape.model, "guess", None)
+        if guess is not None:
+            states, controls = guess(x0, xn, np.linspace(0.0, self.shape.duration, n + 1))
+            return np.hstack([np.asarray(states, float)[:, 1:].reshape(k, -1),
+                              np.asarray(controls, float).reshape(k, -1)])
         s = np.arange(1, n + 1)[None, :, None] / n
         states = x0[:, None] + s * (xn - x0)[:, None]
         return np.hstack([states.reshape(k, -1), np.zeros((k, self.nu * n))])
