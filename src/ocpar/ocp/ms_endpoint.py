@@ -30,7 +30,7 @@ from __future__ import annotations
 
 from collections.abc import Iterator
 from dataclasses import dataclass
-from functools import cached_property
+from functools import cached_property, lru_cache
 
 import casadi as ca
 import numpy as np
@@ -52,6 +52,12 @@ from ocpar.ocp.sensitivity import cost_hessian_function
 #: Newton rounds (one step each) a ``newton`` batch takes at most: a unicycle from the
 #: straight-line guess needs 5–7, from its previous solution 2–4.
 NEWTON_ROUNDS = 12
+
+#: SQP iterations a ``sqpmethod`` batch takes at most (and the shape's ``max_iter``): a
+#: unicycle from its first guess needs ~10; a task its bounds make infeasible (a slot out of
+#: reach) ran to the 500 of IPOPT's limit, 16 s for the 8 × 8 slot table under |a| ≤ 1.
+#: What fails goes to IPOPT, one task at a time.
+SQP_MAX_ITER = 50
 
 #: A bound or path row within this (relative to 1 + |bound|) of its bound counts as active
 #: for the end Hessian: IPOPT's interior points stop ~1e-12..1e-10 from an active bound
@@ -273,15 +279,17 @@ class MsEndpointTranscription:
 
     @cached_property
     def batch_solver(self) -> KktNewton | MappedNlp | None:
-        """The batched solver (None for ``ipopt``)."""
+        """The batched solver (None for ``ipopt``); the end Hessians are evaluated after
+        it, at the accepted columns only (:meth:`_hessians`: a failed column's KKT matrix
+        may be singular)."""
         chosen = self.shape.chosen_solver
         if chosen == "newton":
             return KktNewton("ms_endpoint", self._w, self._p, self._f, self._g, 1,
-                             self.shape.kkt_tol, post=self.end_hessian)
+                             self.shape.kkt_tol)
         if chosen == "sqpmethod":
             return MappedNlp("ms_endpoint_sqp", self._w, self._p, self._f, self._g,
-                             self.shape.kkt_tol, self.shape.max_iter, self.shape.kkt_tol,
-                             post=self.end_hessian)
+                             self.shape.kkt_tol, min(self.shape.max_iter, SQP_MAX_ITER),
+                             self.shape.kkt_tol)
         return None
 
     def prepare(self, count: int) -> None:
@@ -357,7 +365,7 @@ class MsEndpointTranscription:
         if not success and self._met(w, params[None], lam_g, lam_x)[0]:
             success, status = True, status + " (KKT check met)"
         q, u = self.unpack_many(w, params[None])
-        hessian = self._hessians(w, lam_g, params[None])[0]
+        hessian = self._hessians(w, lam_g, params[None], np.array([success]))[0]
         return MsEndpointSolution(
             cost=float(call.out["f"]), status=status, success=success,
             iterations=call.iterations, attempts=1, solve_time_s=call.solve_time_s,
@@ -404,12 +412,9 @@ class MsEndpointTranscription:
                                                 self.lbx, self.ubx)
         except RuntimeError:
             return None
-        nx = self.nx
-        hessians = batch.extra.reshape(k, nx, nx).transpose(0, 2, 1)
-        if self.active_hessian is not None:
-            hessians = self._hessians(batch.x, batch.lam_g, params, hessians)
-        q, u = self.unpack_many(batch.x, params)
         success = np.asarray(batch.success, bool)
+        hessians = self._hessians(batch.x, batch.lam_g, params, success)
+        q, u = self.unpack_many(batch.x, params)
         statuses = [BATCH_STATUS[ok] for ok in success.tolist()]
         return Columns(cls=MsEndpointSolution, length=k, fields={
             "cost": (VALUES, np.asarray(batch.f, float)),
@@ -425,32 +430,53 @@ class MsEndpointTranscription:
             "q": (STACKED, q), "u": (STACKED, u)})
 
     def _hessians(self, w: np.ndarray, lam_g: np.ndarray, params: np.ndarray,
-                  equality: np.ndarray | None = None) -> np.ndarray:
-        """``end_hessian`` of solutions w (k, nw) with multipliers ``lam_g`` (k, ng): that of
-        the equations (``equality``, (k, nx, nx), computed here if None) where no inequality
-        is within :data:`ACTIVE_RTOL` of its bound, else that of the active set."""
+                  solved: np.ndarray) -> np.ndarray:
+        """``end_hessian`` (k, nx, nx) of solutions w (k, nw) with multipliers ``lam_g``
+        (k, ng) where ``solved`` (k,), NaN elsewhere: that of the equations (one mapped call)
+        where no inequality is within :data:`ACTIVE_RTOL` of its bound, else that of the
+        active set; NaN where a KKT matrix is singular."""
         k, nx = len(w), self.nx
-        if equality is None:
-            equality = np.stack([np.asarray(self.end_hessian(w[i], lam_g[i], params[i]))
-                                 for i in range(k)])
-        hessians = equality.copy()
-        if self.active_hessian is None:
+        hessians = np.full((k, nx, nx), np.nan)
+        rows = np.flatnonzero(solved & np.all(np.isfinite(w), axis=1)
+                              & np.all(np.isfinite(lam_g), axis=1))
+        if not len(rows):
             return hessians
-        mask = np.zeros((k, self.ng + self.nw))
+        mask = np.zeros((len(rows), self.ng + self.nw))
         mask[:, :self.n_eq] = 1.0
-        tol = ACTIVE_RTOL
-        if self.n_path:
-            rows = np.asarray(self.path_rows.map(k)(w.T, params.T)).reshape(self.n_path, k).T
-            mask[:, self.n_eq:self.ng] = _near(rows, self.lbg[self.n_eq:], self.ubg[self.n_eq:],
-                                               tol)
-        mask[:, self.ng:] = _near(w, self.lbx, self.ubx, tol)
-        for i in np.flatnonzero(mask[:, self.n_eq:].any(axis=1)
-                                & np.all(np.isfinite(w), axis=1)):
+        if self.active_hessian is not None:
+            if self.n_path:
+                path = np.asarray(self.path_rows.map(len(rows))(w[rows].T, params[rows].T))
+                mask[:, self.n_eq:self.ng] = _near(path.reshape(self.n_path, -1).T,
+                                                   self.lbg[self.n_eq:], self.ubg[self.n_eq:],
+                                                   ACTIVE_RTOL)
+            mask[:, self.ng:] = _near(w[rows], self.lbx, self.ubx, ACTIVE_RTOL)
+        active = mask[:, self.n_eq:].any(axis=1)
+        plain = rows[~active]
+        if len(plain):
             try:
-                hessians[i] = np.asarray(self.active_hessian(w[i], lam_g[i], params[i], mask[i]))
-            except RuntimeError:   # a singular active set: no Hessian
-                hessians[i] = np.full((nx, nx), np.nan)
+                value = np.asarray(self._mapped_hessian(len(plain))(
+                    w[plain].T, lam_g[plain].T, params[plain].T))   # (nx, m nx)
+                hessians[plain] = value.reshape(nx, len(plain), nx).transpose(1, 0, 2)
+            except RuntimeError:   # a singular one among them: each on its own
+                for i in plain.tolist():
+                    hessians[i] = self._one_hessian(self.end_hessian, w[i], lam_g[i],
+                                                    params[i])
+        for i, row in zip(rows[active].tolist(), mask[active], strict=True):
+            hessians[i] = self._one_hessian(self.active_hessian, w[i], lam_g[i], params[i],
+                                            row)
         return hessians
+
+    @lru_cache(maxsize=16)  # noqa: B019 (one transcription per shape per process)
+    def _mapped_hessian(self, k: int) -> ca.Function:
+        """:attr:`end_hessian` mapped over k columns (each as alone)."""
+        return self.end_hessian.map(k, "serial")
+
+    def _one_hessian(self, function: ca.Function | None, *args: np.ndarray) -> np.ndarray:
+        """``function`` at ``args`` as (nx, nx); NaN where its KKT matrix is singular."""
+        try:
+            return np.asarray(function(*args)).reshape(self.nx, self.nx)  # type: ignore[misc]
+        except RuntimeError:
+            return np.full((self.nx, self.nx), np.nan)
 
 
 def _near(values: np.ndarray, lower: np.ndarray, upper: np.ndarray, tol: float) -> np.ndarray:
