@@ -7,6 +7,7 @@ and two Dask workers bit-identical."""
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import itertools
 
 import casadi as ca
@@ -19,6 +20,7 @@ from ocpar.examples.formation_unicycles import make
 from ocpar.formation import FormationOptions, FormationProblem, solve_formation
 from ocpar.models import Unicycle
 from ocpar.ocp import MsEndpointShape, transcription
+from ocpar.ocp.constraints import PathConstraint
 
 AGENTS, RADIUS, DURATION, INTERVALS = 8, 3.0, 6.0, 20
 #: |a| ≤ this binds on the slots (the unbounded optimum's peak is 1.28).
@@ -240,6 +242,30 @@ def test_unicycles_onto_slots_with_an_active_bound_are_the_optimal_assignment(sl
     assert abs(result.total_cost - best) <= 1e-8 * best
     assert np.array_equal(np.asarray(result.phi, int), cols)
     assert np.allclose(result.agent_costs, table[rows, cols], rtol=1e-8, atol=0)
+
+
+def test_every_outer_solver_and_active_path_constraints(circle):
+    """The three outer solvers reach the same formation; a speed limit (a row of x) and a
+    turn-rate limit (a row of u), both active, solved by the batched sqpmethod equal IPOPT's
+    solves, and the returned paths meet them (the verification's own evaluation)."""
+    problem, newton = circle
+    for outer in ("sqp", "offset"):
+        other = solve_formation(problem, options=FormationOptions(outer=outer))
+        assert other.status == "converged", other.message
+        assert abs(other.total_cost - newton.total_cost) <= 1e-11 * newton.total_cost
+    speed = PathConstraint(lambda x: x[3], upper=1.8, name="speed")
+    turn = PathConstraint(lambda u: u[1], lower=-0.2, upper=0.2, name="turn")
+    limited = problem.with_shapes(lambda s: dataclasses.replace(
+        s, path_constraints=(speed, turn)))
+    batched = solve_formation(limited)
+    alone = solve_formation(limited, options=FormationOptions(inner_solver="ipopt"))
+    for result in (batched, alone):
+        assert result.status == "converged" and result.verification.passed
+        assert "path_constraints" in result.verification.checks
+    assert np.isclose(np.max(batched.trajectories[..., 3]), 1.8, rtol=0, atol=1e-9)
+    assert np.isclose(np.max(np.abs(batched.controls[..., 1])), 0.2, rtol=0, atol=1e-9)
+    assert batched.total_cost > newton.total_cost * (1 + 1e-3)
+    assert abs(batched.total_cost - alone.total_cost) <= 1e-10 * alone.total_cost
 
 
 def test_what_ode_agents_do_not_offer_yet_is_refused_in_one_line():

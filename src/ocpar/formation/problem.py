@@ -95,7 +95,7 @@ class FormationProblem:
     entries other than the position (nx − d,), in state order, common or (n, nx − d) per
     agent (default 0), an entry the shape leaves free (``free_end``) ignored (NaN allowed
     there); ``start_velocities``, ``final_velocity`` and ``final_attitude`` are DMOC's and
-    must be left out (a fleet is all DMOC or all ODE agents).
+    stay None (a fleet is all DMOC or all ODE agents).
     ``obstacles``: static :class:`~ocpar.formation.keep_out.obstacles.Ellipsoid` (or ``Sphere``) and
     :class:`~ocpar.formation.keep_out.obstacles.HalfSpace` obstacles in position space that every
     path keeps clear of at all times (:mod:`ocpar.formation.keep_out.obstacles`); the starts must be
@@ -216,9 +216,6 @@ class FormationProblem:
             raise ValueError("final_state: must be finite at every end entry the shape fixes "
                              "(NaN only at its free_end entries)")
         object.__setattr__(self, "final_state", value)
-        for name, empty in (("start_velocities", (n, 0)), ("final_velocity", (0,)),
-                            ("final_attitude", (0,))):
-            object.__setattr__(self, name, np.zeros(empty))
 
     @property
     def end_position_params(self) -> np.ndarray:
@@ -480,6 +477,8 @@ class FormationProblem:
     def _check_holonomic_constraints(self) -> None:
         """Starts and final configurations (at a point of the curve) must satisfy each
         agent's model's c(q) = 0."""
+        if self.ode_agents:   # (c(q) = 0 is a mechanical system's)
+            return
         end = np.concatenate([self.final_positions(np.zeros(self.parameters))[0],
                               self.final_attitude])
         for shape, agents in self.agents_by_shape().items():
@@ -564,7 +563,8 @@ class FormationProblem:
         if isinstance(self.curve, Slots):
             raise ValueError("slots have no parameters to differentiate in")
         along = self.curve.tangents(phi)
-        return np.hstack([along, np.zeros((len(along), len(self.final_attitude)))])
+        return np.hstack([along, np.zeros((len(along),
+                                           self.common_shape.node_size - along.shape[1]))])
 
     def final_velocities(self, agents: np.ndarray) -> np.ndarray:
         """Final velocities (len(agents), nq) of the agents ``agents``."""
