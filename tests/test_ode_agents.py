@@ -17,7 +17,14 @@ from conftest import computed, local_cluster, read_result, run_ocpar
 from scipy.optimize import linear_sum_assignment
 
 from ocpar.examples.formation_unicycles import make
-from ocpar.formation import FormationOptions, FormationProblem, solve_formation
+from ocpar.formation import (
+    Ellipse,
+    EqualArcLength,
+    FormationOptions,
+    FormationProblem,
+    SphereSurface,
+    solve_formation,
+)
 from ocpar.models import Unicycle
 from ocpar.ocp import MsEndpointShape, transcription
 from ocpar.ocp.constraints import PathConstraint
@@ -266,6 +273,41 @@ def test_every_outer_solver_and_active_path_constraints(circle):
     assert np.isclose(np.max(np.abs(batched.controls[..., 1])), 0.2, rtol=0, atol=1e-9)
     assert batched.total_cost > newton.total_cost * (1 + 1e-3)
     assert abs(batched.total_cost - alone.total_cost) <= 1e-10 * alone.total_cost
+
+
+@dataclasses.dataclass(frozen=True)
+class DoubleIntegrator3:
+    """A user's ODE agent in space: x = (position, velocity), u the acceleration."""
+
+    nx: int = 6
+    nu: int = 3
+    position_indices: tuple[int, ...] = (0, 1, 2)
+
+    def rhs(self, x: ca.SX, u: ca.SX) -> ca.SX:
+        return ca.vertcat(x[3:], u)
+
+    def running_cost(self, x: ca.SX, u: ca.SX) -> ca.SX:
+        return ca.sumsqr(u)
+
+    def state_bounds(self) -> tuple[np.ndarray, np.ndarray]:
+        return np.full(6, -np.inf), np.full(6, np.inf)
+
+
+def test_other_targets_and_couplings():
+    """An ellipse under equal arc length (unicycles) and a sphere (a user's ODE model in
+    space, two parameters per agent): converged and verified (target, coupling, shooting)."""
+    problem = make(agents=6)
+    ellipse = dataclasses.replace(problem, curve=Ellipse(semi_axes=(3.0, 2.0)),
+                                  coupling=EqualArcLength())
+    n = 6
+    starts = np.column_stack([np.linspace(-3, 3, n), np.full(n, -5.0), np.zeros((n, 4))])
+    sphere = FormationProblem("space", MsEndpointShape(DoubleIntegrator3(), duration=2.0),
+                              SphereSurface(radius=2.0), starts, final_state=np.zeros(3))
+    for case in (ellipse, sphere):
+        result = solve_formation(case)
+        assert result.status == "converged", result.message
+        assert result.verification.passed and result.outer_iterations >= 1
+        assert result.verification.checks["dynamics"].value <= 1e-12
 
 
 def test_what_ode_agents_do_not_offer_yet_is_refused_in_one_line():
