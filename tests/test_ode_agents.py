@@ -49,8 +49,11 @@ def _rk4(x: ca.MX, u: ca.MX, h: float) -> tuple[ca.MX, ca.MX]:
     return x + h / 6 * (k1 + 2 * k2 + 2 * k3 + k4), h * ca.sumsqr(u)
 
 
-def _agent_nlp(start: np.ndarray | ca.MX, end: ca.MX, limit: float | None
-               ) -> tuple[list[ca.MX], list[np.ndarray], list[np.ndarray], ca.MX, list[ca.MX]]:
+#: An agent's part of an NLP: variables, their lower and upper bounds, cost, rows (= 0).
+Nlp = tuple[list[ca.MX], list[np.ndarray], list[np.ndarray], ca.MX, list[ca.MX]]
+
+
+def _agent_nlp(start: np.ndarray | ca.MX, end: ca.MX, limit: float | None) -> Nlp:
     """One unicycle's variables (x_1..x_N, u), their bounds, its cost and its rows (the
     continuity rows, then x_N's position = ``end`` and speed 0; heading free)."""
     h = DURATION / INTERVALS
@@ -71,6 +74,22 @@ def _agent_nlp(start: np.ndarray | ca.MX, end: ca.MX, limit: float | None
 
 IPOPT = {"print_time": False, "ipopt.print_level": 0, "ipopt.tol": 1e-12,
          "ipopt.bound_relax_factor": 0.0, "ipopt.max_iter": 3000}
+
+
+def _dmoc_point_mass(start: np.ndarray, end: ca.MX, mass: float) -> Nlp:
+    """A planar point mass's DMOC NLP (midpoint rule, L = ½ m |q̇|², F = u), at rest at both
+    ends: variables (q_1..q_{N−1}, u), the discrete Euler–Lagrange equations with the
+    boundary momenta, cost h Σ |u_k|²."""
+    h = DURATION / INTERVALS
+    inner = [ca.MX.sym(f"q{k}", 2) for k in range(1, INTERVALS)]
+    us = [ca.MX.sym(f"u{k}", 2) for k in range(INTERVALS)]
+    q = [ca.DM(start), *inner, end]
+    rows = [-mass * (q[1] - q[0]) / h + h / 2 * us[0]]
+    rows += [mass * (q[k] - q[k - 1]) / h - mass * (q[k + 1] - q[k]) / h
+             + h / 2 * (us[k - 1] + us[k]) for k in range(1, INTERVALS)]
+    rows.append(mass * (q[-1] - q[-2]) / h + h / 2 * us[-1])
+    free = [np.full(2, np.inf)] * (2 * INTERVALS - 1)
+    return inner + us, [-b for b in free], free, h * ca.sumsqr(ca.vertcat(*us)), rows
 
 
 def _solve(variables: list[ca.MX], lower: list, upper: list, cost: ca.MX, rows: list,
@@ -99,15 +118,20 @@ def monolithic_circle(problem: FormationProblem, result) -> tuple[float, np.ndar
     phi = theta + 2 * np.pi * rank / n
     first = float(np.asarray(result.phi)[np.argmin(rank)])
     guess.append([first])   # started at the answer's rotation, every path from its own
-    for i in range(n):
+    for i, shape in enumerate(problem.shapes):
         end = RADIUS * ca.vertcat(ca.cos(phi[i]), ca.sin(phi[i]))
-        v, lo, hi, c, r = _agent_nlp(problem.starts[i], end, None)
+        if isinstance(shape, MsEndpointShape):
+            v, lo, hi, c, r = _agent_nlp(problem.starts[i], end, None)
+            guess.append(_guess(result.trajectories[i], result.controls[i]))
+        else:   # a point mass (a mixed fleet): its path is the first two entries
+            v, lo, hi, c, r = _dmoc_point_mass(problem.starts[i, :2], end, shape.model.mass)
+            guess.append(np.concatenate([result.trajectories[i, 1:-1, :2].ravel(),
+                                         result.controls[i].ravel()]))
         variables += v
         lower += lo
         upper += hi
         cost += c
         rows += r
-        guess.append(_guess(result.trajectories[i], result.controls[i]))
     value, x = _solve(variables, lower, upper, cost, rows, np.concatenate(guess))
     return value, x[0] + 2 * np.pi * rank / n
 
@@ -119,6 +143,13 @@ def monolithic_circle(problem: FormationProblem, result) -> tuple[float, np.ndar
 @pytest.fixture(scope="module")
 def circle():
     problem = make(agents=AGENTS, radius=RADIUS, duration=DURATION, intervals=INTERVALS)
+    return problem, solve_formation(problem)
+
+
+@pytest.fixture(scope="module")
+def mixed():
+    problem = make(agents=AGENTS, radius=RADIUS, duration=DURATION, intervals=INTERVALS,
+                   mixed=True)
     return problem, solve_formation(problem)
 
 
@@ -203,6 +234,23 @@ def test_unicycles_onto_a_circle_equal_the_monolithic_nlp(circle):
     ends = result.trajectories[:, -1]
     assert np.allclose(np.hypot(ends[:, 0], ends[:, 1]), RADIUS, rtol=0, atol=1e-12)
     assert np.max(np.abs(ends[:, 3])) <= 1e-12
+
+
+def test_a_fleet_of_point_masses_and_unicycles_equals_the_monolithic_nlp(mixed):
+    """Every second agent a DMOC point mass: each kind solved by its own transcription,
+    batched kind by kind; the formation equals one NLP of both (written here)."""
+    problem, result = mixed
+    assert problem.mixed_kinds and result.status == "converged", result.message
+    assert result.verification.passed and result.failed_solves == 0
+    checks = result.verification.checks
+    assert checks["momentum"].value <= 1e-12 and checks["dynamics"].value <= 1e-12
+    # the point masses' paths are padded: two entries, then NaN
+    assert result.trajectories.shape == (AGENTS, INTERVALS + 1, 4)
+    assert np.all(np.isnan(result.trajectories[::2, :, 2:]))
+    assert np.all(np.isfinite(result.trajectories[1::2]))
+    value, phi = monolithic_circle(problem, result)
+    assert abs(result.total_cost - value) <= 1e-8 * value
+    assert np.max(np.abs(np.angle(np.exp(1j * (np.asarray(result.phi) - phi))))) <= 1e-8
 
 
 def test_the_verification_re_integrates_the_returned_controls(circle):
@@ -348,6 +396,7 @@ def backend_runs(tmp_path_factory):
     cluster, started once)."""
     work = tmp_path_factory.mktemp("unicycles")
     (work / "circle.toml").write_text(CONFIG)
+    (work / "mixed.toml").write_text(CONFIG + "mixed = true\n")
     (work / "slots.toml").write_text(CONFIG + f"slots = 8\nacceleration_limit = "
                                      f"{ACCELERATION_LIMIT}\n")
     results: dict[tuple[str, str], dict] = {}
@@ -383,12 +432,14 @@ def _same_as_serial(runs, case: str, backend: str, reference) -> None:
     assert serial["verification"]["checks"]["dynamics"]["worst"] <= 1e-12
 
 
-@pytest.mark.parametrize("case", ["circle", "slots"])
-def test_mpirun_gives_the_serial_result_bitwise(backend_runs, case, circle, slots):
-    _same_as_serial(backend_runs, case, "mpi", (circle if case == "circle" else slots)[1])
+@pytest.mark.parametrize("case", ["circle", "slots", "mixed"])
+def test_mpirun_gives_the_serial_result_bitwise(backend_runs, case, circle, slots, mixed):
+    reference = {"circle": circle, "slots": slots, "mixed": mixed}[case][1]
+    _same_as_serial(backend_runs, case, "mpi", reference)
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("case", ["circle", "slots"])
-def test_dask_gives_the_serial_result_bitwise(backend_runs, case, circle, slots):
-    _same_as_serial(backend_runs, case, "dask", (circle if case == "circle" else slots)[1])
+@pytest.mark.parametrize("case", ["circle", "slots", "mixed"])
+def test_dask_gives_the_serial_result_bitwise(backend_runs, case, circle, slots, mixed):
+    reference = {"circle": circle, "slots": slots, "mixed": mixed}[case][1]
+    _same_as_serial(backend_runs, case, "dask", reference)

@@ -7,19 +7,23 @@ The robots start at rest on the line y = −(radius + 2), spaced 1 apart and shi
 RK4 multiple-shooting intervals) on the circle of ``radius`` about the origin at speed 0,
 their heading free. With ``slots`` the targets are ``slots`` points evenly spaced on the circle
 (only the assignment is free). ``acceleration_limit``: |a| ≤ that bound on every interval.
+With ``mixed``, every second agent is a planar point mass of mass 2 instead (a DMOC agent,
+N and T the same, at rest at both ends, under |u_j| ≤ ``acceleration_limit`` · 2 where
+given): a fleet of DMOC and ODE agents.
 """
 
 import numpy as np
 
-from ocpar.formation import Circle, FormationProblem, MsEndpointShape, Slots
-from ocpar.models import Unicycle
+from ocpar.formation import Circle, DmocShape, FormationProblem, MsEndpointShape, Slots
+from ocpar.models import PointMass, Unicycle
 
 
 def make(agents: int = 6, radius: float = 3.0, duration: float = 6.0, intervals: int = 20,
-         offset: float = 0.4, slots: int = 0, acceleration_limit: float = 0.0
-         ) -> FormationProblem:
+         offset: float = 0.4, slots: int = 0, acceleration_limit: float = 0.0,
+         mixed: bool = False) -> FormationProblem:
     """``agents`` unicycles onto the circle of ``radius`` (or onto ``slots`` > 0 points on it)
-    in ``duration``; ``acceleration_limit`` > 0 bounds |a| (0: unbounded)."""
+    in ``duration``; ``acceleration_limit`` > 0 bounds |a| (0: unbounded); ``mixed``: every
+    second agent a point mass."""
     x = np.arange(agents) - (agents - 1) / 2 + offset
     starts = np.column_stack([x, np.full(agents, -(radius + 2.0)),
                               np.full(agents, np.pi / 2), np.zeros(agents)])
@@ -27,10 +31,17 @@ def make(agents: int = 6, radius: float = 3.0, duration: float = 6.0, intervals:
               if acceleration_limit > 0 else None)
     shape = MsEndpointShape(Unicycle(), intervals=intervals, duration=duration,
                             free_end=(2,), control_bounds=bounds)
+    fleet: MsEndpointShape | tuple[MsEndpointShape | DmocShape, ...] = shape
+    if mixed:
+        mass = DmocShape(PointMass(dim=2, mass=2.0), intervals=intervals, duration=duration,
+                         control_bounds=None if bounds is None
+                         else ((-2 * acceleration_limit, 2 * acceleration_limit),) * 2)
+        fleet = tuple(mass if i % 2 == 0 else shape for i in range(agents))
+        starts[::2, 2:] = np.nan   # a point mass's start is its position
     if slots:
         angles = 2 * np.pi * np.arange(slots) / slots
         target = Slots(radius * np.column_stack([np.cos(angles), np.sin(angles)]))
     else:
         target = Circle(radius=radius)
-    return FormationProblem(name="unicycles", shape=shape, curve=target, starts=starts,
+    return FormationProblem(name="unicycles", shape=fleet, curve=target, starts=starts,
                             final_state=np.array([np.nan, 0.0]))

@@ -104,7 +104,7 @@ def finish_agents(tasks: Columns, states: Columns) -> Columns:
     ``states``: their :class:`~ocpar.ocp.endpoint_agents.AgentState` s), its part of the
     array file written where ``directory`` says."""
     k = len(tasks)
-    q, u = np.asarray(states.column("q"), float), np.asarray(states.column("u"), float)
+    q, u = padded_paths(states.column("q")), np.asarray(states.column("u"), float)
     params = np.asarray(states.column("params"), float)
     shape_kind, shape_data = tasks.fields["shape"]
     shapes = [shape_data] * k if shape_kind == SHARED else list(shape_data)
@@ -114,7 +114,13 @@ def finish_agents(tasks: Columns, states: Columns) -> Columns:
                                            "model_names", "cost_groups", "directory",
                                            "width", "units"))
     checks = agent_checks(shapes, q, u, params, dim, first)
-    ends = shapes[0].boundary_size + shapes[0].end_position_entries(dim)
+    of_shape: dict[int, np.ndarray] = {}   # once per distinct shape (a fleet shares a few)
+    ends = np.array([of_shape.setdefault(id(shape), shape.boundary_size
+                                         + shape.end_position_entries(dim))
+                     for shape in (shapes if shape_kind != SHARED else shapes[:1])])
+    entries = ends - np.array([shape.boundary_size for shape in shapes[:len(ends)]])[:, None]
+    if shape_kind == SHARED:
+        ends, entries = np.tile(ends, (k, 1)), np.tile(entries, (k, 1))
     cost = np.asarray(states.column("cost"), float)
     squares = (np.column_stack([np.sum(u[..., a:b] ** 2, axis=(1, 2))
                                 for a, b in cost_groups.values()])
@@ -124,7 +130,7 @@ def finish_agents(tasks: Columns, states: Columns) -> Columns:
         start = time.perf_counter()
         write_part(Path(directory), first, width, AgentRecords(
             first=first, q=q, u=u, cost=cost, phi=np.asarray(tasks.column("phi"), float),
-            target=params[:, ends],
+            target=np.take_along_axis(params, ends, axis=1),
             model=np.array([model_names.index(type(s.model).__name__) for s in shapes],
                            np.int16),
             mass=np.array([float(getattr(s.model, "mass", math.nan)) for s in shapes]),
@@ -142,8 +148,7 @@ def finish_agents(tasks: Columns, states: Columns) -> Columns:
         "path": _paths(checks, first, k),
         "violation": (STACKED, checks.violation),
         "positions": (STACKED, np.ascontiguousarray(q[..., list(positions)])),
-        "end": (STACKED, np.ascontiguousarray(
-            q[:, -1, shapes[0].end_position_entries(dim)])),
+        "end": (STACKED, np.take_along_axis(q[:, -1], entries, axis=1)),
         "cost": (STACKED, cost),
         "cost_parts": (STACKED, squares),
         "written": (STACKED, np.full(k, written)),
@@ -197,10 +202,10 @@ def writes_parts(problem: FormationProblem, backend: Backend, output: Path | Non
     """Whether a run writes its agents' variables in parts, each worker its own: with an
     ``output`` directory, at least :data:`PARTS_MIN_AGENTS` agents, more than one worker,
     workers that share the directory's file system
-    (:attr:`~ocpar.bsp.Backend.shares_files`) and no obstacles (their sides are the
-    coordinator's)."""
+    (:attr:`~ocpar.bsp.Backend.shares_files`), no obstacles (their sides are the
+    coordinator's) and agents of one kind (DMOC or ODE: one size of path)."""
     return (output is not None and problem.agents >= PARTS_MIN_AGENTS and backend.workers > 1
-            and backend.shares_files and not problem.obstacles)
+            and backend.shares_files and not problem.obstacles and not problem.mixed_kinds)
 
 
 @dataclass
@@ -247,7 +252,8 @@ def finish(problem: FormationProblem, agents: ResidentSet, phi: np.ndarray,
             type(s.model).__name__ for s in problem.agents_by_shape()))),
         "cost_groups": (SHARED, groups), "directory": (SHARED, directory),
         "width": (SHARED, len(str(n - 1))),
-        "units": (SHARED, Units.of(shape.model, shape.node_size, shape.model.nu,
+        "units": (SHARED, Units.of(problem.widest_shape.model, problem.node_width,
+                                   shape.model.nu,
                                    problem.position_indices))})
     rows = agents.apply(finish_agents, tasks)
     paths = rows.column("path")
@@ -270,11 +276,26 @@ def finish(problem: FormationProblem, agents: ResidentSet, phi: np.ndarray,
         checks=checks, positions=np.asarray(rows.column("positions")),
         ends=np.asarray(rows.column("end")), costs=np.asarray(rows.column("cost")),
         squares=np.asarray(rows.column("cost_parts")), parts=parts,
-        q=None if written else np.asarray(rows.column("q")),
+        q=None if written else padded_paths(rows.column("q"), problem.node_width),
         u=None if written else np.asarray(rows.column("u")),
         status=None if written else list(rows.column("status")),
         iterations=None if written else np.asarray(rows.column("iterations")),
         written_s=float(np.max(rows.column("written"))))
+
+
+def padded_paths(paths: list[np.ndarray] | np.ndarray, width: int | None = None
+                 ) -> np.ndarray:
+    """Node paths (k, N+1, width) from ``paths`` (a column of them): as they are where they
+    share their size, else each padded with NaN to ``width`` (default: the widest; a fleet
+    of DMOC and ODE agents)."""
+    if isinstance(paths, np.ndarray) and (width is None or paths.shape[-1] == width):
+        return np.asarray(paths, float)
+    rows = [np.asarray(p, float) for p in paths]
+    width = max(p.shape[-1] for p in rows) if width is None else width
+    out = np.full((len(rows), rows[0].shape[0], width), np.nan)
+    for out_row, row in zip(out, rows, strict=True):
+        out_row[:, :row.shape[-1]] = row
+    return out
 
 
 def cost_groups(problem: FormationProblem) -> dict[str, tuple[int, int]]:

@@ -59,6 +59,18 @@ def _one(shape: object) -> bool:
     return not isinstance(shape, tuple | list)
 
 
+def _array_allowing_nan(name: str, value: object, shape: tuple[int, ...]) -> np.ndarray:
+    """``value`` as a float array of ``shape`` (NaN allowed), or ValueError naming the
+    field."""
+    try:
+        array = np.array(value, float)
+    except (TypeError, ValueError):
+        raise ValueError(f"{name}: must be an array of numbers with shape {shape}") from None
+    if array.shape != shape:
+        raise ValueError(f"{name}: must have shape {shape}, got {array.shape}")
+    return array
+
+
 def _array(name: str, value: object, shape: tuple[int, ...]) -> np.ndarray:
     """``value`` as a finite float array of ``shape``, or ValueError naming the field."""
     try:
@@ -124,7 +136,7 @@ class FormationProblem:
                              f"ParametricSurface) or Slots, got {type(self.curve).__name__}")
         if isinstance(self.curve, Curve):
             self.curve.check()  # built-in curves checked themselves; a user's subclass may not
-        nq, d = self.common_shape.node_size, self.curve.dim
+        nq, d = self.node_width, self.curve.dim
         if d > nq:
             raise ValueError(f"curve: lies in {d}-D but the model's configuration has {nq} "
                              "entries")
@@ -145,7 +157,10 @@ class FormationProblem:
         if isinstance(self.curve, Curve | Surface):
             self.coupling.check(self.curve, n * self.parameters)
         fields = {"starts": (self.starts, (n, nq))}
-        if self.ode_agents:
+        if self.mixed_kinds:
+            self._check_mixed_boundary(n, d)
+            fields = {}
+        elif self.ode_agents:
             self._check_ode_boundary(n, nq, d)
         else:
             if self.final_state is not None:
@@ -185,12 +200,71 @@ class FormationProblem:
 
     @property
     def ode_agents(self) -> bool:
-        """Whether the agents are ODE agents (:class:`~ocpar.ocp.MsEndpointShape`)."""
-        return isinstance(self.common_shape, MsEndpointShape)
+        """Whether any agent is an ODE agent (:class:`~ocpar.ocp.MsEndpointShape`)."""
+        return bool(self.ode_mask.any())
+
+    @property
+    def ode_mask(self) -> np.ndarray:
+        """(n,) whether each agent is an ODE agent."""
+        shapes = self.shape if isinstance(self.shape, tuple) else (self.shape,)
+        ode = np.array([isinstance(s, MsEndpointShape) for s in shapes])
+        return ode if isinstance(self.shape, tuple) else np.full(len(self.starts), ode[0])
+
+    @property
+    def mixed_kinds(self) -> bool:
+        """Whether the fleet mixes DMOC and ODE agents."""
+        shapes = self.shape if isinstance(self.shape, tuple) else (self.shape,)
+        return len({type(s) for s in shapes}) > 1
+
+    @property
+    def node_width(self) -> int:
+        """Entries of a node of the fleet's paths: the largest agent's (a mixed fleet's
+        narrower paths are padded with NaN in the fleet-wide arrays)."""
+        shapes = self.shape if isinstance(self.shape, tuple) else (self.shape,)
+        return max(s.node_size for s in set(shapes))
+
+    @property
+    def widest_shape(self) -> DmocShape | MsEndpointShape:
+        """The first shape of :attr:`node_width` entries (its model names the entries)."""
+        shapes = self.shape if isinstance(self.shape, tuple) else (self.shape,)
+        return next(s for s in shapes if s.node_size == self.node_width)
+
+    def _check_mixed_boundary(self, n: int, d: int) -> None:
+        """A fleet of DMOC and ODE agents: its DMOC agents at rest at both ends, all of their
+        configuration the position (nq = d); ``starts`` (n, W) each row its agent's start
+        (q_0 or x_0) in its first entries, the rest ignored (NaN); ``final_state`` the ODE
+        agents' (:meth:`_check_ode_boundary`); every agent's boundary data of one length."""
+        for name in ("start_velocities", "final_velocity", "final_attitude"):
+            if getattr(self, name) is not None:
+                raise ValueError(f"{name}: a fleet of DMOC and ODE agents takes its DMOC agents "
+                                 f"at rest with no attitude entries; leave {name} out")
+        sizes = {}
+        for shape in set(self.shapes):
+            if isinstance(shape, DmocShape) and shape.node_size != d:
+                raise ValueError(f"shape: in a fleet of DMOC and ODE agents the DMOC agents' "
+                                 f"configuration is their position ({d} entries), got "
+                                 f"{shape.node_size}")
+            sizes.setdefault(type(shape), set()).add(shape.node_size)
+            sizes.setdefault("params", set()).add(shape.n_params)
+        if any(len(v) > 1 for v in sizes.values()):
+            raise ValueError("shape: a fleet of DMOC and ODE agents needs one state size per "
+                             "kind and boundary data of one length (e.g. planar point masses, "
+                             "p = (q_0, q̇_0, q_N, q̇_N), and unicycles, p = (x_0, x̄_N))")
+        width = self.node_width
+        starts = _array_allowing_nan("starts", self.starts, (n, width))
+        for shape, agents in self.agents_by_shape().items():
+            if not np.all(np.isfinite(starts[agents, :shape.node_size])):
+                raise ValueError(f"starts: agent {agents[0]}'s first {shape.node_size} entries "
+                                 f"(its start) must be finite")
+            starts[agents, shape.node_size:] = np.nan
+        object.__setattr__(self, "starts", starts)
+        self._check_ode_boundary(n, next(s for s in self.shapes
+                                         if isinstance(s, MsEndpointShape)).node_size, d)
 
     def _check_ode_boundary(self, n: int, nx: int, d: int) -> None:
         """ODE agents' boundary data: no DMOC fields; ``final_state`` (nx − d,) or
-        (n, nx − d), finite except at the shape's free end entries (stored with 0 there)."""
+        (n, nx − d), finite except at the shape's free end entries (stored with 0 there;
+        in a mixed fleet a DMOC agent's row is not read, 0 too)."""
         for name in ("start_velocities", "final_velocity", "final_attitude"):
             if getattr(self, name) is not None:
                 raise ValueError(f"{name}: DMOC agents' field; an ODE agent's start is its "
@@ -207,6 +281,10 @@ class FormationProblem:
                              f"{value.shape}")
         rest = [i for i in range(nx) if i not in self.position_indices]
         for shape, agents in self.agents_by_shape().items():
+            if not isinstance(shape, MsEndpointShape):
+                if value.ndim == 2:
+                    value[agents] = 0.0   # a DMOC agent's row: not read
+                continue
             free = np.flatnonzero(np.isin(rest, shape.free_end))
             if value.ndim == 2:
                 value[np.ix_(agents, free)] = 0.0
@@ -227,7 +305,7 @@ class FormationProblem:
     def end_states(self, agents: np.ndarray) -> np.ndarray:
         """ODE agents' end states (len(agents), nx) without their positions (0 there, and at
         free entries): ``final_state`` in the non-position entries."""
-        nx = self.common_shape.node_size
+        nx = next(s for s in self.shapes if isinstance(s, MsEndpointShape)).node_size
         rest = [i for i in range(nx) if i not in self.position_indices]
         ends = np.zeros((len(agents), nx))
         value = self.final_state
@@ -247,8 +325,9 @@ class FormationProblem:
             reach = rest_to_rest_reach(shape)
             if reach is None:
                 continue
-            rest = agents[~np.any(self.start_velocities[agents], axis=1)
-                          & ~np.any(self.final_velocities(agents), axis=1)]
+            rest = agents if self.mixed_kinds else agents[   # (a mixed fleet's: at rest)
+                ~np.any(self.start_velocities[agents], axis=1)
+                & ~np.any(self.final_velocities(agents), axis=1)]
             if len(rest):
                 sets.append((reach, rest))
         object.__setattr__(self, "_reach_sets", sets)   # once per problem (a frozen one)
@@ -317,8 +396,11 @@ class FormationProblem:
         must meet them); one evaluation per distinct shape. ODE agents' constraints are of
         ``x`` (their start state) and ``u``."""
         for shape, agents in self.agents_by_shape().items():
-            point = ({"x": self.starts[agents]} if self.ode_agents else
-                     {"q": self.starts[agents], "v": self.start_velocities[agents]}) | {
+            size = shape.node_size
+            point = ({"x": self.starts[agents, :size]} if isinstance(shape, MsEndpointShape)
+                     else {"q": self.starts[agents, :size],
+                           "v": (np.zeros((len(agents), size)) if self.mixed_kinds
+                                 else self.start_velocities[agents])}) | {
                 "u": np.zeros((len(agents), shape.model.nu))}
             where = [f"agent {i}'s start" for i in agents]
             prefix = f"shape{'' if _one(self.shape) else f'[{agents[0]}]'}"
@@ -413,22 +495,17 @@ class FormationProblem:
             if not isinstance(shape, DmocShape | MsEndpointShape):
                 raise ValueError(f"{label}: must be a DmocShape or an MsEndpointShape, got "
                                  f"{type(shape).__name__}")
-            if type(shape) is not type(first):
-                raise ValueError(f"{label}: a {type(shape).__name__} among "
-                                 f"{type(first).__name__}s; a fleet mixing DMOC and ODE "
-                                 f"agents is not supported yet")
             if isinstance(shape, DmocShape) and not isinstance(shape.model, MechanicalSystem):
                 raise ValueError(f"{label}: its model is not a MechanicalSystem (needs nq, nu, "
                                  "lagrangian, generalized_force)")
             for what, value in (("intervals", lambda s: s.intervals),
                                 ("duration", lambda s: s.duration),
-                                ("model.nq", lambda s: s.node_size),
                                 ("model.nu", lambda s: s.model.nu),
                                 ("model.position_indices",
                                  lambda s: getattr(s.model, "position_indices", None))):
                 if value(shape) != value(first):
                     raise ValueError(f"{label}: {what} {value(shape)} differs from shape[0]'s "
-                                     f"{value(first)}; a fleet shares N, T, nq, nu and the "
+                                     f"{value(first)}; a fleet shares N, T, nu and the "
                                      f"position entries")
             if isinstance(shape, DmocShape):
                 self._check_model(shape.model, label)
@@ -581,6 +658,21 @@ class FormationProblem:
         ``phi[k]`` (rad): DMOC's (q_0, q̇_0, q_N, q̇_N), an ODE agent's (x_0, x̄_N)."""
         agents = np.asarray(agents, dtype=np.intp)
         m = len(agents)
+        if self.mixed_kinds:   # DMOC agents at rest, all configuration the position
+            ode = self.ode_mask[agents]
+            rows = np.empty((m, self.common_shape.n_params))
+            targets = self.final_positions(phi)
+            if ode.any():
+                ends = self.end_states(agents[ode])
+                ends[:, list(self.position_indices)] = targets[ode]
+                nx = ends.shape[1]
+                rows[ode] = np.hstack([self.starts[agents[ode], :nx], ends])
+            if (~ode).any():
+                d = self.curve.dim
+                zero = np.zeros(((~ode).sum(), d))
+                rows[~ode] = np.hstack([self.starts[agents[~ode], :d], zero, targets[~ode],
+                                        zero])
+            return rows
         if self.ode_agents:
             ends = self.end_states(agents)
             ends[:, list(self.position_indices)] = self.final_positions(phi)

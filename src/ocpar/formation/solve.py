@@ -23,7 +23,7 @@ from ocpar.formation.couplings.critical_sets import (
     best_isolated_formation,
 )
 from ocpar.formation.feasibility import NoFeasibleFormation, feasible_start
-from ocpar.formation.finish import cost_groups, finish, writes_parts
+from ocpar.formation.finish import cost_groups, finish, padded_paths, writes_parts
 from ocpar.formation.hierarchical import (
     InnerSolveFailed,
     OuterObjective,
@@ -491,10 +491,10 @@ def solve_formation(
         return FormationResult(
             **common, status="failed", message=f"ordering: {exc}", total_cost=math.nan,
             phi=np.full(problem.parameter_shape, np.nan), agent_costs=np.full(n, np.nan),
-            trajectories=np.full((n, shape.intervals + 1, shape.node_size), np.nan),
+            trajectories=np.full((n, shape.intervals + 1, problem.node_width), np.nan),
             outer_iterations=-1, inner_solves=0, failed_solves=0,
             wall_time_s=time.perf_counter() - start,
-            separation=problem.closest_approach(np.full((n, 2, shape.node_size), np.nan)),
+            separation=problem.closest_approach(np.full((n, 2, problem.node_width), np.nan)),
             trace=backend.traces[first_trace:],
             fleet=Fleet.of(problem, np.full(problem.parameter_shape, np.nan)))
     discrete = discrete_choice(problem, choice, phi0)
@@ -574,7 +574,8 @@ def solve_formation(
         sols = objective.last_solutions
         objective.close()  # the solutions are gathered: the workers need not keep them
         costs = np.asarray(sols.column("cost"), dtype=float)
-        trajectories, controls = np.asarray(sols.column("q")), np.asarray(sols.column("u"))
+        trajectories = padded_paths(sols.column("q"), problem.node_width)
+        controls = np.asarray(sols.column("u"))
         statuses, solver_iterations = sols.column("status"), np.asarray(
             sols.column("iterations"))
         if distance is not None and status != "failed":

@@ -371,7 +371,8 @@ class AgentChecks:
 def agent_checks(shapes: list[Shape], q: np.ndarray, u: np.ndarray, params: np.ndarray,
                  positions: int, first: int = 0) -> AgentChecks:
     """The :class:`AgentChecks` of m agents with indices ``first`` … ``first`` + m − 1: each
-    one's shape (``shapes``, m), node paths ``q`` (m, N+1, nq), controls ``u`` (m, N, nu),
+    one's shape (``shapes``, m), node paths ``q`` (m, N+1, nq; a fleet of DMOC and ODE
+    agents: padded to its widest, each agent's first entries read), controls ``u`` (m, N, nu),
     its boundary data ``params`` (m, n_params: DMOC's (q_0, q̇_0, q_N, q̇_N), an ODE agent's
     (x_0, x̄_N)), ``positions`` d. Each agent's numbers are its own: any block of agents
     gives the rows of the whole fleet's."""
@@ -386,7 +387,7 @@ def agent_checks(shapes: list[Shape], q: np.ndarray, u: np.ndarray, params: np.n
     for shape, members in groups.items():
         rows = np.array(members)
         agents[shape] = rows + first
-        qs, us, ps = q[rows], u[rows], params[rows]
+        qs, us, ps = q[rows][..., :shape.node_size], u[rows], params[rows]
         own = (_ode_checks if isinstance(shape, MsEndpointShape) else _dmoc_checks)(
             shape, qs, us, ps, positions)
         start[rows], momentum[rows], dynamics[rows] = own.start, own.momentum, own.dynamics

@@ -86,9 +86,17 @@ def solve_agents(tasks: Columns, states: Columns | None) -> tuple[Columns, Colum
     each falling back to its previous solution (``states``: Columns of :class:`AgentState`;
     None on the first task: no fallback). Returns their :class:`AgentOutcome` and their new
     :class:`AgentState` (the new states)."""
+    kinds = _kinds(tasks)
+    if kinds is not None:   # DMOC and ODE agents: each kind on its own, joined in order
+        parts = [solve_agents(tasks.take(rows), None if states is None else states.take(rows))
+                 for rows in kinds]
+        order = np.empty(len(tasks), np.intp)
+        order[np.concatenate(kinds)] = np.arange(len(tasks))
+        return tuple(Columns.concat([part[j] for part in parts]).take(order)  # type: ignore
+                     for j in range(2))
     k = len(tasks)
     d = int(tasks.column("positions")[0])  # the curve's dimension: every agent's
-    shape = _first_shape(tasks)   # a fleet's shapes share their layout
+    shape = _first_shape(tasks)   # a fleet's shapes of one kind share their layout
     entries = shape.end_position_entries(d)
     ends = shape.boundary_size + entries   # the end position's entries of p
     fallback: tuple[str, object] = (SHARED, None)
@@ -120,6 +128,22 @@ def solve_agents(tasks: Columns, states: Columns | None) -> tuple[Columns, Colum
     states = Columns(cls=AgentState, length=k,
                      fields=solutions.fields | {"params": (STACKED, params)})
     return outcome, states
+
+
+def _kinds(tasks: Columns) -> list[np.ndarray] | None:
+    """The rows of each kind of shape (class) among ``tasks``, in order of first use; None
+    where there is one kind (the states of a fleet mixing them have paths of different
+    sizes: Columns keep them as a list)."""
+    kind, shapes = tasks.fields["shape"]
+    if kind == SHARED:
+        return None
+    classes = [type(shape) for shape in shapes]
+    if len(set(classes)) == 1:
+        return None
+    groups: dict[type, list[int]] = {}
+    for row, cls in enumerate(classes):
+        groups.setdefault(cls, []).append(row)
+    return [np.asarray(rows) for rows in groups.values()]
 
 
 def _first_shape(tasks: Columns) -> Shape:
