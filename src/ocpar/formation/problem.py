@@ -107,7 +107,10 @@ class FormationProblem:
     entries other than the position (nx − d,), in state order, common or (n, nx − d) per
     agent (default 0), an entry the shape leaves free (``free_end``) ignored (NaN allowed
     there); ``start_velocities``, ``final_velocity`` and ``final_attitude`` are DMOC's and
-    stay None (a fleet is all DMOC or all ODE agents).
+    stay None. A fleet of both kinds (one shape per agent): its DMOC agents at rest at both
+    ends with all of their configuration the position, ``starts`` (n, W) each agent's start
+    in its first entries (W the widest agent's; NaN beyond), boundary data of one length
+    (:meth:`_check_mixed_boundary`).
     ``obstacles``: static :class:`~ocpar.formation.keep_out.obstacles.Ellipsoid` (or ``Sphere``) and
     :class:`~ocpar.formation.keep_out.obstacles.HalfSpace` obstacles in position space that every
     path keeps clear of at all times (:mod:`ocpar.formation.keep_out.obstacles`); the starts must be
