@@ -322,9 +322,6 @@ def _check_ode_applicable(options: FormationOptions) -> None:
                          "(MsEndpointShape) are solved hierarchically only")
     if options.min_separation is not None:
         raise ValueError("min_separation: not yet for ODE agents (MsEndpointShape)")
-    if options.ordering == "optimal":
-        raise ValueError("ordering: 'optimal' is not yet for ODE agents (MsEndpointShape); "
-                         "use ordering 'keep'")
 
 
 def obstacle_check(problem: FormationProblem, positions: np.ndarray, status: str,
