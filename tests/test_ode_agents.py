@@ -18,6 +18,7 @@ from scipy.optimize import linear_sum_assignment
 
 from ocpar.examples.formation_unicycles import make
 from ocpar.formation import (
+    Circle,
     Ellipse,
     EqualArcLength,
     FormationOptions,
@@ -28,6 +29,7 @@ from ocpar.formation import (
 from ocpar.models import Unicycle
 from ocpar.ocp import MsEndpointShape, transcription
 from ocpar.ocp.constraints import PathConstraint
+from ocpar.ocp.reach import end_cost_convexity
 
 AGENTS, RADIUS, DURATION, INTERVALS = 8, 3.0, 6.0, 20
 #: |a| ≤ this binds on the slots (the unbounded optimum's peak is 1.28).
@@ -324,21 +326,32 @@ def test_every_outer_solver_and_active_path_constraints(circle):
 
 
 @dataclasses.dataclass(frozen=True)
-class DoubleIntegrator3:
-    """A user's ODE agent in space: x = (position, velocity), u the acceleration."""
+class DoubleIntegrator:
+    """A user's ODE agent: x = (position, velocity) in ``dim`` dimensions, u the
+    acceleration, cost |u|²."""
 
-    nx: int = 6
-    nu: int = 3
-    position_indices: tuple[int, ...] = (0, 1, 2)
+    dim: int = 3
+
+    @property
+    def nx(self) -> int:
+        return 2 * self.dim
+
+    @property
+    def nu(self) -> int:
+        return self.dim
+
+    @property
+    def position_indices(self) -> tuple[int, ...]:
+        return tuple(range(self.dim))
 
     def rhs(self, x: ca.SX, u: ca.SX) -> ca.SX:
-        return ca.vertcat(x[3:], u)
+        return ca.vertcat(x[self.dim:], u)
 
     def running_cost(self, x: ca.SX, u: ca.SX) -> ca.SX:
         return ca.sumsqr(u)
 
     def state_bounds(self) -> tuple[np.ndarray, np.ndarray]:
-        return np.full(6, -np.inf), np.full(6, np.inf)
+        return np.full(self.nx, -np.inf), np.full(self.nx, np.inf)
 
 
 def test_other_targets_and_couplings():
@@ -349,7 +362,7 @@ def test_other_targets_and_couplings():
                                   coupling=EqualArcLength())
     n = 6
     starts = np.column_stack([np.linspace(-3, 3, n), np.full(n, -5.0), np.zeros((n, 4))])
-    sphere = FormationProblem("space", MsEndpointShape(DoubleIntegrator3(), duration=2.0),
+    sphere = FormationProblem("space", MsEndpointShape(DoubleIntegrator(), duration=2.0),
                               SphereSurface(radius=2.0), starts, final_state=np.zeros(3))
     for case in (ellipse, sphere):
         result = solve_formation(case)
@@ -367,6 +380,22 @@ def test_the_optimal_ordering_of_unicycles_claims_no_bound():
     assert best.status == "converged" and best.verification.passed
     assert "no bound claimed" in best.message and best.ordering["bound"] is None
     assert best.total_cost < kept.total_cost * (1 - 1e-3)
+
+
+def test_linear_quadratic_ode_agents_get_a_proven_optimal_ordering():
+    """Linear dynamics, a quadratic cost, no inequalities: J* is a convex quadratic of the
+    end point (end_cost_convexity), so the ordering's search proves its global optimum."""
+    assert end_cost_convexity(MsEndpointShape(DoubleIntegrator(2))) == "quadratic"
+    assert end_cost_convexity(MsEndpointShape(Unicycle())) is None
+    n = 8
+    starts = np.random.default_rng(3).uniform(-4, 4, (n, 2)) + np.array([0.0, -6.0])
+    problem = FormationProblem("di", MsEndpointShape(DoubleIntegrator(2), duration=2.0),
+                               Circle(radius=3.0), np.hstack([starts, np.zeros((n, 2))]),
+                               final_state=np.zeros(2))
+    best = solve_formation(problem, options=FormationOptions(ordering="optimal"))
+    assert best.status == "converged" and best.verification.passed
+    assert best.ordering["proven"] and best.ordering["gap"] <= 1e-8
+    assert best.total_cost < solve_formation(problem).total_cost
 
 
 def test_what_ode_agents_do_not_offer_yet_is_refused_in_one_line():

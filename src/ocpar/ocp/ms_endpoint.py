@@ -15,7 +15,8 @@ p are not read). Decision variables w = (x_1..x_N, u_0..u_{N−1}).
 Control bounds (``control_bounds``, as bounds on w) and path constraints
 (:mod:`ocpar.ocp.constraints`, functions of ``x`` and ``u``: one of ``u`` at (x_j, u_j),
 j = 0..N−1; one of ``x`` alone at x_1..x_N) are inequalities, imposed at those points only
-(between samples an RK4 path is no segment).
+(between samples an RK4 path is no segment). A model's finite ``state_bounds`` are refused
+(write them as path constraints of ``x``: the verification checks those).
 
 The contract of a formation's agent (:mod:`ocpar.ocp.endpoint_agents`): J*, dJ*/dp (CasADi's
 −λ_p), and ``end_hessian`` d²J*/dx̄_N² (nx, nx) from the KKT system
@@ -107,6 +108,10 @@ class MsEndpointShape:
                 or not all(isinstance(i, int | np.integer) and 0 <= i < nx for i in positions):
             raise ValueError(f"shape.model: position_indices must name distinct entries of "
                              f"its {nx} state entries, got {positions!r}")
+        lower, upper = self.model.state_bounds()
+        if np.any(np.isfinite(lower)) or np.any(np.isfinite(upper)):
+            raise ValueError("shape.model: its state_bounds are not imposed on a formation's "
+                             "agents; give them as path constraints of x (path_constraints)")
         object.__setattr__(self, "free_end", tuple(int(i) for i in self.free_end))
         if any(not 0 <= i < nx or i in positions for i in self.free_end) \
                 or len(set(self.free_end)) != len(self.free_end):
