@@ -25,6 +25,7 @@ from ocpar.formation import (
     FormationProblem,
     SphereSurface,
     solve_formation,
+    verify_formation,
 )
 from ocpar.models import Unicycle
 from ocpar.ocp import MsEndpointShape, transcription
@@ -260,7 +261,6 @@ def test_the_verification_re_integrates_the_returned_controls(circle):
     checks = result.verification.to_dict()["checks"]
     assert checks["dynamics"]["worst"] <= 1e-12 and checks["attitude"]["worst"] <= 1e-12
     # a path off by 1e-4 at one node breaks its shooting residual there
-    from ocpar.formation import verify_formation
     q = result.trajectories.copy()
     q[3, 7, 2] += 1e-4
     broken = verify_formation(problem, q, result.controls, result.phi)
@@ -268,6 +268,18 @@ def test_the_verification_re_integrates_the_returned_controls(circle):
     assert "shooting residual" in broken.failures[0]
     assert broken.checks["dynamics"].agent == 3
     assert 1e-5 < broken.checks["dynamics"].value < 1e-4
+
+
+def test_euler_and_several_steps_per_interval_are_options(circle):
+    """Three Euler steps per interval: its own formation, verified by re-integrating with
+    three Euler steps; the RK4 answer checked as if Euler fails the shooting check."""
+    problem, rk4 = circle
+    euler = problem.with_shapes(lambda s: dataclasses.replace(s, integrator="euler", steps=3))
+    result = solve_formation(euler)
+    assert result.status == "converged" and result.verification.passed
+    assert 1e-6 < abs(result.total_cost - rk4.total_cost) / rk4.total_cost < 1e-2
+    mismatch = verify_formation(euler, rk4.trajectories, rk4.controls, rk4.phi)
+    assert not mismatch.checks["dynamics"].passed
 
 
 def test_unicycles_onto_slots_with_an_active_bound_are_the_optimal_assignment(slots):
