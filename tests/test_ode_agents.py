@@ -483,7 +483,8 @@ def _same_as_serial(runs, case: str, backend: str, reference) -> None:
     assert serial["verification"]["checks"]["dynamics"]["worst"] <= 1e-12
 
 
-@pytest.mark.parametrize("case", ["circle", "slots", "mixed"])
+@pytest.mark.parametrize("case", ["circle", "slots",
+                                  pytest.param("mixed", marks=pytest.mark.slow)])
 def test_mpirun_gives_the_serial_result_bitwise(backend_runs, case, circle, slots, mixed):
     reference = {"circle": circle, "slots": slots, "mixed": mixed}[case][1]
     _same_as_serial(backend_runs, case, "mpi", reference)
