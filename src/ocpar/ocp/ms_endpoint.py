@@ -327,8 +327,9 @@ class MsEndpointTranscription:
         return np.hstack([states.reshape(k, -1), np.zeros((k, self.nu * n))])
 
     def fallback_guesses(self, params: np.ndarray) -> Iterator[np.ndarray]:
-        """None beyond the task's own."""
-        return iter(())
+        """:meth:`default_guess`: an agent re-solves from its previous path first
+        (:attr:`MsEndpointShape.resolves_from_previous`), from this where that fails."""
+        yield self.default_guess(params)
 
     def warm_start(self, solution: MsEndpointSolution) -> np.ndarray:
         """The guess that re-solves from ``solution``."""
