@@ -62,7 +62,7 @@ def test_thrust_limited_fleet_hierarchical_equals_monolithic(limit, free):
 def test_agents_with_equal_shapes_share_a_solver_and_the_fleet_is_checked():
     problem = make(limit="box")
     assert len(set(problem.shapes)) == 3  # three masses: three compiled solvers
-    with pytest.raises(ValueError, match="one DmocShape per agent: 11 shapes for 12 agents"):
+    with pytest.raises(ValueError, match="one shape per agent: 11 shapes for 12 agents"):
         FormationProblem("short", problem.shape[:-1], problem.curve, problem.starts)
     other = DmocShape(problem.shape[0].model, intervals=10, duration=5.0)
     message = r"shape\[1\]: intervals 10 differs from shape\[0\]'s 20"

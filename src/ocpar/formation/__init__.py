@@ -44,7 +44,7 @@ from ocpar.formation.targets.surface import (
     Surface,
 )
 from ocpar.formation.verify import Verification, verify_formation
-from ocpar.ocp import DmocShape
+from ocpar.ocp import DmocShape, MsEndpointShape
 
 __all__ = [
     "MODES",
@@ -60,6 +60,7 @@ __all__ = [
     "FormationProblem",
     "FormationResult",
     "HalfSpace",
+    "MsEndpointShape",
     "ParametricCurve",
     "ParametricSurface",
     "PlaneCurve",

@@ -6,7 +6,7 @@ from __future__ import annotations
 from collections.abc import Callable
 from dataclasses import dataclass
 
-from ocpar.examples import formation_halo, formation_point_masses
+from ocpar.examples import formation_halo, formation_point_masses, formation_unicycles
 from ocpar.formation.problem import FormationProblem
 
 
@@ -27,6 +27,10 @@ EXAMPLES = {
     "crtbp-rigid": Example(
         lambda n, r: formation_halo.make(agents=n, radius_km=r), 30, 1.0,
         "rigid spacecraft about the Sun-Earth L2 halo (Fig. 5), radius in km"),
+    "unicycles": Example(
+        lambda n, r: formation_unicycles.make(agents=n, radius=r), 6, 3.0,
+        "ground robots with unicycle kinematics (multiple shooting) from a line onto a "
+        "circle, stopping there"),
 }
 
 

@@ -235,8 +235,8 @@ def inner_costs(problem: FormationProblem, backend: Backend, agents: np.ndarray,
         success = np.asarray(sols.column("success"), dtype=bool)
         solved = np.asarray(sols.column("cost"), dtype=float)
         costs[todo[success]] = solved[success]
-        nq = problem.common_shape.model.nq
-        gradient = np.asarray(sols.column("cost_gradient"), float)[:, 2 * nq: 2 * nq + d]
+        gradient = np.asarray(sols.column("cost_gradient"), float)[
+            :, problem.end_position_params]
         gradients[todo[success]] = gradient[success]
         bad = np.flatnonzero(~success)
         failed = len(bad)
@@ -300,7 +300,12 @@ def elastic_shape(shape: DmocShape) -> DmocShape:
 
 
 def elastic_problem(problem: FormationProblem) -> FormationProblem:
-    """``problem`` with every agent's shape elastic (once per problem)."""
+    """``problem`` with every agent's shape elastic (once per problem). ODE agents have no
+    elastic NLP yet: :class:`NoFeasibleFormation` (the run is refused, one line)."""
+    if problem.ode_agents:
+        raise NoFeasibleFormation("phase 1: an inner solve failed at the start and ODE agents "
+                                  "(MsEndpointShape) have no elastic phase 1 yet; give a "
+                                  "feasible start (initial_angles)", float("nan"))
     cached = problem.__dict__.get("_elastic")
     if cached is None:
         cached = problem.with_shapes(elastic_shape)

@@ -38,7 +38,6 @@ from ocpar.formation.problem import FormationProblem
 from ocpar.formation.result import AgentRecords, Units, agent_arrays
 from ocpar.formation.verify import AgentChecks, agent_checks
 from ocpar.ocp.contract import Shape
-from ocpar.ocp.dmoc import DmocShape
 
 #: A run writes its agents' variables in parts from this many agents on (with more than one
 #: worker, where they share the output directory's file system): below, the coordinator
@@ -105,7 +104,7 @@ def finish_agents(tasks: Columns, states: Columns) -> Columns:
     ``states``: their :class:`~ocpar.ocp.endpoint_agents.AgentState` s), its part of the
     array file written where ``directory`` says."""
     k = len(tasks)
-    q, u = np.asarray(states.column("q"), float), np.asarray(states.column("u"), float)
+    q, u = padded_paths(states.column("q")), np.asarray(states.column("u"), float)
     params = np.asarray(states.column("params"), float)
     shape_kind, shape_data = tasks.fields["shape"]
     shapes = [shape_data] * k if shape_kind == SHARED else list(shape_data)
@@ -114,9 +113,14 @@ def finish_agents(tasks: Columns, states: Columns) -> Columns:
         tasks.fields[name][1] for name in ("positions", "dim", "duration", "on_circle",
                                            "model_names", "cost_groups", "directory",
                                            "width", "units"))
-    nq = q.shape[2]
-    checks = agent_checks(shapes, q, u, params[:, :nq], params[:, nq:2 * nq],
-                          params[:, 2 * nq + dim:3 * nq], params[:, 3 * nq:], dim, first)
+    checks = agent_checks(shapes, q, u, params, dim, first)
+    of_shape: dict[int, np.ndarray] = {}   # once per distinct shape (a fleet shares a few)
+    ends = np.array([of_shape.setdefault(id(shape), shape.boundary_size
+                                         + shape.end_position_entries(dim))
+                     for shape in (shapes if shape_kind != SHARED else shapes[:1])])
+    entries = ends - np.array([shape.boundary_size for shape in shapes[:len(ends)]])[:, None]
+    if shape_kind == SHARED:
+        ends, entries = np.tile(ends, (k, 1)), np.tile(entries, (k, 1))
     cost = np.asarray(states.column("cost"), float)
     squares = (np.column_stack([np.sum(u[..., a:b] ** 2, axis=(1, 2))
                                 for a, b in cost_groups.values()])
@@ -126,7 +130,7 @@ def finish_agents(tasks: Columns, states: Columns) -> Columns:
         start = time.perf_counter()
         write_part(Path(directory), first, width, AgentRecords(
             first=first, q=q, u=u, cost=cost, phi=np.asarray(tasks.column("phi"), float),
-            target=params[:, 2 * nq:2 * nq + dim],
+            target=np.take_along_axis(params, ends, axis=1),
             model=np.array([model_names.index(type(s.model).__name__) for s in shapes],
                            np.int16),
             mass=np.array([float(getattr(s.model, "mass", math.nan)) for s in shapes]),
@@ -144,7 +148,7 @@ def finish_agents(tasks: Columns, states: Columns) -> Columns:
         "path": _paths(checks, first, k),
         "violation": (STACKED, checks.violation),
         "positions": (STACKED, np.ascontiguousarray(q[..., list(positions)])),
-        "end": (STACKED, np.ascontiguousarray(q[:, -1, :dim])),
+        "end": (STACKED, np.take_along_axis(q[:, -1], entries, axis=1)),
         "cost": (STACKED, cost),
         "cost_parts": (STACKED, squares),
         "written": (STACKED, np.full(k, written)),
@@ -157,7 +161,7 @@ def finish_agents(tasks: Columns, states: Columns) -> Columns:
     return Columns(cls=AgentFinish, length=k, fields=rows)
 
 
-def _per_agent(values: dict[DmocShape, np.ndarray], agents: dict[DmocShape, np.ndarray],
+def _per_agent(values: dict[Shape, np.ndarray], agents: dict[Shape, np.ndarray],
                first: int, k: int) -> np.ndarray:
     """Per-shape values of ``k`` agents (the first ``first``) as one value per agent, NaN
     for an agent whose shape has none."""
@@ -198,10 +202,10 @@ def writes_parts(problem: FormationProblem, backend: Backend, output: Path | Non
     """Whether a run writes its agents' variables in parts, each worker its own: with an
     ``output`` directory, at least :data:`PARTS_MIN_AGENTS` agents, more than one worker,
     workers that share the directory's file system
-    (:attr:`~ocpar.bsp.Backend.shares_files`) and no obstacles (their sides are the
-    coordinator's)."""
+    (:attr:`~ocpar.bsp.Backend.shares_files`), no obstacles (their sides are the
+    coordinator's) and agents of one kind (DMOC or ODE: one size of path)."""
     return (output is not None and problem.agents >= PARTS_MIN_AGENTS and backend.workers > 1
-            and backend.shares_files and not problem.obstacles)
+            and backend.shares_files and not problem.obstacles and not problem.mixed_kinds)
 
 
 @dataclass
@@ -238,7 +242,7 @@ def finish(problem: FormationProblem, agents: ResidentSet, phi: np.ndarray,
         Path(output).mkdir(parents=True, exist_ok=True)
         directory = str(Path(output).resolve())
     tasks = Columns(cls=FinishTask, length=n, fields={
-        "shape": ((SHARED, problem.shape) if isinstance(problem.shape, DmocShape)
+        "shape": ((SHARED, problem.shape) if not isinstance(problem.shape, tuple)
                   else (LISTED, list(problem.shape))),
         "agent": (STACKED, np.arange(n)),
         "phi": (STACKED, np.reshape(phi, problem.parameter_shape)),
@@ -248,7 +252,8 @@ def finish(problem: FormationProblem, agents: ResidentSet, phi: np.ndarray,
             type(s.model).__name__ for s in problem.agents_by_shape()))),
         "cost_groups": (SHARED, groups), "directory": (SHARED, directory),
         "width": (SHARED, len(str(n - 1))),
-        "units": (SHARED, Units.of(shape.model, shape.model.nq, shape.model.nu,
+        "units": (SHARED, Units.of(problem.widest_shape.model, problem.node_width,
+                                   shape.model.nu,
                                    problem.position_indices))})
     rows = agents.apply(finish_agents, tasks)
     paths = rows.column("path")
@@ -257,7 +262,7 @@ def finish(problem: FormationProblem, agents: ResidentSet, phi: np.ndarray,
     attitude = np.asarray(rows.column("attitude"))
     checks = AgentChecks(
         start=np.asarray(rows.column("start")),
-        attitude=attitude if len(problem.final_attitude) else None,
+        attitude=None if np.all(np.isnan(attitude)) else attitude,
         momentum=np.asarray(rows.column("momentum")),
         dynamics=np.asarray(rows.column("dynamics")),
         bounds={s: bounds[a] for s, a in by_shape.items() if s.control_bounds is not None},
@@ -271,16 +276,31 @@ def finish(problem: FormationProblem, agents: ResidentSet, phi: np.ndarray,
         checks=checks, positions=np.asarray(rows.column("positions")),
         ends=np.asarray(rows.column("end")), costs=np.asarray(rows.column("cost")),
         squares=np.asarray(rows.column("cost_parts")), parts=parts,
-        q=None if written else np.asarray(rows.column("q")),
+        q=None if written else padded_paths(rows.column("q"), problem.node_width),
         u=None if written else np.asarray(rows.column("u")),
         status=None if written else list(rows.column("status")),
         iterations=None if written else np.asarray(rows.column("iterations")),
         written_s=float(np.max(rows.column("written"))))
 
 
+def padded_paths(paths: list[np.ndarray] | np.ndarray, width: int | None = None
+                 ) -> np.ndarray:
+    """Node paths (k, N+1, width) from ``paths`` (a column of them): as they are where they
+    share their size, else each padded with NaN to ``width`` (default: the widest; a fleet
+    of DMOC and ODE agents)."""
+    if isinstance(paths, np.ndarray) and (width is None or paths.shape[-1] == width):
+        return np.asarray(paths, float)
+    rows = [np.asarray(p, float) for p in paths]
+    width = max(p.shape[-1] for p in rows) if width is None else width
+    out = np.full((len(rows), rows[0].shape[0], width), np.nan)
+    for out_row, row in zip(out, rows, strict=True):
+        out_row[:, :row.shape[-1]] = row
+    return out
+
+
 def cost_groups(problem: FormationProblem) -> dict[str, tuple[int, int]]:
     """The model's named control groups (name → (first, last + 1) control columns) whose
     cost parts h Σ|u|² the run reports; none where an agent has a running cost of its own."""
-    if any(shape.running_cost is not None for shape in set(problem.shapes)):
+    if any(getattr(shape, "running_cost", None) is not None for shape in set(problem.shapes)):
         return {}
     return dict(getattr(problem.common_shape.model, "cost_parts", {}))

@@ -34,7 +34,6 @@ from ocpar.formation.couplings.coupling import ShiftFamily, shifted
 from ocpar.formation.problem import FormationProblem
 from ocpar.formation.targets.curve import CircleEvaluator, CurveEvaluator
 from ocpar.ocp.contract import PrepareTask, Shape, prepare_solvers
-from ocpar.ocp.dmoc import DmocShape
 from ocpar.ocp.endpoint_agents import AgentState, agent_tasks, solve_agents
 
 
@@ -183,7 +182,7 @@ def shift_tasks(problem: FormationProblem, family: ShiftFamily, theta: float,
     params = (problem.boundary_params_rows(np.arange(n), family.angles(theta)[0])
               if first else None)
     return Columns(cls=ShiftTask, length=n, fields={
-        "shape": ((SHARED, problem.shape) if isinstance(problem.shape, DmocShape)
+        "shape": ((SHARED, problem.shape) if not isinstance(problem.shape, tuple)
                   else (LISTED, list(problem.shape))),
         "theta": (SHARED, float(theta)), "chart": (SHARED, family.chart),
         "curve": (SHARED, problem.curve.evaluator),
@@ -197,7 +196,7 @@ def prepare_workers(problem: FormationProblem, backend: Backend) -> None:
     batched calls for the block's size): one superstep that is no step of the run, so that
     the solve's first superstep solves only."""
     blocks = unit_blocks(problem.agents, backend.workers)
-    if isinstance(problem.shape, DmocShape):
+    if not isinstance(problem.shape, tuple):
         counts = [((problem.shape, len(block)),) for block in blocks]
     else:
         counts = [tuple(Counter(problem.shape[block.start:block.stop]).items())

@@ -1,6 +1,10 @@
 """The formation reconfiguration problem: n agents, fixed starts, final formation on a curve.
 
-Agent i is any Lagrangian mechanical system (:class:`~ocpar.models.MechanicalSystem`: L(q, q̇),
+Agent i is any controlled ODE (:class:`~ocpar.models.OdeModel` naming its
+``position_indices``, transcribed by multiple shooting, :class:`~ocpar.ocp.MsEndpointShape`:
+it starts in the state ``starts[i]`` and ends with its position on the target, the other
+end entries ``final_state`` or free) or any Lagrangian mechanical system
+(:class:`~ocpar.models.MechanicalSystem`: L(q, q̇),
 optionally time-dependent per DMOC interval, generalised force F(q, u), optional holonomic
 constraints c(q) = 0), transcribed by DMOC with the problem's ``shape`` (N intervals over
 the horizon T): one shape for all agents, or one per agent (a mixed fleet: each agent its own
@@ -33,7 +37,7 @@ from ocpar.formation.targets.slots import Slots, nearest_assignment
 from ocpar.formation.targets.surface import PARAMETERS, Surface, fibonacci_directions
 from ocpar.models import MechanicalSystem
 from ocpar.models.labels import check_labels
-from ocpar.ocp import DmocShape, OcpTask
+from ocpar.ocp import DmocShape, MsEndpointShape, OcpTask
 from ocpar.ocp.constraints import check_smooth
 from ocpar.ocp.reach import Reach, rest_to_rest_reach
 
@@ -48,6 +52,23 @@ START_MARGIN = 0.1
 #: ... at the smallest of this many shifts of the formation's family (2π/this apart) that
 #: does.
 START_SHIFTS = 4096
+
+
+def _one(shape: object) -> bool:
+    """Whether ``shape`` is one shape for all agents (not one per agent)."""
+    return not isinstance(shape, tuple | list)
+
+
+def _array_allowing_nan(name: str, value: object, shape: tuple[int, ...]) -> np.ndarray:
+    """``value`` as a float array of ``shape`` (NaN allowed), or ValueError naming the
+    field."""
+    try:
+        array = np.array(value, float)
+    except (TypeError, ValueError):
+        raise ValueError(f"{name}: must be an array of numbers with shape {shape}") from None
+    if array.shape != shape:
+        raise ValueError(f"{name}: must have shape {shape}, got {array.shape}")
+    return array
 
 
 def _array(name: str, value: object, shape: tuple[int, ...]) -> np.ndarray:
@@ -81,6 +102,15 @@ class FormationProblem:
     ``final_velocity`` (nq,) common to all or (n, nq) per agent, default at rest;
     ``final_attitude`` (nq − d,) the configuration entries after the position (none for
     point masses, e.g. a unit quaternion for rigid bodies). Units are the model's.
+    ODE agents (``shape`` an :class:`~ocpar.ocp.MsEndpointShape`, or one per agent): nq is
+    the state's nx, ``starts`` (n, nx) the start states; ``final_state`` the end state's
+    entries other than the position (nx − d,), in state order, common or (n, nx − d) per
+    agent (default 0), an entry the shape leaves free (``free_end``) ignored (NaN allowed
+    there); ``start_velocities``, ``final_velocity`` and ``final_attitude`` are DMOC's and
+    stay None. A fleet of both kinds (one shape per agent): its DMOC agents at rest at both
+    ends with all of their configuration the position, ``starts`` (n, W) each agent's start
+    in its first entries (W the widest agent's; NaN beyond), boundary data of one length
+    (:meth:`_check_mixed_boundary`).
     ``obstacles``: static :class:`~ocpar.formation.keep_out.obstacles.Ellipsoid` (or ``Sphere``) and
     :class:`~ocpar.formation.keep_out.obstacles.HalfSpace` obstacles in position space that every
     path keeps clear of at all times (:mod:`ocpar.formation.keep_out.obstacles`); the starts must be
@@ -91,7 +121,7 @@ class FormationProblem:
     """
 
     name: str
-    shape: DmocShape | tuple[DmocShape, ...]
+    shape: DmocShape | MsEndpointShape | tuple[DmocShape | MsEndpointShape, ...]
     curve: Curve | Surface | Slots
     starts: np.ndarray
     start_velocities: np.ndarray | None = None
@@ -99,6 +129,7 @@ class FormationProblem:
     final_attitude: np.ndarray | None = None
     obstacles: tuple[Obstacle, ...] = ()
     coupling: Coupling = field(default_factory=PotentialCoupling)
+    final_state: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         self._check_shapes()
@@ -108,7 +139,7 @@ class FormationProblem:
                              f"ParametricSurface) or Slots, got {type(self.curve).__name__}")
         if isinstance(self.curve, Curve):
             self.curve.check()  # built-in curves checked themselves; a user's subclass may not
-        nq, d = self.common_shape.model.nq, self.curve.dim
+        nq, d = self.node_width, self.curve.dim
         if d > nq:
             raise ValueError(f"curve: lies in {d}-D but the model's configuration has {nq} "
                              "entries")
@@ -128,23 +159,32 @@ class FormationProblem:
                              "taken twice); leave coupling at its default")
         if isinstance(self.curve, Curve | Surface):
             self.coupling.check(self.curve, n * self.parameters)
-        fields = {
-            "starts": (self.starts, (n, nq)),
-            "start_velocities": (np.zeros((n, nq)) if self.start_velocities is None
-                                 else self.start_velocities, (n, nq)),
-            "final_attitude": (np.zeros(0) if self.final_attitude is None and nq == d
-                               else self.final_attitude, (nq - d,)),
-        }
-        final_velocity = np.zeros(nq) if self.final_velocity is None else self.final_velocity
-        fields["final_velocity"] = (final_velocity, (n, nq) if np.ndim(final_velocity) == 2
-                                    else (nq,))
+        fields = {"starts": (self.starts, (n, nq))}
+        if self.mixed_kinds:
+            self._check_mixed_boundary(n, d)
+            fields = {}
+        elif self.ode_agents:
+            self._check_ode_boundary(n, nq, d)
+        else:
+            if self.final_state is not None:
+                raise ValueError("final_state: ODE agents' field; DMOC agents end with "
+                                 "final_attitude and final_velocity")
+            fields |= {
+                "start_velocities": (np.zeros((n, nq)) if self.start_velocities is None
+                                     else self.start_velocities, (n, nq)),
+                "final_attitude": (np.zeros(0) if self.final_attitude is None and nq == d
+                                   else self.final_attitude, (nq - d,))}
+            final_velocity = (np.zeros(nq) if self.final_velocity is None
+                              else self.final_velocity)
+            fields["final_velocity"] = (final_velocity, (n, nq) if np.ndim(final_velocity) == 2
+                                        else (nq,))
         for name, (value, shape) in fields.items():
             if value is None:
                 raise ValueError(f"{name}: required ({nq - d} configuration entries after the "
                                  f"{d} position entries)")
             object.__setattr__(self, name, _array(name, value, shape))
-        if not isinstance(self.shape, DmocShape) and len(self.shape) != n:
-            raise ValueError(f"shape: a mixed fleet needs one DmocShape per agent: "
+        if isinstance(self.shape, tuple) and len(self.shape) != n:
+            raise ValueError(f"shape: a mixed fleet needs one shape per agent: "
                              f"{len(self.shape)} shapes for {n} agents")
         self._check_holonomic_constraints()
         indices = self.position_indices
@@ -153,10 +193,127 @@ class FormationProblem:
             raise ValueError(f"shape: the model's position_indices must be distinct entries "
                              f"of its {nq} configuration entries, got {indices}")
         object.__setattr__(self, "obstacles", check_obstacles(self.obstacles, len(indices)))
-        self._attach_obstacles()
+        if self.ode_agents and self.obstacles:
+            raise ValueError("obstacles: not yet for ODE agents (MsEndpointShape)")
+        if not self.ode_agents:
+            self._attach_obstacles()
         self.check_clear("starts", self.starts)
         self._check_path_constraints()
         self._check_thrust_reach()
+
+    @property
+    def ode_agents(self) -> bool:
+        """Whether any agent is an ODE agent (:class:`~ocpar.ocp.MsEndpointShape`)."""
+        return bool(self.ode_mask.any())
+
+    @property
+    def ode_mask(self) -> np.ndarray:
+        """(n,) whether each agent is an ODE agent."""
+        shapes = self.shape if isinstance(self.shape, tuple) else (self.shape,)
+        ode = np.array([isinstance(s, MsEndpointShape) for s in shapes])
+        return ode if isinstance(self.shape, tuple) else np.full(len(self.starts), ode[0])
+
+    @property
+    def mixed_kinds(self) -> bool:
+        """Whether the fleet mixes DMOC and ODE agents."""
+        shapes = self.shape if isinstance(self.shape, tuple) else (self.shape,)
+        return len({type(s) for s in shapes}) > 1
+
+    @property
+    def node_width(self) -> int:
+        """Entries of a node of the fleet's paths: the largest agent's (a mixed fleet's
+        narrower paths are padded with NaN in the fleet-wide arrays)."""
+        shapes = self.shape if isinstance(self.shape, tuple) else (self.shape,)
+        return max(s.node_size for s in set(shapes))
+
+    @property
+    def widest_shape(self) -> DmocShape | MsEndpointShape:
+        """The first shape of :attr:`node_width` entries (its model names the entries)."""
+        shapes = self.shape if isinstance(self.shape, tuple) else (self.shape,)
+        return next(s for s in shapes if s.node_size == self.node_width)
+
+    def _check_mixed_boundary(self, n: int, d: int) -> None:
+        """A fleet of DMOC and ODE agents: its DMOC agents at rest at both ends, all of their
+        configuration the position (nq = d); ``starts`` (n, W) each row its agent's start
+        (q_0 or x_0) in its first entries, the rest ignored (NaN); ``final_state`` the ODE
+        agents' (:meth:`_check_ode_boundary`); every agent's boundary data of one length."""
+        for name in ("start_velocities", "final_velocity", "final_attitude"):
+            if getattr(self, name) is not None:
+                raise ValueError(f"{name}: a fleet of DMOC and ODE agents takes its DMOC agents "
+                                 f"at rest with no attitude entries; leave {name} out")
+        sizes = {}
+        for shape in set(self.shapes):
+            if isinstance(shape, DmocShape) and shape.node_size != d:
+                raise ValueError(f"shape: in a fleet of DMOC and ODE agents the DMOC agents' "
+                                 f"configuration is their position ({d} entries), got "
+                                 f"{shape.node_size}")
+            sizes.setdefault(type(shape), set()).add(shape.node_size)
+            sizes.setdefault("params", set()).add(shape.n_params)
+        if any(len(v) > 1 for v in sizes.values()):
+            raise ValueError("shape: a fleet of DMOC and ODE agents needs one state size per "
+                             "kind and boundary data of one length (e.g. planar point masses, "
+                             "p = (q_0, q̇_0, q_N, q̇_N), and unicycles, p = (x_0, x̄_N))")
+        width = self.node_width
+        starts = _array_allowing_nan("starts", self.starts, (n, width))
+        for shape, agents in self.agents_by_shape().items():
+            if not np.all(np.isfinite(starts[agents, :shape.node_size])):
+                raise ValueError(f"starts: agent {agents[0]}'s first {shape.node_size} entries "
+                                 f"(its start) must be finite")
+            starts[agents, shape.node_size:] = np.nan
+        object.__setattr__(self, "starts", starts)
+        self._check_ode_boundary(n, next(s for s in self.shapes
+                                         if isinstance(s, MsEndpointShape)).node_size, d)
+
+    def _check_ode_boundary(self, n: int, nx: int, d: int) -> None:
+        """ODE agents' boundary data: no DMOC fields; ``final_state`` (nx − d,) or
+        (n, nx − d), finite except at the shape's free end entries (stored with 0 there;
+        in a mixed fleet a DMOC agent's row is not read, 0 too)."""
+        for name in ("start_velocities", "final_velocity", "final_attitude"):
+            if getattr(self, name) is not None:
+                raise ValueError(f"{name}: DMOC agents' field; an ODE agent's start is its "
+                                 f"whole state (starts) and its end is given by final_state")
+        value = np.zeros(nx - d) if self.final_state is None else self.final_state
+        try:
+            value = np.array(value, float)
+        except (TypeError, ValueError):
+            raise ValueError(f"final_state: must be numbers, shape ({nx - d},) or "
+                             f"({n}, {nx - d})") from None
+        if value.shape not in ((nx - d,), (n, nx - d)):
+            raise ValueError(f"final_state: must have shape ({nx - d},) or ({n}, {nx - d}) "
+                             f"(the end state's entries other than the position), got "
+                             f"{value.shape}")
+        rest = [i for i in range(nx) if i not in self.position_indices]
+        for shape, agents in self.agents_by_shape().items():
+            if not isinstance(shape, MsEndpointShape):
+                if value.ndim == 2:
+                    value[agents] = 0.0   # a DMOC agent's row: not read
+                continue
+            free = np.flatnonzero(np.isin(rest, shape.free_end))
+            if value.ndim == 2:
+                value[np.ix_(agents, free)] = 0.0
+            else:
+                value[free] = 0.0
+        if not np.all(np.isfinite(value)):
+            raise ValueError("final_state: must be finite at every end entry the shape fixes "
+                             "(NaN only at its free_end entries)")
+        object.__setattr__(self, "final_state", value)
+
+    @property
+    def end_position_params(self) -> np.ndarray:
+        """The entries (d,) of an agent's boundary data p that are its end position (what
+        the target fixes): DMOC's first d of q_N, an ODE agent's position entries of x̄_N."""
+        shape = self.common_shape
+        return shape.boundary_size + shape.end_position_entries(self.curve.dim)
+
+    def end_states(self, agents: np.ndarray) -> np.ndarray:
+        """ODE agents' end states (len(agents), nx) without their positions (0 there, and at
+        free entries): ``final_state`` in the non-position entries."""
+        nx = next(s for s in self.shapes if isinstance(s, MsEndpointShape)).node_size
+        rest = [i for i in range(nx) if i not in self.position_indices]
+        ends = np.zeros((len(agents), nx))
+        value = self.final_state
+        ends[:, rest] = value[agents] if value.ndim == 2 else value
+        return ends
 
     def reach_sets(self) -> list[tuple[Reach, np.ndarray]]:
         """Each distinct shape's exact rest-to-rest reach set
@@ -171,8 +328,9 @@ class FormationProblem:
             reach = rest_to_rest_reach(shape)
             if reach is None:
                 continue
-            rest = agents[~np.any(self.start_velocities[agents], axis=1)
-                          & ~np.any(self.final_velocities(agents), axis=1)]
+            rest = agents if self.mixed_kinds else agents[   # (a mixed fleet's: at rest)
+                ~np.any(self.start_velocities[agents], axis=1)
+                & ~np.any(self.final_velocities(agents), axis=1)]
             if len(rest):
                 sets.append((reach, rest))
         object.__setattr__(self, "_reach_sets", sets)   # once per problem (a frozen one)
@@ -180,7 +338,7 @@ class FormationProblem:
 
     def limit_label(self, agent: int, reach: Reach) -> str:
         """The field that bounds ``agent``'s reach, for messages (``shape[3].control_bounds``)."""
-        where = "shape" if isinstance(self.shape, DmocShape) else f"shape[{agent}]"
+        where = "shape" if _one(self.shape) else f"shape[{agent}]"
         return f"{where}.{reach.limit}"
 
     def _check_thrust_reach(self) -> None:
@@ -224,40 +382,47 @@ class FormationProblem:
         its own solver (``auto``: ``sqpmethod``; its batch solves without the obstacles
         first, :meth:`~ocpar.ocp.dmoc.DmocTranscription.solve_batch`)."""
         indices = self.position_indices if self.obstacles else ()
-        shapes = (self.shape,) if isinstance(self.shape, DmocShape) else self.shape
+        shapes = (self.shape,) if _one(self.shape) else self.shape
         if all((shape.obstacles, shape.obstacle_positions) == (self.obstacles, indices)
                for shape in shapes):
             return   # attached already, or none
         attached = {shape: dataclasses.replace(
             shape, obstacles=self.obstacles, obstacle_positions=indices)
             for shape in set(shapes)}
-        object.__setattr__(self, "shape", attached[self.shape] if isinstance(
-            self.shape, DmocShape) else tuple(attached[shape] for shape in self.shape))
+        object.__setattr__(self, "shape", attached[self.shape] if _one(self.shape)
+                           else tuple(attached[shape] for shape in self.shape))
 
     def _check_path_constraints(self) -> None:
         """Each agent's path constraints and running cost must be finite, with their
         Jacobians, at its start (q_0, q̇_0, u = 0: the inner solves start from zero
         controls), and the constraints of q alone met there (the nodes next to the start
-        must meet them); one evaluation per distinct shape."""
+        must meet them); one evaluation per distinct shape. ODE agents' constraints are of
+        ``x`` (their start state) and ``u``."""
         for shape, agents in self.agents_by_shape().items():
-            point = {"q": self.starts[agents], "v": self.start_velocities[agents],
-                     "u": np.zeros((len(agents), shape.model.nu))}
+            size = shape.node_size
+            point = ({"x": self.starts[agents, :size]} if isinstance(shape, MsEndpointShape)
+                     else {"q": self.starts[agents, :size],
+                           "v": (np.zeros((len(agents), size)) if self.mixed_kinds
+                                 else self.start_velocities[agents])}) | {
+                "u": np.zeros((len(agents), shape.model.nu))}
             where = [f"agent {i}'s start" for i in agents]
-            prefix = f"shape{'' if isinstance(self.shape, DmocShape) else f'[{agents[0]}]'}"
-            if shape.running_cost is not None:
+            prefix = f"shape{'' if _one(self.shape) else f'[{agents[0]}]'}"
+            if getattr(shape, "running_cost", None) is not None:
                 check_smooth(shape.running_cost, point, f"{prefix}.running_cost", where)
             for j, constraint in enumerate(shape.path_constraints):
                 label = f"{prefix}.path_constraints[{j}] ({constraint.name})"
                 check_smooth(constraint, point, label, where)
                 excess = constraint.violation(point)
                 if not constraint.depends_on("v", "u") and np.max(excess) > CONSTRAINT_TOL:
+                    # (an ODE agent's constraint of x alone is imposed from x_1 on: its start
+                    # must meet it as a DMOC agent's nodes next to the start must)
                     k = int(np.argmax(excess))
                     raise ValueError(f"starts: agent {agents[k]} breaks {label} by "
                                      f"{excess[k]:.3g}")
 
-    def agents_by_shape(self) -> dict[DmocShape, np.ndarray]:
+    def agents_by_shape(self) -> dict[DmocShape | MsEndpointShape, np.ndarray]:
         """The agents (indices, ascending) of each distinct shape, in order of first use."""
-        if isinstance(self.shape, DmocShape):
+        if _one(self.shape):
             return {self.shape: np.arange(self.agents)}
         groups: dict[DmocShape, list[int]] = {}
         for i, shape in enumerate(self.shape):
@@ -317,54 +482,56 @@ class FormationProblem:
         return ok.reshape(len(phis), -1).all(axis=1)
 
     def _check_shapes(self) -> None:
-        """``shape`` must be a DmocShape of a MechanicalSystem or a non-empty sequence of
-        them agreeing on N, T, nq, nu and the position entries (then stored as a tuple)."""
-        shapes = (self.shape,) if isinstance(self.shape, DmocShape) else self.shape
+        """``shape`` must be a DmocShape of a MechanicalSystem, an MsEndpointShape, or a
+        non-empty sequence of one kind of them agreeing on N, T, nq (an ODE's nx), nu and the
+        position entries (then stored as a tuple)."""
+        shapes = (self.shape,) if _one(self.shape) else self.shape
         if isinstance(shapes, str) or not isinstance(shapes, tuple | list) or not shapes:
-            raise ValueError(f"shape: must be a DmocShape or one per agent, got "
-                             f"{type(self.shape).__name__}")
-        checked: set[DmocShape] = set()
+            raise ValueError(f"shape: must be a DmocShape, an MsEndpointShape or one per "
+                             f"agent, got {type(self.shape).__name__}")
+        checked: set[DmocShape | MsEndpointShape] = set()
+        first = shapes[0]
         for i, shape in enumerate(shapes):
-            label = "shape" if isinstance(self.shape, DmocShape) else f"shape[{i}]"
-            if isinstance(shape, DmocShape) and shape in checked:
+            label = "shape" if _one(self.shape) else f"shape[{i}]"
+            if isinstance(shape, DmocShape | MsEndpointShape) and shape in checked:
                 continue
-            if not isinstance(shape, DmocShape):
-                raise ValueError(f"{label}: must be a DmocShape, got {type(shape).__name__}")
-            if not isinstance(shape.model, MechanicalSystem):
+            if not isinstance(shape, DmocShape | MsEndpointShape):
+                raise ValueError(f"{label}: must be a DmocShape or an MsEndpointShape, got "
+                                 f"{type(shape).__name__}")
+            if isinstance(shape, DmocShape) and not isinstance(shape.model, MechanicalSystem):
                 raise ValueError(f"{label}: its model is not a MechanicalSystem (needs nq, nu, "
                                  "lagrangian, generalized_force)")
-            first = shapes[0]
             for what, value in (("intervals", lambda s: s.intervals),
                                 ("duration", lambda s: s.duration),
-                                ("model.nq", lambda s: s.model.nq),
                                 ("model.nu", lambda s: s.model.nu),
                                 ("model.position_indices",
                                  lambda s: getattr(s.model, "position_indices", None))):
                 if value(shape) != value(first):
                     raise ValueError(f"{label}: {what} {value(shape)} differs from shape[0]'s "
-                                     f"{value(first)}; a fleet shares N, T, nq, nu and the "
+                                     f"{value(first)}; a fleet shares N, T, nu and the "
                                      f"position entries")
-            self._check_model(shape.model, label)
+            if isinstance(shape, DmocShape):
+                self._check_model(shape.model, label)
             checked.add(shape)
-        if not isinstance(self.shape, DmocShape):
+        if not _one(self.shape):
             object.__setattr__(self, "shape", tuple(shapes))
 
     @property
-    def shapes(self) -> tuple[DmocShape, ...]:
-        """Each agent's DMOC shape (n,)."""
-        if isinstance(self.shape, DmocShape):
+    def shapes(self) -> tuple[DmocShape | MsEndpointShape, ...]:
+        """Each agent's shape (n,)."""
+        if _one(self.shape):
             return (self.shape,) * self.agents
         return self.shape
 
     @property
-    def common_shape(self) -> DmocShape:
+    def common_shape(self) -> DmocShape | MsEndpointShape:
         """The first agent's shape: its N, T, nq, nu and position entries are every agent's."""
-        return self.shape if isinstance(self.shape, DmocShape) else self.shape[0]
+        return self.shape if _one(self.shape) else self.shape[0]
 
     def with_shapes(self, change: Callable[[DmocShape], DmocShape]) -> FormationProblem:
         """This problem with ``change`` applied to every agent's shape (e.g. another solver,
         keep-out slots)."""
-        shape = (change(self.shape) if isinstance(self.shape, DmocShape)
+        shape = (change(self.shape) if _one(self.shape)
                  else tuple(change(s) for s in self.shape))
         return dataclasses.replace(self, shape=shape)
 
@@ -390,6 +557,8 @@ class FormationProblem:
     def _check_holonomic_constraints(self) -> None:
         """Starts and final configurations (at a point of the curve) must satisfy each
         agent's model's c(q) = 0."""
+        if self.ode_agents:   # (c(q) = 0 is a mechanical system's)
+            return
         end = np.concatenate([self.final_positions(np.zeros(self.parameters))[0],
                               self.final_attitude])
         for shape, agents in self.agents_by_shape().items():
@@ -474,7 +643,8 @@ class FormationProblem:
         if isinstance(self.curve, Slots):
             raise ValueError("slots have no parameters to differentiate in")
         along = self.curve.tangents(phi)
-        return np.hstack([along, np.zeros((len(along), len(self.final_attitude)))])
+        return np.hstack([along, np.zeros((len(along),
+                                           self.common_shape.node_size - along.shape[1]))])
 
     def final_velocities(self, agents: np.ndarray) -> np.ndarray:
         """Final velocities (len(agents), nq) of the agents ``agents``."""
@@ -487,10 +657,29 @@ class FormationProblem:
         return self.boundary_params_rows(np.array([i]), np.array([phi_i]))[0]
 
     def boundary_params_rows(self, agents: np.ndarray, phi: np.ndarray) -> np.ndarray:
-        """Boundary data (len(agents), 4 nq): row k for agent ``agents[k]`` ending at
-        ``phi[k]`` (rad)."""
+        """Boundary data (len(agents), n_params): row k for agent ``agents[k]`` ending at
+        ``phi[k]`` (rad): DMOC's (q_0, q̇_0, q_N, q̇_N), an ODE agent's (x_0, x̄_N)."""
         agents = np.asarray(agents, dtype=np.intp)
         m = len(agents)
+        if self.mixed_kinds:   # DMOC agents at rest, all configuration the position
+            ode = self.ode_mask[agents]
+            rows = np.empty((m, self.common_shape.n_params))
+            targets = self.final_positions(phi)
+            if ode.any():
+                ends = self.end_states(agents[ode])
+                ends[:, list(self.position_indices)] = targets[ode]
+                nx = ends.shape[1]
+                rows[ode] = np.hstack([self.starts[agents[ode], :nx], ends])
+            if (~ode).any():
+                d = self.curve.dim
+                zero = np.zeros(((~ode).sum(), d))
+                rows[~ode] = np.hstack([self.starts[agents[~ode], :d], zero, targets[~ode],
+                                        zero])
+            return rows
+        if self.ode_agents:
+            ends = self.end_states(agents)
+            ends[:, list(self.position_indices)] = self.final_positions(phi)
+            return np.hstack([self.starts[agents], ends])
         return np.hstack([self.starts[agents], self.start_velocities[agents],
                           self.final_positions(phi),
                           np.broadcast_to(self.final_attitude, (m, len(self.final_attitude))),
@@ -514,7 +703,7 @@ class FormationProblem:
         mixed)."""
         columns = Columns.of(OcpTask, len(params), shape=self.common_shape, params=params,
                              warm_start=warm_start, multipliers=None, fallback=fallback)
-        if not isinstance(self.shape, DmocShape):
+        if not _one(self.shape):
             shapes = self.shape
             columns.fields["shape"] = (LISTED, [shapes[i] for i in np.asarray(agents).tolist()])
         return columns

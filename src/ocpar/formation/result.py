@@ -102,8 +102,9 @@ class Fleet:
             model[agents] = names.index(name)
             mass[agents] = float(getattr(shape_i.model, "mass", math.nan))
         return cls(shape.duration, problem.position_indices, targets, model, names, mass,
-                   shape.model.nq, Units.of(shape.model, shape.model.nq, shape.model.nu,
-                                            problem.position_indices))
+                   problem.node_width, Units.of(problem.widest_shape.model,
+                                                problem.node_width, shape.model.nu,
+                                                problem.position_indices))
 
 
 @dataclass

@@ -23,7 +23,7 @@ from ocpar.formation.couplings.critical_sets import (
     best_isolated_formation,
 )
 from ocpar.formation.feasibility import NoFeasibleFormation, feasible_start
-from ocpar.formation.finish import cost_groups, finish, writes_parts
+from ocpar.formation.finish import cost_groups, finish, padded_paths, writes_parts
 from ocpar.formation.hierarchical import (
     InnerSolveFailed,
     OuterObjective,
@@ -284,6 +284,8 @@ def check_applicable(problem: FormationProblem, options: FormationOptions) -> No
     calls it before starting workers (:func:`solve_formation` calls it too). With obstacles,
     a formation whose targets clear them must exist among the initial angles' family
     (:meth:`~ocpar.formation.FormationProblem.clear_start`: a rotation on a circle)."""
+    if problem.ode_agents:
+        _check_ode_applicable(options)
     if isinstance(problem.curve, Surface) and options.mode != "hierarchical":
         raise ValueError("surfaces apply to the hierarchical mode only")
     if isinstance(problem.curve, Slots) and options.mode != "hierarchical":
@@ -321,6 +323,16 @@ def check_applicable(problem: FormationProblem, options: FormationOptions) -> No
                                              problem.initial_phi())[:, 2 * nq:3 * nq]
         check_separation_feasible(problem.positions(problem.starts), problem.positions(final),
                                   options.min_separation)
+
+
+def _check_ode_applicable(options: FormationOptions) -> None:
+    """What ODE agents (:class:`~ocpar.ocp.MsEndpointShape`) do not offer yet: ValueError
+    naming the option."""
+    if options.mode == "monolithic":
+        raise ValueError("mode: the monolithic reference NLP is DMOC's; ODE agents "
+                         "(MsEndpointShape) are solved hierarchically only")
+    if options.min_separation is not None:
+        raise ValueError("min_separation: not yet for ODE agents (MsEndpointShape)")
 
 
 def obstacle_check(problem: FormationProblem, positions: np.ndarray, status: str,
@@ -490,10 +502,10 @@ def solve_formation(
         return FormationResult(
             **common, status="failed", message=f"ordering: {exc}", total_cost=math.nan,
             phi=np.full(problem.parameter_shape, np.nan), agent_costs=np.full(n, np.nan),
-            trajectories=np.full((n, shape.intervals + 1, shape.model.nq), np.nan),
+            trajectories=np.full((n, shape.intervals + 1, problem.node_width), np.nan),
             outer_iterations=None, inner_solves=0, failed_solves=0,
             wall_time_s=time.perf_counter() - start,
-            separation=problem.closest_approach(np.full((n, 2, shape.model.nq), np.nan)),
+            separation=problem.closest_approach(np.full((n, 2, problem.node_width), np.nan)),
             trace=backend.traces[first_trace:],
             fleet=Fleet.of(problem, np.full(problem.parameter_shape, np.nan)))
     discrete = discrete_choice(problem, choice, phi0)
@@ -573,7 +585,8 @@ def solve_formation(
         sols = objective.last_solutions
         objective.close()  # the solutions are gathered: the workers need not keep them
         costs = np.asarray(sols.column("cost"), dtype=float)
-        trajectories, controls = np.asarray(sols.column("q")), np.asarray(sols.column("u"))
+        trajectories = padded_paths(sols.column("q"), problem.node_width)
+        controls = np.asarray(sols.column("u"))
         statuses, solver_iterations = sols.column("status"), np.asarray(
             sols.column("iterations"))
         if distance is not None and status != "failed":
@@ -671,12 +684,14 @@ def with_solver_options(problem: FormationProblem, given: dict) -> FormationProb
 
 
 def solver_record(problem: FormationProblem, options: FormationOptions) -> dict:
-    """result.json's ``solver_options``: the run's, and by DMOC shape (``dmoc``, or
-    ``dmoc[k]`` for the k-th distinct shape of a mixed fleet) the options its solvers are
-    built with (:func:`ocpar.ocp.solver_options.used`)."""
+    """result.json's ``solver_options``: the run's, and by inner problem's shape (``dmoc`` for
+    DMOC agents, ``ms`` for ODE agents; ``dmoc[k]``, ``ms[k]`` for the k-th distinct shape of a
+    fleet of several) the options its solvers are built with
+    (:func:`ocpar.ocp.solver_options.used`)."""
     shapes = list(problem.agents_by_shape())
-    settings = {"dmoc" if len(shapes) == 1 else f"dmoc[{k}]": transcription(s).solver_settings
-                for k, s in enumerate(shapes)}
+    kinds = ["dmoc" if isinstance(s, DmocShape) else "ms" for s in shapes]
+    settings = {kind if len(shapes) == 1 else f"{kind}[{k}]": transcription(s).solver_settings
+                for k, (kind, s) in enumerate(zip(kinds, shapes, strict=True))}
     return used(solver_options(options.solver_options), settings)
 
 

@@ -22,6 +22,11 @@ interval controls (n, N, nu) and the parameters φ, and the problem's data. It c
   D2L_d(q_{k−1}, q_k) + D1L_d(q_k, q_{k+1}) + f⁺_{k−1} + f⁻_k = 0 at every inner node
   k = 1 … N−1 (the holonomic reactions projected out, and c(q_k) = 0 there), on the returned
   nodes and controls, built here the same way;
+* ``dynamics`` of an ODE agent (:class:`~ocpar.ocp.MsEndpointShape`): the shooting
+  residuals, each returned interval's controls re-integrated from its returned start node by
+  the shape's integrator (numpy code here, on the model's f), against the next node;
+  ``start`` its start state, ``attitude`` the end entries its shape fixes other than the
+  position; ``momentum`` does not apply (0);
 * ``control_bounds``, ``path_constraints``: every bound and path constraint of each agent's
   shape at the points where DMOC imposes them: controls u_k; rows of ``q`` alone at the
   inner nodes, rows of ``v``/``u`` at (q_{k+½}, (q_{k+1} − q_k)/h, u_k);
@@ -40,6 +45,7 @@ from __future__ import annotations
 
 import math
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from functools import lru_cache
 
@@ -59,8 +65,10 @@ from ocpar.formation.keep_out.separation import ClosestApproach, closest_pair
 from ocpar.formation.problem import FormationProblem
 from ocpar.formation.targets.slots import Slots
 from ocpar.formation.targets.surface import Surface
-from ocpar.ocp import DmocShape
+from ocpar.ocp import DmocShape, MsEndpointShape
 from ocpar.ocp.columns_eval import evaluate_columns
+from ocpar.ocp.constraints import CompiledConstraint
+from ocpar.ocp.contract import Shape
 
 #: An end position counts as on the target within this fraction of the target's size (a
 #: curve's or surface's length scale, the slots' extent): the inner problems take q_N as data,
@@ -110,8 +118,8 @@ FAILURE_WORDS = {
                 "relative)",
     "momentum": "agent {agent}'s path misses its boundary velocities: DMOC's boundary "
                 "momentum residual {value:.3g} (relative)",
-    "dynamics": "agent {agent}'s path breaks its dynamics: DMOC's interior equations' "
-                "residual {value:.3g} (relative)",
+    "dynamics": "agent {agent}'s path breaks its dynamics: DMOC's interior equations' or "
+                "the shooting residual {value:.3g} (relative)",
     "control_bounds": "agent {agent}'s controls break control_bounds by {value:.3g} "
                       "(relative)",
     "path_constraints": "agent {agent}'s path breaks {where} by {value:.3g} (relative)",
@@ -354,41 +362,37 @@ class AgentChecks:
     attitude: np.ndarray | None
     momentum: np.ndarray
     dynamics: np.ndarray
-    bounds: dict[DmocShape, np.ndarray]
-    path: dict[DmocShape, np.ndarray]
-    agents: dict[DmocShape, np.ndarray]
+    bounds: dict[Shape, np.ndarray]
+    path: dict[Shape, np.ndarray]
+    agents: dict[Shape, np.ndarray]
     violation: np.ndarray
 
 
-def agent_checks(shapes: list[DmocShape], q: np.ndarray, u: np.ndarray, starts: np.ndarray,
-                 start_velocities: np.ndarray, final_attitude: np.ndarray,
-                 final_velocities: np.ndarray, positions: int, first: int = 0
-                 ) -> AgentChecks:
+def agent_checks(shapes: list[Shape], q: np.ndarray, u: np.ndarray, params: np.ndarray,
+                 positions: int, first: int = 0) -> AgentChecks:
     """The :class:`AgentChecks` of m agents with indices ``first`` … ``first`` + m − 1: each
-    one's shape (``shapes``, m), node paths ``q`` (m, N+1, nq), controls ``u`` (m, N, nu),
-    start configurations and velocities, final attitudes (m, nq − d) and velocities (m, nq)
-    (its boundary data), ``positions`` d. Each agent's numbers are its own: any block of
-    agents gives the rows of the whole fleet's."""
+    one's shape (``shapes``, m), node paths ``q`` (m, N+1, nq; a fleet of DMOC and ODE
+    agents: padded to its widest, each agent's first entries read), controls ``u`` (m, N, nu),
+    its boundary data ``params`` (m, n_params: DMOC's (q_0, q̇_0, q_N, q̇_N), an ODE agent's
+    (x_0, x̄_N)), ``positions`` d. Each agent's numbers are its own: any block of agents
+    gives the rows of the whole fleet's."""
     m = len(q)
-    start = _relative(q[:, 0] - starts, starts)
-    violation = start
-    attitude = None
-    if final_attitude.shape[1]:
-        attitude = _relative(q[:, -1, positions:] - final_attitude, final_attitude)
-        violation = np.maximum(violation, attitude)
-    groups: dict[DmocShape, list[int]] = {}
+    groups: dict[Shape, list[int]] = {}
     for row, shape in enumerate(shapes):
         groups.setdefault(shape, []).append(row)
+    start, attitude = np.empty(m), np.zeros(m)
     momentum, dynamics = np.empty(m), np.empty(m)
+    has_attitude = False
     bounds, path, agents = {}, {}, {}
     for shape, members in groups.items():
         rows = np.array(members)
         agents[shape] = rows + first
-        momentum[rows] = _momentum_residuals(shape, q[rows], u[rows],
-                                             start_velocities[rows], final_velocities[rows])
-        dynamics[rows] = _dynamics_residuals(shape, q[rows], u[rows])
-        qs, us = q[rows], u[rows]
-        h = shape.duration / shape.intervals
+        qs, us, ps = q[rows][..., :shape.node_size], u[rows], params[rows]
+        own = (_ode_checks if isinstance(shape, MsEndpointShape) else _dmoc_checks)(
+            shape, qs, us, ps, positions)
+        start[rows], momentum[rows], dynamics[rows] = own.start, own.momentum, own.dynamics
+        if own.attitude is not None:
+            attitude[rows], has_attitude = own.attitude, True
         if shape.control_bounds is not None:
             lo, hi = np.array(shape.control_bounds).T
             gap = np.maximum(np.maximum(lo - us, us - hi), 0.0)
@@ -397,24 +401,109 @@ def agent_checks(shapes: list[DmocShape], q: np.ndarray, u: np.ndarray, starts: 
             bounds[shape] = np.max(gap / scale, axis=(1, 2))
         worst_path = []
         for constraint in shape.path_constraints:
-            if constraint.depends_on("v", "u"):
-                values = {"q": (qs[:, :-1] + qs[:, 1:]) / 2, "v": (qs[:, 1:] - qs[:, :-1]) / h,
-                          "u": us}
-            else:
-                values = {"q": qs[:, 1:-1]}
-            values = {k: v.reshape(-1, v.shape[-1]) for k, v in values.items()}
+            values = {k: v.reshape(-1, v.shape[-1]) for k, v in own.points(constraint).items()}
             finite = [abs(b) for b in constraint.lower + constraint.upper if math.isfinite(b)]
             gap = constraint.violation(values).reshape(len(rows), -1) / max([1.0, *finite])
             worst_path.append(np.max(gap, axis=1) if gap.size else np.zeros(len(rows)))
         if worst_path:
             path[shape] = np.column_stack(worst_path)
-    violation = np.maximum(violation, np.maximum(momentum, dynamics))
+    violation = np.maximum(np.maximum(start, attitude), np.maximum(momentum, dynamics))
     for shape, rows in agents.items():   # raised to each agent's worst bound and constraint
         local = rows - first
         for worst in ([bounds[shape]] if shape in bounds else []) + (
                 list(path[shape].T) if shape in path else []):
             violation[local] = np.maximum(violation[local], worst)
-    return AgentChecks(start, attitude, momentum, dynamics, bounds, path, agents, violation)
+    return AgentChecks(start, attitude if has_attitude else None, momentum, dynamics, bounds,
+                       path, agents, violation)
+
+
+@dataclass
+class _OwnChecks:
+    """One shape's agents' residuals (m,) (``attitude`` None without such entries) and
+    ``points``: the arguments (by name) at which its transcription imposes a path
+    constraint."""
+
+    start: np.ndarray
+    attitude: np.ndarray | None
+    momentum: np.ndarray
+    dynamics: np.ndarray
+    points: Callable[[CompiledConstraint], dict[str, np.ndarray]]
+
+
+def _dmoc_checks(shape: DmocShape, q: np.ndarray, u: np.ndarray, params: np.ndarray,
+                 positions: int) -> _OwnChecks:
+    """DMOC agents' checks (module docstring)."""
+    nq, h = shape.model.nq, shape.duration / shape.intervals
+    starts, v0 = params[:, :nq], params[:, nq:2 * nq]
+    final_attitude, vn = params[:, 2 * nq + positions:3 * nq], params[:, 3 * nq:4 * nq]
+    attitude = (_relative(q[:, -1, positions:] - final_attitude, final_attitude)
+                if final_attitude.shape[1] else None)
+
+    def points(constraint: CompiledConstraint) -> dict[str, np.ndarray]:
+        if constraint.depends_on("v", "u"):
+            return {"q": (q[:, :-1] + q[:, 1:]) / 2, "v": (q[:, 1:] - q[:, :-1]) / h, "u": u}
+        return {"q": q[:, 1:-1]}
+
+    return _OwnChecks(_relative(q[:, 0] - starts, starts), attitude,
+                      _momentum_residuals(shape, q, u, v0, vn),
+                      _dynamics_residuals(shape, q, u), points)
+
+
+def _ode_checks(shape: MsEndpointShape, x: np.ndarray, u: np.ndarray, params: np.ndarray,
+                positions: int) -> _OwnChecks:
+    """ODE agents' checks: ``start`` the start state, ``attitude`` the end entries the shape
+    fixes other than the position, ``dynamics`` the shooting residuals (:func:`_shooting`),
+    ``momentum`` 0 (DMOC's boundary velocities: an ODE agent's are entries of its states)."""
+    nx = shape.model.nx
+    starts, ends = params[:, :nx], params[:, nx:2 * nx]
+    fixed = [i for i in range(nx) if i not in shape.free_end and i not in
+             shape.position_indices]
+    attitude = (_relative(x[:, -1, fixed] - ends[:, fixed], ends[:, fixed]) if fixed
+                else None)
+
+    def points(constraint: CompiledConstraint) -> dict[str, np.ndarray]:
+        if constraint.depends_on("u"):
+            return {"x": x[:, :-1], "u": u}
+        return {"x": x[:, 1:]}
+
+    return _OwnChecks(_relative(x[:, 0] - starts, starts), attitude, np.zeros(len(x)),
+                      _shooting(shape, x, u), points)
+
+
+@lru_cache(maxsize=32)
+def _rhs(model: object) -> ca.Function:
+    """f(x, u) of an ODE model, built here from the model."""
+    x, u = ca.SX.sym("x", model.nx), ca.SX.sym("u", model.nu)  # type: ignore[attr-defined]
+    return ca.Function("f", [x, u], [model.rhs(x, u)])  # type: ignore[attr-defined]
+
+
+def _shooting(shape: MsEndpointShape, x: np.ndarray, u: np.ndarray) -> np.ndarray:
+    """Per agent (m,) the largest relative shooting residual |x_{k+1} − Φ(x_k, u_k)| /
+    (1 + |x_{k+1}|) over the intervals: the returned controls re-integrated from each
+    returned node by the shape's integrator (``steps`` classical RK4 or Euler steps of
+    h/``steps``), written here in numpy on the model's f (not the transcription's
+    expressions)."""
+    m, n, nx = x.shape[0], shape.intervals, shape.model.nx
+    f = _rhs(shape.model)
+    step = shape.duration / n / shape.steps
+    state = x[:, :-1].reshape(-1, nx)
+    control = u.reshape(-1, u.shape[-1])
+
+    def rate(at: np.ndarray) -> np.ndarray:
+        return evaluate_columns(f, at, control)[0]
+
+    for _ in range(shape.steps):
+        if shape.integrator == "euler":
+            state = state + step * rate(state)
+            continue
+        k1 = rate(state)
+        k2 = rate(state + step / 2 * k1)
+        k3 = rate(state + step / 2 * k2)
+        k4 = rate(state + step * k3)
+        state = state + step / 6 * (k1 + 2 * k2 + 2 * k3 + k4)
+    reached = x[:, 1:].reshape(-1, nx)
+    gap = np.max(np.abs(reached - state) / (1 + np.abs(reached)), axis=1)
+    return np.max(gap.reshape(m, n), axis=1)
 
 
 def _constraint_checks(problem: FormationProblem, checks: AgentChecks) -> dict[str, Check]:
@@ -476,11 +565,8 @@ def verify_formation(problem: FormationProblem, trajectories: np.ndarray,
     start = time.perf_counter()
     q, u = np.asarray(trajectories, float), np.asarray(controls, float)
     n = problem.agents
-    checks = agent_checks(list(problem.shapes), q, u, problem.starts,
-                          problem.start_velocities,
-                          np.broadcast_to(problem.final_attitude,
-                                          (n, len(problem.final_attitude))),
-                          problem.final_velocities(np.arange(n)), problem.curve.dim)
+    checks = agent_checks(list(problem.shapes), q, u,
+                          problem.boundary_params_rows(np.arange(n), phi), problem.curve.dim)
     return verify_checked(problem, problem.positions(q), q[:, -1, :problem.curve.dim], phi,
                           checks, min_separation, backend, time.perf_counter() - start)
 

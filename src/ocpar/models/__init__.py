@@ -16,6 +16,7 @@ from ocpar.models.orbit_raising import OrbitRaising
 from ocpar.models.orbit_transfer import OrbitTransfer
 from ocpar.models.point_mass import PointMass
 from ocpar.models.rigid_spacecraft import RelativeRigidSpacecraft
+from ocpar.models.unicycle import Unicycle
 
 __all__ = [
     "Crtbp",
@@ -29,6 +30,7 @@ __all__ = [
     "OrbitTransfer",
     "PointMass",
     "RelativeRigidSpacecraft",
+    "Unicycle",
     "halo_orbit",
     "lagrangian_model",
     "ode_model",

@@ -19,6 +19,11 @@ class OdeModel(Protocol):
     CasADi objects). ``rhs`` and ``running_cost`` are written with CasADi operations on
     ``casadi.SX`` arguments. A model may also define ``control_bounds()`` (same form as
     ``state_bounds``); without it the controls are unbounded (see :func:`control_bounds`).
+    As a formation's agent (:class:`~ocpar.ocp.MsEndpointShape`) it names its
+    ``position_indices`` (the state entries placed on the target) and may define
+    ``guess(starts, ends, times)``: states (k, N+1, nx) and controls (k, N, nu) from the
+    start and end states (k, nx) at the node times (N+1,), the inner solves' first guess
+    (without it: the straight line, zero controls).
     """
 
     @property

@@ -14,7 +14,8 @@ batched form (one mapped solver call per chunk where the transcription offers
 - :mod:`ocpar.ocp.dmoc`: discrete mechanics and optimal control (Lagrangian systems),
   p = (q_0, q̇_0, q_N, q̇_N);
 - :mod:`ocpar.ocp.multiple_shooting`: direct multiple shooting, Euler or RK4 (ODE models,
-  fixed or free final time), p = (x_0, target);
+  fixed or free final time), p = (x_0, target); :mod:`ocpar.ocp.ms_endpoint` the same between
+  two given states, a formation's ODE agent, p = (x_0, x̄_N);
 - :mod:`ocpar.ocp.dfet_ocp`: direct finite elements in time (ODE models, free or fixed final
   time), p = (x_0, target); :mod:`ocpar.ocp.dfet` holds its weak form and the state solver
   that MACS uses.
@@ -36,6 +37,7 @@ from ocpar.ocp.contract import (
 from ocpar.ocp.dfet import DfetShape, DfetTranscription, dfet_problem
 from ocpar.ocp.dfet_ocp import DfetOcpShape, DfetOcpTranscription, DfetSolution, dfet_ocp_problem
 from ocpar.ocp.dmoc import DmocShape, DmocSolution, DmocTranscription, dmoc_problem
+from ocpar.ocp.ms_endpoint import MsEndpointShape, MsEndpointSolution, MsEndpointTranscription
 from ocpar.ocp.multiple_shooting import MsShape, MsSolution, MsTranscription, ms_problem
 
 __all__ = [
@@ -51,6 +53,9 @@ __all__ = [
     "DmocSolution",
     "DmocTranscription",
     "InnerSolution",
+    "MsEndpointShape",
+    "MsEndpointSolution",
+    "MsEndpointTranscription",
     "MsShape",
     "MsSolution",
     "MsTranscription",

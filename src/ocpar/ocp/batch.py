@@ -191,9 +191,12 @@ def _complementarity(lam: np.ndarray, value: np.ndarray, lower: np.ndarray,
 class BufferedFunction:
     """A CasADi Function called through preallocated numpy buffers: converting numpy arrays to
     and from CasADi's DM costs ~0.3 µs per element, more than a small solve's arithmetic.
-    Inputs and outputs are dense vectors (matrices column-major); one call at a time."""
+    Inputs and outputs are dense vectors (matrices column-major); one call at a time. An
+    evaluation that fails (e.g. a singular KKT matrix in a linear solve) raises RuntimeError,
+    as a direct call does: its outputs would be left at zero."""
 
     def __init__(self, function: ca.Function) -> None:
+        self._name = function.name()
         self._buffer, self._evaluate = function.buffer()
         self._inputs = [np.zeros(function.nnz_in(i)) for i in range(function.n_in())]
         self._outputs = [np.zeros(function.nnz_out(i)) for i in range(function.n_out())]
@@ -207,6 +210,8 @@ class BufferedFunction:
         for array, value in zip(self._inputs, args, strict=True):
             array[:] = value
         self._evaluate()
+        if self._buffer.ret():
+            raise RuntimeError(f"{self._name}: evaluation failed")
         return [array.copy() for array in self._outputs]
 
 

@@ -362,6 +362,29 @@ class DmocShape:
         """Length of p: the boundary data (q_0, q̇_0, q_N, q̇_N), then the keep-out block."""
         return 4 * self.model.nq + self.n_keep_out
 
+    # the agent-shape interface of :mod:`ocpar.ocp.endpoint_agents`
+
+    @property
+    def boundary_size(self) -> int:
+        """Entries of each boundary state in p = (start, end, …): (q, q̇), 2 nq."""
+        return 2 * self.model.nq
+
+    @property
+    def node_size(self) -> int:
+        """Entries of a node of the returned path ``q``: the configuration's nq."""
+        return self.model.nq
+
+    def end_position_entries(self, d: int) -> np.ndarray:
+        """The entries of the end state (and of ``end_hessian``'s rows) a d-dimensional
+        target fixes: the first d of q_N."""
+        return np.arange(d)
+
+    def previous_guesses(self, q: np.ndarray, u: np.ndarray) -> np.ndarray:
+        """The guesses (k, inner nodes and controls) that re-solve from node paths
+        q (k, N+1, nq) and controls u (k, N, nu)."""
+        k = len(q)
+        return np.hstack([q[:, 1:-1].reshape(k, -1), u.reshape(k, -1)])
+
     def build(self) -> DmocTranscription:
         """The transcription of this shape (see :func:`~ocpar.ocp.transcription`)."""
         return DmocTranscription(self)

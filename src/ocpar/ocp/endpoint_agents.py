@@ -1,13 +1,19 @@
-"""DMOC agents whose end position an outer problem chooses, as resident agents
+"""Agents whose end position an outer problem chooses, as resident agents
 (:mod:`ocpar.bsp.resident`): each agent's inner solution stays on the worker that computed
 it, and a superstep moves only what the outer step needs (the formation's outer objective,
 :class:`~ocpar.formation.hierarchical.OuterObjective`).
 
-An agent's first task (an :class:`AgentTask`) carries its DMOC shape (shared by a chunk's
-agents) and its boundary data p = (q_0, q̇_0, q_N, q̇_N) (4 nq numbers); later tasks only the
-position part of q_N (the first d entries, d numbers), the rest of p being fixed. Back comes
-an :class:`AgentOutcome` (J*, dJ*/dq_N, the end Hessian's position block, success, status,
-attempts: 1 + nq + d² numbers and three small ones). The agent's :class:`AgentState` (its
+An agent's shape is any transcription with the agent-shape interface: a
+:class:`~ocpar.ocp.DmocShape` (p = (q_0, q̇_0, q_N, q̇_N), 4 nq numbers) or a
+:class:`~ocpar.ocp.ms_endpoint.MsEndpointShape` (an ODE model by multiple shooting,
+p = (x_0, x̄_N)): p begins with the start and end states of ``boundary_size`` entries each,
+the end's position entries are ``end_position_entries(d)``, a solution has ``cost_gradient``
+dJ*/dp, ``end_hessian`` (the end state's block), the path ``q`` and controls ``u``, and
+``previous_guesses(q, u)`` re-solves from them. An agent's first task (an
+:class:`AgentTask`) carries its shape (shared by a chunk's agents) and its boundary data p;
+later tasks only its end position (d numbers), the rest of p being fixed. Back comes an
+:class:`AgentOutcome` (J*, dJ*/d(end position), the end Hessian's position block, success,
+status, attempts: 1 + d + d² numbers and three small ones). The agent's :class:`AgentState` (its
 :class:`~ocpar.ocp.DmocSolution`: paths, controls, multipliers; and its boundary data) stays
 on its worker: the solution is the next solve's fallback start (the failure policy of
 :func:`~ocpar.ocp.solve_tasks`), or, for a shape with ellipsoid obstacles
@@ -32,7 +38,7 @@ import numpy as np
 from ocpar.bsp.columns import LISTED, SHARED, STACKED, Columns, to_columns
 from ocpar.bsp.kernel import run_chunk
 from ocpar.ocp.contract import OcpTask, Shape
-from ocpar.ocp.dmoc import DmocShape, DmocSolution
+from ocpar.ocp.dmoc import DmocSolution
 
 #: The engine kernel the agents' solves go through (so that the kernel hook
 #: :data:`~ocpar.bsp.kernel.WRAPPER_VARIABLE` applies to them as to any superstep's).
@@ -41,11 +47,10 @@ INNER_KERNEL = "ocpar.ocp:solve_tasks"
 
 @dataclass(frozen=True)
 class AgentTask:
-    """One agent's inner solve in a superstep: its DMOC ``shape``; on its first task its
-    boundary data ``params`` p = (q_0, q̇_0, q_N, q̇_N) (4 nq,) and ``end`` None, later
-    ``params`` None and ``end`` the position part of q_N (d,) (the first d entries of q_N:
-    the rest of p is kept from the first task); ``positions`` d, the number of leading
-    configuration entries (the curve's dimension)."""
+    """One agent's inner solve in a superstep: its ``shape`` (module docstring); on its
+    first task its boundary data ``params`` p (n_params,) and ``end`` None, later ``params``
+    None and ``end`` its end position (d,) (the rest of p is kept from the first task);
+    ``positions`` d, the target's dimension."""
 
     shape: Shape
     params: np.ndarray | None
@@ -55,8 +60,8 @@ class AgentTask:
 
 @dataclass
 class AgentState(DmocSolution):
-    """What stays on an agent's worker: its latest solution and its boundary data ``params``
-    (4 nq,) of that solve."""
+    """What stays on an agent's worker: its latest solution (a DMOC or multiple-shooting
+    one: the same fields) and its boundary data ``params`` (n_params,) of that solve."""
 
     params: np.ndarray
 
@@ -64,8 +69,9 @@ class AgentState(DmocSolution):
 @dataclass
 class AgentOutcome:
     """What the outer step needs of one agent's solve: ``cost`` J* (NaN on failure),
-    ``end_gradient`` dJ*/dq_N (nq,), ``end_hessian`` the position block of d²J*/dq_N²
-    (d, d), ``success``, the solver's ``status`` and the failure policy's ``attempts``."""
+    ``end_gradient`` dJ*/d(end position) (d,), ``end_hessian`` the position block of the
+    end state's d²J* (d, d), ``success``, the solver's ``status`` and the failure policy's
+    ``attempts``."""
 
     cost: float
     end_gradient: np.ndarray
@@ -80,32 +86,41 @@ def solve_agents(tasks: Columns, states: Columns | None) -> tuple[Columns, Colum
     each falling back to its previous solution (``states``: Columns of :class:`AgentState`;
     None on the first task: no fallback). Returns their :class:`AgentOutcome` and their new
     :class:`AgentState` (the new states)."""
+    kinds = _kinds(tasks)
+    if kinds is not None:   # DMOC and ODE agents: each kind on its own, joined in order
+        parts = [solve_agents(tasks.take(rows), None if states is None else states.take(rows))
+                 for rows in kinds]
+        order = np.empty(len(tasks), np.intp)
+        order[np.concatenate(kinds)] = np.arange(len(tasks))
+        return tuple(Columns.concat([part[j] for part in parts]).take(order)  # type: ignore
+                     for j in range(2))
     k = len(tasks)
     d = int(tasks.column("positions")[0])  # the curve's dimension: every agent's
+    shape = _first_shape(tasks)   # a fleet's shapes of one kind share their layout
+    entries = shape.end_position_entries(d)
+    ends = shape.boundary_size + entries   # the end position's entries of p
     fallback: tuple[str, object] = (SHARED, None)
     warm: tuple[str, object] = (SHARED, None)
     if states is None:
         params = np.asarray(tasks.column("params"), float)
     else:
-        q, u = np.asarray(states.column("q")), np.asarray(states.column("u"))
-        previous = np.hstack([q[:, 1:-1].reshape(k, -1), u.reshape(k, -1)])
+        previous = shape.previous_guesses(np.asarray(states.column("q")),
+                                          np.asarray(states.column("u")))
         fallback = (STACKED, previous)
         params = np.array(states.column("params"), float)
-        start = 2 * (params.shape[1] // 4)   # q_N's first entry in p = (q_0, q̇_0, q_N, q̇_N)
-        params[:, start: start + d] = tasks.column("end")
+        params[:, ends] = tasks.column("end")
         warm, fallback = _from_previous(tasks, previous, fallback)
     inner = Columns(cls=OcpTask, length=k, fields={
         "shape": tasks.fields["shape"], "params": (STACKED, params),
         "warm_start": warm, "multipliers": (SHARED, None), "fallback": fallback})
     solutions = to_columns(run_chunk(INNER_KERNEL, inner).results)
     assert isinstance(solutions, Columns)
-    nq = params.shape[1] // 4
-    gradient = np.asarray(solutions.column("cost_gradient"))[:, 2 * nq: 3 * nq]
+    gradient = np.asarray(solutions.column("cost_gradient"))[:, ends]
+    hessian = np.asarray(solutions.column("end_hessian"))[:, entries[:, None], entries]
     outcome = Columns(cls=AgentOutcome, length=k, fields={
         "cost": solutions.fields["cost"],
         "end_gradient": (STACKED, np.ascontiguousarray(gradient)),
-        "end_hessian": (STACKED, np.ascontiguousarray(
-            np.asarray(solutions.column("end_hessian"))[:, :d, :d])),
+        "end_hessian": (STACKED, np.ascontiguousarray(hessian)),
         "success": solutions.fields["success"],
         "status": solutions.fields["status"],
         "attempts": solutions.fields["attempts"],
@@ -115,10 +130,33 @@ def solve_agents(tasks: Columns, states: Columns | None) -> tuple[Columns, Colum
     return outcome, states
 
 
+def _kinds(tasks: Columns) -> list[np.ndarray] | None:
+    """The rows of each kind of shape (class) among ``tasks``, in order of first use; None
+    where there is one kind (the states of a fleet mixing them have paths of different
+    sizes: Columns keep them as a list)."""
+    kind, shapes = tasks.fields["shape"]
+    if kind == SHARED:
+        return None
+    classes = [type(shape) for shape in shapes]
+    if len(set(classes)) == 1:
+        return None
+    groups: dict[type, list[int]] = {}
+    for row, cls in enumerate(classes):
+        groups.setdefault(cls, []).append(row)
+    return [np.asarray(rows) for rows in groups.values()]
+
+
+def _first_shape(tasks: Columns) -> Shape:
+    """The shape of the first of ``tasks`` (Columns of :class:`AgentTask`)."""
+    kind, shapes = tasks.fields["shape"]
+    return shapes if kind == SHARED else shapes[0]
+
+
 def _from_previous(tasks: Columns, previous: np.ndarray, fallback: tuple[str, object]
                    ) -> tuple[tuple[str, object], tuple[str, object]]:
     """The inner tasks' ``warm_start`` and ``fallback`` columns: an agent whose shape
-    :attr:`~ocpar.ocp.DmocShape.resolves_from_previous` (obstacles) starts from its previous
+    :attr:`~ocpar.ocp.DmocShape.resolves_from_previous` (obstacles; every ODE agent) starts
+    from its previous
     solution ``previous`` (k, nw) where that is finite (no fallback: it is that solution);
     the others from the default guess with ``previous`` as their fallback, as of old."""
     kind, shapes = tasks.fields["shape"]
@@ -137,16 +175,16 @@ def _from_previous(tasks: Columns, previous: np.ndarray, fallback: tuple[str, ob
             (LISTED, [None if w else p for p, w in zip(previous, warm, strict=True)]))
 
 
-def agent_tasks(shapes: DmocShape | Sequence[DmocShape], positions: int,
+def agent_tasks(shapes: Shape | Sequence[Shape], positions: int,
                 params: np.ndarray | None = None, end: np.ndarray | None = None) -> Columns:
     """Columns of :class:`AgentTask`, one per agent: their first tasks given their boundary
-    data ``params`` (n, 4 nq), later ones given the position part of q_N ``end`` (n, d =
+    data ``params`` (n, n_params), later ones given their end positions ``end`` (n, d =
     ``positions``) instead. ``shapes``: one shape for all, or one per agent."""
     rows = params if params is not None else end
     if rows is None or (params is None) == (end is None):
         raise ValueError("agent_tasks needs either params or end")
-    shape_column = ((SHARED, shapes) if isinstance(shapes, DmocShape)
-                    else (LISTED, list(shapes)))
+    shape_column = ((LISTED, list(shapes)) if isinstance(shapes, tuple | list)
+                    else (SHARED, shapes))
     return Columns(cls=AgentTask, length=len(rows), fields={
         "shape": shape_column,
         "params": (SHARED, None) if params is None else (STACKED, params),

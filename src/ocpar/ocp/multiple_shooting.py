@@ -411,7 +411,11 @@ class MsTranscription:
             return to_columns([self.solve(*row)  # type: ignore[return-value]
                                for row in zip(params, guesses, lams, strict=True)])
         start = time.perf_counter()
-        outputs = self.newton_batch(k)(guesses.ravel(), lams.ravel(), params.ravel())
+        try:
+            outputs = self.newton_batch(k)(guesses.ravel(), lams.ravel(), params.ravel())
+        except RuntimeError:   # a singular KKT matrix in a column: each on its own
+            return to_columns([self.solve(*row)  # type: ignore[return-value]
+                               for row in zip(params, guesses, lams, strict=True)])
         share = (time.perf_counter() - start) / k
         columns = [output.reshape(k, -1) for output in outputs]
         return to_columns([  # type: ignore[return-value]
@@ -455,7 +459,11 @@ class MsTranscription:
             if first_round is not None and steps == NEWTON_STEPS:
                 w, lam, cost, g, dual, cost_gradient = first_round[0]
             else:
-                w, lam, cost, g, dual, cost_gradient = self.newton(w, lam, params)
+                try:
+                    w, lam, cost, g, dual, cost_gradient = self.newton(w, lam, params)
+                except RuntimeError:   # a singular KKT matrix
+                    status = "Newton_Failed"
+                    break
             violation = float(np.max(np.abs(g)))
             if not (np.all(np.isfinite(w)) and np.all(np.isfinite(lam))):
                 status = "Newton_Diverged"
