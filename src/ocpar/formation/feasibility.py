@@ -235,8 +235,9 @@ def inner_costs(problem: FormationProblem, backend: Backend, agents: np.ndarray,
         success = np.asarray(sols.column("success"), dtype=bool)
         solved = np.asarray(sols.column("cost"), dtype=float)
         costs[todo[success]] = solved[success]
-        nq = problem.common_shape.model.nq
-        gradient = np.asarray(sols.column("cost_gradient"), float)[:, 2 * nq: 2 * nq + d]
+        shape = problem.common_shape   # the end position's entries of p: every agent's
+        ends = shape.boundary_size + shape.end_position_entries(d)
+        gradient = np.asarray(sols.column("cost_gradient"), float)[:, ends]
         gradients[todo[success]] = gradient[success]
         bad = np.flatnonzero(~success)
         failed = len(bad)
