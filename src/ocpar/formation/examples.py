@@ -6,7 +6,7 @@ from __future__ import annotations
 from collections.abc import Callable
 from dataclasses import dataclass
 
-from ocpar.examples import formation_halo, formation_point_masses
+from ocpar.examples import formation_cw, formation_halo, formation_point_masses
 from ocpar.formation.problem import FormationProblem
 
 
@@ -27,6 +27,10 @@ EXAMPLES = {
     "crtbp-rigid": Example(
         lambda n, r: formation_halo.make(agents=n, radius_km=r), 30, 1.0,
         "rigid spacecraft about the Sun-Earth L2 halo (Fig. 5), radius in km"),
+    "cw-ring": Example(
+        lambda n, r: formation_cw.make(agents=n, radius=r), 6, 100.0,
+        "Clohessy-Wiltshire spacecraft in low Earth orbit from the V-bar onto a ring of hold "
+        "points about the target in half an orbit, radius in m"),
 }
 
 

@@ -97,7 +97,7 @@ def plot_formation(problem: FormationProblem, result: FormationResult, path: Pat
 def _position_labels(problem: FormationProblem) -> list:
     """The position axes' names and units (the configuration's first entries)."""
     model = problem.common_shape.model
-    return components((problem, model), "configuration", model.nq, "x")
+    return components((problem, model), "configuration", problem.common_shape.node_size, "x")
 
 
 #: Agents whose thrust the picture draws over time: those of the largest peaks.

@@ -1,6 +1,7 @@
 """Models: mechanical systems (Lagrangians, for DMOC) and controlled ODEs (for multiple
 shooting), as small hashable value objects."""
 
+from ocpar.models.clohessy_wiltshire import ClohessyWiltshire
 from ocpar.models.crtbp import Crtbp, HaloOrbit, halo_orbit
 from ocpar.models.goddard import GoddardAscent
 from ocpar.models.mechanical import MechanicalSystem
@@ -12,6 +13,7 @@ from ocpar.models.rigid_spacecraft import RelativeRigidSpacecraft
 from ocpar.models.unicycle import Unicycle
 
 __all__ = [
+    "ClohessyWiltshire",
     "Crtbp",
     "GoddardAscent",
     "HaloOrbit",
