@@ -59,7 +59,8 @@ class ClohessyWiltshire:
         n = self.mean_motion
         if isinstance(n, bool) or not isinstance(n, int | float | np.floating | np.integer) \
                 or not (np.isfinite(n) and n > 0):
-            raise ValueError(f"mean_motion: must be a positive number (rad per time unit), got {n!r}")
+            raise ValueError(f"mean_motion: must be a positive number (rad per time unit), "
+                             f"got {n!r}")
         object.__setattr__(self, "mean_motion", float(n))
         for name in ("length_unit", "time_unit"):
             unit = getattr(self, name)
