@@ -434,7 +434,7 @@ def optimal_ordering(
     if not outcomes:
         objective.close()
         raise failure
-    kinds = {end_cost_convexity(shape) for shape in problem.shapes}
+    kinds = {end_cost_convexity(shape) for shape in problem.agents_by_shape()}
     proof = None
     if None not in kinds:
         def polish(assignment: np.ndarray, offset: float) -> float:
