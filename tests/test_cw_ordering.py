@@ -39,7 +39,8 @@ def _random_starts() -> np.ndarray:
 
 
 class ClosedForm:
-    """Each agent's optimum ending at rest at z(φ) on the circle, in closed form: the
+    """Each agent's optimum ending at z(φ) on the circle, at rest or (a free end velocity)
+    with the velocity minimised out, in closed form: the
     least-norm controls U of x_N = Φᴺ x_0 + Σ_j Φᴺ⁻¹⁻ʲ Γ u_j, J = h Σ_j |u_j|² (RK4 of
     ẋ = A x + B u with u constant on an interval: Φ = Σ_{k≤4} (hA)ᵏ/k!,
     Γ = h Σ_{k≤3} (hA)ᵏ/(k+1)! B, and RK4's quadrature of |u|² is h |u|²)."""
@@ -56,17 +57,19 @@ class ClosedForm:
         powers = [np.linalg.matrix_power(self.h * a, k) for k in range(5)]
         phi = sum(p / math.factorial(k) for k, p in enumerate(powers))
         gamma = self.h * sum(p / math.factorial(k + 1) for k, p in enumerate(powers[:4])) @ b
+        # the end rows fixed: all six, or the position alone where the velocity is free
+        self.rows = [i for i in range(6) if i not in shape.free_end]
         self.g = np.hstack([np.linalg.matrix_power(phi, steps - 1 - j) @ gamma
-                            for j in range(steps)])                          # (6, 3N)
+                            for j in range(steps)])[self.rows]               # (rows, 3N)
         self.weight = np.linalg.inv(self.g @ self.g.T)
-        self.drift = problem.starts @ np.linalg.matrix_power(phi, steps).T   # (6, 6)
+        self.drift = (problem.starts @ np.linalg.matrix_power(phi, steps).T)[:, self.rows]
         self.radius = problem.curve.radius
 
     def _gaps(self, angles: np.ndarray) -> np.ndarray:
-        """x_N − Φᴺ x_0 (6 agents, len(angles), 6)."""
+        """x_N − Φᴺ x_0 in the fixed rows (6 agents, len(angles), rows): at rest at z(φ)."""
         ends = np.zeros((len(angles), 6))
         ends[:, 0], ends[:, 1] = self.radius * np.cos(angles), self.radius * np.sin(angles)
-        return ends[None, :, :] - self.drift[:, None, :]
+        return ends[None, :, self.rows] - self.drift[:, None, :]
 
     def costs(self, angles: np.ndarray) -> np.ndarray:
         """Ĵ (6, len(angles)) of each agent ending at each angle (rad)."""
@@ -111,9 +114,21 @@ def backend():
     return SerialBackend()
 
 
-@pytest.mark.parametrize("starts", ["v-bar", "scattered"])
-def test_six_cw_spacecraft_ordering_is_proven_and_brute_force(backend, starts):
-    problem = formation_cw.make(starts=None if starts == "v-bar" else _random_starts())
+def _free_velocity(problem: FormationProblem) -> FormationProblem:
+    """``problem`` with the end velocity free (the spacecraft arrive moving)."""
+    shape = problem.common_shape
+    return FormationProblem(
+        name="cw-free-velocity", curve=problem.curve, starts=problem.starts,
+        shape=MsEndpointShape(shape.model, intervals=shape.intervals,
+                              duration=shape.duration, free_end=(3, 4, 5)),
+        final_state=np.full(3, np.nan))
+
+
+@pytest.mark.parametrize("case", ["v-bar", "scattered", "free end velocity"])
+def test_six_cw_spacecraft_ordering_is_proven_and_brute_force(backend, case):
+    problem = formation_cw.make(starts=_random_starts() if case == "scattered" else None)
+    if case == "free end velocity":
+        problem = _free_velocity(problem)
     result = optimal_ordering(problem, backend)
     assert result.bound == "quadratic" and result.proven and result.gap <= 1e-9
     optimum, optima = brute_force(problem)
