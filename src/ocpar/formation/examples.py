@@ -6,7 +6,12 @@ from __future__ import annotations
 from collections.abc import Callable
 from dataclasses import dataclass
 
-from ocpar.examples import formation_halo, formation_point_masses, formation_unicycles
+from ocpar.examples import (
+    formation_cw,
+    formation_halo,
+    formation_point_masses,
+    formation_unicycles,
+)
 from ocpar.formation.problem import FormationProblem
 
 
@@ -31,6 +36,10 @@ EXAMPLES = {
         lambda n, r: formation_unicycles.make(agents=n, radius=r), 6, 3.0,
         "ground robots with unicycle kinematics (multiple shooting) from a line onto a "
         "circle, stopping there"),
+    "cw-ring": Example(
+        lambda n, r: formation_cw.make(agents=n, radius=r), 6, 100.0,
+        "Clohessy-Wiltshire spacecraft in low Earth orbit from the V-bar onto a ring of hold "
+        "points about the target in half an orbit, radius in m"),
 }
 
 

@@ -29,7 +29,9 @@ filled in ONE superstep) hold every agent's cost Ĵ_i at M·n equally spaced ang
 whole circle. Their trigonometric interpolant gives every table at every offset and every
 ordering's J(σ, ·) without further inner solves. It is exact when Ĵ_i(φ) is a trigonometric
 polynomial of degree < M·n/2: Ĵ_i is quadratic in the final position for both examples (a
-double integrator; linearised relative motion with a fixed final attitude), i.e. of degree
+double integrator; linearised relative motion with a fixed final attitude), and for
+linear–quadratic ODE agents (e.g. Clohessy–Wiltshire spacecraft) J* is a quadratic of the
+whole end state, which on a circle is affine in (cos φ, sin φ); either way of degree
 2 in φ, so 5 samples would do; M = ⌈:data:`MIN_SAMPLES` / n⌉ leaves a margin for smooth
 nonlinear inner problems and costs a single table from 16 agents on. On the surrogate, the
 assignment is scanned at :data:`FINE_OFFSETS` offsets per slot width, a coordinate descent
@@ -42,7 +44,8 @@ global optimum.
 
 Hence the proof that follows it (:mod:`~ocpar.formation.ordering_bound`): where every inner
 problem is convex in its end position (:func:`~ocpar.ocp.reach.end_cost_convexity`: point
-masses, free or with box or norm thrust limits), a branch and bound over the offset with
+masses and linear–quadratic ODE agents such as Clohessy–Wiltshire spacecraft, free or with
+box or norm thrust limits), a branch and bound over the offset with
 assignment lower bounds on intervals finds the global optimum over assignments and rotation
 and proves it to a relative gap (:data:`~ocpar.formation.ordering_bound.GAP_TOL`), or stops
 at its budget of rounds with the gap it proved. Elsewhere (obstacles, other models) no bound
@@ -89,6 +92,11 @@ ORDERINGS = ("keep", "optimal")
 #: Angles per agent round the circle sampled by the multi-start tables (at least): the
 #: surrogate resolves costs Ĵ_i(φ) up to degree 7 in φ.
 MIN_SAMPLES = 16
+
+#: A convex quadratic inner cost (:data:`~ocpar.ocp.reach.QUADRATIC`) is a trigonometric
+#: polynomial of this degree in the angle on a circle: the surrogate is exact for it with
+#: more than twice as many samples per agent.
+QUADRATIC_DEGREE = 2
 
 #: Offsets per slot width at which the surrogate's assignment is scanned for candidates.
 FINE_OFFSETS = 32
@@ -426,7 +434,7 @@ def optimal_ordering(
     if not outcomes:
         objective.close()
         raise failure
-    kinds = {end_cost_convexity(shape) for shape in problem.shapes}
+    kinds = {end_cost_convexity(shape) for shape in problem.agents_by_shape()}
     proof = None
     if None not in kinds:
         def polish(assignment: np.ndarray, offset: float) -> float:
@@ -437,7 +445,8 @@ def optimal_ordering(
                 return math.inf
             return outcomes[-1]["total_cost"]
 
-        exact = kinds == {QUADRATIC} and surrogate is not None
+        exact = kinds == {QUADRATIC} and surrogate is not None \
+            and surrogate.samples > 2 * QUADRATIC_DEGREE
         bounds = SurrogateBounds(surrogate, scanned) if exact \
             else PlaneBounds(problem, backend, base, (offsets, seed))
         best = min(o["total_cost"] for o in outcomes)

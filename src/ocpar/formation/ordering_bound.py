@@ -15,17 +15,26 @@ interval is at an end: min(LAP(V), LAP(V ± S ℓ − ½ K ℓ²)) is a lower bo
 optimum need not be tiny. P comes from what is known of the inner problem
 (:func:`~ocpar.ocp.reach.end_cost_convexity`):
 
-* **convex** (point masses with box or norm thrust limits): Ĵ_i is convex in the end position
-  z and each solve returns its derivative g = dĴ/dz, so every solved point (z₀, Ĵ₀, g) gives a
-  supporting plane Ĵ_i(z) ≥ Ĵ₀ + g·(z − z₀), valid wherever agent i can go; on the circle
-  z(φ) = c + r (cos φ e₀ + sin φ e₁) it is a sinusoid of φ with |P″| ≤ r |(g·e₀, g·e₁)|. At an
-  end where the pair is feasible P is its own plane (V = Ĵ, exact); where it is not (outside the
-  exact reach set, or a failed solve) the plane of the agent's solved point nearest on the
-  circle. A pair whose reach excess e (1-Lipschitz in z, ≤ 0 where reachable) is positive at
-  both ends with e_a + e_b > r ℓ is infeasible on the whole interval: +∞.
-* **quadratic** (no inequalities): Ĵ_i(φ) is a trigonometric polynomial of degree 2 and the
-  surrogate of the multi-start tables (:class:`~ocpar.formation.ordering.CostSurrogate`) is
-  exact; K_i = Σ_k k² |c_k| bounds its second derivative, so Ĵ_ij lies above its chord on
+* **convex** (point masses, or linear–quadratic ODE agents, with box or norm thrust limits):
+  Ĵ_i is convex in the end position z (the rest of p held fixed: the restriction of a convex
+  function) and each solve returns its derivative g = dĴ/dz, so every solved point (z₀, Ĵ₀,
+  g) gives a supporting plane Ĵ_i(z) ≥ Ĵ₀ + g·(z − z₀), valid wherever agent i can go; on
+  the circle z(φ) = c + r (cos φ e₀ + sin φ e₁) it is a sinusoid of φ with |P″| ≤ r |(g·e₀,
+  g·e₁)|. At an end where the pair is feasible P is its own plane (V = Ĵ, exact); where it
+  is not (outside the exact reach set, or a failed solve) the plane of the agent's solved
+  point nearest on the circle. A pair whose reach excess e (1-Lipschitz in z, ≤ 0 where
+  reachable) is positive at both ends with e_a + e_b > r ℓ is infeasible on the whole
+  interval: +∞.
+* **quadratic** (no inequalities): J*_i is a convex quadratic of its boundary data p, and
+  the parts of p that vary with φ are affine in (cos φ, sin φ): a point mass's end position
+  z(φ) = c + r (cos φ e₀ + sin φ e₁); an ODE agent's end state, z(φ) in its position entries
+  and the fixed ``final_state`` elsewhere (free entries minimised out, which keeps J* a
+  convex quadratic of the rest), its start fixed. So Ĵ_i(φ) = J*_i(p(φ)) is a trigonometric
+  polynomial of degree 2 whatever the agent's quadratic form (no structure such as a
+  dependence on the displacement alone is used), and the surrogate of the multi-start
+  tables (:class:`~ocpar.formation.ordering.CostSurrogate`, L > 4 samples of each agent
+  round the circle) is exact: it interpolates each agent's own solved costs;
+  K_i = Σ_k k² |c_k| bounds its second derivative, so Ĵ_ij lies above its chord on
   [a, b] less K_i ℓ²/8, and the bound is min(F(a), F(b)) − Σ_i K_i ℓ²/8 (a shift of a row
   does not change the best assignment): no inner solves, one LAP per offset.
 

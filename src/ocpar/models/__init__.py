@@ -2,6 +2,7 @@
 shooting), as small hashable value objects; :func:`ode_model` and :func:`lagrangian_model`
 build either from CasADi expressions (:mod:`ocpar.models.expressions`)."""
 
+from ocpar.models.clohessy_wiltshire import ClohessyWiltshire
 from ocpar.models.crtbp import Crtbp, HaloOrbit, halo_orbit
 from ocpar.models.expressions import (
     ExpressionLagrangian,
@@ -19,6 +20,7 @@ from ocpar.models.rigid_spacecraft import RelativeRigidSpacecraft
 from ocpar.models.unicycle import Unicycle
 
 __all__ = [
+    "ClohessyWiltshire",
     "Crtbp",
     "ExpressionLagrangian",
     "ExpressionOde",

@@ -27,6 +27,7 @@ import numpy as np
 
 from ocpar.models import PointMass
 from ocpar.ocp.dmoc import DmocShape, DmocTranscription
+from ocpar.ocp.linear_quadratic import is_linear_quadratic
 from ocpar.ocp.ms_endpoint import MsEndpointShape
 
 #: A path constraint reads as c |u|² when its Hessian in u is c·2I to this relative tolerance.
@@ -118,20 +119,35 @@ QUADRATIC, CONVEX = "quadratic", "convex"
 
 
 def end_cost_convexity(shape: DmocShape | MsEndpointShape) -> str | None:
-    """Whether the optimal cost J* of ``shape``'s DMOC NLP is convex in its boundary data p
-    (so in the end position q_N): ``"quadratic"`` (:data:`QUADRATIC`) for a point mass
-    without inequalities (linear equations, cost h Σ|u_k|²: J* is a convex quadratic of p),
-    ``"convex"`` (:data:`CONVEX`) for a point mass whose only inequalities are control bounds
-    (a box) and norm limits c |u|² ≤ b of ``u`` alone (each a convex set: J* is the
-    minimum of a convex function over a convex set that moves linearly with p, so convex
-    in p, and a solve's dJ*/dp is a subgradient: J*(p) ≥ J*(p₀) + dJ*/dp(p₀)·(p − p₀)
-    wherever J* is finite), None otherwise: other models, a running cost, keep-out slots,
-    obstacles (non-convex) or other path constraints (not claimed). An ODE agent
-    (:class:`~ocpar.ocp.MsEndpointShape`) is ``"quadratic"`` where its model is linear in
-    (x, u), its running cost a convex quadratic of (x, u), strictly convex in u, and it has
-    no inequalities (:func:`_linear_quadratic`), else None."""
+    """Whether the optimal cost J* of ``shape``'s inner NLP is convex in its boundary data p
+    (so in the end position): :data:`QUADRATIC` where J* is a convex quadratic of p,
+    :data:`CONVEX` where it is convex, None where nothing is claimed.
+
+    * DMOC (:class:`~ocpar.ocp.DmocShape`): ``"quadratic"`` for a point mass without
+      inequalities (linear equations, cost h Σ|u_k|²: J* is a convex quadratic of p),
+      ``"convex"`` for a point mass whose only inequalities are control bounds (a box) and
+      norm limits c |u|² ≤ b of ``u`` alone; None for other models, a running cost, keep-out
+      slots, obstacles (non-convex) or other path constraints (not claimed).
+    * Multiple shooting between two states (:class:`~ocpar.ocp.MsEndpointShape`): a
+      linear–quadratic model (:func:`~ocpar.ocp.linear_quadratic.is_linear_quadratic`:
+      ẋ = A x + B u + c, a convex quadratic running cost bounded below; e.g.
+      :class:`~ocpar.models.ClohessyWiltshire`) makes the NLP a convex quadratic programme in
+      (w, p) jointly, its rows affine in both. Without inequalities ``"quadratic"``: J*(p) is
+      the minimum over w of a convex quadratic bounded below on an affine set that moves
+      affinely with p, attained, with the KKT conditions linear in (w, λ, p), so a convex
+      quadratic of p (where the end is reachable at all; +∞ elsewhere). With control bounds
+      and norm limits c |u|² ≤ b of ``u`` alone ``"convex"``; None for a nonlinear model
+      (e.g. :class:`~ocpar.models.Unicycle`) or any other path constraint.
+
+    Convex: J* is the minimum of a convex function of (w, p) over a convex set in (w, p)
+    (the equations affine, each limit a convex set of w), so convex in p, and a solve's
+    dJ*/dp is a subgradient: J*(p) ≥ J*(p₀) + dJ*/dp(p₀)·(p − p₀) wherever J* is finite."""
     if isinstance(shape, MsEndpointShape):
-        return QUADRATIC if _linear_quadratic(shape) else None
+        nu = shape.model.nu
+        if not is_linear_quadratic(shape.model) \
+                or any(_norm_limit(c, nu) is None for c in shape.path_constraints):
+            return None
+        return CONVEX if shape.has_inequalities else QUADRATIC
     if not isinstance(shape.model, PointMass) or shape.running_cost is not None \
             or shape.keep_out_slots or shape.obstacles:
         return None
@@ -140,28 +156,6 @@ def end_cost_convexity(shape: DmocShape | MsEndpointShape) -> str | None:
     if shape.control_bounds is None and not shape.path_constraints:
         return QUADRATIC
     return CONVEX
-
-
-def _linear_quadratic(shape: MsEndpointShape) -> bool:
-    """Whether ``shape``'s NLP is an equality-constrained convex QP in (w, p): ẋ = f(x, u)
-    linear in (x, u) (its RK4 or Euler steps are then linear), g(x, u) a quadratic with a
-    positive semidefinite Hessian, positive definite in u, and no inequalities. Its J* is
-    then a convex quadratic of p (the free end entries minimised out)."""
-    if shape.has_inequalities:
-        return False
-    model = shape.model
-    x, u = ca.SX.sym("x", model.nx), ca.SX.sym("u", model.nu)
-    z = ca.vertcat(x, u)
-    f, g = model.rhs(x, u), model.running_cost(x, u)
-    try:
-        if not (ca.is_linear(f, z) and ca.is_quadratic(g, z)):
-            return False
-    except RuntimeError:
-        return False
-    hessian = np.asarray(ca.evalf(ca.substitute(ca.hessian(g, z)[0], z, ca.DM.zeros(z.numel()))))
-    tol = 1e-12 * max(1.0, float(np.max(np.abs(hessian))))
-    return bool(np.min(np.linalg.eigvalsh(hessian)) >= -tol
-                and np.min(np.linalg.eigvalsh(hessian[model.nx:, model.nx:])) > tol)
 
 
 def thrust_limit(shape: DmocShape) -> tuple[str, float] | None:
