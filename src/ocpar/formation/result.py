@@ -133,7 +133,11 @@ class FormationResult(RunResult):
     claimed), ``proven``, the relative ``gap`` and ``lower_bound`` it proved (null where
     none is claimed), the search's ``search_supersteps`` and ``search_inner_solves``, all the
     ordering's ``inner_solves`` and why the search stopped (``message``;
-    :mod:`~ocpar.formation.ordering_bound`); ``fleet`` (:class:`Fleet`) and per agent the inner
+    :mod:`~ocpar.formation.ordering_bound`); ``final_time`` with a free or minimum final
+    time (None for a fixed one): T and how it was found (:mod:`ocpar.formation.final_time`:
+    ``free``: the weight w, the objective Σ J_i + w T, dF/dT + w at T, the bound T stopped
+    at, the iterations; ``minimum``: the ``bracket`` [T_lo, T_hi], ``proven``, the rotation,
+    phase 1's total slack at ``phase_one_T``); ``fleet`` (:class:`Fleet`) and per agent the inner
     solver's ``solver_status`` and ``solver_iterations`` (n,) of its last solve at the
     returned φ (with a required separation: of the solve before the rounds; a monolithic
     run: the one NLP's) for the array file (:meth:`arrays`); ``positions`` (n, N+1, p) the
@@ -170,6 +174,7 @@ class FormationResult(RunResult):
     feasible_set: str = "continuous"
     critical_sets: list[dict] | None = None
     ordering: dict | None = None
+    final_time: dict | None = None
     verification: Verification | None = None
     fleet: Fleet | None = None
     solver_status: list[str] | None = None
@@ -226,6 +231,7 @@ class FormationResult(RunResult):
             "feasible_set": self.feasible_set,
             "critical_sets": self.critical_sets,
             "ordering": self.ordering,
+            "final_time": self.final_time,
             **self._verification_fields(),
         }
 
@@ -310,6 +316,18 @@ class FormationResult(RunResult):
         return (f"min obstacle clearance {c.distance:.6g} (agent {c.agent}, obstacle "
                 f"{c.obstacle} at t = {c.time:.6g}; obstacles in the inner problems)\n")
 
+    def _final_time_summary(self) -> str:
+        """The summary's line on a free or minimum final time ('' for a fixed one)."""
+        t = self.final_time
+        if t is None:
+            return ""
+        if t["mode"] == "minimum":
+            low, high = t["bracket"]
+            return (f"minimum final time T {high:.12g} (none reachable below {low:.12g}; "
+                    f"phase 1's slack there {t['phase_one_slack']})\n")
+        objective = "" if t["objective"] is None else f", sum J + w T {t['objective']:.12e}"
+        return f"free final time T {t['T']:.12g} (w {t['time_weight']:g}{objective})\n"
+
     def summary(self) -> str:
         """A few lines for people: the headline numbers of the run."""
         equidistance = (f"equidistance error {self.equidistance_error:.1e} rad   "
@@ -327,6 +345,7 @@ class FormationResult(RunResult):
             f"{self.separation.time:.6g})"
             f"{self._required_summary()}\n"
             f"{self._obstacle_summary()}"
+            f"{self._final_time_summary()}"
             f"outer iterations {self.outer_iterations}   supersteps {self.supersteps}   "
             f"inner solves {self.inner_solves} (failed {self.failed_solves}, retries "
             f"{self.retries})\n"

@@ -110,6 +110,14 @@ feasible whatever p (zero controls and any path meet the equations with slack), 
 2nq..3nq: ds*/dq_N, the end position's). No ``end_hessian`` (NaN), no keep-out slots; the
 returned ``q`` ends at the data q_N, not at the slackened end.
 
+Free duration (optional, ``DmocShape.free_duration``): T is the last entry of p instead of
+the constant ``duration`` (h = T/N in every expression above), so one compiled solver serves
+every horizon, and the solution's ``cost_gradient`` carries dJ*/dT (−λ_p of T, the
+envelope theorem) and its ``end_hessian`` is the (nq + 1, nq + 1) block of d²J*/dp² over
+(q_N, T): d²J*/dq_N², d²J*/dq_N dT and d²J*/dT² from the KKT system
+(:mod:`ocpar.ocp.sensitivity`). ``duration`` is then unused by the NLP (the shape is built
+once for all durations, :meth:`DmocShape.build`). No keep-out slots with it.
+
 A time-dependent Lagrangian gives each interval its own L_d (see
 :class:`~ocpar.models.MechanicalSystem`). Holonomic constraints c(q) = 0 (e.g. a unit
 quaternion) add the reaction ∇c(q_k)ᵀ λ_k to the equation of every node k = 0..N (boundary
@@ -234,7 +242,9 @@ class DmocShape:
     clear exactly on the continuous path (module docstring; none: the NLP of old), on the
     configuration entries ``obstacle_positions`` (default: the first d, d the obstacles'
     dimension). ``elastic``: the phase-1 NLP of this shape instead (module docstring; its
-    ``cost`` the total slack s ≥ 0, 0 where the shape's NLP is feasible).
+    ``cost`` the total slack s ≥ 0, 0 where the shape's NLP is feasible). ``free_duration``:
+    T is the last parameter (module docstring; ``duration`` is then the caller's value of
+    it, not part of the NLP).
     """
 
     model: MechanicalSystem
@@ -252,6 +262,7 @@ class DmocShape:
     obstacles: tuple[Obstacle, ...] = ()
     obstacle_positions: tuple[int, ...] = ()
     elastic: bool = False
+    free_duration: bool = False
 
     def __post_init__(self) -> None:
         nq, nu = self.model.nq, self.model.nu
@@ -288,6 +299,9 @@ class DmocShape:
             raise ValueError("solver: path constraints are inequalities and the newton solver "
                              "takes equalities only; choose sqpmethod, ipopt or auto (the default)")
         self._check_obstacles()
+        if self.free_duration and self.keep_out_slots:
+            raise ValueError("free_duration: not with keep-out slots (their penalty is the "
+                             "last parameter)")
         if self.elastic and (self.keep_out_slots or self.solver == "newton"):
             raise ValueError("elastic: needs a shape without keep-out slots, solved by "
                              "sqpmethod, ipopt or auto (slacks are inequalities)")
@@ -347,11 +361,19 @@ class DmocShape:
 
     @property
     def n_params(self) -> int:
-        """Length of p: the boundary data (q_0, q̇_0, q_N, q̇_N), then the keep-out block."""
-        return 4 * self.model.nq + self.n_keep_out
+        """Length of p: the boundary data (q_0, q̇_0, q_N, q̇_N), then the keep-out block,
+        then T where the duration is free."""
+        return 4 * self.model.nq + self.n_keep_out + int(self.free_duration)
+
+    def with_duration(self, duration: float) -> DmocShape:
+        """This shape over the horizon ``duration`` (the model's time unit)."""
+        return dataclasses.replace(self, duration=float(duration))
 
     def build(self) -> DmocTranscription:
-        """The transcription of this shape (see :func:`~ocpar.ocp.transcription`)."""
+        """The transcription of this shape (see :func:`~ocpar.ocp.transcription`); with a
+        free duration the one of every duration (that of ``duration`` 1)."""
+        if self.free_duration and self.duration != 1.0:
+            return transcription(self.with_duration(1.0))  # type: ignore[return-value]
         return DmocTranscription(self)
 
 
@@ -376,7 +398,8 @@ def _check_control_bounds(bounds: object, nu: int) -> tuple[tuple[float, float],
 class DmocSolution(InnerSolution):
     """Result of one DMOC solve: the common fields, and ``cost_gradient`` dJ*/dp (n_params,
     from the NLP multipliers); ``end_hessian`` d²J*/dq_N² (nq, nq, from the KKT system,
-    :mod:`ocpar.ocp.sensitivity`; NaN for a shape with keep-out slots); ``q`` the node path
+    :mod:`ocpar.ocp.sensitivity`; NaN for a shape with keep-out slots; with a free duration
+    (nq + 1, nq + 1) over (q_N, T)); ``q`` the node path
     (N+1, nq); ``u`` the interval controls (N, nu)."""
 
     cost_gradient: np.ndarray
@@ -396,22 +419,27 @@ class DmocTranscription:
         self.shape = shape
         model, n = shape.model, shape.intervals
         nq, nu = model.nq, model.nu
-        h = shape.duration / n
-        self.h = h
+        p = ca.SX.sym("p", shape.n_params)
+        #: T: the last parameter (free duration) or the shape's constant
+        self.horizon = p[-1] if shape.free_duration else shape.duration
+        h = self.horizon / n
         self.nq, self.nu, self.n = nq, nu, n
+        #: rows and columns of ``end_hessian``: q_N's (and T's, where free) entries of p
+        self.nh = nq + int(shape.free_duration)
 
         a, b = ca.SX.sym("a", nq), ca.SX.sym("b", nq)
         q, v, u = ca.SX.sym("q", nq), ca.SX.sym("v", nq), ca.SX.sym("u", nu)
         # one discrete Lagrangian per interval for time-dependent systems, else one for all
         intervals = range(n) if getattr(model, "time_dependent", False) else [0]
         d1ld, d2ld = {}, {}
+        step = ca.SX.sym("h")   # the step, an input: a parameter where T is free
         for k in intervals:
-            ld = h * ca.substitute(model.lagrangian(q, v, k), ca.vertcat(q, v),
-                                   ca.vertcat((a + b) / 2, (b - a) / h))
-            d1ld[k] = ca.Function(f"D1Ld_{k}", [a, b], [ca.gradient(ld, a)])
-            d2ld[k] = ca.Function(f"D2Ld_{k}", [a, b], [ca.gradient(ld, b)])
-        d1 = [d1ld.get(k, d1ld[0]) for k in range(n)]
-        d2 = [d2ld.get(k, d2ld[0]) for k in range(n)]
+            ld = step * ca.substitute(model.lagrangian(q, v, k), ca.vertcat(q, v),
+                                      ca.vertcat((a + b) / 2, (b - a) / step))
+            d1ld[k] = ca.Function(f"D1Ld_{k}", [a, b, step], [ca.gradient(ld, a)])
+            d2ld[k] = ca.Function(f"D2Ld_{k}", [a, b, step], [ca.gradient(ld, b)])
+        d1 = [_at_step(d1ld.get(k, d1ld[0]), h) for k in range(n)]
+        d2 = [_at_step(d2ld.get(k, d2ld[0]), h) for k in range(n)]
         start_momentum = ca.Function("D2L_0", [q, v], [ca.gradient(model.lagrangian(q, v, 0), v)])
         end_momentum = ca.Function(
             "D2L_N", [q, v], [ca.gradient(model.lagrangian(q, v, max(intervals)), v)])
@@ -419,7 +447,6 @@ class DmocTranscription:
         nc = getattr(model, "n_constraints", 0)
         self.nc = nc
 
-        p = ca.SX.sym("p", shape.n_params)
         q0, v0, qn, vn = (p[i * nq : (i + 1) * nq] for i in range(4))
         # the elastic problem's end slacks (a⁺, a⁻, b⁺, b⁻): the end it reaches
         end_slack = ca.SX.sym("end_slack", 4 * nq if shape.elastic else 0)
@@ -492,7 +519,7 @@ class DmocTranscription:
             row_upper = np.concatenate([free, path.upper, np.full(len(obstacle), np.inf),
                                         *([np.full(n * nu, np.inf), u_upper] if bounded
                                           else [])])
-            objective = ca.dot(ca.DM(self._slack_weights(path)), elastic)
+            objective = ca.dot(self._slack_weights(path), elastic)
         else:
             elastic, objective = ca.SX.sym("elastic", 0), control_cost + penalty
         w = ca.vertcat(q_inner, u_all, lam, slack, elastic, planes)
@@ -535,30 +562,36 @@ class DmocTranscription:
         equations = ca.Function("g_eq", [w, p], [ca.vertcat(*eqs)])
         self.end_hessian = None if shape.keep_out_slots or shape.elastic else ca.Function(
             "dmoc_no_hessian", [w, ca.SX.sym("lam_g", self.ng), p],
-            [ca.DM(np.full((nq, nq), np.nan))]) if self.n_planes else \
+            [ca.DM(np.full((self.nh, self.nh), np.nan))]) if self.n_planes else \
             _on_equations(cost_hessian_function(
-                "dmoc", w, p, self.cost(w, p), equations(w, p), slice(2 * nq, 3 * nq)), self.ng)
+                "dmoc", w, p, self.cost(w, p), equations(w, p), self.hessian_block), self.ng)
         # with control bounds or path rows, that of the active set where one is active
         self.active_hessian = None if (shape.keep_out_slots or shape.elastic
                                        or not self.has_inequalities) else \
             cost_hessian_function("dmoc", w, p, self.cost(w, p), self.constraints(w, p),
-                                  slice(2 * nq, 3 * nq), active_set=True)
+                                  self.hessian_block, active_set=True)
         self.path_rows = ca.Function("path", [w, p], [path.expr], ["w", "p"], ["c"])
         self.obstacle_rows = ca.Function("obstacle", [w, p], [ca.vertcat(*obstacle)],
                                          ["w", "p"], ["c"])
 
-    def _slack_weights(self, path: ConstraintRows) -> np.ndarray:
+    @property
+    def hessian_block(self) -> list[int]:
+        """The entries of p ``end_hessian`` covers: q_N's, then T's where it is free."""
+        nq = self.nq
+        return list(range(2 * nq, 3 * nq)) + ([self.n_params - 1] if self.shape.free_duration
+                                              else [])
+
+    def _slack_weights(self, path: ConstraintRows) -> ca.SX:
         """The elastic cost's weight of each slack (module docstring): 1 per length unit of
         the end position (a±), T per velocity unit of the end velocity (b±), 1 / (the
         bound's size) per unit of a control bound's and a path row's slack (the size
         max(|lo|, |hi|) over its finite bounds, 1 where that is 0)."""
         nq, n = self.nq, self.n
-        ends = np.concatenate([np.ones(2 * nq), np.full(2 * nq, self.shape.duration)])
-        parts = [ends]
+        parts = [ca.DM.ones(2 * nq), self.horizon * ca.DM.ones(2 * nq)]
         if self.shape.control_bounds is not None:
-            parts.append(np.tile(1 / _bound_sizes(self.u_lower, self.u_upper), n))
-        parts.append(1 / _bound_sizes(path.lower, path.upper))
-        return np.concatenate(parts)
+            parts.append(ca.DM(np.tile(1 / _bound_sizes(self.u_lower, self.u_upper), n)))
+        parts.append(ca.DM(1 / _bound_sizes(path.lower, path.upper)))
+        return ca.vertcat(*parts)
 
     def _keep_out_rows(self, data: ca.SX, qs: list[ca.SX], slack: ca.SX) -> list[ca.SX]:
         """n·r(q) − b + σ at the free nodes q of each interval k, slot s (b the slot's offset
@@ -577,11 +610,18 @@ class DmocTranscription:
                          for end, node in enumerate((k, k + 1)) if 0 < node < n]
         return rows
 
+    def steps(self, params: np.ndarray) -> np.ndarray | float:
+        """The step h = T/N of each row of ``params`` (k, n_params): (k,) with a free
+        duration, else the shape's constant."""
+        if self.shape.free_duration:
+            return np.asarray(params, float)[:, -1] / self.n
+        return self.shape.duration / self.n
+
     def _costs(self, w: np.ndarray, params: np.ndarray, u: np.ndarray) -> np.ndarray:
         """J_d without the keep-out penalty of each solution w (k, nw) with ``params``
         (k, n_params) and its controls u (k, N, nu): (k,)."""
         if self.shape.running_cost is None:
-            return self.h * np.sum(u**2, axis=(1, 2))
+            return self.steps(params) * np.sum(u**2, axis=(1, 2))
         n_free = self.nq * (self.n - 1) + self.nu * self.n
         return np.asarray(self.control_cost.map(len(w))(w[:, :n_free].T, params.T)).ravel()
 
@@ -665,7 +705,7 @@ class DmocTranscription:
     def _hessians(self, w: np.ndarray, lam_g: np.ndarray, params: np.ndarray,
                   equality: np.ndarray) -> np.ndarray:
         """``end_hessian`` of solutions w (k, nw) with multipliers ``lam_g`` (k, ng): that of
-        the equations, ``equality`` (k, nq, nq), where no inequality is active, else that
+        the equations, ``equality`` (k, nh, nh), where no inequality is active, else that
         of the active set (:mod:`ocpar.ocp.sensitivity`)."""
         if self.active_hessian is None:
             return equality
@@ -714,7 +754,8 @@ class DmocTranscription:
         nq, n, k = self.nq, self.n, len(params)
         q0, v0, qn, vn = (params[:, None, i * nq:(i + 1) * nq] for i in range(4))
         s = np.arange(1, n)[None, :, None] / n
-        t = self.shape.duration
+        t = (params[:, -1, None, None] if self.shape.free_duration
+             else self.shape.duration)
         h00, h10 = 2 * s**3 - 3 * s**2 + 1, s**3 - 2 * s**2 + s
         h01, h11 = -2 * s**3 + 3 * s**2, s**3 - s**2
         path = (h00 * q0 + h10 * t * v0 + h01 * qn + h11 * t * vn).reshape(-1, nq)
@@ -893,8 +934,8 @@ class DmocTranscription:
                             end_hessian=self._no_hessian(), q=nan_q, u=nan_u)
 
     def _no_hessian(self) -> np.ndarray:
-        """The (nq, nq) NaN ``end_hessian`` of a failed solve or of a shape with keep-outs."""
-        return np.full((self.nq, self.nq), np.nan)
+        """The (nh, nh) NaN ``end_hessian`` of a failed solve or of a shape with keep-outs."""
+        return np.full((self.nh, self.nh), np.nan)
 
     def nodes(self, w: ca.SX, params: ca.SX) -> list[ca.SX]:
         """The node configurations q_0 … q_N (nq each) of ``w`` and ``params`` as
@@ -1123,7 +1164,7 @@ class DmocTranscription:
             q, u = self.unpack_many(w[ok], params[ok])
             costs = (self._costs(w[ok], params[ok], u) if self.end_hessian is None
                      else batch.f[pick][ok])
-            hessians = np.full((len(ok), self.nq, self.nq), np.nan)
+            hessians = np.full((len(ok), self.nh, self.nh), np.nan)
             if self.end_hessian is not None:
                 hessians = self._hessians(w[ok], lam_g[ok], params[ok], hessians)
             elapsed = (time.perf_counter() - start) / k
@@ -1233,13 +1274,13 @@ class DmocTranscription:
         q, u = self.unpack_many(batch.x, params)
         iterations = np.full(k, -1) if batch.iterations is None else batch.iterations
         if self.shape.elastic:   # the cost is the total slack
-            costs, hessians = batch.f, np.full((k, self.nq, self.nq), np.nan)
+            costs, hessians = batch.f, np.full((k, self.nh, self.nh), np.nan)
         elif self.end_hessian is None:  # keep-outs: the control cost without the penalty
             costs = self._costs(batch.x, params, u)
-            hessians = np.full((k, self.nq, self.nq), np.nan)
+            hessians = np.full((k, self.nh, self.nh), np.nan)
         else:
             costs = batch.f
-            hessians = batch.extra.reshape(k, self.nq, self.nq).transpose(0, 2, 1)
+            hessians = batch.extra.reshape(k, self.nh, self.nh).transpose(0, 2, 1)
             hessians = self._hessians(batch.x, batch.lam_g, params, hessians)
         return _solution_columns(costs, np.asarray(batch.success, bool), iterations,
                                  np.full(k, batch.solve_time_s / k), -batch.lam_p, hessians,
@@ -1304,6 +1345,11 @@ def _near(values: np.ndarray, lower: np.ndarray, upper: np.ndarray, tol: float) 
     with np.errstate(invalid="ignore"):
         return ((np.isfinite(lower) & (values - lower <= tol * (1 + np.abs(lower))))
                 | (np.isfinite(upper) & (upper - values <= tol * (1 + np.abs(upper)))))
+
+
+def _at_step(function: ca.Function, h: ca.SX | float) -> Callable[[ca.SX, ca.SX], ca.SX]:
+    """(a, b) ↦ ``function``(a, b, h): a discrete Lagrangian's derivative at the step h."""
+    return lambda a, b: function(a, b, h)
 
 
 def _on_equations(hessian: ca.Function, ng: int) -> ca.Function:
