@@ -6,7 +6,7 @@ from __future__ import annotations
 from collections.abc import Callable
 from dataclasses import dataclass
 
-from ocpar.examples import formation_halo, formation_point_masses
+from ocpar.examples import formation_halo, formation_minimum_time, formation_point_masses
 from ocpar.formation.problem import FormationProblem
 
 
@@ -27,6 +27,9 @@ EXAMPLES = {
     "crtbp-rigid": Example(
         lambda n, r: formation_halo.make(agents=n, radius_km=r), 30, 1.0,
         "rigid spacecraft about the Sun-Earth L2 halo (Fig. 5), radius in km"),
+    "point-mass-minimum-time": Example(
+        lambda n, r: formation_minimum_time.make(agents=n, radius=r), 10, 5.0,
+        "point masses under a thrust limit |u| <= 2, for --final-time minimum"),
 }
 
 

@@ -199,7 +199,7 @@ class FormationOptions:
         metavar="T_MIN,T_MAX")
     time_weight: float = option(0.0, "with --final-time free: w, the cost per unit of T "
                                 "(cost unit per time unit)", low=0)
-    time_tol: float = option(1e-9, "with --final-time free: relative tolerance on dF/dT + w; "
+    time_tol: float = option(1e-6, "with --final-time free: relative tolerance on dF/dT + w; "
                              "minimum: relative width of the bracket on T", above=0)
 
     def __post_init__(self) -> None:
