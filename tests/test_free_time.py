@@ -19,6 +19,7 @@ from scipy.optimize import linear_sum_assignment, linprog, minimize_scalar
 from ocpar.examples import formation_minimum_time, formation_point_masses
 from ocpar.formation import FormationOptions, solve_formation
 from ocpar.formation.feasibility import SLACK_TOL, elastic_shape
+from ocpar.formation.final_time import at_duration
 from ocpar.models import PointMass
 from ocpar.ocp import DmocShape, transcription
 from ocpar.ocp.constraints import PathConstraint
@@ -118,6 +119,25 @@ def test_free_time_stops_at_its_bound(fleet):
     assert result.final_time["T"] == 10.0
     assert result.final_time["dF_dT_plus_w"] == pytest.approx(WEIGHT - 3 * j1 / 10.0**4,
                                                               rel=1e-9)
+
+
+def test_free_time_under_thrust_limits_is_stationary():
+    """The thrust-limited example (limits active, φ* moving with T): at the returned T,
+    d/dT of the fixed-T formation optimum (central differences of two fixed-T runs) is −w."""
+    problem, weight = formation_minimum_time.make(), 100.0
+    result = solve_formation(problem, options=FormationOptions(
+        final_time="free", time_bounds=(7.26, 100.0), time_weight=weight))
+    assert result.converged, result.message
+    t, step = result.final_time["T"], 1e-4
+    assert np.max(result.peak_thrust) == pytest.approx(formation_minimum_time.U_MAX, rel=1e-9)
+
+    def optimum(duration: float) -> float:
+        fixed = solve_formation(at_duration(problem, duration), phi0=result.phi)
+        assert fixed.converged
+        return fixed.total_cost
+
+    slope = (optimum(t + step) - optimum(t - step)) / (2 * step)
+    assert slope == pytest.approx(-weight, rel=1e-5)
 
 
 def test_free_time_is_bitwise_the_same_on_two_mpi_ranks(tmp_path):

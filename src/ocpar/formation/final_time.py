@@ -151,13 +151,32 @@ def solve_free_time(problem: FormationProblem, backend: Backend, options: Format
     lower, upper = low, high   # the bracket of the root of F' + w
     phi, history, solves, outer = phi0, [], 0, 0
     start, first_trace = time.perf_counter(), len(backend.traces)
-    result: FormationResult | None = None
-    reason, at_bound, slope = "", None, math.nan
+    result: FormationResult | None = None   # the last solve that did not fail
+    reason, at_bound, slope, solved_at = "", None, math.nan, duration
+    previous: tuple[float, float] | None = None   # the last (T, F'(T)) solved
+    infeasible = -math.inf   # the largest T found infeasible
     for _ in range(TIME_ITERATIONS):
-        result = solve(at_duration(problem, duration), backend, fixed, phi, progress, output)
-        solves += result.inner_solves
-        outer += max(result.outer_iterations, 0)
-        if not result.converged:
+        try:
+            attempt = solve(at_duration(problem, duration), backend, fixed, phi, progress,
+                            output)
+        except ValueError as exc:   # no formation reachable at this T (exact reach sets)
+            attempt, words = None, str(exc)
+        if attempt is not None:
+            solves += attempt.inner_solves
+            outer += max(attempt.outer_iterations, 0)
+            words = attempt.message
+            if result is None or attempt.status != "failed":   # the last one solved
+                result, solved_at = attempt, duration
+        if attempt is None or attempt.status == "failed":   # F(T) = +inf: T goes up
+            history.append({"T": duration, "cost": None, "infeasible": words})
+            lower = infeasible = duration
+            new = 0.5 * (lower + upper) if math.isfinite(upper) else min(2 * duration, high)
+            if duration >= high or abs(new - duration) <= tol * duration:
+                reason = f"no formation solved at T = {duration:.12g}: {words}"
+                break
+            duration = new
+            continue
+        if not attempt.converged:
             reason = f"the formation solve at T = {duration:.12g} did not converge"
             break
         sums = duration_derivatives(at_duration(problem, duration), backend, result.phi)
@@ -183,22 +202,32 @@ def solve_free_time(problem: FormationProblem, backend: Backend, options: Format
             upper = duration
         else:
             lower = duration
-        new = _next_duration(duration, sums, weight)
+        curvature = sums.curvature
+        if previous is not None and previous[0] != duration:   # the secant of exact F'
+            curvature = (sums.gradient - previous[1]) / (duration - previous[0])
+        previous = (duration, sums.gradient)
+        new = _next_duration(duration, sums.gradient, curvature, weight)
         if new >= upper and upper == high and slope < 0:   # to the bound, then stop there
             new = high
-        elif new <= lower and lower == low and slope > 0:
+        elif new <= lower and lower == low and slope > 0 and infeasible < low:
             new = low
         elif not lower < new < upper:   # no Newton step inside the bracket: bisect it
             new = 0.5 * (lower + upper) if math.isfinite(upper) else 2.0 * duration
         if abs(new - duration) <= tol * duration:
-            reason = f"step in T below tolerance ({abs(new - duration):.1e})"
+            reason = (f"at the least T solved, infeasible at T = {infeasible:.12g}: "
+                      f"dF/dT + w = {slope:.3e} > 0 there"
+                      if slope > 0 and lower == infeasible else
+                      f"step in T below tolerance ({abs(new - duration):.1e})")
             break
         duration, phi = new, result.phi
     else:
         reason = f"{TIME_ITERATIONS} steps in T without meeting the tolerance"
-    assert result is not None
-    stationary = bool(history) and reason.startswith(("|dF/dT", "at T_", "step in T"))
+    if result is None:
+        raise ValueError(f"final_time 'free': {reason}")
+    stationary = solved_at == duration and reason.startswith(("|dF/dT", "at T_", "step in T",
+                                                              "at the least T"))
     status = result.status if stationary or not result.converged else "not_converged"
+    duration = solved_at
     fields = {"mode": "free", "T": duration, "time_weight": weight,
               "time_bounds": [low, high], "objective": (result.total_cost + weight * duration
                                                         if result.converged else None),
@@ -211,15 +240,17 @@ def solve_free_time(problem: FormationProblem, backend: Backend, options: Format
                                message=f"{result.message}; free final time: {reason}")
 
 
-def _next_duration(duration: float, sums: DurationSums, weight: float) -> float:
-    """The Newton step's T for F'(T) + w = 0: in log–log coordinates where F decreases and
-    is convex (log(−F') = log w, linear in log T: exact in one step for F ∝ T^k, e.g. point
-    masses from rest to rest, k = −3), else on F' + w itself; NaN where neither applies."""
-    if sums.gradient < 0 and sums.curvature > 0:
-        order = duration * sums.curvature / sums.gradient   # d log(−F') / d log T < 0
-        return duration * (weight / -sums.gradient) ** (1 / order)
-    if sums.curvature > 0:
-        return duration - (sums.gradient + weight) / sums.curvature
+def _next_duration(duration: float, gradient: float, curvature: float, weight: float
+                   ) -> float:
+    """The Newton step's T for F'(T) + w = 0 given F' (``gradient``) and F''
+    (``curvature``): in log–log coordinates where F decreases and is convex (log(−F') =
+    log w, linear in log T: exact in one step for F ∝ T^k, e.g. point masses from rest to
+    rest, k = −3), else on F' + w itself; NaN where neither applies."""
+    if gradient < 0 and curvature > 0:
+        order = duration * curvature / gradient   # d log(−F') / d log T < 0
+        return duration * (weight / -gradient) ** (1 / order)
+    if curvature > 0:
+        return duration - (gradient + weight) / curvature
     return math.nan
 
 

@@ -302,6 +302,9 @@ class DmocShape:
         if self.free_duration and self.keep_out_slots:
             raise ValueError("free_duration: not with keep-out slots (their penalty is the "
                              "last parameter)")
+        if self.free_duration and getattr(self.model, "time_dependent", False):
+            raise ValueError("free_duration: the model is time dependent (tabulated on its "
+                             "intervals of one T)")
         if self.elastic and (self.keep_out_slots or self.solver == "newton"):
             raise ValueError("elastic: needs a shape without keep-out slots, solved by "
                              "sqpmethod, ipopt or auto (slacks are inequalities)")
