@@ -243,10 +243,29 @@ def test_minimum_time_is_the_bottleneck_over_rotation_and_assignment():
     assert sum(s.cost for s in slacks) > SLACK_TOL
 
 
+@pytest.mark.slow
+def test_minimum_time_by_phase_one_brackets_the_exact_one():
+    """Without an exact reach set (the same limit written |u|⁴ ≤ 16, which the reach module
+    does not read as a norm), bisection with phase 1 gives a bracket that holds the exact
+    minimum time of |u|² ≤ 4 (4 agents, tol 1e-2)."""
+    problem = formation_minimum_time.make(agents=4)
+    exact = solve_formation(problem, options=FormationOptions(final_time="minimum"))
+    assert exact.converged and exact.final_time["proven"]
+    quartic = PathConstraint(lambda u: ca.sumsqr(u) ** 2, upper=16.0, name="thrust")
+    other = problem.with_shapes(lambda s: dataclasses.replace(s, path_constraints=(quartic,)))
+    result = solve_formation(other, options=FormationOptions(
+        final_time="minimum", time_bounds=(5.0, 10.0), time_tol=1e-2))
+    assert result.converged, result.message
+    low, high = result.final_time["bracket"]
+    assert result.final_time["method"] == "phase 1" and not result.final_time["proven"]
+    assert high * (1 - 1e-2) <= low <= exact.final_time["T"] <= high
+    assert result.final_time["phase_one_slack"] > SLACK_TOL
+
+
 @pytest.mark.parametrize(("options", "words"), [
     ({"final_time": "free", "time_weight": 1.0}, "needs time_bounds"),
     ({"final_time": "free", "time_bounds": (1.0, 2.0)}, "needs a time_weight"),
-    ({"final_time": "minimum"}, "needs point masses at rest at both ends under box or norm"),
+    ({"final_time": "minimum"}, "needs time_bounds \\(T_min, T_max\\) to bisect"),
     ({"final_time": "free", "time_bounds": (1.0, 2.0), "time_weight": 1.0,
       "mode": "monolithic"}, "applies to the hierarchical mode"),
 ])

@@ -12,25 +12,14 @@ first order in the cost, e.g. point masses from rest to rest, J ∝ 1/T³; a bis
 where the Newton step leaves the bracket of the root) gives the next T; the formation is
 re-solved there from the previous φ. T stops at a bound where F' + w keeps its sign there.
 
-``minimum`` (:func:`solve_minimum_time`): the least T at which some formation on a circle
-(a rotation θ and an assignment of agents to the n equidistant points) is reachable by
-every agent under its thrust limit, for point masses at rest at both ends under box or norm
-limits, whose DMOC reach sets are exact (:mod:`ocpar.ocp.reach`) and grow as T²: agent i
-reaches displacement Δ in T exactly when T² ≥ ν_i(Δ), ν_i the need of its reach set at
-T = 1. So T*² = min_θ min_σ max_i ν_i(z_σ(i)(θ) − s_i): a bottleneck assignment at each θ
-(threshold search with a bipartite matching), and over θ a branch and bound with the
-Lipschitz constant R · max_i 1/(smallest reach of agent i at T = 1) (R the radius). Its
-lower bound proves that no formation is reachable below T_lo; at T_hi ≥ T_lo (1 + tol)⁻¹
-the formation at the best θ is solved (the energy-optimal assignment onto its n points
-among the reachable pairs: the energy tie-break) and verified; phase 1
-(:mod:`ocpar.formation.feasibility`'s elastic inner problems) is solved at T_lo for that
-formation, and its total slack must be positive.
+``minimum``: :mod:`ocpar.formation.minimum_time`. This module also holds what both share:
+the problem at another T (:func:`at_duration`), tasks on given shapes (:func:`task_columns`),
+the time bounds.
 """
 
 from __future__ import annotations
 
 import dataclasses
-import heapq
 import math
 import time
 from collections.abc import Callable
@@ -38,20 +27,14 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 import numpy as np
-from scipy.sparse import csr_matrix
-from scipy.sparse.csgraph import maximum_bipartite_matching
 
 from ocpar.bsp import Backend
 from ocpar.bsp.columns import LISTED, Columns
 from ocpar.bsp.partition import unit_size
-from ocpar.formation.couplings.coupling import PotentialCoupling
-from ocpar.formation.feasibility import SLACK_TOL, elastic_shape
 from ocpar.formation.problem import FormationProblem
-from ocpar.formation.result import Fleet, FormationResult
-from ocpar.formation.targets.slots import Slots
-from ocpar.ocp import DmocShape, OcpTask, solve_tasks
+from ocpar.formation.result import FormationResult
+from ocpar.ocp import DmocShape, OcpTask
 from ocpar.ocp.duration import DurationSums, DurationUnit, duration_sums
-from ocpar.ocp.reach import Reach, rest_to_rest_reach
 
 if TYPE_CHECKING:
     from ocpar.formation.solve import FormationOptions
@@ -60,10 +43,6 @@ if TYPE_CHECKING:
 FINAL_TIMES = ("fixed", "free", "minimum")
 #: Newton steps in T at most (each a formation solve at one T).
 TIME_ITERATIONS = 50
-#: Shifts of the rotation's first grid per agent (minimum time's branch and bound).
-ROTATION_GRID = 32
-#: Evaluations of the bottleneck over the rotation at most.
-ROTATION_EVALUATIONS = 200_000
 
 
 def at_duration(problem: FormationProblem, duration: float) -> FormationProblem:
@@ -100,8 +79,9 @@ def duration_derivatives(problem: FormationProblem, backend: Backend, phi: np.nd
     return total
 
 
-def check_final_time(problem: FormationProblem, options: FormationOptions) -> None:
-    """ValueError (one line) where ``options``' final time does not apply to ``problem``."""
+def check_final_time(options: FormationOptions) -> None:
+    """ValueError (one line) where ``options``' final time does not apply (the minimum
+    time's own conditions: :func:`~ocpar.formation.minimum_time.check_minimum_time`)."""
     if options.final_time == "fixed":
         return
     what = f"final_time {options.final_time!r}"
@@ -115,11 +95,6 @@ def check_final_time(problem: FormationProblem, options: FormationOptions) -> No
             raise ValueError(f"{what}: needs time_bounds (T_min, T_max)")
         if not options.time_weight > 0:
             raise ValueError(f"{what}: needs a time_weight w > 0 (the cost is sum J_i + w T)")
-    if options.final_time == "minimum":
-        if not (problem.on_circle and problem.coupling == PotentialCoupling()):
-            raise ValueError(f"{what}: applies to a circle with the equidistant formation "
-                             "(the default coupling)")
-        minimum_reach(problem)
 
 
 def time_bounds(options: FormationOptions) -> tuple[float, float]:
@@ -254,168 +229,5 @@ def _next_duration(duration: float, gradient: float, curvature: float, weight: f
     return math.nan
 
 
-# ----------------------------------------------------------------------------------------
-# minimum time
-# ----------------------------------------------------------------------------------------
-
-def minimum_reach(problem: FormationProblem) -> list[Reach]:
-    """Each agent's exact reach set at T = 1 (:func:`~ocpar.ocp.reach.rest_to_rest_reach`),
-    or ValueError where one has none or a side of it is empty (no finite time then)."""
-    reaches = {}
-    for shape, agents in problem.agents_by_shape().items():
-        reach = rest_to_rest_reach(shape.with_duration(1.0))
-        at_rest = (np.all(problem.start_velocities[agents] == 0)
-                   and np.all(problem.final_velocities(agents) == 0))
-        if reach is None or not at_rest:
-            raise ValueError("final_time 'minimum': needs point masses at rest at both ends "
-                             "under box or norm thrust limits (exact reach sets)")
-        if not np.all(np.isfinite(reach.upper) & (reach.upper > 0) & (reach.lower < 0)):
-            raise ValueError("final_time 'minimum': the thrust limits must bound every "
-                             "direction and allow every one (lo < 0 < hi)")
-        reaches[shape] = reach
-    return [reaches[shape] for shape in problem.shapes]
-
-
-def bottleneck(costs: np.ndarray) -> tuple[float, np.ndarray]:
-    """The bottleneck assignment of the square matrix ``costs`` (n, n): the least t such
-    that agents i can be given distinct columns σ(i) with costs[i, σ(i)] ≤ t, and such a
-    σ (n,) (threshold search over the sorted entries, a bipartite matching each)."""
-    values = np.unique(costs)
-    lo, hi = 0, len(values) - 1
-    best = None
-    while lo <= hi:
-        mid = (lo + hi) // 2
-        match = maximum_bipartite_matching(csr_matrix(costs <= values[mid]),
-                                           perm_type="column")
-        if np.all(match >= 0):
-            best, hi = match, mid - 1
-        else:
-            lo = mid + 1
-    assert best is not None
-    return float(values[lo]), best
-
-
-@dataclasses.dataclass
-class RotationSearch:
-    """The least bottleneck ν over the rotation θ: ``value`` (the best found, T² in the
-    time unit squared at T = 1's reach), ``lower`` the proven lower bound, ``theta`` (rad)
-    and ``assignment`` (n,) where found, ``evaluations`` of the bottleneck."""
-
-    value: float
-    lower: float
-    theta: float
-    assignment: np.ndarray
-    evaluations: int
-
-
-def search_rotation(problem: FormationProblem, reaches: list[Reach], gap: float
-                    ) -> RotationSearch:
-    """min over θ of the bottleneck assignment of ν_i(z_j(θ) − s_i) (module docstring) to
-    a relative ``gap`` between the best value and the lower bound, by branch and bound."""
-    n = problem.agents
-    spacing = 2 * math.pi / n
-    starts = problem.positions(problem.starts)
-    radius = problem.curve.radius
-    slope = radius * max(1 / min(np.min(r.upper), np.min(-r.lower)) for r in reaches)
-    groups: dict[int, list[int]] = {}
-    for i, r in enumerate(reaches):
-        groups.setdefault(id(r), []).append(i)
-
-    def evaluate(theta: float) -> tuple[float, np.ndarray]:
-        points = problem.final_positions(theta + spacing * np.arange(n))
-        costs = np.empty((n, n))
-        for members in groups.values():
-            rows = np.array(members)
-            costs[rows] = reaches[members[0]].need(points[None] - starts[rows, None])
-        return bottleneck(costs)
-
-    grid = np.linspace(0.0, spacing, ROTATION_GRID * n + 1)
-    values = [evaluate(float(t)) for t in grid]
-    best = min(range(len(grid)), key=lambda k: values[k][0])
-    found = [values[best][0], float(grid[best]), values[best][1]]
-    heap = [(0.5 * (values[k][0] + values[k + 1][0]) - 0.5 * slope * (grid[k + 1] - grid[k]),
-             float(grid[k]), float(grid[k + 1]), values[k][0], values[k + 1][0])
-            for k in range(len(grid) - 1)]
-    heapq.heapify(heap)
-    evaluations = len(grid)
-    while heap and evaluations < ROTATION_EVALUATIONS:
-        bound, a, b, fa, fb = heap[0]
-        if found[0] - bound <= gap * found[0]:
-            break
-        heapq.heappop(heap)
-        mid = 0.5 * (a + b)
-        fm, assignment = evaluate(mid)
-        evaluations += 1
-        if fm < found[0]:
-            found = [fm, mid, assignment]
-        for lo, hi, flo, fhi in ((a, mid, fa, fm), (mid, b, fm, fb)):
-            lower = 0.5 * (flo + fhi) - 0.5 * slope * (hi - lo)
-            if lower < found[0] * (1 - gap):
-                heapq.heappush(heap, (lower, lo, hi, flo, fhi))
-    lower = min(heap[0][0], found[0]) if heap else found[0]
-    return RotationSearch(found[0], max(lower, 0.0), found[1], found[2], evaluations)
-
-
-def solve_minimum_time(problem: FormationProblem, backend: Backend, options: FormationOptions,
-                       solve: Callable[..., FormationResult],
-                       progress: Callable[[str], None] | None = None,
-                       output: Path | None = None) -> FormationResult:
-    """The least common T at which a formation is reachable (module docstring): the bracket
-    [T_lo, T_hi] with T_hi (1 − ``time_tol``) ≤ T_lo, no formation reachable below T_lo (the
-    reach sets' bound), the formation solved and verified at T_hi by ``solve``, phase 1's
-    total slack at T_lo for that formation. Returns the solve at T_hi with ``final_time``."""
-    tol = options.time_tol
-    start, first_trace = time.perf_counter(), len(backend.traces)
-    reaches = minimum_reach(problem)
-    found = search_rotation(problem, reaches, tol)
-    proven = found.value - found.lower <= tol * found.value
-    t_lo = math.sqrt(found.lower)
-    t_hi = math.sqrt(found.value) * (1 + tol / 4)
-    if progress is not None:
-        progress(f"minimum time: bottleneck over the rotation, {found.evaluations} "
-                 f"evaluations, T in [{t_lo:.12g}, {t_hi:.12g}]")
-    low, high = time_bounds(options)
-    n, spacing = problem.agents, 2 * math.pi / problem.agents
-    angles = found.theta + spacing * np.arange(n)
-    points = problem.final_positions(angles)
-    fixed = dataclasses.replace(options, final_time="fixed", ordering="keep")
-    onto = dataclasses.replace(at_duration(problem, t_hi), curve=Slots(points),
-                               coupling=PotentialCoupling())
-    result = solve(onto, backend, fixed, None, progress, output)
-    slots = np.asarray(result.phi, float)
-    phi = np.where(np.isfinite(slots), found.theta + spacing * np.nan_to_num(slots), np.nan)
-    # phase 1 at T_lo (and below T_hi (1 − tol)) for the formation found
-    t_check = min(t_lo, t_hi * (1 - tol))
-    shapes = tuple(elastic_shape(shape.with_duration(t_check)) for shape in problem.shapes)
-    params = problem.boundary_params_rows(np.arange(n), np.where(np.isfinite(phi), phi, angles))
-    slack = backend.superstep_columns(solve_tasks, task_columns(shapes, params))
-    ok = np.asarray(slack.column("success"), bool)
-    total_slack = float(np.sum(np.asarray(slack.column("cost"), float))) if ok.all() \
-        else math.nan
-    words = (f"minimum time T* = {t_hi:.12g} (feasible, solved there), no formation "
-             f"reachable below {t_lo:.12g} (exact reach sets, rotation and assignment "
-             f"searched: a bottleneck); phase 1 at T = {t_check:.12g}: total slack "
-             f"{total_slack:.3e}")
-    status = result.status
-    if not proven:
-        status, words = "not_converged", words + (
-            f"; the rotation search stopped after {found.evaluations} evaluations short of "
-            f"the gap (lower bound {t_lo:.12g})")
-    elif not total_slack > SLACK_TOL:
-        status, words = "not_converged", words + "; phase 1 does not confirm the lower end"
-    if not low <= t_hi <= high:
-        status, words = "failed", words + f"; outside time_bounds [{low:g}, {high:g}]"
-    fields = {"mode": "minimum", "T": t_hi, "bracket": [t_lo, t_hi], "time_tol": tol,
-              "proven": proven, "rotation": found.theta, "bottleneck_need": found.value,
-              "rotation_evaluations": found.evaluations, "phase_one_T": t_check,
-              "phase_one_slack": total_slack if math.isfinite(total_slack) else None,
-              "bottleneck_assignment": found.assignment.tolist(), "message": words}
-    return dataclasses.replace(
-        result, status=status, message=f"{result.message}; {words}", phi=phi,
-        on_circle=True, final_time=fields, inner_solves=result.inner_solves + n,
-        fleet=Fleet.of(at_duration(problem, t_hi), phi), trace=backend.traces[first_trace:],
-        wall_time_s=time.perf_counter() - start)
-
-
-__all__ = ["FINAL_TIMES", "RotationSearch", "at_duration", "bottleneck", "check_final_time",
-           "duration_derivatives", "search_rotation", "solve_free_time", "solve_minimum_time"]
+__all__ = ["FINAL_TIMES", "at_duration", "check_final_time", "duration_derivatives",
+           "solve_free_time", "task_columns", "time_bounds"]

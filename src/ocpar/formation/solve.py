@@ -23,12 +23,7 @@ from ocpar.formation.couplings.critical_sets import (
     best_isolated_formation,
 )
 from ocpar.formation.feasibility import NoFeasibleFormation, feasible_start
-from ocpar.formation.final_time import (
-    FINAL_TIMES,
-    check_final_time,
-    solve_free_time,
-    solve_minimum_time,
-)
+from ocpar.formation.final_time import FINAL_TIMES, check_final_time, solve_free_time
 from ocpar.formation.finish import cost_groups, finish, writes_parts
 from ocpar.formation.hierarchical import (
     InnerSolveFailed,
@@ -41,6 +36,7 @@ from ocpar.formation.keep_out.exact import ExactSeparation, separate_exactly
 from ocpar.formation.keep_out.obstacles import cleared, closest_obstacle, passing_sides
 from ocpar.formation.keep_out.rounds import SEPARATION_RTOL, Separation, separate
 from ocpar.formation.keep_out.separation import check_separation_feasible
+from ocpar.formation.minimum_time import check_minimum_time, solve_minimum_time
 from ocpar.formation.monolithic import solve_monolithic
 from ocpar.formation.ordering import ORDERINGS, OrderingResult, optimal_ordering
 from ocpar.formation.ordering_bound import GAP_TOL, SEARCH_ROUNDS
@@ -315,7 +311,8 @@ def check_applicable(problem: FormationProblem, options: FormationOptions) -> No
     (:meth:`~ocpar.formation.FormationProblem.clear_start`: a rotation on a circle). With a
     final time other than ``fixed`` (:func:`~ocpar.formation.final_time.check_final_time`),
     the problem's own duration is only a start: its feasibility is not asked."""
-    check_final_time(problem, options)
+    check_final_time(options)
+    check_minimum_time(problem, options)
     if isinstance(problem.curve, Surface) and options.mode != "hierarchical":
         raise ValueError("surfaces apply to the hierarchical mode only")
     if isinstance(problem.curve, Slots) and options.mode != "hierarchical":
