@@ -79,7 +79,7 @@ def duration_derivatives(problem: FormationProblem, backend: Backend, phi: np.nd
     return total
 
 
-def check_final_time(options: FormationOptions) -> None:
+def check_final_time(problem: FormationProblem, options: FormationOptions) -> None:
     """ValueError (one line) where ``options``' final time does not apply (the minimum
     time's own conditions: :func:`~ocpar.formation.minimum_time.check_minimum_time`)."""
     if options.final_time == "fixed":
@@ -95,6 +95,9 @@ def check_final_time(options: FormationOptions) -> None:
             raise ValueError(f"{what}: needs time_bounds (T_min, T_max)")
         if not options.time_weight > 0:
             raise ValueError(f"{what}: needs a time_weight w > 0 (the cost is sum J_i + w T)")
+        if any(getattr(shape.model, "time_dependent", False) for shape in problem.shapes):
+            raise ValueError(f"{what}: the model is time dependent (tabulated on the "
+                             "intervals of one T); T cannot be a parameter of its inner problem")
 
 
 def time_bounds(options: FormationOptions) -> tuple[float, float]:

@@ -186,13 +186,14 @@ class Bracket:
     """The minimum time's bracket: no formation found below ``low``, one reachable at
     ``high`` with the parameters ``phi`` (of ``problem``'s curve), ``proven`` whether
     ``low`` is a proof (exact reach sets) or phase 1's local search; ``fields`` what the
-    method adds to the result's ``final_time``."""
+    method adds to the result's ``final_time``; ``inner_solves`` it made."""
 
     low: float
     high: float
     phi: np.ndarray
     proven: bool
     fields: dict
+    inner_solves: int = 0
 
 
 def reach_bracket(problem: FormationProblem, reaches: list[Reach], tol: float) -> Bracket:
@@ -231,11 +232,12 @@ def phase_one_bracket(problem: FormationProblem, backend: Backend, low: float, h
     if phi is None:
         raise ValueError(f"final_time 'minimum': phase 1 finds no formation reachable at "
                          f"T_max = {high:g}")
-    tests = 1
-    below, slack = _reachable(problem, backend, low, phi)[:2]
+    tests = 2
+    below, slack, count = _reachable(problem, backend, low, phi)
+    solves += count
     if below is not None:   # reachable at T_min already: the answer is the bound
         return Bracket(low, low, below, True, {"method": "phase 1", "at_bound": "T_min",
-                                               "tests": 2, "solves": solves})
+                                               "tests": tests}, solves)
     while high * (1 - tol) > low:
         middle = math.sqrt(low * high)
         found, middle_slack, count = _reachable(problem, backend, middle, phi)
@@ -246,8 +248,8 @@ def phase_one_bracket(problem: FormationProblem, backend: Backend, low: float, h
             high, phi = middle, found
         if progress is not None:
             progress(f"minimum time: T in [{low:.12g}, {high:.12g}] (phase 1)")
-    return Bracket(low, high, phi, False, {"method": "phase 1", "tests": tests + 1,
-                                           "phase_one_least_slack_at_low": slack})
+    return Bracket(low, high, phi, False, {"method": "phase 1", "tests": tests,
+                                           "phase_one_least_slack_at_low": slack}, solves)
 
 
 def solve_minimum_time(problem: FormationProblem, backend: Backend, options: FormationOptions,
@@ -310,7 +312,8 @@ def solve_minimum_time(problem: FormationProblem, backend: Backend, options: For
               **bracket.fields, "message": words}
     return dataclasses.replace(
         result, status=status, message=f"{result.message}; {words}", phi=phi,
-        on_circle=problem.on_circle, final_time=fields, inner_solves=result.inner_solves + n,
+        on_circle=problem.on_circle, final_time=fields,
+        inner_solves=result.inner_solves + n + bracket.inner_solves,
         fleet=Fleet.of(at_duration(problem, t_hi), phi), trace=backend.traces[first_trace:],
         wall_time_s=time.perf_counter() - start)
 

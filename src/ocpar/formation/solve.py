@@ -311,7 +311,7 @@ def check_applicable(problem: FormationProblem, options: FormationOptions) -> No
     (:meth:`~ocpar.formation.FormationProblem.clear_start`: a rotation on a circle). With a
     final time other than ``fixed`` (:func:`~ocpar.formation.final_time.check_final_time`),
     the problem's own duration is only a start: its feasibility is not asked."""
-    check_final_time(options)
+    check_final_time(problem, options)
     check_minimum_time(problem, options)
     if isinstance(problem.curve, Surface) and options.mode != "hierarchical":
         raise ValueError("surfaces apply to the hierarchical mode only")
