@@ -46,8 +46,12 @@ TIME_ITERATIONS = 50
 
 
 def at_duration(problem: FormationProblem, duration: float) -> FormationProblem:
-    """``problem`` over the horizon ``duration`` (the model's time unit)."""
-    return problem.with_shapes(lambda shape: shape.with_duration(duration))
+    """``problem`` over the horizon ``duration`` (the model's time unit), T fixed in its
+    inner problems: a point mass's KKT matrix is then constant, factorised once per batch
+    (10,000 solves in 0.10 s, against 0.60 s with T a parameter, whose matrix depends on
+    it); building the shape of a new T costs ~10 ms."""
+    return problem.with_shapes(lambda shape: dataclasses.replace(
+        shape, duration=float(duration), free_duration=False))
 
 
 def task_columns(shapes: tuple[DmocShape, ...], params: np.ndarray) -> Columns:
@@ -65,10 +69,10 @@ def duration_derivatives(problem: FormationProblem, backend: Backend, phi: np.nd
     horizon T: one superstep of their inner problems with T a parameter, summed per unit of
     :func:`~ocpar.bsp.partition.unit_size` agents on the workers, the units' sums added here
     in unit order."""
-    n, duration = problem.agents, problem.common_shape.duration
-    shapes = tuple(dataclasses.replace(shape, free_duration=True) for shape in problem.shapes)
-    params = np.hstack([problem.boundary_params_rows(np.arange(n), np.reshape(
-        phi, problem.parameter_shape)), np.full((n, 1), duration)])
+    n = problem.agents
+    problem = problem.with_shapes(lambda shape: dataclasses.replace(shape, free_duration=True))
+    shapes = problem.shapes
+    params = problem.boundary_params_rows(np.arange(n), np.reshape(phi, problem.parameter_shape))
     size = unit_size(n)
     units = [DurationUnit(task_columns(shapes[a:a + size], params[a:a + size]))
              for a in range(0, n, size)]

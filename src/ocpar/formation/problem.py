@@ -336,6 +336,7 @@ class FormationProblem:
             first = shapes[0]
             for what, value in (("intervals", lambda s: s.intervals),
                                 ("duration", lambda s: s.duration),
+                                ("free_duration", lambda s: s.free_duration),
                                 ("model.nq", lambda s: s.model.nq),
                                 ("model.nu", lambda s: s.model.nu),
                                 ("model.position_indices",
@@ -488,13 +489,16 @@ class FormationProblem:
 
     def boundary_params_rows(self, agents: np.ndarray, phi: np.ndarray) -> np.ndarray:
         """Boundary data (len(agents), 4 nq): row k for agent ``agents[k]`` ending at
-        ``phi[k]`` (rad)."""
+        ``phi[k]`` (rad); with shapes of a free duration (``DmocShape.free_duration``) T
+        (their ``duration``) appended, (len(agents), 4 nq + 1)."""
         agents = np.asarray(agents, dtype=np.intp)
         m = len(agents)
+        shape = self.common_shape
         return np.hstack([self.starts[agents], self.start_velocities[agents],
                           self.final_positions(phi),
                           np.broadcast_to(self.final_attitude, (m, len(self.final_attitude))),
-                          self.final_velocities(agents)])
+                          self.final_velocities(agents),
+                          np.full((m, int(shape.free_duration)), shape.duration)])
 
     def tasks_for(self, agents: np.ndarray, phi: np.ndarray,
                   warm_starts: np.ndarray | None = None) -> Columns:
