@@ -95,6 +95,18 @@ def test_free_duration_derivatives_under_an_active_thrust_limit():
         (slope(t + step) - slope(t - step)) / (2 * step), rel=1e-5)
 
 
+def test_a_fleet_of_free_duration_shapes_solves_as_a_fixed_one(fleet):
+    """Shapes with T a parameter in a formation: T (their duration) is in the boundary
+    data; the same optimum as the fixed-duration shapes."""
+    problem, j1 = fleet
+    free = problem.with_shapes(lambda s: dataclasses.replace(s, free_duration=True,
+                                                             duration=2.0))
+    assert free.boundary_params_rows(np.arange(2), np.zeros(2)).shape == (2, 9)
+    result = solve_formation(free)
+    assert result.converged
+    assert result.total_cost == pytest.approx(j1 / 8, rel=1e-12)
+
+
 def test_free_common_time_is_the_closed_form(fleet):
     """min over T of Σ J_i + w T with J ∝ 1/T³: T* = (3 J_1 / w)^(1/4), to 1e-9."""
     problem, j1 = fleet
