@@ -67,6 +67,33 @@ def test_free_duration_derivatives_are_the_closed_forms(batched):
                                    rtol=1e-10, atol=1e-12)
 
 
+@pytest.mark.parametrize("solver", ["sqpmethod", "ipopt"])
+def test_a_task_of_free_time_is_the_closed_form(solver):
+    """T a variable of the task (time_bounds, time_weight w): with J = c/T³ (c the cost at
+    T = 1, ½ Δᵀ H₁ Δ) the optimum is T = (3c/w)^¼ and J̃ = (4/3) w T = k c^¼; its gradient
+    (k/4) c^(−3/4) ∇c and Hessian (k/4) c^(−3/4) H₁ − (3k/16) c^(−7/4) ∇c ∇cᵀ (the
+    Schur complement of T's block, from the KKT system)."""
+    model, weight = PointMass(dim=2, mass=1.0), 50.0
+    params = np.array([0.0, 0.0, 0.0, 0.0, 3.0, 4.0, 0.0, 0.0])
+    one = transcription(DmocShape(model)).solve(params)
+    c, h1, g1 = one.cost, one.end_hessian, one.cost_gradient[4:6]
+    k = 4 / 3 * weight**0.75 * 3**0.25
+    shape = DmocShape(model, time_weight=weight, time_bounds=(0.1, 100.0), solver=solver)
+    nlp = transcription(shape)
+    for sol in (nlp.solve(params), *([nlp.solve_batch(params[None], [None], [None]).items()[0]]
+                                     if nlp.batches else [])):
+        assert sol.success
+        assert sol.duration == pytest.approx((3 * c / weight) ** 0.25, rel=1e-12)
+        assert sol.cost == pytest.approx(k * c**0.25, rel=1e-12)
+        np.testing.assert_allclose(sol.cost_gradient[4:6], k / 4 * c**-0.75 * g1, rtol=1e-12)
+        np.testing.assert_allclose(
+            sol.end_hessian, k / 4 * c**-0.75 * h1 - 3 * k / 16 * c**-1.75 * np.outer(g1, g1),
+            rtol=1e-10, atol=1e-12)
+    bound = transcription(dataclasses.replace(shape, time_bounds=(0.1, 1.0))).solve(params)
+    assert bound.duration == pytest.approx(1.0, rel=1e-14)
+    assert bound.cost == pytest.approx(c + weight, rel=1e-12)
+
+
 def test_free_duration_derivatives_under_an_active_thrust_limit():
     """With |u| ≤ 1.2 binding, J is no power of T: dJ/dT and d²J/dT² (the active set's KKT
     system) against central differences of fixed-T solves."""

@@ -118,6 +118,15 @@ envelope theorem) and its ``end_hessian`` is the (nq + 1, nq + 1) block of d²J*
 (:mod:`ocpar.ocp.sensitivity`). ``duration`` is then unused by the NLP (the shape is built
 once for all durations, :meth:`DmocShape.build`). No keep-out slots with it.
 
+Free duration per task (optional, ``DmocShape.time_bounds`` (T_min, T_max) with
+``time_weight`` w ≥ 0): T is a decision variable in [T_min, T_max] (in w after the slacks,
+before the planes) and the cost J_d + w T; the solution's ``cost`` is that sum, its
+``duration`` the T it chose, and its ``cost_gradient`` and ``end_hessian`` those of the
+optimum over T as well (the KKT system has T among its variables: d²/dq_N² of
+min_T (J + w T), the Schur complement of T's block). Bounds on T are inequalities
+(``sqpmethod`` or ``ipopt``). Not with ``free_duration``, keep-out slots, ``elastic`` or a
+time-dependent model.
+
 A time-dependent Lagrangian gives each interval its own L_d (see
 :class:`~ocpar.models.MechanicalSystem`). Holonomic constraints c(q) = 0 (e.g. a unit
 quaternion) add the reaction ∇c(q_k)ᵀ λ_k to the equation of every node k = 0..N (boundary
@@ -129,6 +138,7 @@ from __future__ import annotations
 
 import dataclasses
 import itertools
+import math
 import time
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
@@ -244,7 +254,9 @@ class DmocShape:
     dimension). ``elastic``: the phase-1 NLP of this shape instead (module docstring; its
     ``cost`` the total slack s ≥ 0, 0 where the shape's NLP is feasible). ``free_duration``:
     T is the last parameter (module docstring; ``duration`` is then the caller's value of
-    it, not part of the NLP).
+    it, not part of the NLP). ``time_bounds`` (T_min, T_max) and ``time_weight`` w: T a
+    decision variable of each task, the cost J + w T (module docstring; ``duration``, clipped
+    to the bounds, is then the first guess of T).
     """
 
     model: MechanicalSystem
@@ -263,6 +275,8 @@ class DmocShape:
     obstacle_positions: tuple[int, ...] = ()
     elastic: bool = False
     free_duration: bool = False
+    time_weight: float = 0.0
+    time_bounds: tuple[float, float] | None = None
 
     def __post_init__(self) -> None:
         nq, nu = self.model.nq, self.model.nu
@@ -302,6 +316,7 @@ class DmocShape:
         if self.free_duration and self.keep_out_slots:
             raise ValueError("free_duration: not with keep-out slots (their penalty is the "
                              "last parameter)")
+        self._check_time()
         if self.free_duration and getattr(self.model, "time_dependent", False):
             raise ValueError("free_duration: the model is time dependent (tabulated on its "
                              "intervals of one T)")
@@ -312,6 +327,30 @@ class DmocShape:
         if model_intervals is not None and model_intervals != self.intervals:
             raise ValueError(f"the model is tabulated on {model_intervals} intervals, the "
                              f"DMOC shape has {self.intervals}")
+
+    def _check_time(self) -> None:
+        """``time_bounds`` (0 < T_min ≤ T_max < ∞) and ``time_weight`` (finite, ≥ 0), or
+        ValueError naming the field."""
+        if not (math.isfinite(self.time_weight) and self.time_weight >= 0):
+            raise ValueError(f"time_weight: must be a finite number >= 0, got "
+                             f"{self.time_weight!r}")
+        if self.time_bounds is None:
+            if self.time_weight:
+                raise ValueError("time_weight: needs time_bounds (T a variable of the task)")
+            return
+        try:
+            low, high = (float(b) for b in self.time_bounds)
+        except (TypeError, ValueError):
+            raise ValueError("time_bounds: must be (T_min, T_max)") from None
+        if not 0 < low <= high < math.inf:
+            raise ValueError(f"time_bounds: needs 0 < T_min <= T_max < inf, got "
+                             f"{self.time_bounds}")
+        object.__setattr__(self, "time_bounds", (low, high))
+        if (self.free_duration or self.keep_out_slots or self.elastic
+                or self.solver == "newton" or getattr(self.model, "time_dependent", False)):
+            raise ValueError("time_bounds: not with free_duration, keep-out slots, elastic, "
+                             "the newton solver (T's bounds are inequalities) or a "
+                             "time-dependent model")
 
     def _check_obstacles(self) -> None:
         """``obstacles`` (a tuple of obstacles of one dimension d ≤ nq) and
@@ -343,7 +382,7 @@ class DmocShape:
         if self.solver != AUTO_SOLVER:
             return self.solver
         inequalities = (self.path_constraints or self.keep_out_slots or self.obstacles
-                        or self.elastic)
+                        or self.elastic or self.time_bounds is not None)
         return "sqpmethod" if inequalities else "newton"
 
     @property
@@ -402,13 +441,15 @@ class DmocSolution(InnerSolution):
     """Result of one DMOC solve: the common fields, and ``cost_gradient`` dJ*/dp (n_params,
     from the NLP multipliers); ``end_hessian`` d²J*/dq_N² (nq, nq, from the KKT system,
     :mod:`ocpar.ocp.sensitivity`; NaN for a shape with keep-out slots; with a free duration
-    (nq + 1, nq + 1) over (q_N, T)); ``q`` the node path
+    (nq + 1, nq + 1) over (q_N, T)); ``duration`` T (the shape's, the parameter's, or the
+    one the task chose: ``time_bounds``); ``q`` the node path
     (N+1, nq); ``u`` the interval controls (N, nu)."""
 
     cost_gradient: np.ndarray
     end_hessian: np.ndarray
     q: np.ndarray
     u: np.ndarray
+    duration: float
 
 
 class DmocTranscription:
@@ -423,8 +464,10 @@ class DmocTranscription:
         model, n = shape.model, shape.intervals
         nq, nu = model.nq, model.nu
         p = ca.SX.sym("p", shape.n_params)
-        #: T: the last parameter (free duration) or the shape's constant
-        self.horizon = p[-1] if shape.free_duration else shape.duration
+        timed = shape.time_bounds is not None
+        t_var = ca.SX.sym("T", int(timed))
+        #: T: a variable (time bounds), the last parameter (free duration) or the constant
+        self.horizon = t_var[0] if timed else p[-1] if shape.free_duration else shape.duration
         h = self.horizon / n
         self.nq, self.nu, self.n = nq, nu, n
         #: rows and columns of ``end_hessian``: q_N's (and T's, where free) entries of p
@@ -494,7 +537,9 @@ class DmocTranscription:
         control_cost = (h * ca.sumsqr(u_all) if shape.running_cost is None else
                         h * ca.sum1(ca.vertcat(*[shape.running_cost(m) for m in midpoints])))
         #: J_d without the keep-out penalty, of the path and controls (q_1..q_{N−1}, u) and p
-        self.control_cost = ca.Function("Jd", [ca.vertcat(q_inner, u_all), p], [control_cost])
+        # (and T where it is a variable: a shape with time bounds has no keep-outs to use it)
+        self.control_cost = ca.Function("Jd", [ca.vertcat(q_inner, u_all, t_var), p],
+                                        [control_cost])
         penalty = p[-1] * ca.sum1(slack) if shape.keep_out_slots else 0
 
         #: The obstacles' planes (N m_e d: interval by interval, ellipsoid by ellipsoid).
@@ -524,8 +569,12 @@ class DmocTranscription:
                                           else [])])
             objective = ca.dot(self._slack_weights(path), elastic)
         else:
-            elastic, objective = ca.SX.sym("elastic", 0), control_cost + penalty
-        w = ca.vertcat(q_inner, u_all, lam, slack, elastic, planes)
+            elastic = ca.SX.sym("elastic", 0)
+            objective = control_cost + penalty + (shape.time_weight * self.horizon if timed
+                                                  else 0)
+        w = ca.vertcat(q_inner, u_all, lam, slack, elastic, t_var, planes)
+        #: T's entry of w (time bounds), else None
+        self.t_index = w.numel() - planes.numel() - 1 if timed else None
         self.nw = w.numel()
         self.n_params = shape.n_params
         n_eq = nq * (n + 1) + nc * (n - 1 + bool(shape.elastic))
@@ -545,13 +594,17 @@ class DmocTranscription:
         u_lower, u_upper = ((np.full(n * nu, -np.inf), np.full(n * nu, np.inf))
                             if shape.elastic else
                             (np.tile(self.u_lower, n), np.tile(self.u_upper, n)))
+        t_lower, t_upper = shape.time_bounds or (None, None)
         self.lbx = np.concatenate([np.full(n_path, -np.inf), u_lower,
                                    np.full(lam.numel(), -np.inf),
                                    np.zeros(slack.numel() + elastic.numel()),
+                                   np.full(t_var.numel(), t_lower or 0.0),
                                    np.full(planes.numel(), -np.inf)])
         self.ubx = np.concatenate([np.full(n_path, np.inf), u_upper,
-                                   np.full(lam.numel() + slack.numel() + elastic.numel()
-                                           + planes.numel(), np.inf)])
+                                   np.full(lam.numel() + slack.numel() + elastic.numel(),
+                                           np.inf),
+                                   np.full(t_var.numel(), t_upper or 0.0),
+                                   np.full(planes.numel(), np.inf)])
         self.cost = ca.Function("J", [w, p], [objective], ["w", "p"], ["J"])
         self.constraints = ca.Function("g", [w, p], [ca.vertcat(*eqs, *keep_out, rows)],
                                        ["w", "p"], ["g"])
@@ -613,6 +666,20 @@ class DmocTranscription:
                          for end, node in enumerate((k, k + 1)) if 0 < node < n]
         return rows
 
+    @property
+    def first_duration(self) -> float:
+        """The first guess of T where it is a variable: ``duration`` within the bounds."""
+        low, high = self.shape.time_bounds or (-np.inf, np.inf)
+        return float(np.clip(self.shape.duration, low, high))
+
+    def durations(self, w: np.ndarray, params: np.ndarray) -> np.ndarray:
+        """T of each solution w (k, nw) with ``params`` (k, n_params): (k,)."""
+        if self.t_index is not None:
+            return np.asarray(w, float)[:, self.t_index]
+        if self.shape.free_duration:
+            return np.asarray(params, float)[:, -1].copy()
+        return np.full(len(w), self.shape.duration)
+
     def steps(self, params: np.ndarray) -> np.ndarray | float:
         """The step h = T/N of each row of ``params`` (k, n_params): (k,) with a free
         duration, else the shape's constant."""
@@ -668,7 +735,7 @@ class DmocTranscription:
         """Whether the NLP has inequalities (keep-out rows, control bounds, path rows,
         elastic slacks)."""
         return (bool(self.shape.keep_out_slots) or self.shape.control_bounds is not None
-                or bool(self.n_rows) or self.shape.elastic)
+                or bool(self.n_rows) or self.shape.elastic or self.t_index is not None)
 
     def _activity(self, w: np.ndarray, params: np.ndarray, lam_g: np.ndarray
                   ) -> tuple[np.ndarray, np.ndarray]:
@@ -686,7 +753,7 @@ class DmocTranscription:
             rows = np.asarray(self.path_rows.map(k)(w.T, params.T)).reshape(self.n_path, k).T
             end = n_eq + self.n_path
             mask[:, n_eq:end] = _near(rows, self.lbg[n_eq:end], self.ubg[n_eq:end], tol)
-        if self.shape.control_bounds is not None:
+        if self.shape.control_bounds is not None or self.t_index is not None:
             mask[:, self.ng:] = _near(w, self.lbx, self.ubx, tol)
         if self.n_rows > self.n_path:
             w = w.copy()
@@ -758,13 +825,15 @@ class DmocTranscription:
         q0, v0, qn, vn = (params[:, None, i * nq:(i + 1) * nq] for i in range(4))
         s = np.arange(1, n)[None, :, None] / n
         t = (params[:, -1, None, None] if self.shape.free_duration
-             else self.shape.duration)
+             else self.first_duration)
         h00, h10 = 2 * s**3 - 3 * s**2 + 1, s**3 - 2 * s**2 + s
         h01, h11 = -2 * s**3 + 3 * s**2, s**3 - s**2
         path = (h00 * q0 + h10 * t * v0 + h01 * qn + h11 * t * vn).reshape(-1, nq)
         if self.nc:
             path = self.shape.model.project(path)
         guesses = np.hstack([path.reshape(k, -1), np.zeros((k, self.nw - path.size // k))])
+        if self.t_index is not None:
+            guesses[:, self.t_index] = self.first_duration
         return self._with_planes(guesses, params)
 
     def _with_planes(self, guesses: np.ndarray, params: np.ndarray) -> np.ndarray:
@@ -934,7 +1003,8 @@ class DmocTranscription:
         return DmocSolution(cost=float("nan"), status=status, success=False, iterations=0,
                             attempts=1, solve_time_s=elapsed,
                             cost_gradient=np.full(params.shape, np.nan),
-                            end_hessian=self._no_hessian(), q=nan_q, u=nan_u)
+                            end_hessian=self._no_hessian(), q=nan_q, u=nan_u,
+                            duration=float("nan"))
 
     def _no_hessian(self) -> np.ndarray:
         """The (nh, nh) NaN ``end_hessian`` of a failed solve or of a shape with keep-outs."""
@@ -982,25 +1052,28 @@ class DmocTranscription:
             return self.failure(params, call.status, call.solve_time_s)
         w, lam_g = (np.asarray(call.out[k]).ravel() for k in ("x", "lam_g"))
         q, u = self.unpack(w, params)
+        duration = float(self.durations(w[None], params[None])[0])
         if self.shape.elastic:   # the cost is the total slack
             return DmocSolution(**call.common, cost_gradient=call.cost_gradient,
-                                end_hessian=self._no_hessian(), q=q, u=u)
+                                end_hessian=self._no_hessian(), q=q, u=u, duration=duration)
         if self.end_hessian is None:  # keep-outs: the control cost without the penalty
             common = {**call.common, "cost": float(self._costs(w[None], params[None], u[None])[0])}
             return DmocSolution(**common, cost_gradient=call.cost_gradient,
-                                end_hessian=self._no_hessian(), q=q, u=u)
+                                end_hessian=self._no_hessian(), q=q, u=u, duration=duration)
         hessian = self._hessians(w[None], lam_g[None], params[None],
                                  np.asarray(self.end_hessian(w, lam_g, params))[None])[0]
         return DmocSolution(**call.common, cost_gradient=call.cost_gradient,
-                            end_hessian=hessian, q=q, u=u)
+                            end_hessian=hessian, q=q, u=u, duration=duration)
 
     def full_guess(self, guess: np.ndarray, params: np.ndarray) -> np.ndarray:
         """``guess`` with λ = 0, slacks σ = 0 and the planes of its path
         (:meth:`_with_planes`) appended if it has none (p = ``params``)."""
         x0 = np.asarray(guess, float)
         if x0.size == self.nq * (self.n - 1) + self.nu * self.n:
-            x0 = self._with_planes(np.concatenate([x0, np.zeros(self.nw - x0.size)])[None],
-                                   np.asarray(params, float)[None])[0]
+            x0 = np.concatenate([x0, np.zeros(self.nw - x0.size)])
+            if self.t_index is not None:
+                x0[self.t_index] = self.first_duration
+            x0 = self._with_planes(x0[None], np.asarray(params, float)[None])[0]
         return x0
 
     def prepare(self, count: int) -> None:
@@ -1173,7 +1246,7 @@ class DmocTranscription:
             elapsed = (time.perf_counter() - start) / k
             parts.append(_solution_columns(costs, np.ones(len(ok), bool), np.full(len(ok), -1),
                                            np.full(len(ok), elapsed), -batch.lam_p[pick][ok],
-                                           hessians, q, u))
+                                           hessians, q, u, self.durations(w[ok], params[ok])))
             positions.append(ok)
         others = np.flatnonzero(~accepted)
         if len(others):
@@ -1287,12 +1360,12 @@ class DmocTranscription:
             hessians = self._hessians(batch.x, batch.lam_g, params, hessians)
         return _solution_columns(costs, np.asarray(batch.success, bool), iterations,
                                  np.full(k, batch.solve_time_s / k), -batch.lam_p, hessians,
-                                 q, u)
+                                 q, u, self.durations(batch.x, params))
 
 
 def _solution_columns(costs: np.ndarray, success: np.ndarray, iterations: np.ndarray,
                       times: np.ndarray, gradients: np.ndarray, hessians: np.ndarray,
-                      q: np.ndarray, u: np.ndarray) -> Columns:
+                      q: np.ndarray, u: np.ndarray, durations: np.ndarray) -> Columns:
     """k batched solutions as columns of :class:`DmocSolution` (one attempt each, the status
     from ``success``)."""
     k = len(costs)
@@ -1309,6 +1382,7 @@ def _solution_columns(costs: np.ndarray, success: np.ndarray, iterations: np.nda
         "end_hessian": (STACKED, hessians),
         "q": (STACKED, q),
         "u": (STACKED, u),
+        "duration": (VALUES, np.asarray(durations, float)),
     })
 
 
