@@ -149,6 +149,40 @@ def test_free_common_time_is_the_closed_form(fleet):
     assert result.final_time["at_bound"] is None
 
 
+def test_free_time_per_agent_is_each_agents_closed_form(fleet):
+    """Each agent its own T_i, cost J_i + w T_i: from rest to rest J_i(T) = α |Δ_i|² / T³
+    (α from one DMOC solve here), so T_i = (3 α |Δ_i|² / w)^¼ and the formation's rotation
+    θ minimises Σ_i (4/3) w^¾ (3 α |Δ_i(θ)|²)^¼: a 1-D search here."""
+    problem, _ = fleet
+    result = solve_formation(problem, options=FormationOptions(
+        final_time="free_per_agent", time_bounds=(0.5, 100.0), time_weight=WEIGHT))
+    assert result.converged, result.message
+    unit = transcription(problem.common_shape).solve(np.array([0.0] * 4 + [1.0, 0.0, 0, 0]))
+    alpha = unit.cost   # J at T = 1 of a unit displacement
+    starts = problem.positions(problem.starts)
+    offsets = result.phi - result.phi[0]
+
+    def squared(theta: float) -> np.ndarray:
+        return np.sum((problem.final_positions(theta + offsets) - starts) ** 2, axis=1)
+
+    def total(theta: float) -> float:
+        return float(np.sum(4 / 3 * WEIGHT**0.75 * (3 * alpha * squared(theta)) ** 0.25))
+
+    best = minimize_scalar(total, bounds=(result.phi[0] - 0.1, result.phi[0] + 0.1),
+                           method="bounded", options={"xatol": 1e-12})
+    # the rotation: the test's search's (to its accuracy on a flat minimum), no worse
+    assert abs(best.x - result.phi[0]) <= 1e-6
+    assert total(result.phi[0]) <= best.fun * (1 + 1e-13)
+    # each agent's T_i: its closed form at its target
+    expected = (3 * alpha * squared(result.phi[0]) / WEIGHT) ** 0.25
+    np.testing.assert_allclose(result.durations, expected, rtol=1e-9)
+    assert result.total_cost == pytest.approx(total(result.phi[0]), rel=1e-12)
+    assert result.final_time["T"] == np.max(result.durations)
+    assert math.isnan(result.separation.distance)
+    arrays = result.arrays()
+    np.testing.assert_array_equal(arrays["duration"][1], result.durations)
+
+
 def test_free_time_stops_at_its_bound(fleet):
     """T_max below T*: F' + w < 0 there, T = T_max (a bound's KKT point)."""
     problem, j1 = fleet

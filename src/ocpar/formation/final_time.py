@@ -12,6 +12,13 @@ first order in the cost, e.g. point masses from rest to rest, J ∝ 1/T³; a bis
 where the Newton step leaves the bracket of the root) gives the next T; the formation is
 re-solved there from the previous φ. T stops at a bound where F' + w keeps its sign there.
 
+``free_per_agent`` (:func:`solve_per_agent_time`): each agent's own T_i in [T_min, T_max],
+its inner cost J_i + w T_i: T_i a variable of its inner problem (``DmocShape.time_bounds``,
+``time_weight``), so the outer problem sees the same contract (the optimum over T_i, its
+gradient and Hessian in q_N from the KKT system) and is solved as for a fixed T. Each
+agent's paths are checked at its own T_i (:mod:`ocpar.formation.finish`); the closest
+approach of two agents on different horizons is not computed (NaN).
+
 ``minimum``: :mod:`ocpar.formation.minimum_time`. This module also holds what both share:
 the problem at another T (:func:`at_duration`), tasks on given shapes (:func:`task_columns`),
 the time bounds.
@@ -31,16 +38,19 @@ import numpy as np
 from ocpar.bsp import Backend
 from ocpar.bsp.columns import LISTED, Columns
 from ocpar.bsp.partition import unit_size
+from ocpar.formation.keep_out.separation import ClosestApproach
 from ocpar.formation.problem import FormationProblem
 from ocpar.formation.result import FormationResult
-from ocpar.ocp import DmocShape, OcpTask
+from ocpar.formation.verify import near_collision_words
+from ocpar.ocp import DmocShape, OcpTask, solve_tasks
+from ocpar.ocp.batch import AUTO_SOLVER
 from ocpar.ocp.duration import DurationSums, DurationUnit, duration_sums
 
 if TYPE_CHECKING:
     from ocpar.formation.solve import FormationOptions
 
 #: What the final time is (:class:`~ocpar.formation.FormationOptions` ``final_time``).
-FINAL_TIMES = ("fixed", "free", "minimum")
+FINAL_TIMES = ("fixed", "free", "free_per_agent", "minimum")
 #: Newton steps in T at most (each a formation solve at one T).
 TIME_ITERATIONS = 50
 
@@ -94,7 +104,7 @@ def check_final_time(problem: FormationProblem, options: FormationOptions) -> No
     if options.min_separation is not None:
         raise ValueError(f"{what}: not with min_separation (the separation rounds' keep-out "
                          "solves do not take a free duration yet)")
-    if options.final_time == "free":
+    if options.final_time in ("free", "free_per_agent"):
         if options.time_bounds is None:
             raise ValueError(f"{what}: needs time_bounds (T_min, T_max)")
         if not options.time_weight > 0:
@@ -222,6 +232,45 @@ def solve_free_time(problem: FormationProblem, backend: Backend, options: Format
                                message=f"{result.message}; free final time: {reason}")
 
 
+def solve_per_agent_time(problem: FormationProblem, backend: Backend,
+                         options: FormationOptions, solve: Callable[..., FormationResult],
+                         phi0: np.ndarray | None = None,
+                         progress: Callable[[str], None] | None = None) -> FormationResult:
+    """Each agent's own T_i (module docstring): the formation solved by ``solve`` with every
+    agent's inner problem choosing T_i, then one superstep at the returned φ for the T_i
+    (the agents' solutions stay on the workers). Its arrays come back to the coordinator
+    (the velocities need each T_i); ``agent_costs`` are J_i + w T_i."""
+    low, high = time_bounds(options)
+    weight = options.time_weight
+    start = time.perf_counter()
+    timed = problem.with_shapes(lambda shape: dataclasses.replace(
+        shape, time_bounds=(low, high), time_weight=weight,
+        solver=AUTO_SOLVER if shape.solver == "newton" else shape.solver))
+    fixed = dataclasses.replace(options, final_time="fixed")
+    result = solve(timed, backend, fixed, phi0, progress, None)
+    durations = np.full(problem.agents, np.nan)
+    if np.all(np.isfinite(result.phi)):
+        sols = backend.superstep_columns(solve_tasks, timed.tasks(np.reshape(
+            result.phi, problem.parameter_shape)))
+        durations = np.where(np.asarray(sols.column("success"), bool),
+                             np.asarray(sols.column("duration"), float), np.nan)
+    message = result.message
+    if result.verification is not None and result.verification.near_collision is not None:
+        message = message.replace(f"; {near_collision_words(result.verification.near_collision)}",
+                                  "")
+    fields = {"mode": "free_per_agent", "T": float(np.max(durations)) if np.all(
+        np.isfinite(durations)) else None, "time_weight": weight, "time_bounds": [low, high],
+        "at_T_min": int(np.sum(durations <= low)), "at_T_max": int(np.sum(durations >= high))}
+    unknown = ClosestApproach(math.nan, (-1, -1), math.nan)
+    verification = (None if result.verification is None else dataclasses.replace(
+        result.verification, closest=unknown, near_collision=None))
+    return dataclasses.replace(
+        result, final_time=fields, durations=durations, separation=unknown,
+        verification=verification, inner_solves=result.inner_solves + problem.agents,
+        message=message + "; each agent's own final time (the closest approach of agents on "
+        "different horizons is not computed)", wall_time_s=time.perf_counter() - start)
+
+
 def _next_duration(duration: float, gradient: float, curvature: float, weight: float
                    ) -> float:
     """The Newton step's T for F'(T) + w = 0 given F' (``gradient``) and F''
@@ -237,4 +286,4 @@ def _next_duration(duration: float, gradient: float, curvature: float, weight: f
 
 
 __all__ = ["FINAL_TIMES", "at_duration", "check_final_time", "duration_derivatives",
-           "solve_free_time", "task_columns", "time_bounds"]
+           "solve_free_time", "solve_per_agent_time", "task_columns", "time_bounds"]

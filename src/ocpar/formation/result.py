@@ -137,7 +137,9 @@ class FormationResult(RunResult):
     time (None for a fixed one): T and how it was found (:mod:`ocpar.formation.final_time`:
     ``free``: the weight w, the objective Σ J_i + w T, dF/dT + w at T, the bound T stopped
     at, the iterations; ``minimum``: the ``bracket`` [T_lo, T_hi], ``proven``, the rotation,
-    phase 1's total slack at ``phase_one_T``); ``fleet`` (:class:`Fleet`) and per agent the inner
+    phase 1's total slack at ``phase_one_T``; ``free_per_agent``: the weight, the largest
+    T_i) and ``durations`` (n,) each agent's own T_i (None but there; the array file's
+    ``duration``); ``fleet`` (:class:`Fleet`) and per agent the inner
     solver's ``solver_status`` and ``solver_iterations`` (n,) of its last solve at the
     returned φ (with a required separation: of the solve before the rounds; a monolithic
     run: the one NLP's) for the array file (:meth:`arrays`); ``positions`` (n, N+1, p) the
@@ -175,6 +177,7 @@ class FormationResult(RunResult):
     critical_sets: list[dict] | None = None
     ordering: dict | None = None
     final_time: dict | None = None
+    durations: np.ndarray | None = None
     verification: Verification | None = None
     fleet: Fleet | None = None
     solver_status: list[str] | None = None
@@ -268,7 +271,8 @@ class FormationResult(RunResult):
             status=self.solver_status, iterations=self.solver_iterations,
             violation=None if self.verification is None
             else self.verification.agent_violation, sides=self.obstacle_sides),
-            duration, positions, self.on_circle, units)
+            duration if self.durations is None else self.durations, positions,
+            self.on_circle, units)
 
     def units(self) -> Units:
         """The names and units of the fleet's quantities (:class:`Units`: the fleet's, else
@@ -396,17 +400,20 @@ class AgentRecords:
     sides: list[list[str | list[float] | None]] | None = None
 
 
-def agent_arrays(records: AgentRecords, duration: float, positions: tuple[int, ...],
-                 on_circle: bool, units: Units) -> dict[str, Array]:
+def agent_arrays(records: AgentRecords, duration: float | np.ndarray,
+                 positions: tuple[int, ...], on_circle: bool, units: Units
+                 ) -> dict[str, Array]:
     """The array file's variables of the agents of ``records`` (their ``agent`` coordinate,
     configuration, velocity, cost, phi, control, peak_thrust, target, model, mass,
     solver_status with its own ``solver_status_name``, solver_iterations,
     constraint_violation, obstacle_side: :meth:`FormationResult.arrays`), in ``units``. Any
     block of agents gives its rows of the whole fleet's variables; the solver statuses'
-    names are the block's own (:func:`ocpar.result_files.load` joins them)."""
+    names are the block's own (:func:`ocpar.result_files.load` joins them). ``duration``:
+    the fleet's T, or each agent's (m,) where each chose its own (then also a ``duration``
+    variable)."""
     q = records.q
     m, nodes, _ = q.shape
-    h = duration / (nodes - 1)
+    h = np.reshape(duration, (-1, 1, 1)) / (nodes - 1)
     position = Labels(*(tuple(units.state.names[i] for i in positions),
                         tuple(units.state.units[i] for i in positions))) if positions else None
     out = {
@@ -417,6 +424,9 @@ def agent_arrays(records: AgentRecords, duration: float, positions: tuple[int, .
         "velocity": array("agent interval_time q_component", np.diff(q, axis=1) / h,
                           units.velocity, "velocity (q_{k+1} - q_k)/h on each interval"),
         "cost": array("agent", records.cost, units.cost, "inner optimal cost J_i"),
+        **({"duration": array("agent", np.asarray(duration, float), units.time,
+                              "the agent's horizon T_i (its own final time)")}
+           if np.ndim(duration) else {}),
         "phi": array("agent" if np.ndim(records.phi) == 1 else "agent parameter",
                      records.phi, "rad" if on_circle else "1",
                      "final parameter on the target (angle on a curve, slot index, "

@@ -23,7 +23,12 @@ from ocpar.formation.couplings.critical_sets import (
     best_isolated_formation,
 )
 from ocpar.formation.feasibility import NoFeasibleFormation, feasible_start
-from ocpar.formation.final_time import FINAL_TIMES, check_final_time, solve_free_time
+from ocpar.formation.final_time import (
+    FINAL_TIMES,
+    check_final_time,
+    solve_free_time,
+    solve_per_agent_time,
+)
 from ocpar.formation.finish import cost_groups, finish, writes_parts
 from ocpar.formation.hierarchical import (
     InnerSolveFailed,
@@ -106,7 +111,8 @@ class FormationOptions:
     checked against them (``obstacles_not_cleared`` if one is inside one). ``final_time``
     (:mod:`ocpar.formation.final_time`): ``fixed`` (the shapes' duration), ``free`` (one
     common T in ``time_bounds`` (T_min, T_max), the cost Σ J_i + ``time_weight`` · T, T
-    stationary to ``time_tol``) or ``minimum`` (the least T at which a formation is
+    stationary to ``time_tol``), ``free_per_agent`` (each agent's own T_i there, its cost
+    J_i + w T_i) or ``minimum`` (the least T at which a formation is
     reachable, a bracket of relative width ``time_tol``).
     """
 
@@ -186,10 +192,10 @@ class FormationOptions:
         "every agent's initial angle; curves only)", metavar="RAD")
     final_time: str = option("fixed", "the horizon T: fixed (the problem's), free (one common "
                              "T in --time-bounds, the cost sum J_i + w T with w = "
-                             "--time-weight) or minimum (the least T at which the formation is "
-                             "reachable under the thrust limits: point masses at rest onto a "
-                             "circle; a bracket of relative width --time-tol)",
-                             choices=FINAL_TIMES)
+                             "--time-weight), free_per_agent (each agent its own T_i in "
+                             "--time-bounds, its cost J_i + w T_i) or minimum (the least T at "
+                             "which the formation is reachable under the agents' limits, a "
+                             "bracket of relative width --time-tol)", choices=FINAL_TIMES)
     time_bounds: tuple[float, ...] | None = option(
         None, "with --final-time free or minimum: T_min,T_max (the model's time unit)",
         metavar="T_MIN,T_MAX")
@@ -476,6 +482,8 @@ def solve_formation(
                                output)
     if options.final_time == "minimum":
         return solve_minimum_time(problem, backend, options, solve_formation, progress, output)
+    if options.final_time == "free_per_agent":
+        return solve_per_agent_time(problem, backend, options, solve_formation, phi0, progress)
     if options.inner_solver is not None and any(
             shape.solver != options.inner_solver for shape in problem.shapes):
         problem = problem.with_shapes(
