@@ -19,7 +19,8 @@ from scipy.optimize import linear_sum_assignment, linprog, minimize_scalar
 from ocpar.examples import formation_minimum_time, formation_point_masses
 from ocpar.formation import FormationOptions, solve_formation
 from ocpar.formation.feasibility import SLACK_TOL, elastic_shape
-from ocpar.formation.final_time import at_duration
+from ocpar.formation.final_time import at_duration, closest_across_horizons
+from ocpar.formation.keep_out.separation import closest_approach
 from ocpar.models import PointMass
 from ocpar.ocp import DmocShape, transcription
 from ocpar.ocp.constraints import PathConstraint
@@ -178,9 +179,34 @@ def test_free_time_per_agent_is_each_agents_closed_form(fleet):
     np.testing.assert_allclose(result.durations, expected, rtol=1e-9)
     assert result.total_cost == pytest.approx(total(result.phi[0]), rel=1e-12)
     assert result.final_time["T"] == np.max(result.durations)
-    assert math.isnan(result.separation.distance)
+    assert 0 < result.separation.distance < math.inf   # across the agents' own horizons
     arrays = result.arrays()
     np.testing.assert_array_equal(arrays["duration"][1], result.durations)
+
+
+def test_closest_approach_across_horizons_is_the_sampled_minimum():
+    """Paths at their own times k T_i/N, held after T_i: the exact minimum over the union of
+    node times against a dense sampling of t (never above it, within its resolution), and
+    the common-horizon closest approach where every T_i is equal."""
+    rng = np.random.default_rng(1)
+    positions = rng.normal(size=(5, 11, 2))
+    same, common = (closest_across_horizons(positions, np.full(5, 3.0)),
+                    closest_approach(positions, 3.0))
+    assert (same.distance, same.agents) == (common.distance, common.agents)
+    assert same.time == pytest.approx(common.time, rel=1e-14)
+    durations = np.array([1.0, 2.0, 1.5, 3.0, 2.5])
+    found = closest_across_horizons(positions, durations)
+    times = np.linspace(0.0, 3.0, 300_001)
+    paths = np.stack([np.stack([np.interp(times, durations[i] * np.linspace(0, 1, 11),
+                                          positions[i, :, a]) for a in range(2)], axis=-1)
+                      for i in range(5)])
+    sampled = min((float(np.min(np.linalg.norm(paths[i] - paths[j], axis=1))), (i, j))
+                  for i in range(5) for j in range(i + 1, 5))
+    assert found.agents == sampled[1]
+    assert found.distance <= sampled[0] <= found.distance + 1e-6
+    here = np.stack([np.interp(found.time, durations[i] * np.linspace(0, 1, 11),
+                               positions[i, :, :].T[a]) for i in found.agents for a in range(2)])
+    assert np.linalg.norm(here[:2] - here[2:]) == pytest.approx(found.distance, rel=1e-9)
 
 
 def test_free_time_stops_at_its_bound(fleet):

@@ -17,7 +17,9 @@ its inner cost J_i + w T_i: T_i a variable of its inner problem (``DmocShape.tim
 ``time_weight``), so the outer problem sees the same contract (the optimum over T_i, its
 gradient and Hessian in q_N from the KKT system) and is solved as for a fixed T. Each
 agent's paths are checked at its own T_i (:mod:`ocpar.formation.finish`); the closest
-approach of two agents on different horizons is not computed (NaN).
+approach is that of the paths on the union of the agents' node times, each agent held at its
+target after its T_i (:func:`closest_across_horizons`: exact, every path linear between
+those times).
 
 ``minimum``: :mod:`ocpar.formation.minimum_time`. This module also holds what both share:
 the problem at another T (:func:`at_duration`), tasks on given shapes (:func:`task_columns`),
@@ -38,10 +40,10 @@ import numpy as np
 from ocpar.bsp import Backend
 from ocpar.bsp.columns import LISTED, Columns
 from ocpar.bsp.partition import unit_size
-from ocpar.formation.keep_out.separation import ClosestApproach
+from ocpar.formation.keep_out.separation import ClosestApproach, closest_approach
 from ocpar.formation.problem import FormationProblem
 from ocpar.formation.result import FormationResult
-from ocpar.formation.verify import near_collision_words
+from ocpar.formation.verify import near_collision, near_collision_words
 from ocpar.ocp import DmocShape, OcpTask, solve_tasks
 from ocpar.ocp.batch import AUTO_SOLVER
 from ocpar.ocp.duration import DurationSums, DurationUnit, duration_sums
@@ -51,6 +53,9 @@ if TYPE_CHECKING:
 
 #: What the final time is (:class:`~ocpar.formation.FormationOptions` ``final_time``).
 FINAL_TIMES = ("fixed", "free", "free_per_agent", "minimum")
+#: The most nodes (agents × union of their node times) :func:`closest_across_horizons`
+#: resamples (32 MB in 2-D); beyond, the closest approach is not computed (NaN).
+UNION_NODES = 2_000_000
 #: Newton steps in T at most (each a formation solve at one T).
 TIME_ITERATIONS = 50
 
@@ -257,18 +262,50 @@ def solve_per_agent_time(problem: FormationProblem, backend: Backend,
     message = result.message
     if result.verification is not None and result.verification.near_collision is not None:
         message = message.replace(f"; {near_collision_words(result.verification.near_collision)}",
-                                  "")
+                                  "")   # the check on a common horizon's times: not these
+    closest = closest_across_horizons(result.positions, durations, backend)
+    verification = result.verification
+    if verification is not None:
+        near = near_collision(closest, verification.spacing)
+        verification = dataclasses.replace(verification, closest=closest, near_collision=near)
+        if near is not None:
+            message += f"; {near_collision_words(near)}"
     fields = {"mode": "free_per_agent", "T": float(np.max(durations)) if np.all(
         np.isfinite(durations)) else None, "time_weight": weight, "time_bounds": [low, high],
         "at_T_min": int(np.sum(durations <= low)), "at_T_max": int(np.sum(durations >= high))}
-    unknown = ClosestApproach(math.nan, (-1, -1), math.nan)
-    verification = (None if result.verification is None else dataclasses.replace(
-        result.verification, closest=unknown, near_collision=None))
     return dataclasses.replace(
-        result, final_time=fields, durations=durations, separation=unknown,
+        result, final_time=fields, durations=durations, separation=closest,
         verification=verification, inner_solves=result.inner_solves + problem.agents,
-        message=message + "; each agent's own final time (the closest approach of agents on "
-        "different horizons is not computed)", wall_time_s=time.perf_counter() - start)
+        message=message + "; each agent its own final time", wall_time_s=time.perf_counter()
+        - start)
+
+
+def closest_across_horizons(positions: np.ndarray, durations: np.ndarray,
+                            backend: Backend | None = None) -> ClosestApproach:
+    """The closest approach of agents whose node positions ``positions`` (n, N+1, d) are at
+    their own times k T_i / N (``durations`` (n,)), each held at its last node after T_i:
+    all paths resampled at the union of the node times, where every one is linear between
+    consecutive times (:func:`~ocpar.formation.keep_out.separation.closest_approach` on
+    them, its time mapped back). NaN where a path or T_i is not finite or the union is
+    larger than :data:`UNION_NODES`."""
+    n, nodes, dim = positions.shape
+    unknown = ClosestApproach(math.nan, (-1, -1), math.nan)
+    if not (np.all(np.isfinite(durations)) and np.all(np.isfinite(positions))):
+        return unknown
+    grids = durations[:, None] * np.linspace(0.0, 1.0, nodes)[None]
+    times = np.unique(grids)
+    if n * len(times) > UNION_NODES:
+        return unknown
+    resampled = np.empty((n, len(times), dim))
+    for i in range(n):   # np.interp holds the last value after T_i
+        for axis in range(dim):
+            resampled[i, :, axis] = np.interp(times, grids[i], positions[i, :, axis])
+    found = closest_approach(resampled, float(len(times) - 1), backend)
+    if not math.isfinite(found.time):
+        return found
+    k = min(int(found.time), len(times) - 2)
+    t = times[k] + (found.time - k) * (times[k + 1] - times[k])
+    return ClosestApproach(found.distance, found.agents, float(t))
 
 
 def _next_duration(duration: float, gradient: float, curvature: float, weight: float
@@ -285,5 +322,14 @@ def _next_duration(duration: float, gradient: float, curvature: float, weight: f
     return math.nan
 
 
-__all__ = ["FINAL_TIMES", "at_duration", "check_final_time", "duration_derivatives",
-           "solve_free_time", "solve_per_agent_time", "task_columns", "time_bounds"]
+__all__ = [
+    "FINAL_TIMES",
+    "at_duration",
+    "check_final_time",
+    "closest_across_horizons",
+    "duration_derivatives",
+    "solve_free_time",
+    "solve_per_agent_time",
+    "task_columns",
+    "time_bounds",
+]

@@ -329,6 +329,9 @@ class FormationResult(RunResult):
             low, high = t["bracket"]
             return (f"minimum final time T {high:.12g} (none reachable below {low:.12g}; "
                     f"phase 1's slack there {t['phase_one_slack']})\n")
+        if t["mode"] == "free_per_agent":
+            return (f"free final time per agent: T_i up to {t['T']} (w {t['time_weight']:g}; "
+                    f"the array file's duration)\n")
         objective = "" if t["objective"] is None else f", sum J + w T {t['objective']:.12e}"
         return f"free final time T {t['T']:.12g} (w {t['time_weight']:g}{objective})\n"
 

@@ -536,16 +536,20 @@ def verify_checked(problem: FormationProblem, positions: np.ndarray, ends: np.nd
     targets = positions[:, -1]
     spacing = (closest_pair(targets)[0] if n > 1 and np.all(np.isfinite(targets))
                else math.inf if n < 2 else math.nan)
-    near = None
-    if min_separation is None and closest.distance < NEAR_COLLISION_FRACTION * spacing:
-        near = {"distance": closest.distance, "agents": list(closest.agents),
-                "time": closest.time, "spacing": spacing,
-                "fraction": closest.distance / spacing,
-                "rule": f"closest approach below {100 * NEAR_COLLISION_FRACTION:g} % of the "
-                        f"formation's spacing (the smallest distance between two target "
-                        f"points)"}
+    near = near_collision(closest, spacing) if min_separation is None else None
     return Verification(found, located, residual, closest, spacing, clearance, near,
                         time.perf_counter() - start, checks.violation)
+
+
+def near_collision(closest: ClosestApproach, spacing: float) -> dict | None:
+    """Where and how close the ``closest`` approach is, if below
+    :data:`NEAR_COLLISION_FRACTION` of the formation's ``spacing`` (else None)."""
+    if not closest.distance < NEAR_COLLISION_FRACTION * spacing:
+        return None
+    return {"distance": closest.distance, "agents": list(closest.agents),
+            "time": closest.time, "spacing": spacing, "fraction": closest.distance / spacing,
+            "rule": f"closest approach below {100 * NEAR_COLLISION_FRACTION:g} % of the "
+                    f"formation's spacing (the smallest distance between two target points)"}
 
 
 def near_collision_words(near: dict) -> str:
