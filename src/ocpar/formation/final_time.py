@@ -1,4 +1,5 @@
-"""Free and minimum final time of a formation: the common horizon T as an outer variable.
+"""Free final time of a formation: one common horizon T as an outer variable, or each
+agent's own T_i as a variable of its inner problem.
 
 ``free`` (:func:`solve_free_time`): min over T in [T_min, T_max] of F(T) + w T, where F(T) is
 the formation's optimum Σ_i Ĵ_i at horizon T (the outer problem over φ solved at T, as for
@@ -6,11 +7,13 @@ a fixed T). By the envelope theorem F'(T) = Σ_i ∂J_i*/∂T at the formation's
 agent's inner problem with T as its last parameter (``DmocShape.free_duration``) gives
 ∂J_i*/∂T from its parameters' multiplier and ∂²J_i*/∂T² from its KKT system
 (:mod:`ocpar.ocp.duration`), summed on the workers over fixed units of agents (the same
-numbers on any number of workers). A safeguarded Newton step on F'(T) + w = 0 with the
-curvature Σ_i ∂²J_i*/∂T² (exact where the formation's optimum φ* does not move with T to
-first order in the cost, e.g. point masses from rest to rest, J ∝ 1/T³; a bisection step
-where the Newton step leaves the bracket of the root) gives the next T; the formation is
-re-solved there from the previous φ. T stops at a bound where F' + w keeps its sign there.
+numbers on any number of workers). A safeguarded Newton step on F'(T) + w = 0 (in log–log
+coordinates where F falls and is convex: exact in one step for F ∝ T^k, point masses from
+rest to rest having J ∝ 1/T³), its curvature Σ_i ∂²J_i*/∂T² at the first T and the secant
+of the exact F' after (the reduced curvature where φ* moves with T), a bisection step where
+it leaves the bracket of the root, gives the next T; the formation is re-solved there from
+the previous φ. T stops at a bound where F' + w points outward; a T where no formation is
+solved counts as F = +∞.
 
 ``free_per_agent`` (:func:`solve_per_agent_time`): each agent's own T_i in [T_min, T_max],
 its inner cost J_i + w T_i: T_i a variable of its inner problem (``DmocShape.time_bounds``,
@@ -120,7 +123,8 @@ def check_final_time(problem: FormationProblem, options: FormationOptions) -> No
 
 
 def time_bounds(options: FormationOptions) -> tuple[float, float]:
-    """``options.time_bounds`` as (T_min, T_max) with 0 < T_min ≤ T_max < ∞, or ValueError."""
+    """``options.time_bounds`` as (T_min, T_max) (checked by the options), (0, ∞) where
+    none are given."""
     bounds = options.time_bounds
     if bounds is None:
         return 0.0, math.inf
