@@ -11,6 +11,7 @@ import json
 import math
 
 import casadi as ca
+import netCDF4
 import numpy as np
 import pytest
 from conftest import run_cli
@@ -239,9 +240,10 @@ def test_free_time_under_thrust_limits_is_stationary():
     assert slope == pytest.approx(-weight, rel=1e-5)
 
 
-def test_free_time_is_bitwise_the_same_on_two_mpi_ranks(tmp_path):
-    args = ["-m", "ocpar.formation", "--final-time", "free", "--time-bounds", "0.5,100",
-            "--time-weight", "1000", "--quiet"]
+@pytest.mark.parametrize("mode", ["free", "free_per_agent"])
+def test_free_time_is_bitwise_the_same_on_two_mpi_ranks(tmp_path, mode):
+    args = ["-m", "ocpar.formation", "--agents", "20", "--final-time", mode,
+            "--time-bounds", "0.5,100", "--time-weight", "1000", "--quiet"]
     out = {}
     for ranks in (None, 2):
         where = tmp_path / f"ranks-{ranks}"
@@ -249,9 +251,14 @@ def test_free_time_is_bitwise_the_same_on_two_mpi_ranks(tmp_path):
                        *(["--backend", "mpi"] if ranks else []), mpi_ranks=ranks)
         assert proc.returncode == 0, proc.stderr
         out[ranks] = json.loads((where / "result.json").read_text())
+        assert out[ranks]["status"] == "converged"
     assert out[2]["workers"] == 2
-    for key in ("final_time", "total_cost", "phi"):
+    for key in ("final_time", "total_cost", "phi", "min_separation"):
         assert out[None][key] == out[2][key]
+    if mode == "free_per_agent":   # each agent's T_i, in the array file
+        durations = [netCDF4.Dataset(tmp_path / f"ranks-{r}" / "result.nc")["duration"][:]
+                     for r in (None, 2)]
+        np.testing.assert_array_equal(durations[0], durations[1])
 
 
 def _dmoc_reach_at_one(mass: float, intervals: int, limit: float) -> float:
