@@ -115,12 +115,9 @@ def finish_agents(tasks: Columns, states: Columns) -> Columns:
                                            "model_names", "cost_groups", "directory",
                                            "width", "units"))
     nq = q.shape[2]
-    durations = np.asarray(states.column("duration"), float)
-    checks = agent_checks([s.with_duration(t) if s.time_bounds is not None and np.isfinite(t)
-                           else s for s, t in zip(shapes, durations, strict=True)],
-                          q, u, params[:, :nq], params[:, nq:2 * nq],
-                          params[:, 2 * nq + dim:3 * nq], params[:, 3 * nq:4 * nq], dim,
-                          first)
+    checks = agent_checks(shapes, q, u, params[:, :nq], params[:, nq:2 * nq],
+                          params[:, 2 * nq + dim:3 * nq], params[:, 3 * nq:4 * nq], dim, first,
+                          np.asarray(states.column("duration"), float))
     cost = np.asarray(states.column("cost"), float)
     squares = (np.column_stack([np.sum(u[..., a:b] ** 2, axis=(1, 2))
                                 for a, b in cost_groups.values()])

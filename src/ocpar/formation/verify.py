@@ -240,13 +240,14 @@ def _relative(gap: np.ndarray, reference: np.ndarray) -> np.ndarray:
 
 @lru_cache(maxsize=64)
 def _boundary_terms(shape: DmocShape) -> ca.Function:
-    """(q_0, q_1, q_{N−1}, q_N, u_0, u_{N−1}, q̇_0, q̇_N) ↦ the terms of DMOC's first
+    """(q_0, q_1, q_{N−1}, q_N, u_0, u_{N−1}, q̇_0, q̇_N, h) ↦ the terms of DMOC's first
     equation, D2L(q_0, q̇_0), D1L_d(q_0, q_1), f⁻_0, and of its last, −D2L(q_N, q̇_N),
     D2L_d(q_{N−1}, q_N), f⁺_{N−1} (nq each, without the reactions), and the holonomic
     constraints' gradients ∇c(q_0)ᵀ, ∇c(q_N)ᵀ (nq × nc each, flattened), from the model's
-    Lagrangian and force (:mod:`ocpar.ocp.dmoc`)."""
+    Lagrangian and force (:mod:`ocpar.ocp.dmoc`), h the step (an input: an agent's own
+    T/N)."""
     model, n = shape.model, shape.intervals
-    nq, nu, h = model.nq, model.nu, shape.duration / shape.intervals
+    nq, nu, h = model.nq, model.nu, ca.SX.sym("h")
     last = n - 1 if getattr(model, "time_dependent", False) else 0
     q0, q1, qm, qn, v0, vn = (ca.SX.sym(name, nq) for name in ("q0", "q1", "qm", "qn",
                                                                 "v0", "vn"))
@@ -264,17 +265,17 @@ def _boundary_terms(shape: DmocShape) -> ca.Function:
     nc = getattr(model, "n_constraints", 0)
     grads = ([ca.vec(ca.jacobian(model.constraints(q), q).T) for q in (q0, qn)] if nc
              else [ca.SX(0, 1), ca.SX(0, 1)])
-    return ca.Function("boundary", [q0, q1, qm, qn, u0, um, v0, vn], [*terms, *grads])
+    return ca.Function("boundary", [q0, q1, qm, qn, u0, um, v0, vn, h], [*terms, *grads])
 
 
 @lru_cache(maxsize=64)
 def _interior_terms(shape: DmocShape, k: int) -> ca.Function:
-    """(q_{k−1}, q_k, q_{k+1}, u_{k−1}, u_k) ↦ the terms of DMOC's k-th interior equation,
+    """(q_{k−1}, q_k, q_{k+1}, u_{k−1}, u_k, h) ↦ the terms of DMOC's k-th interior equation,
     D2L_d(q_{k−1}, q_k), D1L_d(q_k, q_{k+1}), f⁺_{k−1}, f⁻_k (nq each, without the
     reactions), the holonomic constraints' gradient ∇c(q_k)ᵀ (nq × nc, flattened) and c(q_k)
     (nc), from the model's Lagrangian and force (:mod:`ocpar.ocp.dmoc`); ``k`` names the
-    intervals' Lagrangians of a time-dependent model (0 otherwise: one for all)."""
-    model, h = shape.model, shape.duration / shape.intervals
+    intervals' Lagrangians of a time-dependent model (0 otherwise: one for all); h the step."""
+    model, h = shape.model, ca.SX.sym("h")
     qa, qb, qc = (ca.SX.sym(name, model.nq) for name in ("qa", "qb", "qc"))
     ua, ub = ca.SX.sym("ua", model.nu), ca.SX.sym("ub", model.nu)
 
@@ -289,7 +290,7 @@ def _interior_terms(shape: DmocShape, k: int) -> ca.Function:
     nc = getattr(model, "n_constraints", 0)
     holonomic = ([ca.vec(ca.jacobian(model.constraints(qb), qb).T), model.constraints(qb)]
                  if nc else [ca.SX(0, 1), ca.SX(0, 1)])
-    return ca.Function("interior", [qa, qb, qc, ua, ub], [*terms, *holonomic])
+    return ca.Function("interior", [qa, qb, qc, ua, ub, h], [*terms, *holonomic])
 
 
 def _equation_residuals(terms: list[np.ndarray], grad: np.ndarray) -> np.ndarray:
@@ -309,16 +310,18 @@ def _equation_residuals(terms: list[np.ndarray], grad: np.ndarray) -> np.ndarray
     return np.sqrt(np.einsum("ij,ij->i", r, r)) / (1.0 + size)
 
 
-def _dynamics_residuals(shape: DmocShape, q: np.ndarray, u: np.ndarray) -> np.ndarray:
+def _dynamics_residuals(shape: DmocShape, q: np.ndarray, u: np.ndarray, steps: np.ndarray
+                        ) -> np.ndarray:
     """Per agent (m,) the largest residual of DMOC's interior equations (the discrete
     Euler–Lagrange equations with forces at the inner nodes k = 1 … N−1, relative as in
     :func:`_equation_residuals`) and of the holonomic constraints |c(q_k)| there, on node
-    paths ``q`` (m, N+1, nq) and controls ``u`` (m, N, nu); 0 with one interval."""
+    paths ``q`` (m, N+1, nq) and controls ``u`` (m, N, nu) with steps h ``steps`` (m,); 0
+    with one interval."""
     varying = getattr(shape.model, "time_dependent", False)
     worst = np.zeros(len(q))
     for k in range(1, shape.intervals):   # node by node: m rows at a time (memory)
         out = evaluate_columns(_interior_terms(shape, k if varying else 0), q[:, k - 1],
-                               q[:, k], q[:, k + 1], u[:, k - 1], u[:, k])
+                               q[:, k], q[:, k + 1], u[:, k - 1], u[:, k], steps)
         residual = _equation_residuals(out[0:4], out[4])
         if out[5].size:
             residual = np.maximum(residual, np.max(np.abs(out[5]), axis=1))
@@ -327,13 +330,14 @@ def _dynamics_residuals(shape: DmocShape, q: np.ndarray, u: np.ndarray) -> np.nd
 
 
 def _momentum_residuals(shape: DmocShape, q: np.ndarray, u: np.ndarray, v0: np.ndarray,
-                        vn: np.ndarray) -> np.ndarray:
+                        vn: np.ndarray, steps: np.ndarray) -> np.ndarray:
     """Per agent (m,) the larger relative residual of DMOC's two boundary equations on node
     paths ``q`` (m, N+1, nq) and controls ``u`` (m, N, nu) with boundary velocities ``v0``,
-    ``vn`` (m, nq): |r| / (1 + Σ |terms|), r the sum of the terms with its part in the range
-    of ∇c(q)ᵀ (the holonomic reactions, free multipliers) removed."""
+    ``vn`` (m, nq), steps h ``steps`` (m,): |r| / (1 + Σ |terms|), r the sum of the terms
+    with its part in the range of ∇c(q)ᵀ (the holonomic reactions, free multipliers)
+    removed."""
     out = evaluate_columns(_boundary_terms(shape), q[:, 0], q[:, 1], q[:, -2], q[:, -1],
-                           u[:, 0], u[:, -1], v0, vn)
+                           u[:, 0], u[:, -1], v0, vn, steps)
     return np.maximum(_equation_residuals(out[0:3], out[6]),
                       _equation_residuals(out[3:6], out[7]))
 
@@ -362,13 +366,14 @@ class AgentChecks:
 
 def agent_checks(shapes: list[DmocShape], q: np.ndarray, u: np.ndarray, starts: np.ndarray,
                  start_velocities: np.ndarray, final_attitude: np.ndarray,
-                 final_velocities: np.ndarray, positions: int, first: int = 0
-                 ) -> AgentChecks:
+                 final_velocities: np.ndarray, positions: int, first: int = 0,
+                 durations: np.ndarray | None = None) -> AgentChecks:
     """The :class:`AgentChecks` of m agents with indices ``first`` … ``first`` + m − 1: each
     one's shape (``shapes``, m), node paths ``q`` (m, N+1, nq), controls ``u`` (m, N, nu),
     start configurations and velocities, final attitudes (m, nq − d) and velocities (m, nq)
-    (its boundary data), ``positions`` d. Each agent's numbers are its own: any block of
-    agents gives the rows of the whole fleet's."""
+    (its boundary data), ``positions`` d; ``durations`` (m,) each agent's T where it chose
+    its own (default: its shape's). Each agent's numbers are its own: any block of agents
+    gives the rows of the whole fleet's."""
     m = len(q)
     start = _relative(q[:, 0] - starts, starts)
     violation = start
@@ -384,11 +389,12 @@ def agent_checks(shapes: list[DmocShape], q: np.ndarray, u: np.ndarray, starts: 
     for shape, members in groups.items():
         rows = np.array(members)
         agents[shape] = rows + first
+        h = (np.full(len(rows), shape.duration) if durations is None
+             else np.asarray(durations, float)[rows]) / shape.intervals
         momentum[rows] = _momentum_residuals(shape, q[rows], u[rows],
-                                             start_velocities[rows], final_velocities[rows])
-        dynamics[rows] = _dynamics_residuals(shape, q[rows], u[rows])
+                                             start_velocities[rows], final_velocities[rows], h)
+        dynamics[rows] = _dynamics_residuals(shape, q[rows], u[rows], h)
         qs, us = q[rows], u[rows]
-        h = shape.duration / shape.intervals
         if shape.control_bounds is not None:
             lo, hi = np.array(shape.control_bounds).T
             gap = np.maximum(np.maximum(lo - us, us - hi), 0.0)
@@ -398,8 +404,8 @@ def agent_checks(shapes: list[DmocShape], q: np.ndarray, u: np.ndarray, starts: 
         worst_path = []
         for constraint in shape.path_constraints:
             if constraint.depends_on("v", "u"):
-                values = {"q": (qs[:, :-1] + qs[:, 1:]) / 2, "v": (qs[:, 1:] - qs[:, :-1]) / h,
-                          "u": us}
+                values = {"q": (qs[:, :-1] + qs[:, 1:]) / 2,
+                          "v": (qs[:, 1:] - qs[:, :-1]) / h[:, None, None], "u": us}
             else:
                 values = {"q": qs[:, 1:-1]}
             values = {k: v.reshape(-1, v.shape[-1]) for k, v in values.items()}
