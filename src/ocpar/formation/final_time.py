@@ -277,8 +277,11 @@ def solve_per_agent_time(problem: FormationProblem, backend: Backend,
     fields = {"mode": "free_per_agent", "T": float(np.max(durations)) if np.all(
         np.isfinite(durations)) else None, "time_weight": weight, "time_bounds": [low, high],
         "at_T_min": int(np.sum(durations <= low)), "at_T_max": int(np.sum(durations >= high))}
+    fleet = result.fleet
+    if fleet is not None and fields["T"] is not None:   # the time axis: the longest T_i
+        fleet = dataclasses.replace(fleet, duration=fields["T"])
     return dataclasses.replace(
-        result, final_time=fields, durations=durations, separation=closest,
+        result, final_time=fields, durations=durations, separation=closest, fleet=fleet,
         verification=verification, inner_solves=result.inner_solves + problem.agents,
         message=message + "; each agent its own final time", wall_time_s=time.perf_counter()
         - start)
