@@ -293,9 +293,10 @@ def solve_minimum_time(problem: FormationProblem, backend: Backend, options: For
     at_bound = bracket.fields.get("at_bound") == "T_min"
     proof = ("exact reach sets, rotation and assignment searched: a bottleneck"
              if bracket.fields["method"] == "reach sets" else "phase 1's local search")
-    words = (f"minimum time T* = {t_hi:.12g} (solved there), no formation reachable below "
-             f"{t_lo:.12g} ({proof}); phase 1 of this formation at T = {t_check:.12g}: "
-             f"total slack {total_slack:.3e}")
+    words = (f"minimum time T* = {t_hi:.12g} (solved there: the energy-optimal assignment "
+             f"onto the formation's points), none reachable below {t_lo:.12g} ({proof}; "
+             f"T_hi/T_lo - 1 = {t_hi / t_lo - 1:.1e}); phase 1 at T = {t_check:.12g}: total "
+             f"slack {total_slack:.3e}")
     status = result.status
     if at_bound:
         words = f"minimum time at T_min = {t_hi:.12g}: reachable there (solved)"
@@ -311,7 +312,8 @@ def solve_minimum_time(problem: FormationProblem, backend: Backend, options: For
               "phase_one_slack": total_slack if math.isfinite(total_slack) else None,
               **bracket.fields, "message": words}
     return dataclasses.replace(
-        result, status=status, message=f"{result.message}; {words}", phi=phi,
+        result, status=status, phi=phi,
+        message=words if result.converged else f"{result.message}; {words}",
         on_circle=problem.on_circle, final_time=fields,
         inner_solves=result.inner_solves + n + bracket.inner_solves,
         fleet=Fleet.of(at_duration(problem, t_hi), phi), trace=backend.traces[first_trace:],

@@ -327,8 +327,10 @@ class FormationResult(RunResult):
             return ""
         if t["mode"] == "minimum":
             low, high = t["bracket"]
+            slack = t["phase_one_slack"]
             return (f"minimum final time T {high:.12g} (none reachable below {low:.12g}; "
-                    f"phase 1's slack there {t['phase_one_slack']})\n")
+                    f"phase 1's slack at T (1 - tol) "
+                    f"{'none' if slack is None else format(slack, '.3e')})\n")
         if t["mode"] == "free_per_agent":
             return (f"free final time per agent: T_i up to {t['T']} (w {t['time_weight']:g}; "
                     f"the array file's duration)\n")
