@@ -234,7 +234,7 @@ class FormationResult(RunResult):
             "feasible_set": self.feasible_set,
             "critical_sets": self.critical_sets,
             "ordering": self.ordering,
-            "final_time": self.final_time,
+            **({"final_time": self.final_time} if self.final_time is not None else {}),
             **self._verification_fields(),
         }
 
