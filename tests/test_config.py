@@ -41,6 +41,10 @@ EXAMPLES = {
         "--problem", "point-mass-plane", "--agents", "60", "--radius", "10.0",
         "--mode", "hierarchical", "--outer", "newton", "--ordering", "optimal",
         "--output", "runs/formation-60-optimal-ordering"]),
+    "formation-minimum-time": ("formation", [
+        "--problem", "point-mass-minimum-time", "--agents", "10", "--radius", "5.0",
+        "--final-time", "minimum", "--time-tol", "1e-06",
+        "--output", "runs/formation-minimum-time"]),
     "pursuit-case1": ("pursuit", [
         "--case", "1", "--samples", "301", "--window", "60", "--update", "32",
         "--mode", "pbms", "--epsilon", "0.001", "--finish", "train",

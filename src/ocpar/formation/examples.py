@@ -9,6 +9,7 @@ from dataclasses import dataclass
 from ocpar.examples import (
     formation_cw,
     formation_halo,
+    formation_minimum_time,
     formation_point_masses,
     formation_unicycles,
 )
@@ -40,6 +41,9 @@ EXAMPLES = {
         lambda n, r: formation_cw.make(agents=n, radius=r), 6, 100.0,
         "Clohessy-Wiltshire spacecraft in low Earth orbit from the V-bar onto a ring of hold "
         "points about the target in half an orbit, radius in m"),
+    "point-mass-minimum-time": Example(
+        lambda n, r: formation_minimum_time.make(agents=n, radius=r), 10, 5.0,
+        "point masses under a thrust limit |u| <= 2, for --final-time minimum"),
 }
 
 

@@ -113,7 +113,8 @@ def finish_agents(tasks: Columns, states: Columns) -> Columns:
         tasks.fields[name][1] for name in ("positions", "dim", "duration", "on_circle",
                                            "model_names", "cost_groups", "directory",
                                            "width", "units"))
-    checks = agent_checks(shapes, q, u, params, dim, first)
+    checks = agent_checks(shapes, q, u, params, dim, first,
+                          np.asarray(states.column("duration"), float))
     of_shape: dict[int, np.ndarray] = {}   # once per distinct shape (a fleet shares a few)
     ends = np.array([of_shape.setdefault(id(shape), shape.boundary_size
                                          + shape.end_position_entries(dim))

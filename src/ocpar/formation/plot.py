@@ -130,16 +130,17 @@ def _plot_thrust(ax, problem: FormationProblem, result: FormationResult) -> None
     box = bool(limits) and all(kind == "box" for kind, _ in limits)
     size = np.max(np.abs(u), axis=2) if box else np.linalg.norm(u, axis=2)   # (n, N)
     name = f"max$_j$ |$u_j$|{entries}" if box else f"|$u${entries}|"
-    edges = np.linspace(0.0, shape.duration, u.shape[1] + 1)
-    steps_t = np.repeat(edges, 2)[1:-1]
+    fraction = np.repeat(np.linspace(0.0, 1.0, u.shape[1] + 1), 2)[1:-1]
+    durations = _durations(problem, result)
     peaks = size.max(axis=1)
     top = np.argpartition(-peaks, min(THRUST_AGENTS, len(peaks)) - 1)[:THRUST_AGENTS]
     top = top[np.argsort(-peaks[top])]        # largest first, O(n) over the fleet
-    lines = [np.column_stack([steps_t, np.repeat(size[i], 2)]) for i in top]
+    lines = [np.column_stack([fraction * durations[i], np.repeat(size[i], 2)]) for i in top]
     ax.add_collection(LineCollection(lines, colors="tab:blue", lw=0.9, alpha=0.8,
                                      label=f"{name}: {len(top)} agents of the largest peaks"))
-    if result.agents > len(top):
-        ax.plot(steps_t, np.repeat(size.max(axis=0), 2), color="k", lw=0.6, ls=":",
+    if result.agents > len(top) and np.all(durations == durations[0]):   # one time axis
+        ax.plot(fraction * durations[0], np.repeat(size.max(axis=0), 2), color="k", lw=0.6,
+                ls=":",
                 label=f"{name}: largest over all agents")
     for kind, value in sorted(limits):
         ax.axhline(value, color="tab:red", ls="--", lw=1, label=f"{kind} thrust limit {value:g}")
@@ -201,14 +202,25 @@ def _draw_obstacles(ax, problem: FormationProblem) -> None:
             ax.axline(foot, foot + along, color="tab:gray", lw=2, label=label)
 
 
+def _durations(problem: FormationProblem, result: FormationResult) -> np.ndarray:
+    """Each agent's horizon (n,): its own where each chose one (``result.durations``), else
+    the run's T (its fleet's: a free or minimum final time sets it), else the problem's."""
+    if result.durations is not None:
+        return np.asarray(result.durations, float)
+    duration = (result.fleet.duration if result.fleet is not None
+                else problem.common_shape.duration)
+    return np.full(result.agents, duration)
+
+
 def _mark_closest(ax, problem: FormationProblem, result: FormationResult) -> None:
     """Mark the closest pair at the time of their closest approach: their two positions, the
     segment between them and a legend entry with the agents, distance and time."""
     closest = result.separation
     if not np.isfinite(closest.distance):
         return
-    where = positions_at(result.positions[list(closest.agents)], closest.time,
-                         problem.common_shape.duration)
+    durations = _durations(problem, result)
+    where = np.vstack([positions_at(result.positions[[a]], closest.time, durations[a])
+                       for a in closest.agents])
     coords = where.T[:3] if ax.name == "3d" else where.T[:2]
     i, j = closest.agents
     ax.plot(*coords, "-s", color="tab:orange", ms=6, lw=1.5, zorder=5,

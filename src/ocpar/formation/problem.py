@@ -503,6 +503,7 @@ class FormationProblem:
                                  "lagrangian, generalized_force)")
             for what, value in (("intervals", lambda s: s.intervals),
                                 ("duration", lambda s: s.duration),
+                                ("free_duration", lambda s: getattr(s, "free_duration", False)),
                                 ("model.nu", lambda s: s.model.nu),
                                 ("model.position_indices",
                                  lambda s: getattr(s.model, "position_indices", None))):
@@ -658,7 +659,9 @@ class FormationProblem:
 
     def boundary_params_rows(self, agents: np.ndarray, phi: np.ndarray) -> np.ndarray:
         """Boundary data (len(agents), n_params): row k for agent ``agents[k]`` ending at
-        ``phi[k]`` (rad): DMOC's (q_0, q̇_0, q_N, q̇_N), an ODE agent's (x_0, x̄_N)."""
+        ``phi[k]`` (rad): DMOC's (q_0, q̇_0, q_N, q̇_N), with T (the shapes' ``duration``)
+        appended where their duration is free (``DmocShape.free_duration``); an ODE agent's
+        (x_0, x̄_N)."""
         agents = np.asarray(agents, dtype=np.intp)
         m = len(agents)
         if self.mixed_kinds:   # DMOC agents at rest, all configuration the position
@@ -680,10 +683,12 @@ class FormationProblem:
             ends = self.end_states(agents)
             ends[:, list(self.position_indices)] = self.final_positions(phi)
             return np.hstack([self.starts[agents], ends])
+        shape = self.common_shape
         return np.hstack([self.starts[agents], self.start_velocities[agents],
                           self.final_positions(phi),
                           np.broadcast_to(self.final_attitude, (m, len(self.final_attitude))),
-                          self.final_velocities(agents)])
+                          self.final_velocities(agents),
+                          np.full((m, int(shape.free_duration)), shape.duration)])
 
     def tasks_for(self, agents: np.ndarray, phi: np.ndarray,
                   warm_starts: np.ndarray | None = None) -> Columns:

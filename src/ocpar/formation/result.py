@@ -143,7 +143,13 @@ class FormationResult(RunResult):
     claimed), ``proven``, the relative ``gap`` and ``lower_bound`` it proved (null where
     none is claimed), the search's ``search_supersteps`` and ``search_inner_solves``, all the
     ordering's ``inner_solves`` and why the search stopped (``message``;
-    :mod:`~ocpar.formation.ordering_bound`); ``fleet`` (:class:`Fleet`) and per agent the inner
+    :mod:`~ocpar.formation.ordering_bound`); ``final_time`` with a free or minimum final
+    time (None for a fixed one): T and how it was found (:mod:`ocpar.formation.final_time`:
+    ``free``: the weight w, the objective Σ J_i + w T, dF/dT + w at T, the bound T stopped
+    at, the iterations; ``minimum``: the ``bracket`` [T_lo, T_hi], ``proven``, the rotation,
+    phase 1's total slack at ``phase_one_T``; ``free_per_agent``: the weight, the largest
+    T_i) and ``durations`` (n,) each agent's own T_i (None but there; the array file's
+    ``duration``); ``fleet`` (:class:`Fleet`) and per agent the inner
     solver's ``solver_status`` and ``solver_iterations`` (n,) of its last solve at the
     returned φ (with a required separation: of the solve before the rounds; a monolithic
     run: the one NLP's) for the array file (:meth:`arrays`); ``positions`` (n, N+1, p) the
@@ -182,6 +188,8 @@ class FormationResult(RunResult):
     feasible_set: str = "continuous"
     critical_sets: list[dict] | None = None
     ordering: dict | None = None
+    final_time: dict | None = None
+    durations: np.ndarray | None = None
     verification: Verification | None = None
     fleet: Fleet | None = None
     solver_status: list[str] | None = None
@@ -242,6 +250,7 @@ class FormationResult(RunResult):
             "feasible_set": self.feasible_set,
             "critical_sets": self.critical_sets,
             "ordering": self.ordering,
+            **({"final_time": self.final_time} if self.final_time is not None else {}),
             **self._verification_fields(),
         }
 
@@ -278,7 +287,8 @@ class FormationResult(RunResult):
             status=self.solver_status, iterations=self.solver_iterations,
             violation=None if self.verification is None
             else self.verification.agent_violation, sides=self.obstacle_sides),
-            duration, positions, self.on_circle, units)
+            duration if self.durations is None else self.durations, positions,
+            self.on_circle, units)
 
     def units(self) -> Units:
         """The names and units of the fleet's quantities (:class:`Units`: the fleet's, else
@@ -337,6 +347,23 @@ class FormationResult(RunResult):
         return (f"min separation {c.distance:.6g} (agents {c.agents[0]} and {c.agents[1]} "
                 f"at t = {c.time:.6g})")
 
+    def _final_time_summary(self) -> str:
+        """The summary's line on a free or minimum final time ('' for a fixed one)."""
+        t = self.final_time
+        if t is None:
+            return ""
+        if t["mode"] == "minimum":
+            low, high = t["bracket"]
+            slack = t["phase_one_slack"]
+            return (f"minimum final time T {high:.12g} (none reachable below {low:.12g}; "
+                    f"phase 1's slack at T (1 - tol) "
+                    f"{'none' if slack is None else format(slack, '.3e')})\n")
+        if t["mode"] == "free_per_agent":
+            return (f"free final time per agent: T_i up to {t['T']} (w {t['time_weight']:g}; "
+                    f"the array file's duration)\n")
+        objective = "" if t["objective"] is None else f", sum J + w T {t['objective']:.12e}"
+        return f"free final time T {t['T']:.12g} (w {t['time_weight']:g}{objective})\n"
+
     def summary(self) -> str:
         """A few lines for people: the headline numbers of the run."""
         equidistance = (f"equidistance error {_shown(self.equidistance_error, '.1e')} rad   "
@@ -351,6 +378,7 @@ class FormationResult(RunResult):
             f"{equidistance}coupling residual {_shown(self.coupling_residual, '.1e')}\n"
             f"{self._separation_summary()}{self._required_summary()}\n"
             f"{self._obstacle_summary()}"
+            f"{self._final_time_summary()}"
             f"outer iterations {_count(self.outer_iterations)}   supersteps {self.supersteps}   "
             f"inner solves {self.inner_solves} (failed {self.failed_solves}, retries "
             f"{self.retries})\n"
@@ -404,17 +432,20 @@ class AgentRecords:
     sides: list[list[str | list[float] | None]] | None = None
 
 
-def agent_arrays(records: AgentRecords, duration: float, positions: tuple[int, ...],
-                 on_circle: bool, units: Units) -> dict[str, Array]:
+def agent_arrays(records: AgentRecords, duration: float | np.ndarray,
+                 positions: tuple[int, ...], on_circle: bool, units: Units
+                 ) -> dict[str, Array]:
     """The array file's variables of the agents of ``records`` (their ``agent`` coordinate,
     configuration, velocity, cost, phi, control, peak_thrust, target, model, mass,
     solver_status with its own ``solver_status_name``, solver_iterations,
     constraint_violation, obstacle_side: :meth:`FormationResult.arrays`), in ``units``. Any
     block of agents gives its rows of the whole fleet's variables; the solver statuses'
-    names are the block's own (:func:`ocpar.result_files.load` joins them)."""
+    names are the block's own (:func:`ocpar.result_files.load` joins them). ``duration``:
+    the fleet's T, or each agent's (m,) where each chose its own (then also a ``duration``
+    variable)."""
     q = records.q
     m, nodes, _ = q.shape
-    h = duration / (nodes - 1)
+    h = np.reshape(duration, (-1, 1, 1)) / (nodes - 1)
     position = Labels(*(tuple(units.state.names[i] for i in positions),
                         tuple(units.state.units[i] for i in positions))) if positions else None
     out = {
@@ -426,6 +457,9 @@ def agent_arrays(records: AgentRecords, duration: float, positions: tuple[int, .
                           units.velocity, "velocity (q_{k+1} - q_k)/h on each interval",
                           entry_units="velocity_units"),
         "cost": array("agent", records.cost, units.cost, "inner optimal cost J_i"),
+        **({"duration": array("agent", np.asarray(duration, float), units.time,
+                              "the agent's horizon T_i (its own final time)")}
+           if np.ndim(duration) else {}),
         "phi": array("agent" if np.ndim(records.phi) == 1 else "agent parameter",
                      records.phi, "rad" if on_circle else "1",
                      "final parameter on the target (angle on a curve, slot index, "

@@ -23,6 +23,12 @@ from ocpar.formation.couplings.critical_sets import (
     best_isolated_formation,
 )
 from ocpar.formation.feasibility import NoFeasibleFormation, feasible_start
+from ocpar.formation.final_time import (
+    FINAL_TIMES,
+    check_final_time,
+    solve_free_time,
+    solve_per_agent_time,
+)
 from ocpar.formation.finish import cost_groups, finish, padded_paths, writes_parts
 from ocpar.formation.hierarchical import (
     InnerSolveFailed,
@@ -35,6 +41,7 @@ from ocpar.formation.keep_out.exact import ExactSeparation, separate_exactly
 from ocpar.formation.keep_out.obstacles import cleared, closest_obstacle, passing_sides
 from ocpar.formation.keep_out.rounds import SEPARATION_RTOL, Separation, separate
 from ocpar.formation.keep_out.separation import check_separation_feasible
+from ocpar.formation.minimum_time import check_minimum_time, solve_minimum_time
 from ocpar.formation.monolithic import solve_monolithic
 from ocpar.formation.ordering import ORDERINGS, OrderingResult, optimal_ordering
 from ocpar.formation.ordering_bound import GAP_TOL, SEARCH_ROUNDS
@@ -104,7 +111,12 @@ class FormationOptions:
     :mod:`ocpar.formation.monolithic`); None: no constraint (the paths may cross). A
     problem's obstacles are in every agent's inner problem
     (:mod:`ocpar.formation.keep_out.obstacles`), in both modes; the returned paths are
-    checked against them (``obstacles_not_cleared`` if one is inside one).
+    checked against them (``obstacles_not_cleared`` if one is inside one). ``final_time``
+    (:mod:`ocpar.formation.final_time`): ``fixed`` (the shapes' duration), ``free`` (one
+    common T in ``time_bounds`` (T_min, T_max), the cost Σ J_i + ``time_weight`` · T, T
+    stationary to ``time_tol``), ``free_per_agent`` (each agent's own T_i there, its cost
+    J_i + w T_i) or ``minimum`` (the least T at which a formation is
+    reachable, a bracket of relative width ``time_tol``).
     ``solver_options``: the inner solvers' own options by ``SOLVER.NAME``
     (:mod:`ocpar.ocp.solver_options`), set over each shape's own ``solver_options`` for this
     solve (``ipopt.*`` also in the monolithic NLP); checked when the options are made.
@@ -188,6 +200,19 @@ class FormationOptions:
     initial_rotation: float | None = option(
         None, "the start: the documented initial guess rotated by this angle (rad, added to "
         "every agent's initial angle; curves only)", metavar="RAD")
+    final_time: str = option("fixed", "the horizon T: fixed (the problem's), free (one common "
+                             "T in --time-bounds, the cost sum J_i + w T with w = "
+                             "--time-weight), free_per_agent (each agent its own T_i in "
+                             "--time-bounds, its cost J_i + w T_i) or minimum (the least T at "
+                             "which the formation is reachable under the agents' limits, a "
+                             "bracket of relative width --time-tol)", choices=FINAL_TIMES)
+    time_bounds: tuple[float, ...] | None = option(
+        None, "with --final-time free or minimum: T_min,T_max (the model's time unit)",
+        metavar="T_MIN,T_MAX")
+    time_weight: float = option(0.0, "with --final-time free: w, the cost per unit of T "
+                                "(cost unit per time unit)", low=0)
+    time_tol: float = option(1e-6, "with --final-time free: relative tolerance on dF/dT + w; "
+                             "minimum: relative width of the bracket on T", above=0)
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "solver_options", dict(solver_options(self.solver_options)))
@@ -226,6 +251,23 @@ class FormationOptions:
         if self.initial_rotation is not None and not math.isfinite(self.initial_rotation):
             raise ValueError(f"initial_rotation: must be a finite angle (rad), got "
                              f"{self.initial_rotation!r}")
+        if self.time_bounds is not None:
+            try:
+                bounds = numbers(self.time_bounds)
+            except ValueError as exc:
+                raise ValueError(f"time_bounds: {exc}") from None
+            if not (len(bounds) == 2 and 0 < bounds[0] <= bounds[1] < math.inf):
+                raise ValueError(f"time_bounds: needs T_min,T_max with 0 < T_min <= T_max < "
+                                 f"inf, got {self.time_bounds}")
+            object.__setattr__(self, "time_bounds", bounds)
+        if self.final_time not in FINAL_TIMES:
+            raise ValueError(f"unknown final_time {self.final_time!r}; choose one of "
+                             f"{', '.join(FINAL_TIMES)}")
+        if not (self.time_weight >= 0 and math.isfinite(self.time_weight)):
+            raise ValueError(f"time_weight: must be a finite number >= 0, got "
+                             f"{self.time_weight!r}")
+        if not self.time_tol > 0:
+            raise ValueError("tolerances must be positive")
         if self.initial_angles is not None and self.initial_rotation is not None:
             raise ValueError("initial_angles and initial_rotation: give one start, not both")
 
@@ -283,9 +325,13 @@ def check_applicable(problem: FormationProblem, options: FormationOptions) -> No
     coupling other than the potential that has no solution near the initial guess; a driver
     calls it before starting workers (:func:`solve_formation` calls it too). With obstacles,
     a formation whose targets clear them must exist among the initial angles' family
-    (:meth:`~ocpar.formation.FormationProblem.clear_start`: a rotation on a circle)."""
+    (:meth:`~ocpar.formation.FormationProblem.clear_start`: a rotation on a circle). With a
+    final time other than ``fixed`` (:func:`~ocpar.formation.final_time.check_final_time`),
+    the problem's own duration is only a start: its feasibility is not asked."""
     if problem.ode_agents:
         _check_ode_applicable(options)
+    check_final_time(problem, options)
+    check_minimum_time(problem, options)
     if isinstance(problem.curve, Surface) and options.mode != "hierarchical":
         raise ValueError("surfaces apply to the hierarchical mode only")
     if isinstance(problem.curve, Slots) and options.mode != "hierarchical":
@@ -315,7 +361,7 @@ def check_applicable(problem: FormationProblem, options: FormationOptions) -> No
     if given_start(problem, options) is not None and options.ordering == "optimal":
         raise ValueError("initial_angles/initial_rotation: ordering 'optimal' chooses its own "
                          "start (use ordering 'keep')")
-    if problem.reach_sets():   # ValueError if no formation is feasible
+    if problem.reach_sets() and options.final_time == "fixed":   # ValueError if none is
         feasible_start(problem, problem.initial_phi())
     if options.min_separation is not None:
         nq = problem.common_shape.model.nq
@@ -333,6 +379,9 @@ def _check_ode_applicable(options: FormationOptions) -> None:
                          "(MsEndpointShape) are solved hierarchically only")
     if options.min_separation is not None:
         raise ValueError("min_separation: not yet for ODE agents (MsEndpointShape)")
+    if options.final_time != "fixed":
+        raise ValueError(f"final_time: {options.final_time!r} is not yet for ODE agents "
+                         "(MsEndpointShape): their horizon is the shape's duration")
 
 
 def obstacle_check(problem: FormationProblem, positions: np.ndarray, status: str,
@@ -454,6 +503,13 @@ def solve_formation(
     options = options or FormationOptions()
     backend = backend or SerialBackend()
     check_applicable(problem, options)
+    if options.final_time == "free":
+        return solve_free_time(problem, backend, options, solve_formation, phi0, progress,
+                               output)
+    if options.final_time == "minimum":
+        return solve_minimum_time(problem, backend, options, solve_formation, progress, output)
+    if options.final_time == "free_per_agent":
+        return solve_per_agent_time(problem, backend, options, solve_formation, phi0, progress)
     if options.inner_solver is not None and any(
             shape.solver != options.inner_solver for shape in problem.shapes):
         problem = problem.with_shapes(

@@ -248,13 +248,14 @@ def _relative(gap: np.ndarray, reference: np.ndarray) -> np.ndarray:
 
 @lru_cache(maxsize=64)
 def _boundary_terms(shape: DmocShape) -> ca.Function:
-    """(q_0, q_1, q_{N−1}, q_N, u_0, u_{N−1}, q̇_0, q̇_N) ↦ the terms of DMOC's first
+    """(q_0, q_1, q_{N−1}, q_N, u_0, u_{N−1}, q̇_0, q̇_N, h) ↦ the terms of DMOC's first
     equation, D2L(q_0, q̇_0), D1L_d(q_0, q_1), f⁻_0, and of its last, −D2L(q_N, q̇_N),
     D2L_d(q_{N−1}, q_N), f⁺_{N−1} (nq each, without the reactions), and the holonomic
     constraints' gradients ∇c(q_0)ᵀ, ∇c(q_N)ᵀ (nq × nc each, flattened), from the model's
-    Lagrangian and force (:mod:`ocpar.ocp.dmoc`)."""
+    Lagrangian and force (:mod:`ocpar.ocp.dmoc`), h the step (an input: an agent's own
+    T/N)."""
     model, n = shape.model, shape.intervals
-    nq, nu, h = model.nq, model.nu, shape.duration / shape.intervals
+    nq, nu, h = model.nq, model.nu, ca.SX.sym("h")
     last = n - 1 if getattr(model, "time_dependent", False) else 0
     q0, q1, qm, qn, v0, vn = (ca.SX.sym(name, nq) for name in ("q0", "q1", "qm", "qn",
                                                                 "v0", "vn"))
@@ -272,17 +273,17 @@ def _boundary_terms(shape: DmocShape) -> ca.Function:
     nc = getattr(model, "n_constraints", 0)
     grads = ([ca.vec(ca.jacobian(model.constraints(q), q).T) for q in (q0, qn)] if nc
              else [ca.SX(0, 1), ca.SX(0, 1)])
-    return ca.Function("boundary", [q0, q1, qm, qn, u0, um, v0, vn], [*terms, *grads])
+    return ca.Function("boundary", [q0, q1, qm, qn, u0, um, v0, vn, h], [*terms, *grads])
 
 
 @lru_cache(maxsize=64)
 def _interior_terms(shape: DmocShape, k: int) -> ca.Function:
-    """(q_{k−1}, q_k, q_{k+1}, u_{k−1}, u_k) ↦ the terms of DMOC's k-th interior equation,
+    """(q_{k−1}, q_k, q_{k+1}, u_{k−1}, u_k, h) ↦ the terms of DMOC's k-th interior equation,
     D2L_d(q_{k−1}, q_k), D1L_d(q_k, q_{k+1}), f⁺_{k−1}, f⁻_k (nq each, without the
     reactions), the holonomic constraints' gradient ∇c(q_k)ᵀ (nq × nc, flattened) and c(q_k)
     (nc), from the model's Lagrangian and force (:mod:`ocpar.ocp.dmoc`); ``k`` names the
-    intervals' Lagrangians of a time-dependent model (0 otherwise: one for all)."""
-    model, h = shape.model, shape.duration / shape.intervals
+    intervals' Lagrangians of a time-dependent model (0 otherwise: one for all); h the step."""
+    model, h = shape.model, ca.SX.sym("h")
     qa, qb, qc = (ca.SX.sym(name, model.nq) for name in ("qa", "qb", "qc"))
     ua, ub = ca.SX.sym("ua", model.nu), ca.SX.sym("ub", model.nu)
 
@@ -297,7 +298,7 @@ def _interior_terms(shape: DmocShape, k: int) -> ca.Function:
     nc = getattr(model, "n_constraints", 0)
     holonomic = ([ca.vec(ca.jacobian(model.constraints(qb), qb).T), model.constraints(qb)]
                  if nc else [ca.SX(0, 1), ca.SX(0, 1)])
-    return ca.Function("interior", [qa, qb, qc, ua, ub], [*terms, *holonomic])
+    return ca.Function("interior", [qa, qb, qc, ua, ub, h], [*terms, *holonomic])
 
 
 def _equation_residuals(terms: list[np.ndarray], grad: np.ndarray) -> np.ndarray:
@@ -317,16 +318,18 @@ def _equation_residuals(terms: list[np.ndarray], grad: np.ndarray) -> np.ndarray
     return np.sqrt(np.einsum("ij,ij->i", r, r)) / (1.0 + size)
 
 
-def _dynamics_residuals(shape: DmocShape, q: np.ndarray, u: np.ndarray) -> np.ndarray:
+def _dynamics_residuals(shape: DmocShape, q: np.ndarray, u: np.ndarray, steps: np.ndarray
+                        ) -> np.ndarray:
     """Per agent (m,) the largest residual of DMOC's interior equations (the discrete
     Euler–Lagrange equations with forces at the inner nodes k = 1 … N−1, relative as in
     :func:`_equation_residuals`) and of the holonomic constraints |c(q_k)| there, on node
-    paths ``q`` (m, N+1, nq) and controls ``u`` (m, N, nu); 0 with one interval."""
+    paths ``q`` (m, N+1, nq) and controls ``u`` (m, N, nu) with steps h ``steps`` (m,); 0
+    with one interval."""
     varying = getattr(shape.model, "time_dependent", False)
     worst = np.zeros(len(q))
     for k in range(1, shape.intervals):   # node by node: m rows at a time (memory)
         out = evaluate_columns(_interior_terms(shape, k if varying else 0), q[:, k - 1],
-                               q[:, k], q[:, k + 1], u[:, k - 1], u[:, k])
+                               q[:, k], q[:, k + 1], u[:, k - 1], u[:, k], steps)
         residual = _equation_residuals(out[0:4], out[4])
         if out[5].size:
             residual = np.maximum(residual, np.max(np.abs(out[5]), axis=1))
@@ -335,13 +338,14 @@ def _dynamics_residuals(shape: DmocShape, q: np.ndarray, u: np.ndarray) -> np.nd
 
 
 def _momentum_residuals(shape: DmocShape, q: np.ndarray, u: np.ndarray, v0: np.ndarray,
-                        vn: np.ndarray) -> np.ndarray:
+                        vn: np.ndarray, steps: np.ndarray) -> np.ndarray:
     """Per agent (m,) the larger relative residual of DMOC's two boundary equations on node
     paths ``q`` (m, N+1, nq) and controls ``u`` (m, N, nu) with boundary velocities ``v0``,
-    ``vn`` (m, nq): |r| / (1 + Σ |terms|), r the sum of the terms with its part in the range
-    of ∇c(q)ᵀ (the holonomic reactions, free multipliers) removed."""
+    ``vn`` (m, nq), steps h ``steps`` (m,): |r| / (1 + Σ |terms|), r the sum of the terms
+    with its part in the range of ∇c(q)ᵀ (the holonomic reactions, free multipliers)
+    removed."""
     out = evaluate_columns(_boundary_terms(shape), q[:, 0], q[:, 1], q[:, -2], q[:, -1],
-                           u[:, 0], u[:, -1], v0, vn)
+                           u[:, 0], u[:, -1], v0, vn, steps)
     return np.maximum(_equation_residuals(out[0:3], out[6]),
                       _equation_residuals(out[3:6], out[7]))
 
@@ -369,12 +373,14 @@ class AgentChecks:
 
 
 def agent_checks(shapes: list[Shape], q: np.ndarray, u: np.ndarray, params: np.ndarray,
-                 positions: int, first: int = 0) -> AgentChecks:
+                 positions: int, first: int = 0, durations: np.ndarray | None = None
+                 ) -> AgentChecks:
     """The :class:`AgentChecks` of m agents with indices ``first`` … ``first`` + m − 1: each
     one's shape (``shapes``, m), node paths ``q`` (m, N+1, nq; a fleet of DMOC and ODE
     agents: padded to its widest, each agent's first entries read), controls ``u`` (m, N, nu),
     its boundary data ``params`` (m, n_params: DMOC's (q_0, q̇_0, q_N, q̇_N), an ODE agent's
-    (x_0, x̄_N)), ``positions`` d. Each agent's numbers are its own: any block of agents
+    (x_0, x̄_N)), ``positions`` d; ``durations`` (m,) each agent's T where it chose its own
+    (default: its shape's). Each agent's numbers are its own: any block of agents
     gives the rows of the whole fleet's."""
     m = len(q)
     groups: dict[Shape, list[int]] = {}
@@ -388,8 +394,12 @@ def agent_checks(shapes: list[Shape], q: np.ndarray, u: np.ndarray, params: np.n
         rows = np.array(members)
         agents[shape] = rows + first
         qs, us, ps = q[rows][..., :shape.node_size], u[rows], params[rows]
-        own = (_ode_checks if isinstance(shape, MsEndpointShape) else _dmoc_checks)(
-            shape, qs, us, ps, positions)
+        if isinstance(shape, MsEndpointShape):
+            own = _ode_checks(shape, qs, us, ps, positions)
+        else:
+            own = _dmoc_checks(shape, qs, us, ps, positions, (
+                np.full(len(rows), shape.duration) if durations is None
+                else np.asarray(durations, float)[rows]) / shape.intervals)
         start[rows], momentum[rows], dynamics[rows] = own.start, own.momentum, own.dynamics
         if own.attitude is not None:
             attitude[rows], has_attitude = own.attitude, True
@@ -431,9 +441,9 @@ class _OwnChecks:
 
 
 def _dmoc_checks(shape: DmocShape, q: np.ndarray, u: np.ndarray, params: np.ndarray,
-                 positions: int) -> _OwnChecks:
-    """DMOC agents' checks (module docstring)."""
-    nq, h = shape.model.nq, shape.duration / shape.intervals
+                 positions: int, steps: np.ndarray) -> _OwnChecks:
+    """DMOC agents' checks (module docstring), each agent's step h ``steps`` (m,)."""
+    nq, h = shape.model.nq, steps[:, None, None]
     starts, v0 = params[:, :nq], params[:, nq:2 * nq]
     final_attitude, vn = params[:, 2 * nq + positions:3 * nq], params[:, 3 * nq:4 * nq]
     attitude = (_relative(q[:, -1, positions:] - final_attitude, final_attitude)
@@ -445,8 +455,8 @@ def _dmoc_checks(shape: DmocShape, q: np.ndarray, u: np.ndarray, params: np.ndar
         return {"q": q[:, 1:-1]}
 
     return _OwnChecks(_relative(q[:, 0] - starts, starts), attitude,
-                      _momentum_residuals(shape, q, u, v0, vn),
-                      _dynamics_residuals(shape, q, u), points)
+                      _momentum_residuals(shape, q, u, v0, vn, steps),
+                      _dynamics_residuals(shape, q, u, steps), points)
 
 
 def _ode_checks(shape: MsEndpointShape, x: np.ndarray, u: np.ndarray, params: np.ndarray,
@@ -622,16 +632,20 @@ def verify_checked(problem: FormationProblem, positions: np.ndarray, ends: np.nd
     targets = positions[:, -1]
     spacing = (closest_pair(targets)[0] if n > 1 and np.all(np.isfinite(targets))
                else math.inf if n < 2 else math.nan)
-    near = None
-    if min_separation is None and closest.distance < NEAR_COLLISION_FRACTION * spacing:
-        near = {"distance": closest.distance, "agents": list(closest.agents),
-                "time": closest.time, "spacing": spacing,
-                "fraction": closest.distance / spacing,
-                "rule": f"closest approach below {100 * NEAR_COLLISION_FRACTION:g} % of the "
-                        f"formation's spacing (the smallest distance between two target "
-                        f"points)"}
+    near = near_collision(closest, spacing) if min_separation is None else None
     return Verification(found, located, residual, closest, spacing, clearance, near,
                         time.perf_counter() - start, checks.violation)
+
+
+def near_collision(closest: ClosestApproach, spacing: float) -> dict | None:
+    """Where and how close the ``closest`` approach is, if below
+    :data:`NEAR_COLLISION_FRACTION` of the formation's ``spacing`` (else None)."""
+    if not closest.distance < NEAR_COLLISION_FRACTION * spacing:
+        return None
+    return {"distance": closest.distance, "agents": list(closest.agents),
+            "time": closest.time, "spacing": spacing, "fraction": closest.distance / spacing,
+            "rule": f"closest approach below {100 * NEAR_COLLISION_FRACTION:g} % of the "
+                    f"formation's spacing (the smallest distance between two target points)"}
 
 
 def near_collision_words(near: dict) -> str:

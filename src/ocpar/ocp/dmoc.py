@@ -110,6 +110,23 @@ feasible whatever p (zero controls and any path meet the equations with slack), 
 2nq..3nq: ds*/dq_N, the end position's). No ``end_hessian`` (NaN), no keep-out slots; the
 returned ``q`` ends at the data q_N, not at the slackened end.
 
+Free duration (optional, ``DmocShape.free_duration``): T is the last entry of p instead of
+the constant ``duration`` (h = T/N in every expression above), so one compiled solver serves
+every horizon, and the solution's ``cost_gradient`` carries dJ*/dT (−λ_p of T, the
+envelope theorem) and its ``end_hessian`` is the (nq + 1, nq + 1) block of d²J*/dp² over
+(q_N, T): d²J*/dq_N², d²J*/dq_N dT and d²J*/dT² from the KKT system
+(:mod:`ocpar.ocp.sensitivity`). ``duration`` is then unused by the NLP (the shape is built
+once for all durations, :meth:`DmocShape.build`). No keep-out slots with it.
+
+Free duration per task (optional, ``DmocShape.time_bounds`` (T_min, T_max) with
+``time_weight`` w ≥ 0): T is a decision variable in [T_min, T_max] (in w after the slacks,
+before the planes) and the cost J_d + w T; the solution's ``cost`` is that sum, its
+``duration`` the T it chose, and its ``cost_gradient`` and ``end_hessian`` those of the
+optimum over T as well (the KKT system has T among its variables: d²/dq_N² of
+min_T (J + w T), the Schur complement of T's block). Bounds on T are inequalities
+(``sqpmethod`` or ``ipopt``). Not with ``free_duration``, keep-out slots, ``elastic`` or a
+time-dependent model.
+
 A time-dependent Lagrangian gives each interval its own L_d (see
 :class:`~ocpar.models.MechanicalSystem`). Holonomic constraints c(q) = 0 (e.g. a unit
 quaternion) add the reaction ∇c(q_k)ᵀ λ_k to the equation of every node k = 0..N (boundary
@@ -121,6 +138,7 @@ from __future__ import annotations
 
 import dataclasses
 import itertools
+import math
 import time
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
@@ -241,7 +259,11 @@ class DmocShape:
     clear exactly on the continuous path (module docstring; none: the NLP of old), on the
     configuration entries ``obstacle_positions`` (default: the first d, d the obstacles'
     dimension). ``elastic``: the phase-1 NLP of this shape instead (module docstring; its
-    ``cost`` the total slack s ≥ 0, 0 where the shape's NLP is feasible).
+    ``cost`` the total slack s ≥ 0, 0 where the shape's NLP is feasible). ``free_duration``:
+    T is the last parameter (module docstring; ``duration`` is then the caller's value of
+    it, not part of the NLP). ``time_bounds`` (T_min, T_max) and ``time_weight`` w: T a
+    decision variable of each task, the cost J + w T (module docstring; ``duration``, clipped
+    to the bounds, is then the first guess of T).
     ``solver_options``: the inner solvers' own options (``ipopt.tol``, ``sqpmethod.max_iter``,
     ``newton.kkt_tol``, …; :mod:`ocpar.ocp.solver_options`) over the defaults above, checked
     when the shape is built and stored as sorted (name, value) pairs.
@@ -262,6 +284,9 @@ class DmocShape:
     obstacles: tuple[Obstacle, ...] = ()
     obstacle_positions: tuple[int, ...] = ()
     elastic: bool = False
+    free_duration: bool = False
+    time_weight: float = 0.0
+    time_bounds: tuple[float, float] | None = None
     solver_options: SolverOptions = ()
 
     def __post_init__(self) -> None:
@@ -300,6 +325,13 @@ class DmocShape:
             raise ValueError("solver: path constraints are inequalities and the newton solver "
                              "takes equalities only; choose sqpmethod, ipopt or auto (the default)")
         self._check_obstacles()
+        if self.free_duration and self.keep_out_slots:
+            raise ValueError("free_duration: not with keep-out slots (their penalty is the "
+                             "last parameter)")
+        self._check_time()
+        if self.free_duration and getattr(self.model, "time_dependent", False):
+            raise ValueError("free_duration: the model is time dependent (tabulated on its "
+                             "intervals of one T)")
         if self.elastic and (self.keep_out_slots or self.solver == "newton"):
             raise ValueError("elastic: needs a shape without keep-out slots, solved by "
                              "sqpmethod, ipopt or auto (slacks are inequalities)")
@@ -307,6 +339,30 @@ class DmocShape:
         if model_intervals is not None and model_intervals != self.intervals:
             raise ValueError(f"the model is tabulated on {model_intervals} intervals, the "
                              f"DMOC shape has {self.intervals}")
+
+    def _check_time(self) -> None:
+        """``time_bounds`` (0 < T_min ≤ T_max < ∞) and ``time_weight`` (finite, ≥ 0), or
+        ValueError naming the field."""
+        if not (math.isfinite(self.time_weight) and self.time_weight >= 0):
+            raise ValueError(f"time_weight: must be a finite number >= 0, got "
+                             f"{self.time_weight!r}")
+        if self.time_bounds is None:
+            if self.time_weight:
+                raise ValueError("time_weight: needs time_bounds (T a variable of the task)")
+            return
+        try:
+            low, high = (float(b) for b in self.time_bounds)
+        except (TypeError, ValueError):
+            raise ValueError("time_bounds: must be (T_min, T_max)") from None
+        if not 0 < low <= high < math.inf:
+            raise ValueError(f"time_bounds: needs 0 < T_min <= T_max < inf, got "
+                             f"{self.time_bounds}")
+        object.__setattr__(self, "time_bounds", (low, high))
+        if (self.free_duration or self.keep_out_slots or self.elastic
+                or self.solver == "newton" or getattr(self.model, "time_dependent", False)):
+            raise ValueError("time_bounds: not with free_duration, keep-out slots, elastic, "
+                             "the newton solver (T's bounds are inequalities) or a "
+                             "time-dependent model")
 
     def _check_obstacles(self) -> None:
         """``obstacles`` (a tuple of obstacles of one dimension d ≤ nq) and
@@ -338,7 +394,7 @@ class DmocShape:
         if self.solver != AUTO_SOLVER:
             return self.solver
         inequalities = (self.path_constraints or self.keep_out_slots or self.obstacles
-                        or self.elastic)
+                        or self.elastic or self.time_bounds is not None)
         return "sqpmethod" if inequalities else "newton"
 
     @property
@@ -359,8 +415,13 @@ class DmocShape:
 
     @property
     def n_params(self) -> int:
-        """Length of p: the boundary data (q_0, q̇_0, q_N, q̇_N), then the keep-out block."""
-        return 4 * self.model.nq + self.n_keep_out
+        """Length of p: the boundary data (q_0, q̇_0, q_N, q̇_N), then the keep-out block,
+        then T where the duration is free."""
+        return 4 * self.model.nq + self.n_keep_out + int(self.free_duration)
+
+    def with_duration(self, duration: float) -> DmocShape:
+        """This shape over the horizon ``duration`` (the model's time unit)."""
+        return dataclasses.replace(self, duration=float(duration))
 
     # the agent-shape interface of :mod:`ocpar.ocp.endpoint_agents`
 
@@ -386,7 +447,10 @@ class DmocShape:
         return np.hstack([q[:, 1:-1].reshape(k, -1), u.reshape(k, -1)])
 
     def build(self) -> DmocTranscription:
-        """The transcription of this shape (see :func:`~ocpar.ocp.transcription`)."""
+        """The transcription of this shape (see :func:`~ocpar.ocp.transcription`); with a
+        free duration the one of every duration (that of ``duration`` 1)."""
+        if self.free_duration and self.duration != 1.0:
+            return transcription(self.with_duration(1.0))  # type: ignore[return-value]
         return DmocTranscription(self)
 
 
@@ -411,13 +475,16 @@ def _check_control_bounds(bounds: object, nu: int) -> tuple[tuple[float, float],
 class DmocSolution(InnerSolution):
     """Result of one DMOC solve: the common fields, and ``cost_gradient`` dJ*/dp (n_params,
     from the NLP multipliers); ``end_hessian`` d²J*/dq_N² (nq, nq, from the KKT system,
-    :mod:`ocpar.ocp.sensitivity`; NaN for a shape with keep-out slots); ``q`` the node path
+    :mod:`ocpar.ocp.sensitivity`; NaN for a shape with keep-out slots; with a free duration
+    (nq + 1, nq + 1) over (q_N, T)); ``duration`` T (the shape's, the parameter's, or the
+    one the task chose: ``time_bounds``); ``q`` the node path
     (N+1, nq); ``u`` the interval controls (N, nu)."""
 
     cost_gradient: np.ndarray
     end_hessian: np.ndarray
     q: np.ndarray
     u: np.ndarray
+    duration: float
 
 
 class DmocTranscription:
@@ -431,22 +498,29 @@ class DmocTranscription:
         self.shape = shape
         model, n = shape.model, shape.intervals
         nq, nu = model.nq, model.nu
-        h = shape.duration / n
-        self.h = h
+        p = ca.SX.sym("p", shape.n_params)
+        timed = shape.time_bounds is not None
+        t_var = ca.SX.sym("T", int(timed))
+        #: T: a variable (time bounds), the last parameter (free duration) or the constant
+        self.horizon = t_var[0] if timed else p[-1] if shape.free_duration else shape.duration
+        h = self.horizon / n
         self.nq, self.nu, self.n = nq, nu, n
+        #: rows and columns of ``end_hessian``: q_N's (and T's, where free) entries of p
+        self.nh = nq + int(shape.free_duration)
 
         a, b = ca.SX.sym("a", nq), ca.SX.sym("b", nq)
         q, v, u = ca.SX.sym("q", nq), ca.SX.sym("v", nq), ca.SX.sym("u", nu)
         # one discrete Lagrangian per interval for time-dependent systems, else one for all
         intervals = range(n) if getattr(model, "time_dependent", False) else [0]
         d1ld, d2ld = {}, {}
+        step = ca.SX.sym("h")   # the step, an input: a parameter where T is free
         for k in intervals:
-            ld = h * ca.substitute(model.lagrangian(q, v, k), ca.vertcat(q, v),
-                                   ca.vertcat((a + b) / 2, (b - a) / h))
-            d1ld[k] = ca.Function(f"D1Ld_{k}", [a, b], [ca.gradient(ld, a)])
-            d2ld[k] = ca.Function(f"D2Ld_{k}", [a, b], [ca.gradient(ld, b)])
-        d1 = [d1ld.get(k, d1ld[0]) for k in range(n)]
-        d2 = [d2ld.get(k, d2ld[0]) for k in range(n)]
+            ld = step * ca.substitute(model.lagrangian(q, v, k), ca.vertcat(q, v),
+                                      ca.vertcat((a + b) / 2, (b - a) / step))
+            d1ld[k] = ca.Function(f"D1Ld_{k}", [a, b, step], [ca.gradient(ld, a)])
+            d2ld[k] = ca.Function(f"D2Ld_{k}", [a, b, step], [ca.gradient(ld, b)])
+        d1 = [_at_step(d1ld.get(k, d1ld[0]), h) for k in range(n)]
+        d2 = [_at_step(d2ld.get(k, d2ld[0]), h) for k in range(n)]
         start_momentum = ca.Function("D2L_0", [q, v], [ca.gradient(model.lagrangian(q, v, 0), v)])
         end_momentum = ca.Function(
             "D2L_N", [q, v], [ca.gradient(model.lagrangian(q, v, max(intervals)), v)])
@@ -454,7 +528,6 @@ class DmocTranscription:
         nc = getattr(model, "n_constraints", 0)
         self.nc = nc
 
-        p = ca.SX.sym("p", shape.n_params)
         q0, v0, qn, vn = (p[i * nq : (i + 1) * nq] for i in range(4))
         # the elastic problem's end slacks (a⁺, a⁻, b⁺, b⁻): the end it reaches
         end_slack = ca.SX.sym("end_slack", 4 * nq if shape.elastic else 0)
@@ -499,7 +572,9 @@ class DmocTranscription:
         control_cost = (h * ca.sumsqr(u_all) if shape.running_cost is None else
                         h * ca.sum1(ca.vertcat(*[shape.running_cost(m) for m in midpoints])))
         #: J_d without the keep-out penalty, of the path and controls (q_1..q_{N−1}, u) and p
-        self.control_cost = ca.Function("Jd", [ca.vertcat(q_inner, u_all), p], [control_cost])
+        # (and T where it is a variable: a shape with time bounds has no keep-outs to use it)
+        self.control_cost = ca.Function("Jd", [ca.vertcat(q_inner, u_all, t_var), p],
+                                        [control_cost])
         penalty = p[-1] * ca.sum1(slack) if shape.keep_out_slots else 0
 
         #: The obstacles' planes (N m_e d: interval by interval, ellipsoid by ellipsoid).
@@ -527,10 +602,14 @@ class DmocTranscription:
             row_upper = np.concatenate([free, path.upper, np.full(len(obstacle), np.inf),
                                         *([np.full(n * nu, np.inf), u_upper] if bounded
                                           else [])])
-            objective = ca.dot(ca.DM(self._slack_weights(path)), elastic)
+            objective = ca.dot(self._slack_weights(path), elastic)
         else:
-            elastic, objective = ca.SX.sym("elastic", 0), control_cost + penalty
-        w = ca.vertcat(q_inner, u_all, lam, slack, elastic, planes)
+            elastic = ca.SX.sym("elastic", 0)
+            objective = control_cost + penalty + (shape.time_weight * self.horizon if timed
+                                                  else 0)
+        w = ca.vertcat(q_inner, u_all, lam, slack, elastic, t_var, planes)
+        #: T's entry of w (time bounds), else None
+        self.t_index = w.numel() - planes.numel() - 1 if timed else None
         self.nw = w.numel()
         self.n_params = shape.n_params
         n_eq = nq * (n + 1) + nc * (n - 1 + bool(shape.elastic))
@@ -550,13 +629,17 @@ class DmocTranscription:
         u_lower, u_upper = ((np.full(n * nu, -np.inf), np.full(n * nu, np.inf))
                             if shape.elastic else
                             (np.tile(self.u_lower, n), np.tile(self.u_upper, n)))
+        t_lower, t_upper = shape.time_bounds or (None, None)
         self.lbx = np.concatenate([np.full(n_path, -np.inf), u_lower,
                                    np.full(lam.numel(), -np.inf),
                                    np.zeros(slack.numel() + elastic.numel()),
+                                   np.full(t_var.numel(), t_lower or 0.0),
                                    np.full(planes.numel(), -np.inf)])
         self.ubx = np.concatenate([np.full(n_path, np.inf), u_upper,
-                                   np.full(lam.numel() + slack.numel() + elastic.numel()
-                                           + planes.numel(), np.inf)])
+                                   np.full(lam.numel() + slack.numel() + elastic.numel(),
+                                           np.inf),
+                                   np.full(t_var.numel(), t_upper or 0.0),
+                                   np.full(planes.numel(), np.inf)])
         self.cost = ca.Function("J", [w, p], [objective], ["w", "p"], ["J"])
         self.constraints = ca.Function("g", [w, p], [ca.vertcat(*eqs, *keep_out, rows)],
                                        ["w", "p"], ["g"])
@@ -570,30 +653,36 @@ class DmocTranscription:
         equations = ca.Function("g_eq", [w, p], [ca.vertcat(*eqs)])
         self.end_hessian = None if shape.keep_out_slots or shape.elastic else ca.Function(
             "dmoc_no_hessian", [w, ca.SX.sym("lam_g", self.ng), p],
-            [ca.DM(np.full((nq, nq), np.nan))]) if self.n_planes else \
+            [ca.DM(np.full((self.nh, self.nh), np.nan))]) if self.n_planes else \
             _on_equations(cost_hessian_function(
-                "dmoc", w, p, self.cost(w, p), equations(w, p), slice(2 * nq, 3 * nq)), self.ng)
+                "dmoc", w, p, self.cost(w, p), equations(w, p), self.hessian_block), self.ng)
         # with control bounds or path rows, that of the active set where one is active
         self.active_hessian = None if (shape.keep_out_slots or shape.elastic
                                        or not self.has_inequalities) else \
             cost_hessian_function("dmoc", w, p, self.cost(w, p), self.constraints(w, p),
-                                  slice(2 * nq, 3 * nq), active_set=True)
+                                  self.hessian_block, active_set=True)
         self.path_rows = ca.Function("path", [w, p], [path.expr], ["w", "p"], ["c"])
         self.obstacle_rows = ca.Function("obstacle", [w, p], [ca.vertcat(*obstacle)],
                                          ["w", "p"], ["c"])
 
-    def _slack_weights(self, path: ConstraintRows) -> np.ndarray:
+    @property
+    def hessian_block(self) -> list[int]:
+        """The entries of p ``end_hessian`` covers: q_N's, then T's where it is free."""
+        nq = self.nq
+        return list(range(2 * nq, 3 * nq)) + ([self.n_params - 1] if self.shape.free_duration
+                                              else [])
+
+    def _slack_weights(self, path: ConstraintRows) -> ca.SX:
         """The elastic cost's weight of each slack (module docstring): 1 per length unit of
         the end position (a±), T per velocity unit of the end velocity (b±), 1 / (the
         bound's size) per unit of a control bound's and a path row's slack (the size
         max(|lo|, |hi|) over its finite bounds, 1 where that is 0)."""
         nq, n = self.nq, self.n
-        ends = np.concatenate([np.ones(2 * nq), np.full(2 * nq, self.shape.duration)])
-        parts = [ends]
+        parts = [ca.DM.ones(2 * nq), self.horizon * ca.DM.ones(2 * nq)]
         if self.shape.control_bounds is not None:
-            parts.append(np.tile(1 / _bound_sizes(self.u_lower, self.u_upper), n))
-        parts.append(1 / _bound_sizes(path.lower, path.upper))
-        return np.concatenate(parts)
+            parts.append(ca.DM(np.tile(1 / _bound_sizes(self.u_lower, self.u_upper), n)))
+        parts.append(ca.DM(1 / _bound_sizes(path.lower, path.upper)))
+        return ca.vertcat(*parts)
 
     def _keep_out_rows(self, data: ca.SX, qs: list[ca.SX], slack: ca.SX) -> list[ca.SX]:
         """n·r(q) − b + σ at the free nodes q of each interval k, slot s (b the slot's offset
@@ -612,11 +701,32 @@ class DmocTranscription:
                          for end, node in enumerate((k, k + 1)) if 0 < node < n]
         return rows
 
+    @property
+    def first_duration(self) -> float:
+        """The first guess of T where it is a variable: ``duration`` within the bounds."""
+        low, high = self.shape.time_bounds or (-np.inf, np.inf)
+        return float(np.clip(self.shape.duration, low, high))
+
+    def durations(self, w: np.ndarray, params: np.ndarray) -> np.ndarray:
+        """T of each solution w (k, nw) with ``params`` (k, n_params): (k,)."""
+        if self.t_index is not None:
+            return np.asarray(w, float)[:, self.t_index]
+        if self.shape.free_duration:
+            return np.asarray(params, float)[:, -1].copy()
+        return np.full(len(w), self.shape.duration)
+
+    def steps(self, params: np.ndarray) -> np.ndarray | float:
+        """The step h = T/N of each row of ``params`` (k, n_params): (k,) with a free
+        duration, else the shape's constant."""
+        if self.shape.free_duration:
+            return np.asarray(params, float)[:, -1] / self.n
+        return self.shape.duration / self.n
+
     def _costs(self, w: np.ndarray, params: np.ndarray, u: np.ndarray) -> np.ndarray:
         """J_d without the keep-out penalty of each solution w (k, nw) with ``params``
         (k, n_params) and its controls u (k, N, nu): (k,)."""
         if self.shape.running_cost is None:
-            return self.h * np.sum(u**2, axis=(1, 2))
+            return self.steps(params) * np.sum(u**2, axis=(1, 2))
         n_free = self.nq * (self.n - 1) + self.nu * self.n
         return np.asarray(self.control_cost.map(len(w))(w[:, :n_free].T, params.T)).ravel()
 
@@ -674,7 +784,7 @@ class DmocTranscription:
         """Whether the NLP has inequalities (keep-out rows, control bounds, path rows,
         elastic slacks)."""
         return (bool(self.shape.keep_out_slots) or self.shape.control_bounds is not None
-                or bool(self.n_rows) or self.shape.elastic)
+                or bool(self.n_rows) or self.shape.elastic or self.t_index is not None)
 
     def _activity(self, w: np.ndarray, params: np.ndarray, lam_g: np.ndarray
                   ) -> tuple[np.ndarray, np.ndarray]:
@@ -692,7 +802,7 @@ class DmocTranscription:
             rows = np.asarray(self.path_rows.map(k)(w.T, params.T)).reshape(self.n_path, k).T
             end = n_eq + self.n_path
             mask[:, n_eq:end] = _near(rows, self.lbg[n_eq:end], self.ubg[n_eq:end], tol)
-        if self.shape.control_bounds is not None:
+        if self.shape.control_bounds is not None or self.t_index is not None:
             mask[:, self.ng:] = _near(w, self.lbx, self.ubx, tol)
         if self.n_rows > self.n_path:
             w = w.copy()
@@ -714,7 +824,7 @@ class DmocTranscription:
     def _hessians(self, w: np.ndarray, lam_g: np.ndarray, params: np.ndarray,
                   equality: np.ndarray) -> np.ndarray:
         """``end_hessian`` of solutions w (k, nw) with multipliers ``lam_g`` (k, ng): that of
-        the equations, ``equality`` (k, nq, nq), where no inequality is active, else that
+        the equations, ``equality`` (k, nh, nh), where no inequality is active, else that
         of the active set (:mod:`ocpar.ocp.sensitivity`)."""
         if self.active_hessian is None:
             return equality
@@ -763,13 +873,16 @@ class DmocTranscription:
         nq, n, k = self.nq, self.n, len(params)
         q0, v0, qn, vn = (params[:, None, i * nq:(i + 1) * nq] for i in range(4))
         s = np.arange(1, n)[None, :, None] / n
-        t = self.shape.duration
+        t = (params[:, -1, None, None] if self.shape.free_duration
+             else self.first_duration)
         h00, h10 = 2 * s**3 - 3 * s**2 + 1, s**3 - 2 * s**2 + s
         h01, h11 = -2 * s**3 + 3 * s**2, s**3 - s**2
         path = (h00 * q0 + h10 * t * v0 + h01 * qn + h11 * t * vn).reshape(-1, nq)
         if self.nc:
             path = self.shape.model.project(path)
         guesses = np.hstack([path.reshape(k, -1), np.zeros((k, self.nw - path.size // k))])
+        if self.t_index is not None:
+            guesses[:, self.t_index] = self.first_duration
         return self._with_planes(guesses, params)
 
     def _with_planes(self, guesses: np.ndarray, params: np.ndarray) -> np.ndarray:
@@ -939,11 +1052,12 @@ class DmocTranscription:
         return DmocSolution(cost=float("nan"), status=status, success=False, iterations=0,
                             attempts=1, solve_time_s=elapsed,
                             cost_gradient=np.full(params.shape, np.nan),
-                            end_hessian=self._no_hessian(), q=nan_q, u=nan_u)
+                            end_hessian=self._no_hessian(), q=nan_q, u=nan_u,
+                            duration=float("nan"))
 
     def _no_hessian(self) -> np.ndarray:
-        """The (nq, nq) NaN ``end_hessian`` of a failed solve or of a shape with keep-outs."""
-        return np.full((self.nq, self.nq), np.nan)
+        """The (nh, nh) NaN ``end_hessian`` of a failed solve or of a shape with keep-outs."""
+        return np.full((self.nh, self.nh), np.nan)
 
     def nodes(self, w: ca.SX, params: ca.SX) -> list[ca.SX]:
         """The node configurations q_0 … q_N (nq each) of ``w`` and ``params`` as
@@ -987,25 +1101,28 @@ class DmocTranscription:
             return self.failure(params, call.status, call.solve_time_s)
         w, lam_g = (np.asarray(call.out[k]).ravel() for k in ("x", "lam_g"))
         q, u = self.unpack(w, params)
+        duration = float(self.durations(w[None], params[None])[0])
         if self.shape.elastic:   # the cost is the total slack
             return DmocSolution(**call.common, cost_gradient=call.cost_gradient,
-                                end_hessian=self._no_hessian(), q=q, u=u)
+                                end_hessian=self._no_hessian(), q=q, u=u, duration=duration)
         if self.end_hessian is None:  # keep-outs: the control cost without the penalty
             common = {**call.common, "cost": float(self._costs(w[None], params[None], u[None])[0])}
             return DmocSolution(**common, cost_gradient=call.cost_gradient,
-                                end_hessian=self._no_hessian(), q=q, u=u)
+                                end_hessian=self._no_hessian(), q=q, u=u, duration=duration)
         hessian = self._hessians(w[None], lam_g[None], params[None],
                                  np.asarray(self.end_hessian(w, lam_g, params))[None])[0]
         return DmocSolution(**call.common, cost_gradient=call.cost_gradient,
-                            end_hessian=hessian, q=q, u=u)
+                            end_hessian=hessian, q=q, u=u, duration=duration)
 
     def full_guess(self, guess: np.ndarray, params: np.ndarray) -> np.ndarray:
         """``guess`` with λ = 0, slacks σ = 0 and the planes of its path
         (:meth:`_with_planes`) appended if it has none (p = ``params``)."""
         x0 = np.asarray(guess, float)
         if x0.size == self.nq * (self.n - 1) + self.nu * self.n:
-            x0 = self._with_planes(np.concatenate([x0, np.zeros(self.nw - x0.size)])[None],
-                                   np.asarray(params, float)[None])[0]
+            x0 = np.concatenate([x0, np.zeros(self.nw - x0.size)])
+            if self.t_index is not None:
+                x0[self.t_index] = self.first_duration
+            x0 = self._with_planes(x0[None], np.asarray(params, float)[None])[0]
         return x0
 
     def prepare(self, count: int) -> None:
@@ -1172,13 +1289,13 @@ class DmocTranscription:
             q, u = self.unpack_many(w[ok], params[ok])
             costs = (self._costs(w[ok], params[ok], u) if self.end_hessian is None
                      else batch.f[pick][ok])
-            hessians = np.full((len(ok), self.nq, self.nq), np.nan)
+            hessians = np.full((len(ok), self.nh, self.nh), np.nan)
             if self.end_hessian is not None:
                 hessians = self._hessians(w[ok], lam_g[ok], params[ok], hessians)
             elapsed = (time.perf_counter() - start) / k
             parts.append(_solution_columns(costs, np.ones(len(ok), bool), np.full(len(ok), -1),
                                            np.full(len(ok), elapsed), -batch.lam_p[pick][ok],
-                                           hessians, q, u))
+                                           hessians, q, u, self.durations(w[ok], params[ok])))
             positions.append(ok)
         others = np.flatnonzero(~accepted)
         if len(others):
@@ -1282,22 +1399,22 @@ class DmocTranscription:
         q, u = self.unpack_many(batch.x, params)
         iterations = np.full(k, -1) if batch.iterations is None else batch.iterations
         if self.shape.elastic:   # the cost is the total slack
-            costs, hessians = batch.f, np.full((k, self.nq, self.nq), np.nan)
+            costs, hessians = batch.f, np.full((k, self.nh, self.nh), np.nan)
         elif self.end_hessian is None:  # keep-outs: the control cost without the penalty
             costs = self._costs(batch.x, params, u)
-            hessians = np.full((k, self.nq, self.nq), np.nan)
+            hessians = np.full((k, self.nh, self.nh), np.nan)
         else:
             costs = batch.f
-            hessians = batch.extra.reshape(k, self.nq, self.nq).transpose(0, 2, 1)
+            hessians = batch.extra.reshape(k, self.nh, self.nh).transpose(0, 2, 1)
             hessians = self._hessians(batch.x, batch.lam_g, params, hessians)
         return _solution_columns(costs, np.asarray(batch.success, bool), iterations,
                                  np.full(k, batch.solve_time_s / k), -batch.lam_p, hessians,
-                                 q, u)
+                                 q, u, self.durations(batch.x, params))
 
 
 def _solution_columns(costs: np.ndarray, success: np.ndarray, iterations: np.ndarray,
                       times: np.ndarray, gradients: np.ndarray, hessians: np.ndarray,
-                      q: np.ndarray, u: np.ndarray) -> Columns:
+                      q: np.ndarray, u: np.ndarray, durations: np.ndarray) -> Columns:
     """k batched solutions as columns of :class:`DmocSolution` (one attempt each, the status
     from ``success``)."""
     k = len(costs)
@@ -1314,6 +1431,7 @@ def _solution_columns(costs: np.ndarray, success: np.ndarray, iterations: np.nda
         "end_hessian": (STACKED, hessians),
         "q": (STACKED, q),
         "u": (STACKED, u),
+        "duration": (VALUES, np.asarray(durations, float)),
     })
 
 
@@ -1353,6 +1471,11 @@ def _near(values: np.ndarray, lower: np.ndarray, upper: np.ndarray, tol: float) 
     with np.errstate(invalid="ignore"):
         return ((np.isfinite(lower) & (values - lower <= tol * (1 + np.abs(lower))))
                 | (np.isfinite(upper) & (upper - values <= tol * (1 + np.abs(upper)))))
+
+
+def _at_step(function: ca.Function, h: ca.SX | float) -> Callable[[ca.SX, ca.SX], ca.SX]:
+    """(a, b) ↦ ``function``(a, b, h): a discrete Lagrangian's derivative at the step h."""
+    return lambda a, b: function(a, b, h)
 
 
 def _on_equations(hessian: ca.Function, ng: int) -> ca.Function:

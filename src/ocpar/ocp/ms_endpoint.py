@@ -224,12 +224,14 @@ def _pairs(bounds: object, nu: int) -> tuple[tuple[float, float], ...]:
 class MsEndpointSolution(InnerSolution):
     """Result of one solve: the common fields, ``cost_gradient`` dJ*/dp (2 nx,),
     ``end_hessian`` d²J*/dx̄_N² (nx, nx; rows and columns of a free entry zero), ``q`` the
-    states at the nodes (N+1, nx), ``u`` the interval controls (N, nu)."""
+    states at the nodes (N+1, nx), ``u`` the interval controls (N, nu), ``duration`` T (the
+    shape's: an ODE agent's horizon is fixed)."""
 
     cost_gradient: np.ndarray
     end_hessian: np.ndarray
     q: np.ndarray
     u: np.ndarray
+    duration: float
 
 
 class MsEndpointTranscription:
@@ -377,7 +379,7 @@ class MsEndpointTranscription:
             cost=float("nan"), status=status, success=False, iterations=0, attempts=1,
             solve_time_s=elapsed, cost_gradient=np.full(self.n_params, np.nan),
             end_hessian=np.full((nx, nx), np.nan), q=np.full((n + 1, nx), np.nan),
-            u=np.full((n, nu), np.nan))
+            u=np.full((n, nu), np.nan), duration=self.shape.duration)
 
     def solve(self, params: np.ndarray, guess: np.ndarray | None = None,
               multipliers: np.ndarray | None = None) -> MsEndpointSolution:
@@ -402,7 +404,8 @@ class MsEndpointTranscription:
         return MsEndpointSolution(
             cost=float(call.out["f"]), status=status, success=success,
             iterations=call.iterations, attempts=1, solve_time_s=call.solve_time_s,
-            cost_gradient=call.cost_gradient, end_hessian=hessian, q=q[0], u=u[0])
+            cost_gradient=call.cost_gradient, end_hessian=hessian, q=q[0], u=u[0],
+            duration=self.shape.duration)
 
     def _met(self, w: np.ndarray, params: np.ndarray, lam_g: np.ndarray, lam_x: np.ndarray
              ) -> np.ndarray:
@@ -461,7 +464,8 @@ class MsEndpointTranscription:
             "solve_time_s": (VALUES, np.full(k, batch.solve_time_s / k)),
             "cost_gradient": (STACKED, -batch.lam_p),
             "end_hessian": (STACKED, hessians),
-            "q": (STACKED, q), "u": (STACKED, u)})
+            "q": (STACKED, q), "u": (STACKED, u),
+            "duration": (SHARED, self.shape.duration)})
 
     def _hessians(self, w: np.ndarray, lam_g: np.ndarray, params: np.ndarray,
                   solved: np.ndarray) -> np.ndarray:

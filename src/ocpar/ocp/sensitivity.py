@@ -27,11 +27,11 @@ import casadi as ca
 
 
 def cost_hessian_function(name: str, x: ca.SX, p: ca.SX, f: ca.SX, g: ca.SX,
-                          block: slice, active_set: bool = False) -> ca.Function:
-    """Function (x*, λ*, p) → ∇²J* restricted to the parameters ``block`` (rows and columns),
-    a (m, m) matrix with m = len(range(p.numel())[block]). With ``active_set`` the function
-    takes a fourth input, the activity mask a (ng + nx: the rows of g, then the bounds of x;
-    module docstring)."""
+                          block: slice | list[int], active_set: bool = False) -> ca.Function:
+    """Function (x*, λ*, p) → ∇²J* restricted to the parameters ``block`` (a slice or a list
+    of indices; rows and columns), a (m, m) matrix with m the number of entries it picks.
+    With ``active_set`` the function takes a fourth input, the activity mask a (ng + nx: the
+    rows of g, then the bounds of x; module docstring)."""
     if active_set:
         return _active_set_hessian_function(name, x, p, f, g, block)
     lam = ca.SX.sym("lam_g", g.numel())
@@ -51,7 +51,7 @@ def cost_hessian_function(name: str, x: ca.SX, p: ca.SX, f: ca.SX, g: ca.SX,
 
 
 def _active_set_hessian_function(name: str, x: ca.SX, p: ca.SX, f: ca.SX, g: ca.SX,
-                                 block: slice) -> ca.Function:
+                                 block: slice | list[int]) -> ca.Function:
     """:func:`cost_hessian_function` on the active set given by a mask (module docstring)."""
     ng, nx = g.numel(), x.numel()
     lam = ca.SX.sym("lam_g", ng)

@@ -1,0 +1,70 @@
+"""A free final time through the inner-problem contract: the sums an outer problem needs of
+its agents' J*(T) and their derivatives in T, reduced on the workers over fixed units.
+
+A transcription offers a free duration when T is the last entry of its parameters p (DMOC:
+``DmocShape.free_duration``); its solution's ``cost_gradient`` then ends with dJ*/dT (the
+parameters' multiplier, the envelope theorem) and its ``end_hessian`` is the block of
+d²J*/dp² over (q_N, T), T's row and column last (from the KKT system,
+:mod:`ocpar.ocp.sensitivity`). Any transcription that meets this serves :func:`duration_sums`.
+
+The engine kernel :func:`duration_sums` solves one unit of agents (one :class:`DurationUnit`:
+columns of :class:`~ocpar.ocp.OcpTask` with T in p) and returns their sums in agent order;
+the coordinator adds the units' sums in unit order: the numbers do not depend on which
+worker solved which unit, nor on how many workers there are.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from ocpar.bsp.columns import Columns
+from ocpar.ocp.contract import solve_tasks
+
+
+@dataclass(frozen=True)
+class DurationUnit:
+    """One unit of agents' inner solves: ``tasks`` (Columns of
+    :class:`~ocpar.ocp.OcpTask`, T the last parameter of each)."""
+
+    tasks: Columns
+
+
+@dataclass
+class DurationSums:
+    """Sums over a unit (or, added, over all agents) of J* (``cost``), dJ*/dT
+    (``gradient``, cost unit per time unit) and d²J*/dT² (``curvature``); ``solves`` made,
+    ``failed`` of them (their terms are left out, the sums then no answer), and the first
+    failure's solver status (``first_failure``, "" if none)."""
+
+    cost: float
+    gradient: float
+    curvature: float
+    solves: int
+    failed: int
+    first_failure: str = ""
+
+    def __add__(self, other: DurationSums) -> DurationSums:
+        return DurationSums(self.cost + other.cost, self.gradient + other.gradient,
+                            self.curvature + other.curvature, self.solves + other.solves,
+                            self.failed + other.failed,
+                            self.first_failure or other.first_failure)
+
+
+def duration_sums(unit: DurationUnit) -> DurationSums:
+    """Engine kernel: solve ``unit``'s tasks (:func:`~ocpar.ocp.solve_tasks`) and sum their
+    J*, dJ*/dT and d²J*/dT² in task order (module docstring)."""
+    solutions = solve_tasks(unit.tasks)
+    assert isinstance(solutions, Columns)
+    ok = np.asarray(solutions.column("success"), bool)
+    cost = np.asarray(solutions.column("cost"), float)[ok]
+    gradient = np.asarray(solutions.column("cost_gradient"), float)[ok, -1]
+    curvature = np.asarray(solutions.column("end_hessian"), float)[ok, -1, -1]
+    statuses = solutions.column("status")
+    first = next((str(statuses[i]) for i in np.flatnonzero(~ok).tolist()), "")
+    return DurationSums(float(np.sum(cost)), float(np.sum(gradient)),
+                        float(np.sum(curvature)), len(ok), int(np.sum(~ok)), first)
+
+
+__all__ = ["DurationSums", "DurationUnit", "duration_sums"]
