@@ -40,11 +40,11 @@ from ocpar.cli import (
     prepare_output_dir,
     run_on_backend,
 )
-from ocpar.config import SCHEMES, scheme_class
 from ocpar.options import add_options, option, option_specs, options_from_namespace
 from ocpar.references import REFERENCE, ProblemReferenceError, is_reference, load_problem
 from ocpar.result_files import write_result, write_summary
 from ocpar.results import RunResult
+from ocpar.schemes import SCHEMES, scheme_class
 from ocpar.timing import process_age, timings_line
 
 PROBLEM_GROUP = "problem"
