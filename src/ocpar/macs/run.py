@@ -33,12 +33,23 @@ class MacsRun(SchemeRun, MacsSettings):
     description: ClassVar[str] = (
         "MACSoc: multi-objective optimal control by multi-agent collaborative search on a DFET "
         "transcription; the agents' local searches run in parallel.")
+    examples: ClassVar[tuple[str, ...]] = (
+        "python -m ocpar.macs --output runs/goddard",
+        "python -m ocpar.macs --problem orbit-raising --max-evals 3000 --seed 1 "
+        "--output runs/orbit --plot none",
+        "python -m ocpar.macs --backend dask --workers 2 --population 20",
+        "python -m ocpar.macs --problem mypkg.rocket:make --problem-arg stages=2 "
+        "--solver-option ipopt.tol=1e-10 --output runs/mine",
+    )
+    essentials: ClassVar[tuple[str, ...]] = (
+        "problem", "max_evals", "seed", "problem_args", "output", "plot", "backend", "workers")
+    solver_group: ClassVar[str] = "MACS algorithm"
     problem_type: ClassVar[Any] = PROBLEM_TYPE
 
     problem: str = option(
         "goddard", f"a built-in problem ({', '.join(sorted(PROBLEMS))}), or "
-        "package.module:factory returning the scheme's problem type (docs/user-problems.md)",
-        group=PROBLEM_GROUP)
+        "package.module:factory returning a MacsProblem (docs/user-problems.md)",
+        metavar="NAME", group=PROBLEM_GROUP)
 
     def validate(self, given: frozenset[str]) -> None:
         super().validate(given)
