@@ -238,10 +238,12 @@ def add_options(parser: argparse.ArgumentParser, cls: type, *, first: Sequence[s
 
 
 def shown_default(spec: OptionSpec) -> str:
-    """`` (default VALUE)`` for ``--help``: an option's default value; nothing for a flag
-    (off unless given), an empty table, or an option unset by default (its help says what
-    unset means)."""
-    if spec.default is None or spec.kind == "flag" or spec.default == {}:
+    """`` (default VALUE)`` for ``--help``: an option's default value; `` (default: none)``
+    for a table (empty unless given); nothing for a flag (off unless given) or an option
+    unset by default (its help says what unset means)."""
+    if spec.kind == "table":
+        return " (default: none)"
+    if spec.default is None or spec.kind == "flag":
         return ""
     value = ",".join(f"{x:g}" for x in spec.default) if spec.kind == "list" else spec.default
     return f" (default {value})"

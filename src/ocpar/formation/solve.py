@@ -167,7 +167,7 @@ class FormationOptions:
         "solves after the outer solve, then (--separation exact) the separating planes and "
         "the formation's rotation optimised in the outer problem (with --mode monolithic: "
         "separating planes in the one NLP); start or final positions closer than this are "
-        "refused", above=0, metavar="D")
+        "refused (default: none, no separation required)", above=0, metavar="D")
     solver_options: dict = option(  # noqa: RUF009 (option() is a dataclass field)
         default_factory=dict, help=SOLVER_OPTIONS_HELP + "; over the problem's "
         "DmocShape.solver_options (ipopt.* also in --mode monolithic)",
@@ -187,7 +187,7 @@ class FormationOptions:
         "problems) first", metavar="PHI,PHI,...")
     initial_rotation: float | None = option(
         None, "the start: the documented initial guess rotated by this angle (rad, added to "
-        "every agent's initial angle; curves only)", metavar="RAD")
+        "every agent's initial angle; curves only; default: not rotated)", metavar="RAD")
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "solver_options", dict(solver_options(self.solver_options)))
