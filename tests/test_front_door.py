@@ -16,6 +16,7 @@ import pytest
 from ocpar.driver import build_parser, check_options, run_scheme
 from ocpar.formation.run import FormationRun
 from ocpar.formation.solve import FormationOptions, solve_formation
+from ocpar.macs import MacsSettings, solve_macs
 from ocpar.macs.run import MacsRun
 from ocpar.options import option_specs, project
 from ocpar.pursuit.run import PursuitRun
@@ -119,6 +120,20 @@ def test_the_examples_n_and_t_are_options():
     assert fine.total_cost < base.total_cost * (1 - 1e-3)   # a finer grid: a cheaper path
     with pytest.raises(ValueError, match="--intervals only applies to the built-in"):
         check_options(FormationRun, ["--problem", "mypkg.ships:make", "--intervals", "5"])
+
+
+def test_macs_elements_reach_the_problem():
+    """--elements N: the built-in problem's DFET elements; the double integrator's closed-form
+    front is met on a coarse grid too (its optimal control is linear in t: exact on any)."""
+    assert MacsRun(problem="orbit-raising").build_example().elements == 30
+    assert MacsRun(problem="orbit-raising", elements=12).build_example().elements == 12
+    run = MacsRun(problem="double-integrator", elements=2, max_evaluations=60, population=4,
+                  archive_size=5)
+    problem = run.build_example()
+    result = solve_macs(problem, project(run, MacsSettings))
+    assert problem.elements == 2 and result.status == "converged" and result.gd < 1e-5
+    with pytest.raises(ValueError, match="--elements only applies to the built-in"):
+        check_options(MacsRun, ["--problem", "mypkg.rocket:make", "--elements", "5"])
 
 
 def test_plot_none_writes_no_picture(tmp_path):

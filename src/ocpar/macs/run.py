@@ -20,6 +20,8 @@ from ocpar.references import is_reference
 
 #: The scheme's public problem type: what a ``--problem package.module:factory`` returns.
 PROBLEM_TYPE = MacsProblem
+#: Most DFET elements of a built-in problem (its NLP grows with N).
+MAX_ELEMENTS = 1_000
 
 
 @dataclass(frozen=True)
@@ -50,9 +52,16 @@ class MacsRun(SchemeRun, MacsSettings):
         "goddard", f"a built-in problem ({', '.join(sorted(PROBLEMS))}), or "
         "package.module:factory returning a MacsProblem (docs/user-problems.md)",
         metavar="NAME", group=PROBLEM_GROUP)
+    elements: int | None = option(
+        None, "built-in problem: DFET elements N (default: the problem's: goddard 4, "
+        "orbit-raising 30, double-integrator 4; t_f is an objective, free)", low=1,
+        high=MAX_ELEMENTS, metavar="N", group=PROBLEM_GROUP)
 
     def validate(self, given: frozenset[str]) -> None:
         super().validate(given)
+        if is_reference(self.problem) and self.elements is not None:
+            raise ValueError("--elements only applies to the built-in problems; pass "
+                             "--problem-arg elements=... to your factory instead")
         if not is_reference(self.problem) and self.problem not in PROBLEMS:
             raise ValueError(f"--problem: unknown problem {self.problem!r}; choose one of "
                              f"{', '.join(sorted(PROBLEMS))}, or give package.module:factory")
@@ -62,7 +71,7 @@ class MacsRun(SchemeRun, MacsSettings):
                              f"{self.population} evaluations")
 
     def build_example(self) -> MacsProblem:
-        return make_problem(self.problem)
+        return make_problem(self.problem, self.elements)
 
     def describe(self, problem: MacsProblem) -> str:
         return (f"{problem.name}, seed {self.seed}, {self.max_evaluations} evaluations, "
