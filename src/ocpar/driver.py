@@ -123,7 +123,7 @@ def build_parser(scheme: type[SchemeRun],
                  parser_class: type[OneLineParser] = OneLineParser) -> OneLineParser:
     """The scheme's command line, generated from its options dataclass."""
     parser = parser_class(prog=scheme.prog, usage=f"python -m {scheme.prog} [OPTION ...]",
-                          description=help_description(scheme),
+                          description=help_text(scheme.description, scheme.examples),
                           formatter_class=argparse.RawDescriptionHelpFormatter,
                           add_help=False)
     groups = add_options(parser, scheme, first=scheme.essentials,
@@ -135,12 +135,14 @@ def build_parser(scheme: type[SchemeRun],
     return parser
 
 
-def help_description(scheme: type[SchemeRun]) -> str:
-    """The top of the scheme's ``--help``: its description and its example command lines."""
-    lines = textwrap.wrap(scheme.description, HELP_WIDTH)
-    if scheme.examples:
+def help_text(description: str, examples: Sequence[str]) -> str:
+    """The top of a command's ``--help``: its ``description`` and its ``examples`` (command
+    lines), wrapped to :data:`HELP_WIDTH` columns (for argparse's
+    ``RawDescriptionHelpFormatter``)."""
+    lines = textwrap.wrap(description, HELP_WIDTH)
+    if examples:
         lines += ["", "examples:"]
-        for example in scheme.examples:
+        for example in examples:
             lines += textwrap.wrap(example, HELP_WIDTH, initial_indent="  ",
                                    subsequent_indent="      ", break_on_hyphens=False,
                                    break_long_words=False)
