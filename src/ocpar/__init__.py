@@ -1,11 +1,16 @@
 """ocpar: large optimal control problems solved as many small, independent ones in parallel.
 
-Layers, imports pointing down only:
+Layers, imports pointing down only (docs/layout.md's table, checked by tests/test_layering.py):
 
-- ``ocpar.formation`` (and later ``pursuit``, ``macs``): the outer schemes (coordinators);
+- interfaces: the command lines (``ocpar.cli``, ``ocpar.driver``, ``ocpar.config``, each
+  scheme's ``run``), the job service, the plots;
+- ``ocpar.examples``: the papers' problems, built with the public API;
+- ``ocpar.formation``, ``ocpar.pursuit``, ``ocpar.macs``: the outer schemes (coordinators);
+- ``ocpar.results``, ``ocpar.result_files``: a run's result and its files;
+- ``ocpar.ocp``: transcriptions of inner problems into parametric CasADi NLPs;
+- ``ocpar.models``: dynamics and costs of the systems;
 - ``ocpar.bsp``: the superstep engine and its backends (serial, mpi, dask);
-- ``ocpar.ocp``: transcriptions of inner problems into parametric CasADi NLPs (DMOC);
-- ``ocpar.models``: dynamics (Lagrangians) of the systems.
+- ``ocpar.options``, ``ocpar.timing``, ...: the foundation.
 """
 
 import os

@@ -53,6 +53,13 @@ from ocpar.service.web import serve
 SERVICE_KEYS = tuple(option[2:].replace("-", "_") for option in SERVICE_OPTIONS)
 
 PROG = "ocpar"
+#: The example command lines of ``ocpar run --help``.
+RUN_EXAMPLES = (
+    "ocpar run --list",
+    "ocpar run formation-60 --output runs/f60 --plot none",
+    "ocpar run macs-goddard --set max_evals=2000 seed=1 --workers 2 --backend dask",
+    "ocpar run my-run.toml --print-argv",
+)
 #: Exit status of ``ocpar wait --timeout S`` when the job is still running (as timeout(1)).
 EXIT_TIMEOUT = 124
 
@@ -328,12 +335,14 @@ def build_parser() -> OneLineParser:
     run_parser = commands.add_parser(
         "run", prog=f"{PROG} run", help="run a configuration file",
         usage=f"{PROG} run CONFIG [--set KEY=VALUE ...] [--print-argv] [SCHEME OPTIONS ...]",
-        description="Run the configuration CONFIG: a TOML file (scheme = \"formation\", "
-        "\"pursuit\" or \"macs\", and one key per option of that scheme's command line, "
-        "e.g. max_evals for --max-evals), or the name of a packaged example (--list). Any "
-        "option of the scheme's command line given after CONFIG (--output DIR, --workers 2, "
-        "--problem-arg KEY=VALUE ...) overrides the file's key (--problem-arg replaces its "
-        "whole [problem_args] table).")
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+        description=driver.help_text(
+            "Run the configuration CONFIG: a TOML file (scheme = \"formation\", \"pursuit\" "
+            "or \"macs\", and one key per option of that scheme's command line, e.g. "
+            "max_evals for --max-evals), or the name of a packaged example (--list). Any "
+            "option of the scheme's command line given after CONFIG (--output DIR, --workers "
+            "2, --problem-arg KEY=VALUE ...) overrides the file's key (--problem-arg replaces "
+            "its whole [problem_args] table).", RUN_EXAMPLES))
     run_parser.add_argument("config", nargs="?", metavar="CONFIG",
                             help="a TOML file, or an example name such as formation-60")
     run_parser.add_argument("--set", nargs="+", action="extend", default=[],

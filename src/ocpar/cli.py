@@ -49,6 +49,8 @@ CHECKPOINT_GROUP = "checkpoints"
 TLS_GROUP = ("TLS (dask backend; all three together): certificates for a tls:// scheduler, or "
              "to secure the embedded cluster (workers/tls.md)")
 OUTPUT_GROUP = "output"
+#: What a run with an output directory draws (``--plot``): its scheme's plots as PNG, or none.
+PICTURES = ("png", "none")
 R = TypeVar("R")
 #: A command-line token that is a negative number (-2, -.5, -1e-6, -inf), not an option.
 NEGATIVE_NUMBER = re.compile(r"^-(\d+\.?\d*|\.\d+)([eE][-+]?\d+)?$|^-inf(inity)?$", re.I)
@@ -131,20 +133,23 @@ class RuntimeOptions:
         None, "serial (default), mpi (implied under mpirun), dask, or dask-mpi (under mpirun "
         "-n P: a Dask cluster of P - 2 workers)", choices=BACKENDS, group=BACKEND_GROUP)
     workers: int | None = option(
-        None, "number of workers (dask: local worker processes, or how many of the cluster's "
-        "workers to use; mpi: must equal the rank count)", low=1, group=BACKEND_GROUP)
+        None, "number of workers (default: serial 1; mpi: the rank count, which it must "
+        "equal; dask: one local worker process per core, or all the cluster's workers)",
+        low=1, metavar="P", group=BACKEND_GROUP)
     scheduler: str | None = option(
         None, "address of an existing Dask scheduler, e.g. tcp://HOST:8786 (tls://HOST:8786 "
-        "for one secured with TLS)", metavar="ADDR", group=BACKEND_GROUP)
+        "for one secured with TLS); default: none, an embedded cluster", metavar="ADDR",
+        group=BACKEND_GROUP)
     balance: str = option(
         "blocks", "task assignment: contiguous blocks, or lpt: longest first on the previous "
         "superstep's times, tasks kept on their worker where that does not hurt the balance",
         choices=BALANCE_POLICIES, group=BACKEND_GROUP)
     resident_blocks: str = option(
-        "measured", "resident agents' blocks (the formation's agents): measured: moved "
-        "between supersteps to equalise the agents' measured costs, where the imbalance "
-        "(max/mean busy) exceeds 1.05 and the time saved exceeds the cost of moving their "
-        "states; fixed: equal blocks throughout", choices=RESIDENT_BLOCKS, group=BACKEND_GROUP)
+        "measured", "blocks of tasks whose states stay on their workers between supersteps "
+        "(resident tasks; a scheme without them ignores this): measured: moved between "
+        "supersteps to equalise the measured costs, where the imbalance (max/mean busy) "
+        "exceeds 1.05 and the time saved exceeds the cost of moving their states; fixed: "
+        "equal blocks throughout", choices=RESIDENT_BLOCKS, group=BACKEND_GROUP)
     superstep_timeout: float = option(
         SUPERSTEP_TIMEOUT_S, "abort a superstep whose results have not all arrived after S "
         "seconds", above=0, metavar="S", group=BACKEND_GROUP)
@@ -154,33 +159,40 @@ class RuntimeOptions:
         "tasks through the scheduler (tasks: seen on the dashboard as "
         "JOB-superstep-K-chunk-W)", choices=("direct", "tasks"), group=BACKEND_GROUP)
     job_name: str | None = option(
-        None, "dask: the name the run's task keys start with (with --dispatch tasks)",
-        metavar="NAME", group=BACKEND_GROUP)
+        None, "dask: the name the run's task keys start with (with --dispatch tasks; "
+        "default: a random name)", metavar="NAME",
+        group=BACKEND_GROUP)
     checkpoint: str | None = option(
         None, "record every superstep in DIR as it completes (atomic writes); a killed run "
-        "continues with --resume DIR", metavar="DIR", group=CHECKPOINT_GROUP)
+        "continues with --resume DIR (default: none, no checkpoint)", metavar="DIR",
+        group=CHECKPOINT_GROUP)
     stop_file: str | None = option(
         None, "stop at the next superstep boundary once PATH exists (exit status "
-        f"{EXIT_CANCELLED}; the checkpoint is intact)", metavar="PATH", group=CHECKPOINT_GROUP)
+        f"{EXIT_CANCELLED}; the checkpoint is intact; default: none)", metavar="PATH",
+        group=CHECKPOINT_GROUP)
     resume: str | None = option(
         None, "continue the run checkpointed in DIR (same options), recording on into DIR; "
-        "the result is the uninterrupted run's", metavar="DIR", group=CHECKPOINT_GROUP)
+        "the result is the uninterrupted run's (default: none, a new run)", metavar="DIR",
+        group=CHECKPOINT_GROUP)
     tls_ca_file: str | None = option(
-        None, "CA certificate (PEM) that signed the scheduler's and workers' certificates",
-        metavar="PATH", group=TLS_GROUP)
+        None, "CA certificate (PEM) that signed the scheduler's and workers' certificates "
+        "(default: none, no TLS)", metavar="PATH", group=TLS_GROUP)
     tls_cert: str | None = option(
-        None, "this client's certificate (PEM), signed by a CA the cluster trusts",
-        metavar="PATH", group=TLS_GROUP)
+        None, "this client's certificate (PEM), signed by a CA the cluster trusts (default: "
+        "none)", metavar="PATH", group=TLS_GROUP)
     tls_key: str | None = option(
-        None, "the private key (PEM, unencrypted) of --tls-cert", metavar="PATH",
-        group=TLS_GROUP)
+        None, "the private key (PEM, unencrypted) of --tls-cert (default: none)",
+        metavar="PATH", group=TLS_GROUP)
     output: str | None = option(
-        None, "write DIR/result.json, the array file, the trace and the scheme's plots; a "
-        "directory holding another run's files (another scheme's or problem's) is refused "
-        "unless --overwrite; a rerun of the same scheme and problem replaces its own",
-        metavar="DIR", group=OUTPUT_GROUP)
+        None, "write DIR/result.json, the array file, the trace and the plots (default: "
+        "none, nothing written); another run's files there are replaced only with "
+        "--overwrite, a rerun's of the same problem always", metavar="DIR",
+        group=OUTPUT_GROUP)
     overwrite: bool = option(False, "let --output DIR replace another run's files (its "
                              "result.json, array file, trace and plots)", group=OUTPUT_GROUP)
+    picture: str = option(
+        "png", "with --output: the plots as PNG, or none (drawing takes ~1.3 s, more than "
+        "a small solve)", choices=PICTURES, name="plot", group=OUTPUT_GROUP)
     quiet: bool = option(False, "no progress lines", group=OUTPUT_GROUP)
 
 

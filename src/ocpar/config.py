@@ -53,7 +53,6 @@ from __future__ import annotations
 
 import argparse
 import difflib
-import importlib
 import shlex
 import tomllib
 from collections.abc import Mapping, Sequence
@@ -64,13 +63,8 @@ from pathlib import Path
 from typing import Any
 
 from ocpar.options import is_key, option_specs, parse_value, toml_scalar
+from ocpar.schemes import SCHEMES, scheme_class
 
-#: The schemes a configuration can run, and the module of each one's options dataclass.
-SCHEMES = {
-    "formation": ("ocpar.formation.run", "FormationRun"),
-    "pursuit": ("ocpar.pursuit.run", "PursuitRun"),
-    "macs": ("ocpar.macs.run", "MacsRun"),
-}
 EXAMPLES_PACKAGE = "ocpar.configs"
 
 
@@ -142,12 +136,6 @@ class RunConfig:
                 raise ConfigError(f"{where}: scheme: the scheme is the file's ({self.scheme})")
             options[key] = check_value(self.scheme, key, value, where)
         return RunConfig(self.scheme, options, self.source)
-
-
-def scheme_class(scheme: str) -> type:
-    """The options dataclass of ``scheme`` (its fields are the configuration's keys)."""
-    module, name = SCHEMES[scheme]
-    return getattr(importlib.import_module(module), name)
 
 
 @cache

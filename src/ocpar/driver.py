@@ -18,8 +18,10 @@ plots, and exits with the status's code (:data:`ocpar.results.EXIT_STATUS`).
 
 from __future__ import annotations
 
+import argparse
 import json
 import sys
+import textwrap
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -28,6 +30,8 @@ from typing import Any, ClassVar
 
 from ocpar.bsp import Backend
 from ocpar.cli import (
+    BACKEND_GROUP,
+    OUTPUT_GROUP,
     CheckingParser,
     OneLineParser,
     Progress,
@@ -40,14 +44,18 @@ from ocpar.cli import (
     prepare_output_dir,
     run_on_backend,
 )
-from ocpar.config import SCHEMES, scheme_class
 from ocpar.options import add_options, option, option_specs, options_from_namespace
 from ocpar.references import REFERENCE, ProblemReferenceError, is_reference, load_problem
 from ocpar.result_files import write_result, write_summary
 from ocpar.results import RunResult
+from ocpar.schemes import SCHEMES, scheme_class
 from ocpar.timing import process_age, timings_line
 
 PROBLEM_GROUP = "problem"
+#: The heading of the options a newcomer needs (a scheme's :attr:`SchemeRun.essentials`).
+ESSENTIALS_GROUP = "essentials: the problem, its size, where it runs, what it writes"
+#: The width ``--help``'s description and examples are wrapped to (argparse's own default).
+HELP_WIDTH = 78
 
 
 @dataclass(frozen=True)
@@ -57,9 +65,9 @@ class SchemeRun(RuntimeOptions):
     built-in example name or ``package.module:factory``) and its own options."""
 
     problem_args: dict = option(  # noqa: RUF009 (option() is a dataclass field)
-        default_factory=dict, help="keyword argument of the problem factory of --problem "
-        "package.module:factory; VALUE is a TOML scalar (4, 0.5, true, \"text\") or else a "
-        "string; repeat for more (TOML: a [problem_args] table)", name="problem_args",
+        default_factory=dict, help="a keyword argument of --problem package.module:factory "
+        "(VALUE a TOML scalar: 4, 0.5, true, \"text\"; or else a string); repeat for more",
+        name="problem_args",
         flag="--problem-arg", group=PROBLEM_GROUP)
 
     #: the scheme's command-line name and ``--help`` description
@@ -71,6 +79,13 @@ class SchemeRun(RuntimeOptions):
     scheme: ClassVar[str]
     #: the file names of the plots the scheme may write into its output directory
     plots: ClassVar[tuple[str, ...]]
+    #: the keys of the options a newcomer needs, listed first by ``--help`` in this order
+    essentials: ClassVar[tuple[str, ...]] = ("problem", "problem_args", "output", "plot",
+                                             "backend", "workers")
+    #: command lines ``--help`` shows as examples (each one a valid run)
+    examples: ClassVar[tuple[str, ...]] = ()
+    #: the ``--help`` heading of the scheme's own solver options
+    solver_group: ClassVar[str] = "solver"
 
     def validate(self, given: frozenset[str]) -> None:
         """Cross-checks of the options (``given``: the keys set explicitly); raise ValueError
@@ -107,9 +122,31 @@ class SchemeRun(RuntimeOptions):
 def build_parser(scheme: type[SchemeRun],
                  parser_class: type[OneLineParser] = OneLineParser) -> OneLineParser:
     """The scheme's command line, generated from its options dataclass."""
-    parser = parser_class(prog=scheme.prog, description=scheme.description)
-    add_options(parser, scheme)
+    parser = parser_class(prog=scheme.prog, usage=f"python -m {scheme.prog} [OPTION ...]",
+                          description=help_text(scheme.description, scheme.examples),
+                          formatter_class=argparse.RawDescriptionHelpFormatter,
+                          add_help=False)
+    groups = add_options(parser, scheme, first=scheme.essentials,
+                         first_title=ESSENTIALS_GROUP,
+                         order=(PROBLEM_GROUP, None, OUTPUT_GROUP, BACKEND_GROUP),
+                         untitled=scheme.solver_group)
+    groups[ESSENTIALS_GROUP].add_argument("-h", "--help", action="help",
+                                          help="this help, then exit")
     return parser
+
+
+def help_text(description: str, examples: Sequence[str]) -> str:
+    """The top of a command's ``--help``: its ``description`` and its ``examples`` (command
+    lines), wrapped to :data:`HELP_WIDTH` columns (for argparse's
+    ``RawDescriptionHelpFormatter``)."""
+    lines = textwrap.wrap(description, HELP_WIDTH)
+    if examples:
+        lines += ["", "examples:"]
+        for example in examples:
+            lines += textwrap.wrap(example, HELP_WIDTH, initial_indent="  ",
+                                   subsequent_indent="      ", break_on_hyphens=False,
+                                   break_long_words=False)
+    return "\n".join(lines)
 
 
 def check_options(scheme: type[SchemeRun], argv: Sequence[str]
@@ -219,9 +256,10 @@ def run_scheme(options: SchemeRun, given: frozenset[str] | None = None) -> int:
     print(result.summary(), flush=True)
     if out is not None:
         written = write_result(result, out)
-        drawing = time.perf_counter()
-        written += options.plot(problem, result, out)
-        result.timings["picture_s"] = time.perf_counter() - drawing
+        if options.picture != "none":
+            drawing = time.perf_counter()
+            written += options.plot(problem, result, out)
+            result.timings["picture_s"] = time.perf_counter() - drawing
         if (age := process_age()) is not None:
             result.timings["total_s"] = age
         write_summary(result, out)

@@ -25,6 +25,7 @@ import math
 import tomllib
 import types
 import typing
+from collections.abc import Sequence
 from dataclasses import MISSING, dataclass, field, fields
 from functools import cache
 from typing import Any
@@ -212,26 +213,54 @@ def is_key(key: str, dotted: bool = False) -> bool:
     return all(part.isidentifier() for part in (key.split(".") if dotted else [key]))
 
 
-def add_options(parser: argparse.ArgumentParser, cls: type) -> None:
+def add_options(parser: argparse.ArgumentParser, cls: type, *, first: Sequence[str] = (),
+                first_title: str = "essentials", order: Sequence[str | None] = (),
+                untitled: str | None = None) -> dict[str | None, Any]:
     """Add one command-line option per field of ``cls``; an option not given stays out of the
-    namespace (so :func:`options_from_namespace` knows what was given)."""
-    groups: dict[str | None, Any] = {None: parser}
-    for spec in option_specs(cls).values():
-        if spec.group not in groups:
-            groups[spec.group] = parser.add_argument_group(spec.group)
-        target = groups[spec.group]
-        shown = "" if spec.default in (None, False, {}) else f" (default {spec.default})"
-        common = {"dest": spec.key, "default": argparse.SUPPRESS, "help": spec.help + shown}
-        if spec.kind == "flag":
-            target.add_argument(spec.flag, action="store_true", **common)
-        elif spec.kind == "table":
-            target.add_argument(spec.flag, action="append", metavar=spec.metavar or "KEY=VALUE",
-                                **common)
-        else:
-            shown_choices = "{" + ",".join(map(str, spec.choices)) + "}" if spec.choices \
-                else None
-            target.add_argument(spec.flag, type=_converter(spec),
-                                metavar=spec.metavar or shown_choices, **common)
+    namespace (so :func:`options_from_namespace` knows what was given). ``--help`` lists the
+    options of keys ``first`` in that order under ``first_title``, then the groups ``order``
+    names (None: the options declared without a group, titled ``untitled``), then the others
+    in field order; each option's help ends with its default (:func:`shown_default`).
+    Returns the argument groups by title."""
+    specs = option_specs(cls)
+    listed = [specs[key] for key in first] + [s for s in specs.values() if s.key not in first]
+    grouped: dict[str | None, list[OptionSpec]] = {}
+    for spec in listed:
+        grouped.setdefault(first_title if spec.key in first else spec.group, []).append(spec)
+    titles = [first_title] + [g for g in order if g in grouped and g != first_title]
+    titles += [g for g in grouped if g not in titles]
+    groups = {}
+    for title in titles:
+        groups[title] = parser.add_argument_group(untitled if title is None else title)
+        for spec in grouped[title]:
+            _add_option(groups[title], spec)
+    return groups
+
+
+def shown_default(spec: OptionSpec) -> str:
+    """`` (default VALUE)`` for ``--help``: an option's default value; `` (default: none)``
+    for a table (empty unless given); nothing for a flag (off unless given) or an option
+    unset by default (its help says what unset means)."""
+    if spec.kind == "table":
+        return " (default: none)"
+    if spec.default is None or spec.kind == "flag":
+        return ""
+    value = ",".join(f"{x:g}" for x in spec.default) if spec.kind == "list" else spec.default
+    return f" (default {value})"
+
+
+def _add_option(target: Any, spec: OptionSpec) -> None:
+    common = {"dest": spec.key, "default": argparse.SUPPRESS,
+              "help": spec.help + shown_default(spec)}
+    if spec.kind == "flag":
+        target.add_argument(spec.flag, action="store_true", **common)
+    elif spec.kind == "table":
+        target.add_argument(spec.flag, action="append", metavar=spec.metavar or "KEY=VALUE",
+                            **common)
+    else:
+        shown_choices = "{" + ",".join(map(str, spec.choices)) + "}" if spec.choices else None
+        target.add_argument(spec.flag, type=_converter(spec),
+                            metavar=spec.metavar or shown_choices, **common)
 
 
 def _converter(spec: OptionSpec):

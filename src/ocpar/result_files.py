@@ -25,15 +25,20 @@ from __future__ import annotations
 import json
 import os
 import time
+from collections.abc import Sequence
 from pathlib import Path
-from typing import TYPE_CHECKING, NamedTuple
+from typing import TYPE_CHECKING, Any, NamedTuple, Protocol
 
 import numpy as np
 
-from ocpar.results import Array, RunResult, categories, coordinates, without_coordinates
-
 if TYPE_CHECKING:
     import xarray as xr
+
+    from ocpar.bsp import SuperstepTrace
+
+#: One variable of a result's Dataset: (dimension names, values, attributes: ``units``,
+#: ``long_name``), as :class:`xarray.Dataset` takes it (:func:`array`).
+Array = tuple[tuple[str, ...], np.ndarray, dict[str, Any]]
 
 SUMMARY_FILE = "result.json"
 ARRAYS_FILE = "result.nc"
@@ -49,7 +54,20 @@ RUNTIME_FIELDS = frozenset({"backend", "workers", "wall_time_s", "trace",
                             "peak_rss_mb_per_worker", "timings", "array_parts"})
 
 
-def write_result(result: RunResult, directory: str | Path) -> list[Path]:
+class WrittenResult(Protocol):
+    """What the writer reads of a result (:class:`ocpar.results.RunResult`)."""
+
+    trace: list[SuperstepTrace]
+    timings: dict[str, float]
+
+    def arrays(self) -> dict[str, Array]: ...
+
+    def file_attributes(self) -> dict[str, str]: ...
+
+    def to_dict(self) -> dict: ...
+
+
+def write_result(result: WrittenResult, directory: str | Path) -> list[Path]:
     """Write ``result`` into ``directory`` (made if missing) as ``result.json``,
     ``result.nc`` and ``trace.json``; returns their paths (summary first, then the array file
     and its parts). The summary is written last: once it is there, so are the others. The
@@ -75,7 +93,7 @@ def write_result(result: RunResult, directory: str | Path) -> list[Path]:
     return [write_summary(result, directory), arrays, *(directory / p for p in parts), trace]
 
 
-def write_summary(result: RunResult, directory: str | Path) -> Path:
+def write_summary(result: WrittenResult, directory: str | Path) -> Path:
     """Write ``result.json`` (:meth:`~ocpar.results.RunResult.to_dict`, naming the array file
     and the trace) into ``directory``, atomically (a new file renamed over the old one: a
     reader never sees half of it); written again after the plots with their time."""
@@ -128,7 +146,7 @@ def write_netcdf(variables: dict[str, Array], attrs: dict[str, str], path: Path)
     """Write ``variables`` (:func:`~ocpar.results.array`) and the file's ``attrs`` to ``path``
     as netCDF4, uncompressed, as :meth:`xarray.Dataset.to_netcdf` would (string arrays as
     variable-length strings, no fill values; the coordinates that are not dimensions,
-    :func:`~ocpar.results.coordinates`, named in the global ``coordinates`` attribute)."""
+    :func:`~ocpar.result_files.coordinates`, named in the global ``coordinates`` attribute)."""
     import netCDF4
 
     with netCDF4.Dataset(path, "w", format="NETCDF4") as f:
@@ -145,6 +163,36 @@ def write_netcdf(variables: dict[str, Array], attrs: dict[str, str], path: Path)
             var = f.createVariable(name, str if text else values.dtype, dims, fill_value=False)
             var.setncatts(without_coordinates(var_attrs))
             var[...] = values.astype(object) if text else values
+
+
+def coordinates(variables: dict[str, Array]) -> list[str]:
+    """The names of ``variables`` that are coordinates besides those named like their
+    dimension: each ``<dim>_units`` of a dimension's entries (:func:`components`), each
+    variable another names as its ``bounds``, its ``units_by_component``
+    (:func:`derived_units`) or in its ``coordinates`` attribute (e.g. each member's own node
+    times). The array file lists them in its global ``coordinates`` attribute, which xarray
+    reads."""
+    dims = {d for dims, _, _ in variables.values() for d in dims}
+    named = {n for _, _, attrs in variables.values()
+             for n in [attrs.get("bounds", ""), attrs.get("units_by_component", ""),
+                       *attrs.get("coordinates", "").split()] if n}
+    return [name for name in variables
+            if name in named or (name.endswith("_units") and name[:-6] in dims)]
+
+
+def without_coordinates(attrs: dict[str, Any]) -> dict[str, Any]:
+    """A variable's ``attrs`` without its ``coordinates`` (the file's global one lists them,
+    :func:`coordinates`; xarray drops it on reading)."""
+    return {key: value for key, value in attrs.items() if key != "coordinates"}
+
+
+def categories(values: Sequence[str]) -> tuple[np.ndarray, list[str]]:
+    """Strings ``values`` (n) as codes (n,) int16 into their distinct values (in order of first
+    appearance): one pass, O(n) (per-agent solver statuses: a few distinct strings)."""
+    index: dict[str, int] = {}
+    codes = np.fromiter((index.setdefault(v, len(index)) for v in values), np.int16,
+                        count=len(values))
+    return codes, list(index)
 
 
 class Run(NamedTuple):

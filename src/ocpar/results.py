@@ -32,7 +32,7 @@ and per-agent data, named dimensions, units) and ``trace.json`` the per-superste
 from __future__ import annotations
 
 import math
-from collections.abc import Iterable, Sequence
+from collections.abc import Iterable
 from dataclasses import dataclass, field, fields
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, ClassVar
@@ -40,16 +40,13 @@ from typing import TYPE_CHECKING, Any, ClassVar
 import numpy as np
 
 from ocpar.bsp import SuperstepTrace
+from ocpar.result_files import Array, coordinates, without_coordinates, write_result
 from ocpar.timing import PHASES
 
 if TYPE_CHECKING:
     import xarray as xr
 
     from ocpar.models.labels import Labels  # (not imported at run time: it imports CasADi)
-
-#: One variable of a result's Dataset: (dimension names, values, attributes: ``units``,
-#: ``long_name``), as :class:`xarray.Dataset` takes it (:func:`array`).
-Array = tuple[tuple[str, ...], np.ndarray, dict[str, Any]]
 
 #: The conventions the array file follows (its ``Conventions`` attribute).
 CONVENTIONS = "CF-1.10"
@@ -99,27 +96,6 @@ def derived_units(name: str, dim: str, labels: Labels) -> dict[str, Array]:
     return {f"{name}_units": array(dim, text(labels.units), "1", f"units of each {name} entry")}
 
 
-def coordinates(variables: dict[str, Array]) -> list[str]:
-    """The names of ``variables`` that are coordinates besides those named like their
-    dimension: each ``<dim>_units`` of a dimension's entries (:func:`components`), each
-    variable another names as its ``bounds``, its ``units_by_component``
-    (:func:`derived_units`) or in its ``coordinates`` attribute (e.g. each member's own node
-    times). The array file lists them in its global ``coordinates`` attribute, which xarray
-    reads."""
-    dims = {d for dims, _, _ in variables.values() for d in dims}
-    named = {n for _, _, attrs in variables.values()
-             for n in [attrs.get("bounds", ""), attrs.get("units_by_component", ""),
-                       *attrs.get("coordinates", "").split()] if n}
-    return [name for name in variables
-            if name in named or (name.endswith("_units") and name[:-6] in dims)]
-
-
-def without_coordinates(attrs: dict[str, Any]) -> dict[str, Any]:
-    """A variable's ``attrs`` without its ``coordinates`` (the file's global one lists them,
-    :func:`coordinates`; xarray drops it on reading)."""
-    return {key: value for key, value in attrs.items() if key != "coordinates"}
-
-
 def time_axes(times: np.ndarray, unit: str) -> dict[str, Array]:
     """The time coordinates of a path sampled at ``times`` (n,) in ``unit``: ``time``
     (dimension ``time``, n) the samples and ``interval_time`` (dimension ``interval_time``,
@@ -133,15 +109,6 @@ def time_axes(times: np.ndarray, unit: str) -> dict[str, Array]:
         "interval_time": array("interval_time", times[:-1], unit,
                                "start time t_k of each interval [t_k, t_k+1]"),
     }
-
-
-def categories(values: Sequence[str]) -> tuple[np.ndarray, list[str]]:
-    """Strings ``values`` (n) as codes (n,) int16 into their distinct values (in order of first
-    appearance): one pass, O(n) (per-agent solver statuses: a few distinct strings)."""
-    index: dict[str, int] = {}
-    codes = np.fromiter((index.setdefault(v, len(index)) for v in values), np.int16,
-                        count=len(values))
-    return codes, list(index)
 
 
 def _reached(value: Any) -> bool:
@@ -286,8 +253,6 @@ class RunResult:
     def write(self, directory: str | Path) -> list[Path]:
         """Write this result into ``directory`` as ``result.json``, ``result.nc`` and
         ``trace.json`` (:func:`ocpar.result_files.write_result`); returns their paths."""
-        from ocpar.result_files import write_result  # (it imports this module)
-
         return write_result(self, directory)
 
     def to_dict(self) -> dict:

@@ -40,18 +40,20 @@ def v_bar_train(agents: int) -> np.ndarray:
 
 def make(agents: int = 6, radius: float = 100.0, mean_motion: float = MEAN_MOTION,
          orbits: float = 0.5, intervals: int = 20,
-         starts: np.ndarray | None = None) -> FormationProblem:
+         starts: np.ndarray | None = None, duration: float | None = None) -> FormationProblem:
     """``agents`` Clohessy–Wiltshire spacecraft (target mean motion ``mean_motion``, rad/min)
     from ``starts`` (agents, 6) (m, m/min; default :func:`v_bar_train`) onto hold points on
     the circle of ``radius`` (m) about the target in the radial/along-track plane, at rest,
-    after ``orbits`` of the target's period (T = 2π ``orbits`` / n min)."""
+    after ``orbits`` of the target's period (T = 2π ``orbits`` / n min), or after
+    ``duration`` min where given."""
     model = ClohessyWiltshire(mean_motion, time_unit="min")
     if not (np.isfinite(orbits) and orbits > 0):
         raise ValueError(f"orbits: must be a positive number, got {orbits!r}")
     return FormationProblem(
         name="cw-ring",
         shape=MsEndpointShape(model, intervals=intervals,
-                              duration=2 * np.pi * orbits / model.mean_motion),
+                              duration=(2 * np.pi * orbits / model.mean_motion
+                                        if duration is None else duration)),
         curve=Circle(radius=radius, center=np.zeros(3), axes=np.eye(2, 3)),
         starts=v_bar_train(agents) if starts is None else starts,
     )

@@ -17,13 +17,15 @@ from ocpar.ocp.constraints import PathConstraint
 U_MAX = 2.0
 
 
-def make(agents: int = 10, radius: float = 5.0) -> FormationProblem:
+def make(agents: int = 10, radius: float = 5.0, intervals: int = 10,
+         duration: float = 10.0) -> FormationProblem:
     """``agents`` point masses from the line y = ±1 (alternating), x in [−10, 10], onto the
-    circle of ``radius`` about (20, 10), each with |u| ≤ :data:`U_MAX`."""
+    circle of ``radius`` about (20, 10), each with |u| ≤ :data:`U_MAX`; DMOC with
+    ``intervals`` over ``duration`` (the first guess of T where the final time is free)."""
     thrust = PathConstraint(lambda u: ca.sumsqr(u), upper=U_MAX**2, name="thrust")
     return FormationProblem(
         name="point-mass-minimum-time",
-        shape=DmocShape(PointMass(dim=2, mass=1.0), intervals=10, duration=10.0,
+        shape=DmocShape(PointMass(dim=2, mass=1.0), intervals=intervals, duration=duration,
                         path_constraints=(thrust,)),
         curve=Circle(radius=radius, center=np.array([20.0, 10.0])),
         starts=np.column_stack([np.linspace(-10.0, 10.0, agents),

@@ -28,8 +28,10 @@ class DoubleIntegrator:
         return np.full(2, -np.inf), np.full(2, np.inf)
 
 
-def make(distance: float = 1.0, u_max: float = 1.0, t_max: float = 5.0) -> MacsProblem:
-    """The problem on t_f ∈ [1.02 √(6d/u_max), t_max], with its closed-form front."""
+def make(distance: float = 1.0, u_max: float = 1.0, t_max: float = 5.0,
+         elements: int = 4) -> MacsProblem:
+    """The problem on t_f ∈ [1.02 √(6d/u_max), t_max], with its closed-form front;
+    ``elements`` DFET elements."""
     t_min = 1.02 * np.sqrt(6 * distance / u_max)
     t_f = np.linspace(t_min, t_max, 1000)
     return MacsProblem(
@@ -41,6 +43,6 @@ def make(distance: float = 1.0, u_max: float = 1.0, t_max: float = 5.0) -> MacsP
         final_time=(t_min, t_max),
         control_bounds=((-u_max, u_max),),
         final_state={0: distance, 1: 0.0},
-        elements=4, order=3, control_order=1,
+        elements=elements, order=3, control_order=1,
         reference_front=np.column_stack([t_f, 12 * distance**2 / t_f**3]),
     )

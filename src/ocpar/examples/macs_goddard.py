@@ -11,8 +11,9 @@ from ocpar.macs import MacsProblem, Objective, reference_front
 from ocpar.models import GoddardAscent
 
 
-def make() -> MacsProblem:
-    """The paper's problem, with its reference front."""
+def make(elements: int = 4) -> MacsProblem:
+    """The paper's problem, with its reference front; ``elements`` DFET elements (the
+    paper's 4)."""
     model = GoddardAscent()
     return MacsProblem(
         name="goddard",
@@ -23,7 +24,7 @@ def make() -> MacsProblem:
         final_time=(100.0, 250.0),
         control_bounds=((-math.pi / 2, math.pi / 2),),
         final_state={2: model.height, 3: 0.0},
-        elements=4,
+        elements=elements,
         order=6,
         reference_front=reference_front("goddard"),
     )

@@ -18,8 +18,9 @@ def final_energy(xf, tf):
     return -((vr**2 + vt**2) / 2 - 1 / r)
 
 
-def make() -> MacsProblem:
-    """The paper's problem, with its reference front."""
+def make(elements: int = 30) -> MacsProblem:
+    """The paper's problem, with its reference front; ``elements`` DFET elements (the
+    paper's 30)."""
     model = OrbitRaising()
     r0 = 1.1
     return MacsProblem(
@@ -31,7 +32,7 @@ def make() -> MacsProblem:
         final_time=(20.0, 80.0),
         control_bounds=((-math.pi, math.pi),),
         periodic_controls=True,
-        elements=30,
+        elements=elements,
         order=1,
         reference_front=reference_front("orbit-raising"),
     )

@@ -18,9 +18,11 @@ from ocpar.formation.problem import FormationProblem
 
 @dataclass(frozen=True)
 class Example:
-    """A named example: its builder ``build(agents, radius)`` and their defaults."""
+    """A named example: its builder ``build(agents, radius, **grid)`` (``grid``: the
+    ``intervals`` N and ``duration`` T given, each the example's own where absent) and the
+    defaults of the first two."""
 
-    build: Callable[[int, float], FormationProblem]
+    build: Callable[..., FormationProblem]
     agents: int
     radius: float
     description: str
@@ -28,31 +30,35 @@ class Example:
 
 EXAMPLES = {
     "point-mass-plane": Example(
-        lambda n, r: formation_point_masses.make(agents=n, radius=r), 60, 10.0,
-        "the paper's planar point masses (Fig. 3)"),
+        lambda n, r, **grid: formation_point_masses.make(agents=n, radius=r, **grid), 60, 10.0,
+        "the paper's planar point masses (N = 10 over T = 1)"),
     "crtbp-rigid": Example(
-        lambda n, r: formation_halo.make(agents=n, radius_km=r), 30, 1.0,
-        "rigid spacecraft about the Sun-Earth L2 halo (Fig. 5), radius in km"),
+        lambda n, r, **grid: formation_halo.make(agents=n, radius_km=r, **grid), 30, 1.0,
+        "rigid spacecraft about the Sun-Earth L2 halo, radius in km (N = 10 over T = 1)"),
     "unicycles": Example(
-        lambda n, r: formation_unicycles.make(agents=n, radius=r), 6, 3.0,
+        lambda n, r, **grid: formation_unicycles.make(agents=n, radius=r, **grid), 6, 3.0,
         "ground robots with unicycle kinematics (multiple shooting) from a line onto a "
-        "circle, stopping there"),
+        "circle, stopping there (N = 20 over T = 6 s)"),
     "cw-ring": Example(
-        lambda n, r: formation_cw.make(agents=n, radius=r), 6, 100.0,
+        lambda n, r, **grid: formation_cw.make(agents=n, radius=r, **grid), 6, 100.0,
         "Clohessy-Wiltshire spacecraft in low Earth orbit from the V-bar onto a ring of hold "
-        "points about the target in half an orbit, radius in m"),
+        "points about the target in half an orbit, radius in m (N = 20 over T = 46.3 min)"),
     "point-mass-minimum-time": Example(
-        lambda n, r: formation_minimum_time.make(agents=n, radius=r), 10, 5.0,
-        "point masses under a thrust limit |u| <= 2, for --final-time minimum"),
+        lambda n, r, **grid: formation_minimum_time.make(agents=n, radius=r, **grid), 10, 5.0,
+        "point masses under a thrust limit |u| <= 2, for --final-time minimum (N = 10)"),
 }
 
 
-def make_example(name: str, agents: int | None = None,
-                 radius: float | None = None) -> FormationProblem:
+def make_example(name: str, agents: int | None = None, radius: float | None = None,
+                 intervals: int | None = None, duration: float | None = None
+                 ) -> FormationProblem:
     """The example ``name`` (see :data:`EXAMPLES`) with ``agents`` agents and circle
-    ``radius`` (its defaults where None)."""
+    ``radius``, its inner problems with ``intervals`` intervals over [0, ``duration``] (the
+    model's time unit); the example's own where None."""
     if name not in EXAMPLES:
         raise ValueError(f"unknown problem {name!r}; choose one of {', '.join(EXAMPLES)}")
     example = EXAMPLES[name]
+    grid = {key: value for key, value in (("intervals", intervals), ("duration", duration))
+            if value is not None}
     return example.build(example.agents if agents is None else agents,
-                         example.radius if radius is None else radius)
+                         example.radius if radius is None else radius, **grid)

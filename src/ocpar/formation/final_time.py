@@ -36,7 +36,7 @@ import math
 import time
 from collections.abc import Callable
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import Protocol
 
 import numpy as np
 
@@ -51,8 +51,17 @@ from ocpar.ocp import DmocShape, OcpTask, solve_tasks
 from ocpar.ocp.batch import AUTO_SOLVER
 from ocpar.ocp.duration import DurationSums, DurationUnit, duration_sums
 
-if TYPE_CHECKING:
-    from ocpar.formation.solve import FormationOptions
+
+class TimeOptions(Protocol):
+    """What this module reads of a formation solve's options
+    (:class:`ocpar.formation.FormationOptions`, which imports this module)."""
+
+    mode: str
+    min_separation: float | None
+    final_time: str
+    time_bounds: tuple[float, ...] | None
+    time_weight: float
+    time_tol: float
 
 #: What the final time is (:class:`~ocpar.formation.FormationOptions` ``final_time``).
 FINAL_TIMES = ("fixed", "free", "free_per_agent", "minimum")
@@ -101,7 +110,7 @@ def duration_derivatives(problem: FormationProblem, backend: Backend, phi: np.nd
     return total
 
 
-def check_final_time(problem: FormationProblem, options: FormationOptions) -> None:
+def check_final_time(problem: FormationProblem, options: TimeOptions) -> None:
     """ValueError (one line) where ``options``' final time does not apply (the minimum
     time's own conditions: :func:`~ocpar.formation.minimum_time.check_minimum_time`)."""
     if options.final_time == "fixed":
@@ -122,7 +131,7 @@ def check_final_time(problem: FormationProblem, options: FormationOptions) -> No
                              "intervals of one T); T cannot be a parameter of its inner problem")
 
 
-def time_bounds(options: FormationOptions) -> tuple[float, float]:
+def time_bounds(options: TimeOptions) -> tuple[float, float]:
     """``options.time_bounds`` as (T_min, T_max) (checked by the options), (0, ∞) where
     none are given."""
     bounds = options.time_bounds
@@ -136,7 +145,7 @@ def time_bounds(options: FormationOptions) -> tuple[float, float]:
 # free common T
 # ----------------------------------------------------------------------------------------
 
-def solve_free_time(problem: FormationProblem, backend: Backend, options: FormationOptions,
+def solve_free_time(problem: FormationProblem, backend: Backend, options: TimeOptions,
                     solve: Callable[..., FormationResult], phi0: np.ndarray | None = None,
                     progress: Callable[[str], None] | None = None,
                     output: Path | None = None) -> FormationResult:
@@ -242,7 +251,7 @@ def solve_free_time(problem: FormationProblem, backend: Backend, options: Format
 
 
 def solve_per_agent_time(problem: FormationProblem, backend: Backend,
-                         options: FormationOptions, solve: Callable[..., FormationResult],
+                         options: TimeOptions, solve: Callable[..., FormationResult],
                          phi0: np.ndarray | None = None,
                          progress: Callable[[str], None] | None = None) -> FormationResult:
     """Each agent's own T_i (module docstring): the formation solved by ``solve`` with every

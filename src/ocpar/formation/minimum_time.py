@@ -31,7 +31,6 @@ import math
 import time
 from collections.abc import Callable
 from pathlib import Path
-from typing import TYPE_CHECKING
 
 import numpy as np
 from scipy.sparse import csr_matrix
@@ -45,15 +44,17 @@ from ocpar.formation.feasibility import (
     elastic_shape,
     phase_one,
 )
-from ocpar.formation.final_time import at_duration, task_columns, time_bounds
+from ocpar.formation.final_time import (
+    TimeOptions,
+    at_duration,
+    task_columns,
+    time_bounds,
+)
 from ocpar.formation.problem import FormationProblem
 from ocpar.formation.result import Fleet, FormationResult
 from ocpar.formation.targets.slots import Slots
 from ocpar.ocp import solve_tasks
 from ocpar.ocp.reach import Reach, rest_to_rest_reach
-
-if TYPE_CHECKING:
-    from ocpar.formation.solve import FormationOptions
 
 #: Shifts of the rotation's first grid per agent (the branch and bound over the rotation).
 ROTATION_GRID = 32
@@ -73,7 +74,7 @@ def exact_reach(problem: FormationProblem) -> list[Reach] | None:
         return None
 
 
-def check_minimum_time(problem: FormationProblem, options: FormationOptions) -> None:
+def check_minimum_time(problem: FormationProblem, options: TimeOptions) -> None:
     """ValueError (one line) where the minimum time cannot be asked of ``problem``: without
     exact reach sets it needs ``time_bounds`` to bisect."""
     if options.final_time == "minimum" and options.time_bounds is None \
@@ -252,7 +253,7 @@ def phase_one_bracket(problem: FormationProblem, backend: Backend, low: float, h
                                            "phase_one_least_slack_at_low": slack}, solves)
 
 
-def solve_minimum_time(problem: FormationProblem, backend: Backend, options: FormationOptions,
+def solve_minimum_time(problem: FormationProblem, backend: Backend, options: TimeOptions,
                        solve: Callable[..., FormationResult],
                        progress: Callable[[str], None] | None = None,
                        output: Path | None = None) -> FormationResult:

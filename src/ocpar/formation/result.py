@@ -21,11 +21,11 @@ from ocpar.models.labels import (
     state_labels,
     time_unit,
 )
+from ocpar.result_files import categories
 from ocpar.results import (
     Array,
     RunResult,
     array,
-    categories,
     components,
     derived_units,
     text,

@@ -26,6 +26,8 @@ PROBLEM_TYPE = FormationProblem
 MAX_AGENTS = 10_000_000
 #: Most agents for ``--ordering optimal``, which fills n × n tables of inner solves.
 MAX_OPTIMAL_ORDERING_AGENTS = 1_000
+#: Most DMOC intervals of a built-in example (each agent's NLP grows with N).
+MAX_INTERVALS = 10_000
 #: ``--radius`` must lie within this factor of the example's default radius (its length scale).
 RADIUS_RANGE = 1e6
 
@@ -42,26 +44,43 @@ class FormationRun(SchemeRun, FormationOptions):
         "Hierarchical formation reconfiguration (the paper's 60 point masses by default): "
         "an outer solver over the final angles (projected Newton by default, or the paper's "
         "SQP), inner DMOC solves in parallel supersteps.")
+    examples: ClassVar[tuple[str, ...]] = (
+        "python -m ocpar.formation --output runs/paper",
+        "python -m ocpar.formation --agents 1000 --intervals 20 --output runs/f1000 "
+        "--plot none",
+        "mpirun -n 2 python -m ocpar.formation --problem crtbp-rigid --agents 1000 --quiet",
+        "python -m ocpar.formation --problem mypkg.ships:make --problem-arg agents=8 "
+        "--solver-option ipopt.tol=1e-10 --output runs/mine",
+    )
+    essentials: ClassVar[tuple[str, ...]] = (
+        "problem", "agents", "problem_args", "output", "plot", "backend", "workers")
+    solver_group: ClassVar[str] = "formation solvers"
     problem_type: ClassVar[type] = PROBLEM_TYPE
 
     problem: str = option(
-        "point-mass-plane", "a built-in example, or package.module:factory returning a "
-        "FormationProblem (docs/user-problems.md); " + "; ".join(
-            f"{name}: {e.description} (default {e.agents} agents, radius {e.radius:g})"
-            for name, e in EXAMPLES.items()), group=PROBLEM_GROUP)
+        "point-mass-plane", "a built-in example (" + ", ".join(EXAMPLES) + "; each one "
+        "described in docs/schemes/formation.md), or package.module:factory returning a "
+        "FormationProblem (docs/user-problems.md)", metavar="NAME", group=PROBLEM_GROUP)
     agents: int | None = option(None, "built-in example: number of agents (default: the "
-                                "example's)", low=2, high=MAX_AGENTS, group=PROBLEM_GROUP)
+                                "example's)", low=2, high=MAX_AGENTS, metavar="N",
+                                group=PROBLEM_GROUP)
     radius: float | None = option(None, "built-in example: radius of the final circle, within "
-                                  f"a factor {RADIUS_RANGE:g} of its default", above=0,
-                                  group=PROBLEM_GROUP)
+                                  f"a factor {RADIUS_RANGE:g} of its default (default: the "
+                                  "example's)", above=0, group=PROBLEM_GROUP)
+    intervals: int | None = option(None, "built-in example: intervals N of each agent's "
+                                   "path (default: the example's)", low=1,
+                                   high=MAX_INTERVALS, metavar="N", group=PROBLEM_GROUP)
+    duration: float | None = option(None, "built-in example: the manoeuvre's duration T (the "
+                                    "model's time unit; default: the example's)", above=0,
+                                    metavar="T", group=PROBLEM_GROUP)
 
     def validate(self, given: frozenset[str]) -> None:
         super().validate(given)
         if "outer" in given and self.mode != "hierarchical":
             raise ValueError(f"--outer only applies to --mode hierarchical, not {self.mode}")
         if is_reference(self.problem):
-            for key in ("agents", "radius"):
-                if getattr(self, key) is not None:
+            for key in ("agents", "radius", "intervals", "duration"):
+                if key in given:
                     raise ValueError(f"--{key} only applies to the built-in examples; pass "
                                      f"--problem-arg {key}=... to your factory instead")
             return
@@ -85,7 +104,8 @@ class FormationRun(SchemeRun, FormationOptions):
                              f"{MAX_OPTIMAL_ORDERING_AGENTS} agents, got {agents}")
 
     def build_example(self) -> FormationProblem:
-        return make_example(self.problem, self.agents, self.radius)
+        return make_example(self.problem, self.agents, self.radius, self.intervals,
+                            self.duration)
 
     def describe(self, problem: FormationProblem) -> str:
         choice = (f"onto {problem.curve.count} slots" if isinstance(problem.curve, Slots)

@@ -179,7 +179,7 @@ class FormationOptions:
         "solves after the outer solve, then (--separation exact) the separating planes and "
         "the formation's rotation optimised in the outer problem (with --mode monolithic: "
         "separating planes in the one NLP); start or final positions closer than this are "
-        "refused", above=0, metavar="D")
+        "refused (default: none, no separation required)", above=0, metavar="D")
     solver_options: dict = option(  # noqa: RUF009 (option() is a dataclass field)
         default_factory=dict, help=SOLVER_OPTIONS_HELP + "; over the problem's "
         "DmocShape.solver_options (ipopt.* also in --mode monolithic)",
@@ -199,7 +199,7 @@ class FormationOptions:
         "problems) first", metavar="PHI,PHI,...")
     initial_rotation: float | None = option(
         None, "the start: the documented initial guess rotated by this angle (rad, added to "
-        "every agent's initial angle; curves only)", metavar="RAD")
+        "every agent's initial angle; curves only; default: not rotated)", metavar="RAD")
     final_time: str = option("fixed", "the horizon T: fixed (the problem's), free (one common "
                              "T in --time-bounds, the cost sum J_i + w T with w = "
                              "--time-weight), free_per_agent (each agent its own T_i in "
@@ -207,7 +207,8 @@ class FormationOptions:
                              "which the formation is reachable under the agents' limits, a "
                              "bracket of relative width --time-tol)", choices=FINAL_TIMES)
     time_bounds: tuple[float, ...] | None = option(
-        None, "with --final-time free or minimum: T_min,T_max (the model's time unit)",
+        None, "with --final-time free or minimum: T_min,T_max (the model's time unit; "
+        "default: none, required by free and free_per_agent; minimum: (0, inf))",
         metavar="T_MIN,T_MAX")
     time_weight: float = option(0.0, "with --final-time free: w, the cost per unit of T "
                                 "(cost unit per time unit)", low=0)

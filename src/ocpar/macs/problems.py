@@ -20,10 +20,12 @@ PROBLEMS = {
 }
 
 
-def make_problem(name: str) -> MacsProblem:
-    """The named example ``name`` (one of :data:`PROBLEMS`)."""
+def make_problem(name: str, elements: int | None = None) -> MacsProblem:
+    """The named example ``name`` (one of :data:`PROBLEMS`) with ``elements`` DFET elements
+    (None: the example's own)."""
     try:
         module, factory = PROBLEMS[name].split(":")
     except KeyError:
         raise ValueError(f"unknown problem {name!r}; choose one of {', '.join(PROBLEMS)}") from None
-    return getattr(import_module(module), factory)()
+    make = getattr(import_module(module), factory)
+    return make() if elements is None else make(elements=elements)

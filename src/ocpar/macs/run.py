@@ -20,6 +20,8 @@ from ocpar.references import is_reference
 
 #: The scheme's public problem type: what a ``--problem package.module:factory`` returns.
 PROBLEM_TYPE = MacsProblem
+#: Most DFET elements of a built-in problem (its NLP grows with N).
+MAX_ELEMENTS = 1_000
 
 
 @dataclass(frozen=True)
@@ -33,15 +35,33 @@ class MacsRun(SchemeRun, MacsSettings):
     description: ClassVar[str] = (
         "MACSoc: multi-objective optimal control by multi-agent collaborative search on a DFET "
         "transcription; the agents' local searches run in parallel.")
+    examples: ClassVar[tuple[str, ...]] = (
+        "python -m ocpar.macs --output runs/goddard",
+        "python -m ocpar.macs --problem orbit-raising --max-evals 3000 --seed 1 "
+        "--output runs/orbit --plot none",
+        "python -m ocpar.macs --backend dask --workers 2 --population 20",
+        "python -m ocpar.macs --problem mypkg.rocket:make --problem-arg stages=2 "
+        "--solver-option ipopt.tol=1e-10 --output runs/mine",
+    )
+    essentials: ClassVar[tuple[str, ...]] = (
+        "problem", "max_evals", "seed", "problem_args", "output", "plot", "backend", "workers")
+    solver_group: ClassVar[str] = "MACS algorithm"
     problem_type: ClassVar[Any] = PROBLEM_TYPE
 
     problem: str = option(
         "goddard", f"a built-in problem ({', '.join(sorted(PROBLEMS))}), or "
-        "package.module:factory returning the scheme's problem type (docs/user-problems.md)",
-        group=PROBLEM_GROUP)
+        "package.module:factory returning a MacsProblem (docs/user-problems.md)",
+        metavar="NAME", group=PROBLEM_GROUP)
+    elements: int | None = option(
+        None, "built-in problem: DFET elements N (default: the problem's: goddard 4, "
+        "orbit-raising 30, double-integrator 4; t_f is an objective, free)", low=1,
+        high=MAX_ELEMENTS, metavar="N", group=PROBLEM_GROUP)
 
     def validate(self, given: frozenset[str]) -> None:
         super().validate(given)
+        if is_reference(self.problem) and self.elements is not None:
+            raise ValueError("--elements only applies to the built-in problems; pass "
+                             "--problem-arg elements=... to your factory instead")
         if not is_reference(self.problem) and self.problem not in PROBLEMS:
             raise ValueError(f"--problem: unknown problem {self.problem!r}; choose one of "
                              f"{', '.join(sorted(PROBLEMS))}, or give package.module:factory")
@@ -51,7 +71,7 @@ class MacsRun(SchemeRun, MacsSettings):
                              f"{self.population} evaluations")
 
     def build_example(self) -> MacsProblem:
-        return make_problem(self.problem)
+        return make_problem(self.problem, self.elements)
 
     def describe(self, problem: MacsProblem) -> str:
         return (f"{problem.name}, seed {self.seed}, {self.max_evaluations} evaluations, "

@@ -42,13 +42,24 @@ class PursuitRun(SchemeRun, PursuitSettings):
     description: ClassVar[str] = (
         "Pursuit-based multiple shooting (PBMS) on the paper's orbit transfer: a train of "
         "agents, each intercepting its predecessor; agents in flight solve in parallel.")
+    examples: ClassVar[tuple[str, ...]] = (
+        "python -m ocpar.pursuit --output runs/transfer",
+        "python -m ocpar.pursuit --case 2 --samples 601 --output runs/case2 --plot none",
+        "python -m ocpar.pursuit --problem min-time --mode ms --energy 0.5",
+        "mpirun -n 2 python -m ocpar.pursuit --samples 1201 --quiet",
+        "python -m ocpar.pursuit --problem mypkg.vdp:make --problem-arg samples=301 "
+        "--solver-option ipopt.tol=1e-10 --output runs/mine",
+    )
+    essentials: ClassVar[tuple[str, ...]] = (
+        "problem", "samples", "problem_args", "output", "plot", "backend", "workers")
+    solver_group: ClassVar[str] = "pursuit solver"
     problem_type: ClassVar[type] = PROBLEM_TYPE
 
     problem: str = option(
         EXAMPLE, f"{EXAMPLE} (the paper's, by --case and --samples), {MIN_TIME} (a double "
         "integrator to rest in free final time, by --samples and --energy; --mode ms), or "
-        "package.module:factory returning the scheme's problem type (docs/user-problems.md)",
-        group=PROBLEM_GROUP)
+        "package.module:factory returning a PursuitProblem (docs/user-problems.md)",
+        metavar="NAME", group=PROBLEM_GROUP)
     case: int = option(1, f"{EXAMPLE}: 1: R_T = 12.7778 Mm (guess eq. 16); 2: R_T = 23.642 Mm "
                        "(eq. 20)", choices=sorted(pursuit_orbit_transfer.CASE_RADIUS),
                        group=PROBLEM_GROUP)
