@@ -65,7 +65,7 @@ def assert_refused(scheme: type, argv: list[str], capsys) -> str:
     assert len(lines) == 1 and err.endswith("\n"), (argv, err)
     assert lines[0].startswith(f"{scheme.prog}: error: "), (argv, err)
     assert lines[0].strip() != f"{scheme.prog}: error:", (argv, err)
-    assert "Traceback" not in err, (argv, err)
+    assert "Traceback (most recent call last)" not in err, (argv, err)
     return lines[0]
 
 
