@@ -176,9 +176,14 @@ class MsEndpointShape:
 
     @property
     def chosen_solver(self) -> str:
-        """``solver``, or for ``auto`` ``newton`` (equalities only) or ``sqpmethod``."""
+        """``solver``, or for ``auto`` ``newton`` (equalities only), ``ipopt`` (T a
+        variable: ``sqpmethod``'s exact Hessian is indefinite in T on a nonlinear model, and
+        from the first guess it diverged on 1 of 4 unicycles, each of its 50 iterations'
+        QPs running to their limit: 49 s for the four) or ``sqpmethod``."""
         if self.solver != AUTO_SOLVER:
             return self.solver
+        if self.time_bounds is not None:
+            return "ipopt"
         return "sqpmethod" if self.has_inequalities else "newton"
 
     @property
