@@ -179,7 +179,7 @@ class MsEndpointShape:
         """``solver``, or for ``auto`` ``newton`` (equalities only), ``ipopt`` (T a
         variable: ``sqpmethod``'s exact Hessian is indefinite in T on a nonlinear model, and
         from the first guess it diverged on 1 of 4 unicycles, each of its 50 iterations'
-        QPs running to their limit: 49 s for the four) or ``sqpmethod``."""
+        QPs running to their limit: 50–85 s for the four) or ``sqpmethod``."""
         if self.solver != AUTO_SOLVER:
             return self.solver
         if self.time_bounds is not None:
