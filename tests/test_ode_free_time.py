@@ -154,14 +154,15 @@ def test_free_time_per_agent_is_each_agents_closed_form(alpha):
     assert np.max(own.dynamics) <= 1e-9 < 1e-2 < np.min(common.dynamics)
 
 
-@pytest.fixture(scope="module")
-def unicycles():
-    return formation_unicycles.make(agents=4)
+@pytest.fixture(scope="module", params=[False, True], ids=["unicycles", "mixed"])
+def unicycles(request):
+    """4 unicycles, or every second one a DMOC point mass (``mixed``)."""
+    return formation_unicycles.make(agents=4, mixed=request.param)
 
 
 def test_unicycles_free_common_time_is_stationary(unicycles):
-    """The unicycles (nonlinear): at the returned T, d/dT of the fixed-T formation optimum
-    (central differences of two fixed-T runs) is −w."""
+    """The unicycles (nonlinear; a mixed fleet too): at the returned T, d/dT of the fixed-T
+    formation optimum (central differences of two fixed-T runs) is −w."""
     weight = 1.0
     result = solve_formation(unicycles, options=FormationOptions(
         final_time="free", time_bounds=(1.0, 50.0), time_weight=weight))
@@ -179,8 +180,8 @@ def test_unicycles_free_common_time_is_stationary(unicycles):
 
 
 def test_unicycles_per_agent_times_are_each_stationary(unicycles):
-    """Each unicycle's T_i: d/dT of its fixed-T inner optimum at its returned end (central
-    differences of fixed-T solves) is −w."""
+    """Each agent's T_i: d/dT of its fixed-T inner optimum at its returned end (central
+    differences of fixed-T solves of its own shape) is −w."""
     weight = 1.0
     result = solve_formation(unicycles, options=FormationOptions(
         final_time="free_per_agent", time_bounds=(1.0, 50.0), time_weight=weight))
@@ -189,12 +190,13 @@ def test_unicycles_per_agent_times_are_each_stationary(unicycles):
     params = unicycles.boundary_params_rows(np.arange(4), result.phi)
     step = 1e-4
     for i, t in enumerate(result.durations):
-        costs = [transcription(unicycles.common_shape.with_duration(d)).solve(params[i]).cost
+        costs = [transcription(unicycles.shapes[i].with_duration(d)).solve(params[i]).cost
                  for d in (t + step, t - step)]
         assert (costs[0] - costs[1]) / (2 * step) == pytest.approx(-weight, rel=1e-6)
 
 
-def test_minimum_time_is_refused_in_one_line(unicycles):
+def test_minimum_time_is_refused_in_one_line():
+    unicycles = formation_unicycles.make(agents=3)
     with pytest.raises(ValueError, match=r"^final_time: 'minimum' is not yet for ODE") as caught:
         solve_formation(unicycles, options=FormationOptions(final_time="minimum",
                                                             time_bounds=(1.0, 10.0)))

@@ -268,10 +268,13 @@ def solve_per_agent_time(problem: FormationProblem, backend: Backend,
     result = solve(timed, backend, fixed, phi0, progress, None)
     durations = np.full(problem.agents, np.nan)
     if np.all(np.isfinite(result.phi)):
-        sols = backend.superstep_columns(solve_tasks, timed.tasks(np.reshape(
-            result.phi, problem.parameter_shape)))
-        durations = np.where(np.asarray(sols.column("success"), bool),
-                             np.asarray(sols.column("duration"), float), np.nan)
+        tasks = timed.tasks(np.reshape(result.phi, problem.parameter_shape))
+        kinds = np.array([type(shape).__name__ for shape in timed.shapes])
+        for kind in sorted(set(kinds)):   # one superstep per agent kind (a mixed fleet: two)
+            rows = np.flatnonzero(kinds == kind)
+            sols = backend.superstep_columns(solve_tasks, tasks.take(rows))
+            durations[rows] = np.where(np.asarray(sols.column("success"), bool),
+                                       np.asarray(sols.column("duration"), float), np.nan)
     message = result.message
     if result.verification is not None and result.verification.near_collision is not None:
         message = message.replace(f"; {near_collision_words(result.verification.near_collision)}",
