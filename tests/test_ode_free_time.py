@@ -3,11 +3,13 @@ the double integrator (ẋ = v, v̇ = u, cost |u|²) from rest to rest, whose RK
 piecewise-constant controls is J(Δ, T) = α |Δ|² / T³ (RK4 is exact on this linear system
 with u constant, and the discrete problem scales as the continuous one), α from a fixed-T
 solve here: dJ/dT, d²J/dT² and the common and per-agent T against their closed forms; the
-unicycles (a nonlinear model) with a free common T against finite differences of fixed-T
+unicycles (a nonlinear model; a fleet mixed with point masses too): dJ/dT and the T column
+of the end Hessian, the free common T and each agent's T_i against finite differences of fixed-T
 runs; serial and mpirun -n 2 bitwise the same."""
 
 from __future__ import annotations
 
+import dataclasses
 import json
 
 import casadi as ca
@@ -104,6 +106,30 @@ def test_a_task_of_free_time_is_the_closed_form(alpha, solver):
         down[i] -= step
         column = (nlp.solve(up).cost_gradient - nlp.solve(down).cost_gradient)[4:8] / (2 * step)
         np.testing.assert_allclose(sol.end_hessian[:, i - 4], column, rtol=1e-6, atol=1e-6)
+
+
+@pytest.mark.parametrize("limit", [0.0, 0.9], ids=["newton", "active-limit"])
+def test_unicycle_free_duration_derivatives_are_the_finite_differences(limit):
+    """A nonlinear agent (unicycle, T = 6; |a| ≤ 0.9 active, solved by sqpmethod): dJ*/dT
+    against central differences of fixed-T costs, the end Hessian's T column against
+    central differences in T of the returned gradients (the batched solve, as a formation
+    makes it)."""
+    problem = formation_unicycles.make(agents=4, acceleration_limit=limit)
+    params = problem.boundary_params_rows(np.arange(4), problem.initial_phi())[0]
+    shape = problem.common_shape
+    free = dataclasses.replace(shape, free_duration=True)
+    nlp, t, step = transcription(free), 6.0, 1e-5
+    sol = _solution(free, np.append(params, t), batched=True)
+    assert sol.success and free.chosen_solver == ("sqpmethod" if limit else "newton")
+    if limit:
+        assert np.max(np.abs(sol.u[:, 0])) == pytest.approx(limit, rel=1e-12)
+    costs = [transcription(shape.with_duration(d)).solve(params).cost
+             for d in (t + step, t - step)]
+    assert sol.cost_gradient[-1] == pytest.approx((costs[0] - costs[1]) / (2 * step),
+                                                  rel=1e-7)
+    column = (nlp.solve(np.append(params, t + step)).cost_gradient
+              - nlp.solve(np.append(params, t - step)).cost_gradient)[4:] / (2 * step)
+    np.testing.assert_allclose(sol.end_hessian[:, -1], column, rtol=1e-6, atol=1e-7)
 
 
 def _fleet(**fields) -> FormationProblem:
