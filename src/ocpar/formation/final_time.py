@@ -4,7 +4,8 @@ agent's own T_i as a variable of its inner problem.
 ``free`` (:func:`solve_free_time`): min over T in [T_min, T_max] of F(T) + w T, where F(T) is
 the formation's optimum Σ_i Ĵ_i at horizon T (the outer problem over φ solved at T, as for
 a fixed T). By the envelope theorem F'(T) = Σ_i ∂J_i*/∂T at the formation's optimum: each
-agent's inner problem with T as its last parameter (``DmocShape.free_duration``) gives
+agent's inner problem with T as its last parameter (``free_duration`` of ``DmocShape`` and
+``MsEndpointShape``) gives
 ∂J_i*/∂T from its parameters' multiplier and ∂²J_i*/∂T² from its KKT system
 (:mod:`ocpar.ocp.duration`), summed on the workers over fixed units of agents (the same
 numbers on any number of workers). A safeguarded Newton step on F'(T) + w = 0 (in log–log
@@ -16,7 +17,7 @@ the previous φ. T stops at a bound where F' + w points outward; a T where no fo
 solved counts as F = +∞.
 
 ``free_per_agent`` (:func:`solve_per_agent_time`): each agent's own T_i in [T_min, T_max],
-its inner cost J_i + w T_i: T_i a variable of its inner problem (``DmocShape.time_bounds``,
+its inner cost J_i + w T_i: T_i a variable of its inner problem (the shapes' ``time_bounds``,
 ``time_weight``), so the outer problem sees the same contract (the optimum over T_i, its
 gradient and Hessian in q_N from the KKT system) and is solved as for a fixed T. Each
 agent's paths are checked at its own T_i (:mod:`ocpar.formation.finish`); the closest
@@ -268,10 +269,13 @@ def solve_per_agent_time(problem: FormationProblem, backend: Backend,
     result = solve(timed, backend, fixed, phi0, progress, None)
     durations = np.full(problem.agents, np.nan)
     if np.all(np.isfinite(result.phi)):
-        sols = backend.superstep_columns(solve_tasks, timed.tasks(np.reshape(
-            result.phi, problem.parameter_shape)))
-        durations = np.where(np.asarray(sols.column("success"), bool),
-                             np.asarray(sols.column("duration"), float), np.nan)
+        tasks = timed.tasks(np.reshape(result.phi, problem.parameter_shape))
+        kinds = np.array([type(shape).__name__ for shape in timed.shapes])
+        for kind in sorted(set(kinds)):   # one superstep per agent kind (a mixed fleet: two)
+            rows = np.flatnonzero(kinds == kind)
+            sols = backend.superstep_columns(solve_tasks, tasks.take(rows))
+            durations[rows] = np.where(np.asarray(sols.column("success"), bool),
+                                       np.asarray(sols.column("duration"), float), np.nan)
     message = result.message
     if result.verification is not None and result.verification.near_collision is not None:
         message = message.replace(f"; {near_collision_words(result.verification.near_collision)}",

@@ -661,28 +661,32 @@ class FormationProblem:
         """Boundary data (len(agents), n_params): row k for agent ``agents[k]`` ending at
         ``phi[k]`` (rad): DMOC's (q_0, q̇_0, q_N, q̇_N), with T (the shapes' ``duration``)
         appended where their duration is free (``DmocShape.free_duration``); an ODE agent's
-        (x_0, x̄_N)."""
+        (x_0, x̄_N), T likewise."""
         agents = np.asarray(agents, dtype=np.intp)
         m = len(agents)
         if self.mixed_kinds:   # DMOC agents at rest, all configuration the position
             ode = self.ode_mask[agents]
-            rows = np.empty((m, self.common_shape.n_params))
+            shape = self.common_shape
+            rows = np.full((m, shape.n_params), shape.duration)   # T last where it is free
+            width = shape.n_params - int(shape.free_duration)
             targets = self.final_positions(phi)
             if ode.any():
                 ends = self.end_states(agents[ode])
                 ends[:, list(self.position_indices)] = targets[ode]
                 nx = ends.shape[1]
-                rows[ode] = np.hstack([self.starts[agents[ode], :nx], ends])
+                rows[ode, :width] = np.hstack([self.starts[agents[ode], :nx], ends])
             if (~ode).any():
                 d = self.curve.dim
                 zero = np.zeros(((~ode).sum(), d))
-                rows[~ode] = np.hstack([self.starts[agents[~ode], :d], zero, targets[~ode],
-                                        zero])
+                rows[~ode, :width] = np.hstack([self.starts[agents[~ode], :d], zero,
+                                                targets[~ode], zero])
             return rows
         if self.ode_agents:
             ends = self.end_states(agents)
             ends[:, list(self.position_indices)] = self.final_positions(phi)
-            return np.hstack([self.starts[agents], ends])
+            shape = self.common_shape
+            return np.hstack([self.starts[agents], ends,
+                              np.full((m, int(shape.free_duration)), shape.duration)])
         shape = self.common_shape
         return np.hstack([self.starts[agents], self.start_velocities[agents],
                           self.final_positions(phi),

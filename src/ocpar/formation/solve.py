@@ -380,9 +380,9 @@ def _check_ode_applicable(options: FormationOptions) -> None:
                          "(MsEndpointShape) are solved hierarchically only")
     if options.min_separation is not None:
         raise ValueError("min_separation: not yet for ODE agents (MsEndpointShape)")
-    if options.final_time != "fixed":
-        raise ValueError(f"final_time: {options.final_time!r} is not yet for ODE agents "
-                         "(MsEndpointShape): their horizon is the shape's duration")
+    if options.final_time == "minimum":
+        raise ValueError("final_time: 'minimum' is not yet for ODE agents (MsEndpointShape): "
+                         "its bisection needs their elastic (phase-1) variant")
 
 
 def obstacle_check(problem: FormationProblem, positions: np.ndarray, status: str,

@@ -394,12 +394,12 @@ def agent_checks(shapes: list[Shape], q: np.ndarray, u: np.ndarray, params: np.n
         rows = np.array(members)
         agents[shape] = rows + first
         qs, us, ps = q[rows][..., :shape.node_size], u[rows], params[rows]
+        own_durations = (np.full(len(rows), shape.duration) if durations is None
+                         else np.asarray(durations, float)[rows])
         if isinstance(shape, MsEndpointShape):
-            own = _ode_checks(shape, qs, us, ps, positions)
+            own = _ode_checks(shape, qs, us, ps, positions, own_durations)
         else:
-            own = _dmoc_checks(shape, qs, us, ps, positions, (
-                np.full(len(rows), shape.duration) if durations is None
-                else np.asarray(durations, float)[rows]) / shape.intervals)
+            own = _dmoc_checks(shape, qs, us, ps, positions, own_durations / shape.intervals)
         start[rows], momentum[rows], dynamics[rows] = own.start, own.momentum, own.dynamics
         if own.attitude is not None:
             attitude[rows], has_attitude = own.attitude, True
@@ -460,9 +460,10 @@ def _dmoc_checks(shape: DmocShape, q: np.ndarray, u: np.ndarray, params: np.ndar
 
 
 def _ode_checks(shape: MsEndpointShape, x: np.ndarray, u: np.ndarray, params: np.ndarray,
-                positions: int) -> _OwnChecks:
+                positions: int, durations: np.ndarray) -> _OwnChecks:
     """ODE agents' checks: ``start`` the start state, ``attitude`` the end entries the shape
-    fixes other than the position, ``dynamics`` the shooting residuals (:func:`_shooting`),
+    fixes other than the position, ``dynamics`` the shooting residuals (:func:`_shooting`,
+    each agent over its horizon T ``durations`` (m,)),
     ``momentum`` 0 (DMOC's boundary velocities: an ODE agent's are entries of its states)."""
     nx = shape.model.nx
     starts, ends = params[:, :nx], params[:, nx:2 * nx]
@@ -477,7 +478,7 @@ def _ode_checks(shape: MsEndpointShape, x: np.ndarray, u: np.ndarray, params: np
         return {"x": x[:, 1:]}
 
     return _OwnChecks(_relative(x[:, 0] - starts, starts), attitude, np.zeros(len(x)),
-                      _shooting(shape, x, u), points)
+                      _shooting(shape, x, u, durations), points)
 
 
 @lru_cache(maxsize=32)
@@ -487,15 +488,16 @@ def _rhs(model: object) -> ca.Function:
     return ca.Function("f", [x, u], [model.rhs(x, u)])  # type: ignore[attr-defined]
 
 
-def _shooting(shape: MsEndpointShape, x: np.ndarray, u: np.ndarray) -> np.ndarray:
+def _shooting(shape: MsEndpointShape, x: np.ndarray, u: np.ndarray, durations: np.ndarray
+              ) -> np.ndarray:
     """Per agent (m,) the largest relative shooting residual |x_{k+1} − Φ(x_k, u_k)| /
     (1 + |x_{k+1}|) over the intervals: the returned controls re-integrated from each
     returned node by the shape's integrator (``steps`` classical RK4 or Euler steps of
-    h/``steps``), written here in numpy on the model's f (not the transcription's
-    expressions)."""
+    h/``steps``, h = T/N with each agent's T ``durations`` (m,)), written here in numpy on
+    the model's f (not the transcription's expressions)."""
     m, n, nx = x.shape[0], shape.intervals, shape.model.nx
     f = _rhs(shape.model)
-    step = shape.duration / n / shape.steps
+    step = np.repeat(np.asarray(durations, float) / n / shape.steps, n)[:, None]
     state = x[:, :-1].reshape(-1, nx)
     control = u.reshape(-1, u.shape[-1])
 

@@ -138,7 +138,6 @@ from __future__ import annotations
 
 import dataclasses
 import itertools
-import math
 import time
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
@@ -175,6 +174,7 @@ from ocpar.ocp.contract import (
     check_params,
     transcription,
 )
+from ocpar.ocp.duration import check_time_fields
 from ocpar.ocp.obstacles import (
     SIDE_OBSTACLES,
     Obstacle,
@@ -341,25 +341,13 @@ class DmocShape:
                              f"DMOC shape has {self.intervals}")
 
     def _check_time(self) -> None:
-        """``time_bounds`` (0 < T_min ≤ T_max < ∞) and ``time_weight`` (finite, ≥ 0), or
-        ValueError naming the field."""
-        if not (math.isfinite(self.time_weight) and self.time_weight >= 0):
-            raise ValueError(f"time_weight: must be a finite number >= 0, got "
-                             f"{self.time_weight!r}")
-        if self.time_bounds is None:
-            if self.time_weight:
-                raise ValueError("time_weight: needs time_bounds (T a variable of the task)")
-            return
-        try:
-            low, high = (float(b) for b in self.time_bounds)
-        except (TypeError, ValueError):
-            raise ValueError("time_bounds: must be (T_min, T_max)") from None
-        if not 0 < low <= high < math.inf:
-            raise ValueError(f"time_bounds: needs 0 < T_min <= T_max < inf, got "
-                             f"{self.time_bounds}")
-        object.__setattr__(self, "time_bounds", (low, high))
-        if (self.free_duration or self.keep_out_slots or self.elastic
-                or self.solver == "newton" or getattr(self.model, "time_dependent", False)):
+        """``time_bounds`` and ``time_weight`` (:func:`~ocpar.ocp.duration.check_time_fields`)
+        and what T as a variable does not go with, or ValueError naming the field."""
+        bounds = check_time_fields(self.free_duration, self.time_bounds, self.time_weight)
+        object.__setattr__(self, "time_bounds", bounds)
+        if bounds is not None and (self.keep_out_slots or self.elastic
+                                   or self.solver == "newton"
+                                   or getattr(self.model, "time_dependent", False)):
             raise ValueError("time_bounds: not with free_duration, keep-out slots, elastic, "
                              "the newton solver (T's bounds are inequalities) or a "
                              "time-dependent model")

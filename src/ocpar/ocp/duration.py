@@ -1,10 +1,11 @@
 """A free final time through the inner-problem contract: the sums an outer problem needs of
 its agents' J*(T) and their derivatives in T, reduced on the workers over fixed units.
 
-A transcription offers a free duration when T is the last entry of its parameters p (DMOC:
-``DmocShape.free_duration``); its solution's ``cost_gradient`` then ends with dJ*/dT (the
-parameters' multiplier, the envelope theorem) and its ``end_hessian`` is the block of
-d²J*/dp² over (q_N, T), T's row and column last (from the KKT system,
+A transcription offers a free duration when T is the last entry of its parameters p
+(``DmocShape.free_duration``, ``MsEndpointShape.free_duration``); its solution's
+``cost_gradient`` then ends with dJ*/dT (the parameters' multiplier, the envelope theorem)
+and its ``end_hessian`` is the block of d²J*/dp² over (the end position's entries, T), T's
+row and column last (from the KKT system,
 :mod:`ocpar.ocp.sensitivity`). Any transcription that meets this serves :func:`duration_sums`.
 
 The engine kernel :func:`duration_sums` solves one unit of agents (one :class:`DurationUnit`:
@@ -15,6 +16,7 @@ worker solved which unit, nor on how many workers there are.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -52,6 +54,29 @@ class DurationSums:
                             self.first_failure or other.first_failure)
 
 
+def check_time_fields(free_duration: bool, time_bounds: object, time_weight: float
+                      ) -> tuple[float, float] | None:
+    """A shape's ``time_bounds`` as (T_min, T_max) (0 < T_min ≤ T_max < ∞), None where none
+    are given, after checking ``time_weight`` (finite, ≥ 0, only with bounds) and that T is
+    not both a parameter (``free_duration``) and a variable; ValueError naming the field."""
+    if not (math.isfinite(time_weight) and time_weight >= 0):
+        raise ValueError(f"time_weight: must be a finite number >= 0, got {time_weight!r}")
+    if time_bounds is None:
+        if time_weight:
+            raise ValueError("time_weight: needs time_bounds (T a variable of the task)")
+        return None
+    try:
+        low, high = (float(b) for b in time_bounds)  # type: ignore[attr-defined]
+    except (TypeError, ValueError):
+        raise ValueError("time_bounds: must be (T_min, T_max)") from None
+    if not 0 < low <= high < math.inf:
+        raise ValueError(f"time_bounds: needs 0 < T_min <= T_max < inf, got {time_bounds}")
+    if free_duration:
+        raise ValueError("time_bounds: not with free_duration (T a variable of the task, or "
+                         "its parameter)")
+    return low, high
+
+
 def duration_sums(unit: DurationUnit) -> DurationSums:
     """Engine kernel: solve ``unit``'s tasks (:func:`~ocpar.ocp.solve_tasks`) and sum their
     J*, dJ*/dT and d²J*/dT² in task order (module docstring)."""
@@ -67,4 +92,4 @@ def duration_sums(unit: DurationUnit) -> DurationSums:
                         float(np.sum(curvature)), len(ok), int(np.sum(~ok)), first)
 
 
-__all__ = ["DurationSums", "DurationUnit", "duration_sums"]
+__all__ = ["DurationSums", "DurationUnit", "check_time_fields", "duration_sums"]

@@ -25,10 +25,19 @@ path ``q`` (N+1, nx: the states at the nodes) and controls ``u`` (N, nu). Batche
 ``newton`` solver (:class:`~ocpar.ocp.batch.KktNewton`, equalities only) or ``sqpmethod``
 (:class:`~ocpar.ocp.batch.MappedNlp`), each column accepted by its KKT check; IPOPT one task
 at a time (:meth:`MsEndpointTranscription.solve`) for the others.
+
+Free duration (optional, as DMOC's: :mod:`ocpar.ocp.dmoc`), h = T/N inside every step
+(:func:`~ocpar.ocp.multiple_shooting.timed_step_function`): ``free_duration``, T the last
+entry of p (one compiled solver for every T), ``cost_gradient`` ending with dJ*/dT (−λ_p of
+T) and ``end_hessian`` the (nx + 1, nx + 1) block of d²J*/dp² over (x̄_N, T), T last; or
+``time_bounds`` (T_min, T_max) with ``time_weight`` w ≥ 0, T the last entry of w and the
+cost J + w T (``duration`` the T it chose; its bounds are inequalities: ``sqpmethod`` or
+``ipopt``). A solution's ``duration`` is the T it was solved at.
 """
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Iterator
 from dataclasses import dataclass
 from functools import cached_property, lru_cache
@@ -53,8 +62,9 @@ from ocpar.ocp.constraints import (
     PathConstraint,
     compile_constraints,
 )
-from ocpar.ocp.contract import InnerSolution, call_nlpsol, check_params
-from ocpar.ocp.multiple_shooting import INTEGRATORS, step_function
+from ocpar.ocp.contract import InnerSolution, call_nlpsol, check_params, transcription
+from ocpar.ocp.duration import check_time_fields
+from ocpar.ocp.multiple_shooting import INTEGRATORS, step_function, timed_step_function
 from ocpar.ocp.sensitivity import cost_hessian_function
 from ocpar.ocp.solver_options import SolverOptions, ipopt, newton, solver_options, sqpmethod
 
@@ -95,7 +105,11 @@ class MsEndpointShape:
     at its noise after 17 supersteps instead of converging in 4); ``tol`` and
     ``max_iter`` IPOPT's; ``solver_options`` the inner solvers' own options (``ipopt.tol``,
     ``sqpmethod.max_iter``, ``newton.kkt_tol``, …; :mod:`ocpar.ocp.solver_options`) over
-    these defaults, checked when the shape is built."""
+    these defaults, checked when the shape is built. ``free_duration``: T the last
+    parameter (``duration`` then the caller's value of it, not part of the NLP);
+    ``time_bounds`` (T_min, T_max) and ``time_weight`` w: T a decision variable of each task,
+    the cost J + w T (module docstring; ``duration``, clipped to the bounds, its first
+    guess)."""
 
     model: OdeModel
     intervals: int = 10
@@ -110,6 +124,9 @@ class MsEndpointShape:
     tol: float = 1e-12
     max_iter: int = 500
     solver_options: SolverOptions = ()
+    free_duration: bool = False
+    time_weight: float = 0.0
+    time_bounds: tuple[float, float] | None = None
 
     def __post_init__(self) -> None:
         check_ode_model(self.model, "shape.model")
@@ -138,6 +155,8 @@ class MsEndpointShape:
                 raise ValueError(f"{name}: must be an integer ≥ 1, got {value!r}")
         if not self.duration > 0:
             raise ValueError(f"duration: must be > 0, got {self.duration}")
+        object.__setattr__(self, "time_bounds", check_time_fields(
+            self.free_duration, self.time_bounds, self.time_weight))
         if self.integrator not in INTEGRATORS:
             raise ValueError(f"integrator: choose one of {INTEGRATORS}, got "
                              f"{self.integrator!r}")
@@ -145,26 +164,36 @@ class MsEndpointShape:
             raise ValueError(f"solver: choose one of {AUTO_SOLVER}, {', '.join(SOLVERS)}, got "
                              f"{self.solver!r}")
         if self.solver == "newton" and self.has_inequalities:
-            raise ValueError("solver: control bounds and path constraints are inequalities "
-                             "and the newton solver takes equalities only; choose sqpmethod, "
-                             "ipopt or auto (the default)")
+            raise ValueError("solver: control bounds, path constraints and time bounds are "
+                             "inequalities and the newton solver takes equalities only; "
+                             "choose sqpmethod, ipopt or auto (the default)")
 
     @property
     def has_inequalities(self) -> bool:
-        """Whether the NLP has inequalities (control bounds, path constraints)."""
-        return self.control_bounds is not None or bool(self.path_constraints)
+        """Whether the NLP has inequalities (control bounds, path constraints, T's bounds)."""
+        return (self.control_bounds is not None or bool(self.path_constraints)
+                or self.time_bounds is not None)
 
     @property
     def chosen_solver(self) -> str:
-        """``solver``, or for ``auto`` ``newton`` (equalities only) or ``sqpmethod``."""
+        """``solver``, or for ``auto`` ``newton`` (equalities only), ``ipopt`` (T a
+        variable: ``sqpmethod``'s exact Hessian is indefinite in T on a nonlinear model, and
+        from the first guess it diverged on 1 of 4 unicycles, each of its 50 iterations'
+        QPs running to their limit: 50–85 s for the four) or ``sqpmethod``."""
         if self.solver != AUTO_SOLVER:
             return self.solver
+        if self.time_bounds is not None:
+            return "ipopt"
         return "sqpmethod" if self.has_inequalities else "newton"
 
     @property
     def n_params(self) -> int:
-        """Length of p = (x_0, x̄_N)."""
-        return 2 * self.model.nx
+        """Length of p = (x_0, x̄_N), then T where the duration is free."""
+        return 2 * self.model.nx + int(self.free_duration)
+
+    def with_duration(self, duration: float) -> MsEndpointShape:
+        """This shape over the horizon ``duration`` (the model's time unit)."""
+        return dataclasses.replace(self, duration=float(duration))
 
     # the agent-shape interface of :mod:`ocpar.ocp.endpoint_agents`
 
@@ -204,7 +233,10 @@ class MsEndpointShape:
         return np.hstack([q[:, 1:].reshape(k, -1), u.reshape(k, -1)])
 
     def build(self) -> MsEndpointTranscription:
-        """The transcription of this shape (see :func:`~ocpar.ocp.transcription`)."""
+        """The transcription of this shape (see :func:`~ocpar.ocp.transcription`); with a
+        free duration the one of every duration (that of ``duration`` 1)."""
+        if self.free_duration and self.duration != 1.0:
+            return transcription(self.with_duration(1.0))  # type: ignore[return-value]
         return MsEndpointTranscription(self)
 
 
@@ -223,9 +255,10 @@ def _pairs(bounds: object, nu: int) -> tuple[tuple[float, float], ...]:
 @dataclass
 class MsEndpointSolution(InnerSolution):
     """Result of one solve: the common fields, ``cost_gradient`` dJ*/dp (2 nx,),
-    ``end_hessian`` d²J*/dx̄_N² (nx, nx; rows and columns of a free entry zero), ``q`` the
-    states at the nodes (N+1, nx), ``u`` the interval controls (N, nu), ``duration`` T (the
-    shape's: an ODE agent's horizon is fixed)."""
+    ``end_hessian`` d²J*/dx̄_N² (nx, nx; rows and columns of a free entry zero; with a free
+    duration (nx + 1, nx + 1) over (x̄_N, T)), ``q`` the states at the nodes (N+1, nx),
+    ``u`` the interval controls (N, nu), ``duration`` T (the shape's, the parameter's, or
+    the one the task chose: ``time_bounds``)."""
 
     cost_gradient: np.ndarray
     end_hessian: np.ndarray
@@ -242,9 +275,24 @@ class MsEndpointTranscription:
         model, n = shape.model, shape.intervals
         nx, nu = model.nx, model.nu
         self.nx, self.nu, self.n = nx, nu, n
-        h = shape.duration / n
-        phi = step_function(model, h / shape.steps, shape.integrator)
-        p = ca.SX.sym("p", 2 * nx)
+        timed = shape.time_bounds is not None
+        t_var = ca.SX.sym("T", int(timed))
+        #: T: a variable (time bounds), the last parameter (free duration) or the constant
+        self.horizon = t_var[0] if timed else None
+        p = ca.SX.sym("p", shape.n_params)
+        if shape.free_duration:
+            self.horizon = p[-1]
+        #: rows and columns of ``end_hessian``: x̄_N's (and T's, where free) entries of p
+        self.nh = nx + int(shape.free_duration)
+        if self.horizon is None:
+            h = shape.duration / n
+            phi = step_function(model, h / shape.steps, shape.integrator)
+        else:
+            h = self.horizon / n
+            timed_phi = timed_step_function(model, shape.integrator)
+
+            def phi(state: ca.SX, control: ca.SX) -> list[ca.SX]:
+                return timed_phi(state, control, h / shape.steps)
         x_free, u = ca.SX.sym("x", nx, n), ca.SX.sym("u", nu, n)
         x = ca.horzcat(p[:nx], x_free)
         gaps, rates = [], []
@@ -257,12 +305,16 @@ class MsEndpointTranscription:
         fixed = [i for i in range(nx) if i not in shape.free_end]
         ends = [x[i, n] - p[nx + i] for i in fixed]
         cost = h / shape.steps * ca.sum1(ca.vertcat(*rates))
+        if timed:
+            cost += shape.time_weight * self.horizon
         path = ConstraintRows()
         for constraint in shape.path_constraints:
             path.add(constraint, [{"x": x[:, j], "u": u[:, j]} for j in range(n)]
                      if constraint.depends_on("u") else [{"x": x[:, j]} for j in range(1, n + 1)])
         equations = ca.vertcat(*gaps, *ends)
-        w = ca.vertcat(ca.vec(x_free), ca.vec(u))
+        w = ca.vertcat(ca.vec(x_free), ca.vec(u), t_var)
+        #: T's entry of w (time bounds, the last), else None
+        self.t_index = w.numel() - 1 if timed else None
         g = ca.vertcat(equations, path.expr)
         self._w, self._p, self._f, self._g = w, p, cost, g
         self.nw, self.ng, self.n_eq, self.n_path = w.numel(), g.numel(), equations.numel(), \
@@ -272,9 +324,12 @@ class MsEndpointTranscription:
         self.ubg = np.concatenate([np.zeros(self.n_eq), path.upper])
         lo, hi = (np.array(b) for b in zip(*(shape.control_bounds or [(-np.inf, np.inf)] * nu),
                                            strict=True))
-        self.lbx = np.concatenate([np.full(nx * n, -np.inf), np.tile(lo, n)])
-        self.ubx = np.concatenate([np.full(nx * n, np.inf), np.tile(hi, n)])
-        block = slice(nx, 2 * nx)
+        t_lower, t_upper = shape.time_bounds or (None, None)
+        self.lbx = np.concatenate([np.full(nx * n, -np.inf), np.tile(lo, n),
+                                   np.full(int(timed), t_lower or 0.0)])
+        self.ubx = np.concatenate([np.full(nx * n, np.inf), np.tile(hi, n),
+                                   np.full(int(timed), t_upper or 0.0)])
+        block = list(range(nx, 2 * nx)) + ([shape.n_params - 1] if shape.free_duration else [])
         #: d²J*/dx̄_N² of the equations (w, λ_g, p) → (nx, nx): where no inequality is active
         self.end_hessian = _on_rows(cost_hessian_function("ms_end", w, p, cost, equations,
                                                           block), self.ng)
@@ -341,19 +396,48 @@ class MsEndpointTranscription:
         return self.default_guesses(np.asarray(params, float)[None])[0]
 
     def default_guesses(self, params: np.ndarray) -> np.ndarray:
-        """:meth:`default_guess` of each row of ``params`` (k, 2 nx): (k, nw)."""
+        """:meth:`default_guess` of each row of ``params`` (k, n_params): (k, nw), the
+        model's guess at each row's T (its first guess where T is a variable)."""
         nx, n, k = self.nx, self.n, len(params)
-        x0, xn = params[:, :nx], params[:, nx:].copy()
+        x0, xn = params[:, :nx], params[:, nx:2 * nx].copy()
         free = list(self.shape.free_end)
         xn[:, free] = x0[:, free]
         guess = getattr(self.shape.model, "guess", None)
-        if guess is not None:
-            states, controls = guess(x0, xn, np.linspace(0.0, self.shape.duration, n + 1))
-            return np.hstack([np.asarray(states, float)[:, 1:].reshape(k, -1),
-                              np.asarray(controls, float).reshape(k, -1)])
-        s = np.arange(1, n + 1)[None, :, None] / n
-        states = x0[:, None] + s * (xn - x0)[:, None]
-        return np.hstack([states.reshape(k, -1), np.zeros((k, self.nu * n))])
+        if guess is None:
+            s = np.arange(1, n + 1)[None, :, None] / n
+            states = x0[:, None] + s * (xn - x0)[:, None]
+            return self._with_duration(np.hstack([states.reshape(k, -1),
+                                                  np.zeros((k, self.nu * n))]))
+        durations = (params[:, -1] if self.shape.free_duration
+                     else np.full(k, self.first_duration))
+        guesses = np.empty((k, self.nw - int(self.t_index is not None)))
+        for duration in np.unique(durations).tolist():   # the model's guess per T
+            rows = durations == duration
+            states, controls = guess(x0[rows], xn[rows], np.linspace(0.0, duration, n + 1))
+            guesses[rows] = np.hstack([np.asarray(states, float)[:, 1:].reshape(rows.sum(), -1),
+                                       np.asarray(controls, float).reshape(rows.sum(), -1)])
+        return self._with_duration(guesses)
+
+    @property
+    def first_duration(self) -> float:
+        """The first guess of T where it is a variable: ``duration`` within the bounds."""
+        low, high = self.shape.time_bounds or (-np.inf, np.inf)
+        return float(np.clip(self.shape.duration, low, high))
+
+    def _with_duration(self, guesses: np.ndarray) -> np.ndarray:
+        """Guesses (k, ·) of the states and controls with T's first guess appended where it
+        is a variable and they have none."""
+        if self.t_index is None or guesses.shape[1] == self.nw:
+            return guesses
+        return np.hstack([guesses, np.full((len(guesses), 1), self.first_duration)])
+
+    def durations(self, w: np.ndarray, params: np.ndarray) -> np.ndarray:
+        """T of each solution w (k, nw) with ``params`` (k, n_params): (k,)."""
+        if self.t_index is not None:
+            return np.asarray(w, float)[:, self.t_index].copy()
+        if self.shape.free_duration:
+            return np.asarray(params, float)[:, -1].copy()
+        return np.full(len(w), self.shape.duration)
 
     def fallback_guesses(self, params: np.ndarray) -> Iterator[np.ndarray]:
         """:meth:`default_guess`: an agent re-solves from its previous path first
@@ -361,14 +445,15 @@ class MsEndpointTranscription:
         yield self.default_guess(params)
 
     def warm_start(self, solution: MsEndpointSolution) -> np.ndarray:
-        """The guess that re-solves from ``solution``."""
-        return self.shape.previous_guesses(solution.q[None], solution.u[None])[0]
+        """The guess that re-solves from ``solution`` (and its T, where T is a variable)."""
+        guess = self.shape.previous_guesses(solution.q[None], solution.u[None])[0]
+        return guess if self.t_index is None else np.append(guess, solution.duration)
 
     def unpack_many(self, w: np.ndarray, params: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """States (k, N+1, nx) with x_0 from ``params`` and controls (k, N, nu) of w (k, nw)."""
         k, nx, n = len(w), self.nx, self.n
         q = np.concatenate([params[:, None, :nx], w[:, :nx * n].reshape(k, n, nx)], axis=1)
-        return q, w[:, nx * n:].reshape(k, n, self.nu)
+        return q, w[:, nx * n:(nx + self.nu) * n].reshape(k, n, self.nu)
 
     # solves
 
@@ -378,8 +463,10 @@ class MsEndpointTranscription:
         return MsEndpointSolution(
             cost=float("nan"), status=status, success=False, iterations=0, attempts=1,
             solve_time_s=elapsed, cost_gradient=np.full(self.n_params, np.nan),
-            end_hessian=np.full((nx, nx), np.nan), q=np.full((n + 1, nx), np.nan),
-            u=np.full((n, nu), np.nan), duration=self.shape.duration)
+            end_hessian=np.full((self.nh, self.nh), np.nan), q=np.full((n + 1, nx), np.nan),
+            u=np.full((n, nu), np.nan), duration=float(
+                params[-1] if self.shape.free_duration and len(params) == self.n_params
+                else np.nan if self.t_index is not None else self.shape.duration))
 
     def solve(self, params: np.ndarray, guess: np.ndarray | None = None,
               multipliers: np.ndarray | None = None) -> MsEndpointSolution:
@@ -389,7 +476,8 @@ class MsEndpointTranscription:
         meets the KKT conditions to ``kkt_tol`` (:func:`~ocpar.ocp.batch.kkt_met`), a
         batch's own test."""
         params = check_params(params, self.n_params, "multiple shooting (endpoint)")
-        x0 = self.default_guess(params) if guess is None else np.asarray(guess, float)
+        x0 = (self.default_guess(params) if guess is None
+              else self._with_duration(np.asarray(guess, float)[None])[0])
         extra = {} if multipliers is None else {"lam_g0": multipliers}
         call = call_nlpsol(self.solver, x0=x0, p=params, lbg=self.lbg, ubg=self.ubg,
                            lbx=self.lbx, ubx=self.ubx, **extra)
@@ -405,7 +493,7 @@ class MsEndpointTranscription:
             cost=float(call.out["f"]), status=status, success=success,
             iterations=call.iterations, attempts=1, solve_time_s=call.solve_time_s,
             cost_gradient=call.cost_gradient, end_hessian=hessian, q=q[0], u=u[0],
-            duration=self.shape.duration)
+            duration=float(self.durations(w, params[None])[0]))
 
     def _met(self, w: np.ndarray, params: np.ndarray, lam_g: np.ndarray, lam_x: np.ndarray
              ) -> np.ndarray:
@@ -427,12 +515,14 @@ class MsEndpointTranscription:
             return None
         params = np.asarray(params, float)
         k = len(params)
-        x0 = (guesses.astype(float) if isinstance(guesses, np.ndarray)
-              and guesses.shape == (k, self.nw) else self.default_guesses(params))
+        x0 = (self._with_duration(guesses.astype(float)) if isinstance(guesses, np.ndarray)
+              and guesses.ndim == 2 and len(guesses) == k
+              and guesses.shape[1] in (self.nw, self.nw - int(self.t_index is not None))
+              else self.default_guesses(params))
         if not isinstance(guesses, np.ndarray):
             for i, guess in enumerate(guesses):
                 if guess is not None:
-                    x0[i] = guess
+                    x0[i] = self._with_duration(np.asarray(guess, float)[None])[0]
         lam0 = np.zeros((k, self.ng))
         if isinstance(multipliers, np.ndarray) and multipliers.shape == (k, self.ng):
             lam0 = multipliers.astype(float)
@@ -465,15 +555,16 @@ class MsEndpointTranscription:
             "cost_gradient": (STACKED, -batch.lam_p),
             "end_hessian": (STACKED, hessians),
             "q": (STACKED, q), "u": (STACKED, u),
-            "duration": (SHARED, self.shape.duration)})
+            "duration": ((SHARED, self.shape.duration) if self.horizon is None
+                         else (VALUES, self.durations(batch.x, params)))})
 
     def _hessians(self, w: np.ndarray, lam_g: np.ndarray, params: np.ndarray,
                   solved: np.ndarray) -> np.ndarray:
-        """``end_hessian`` (k, nx, nx) of solutions w (k, nw) with multipliers ``lam_g``
+        """``end_hessian`` (k, nh, nh) of solutions w (k, nw) with multipliers ``lam_g``
         (k, ng) where ``solved`` (k,), NaN elsewhere: that of the equations (one mapped call)
         where no inequality is within :data:`ACTIVE_RTOL` of its bound, else that of the
         active set; NaN where a KKT matrix is singular."""
-        k, nx = len(w), self.nx
+        k, nx = len(w), self.nh
         hessians = np.full((k, nx, nx), np.nan)
         rows = np.flatnonzero(solved & np.all(np.isfinite(w), axis=1)
                               & np.all(np.isfinite(lam_g), axis=1))
@@ -510,11 +601,11 @@ class MsEndpointTranscription:
         return self.end_hessian.map(k, "serial")
 
     def _one_hessian(self, function: ca.Function | None, *args: np.ndarray) -> np.ndarray:
-        """``function`` at ``args`` as (nx, nx); NaN where its KKT matrix is singular."""
+        """``function`` at ``args`` as (nh, nh); NaN where its KKT matrix is singular."""
         try:
-            return np.asarray(function(*args)).reshape(self.nx, self.nx)  # type: ignore[misc]
+            return np.asarray(function(*args)).reshape(self.nh, self.nh)  # type: ignore[misc]
         except RuntimeError:
-            return np.full((self.nx, self.nx), np.nan)
+            return np.full((self.nh, self.nh), np.nan)
 
 
 def _near(values: np.ndarray, lower: np.ndarray, upper: np.ndarray, tol: float) -> np.ndarray:
