@@ -104,6 +104,11 @@ def _own_dynamics_figures(directory) -> None:
     assert free["cost"] - 0.1 * free["final_time"] == pytest.approx(free_effort, abs=5e-5)
     assert fixed["cost"] == pytest.approx(fixed_effort, abs=5e-5)
     assert fixed["final_time"] == 6.0 and free_effort < fixed_effort
+    ds, _ = ocpar.load(directory / "runs" / "robot-free")
+    assert ds["time"].values[-1] == pytest.approx(free["final_time"], rel=1e-12)
+    assert ds["time"].attrs["units"] == "s"
+    assert ds["state_component_units"].values.tolist() == ["m", "m", "rad", "m/s"]
+    assert ds["control_component_units"].values.tolist() == ["m/s^2", "rad/s"]
     ds, summary = ocpar.load(directory / "runs" / "robots-limited")
     unbounded = json.loads((directory / "runs" / "robots-cli" / "result.json").read_text())
     assert summary["total_cost"] > unbounded["total_cost"]      # the bound binds...
