@@ -1,14 +1,14 @@
 """Run the tutorials' code and commands and check (or rewrite) the outputs they show.
 
-Each tutorial (docs/tutorials/{formation,pursuit,macs}.md) is read as the user reads it: a
-fenced block named just before it (``Save this as `mytut/x.py`:``, `` `x.toml`:``) or run
-by the next block (``python x.py``) is a file, written into a fresh directory (with
-``mytut/__init__.py``, as the set-up makes it); every ``bash`` block is a command, run in
-that directory in one ``bash`` process per tutorial (so ``JOB=$(...)`` and ``export`` carry
-on, as in the user's shell); the fenced block after a command (after "prints", or right
-after it) is what the command shows, compared line by line: words exactly, numbers to
-``RTOL`` relative (``ATOL`` absolute, for round-off such as a residual of 6e-17), the
-wall time, memory, dates and job ids not at all.
+Each tutorial (docs/tutorials/{formation,pursuit,macs,own-dynamics}.md) is read as the user
+reads it: a fenced block named just before it (``Save this as `mytut/x.py`:``,
+`` `x.toml`:``) or run by the next block (``python x.py``) is a file, written into a fresh
+directory (with ``mytut/__init__.py``, as the set-up makes it); every ``bash`` block is a
+command, run in that directory in one ``bash`` process per tutorial (so ``JOB=$(...)`` and
+``export`` carry on, as in the user's shell); the fenced block after a command (after
+"prints", or right after it) is what the command shows, compared line by line: words
+exactly, numbers to ``RTOL`` relative (``ATOL`` absolute, for round-off such as a residual
+of 6e-17), the wall time, memory, dates and job ids not at all.
 
 Steps 4–6 (``mpirun``, a Dask cluster, detached jobs) need an MPI launcher and the cluster
 of docs/tutorials/index.md (started and stopped by the set-up's own commands): they run with
@@ -37,7 +37,7 @@ from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[1]
 DOCS = REPO / "docs" / "tutorials"
-TUTORIALS = ("formation", "pursuit", "macs")
+TUTORIALS = ("formation", "pursuit", "macs", "own-dynamics")
 #: Relative and absolute tolerance of a number shown against the run's (bit-for-bit results
 #: differ in the last digits between machines and BLAS builds; residuals are round-off).
 RTOL, ATOL = 1e-9, 1e-12
@@ -54,7 +54,10 @@ VOLATILE = (
 NOISE = re.compile(r"^(\d{4}-\d\d-\d\d \d\d:\d\d:\d\d,\d+ - |\S+Warning: |  warnings\.warn\()")
 NUMBER = re.compile(r"[-+]?(?:\d+\.\d*|\.\d+|\d+)(?:[eE][-+]?\d+)?")
 FENCE = re.compile(r"^```(\w*)\n(.*?)^```\n", re.S | re.M)
-CLUSTER_COMMAND = re.compile(r"\bmpirun\b|--scheduler|\bocpar (submit|status|result|jobs|cancel)\b")
+#: A command that needs ``--cluster``: an MPI launch, or anything that talks to the set-up's
+#: Dask scheduler.
+CLUSTER_COMMAND = re.compile(r"\bmpirun\b|--scheduler|\bocpar (submit|status|result|jobs|cancel)\b"
+                             r"|tcp://127\.0\.0\.1:8786")
 MARK = "@@@ tutorial command"
 EXIT_MARK = "@@@ exit status"
 
@@ -241,7 +244,7 @@ def update(name: str, results: list[Run]) -> int:
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("tutorials", nargs="*", metavar="TUTORIAL",
-                        help=f"{', '.join(TUTORIALS)} (default: all three)")
+                        help=f"{', '.join(TUTORIALS)} (default: all)")
     parser.add_argument("--cluster", action="store_true",
                         help="also steps 4-6: mpirun, a local Dask cluster, detached jobs")
     parser.add_argument("--update", action="store_true",

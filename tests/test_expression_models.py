@@ -19,9 +19,10 @@ import numpy as np
 import pytest
 from conftest import REPO, run_ocpar
 
+import ocpar
 from ocpar.bsp import open_backend
 from ocpar.examples import pursuit_van_der_pol as van_der_pol
-from ocpar.formation import solve_formation
+from ocpar.formation import Circle, FormationProblem, solve_formation
 from ocpar.macs import MacsSettings, solve_macs
 from ocpar.models import (
     ExpressionLagrangian,
@@ -33,6 +34,7 @@ from ocpar.models import (
     lagrangian_model,
     ode_model,
 )
+from ocpar.models.labels import model_name
 from ocpar.models.ode import check_ode_model
 from ocpar.ocp import DmocShape, OcpTask, solve_task
 from ocpar.pursuit import PursuitSettings, solve_pursuit
@@ -354,3 +356,23 @@ def test_the_pages_example_runs():
     ours, theirs = solve_formation(problem), solve_formation(builtin)
     assert ours.converged and theirs.converged
     assert ours.total_cost == pytest.approx(theirs.total_cost, rel=1e-12)
+
+
+def test_a_named_model_is_named_in_the_results(tmp_path):
+    """``name=`` names the model in the array file (``model_name``), so that two models from
+    expressions in one fleet are told apart; without it, the class's name."""
+    q, v, u = ca.SX.sym("q", 2), ca.SX.sym("v", 2), ca.SX.sym("u", 2)
+    light = lagrangian_model(q, v, 0.5 * ca.dot(v, v), u, u, name="light")
+    heavy = lagrangian_model(q, v, ca.dot(v, v), u, u, name="heavy")
+    shapes = tuple(DmocShape(m, 10, 1.0) for m in (light, heavy, light))
+    problem = FormationProblem(name="named", shape=shapes, curve=Circle(radius=2.0),
+                               starts=np.array([[-1.0, -3.0], [0.0, -3.0], [1.0, -3.0]]))
+    result = solve_formation(problem)
+    assert result.status == "converged"
+    result.write(tmp_path)
+    ds, _ = ocpar.load(tmp_path)
+    assert ds["model_name"].values.tolist() == ["light", "heavy"]
+    assert ds["model"].values.tolist() == [0, 1, 0]
+    assert model_name(point_mass()) == "ExpressionLagrangian"
+    with pytest.raises(ValueError, match=r"^name: must be a string, got 3"):
+        ode_model(*symbols(), [0, 0], name=3)

@@ -21,6 +21,7 @@ from ocpar.examples import (
     formation_halo,
     formation_mixed_fleet,
     formation_point_masses,
+    formation_unicycles,
     macs_goddard,
     pursuit_orbit_transfer,
     pursuit_van_der_pol,
@@ -162,13 +163,14 @@ def lobes_tutorial() -> FormationProblem:
 
 
 @pytest.mark.parametrize("example", ["point-masses", "lobes", "mixed-fleet", "mixed-norm",
-                                     "halo"])
+                                     "halo", "unicycles"])
 def test_formation_pictures_keep_text_off_the_data_and_draw_thrust_with_its_limit(
         example, drawn, tmp_path):
     problem = {"point-masses": lambda: formation_point_masses.make(agents=12),
                "mixed-fleet": lambda: formation_mixed_fleet.make(agents=9),
                "mixed-norm": lambda: formation_mixed_fleet.make(agents=6, limit="norm"),
                "halo": lambda: formation_halo.make(agents=6),
+               "unicycles": lambda: formation_unicycles.make(agents=4),
                "lobes": lobes_tutorial}[example]()
     result = solve_formation(problem)
     ocpar.formation.plot.plot_formation(problem, result, tmp_path / "formation.png")
@@ -176,6 +178,9 @@ def test_formation_pictures_keep_text_off_the_data_and_draw_thrust_with_its_limi
     check_layout(fig)
     thrust = fig.axes[-1]
     assert "thrust" in thrust.get_title()
+    # one unit where the entries share it; a unicycle's a and ω do not (1 and rad)
+    assert thrust.get_ylabel().endswith("(entries of different units)") == (
+        example == "unicycles")
     u = np.asarray(result.controls)
     if example == "halo":   # the force entries (cost_parts' first group), not the torque
         u = u[..., :3]

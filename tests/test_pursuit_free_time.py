@@ -130,6 +130,19 @@ def test_warm_started_newton_re_solves_move_the_final_time():
     assert batch[1].final_time > batch[0].final_time > batch[2].final_time
 
 
+def test_the_full_horizon_takes_no_window(min_time):
+    """The train's window and update do not apply to the full-horizon MS: N = 21 below the
+    default window (60) is solved as with a window that fits, bit for bit; the train refuses
+    it in one line, from the API and the command line."""
+    assert PursuitSettings().window > 21
+    default = solve_pursuit(make(samples=21), mode="ms")
+    assert default.status == "converged"
+    assert default.final_time == min_time.final_time and default.cost == min_time.cost
+    fixed = dataclasses.replace(make(samples=21), final_time=None, time_weight=0.0)
+    with pytest.raises(ValueError, match=r"^window N_Δ must satisfy 2 <= N_Δ < N = 21, got 60"):
+        solve_pursuit(fixed)
+
+
 def test_bad_free_time_input_is_one_line():
     problem = make(samples=21)
     with pytest.raises(ValueError, match=r"^mode pbms: the pursuit train needs a fixed final"):

@@ -1,9 +1,9 @@
 """The tutorials run as the pages show them (issue 41): through ``scripts/tutorials.py``, every
-file of docs/tutorials/{formation,pursuit,macs}.md written into a fresh directory and every
-command run there in one shell; each command ends with status 0 and prints what the page
-shows (numbers to 1e-9 relative; wall times, memory, dates and job ids aside), and the figures
-the prose quotes of runs it shows no output of are those runs'. Steps 4–6 (``mpirun``, a Dask
-cluster and detached jobs) run in the slow test."""
+file of docs/tutorials/{formation,pursuit,macs,own-dynamics}.md written into a fresh directory
+and every command run there in one shell; each command ends with status 0 and prints what the
+page shows (numbers to 1e-9 relative; wall times, memory, dates and job ids aside), and the
+figures the prose quotes of runs it shows no output of are those runs'. Steps 4–6 (``mpirun``,
+a Dask cluster and detached jobs) run in the slow test."""
 
 from __future__ import annotations
 
@@ -17,6 +17,8 @@ from conftest import script_module
 import ocpar
 
 tutorials = script_module("tutorials")
+#: The steps of each page that run in the default test (the others need a cluster).
+DEFAULT_STEPS = {"own-dynamics": {"2.", "3.", "6.", "7."}}
 
 
 def _problems(name: str, runs) -> list[str]:
@@ -35,7 +37,7 @@ def _problems(name: str, runs) -> list[str]:
 
 @pytest.fixture(scope="module", params=tutorials.TUTORIALS)
 def tutorial(request, tmp_path_factory):
-    """A tutorial's name, its directory and its commands as run (steps 1–3, 7, 8)."""
+    """A tutorial's name, its directory and its commands as run (those without a cluster)."""
     directory = tmp_path_factory.mktemp(request.param)
     return request.param, directory, tutorials.run_tutorial(request.param, directory)
 
@@ -50,7 +52,8 @@ def _quoted(name: str, pattern: str) -> tuple[float, ...]:
 
 def test_every_command_ends_and_prints_what_the_page_shows(tutorial):
     name, _, runs = tutorial
-    assert {run.command.section[:2] for run in runs} >= {"2.", "3.", "7.", "8."}
+    assert {run.command.section[:2] for run in runs} >= DEFAULT_STEPS.get(
+        name, {"2.", "3.", "7.", "8."})
     problems = _problems(name, runs)
     assert not problems, "\n\n".join(problems)
 
@@ -75,6 +78,8 @@ def test_the_figures_quoted_are_the_runs(tutorial):
         assert summary["cost"] == pytest.approx(cost, abs=5e-7)
         assert summary["train_cost"] == pytest.approx(train, abs=5e-7)
         assert summary["agents"] == 1
+    elif name == "own-dynamics":
+        _own_dynamics_figures(directory)
     else:
         (extra,) = _quoted(name, r"from its own point and from its neighbours' on the front, "
                                  r"(\d+) more evaluations")
@@ -82,6 +87,37 @@ def test_the_figures_quoted_are_the_runs(tutorial):
         assert summary["evaluations"] - summary["history"][-1]["evaluations"] == extra
         ds, _ = ocpar.load(directory / "runs" / "cart-cli")
         np.testing.assert_array_equal(ds["front"].values, np.array(summary["front"]))
+
+
+def _own_dynamics_figures(directory) -> None:
+    """The free final time's figures the page quotes are the runs': T and the effort of the
+    command line's run, the fixed T's cost of the Python run's file; the acceleration bound
+    binds and the robots end on the circle, at rest (from the array file)."""
+    name = "own-dynamics"
+    free_time, fixed_effort, free_effort = _quoted(
+        name, r"the robot takes ([\d.]+) s instead of 6, and its effort ∫ a² \+ ω² dt falls "
+              r"from ([\d.]+) to ([\d.]+):")
+    free = json.loads((directory / "runs" / "robot-free" / "result.json").read_text())
+    fixed = json.loads((directory / "runs" / "robot-fixed" / "result.json").read_text())
+    assert free["status"] == fixed["status"] == "converged" and free["free_final_time"]
+    assert free["final_time"] == pytest.approx(free_time, abs=5e-3)
+    assert free["cost"] - 0.1 * free["final_time"] == pytest.approx(free_effort, abs=5e-5)
+    assert fixed["cost"] == pytest.approx(fixed_effort, abs=5e-5)
+    assert fixed["final_time"] == 6.0 and free_effort < fixed_effort
+    ds, _ = ocpar.load(directory / "runs" / "robot-free")
+    assert ds["time"].values[-1] == pytest.approx(free["final_time"], rel=1e-12)
+    assert ds["time"].attrs["units"] == "s"
+    assert ds["state_component_units"].values.tolist() == ["m", "m", "rad", "m/s"]
+    assert ds["control_component_units"].values.tolist() == ["m/s^2", "rad/s"]
+    ds, summary = ocpar.load(directory / "runs" / "robots-limited")
+    unbounded = json.loads((directory / "runs" / "robots-cli" / "result.json").read_text())
+    assert summary["total_cost"] > unbounded["total_cost"]      # the bound binds...
+    accel = ds["control"].sel(u_component="acceleration").values
+    assert np.abs(accel).max() == pytest.approx(1.0, abs=1e-8)  # ...at |a| = 1
+    end = ds["configuration"].isel(time=-1)
+    np.testing.assert_allclose(np.hypot(end.sel(q_component="x"), end.sel(q_component="y")),
+                               3.0, atol=1e-9)
+    np.testing.assert_allclose(end.sel(q_component="speed"), 0.0, atol=1e-9)
 
 
 def test_a_changed_figure_is_caught():

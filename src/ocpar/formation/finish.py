@@ -37,6 +37,7 @@ from ocpar.bsp.resident import ResidentSet
 from ocpar.formation.problem import FormationProblem
 from ocpar.formation.result import AgentRecords, Units, agent_arrays
 from ocpar.formation.verify import AgentChecks, agent_checks
+from ocpar.models.labels import model_name
 from ocpar.ocp.contract import Shape
 
 #: A run writes its agents' variables in parts from this many agents on (with more than one
@@ -132,7 +133,7 @@ def finish_agents(tasks: Columns, states: Columns) -> Columns:
         write_part(Path(directory), first, width, AgentRecords(
             first=first, q=q, u=u, cost=cost, phi=np.asarray(tasks.column("phi"), float),
             target=np.take_along_axis(params, ends, axis=1),
-            model=np.array([model_names.index(type(s.model).__name__) for s in shapes],
+            model=np.array([model_names.index(model_name(s.model)) for s in shapes],
                            np.int16),
             mass=np.array([float(getattr(s.model, "mass", math.nan)) for s in shapes]),
             status=list(states.column("status")),
@@ -250,7 +251,7 @@ def finish(problem: FormationProblem, agents: ResidentSet, phi: np.ndarray,
         "positions": (SHARED, problem.position_indices), "dim": (SHARED, problem.curve.dim),
         "duration": (SHARED, shape.duration), "on_circle": (SHARED, problem.on_circle),
         "model_names": (SHARED, tuple(dict.fromkeys(
-            type(s.model).__name__ for s in problem.agents_by_shape()))),
+            model_name(s.model) for s in problem.agents_by_shape()))),
         "cost_groups": (SHARED, groups), "directory": (SHARED, directory),
         "width": (SHARED, len(str(n - 1))),
         "units": (SHARED, Units.of(problem.widest_shape.model, problem.node_width,

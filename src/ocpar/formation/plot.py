@@ -115,7 +115,7 @@ def _plot_thrust(ax, problem: FormationProblem, result: FormationResult) -> None
 
     shape = problem.common_shape
     time = components((problem, shape.model), "time", 1, "t")[0]
-    force = components((problem, shape.model), "control", shape.model.nu, "u")[0].unit
+    control = components((problem, shape.model), "control", shape.model.nu, "u")
     ax.set_xlabel(time.label)
     if result.controls is None:
         ax.set_title("thrust: controls are in the workers' array files", fontsize=10)
@@ -125,6 +125,8 @@ def _plot_thrust(ax, problem: FormationProblem, result: FormationResult) -> None
     parts = getattr(shape.model, "cost_parts", None)   # e.g. force, then torque entries
     group, (first, last) = next(iter(parts.items())) if parts else ("", (0, u.shape[2]))
     u = u[..., first:last]
+    units = {c.unit for c in control[first:last]}   # one norm over entries of one unit
+    force = units.pop() if len(units) == 1 else "entries of different units"
     entries = "" if not parts else f"$_{{{first + 1}…{last}}}$"
     limits = {thrust_limit(s) for s in problem.agents_by_shape()} - {None}
     box = bool(limits) and all(kind == "box" for kind, _ in limits)

@@ -18,6 +18,7 @@ from ocpar.models.labels import (
     control_labels,
     cost_unit,
     mass_unit,
+    model_name,
     state_labels,
     time_unit,
 )
@@ -96,7 +97,7 @@ class Fleet:
             targets[finite] = problem.final_positions(phi[finite])
         model, mass, names = np.zeros(n, np.int16), np.empty(n), []
         for shape_i, agents in problem.agents_by_shape().items():
-            name = type(shape_i.model).__name__
+            name = model_name(shape_i.model)
             if name not in names:
                 names.append(name)
             model[agents] = names.index(name)

@@ -154,6 +154,7 @@ class ExpressionOde:
     time_unit: str = "1"
     cost_unit: str = "1"
     position_indices: tuple[int, ...] | None = None
+    name: str = ""
 
     def __repr__(self) -> str:
         return f"ExpressionOde(nx={self.nx}, nu={self.nu}, {len(self.function)} characters)"
@@ -182,15 +183,16 @@ def ode_model(x: ca.SX | ca.MX, u: ca.SX | ca.MX, rhs: Expression, cost: Express
               control_names: Sequence[str] | None = None,
               state_units: Strings | None = None, control_units: Strings | None = None,
               time_unit: str = "1", cost_unit: str = "1",
-              position_indices: Sequence[int] | None = None) -> ExpressionOde:
+              position_indices: Sequence[int] | None = None, name: str = "") -> ExpressionOde:
     """The model ẋ = ``rhs``, running cost ``cost``, of the state symbols ``x`` (nx, 1) and
     control symbols ``u`` (nu, 1) (``casadi.SX.sym`` or ``casadi.MX.sym``): ``rhs`` an
     expression (nx, 1) (or a list of nx), ``cost`` a scalar (default 0: MACS problems give
     their objectives apart), either also a ``casadi.Function`` of (x, u).
     ``state_bounds``/``control_bounds``: (lower, upper), each a number or one per entry
     (default unbounded). Names and units: :mod:`ocpar.models.labels`; ``position_indices``
-    the state entries that are a position in space (for schemes that ask). One ValueError
-    naming the argument for bad input.
+    the state entries that are a position in space (for schemes that ask); ``name`` the
+    model's name in the results (default ``ExpressionOde``). One ValueError naming the
+    argument for bad input.
 
     >>> import casadi as ca
     >>> x, u = ca.SX.sym("x", 2), ca.SX.sym("u")
@@ -205,23 +207,26 @@ def ode_model(x: ca.SX | ca.MX, u: ca.SX | ca.MX, rhs: Expression, cost: Express
     model = ExpressionOde(function, nx, nu, *_bounds(state_bounds, nx, "state_bounds"),
                           *_bounds(control_bounds, nu, "control_bounds"),
                           **_labels(nx, state_names, control_names, state_units, control_units,
-                                    time_unit, cost_unit, position_indices))
+                                    time_unit, cost_unit, position_indices, name))
     check_labels(model, nx, nu, "ode_model")
     return model
 
 
 def _labels(n: int, state_names: Sequence[str] | None, control_names: Sequence[str] | None,
             state_units: Strings | None, control_units: Strings | None, time_unit: str,
-            cost_unit: str, position_indices: Sequence[int] | None) -> dict[str, Any]:
-    """The names, units and position entries of a model of ``n`` state entries, as its
-    fields (sequences as tuples: hashable; checked by :func:`check_labels` once built)."""
+            cost_unit: str, position_indices: Sequence[int] | None, name: str
+            ) -> dict[str, Any]:
+    """The names, units, position entries and name of a model of ``n`` state entries, as
+    its fields (sequences as tuples: hashable; checked by :func:`check_labels` once built)."""
+    if not isinstance(name, str):
+        raise ValueError(f"name: must be a string, got {name!r}")
     def strings(value: Strings | None) -> str | tuple[str, ...] | None:
         return value if value is None or isinstance(value, str) else tuple(value)
 
     return {"state_names": strings(state_names), "control_names": strings(control_names),
             "state_units": strings(state_units), "control_units": strings(control_units),
             "time_unit": time_unit, "cost_unit": cost_unit,
-            "position_indices": _indices(position_indices, n)}
+            "position_indices": _indices(position_indices, n), "name": name}
 
 
 def _indices(indices: Sequence[int] | None, n: int) -> tuple[int, ...] | None:
@@ -256,6 +261,7 @@ class ExpressionLagrangian:
     cost_unit: str = "1"
     position_indices: tuple[int, ...] | None = None
     cost_groups: tuple[tuple[str, int, int], ...] = ()
+    name: str = ""
 
     def __repr__(self) -> str:
         return (f"ExpressionLagrangian(nq={self.nq}, nu={self.nu}, "
@@ -315,16 +321,17 @@ def lagrangian_model(q: ca.SX | ca.MX, qdot: ca.SX | ca.MX, L: Expression,
                      state_units: Strings | None = None, control_units: Strings | None = None,
                      time_unit: str = "1", cost_unit: str = "1",
                      position_indices: Sequence[int] | None = None,
-                     cost_parts: Mapping[str, tuple[int, int]] | None = None
-                     ) -> ExpressionLagrangian:
+                     cost_parts: Mapping[str, tuple[int, int]] | None = None,
+                     name: str = "") -> ExpressionLagrangian:
     """The mechanical system of Lagrangian ``L`` (a scalar of the configuration symbols ``q``
     (nq, 1) and velocity symbols ``qdot`` (nq, 1)), generalised force ``force`` (nq, 1) of q
     and the control symbols ``u`` (nu, 1), and optional holonomic ``constraints`` c(q) = 0
     (nc, 1); each also a ``casadi.Function`` of those arguments. Names and units:
     :mod:`ocpar.models.labels` (the state is q); ``position_indices`` the entries of q that
     are the agent's position (default: the first d, d the formation curve's dimension);
-    ``cost_parts`` {name: (first, last)} control groups the results split the cost into.
-    One ValueError naming the argument for bad input.
+    ``cost_parts`` {name: (first, last)} control groups the results split the cost into;
+    ``name`` the model's name in the results (default ``ExpressionLagrangian``). One
+    ValueError naming the argument for bad input.
 
     >>> import casadi as ca
     >>> q, v, u = ca.SX.sym("q", 2), ca.SX.sym("v", 2), ca.SX.sym("u", 2)
@@ -353,6 +360,6 @@ def lagrangian_model(q: ca.SX | ca.MX, qdot: ca.SX | ca.MX, L: Expression,
     model = ExpressionLagrangian(lag, forces, held, nq, nu, nc, cost_groups=groups,
                                  **_labels(nq, state_names, control_names, state_units,
                                            control_units, time_unit, cost_unit,
-                                           position_indices))
+                                           position_indices, name))
     check_labels(model, nq, nu, "lagrangian_model")
     return model

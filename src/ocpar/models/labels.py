@@ -7,7 +7,8 @@ name its state and control entries and give their units, as optional members:
   configuration q);
 * ``state_units``, ``control_units``: one unit string for all entries, or one per entry;
 * ``time_unit``: the unit of t (of T, h, the sample times);
-* ``cost_unit``: the unit of the running cost's integral (the inner optimal cost).
+* ``cost_unit``: the unit of the running cost's integral (the inner optimal cost);
+* ``name``: the model's name in the results (default: its class's name, :func:`model_name`).
 
 Units are strings a unit library parses (pint: ``m``, ``s``, ``kg``, ``N``,
 ``m/s``, ``Mm/min``); ``1`` (the default) is a nondimensional quantity, as in the papers'
@@ -93,6 +94,13 @@ def cost_unit(model: object) -> str:
 def mass_unit(model: object) -> str:
     """The unit of ``model``'s ``mass`` (``mass_unit``; default '1')."""
     return _unit(model, "mass_unit")
+
+
+def model_name(model: object) -> str:
+    """``model``'s name in the results: its ``name`` member where that is a non-empty string
+    (a model from expressions, :func:`~ocpar.models.ode_model`), else its class's name."""
+    name = getattr(model, "name", None)
+    return name if isinstance(name, str) and name else type(model).__name__
 
 
 def check_labels(model: object, nx: int, nu: int, field: str = "model") -> None:

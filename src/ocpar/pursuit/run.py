@@ -93,8 +93,7 @@ class PursuitRun(SchemeRun, PursuitSettings):
         self.check_problem(self.build_example())
 
     def check_problem(self, problem: PursuitProblem) -> None:
-        check_mode(problem, self.mode)
-        self.settings().check(problem.samples)
+        check_mode(problem, self.mode, self.settings())
 
     def settings(self) -> PursuitSettings:
         """The SLP's settings alone."""

@@ -27,16 +27,19 @@ MODES = ("pbms", "ms")
 REFERENCE_MAX_SAMPLES = 1001
 
 
-def check_mode(problem: PursuitProblem, mode: str) -> None:
+def check_mode(problem: PursuitProblem, mode: str, settings: PursuitSettings) -> None:
     """ValueError unless ``mode`` is one of :data:`MODES` and applies to ``problem``: the train
     (``pbms``) is the paper's sampled local pursuit, whose agents leave Δ apart and intercept
-    each other on one clock over a fixed horizon; a free final time is solved by ``ms``."""
+    each other on one clock over a fixed horizon (its window and update ``settings`` checked
+    against N); a free final time is solved by ``ms``, which has no window."""
     if mode not in MODES:
         raise ValueError(f"unknown mode {mode!r}; choose one of {', '.join(MODES)}")
     if mode == "pbms" and problem.free_time:
         raise ValueError("mode pbms: the pursuit train needs a fixed final time (its agents "
                          "intercept each other on one clock); solve a free final time with "
                          "mode ms (--mode ms)")
+    if mode == "pbms":
+        settings.check(problem.samples)
 
 
 def solve_full_horizon(problem: PursuitProblem, backend: Backend,
@@ -66,9 +69,8 @@ def solve_pursuit(
     free final time takes ``mode="ms"`` (:func:`check_mode`); the result's ``time`` is then
     the found T's grid.
     """
-    check_mode(problem, mode)
     settings = settings or PursuitSettings()
-    settings.check(problem.samples)
+    check_mode(problem, mode, settings)
     backend = backend or SerialBackend()
     first_trace = len(backend.traces)
     start = time.perf_counter()
