@@ -236,7 +236,7 @@ class MacsResult(RunResult):
             f"{len(self.front)} archive members after {self.evaluations} "
             f"evaluations, {self.iterations} iterations, {self.supersteps} supersteps "
             f"({self.failed_searches} infeasible searches rejected)\n"
-            f"{self.refinement()}"
+            f"{self.placement()}{self.refinement()}"
             f"{self.quality()}{self.hv_scale()}\n"
             f"wall time {self.wall_time_s:.2f} s on {self.workers} {self.backend} worker(s)"
         )
@@ -252,6 +252,16 @@ class MacsResult(RunResult):
         box = "reference front's" if self.reference_front is not None else "front's own"
         return (f"   (HV of the objectives scaled to the {box} ideal 0 and nadir 1, up to "
                 f"1.1 in each: the ideal point would give 1.1^{m} = {1.1 ** m:.4g})")
+
+    def placement(self) -> str:
+        """The final placement as one line (empty without it)."""
+        if self.spread is None:
+            return ""
+        igd, floor = self.spread["igd"], self.spread["floor"]
+        return (f"placement: {self.spread['placed']} of {self.spread['targets']} targets "
+                f"reached, {self.spread['evaluations']} of the evaluations; spacing IGD "
+                f"{igd:.4g} against {floor:.4g}, the floor estimated from the members "
+                f"({100 * (igd / floor - 1):+.1f} %)\n")
 
     def refinement(self) -> str:
         """The final refinement as one line (empty without it)."""
