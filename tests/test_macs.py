@@ -273,6 +273,7 @@ def test_command_line_contract_under_mpirun(short_serial, tmp_path):
     assert data["front"] == short_serial.front.tolist()  # same seed, 1 vs 2 workers
     # the final refinement too: the same flags, residuals and weights
     assert data["refinement"] == short_serial.to_dict()["refinement"]
+    assert data["spread"] == short_serial.to_dict()["spread"]  # the placement too
     assert all(data["refinement"]["converged"])
     for key in ("evaluations", "iterations", "supersteps"):
         assert isinstance(data[key], int)
