@@ -71,7 +71,7 @@ class MacsSettings:
     failed local search, ``seed`` the master seed, ``restoration`` how a restoration's IPOPT
     stops (:data:`~ocpar.macs.local_search.RESTORATIONS`), ``no_refine`` skips the final
     refinement of the archive (:meth:`Macs.refine`), ``no_spread`` the final placement
-    before it (:meth:`Macs.spread`), ``solver_options``  IPOPT's own options
+    before it (:meth:`Macs.spread`), ``solver_options`` IPOPT's own options
     of every local search by ``ipopt.NAME`` (:mod:`ocpar.ocp.solver_options`; the searches
     are IPOPT's alone), checked when the settings are made."""
 
