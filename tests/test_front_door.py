@@ -98,7 +98,8 @@ def test_a_schemes_own_words_stay_in_its_help(scheme, helps):
 
 def test_max_evals_says_how_the_budget_is_counted(helps):
     text = " ".join(helps["macs"].split())
-    assert "the last iteration begun ends past it" in text and "final refinement" in text
+    assert "the last iteration begun ends past it" in text
+    assert "final placement and refinement add theirs" in text
 
 
 def test_the_examples_n_and_t_are_options():

@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 
 from ocpar.bsp.serial import SerialBackend
-from ocpar.examples import macs_polar
+from ocpar.examples import macs_polar, macs_zermelo
 from ocpar.macs import MacsSettings, algorithm, solve_macs
 from ocpar.macs.algorithm import Macs, front_neighbours
 from ocpar.macs.archive import Member
@@ -100,6 +100,8 @@ def test_a_stationary_member_off_the_front_moves_onto_it_from_a_neighbours_start
     assert np.abs(excess(macs.archive.objectives())[[0, 2]]).max() <= 1e-7
     evaluations = macs.refine()
     assert evaluations == macs.evaluations > 0
+    # the member that moved (and its neighbours) got a second round, which found it settled
+    assert macs.rounds >= 2 and 0 < macs.extra_evaluations < evaluations
     members = sorted(macs.archive.members, key=lambda mb: mb.objectives[0])
     assert [mb.moved for mb in members] == [False, True, False]
     assert all(mb.settled and mb.refined for mb in members)
@@ -143,16 +145,19 @@ def test_polar_front_over_five_seeds():
         check_on_the_front(solve_macs(problem, MacsSettings(archive_size=20, seed=seed)))
 
 
+@pytest.mark.parametrize(("limit", "value"), [("REFINEMENT_ROUNDS", 1),
+                                              ("REFINEMENT_BUDGET", 0.0)])
 def test_a_member_that_moves_in_the_last_round_is_not_converged(stuck_between_neighbours,
-                                                                monkeypatch):
-    """With one round of checks the stuck member moves onto the front but is not checked again
-    from there: it is reported moved and not settled, so not converged, although its residual
-    is ~0."""
+                                                                monkeypatch, limit, value):
+    """With one round of checks (or no budget for a second) the stuck member moves onto the
+    front but is not checked again from there: it is reported moved and not settled, so not
+    converged, although its residual is ~0."""
     problem, members = stuck_between_neighbours
-    monkeypatch.setattr(algorithm, "REFINEMENT_ROUNDS", 1)
+    monkeypatch.setattr(algorithm, limit, value)
     macs = Macs(problem, MacsSettings(seed=0), SerialBackend())
     macs.archive.add(members)
     macs.refine()
+    assert macs.rounds == 1 and macs.extra_evaluations == 0
     after = sorted(macs.archive.members, key=lambda mb: mb.objectives[0])
     assert [mb.moved for mb in after] == [False, True, False]
     assert [mb.settled for mb in after] == [True, False, True]
@@ -160,3 +165,32 @@ def test_a_member_that_moves_in_the_last_round_is_not_converged(stuck_between_ne
     converged = refinement_fields(after, 0)
     assert (converged["settled"] & (converged["stationarity"] <= STATIONARITY_TOL)).tolist() == [
         True, False, True]
+
+
+@pytest.mark.parametrize("factory", [macs_zermelo.make, macs_zermelo.make_polar])
+def test_zermelo_crossing_converges_with_its_refinement_reported(factory):
+    """Zermelo's boat crossing a jet (Cartesian controls with the speed limit as a path
+    constraint, and polar controls), 8 elements of order 4, seed 31, 3,000 evaluations: every
+    member settled and stationary, so the run is converged (issue 48's case: exit 1 with the
+    front right), its refinement's rounds and the evaluations of those after the first in
+    result.json; the front falls from t_f = 2 to 8."""
+    result = solve_macs(factory(), MacsSettings(max_evaluations=3000, archive_size=20,
+                                                seed=31))
+    assert result.status == "converged", result.message
+    assert result.stationarity.max() <= STATIONARITY_TOL and result.settled.all()
+    data = result.to_dict()["refinement"]
+    assert data["rounds"] == result.refinement_rounds >= 1
+    assert 0 <= data["extra_evaluations"] < data["evaluations"] == result.refinement_evaluations
+    assert result.front[0, 0] == pytest.approx(2.0, abs=1e-6)
+    assert result.front[-1, 0] == pytest.approx(8.0, abs=1e-6)
+    assert np.all(np.diff(result.front[:, 1]) < 0)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("factory", [macs_zermelo.make, macs_zermelo.make_polar])
+def test_zermelo_crossing_converges_at_the_issues_budget(factory):
+    """Issue 48's case: 10,000 evaluations, archive 20, seed 31: converged, every target of
+    the placement reached (measured: 1 round of checks, no member moved)."""
+    result = solve_macs(factory(), MacsSettings(archive_size=20, seed=31))
+    assert result.status == "converged", result.message
+    assert result.spread["placed"] == result.spread["targets"] == 18

@@ -27,6 +27,7 @@ from ocpar.macs.local_search import (
     SearchTask,
     run_search,
 )
+from ocpar.macs.metrics import arc_lengths
 from ocpar.macs.problem import MacsProblem
 from ocpar.ocp import dfet_problem
 from ocpar.ocp.solver_options import SOLVER_OPTIONS_HELP, solver_options
@@ -36,7 +37,10 @@ from ocpar.options import option
 MAX_POPULATION = 10_000
 #: Most rounds (supersteps) of the final refinement's checks: a round after the first
 #: re-checks only the members that a neighbour's start moved, or whose neighbours it moved.
-REFINEMENT_ROUNDS = 3
+REFINEMENT_ROUNDS = 12
+#: The rounds after the first together spend at most this multiple of the first round's
+#: evaluations: no round starts once they have (its members that moved stay unsettled).
+REFINEMENT_BUDGET = 2.0
 
 
 def front_neighbours(objectives: np.ndarray) -> list[list[int]]:
@@ -66,15 +70,15 @@ class MacsSettings:
     ``max_contractions`` (max_contr_ratio); ``contraction`` is the factor applied to ρ on a
     failed local search, ``seed`` the master seed, ``restoration`` how a restoration's IPOPT
     stops (:data:`~ocpar.macs.local_search.RESTORATIONS`), ``no_refine`` skips the final
-    refinement of the archive (:meth:`Macs.refine`), ``solver_options`` IPOPT's own options
+    refinement of the archive (:meth:`Macs.refine`), ``no_spread`` the final placement
+    before it (:meth:`Macs.spread`), ``solver_options`` IPOPT's own options
     of every local search by ``ipopt.NAME`` (:mod:`ocpar.ocp.solver_options`; the searches
     are IPOPT's alone), checked when the settings are made."""
 
     max_evaluations: int = option(
-        10_000, "budget of objective evaluations, more than --population; checked before "
-        "each iteration, so the last iteration begun ends past it (by up to one iteration's "
-        "searches), and the final refinement (see --no-refine) adds its own evaluations to "
-        "the run's: 2000 on goddard gave 2054 + 863 = 2917", name="max_evals", low=1,
+        10_000, "budget of objective evaluations (> --population), checked before each "
+        "iteration: the last iteration begun ends past it; the final placement and "
+        "refinement add theirs", name="max_evals", low=1,
         metavar="N")
     population: int = option(10, "number of agents pop_size", low=4, high=MAX_POPULATION)
     archive_size: int = option(20, "archive size max_arch, at least 2 (the paper used 10)",
@@ -98,6 +102,8 @@ class MacsSettings:
     no_refine: bool = option(False, "skip the final refinement (every archive member re-solved "
                              "once by an ε-constraint NLP, with its Pareto-stationarity "
                              "residual)")
+    no_spread: bool = option(False, "skip the final placement (members re-solved at targets "
+                             "equally spaced in arc length along the front, two objectives)")
     solver_options: dict = option(  # noqa: RUF009 (option() is a dataclass field)
         default_factory=dict, help=SOLVER_OPTIONS_HELP + "; MACS's local searches are "
         "IPOPT's: ipopt.* only", flag="--solver-option", metavar="SOLVER.NAME=VALUE",
@@ -186,6 +192,12 @@ class MacsOutcome:
     refinement_evaluations: int = 0
     #: the first failed search's IPOPT status ('' if none failed)
     first_failure: str = ""
+    #: the refinement's rounds of checks, and the evaluations of those after the first
+    refinement_rounds: int = 0
+    refinement_extra_evaluations: int = 0
+    #: the final placement's evaluations and targets reached (:meth:`Macs.spread`)
+    spread_evaluations: int = 0
+    spread_placed: int = 0
 
 
 class Macs:
@@ -213,6 +225,10 @@ class Macs:
         self.failed = 0
         self.first_failure = ""
         self.costs = TaskCosts()
+        #: the final refinement's rounds and the evaluations of those after the first
+        self.rounds = self.extra_evaluations = 0
+        #: the final placement's targets reached (:meth:`spread`)
+        self.placed = 0
         seeds = np.random.SeedSequence(settings.seed).spawn(settings.population + 1)
         sample = qmc.LatinHypercube(d=len(self.lower), seed=np.random.default_rng(seeds[-1]))
         # scaled by hand: qmc.scale refuses a fixed t_f (lower == upper)
@@ -360,6 +376,48 @@ class Macs:
                                     if agent.subproblem == self.equal else self.equal)
             agent.moved = False
 
+    def spread(self) -> int:
+        """The final filter's placement (two objectives): ``archive_size`` targets equally
+        spaced in arc length along the polyline through the members sorted by J1, in
+        objectives normalised to the archive's span (:func:`~ocpar.macs.metrics.arc_lengths`;
+        its two ends the extreme members, kept). Each inner target is reached in one
+        superstep by the ε-constraint NLP min J_m s.t. J_1 ≤ the target's J_1, from the two
+        members around it along the front; the lower J_m of the kept solves (feasible, within
+        ε) becomes a member, and a target neither start reaches keeps the member nearest
+        to it. The members are then only these (dominated or repeated ones dropped); the
+        refinement (:meth:`refine`) checks them next. ``placed`` counts the targets reached.
+        Returns the evaluations."""
+        members = sorted(self.archive.members, key=lambda member: member.objectives[0])
+        self.placed = 0
+        if self.m != 2 or len(members) < 2:
+            return 0
+        before = self.evaluations
+        ideal, span = self.archive.ideal_and_nadir()[0], self._span()
+        normalised = (np.array([mb.objectives for mb in members]) - ideal) / span
+        lengths = arc_lengths(normalised)
+        along = np.linspace(0.0, lengths[-1], self.settings.archive_size)[1:-1]
+        bounds = ideal[0] + span[0] * np.interp(along, lengths, normalised[:, 0])
+        # the members around each target along the front: the last at or before it, the next
+        after = np.clip(np.searchsorted(lengths, along, side="right"), 1, len(members) - 1)
+        ceiling = ideal[-1] + 2 * span[-1]  # any J_m: only J_1 is bounded
+        tasks = [self._task("refine", z0=members[j].z, span=span,
+                            epsilon=np.array([bound, ceiling]))
+                 for bound, k in zip(bounds, after, strict=True) for j in (k - 1, k)]
+        results = self._superstep(tasks)
+        placed = [members[0]]
+        for n, (position, k) in enumerate(zip(along, after, strict=True)):
+            reached = [r for r in results[2 * n:2 * n + 2] if r.refined]
+            if reached:
+                best = min(reached, key=lambda r: r.objectives[-1])
+                placed.append(Member(best.z, best.objectives))
+                self.placed += 1
+            else:
+                nearest = k - 1 if position - lengths[k - 1] <= lengths[k] - position else k
+                placed.append(members[nearest])
+        self.archive.members = []
+        self.archive.add([*placed, members[-1]])
+        return self.evaluations - before
+
     def refine(self) -> int:
         """The final refinement. Each round is one superstep: every member due a check is
         re-solved by the ε-constraint NLP (ε = its objectives, scaled by the archive's span s)
@@ -370,12 +428,15 @@ class Macs:
         :data:`~ocpar.macs.local_search.STATIONARITY_TOL`), the member moves there (the best
         such point) and is not ``settled``. Members that now dominate or repeat others drop
         out. The next round checks the members that moved and their neighbours (and members
-        whose neighbours changed), until none is due or after :data:`REFINEMENT_ROUNDS`; a
-        member that moved in its last check stays unsettled. A last superstep measures every
+        whose neighbours changed), until none is due, or after :data:`REFINEMENT_ROUNDS`, or
+        once the rounds after the first have spent :data:`REFINEMENT_BUDGET` times the first
+        round's evaluations (``rounds`` and ``extra_evaluations`` say what it took); a member
+        that moved in its last check stays unsettled. A last superstep measures every
         member's Pareto stationarity (NaN if its task failed). Returns the refinement's
         evaluations."""
         span = self._span()
         before = self.evaluations
+        self.rounds, first = 0, 0
         # which first-round member each current one descends from, and at its last check
         # the lineages of its neighbours; lineages moved in the round before
         lineage = {id(member): n for n, member in enumerate(self.archive.members)}
@@ -388,12 +449,15 @@ class Macs:
             keys = [tuple(lines[j] for j in around) for around in neighbours]
             due = [i for i, key in enumerate(keys)
                    if checked.get(lines[i]) != key or moved.intersection((lines[i], *key))]
-            if not due:
+            if not due or (self.rounds and self.evaluations - before - first
+                           >= REFINEMENT_BUDGET * first):
                 break
             tasks = [self._task("refine", z0=members[j].z, span=span,
                                 epsilon=members[i].objectives)
                      for i in due for j in (i, *neighbours[i])]
             results = iter(self._superstep(tasks))
+            self.rounds += 1
+            first = first or self.evaluations - before
             moved = set()
             candidates = list(members)
             for i in due:
@@ -426,6 +490,7 @@ class Macs:
             failed = result.stationarity is None  # a failed task: the residual is unknown
             member.stationarity = np.nan if failed else result.stationarity
             member.tradeoff = np.full(self.m, np.nan) if failed else result.tradeoff
+        self.extra_evaluations = self.evaluations - before - first
         return self.evaluations - before
 
     def _move(self, agent: Agent, result: SearchResult) -> None:
@@ -456,13 +521,17 @@ class Macs:
                           if self.indicator and self.archive.members else "")
                 self.progress(f"iteration {iteration:4d}  evaluations {self.evaluations:6d}  "
                               f"archive {len(self.archive.members):3d}{figure}")
-        refinement = 0
+        refinement = spread = 0
+        if not self.settings.no_spread and self.archive.members:
+            spread = self.spread()
         if not self.settings.no_refine and self.archive.members:
             refinement = self.refine()
             if self.progress:
                 members = self.archive.members
                 self.progress(f"refinement: {sum(m.refined for m in members)} of "
                               f"{len(members)} members refined, {sum(m.moved for m in members)} "
-                              f"moved by a neighbour's start, {refinement} evaluations")
+                              f"moved by a neighbour's start, {self.rounds} rounds, "
+                              f"{refinement} evaluations")
         return MacsOutcome(self.archive, self.evaluations, iteration, self.failed, history,
-                           fronts, refinement, self.first_failure)
+                           fronts, refinement, self.first_failure,
+                           self.rounds, self.extra_evaluations, spread, self.placed)

@@ -113,3 +113,58 @@ def hypervolume(
     if len(points) == 0:
         return 0.0
     return float(moocore.hypervolume(points, ref=ref_point))
+
+
+def _ordered(front: np.ndarray) -> np.ndarray:
+    """A two-objective front's points (n, 2) sorted by J1 (then J2)."""
+    points = _points(front, "front")
+    if points.shape[1] != 2:
+        raise ValueError("the spread along a front needs two objectives")
+    return points[np.lexsort((points[:, 1], points[:, 0]))]
+
+
+def arc_lengths(front: np.ndarray) -> np.ndarray:
+    """Cumulative arc length (n,) of the polyline through a two-objective ``front`` (n, 2)
+    sorted by J1, in the front's own units (normalise first), from 0."""
+    points = _ordered(front)
+    return np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(points, axis=0), axis=1))])
+
+
+def igd_floor(reference: np.ndarray, n: int) -> float:
+    """The least IGD (:func:`inverted_generational_distance`) against ``reference`` (N, 2) of
+    any ``n`` of its own points: the best n-point subset, by dynamic programming over the
+    points sorted by J1 with each point served by a contiguous run of them (exact when the
+    nearest chosen point of every reference point is one of the two around it along the
+    front, as on a monotone front sampled finely). O(N² n) time, O(N²) memory."""
+    ref = _ordered(normalise(reference, reference))
+    count = len(ref)
+    if not 1 <= n <= count:
+        raise ValueError(f"n must be in [1, {count}], got {n}")
+    within = np.cumsum(np.linalg.norm(ref[:, None, :] - ref[None, :, :], axis=2), axis=0)
+    # cost[a, b]: the least Σ distance of points a..b to one of them (c in a..b)
+    cost = np.full((count, count), np.inf)
+    beyond = np.triu(np.ones((count, count), dtype=bool), k=1)  # [b, c]: c > b
+    for a in range(count):
+        sums = within[a:, a:] - (within[a - 1, a:] if a else 0.0)  # [b - a, c - a]
+        cost[a, a:] = np.where(beyond[a:, a:], np.inf, sums).min(axis=1)
+    best = cost[0].copy()  # best[b]: points 0..b served by the subsets chosen so far
+    for _ in range(n - 1):
+        best = np.array([np.min(best[:b] + cost[1:b + 1, b], initial=np.inf)
+                         for b in range(count)])
+    return float(best[-1] / count)
+
+
+def spacing(front: np.ndarray, samples: int = 200) -> dict:
+    """How evenly a two-objective ``front`` (k ≥ 2, 2) is spread along itself, in objectives
+    normalised to its own ideal and nadir: ``gaps`` (k−1,) the arc lengths between
+    consecutive points sorted by J1, ``igd`` the IGD of the points against ``samples``
+    points equally spaced in arc length along the polyline through them, and ``floor`` the
+    least IGD of any k of those samples (:func:`igd_floor`): the floor estimated from the
+    members alone (``igd``/``floor`` − 1 is how far their placement is above it)."""
+    points = normalise(front, front)
+    ordered, lengths = _ordered(points), arc_lengths(points)
+    along = np.linspace(0.0, lengths[-1], samples)
+    curve = np.column_stack([np.interp(along, lengths, ordered[:, j]) for j in range(2)])
+    return {"gaps": np.diff(lengths),
+            "igd": float(np.mean(_nearest_point_distances(curve, ordered))),
+            "floor": igd_floor(curve, len(ordered))}

@@ -3,7 +3,9 @@ refers to the factory of a module of :mod:`ocpar.examples`, written with the pub
 
 - ``goddard``: the MACS paper's Goddard-like ascent, min (t_f, −v_x(t_f));
 - ``orbit-raising``: the paper's maximum-energy orbit raising, min (t_f, −E(t_f));
-- ``double-integrator``: minimum time against minimum control energy (closed-form front).
+- ``double-integrator``: minimum time against minimum control energy (closed-form front);
+- ``zermelo``, ``zermelo-polar``: a boat crossing a jet, min (t_f, ∫|u|² dt), with Cartesian
+  controls and a speed limit, or polar controls (no reference front).
 """
 
 from __future__ import annotations
@@ -17,6 +19,8 @@ PROBLEMS = {
     "goddard": "ocpar.examples.macs_goddard:make",
     "orbit-raising": "ocpar.examples.macs_orbit_raising:make",
     "double-integrator": "ocpar.examples.macs_double_integrator:make",
+    "zermelo": "ocpar.examples.macs_zermelo:make",
+    "zermelo-polar": "ocpar.examples.macs_zermelo:make_polar",
 }
 
 

@@ -43,7 +43,12 @@ class MacsResult(RunResult):
     (``stationarity``, k) and trade-off weights (``tradeoff``, (k, m)); a member is
     :attr:`converged` when it is settled and its residual is ≤
     :data:`~ocpar.macs.local_search.STATIONARITY_TOL`; ``refinement_evaluations`` are
-    included in ``evaluations``.
+    included in ``evaluations``, ``refinement_rounds`` its rounds of checks and
+    ``refinement_extra_evaluations`` the evaluations of those after the first (the re-checks
+    of members that moved, :meth:`~ocpar.macs.algorithm.Macs.refine`). ``spread`` (None
+    without the final placement, :meth:`~ocpar.macs.algorithm.Macs.spread`): its
+    ``evaluations`` and targets ``placed`` (of ``targets``), and the transcribed front's
+    ``gaps``, ``igd`` and ``floor`` (:func:`~ocpar.macs.metrics.spacing`).
     """
 
     scheme: ClassVar[str] = "macs"
@@ -74,6 +79,9 @@ class MacsResult(RunResult):
     stationarity: np.ndarray | None = None
     tradeoff: np.ndarray | None = None
     refinement_evaluations: int = 0
+    refinement_rounds: int = 0
+    refinement_extra_evaluations: int = 0
+    spread: dict | None = None
     control_fractions: np.ndarray | None = None
     time_unit: str = DIMENSIONLESS
     states_labels: Labels | None = None
@@ -112,8 +120,13 @@ class MacsResult(RunResult):
             "hv": self.hv,
             "settings": self.settings,
             "history": self.history,
+            "spread": None if self.spread is None else {
+                key: (np.asarray(value).tolist() if key == "gaps" else value)
+                for key, value in self.spread.items()},
             "refinement": None if self.stationarity is None else {
                 "evaluations": self.refinement_evaluations,
+                "rounds": self.refinement_rounds,
+                "extra_evaluations": self.refinement_extra_evaluations,
                 "tolerance": STATIONARITY_TOL,
                 "refined": np.asarray(self.refined).tolist(),
                 "moved": np.asarray(self.moved).tolist(),
@@ -223,7 +236,7 @@ class MacsResult(RunResult):
             f"{len(self.front)} archive members after {self.evaluations} "
             f"evaluations, {self.iterations} iterations, {self.supersteps} supersteps "
             f"({self.failed_searches} infeasible searches rejected)\n"
-            f"{self.refinement()}"
+            f"{self.placement()}{self.refinement()}"
             f"{self.quality()}{self.hv_scale()}\n"
             f"wall time {self.wall_time_s:.2f} s on {self.workers} {self.backend} worker(s)"
         )
@@ -240,6 +253,16 @@ class MacsResult(RunResult):
         return (f"   (HV of the objectives scaled to the {box} ideal 0 and nadir 1, up to "
                 f"1.1 in each: the ideal point would give 1.1^{m} = {1.1 ** m:.4g})")
 
+    def placement(self) -> str:
+        """The final placement as one line (empty without it)."""
+        if self.spread is None:
+            return ""
+        igd, floor = self.spread["igd"], self.spread["floor"]
+        return (f"placement: {self.spread['placed']} of {self.spread['targets']} targets "
+                f"reached, {self.spread['evaluations']} of the evaluations; spacing IGD "
+                f"{igd:.4g} against {floor:.4g}, the floor estimated from the members "
+                f"({100 * (igd / floor - 1):+.1f} %)\n")
+
     def refinement(self) -> str:
         """The final refinement as one line (empty without it)."""
         if self.stationarity is None:
@@ -252,7 +275,9 @@ class MacsResult(RunResult):
                 f"{int(np.sum(self.converged))} converged (settled, stationary to "
                 f"{STATIONARITY_TOL:g}; largest residual "
                 f"{np.max(self.stationarity, initial=0.0):.1e}), "
-                f"{self.refinement_evaluations} of the evaluations\n")
+                f"{self.refinement_evaluations} of the evaluations in "
+                f"{self.refinement_rounds} rounds ({self.refinement_extra_evaluations} after "
+                f"the first)\n")
 
     def headline_title(self) -> str:
         """The front's quality, for the plots' titles (:meth:`~ocpar.results.RunResult.title`)."""

@@ -13,7 +13,12 @@ from ocpar.bsp.serial import SerialBackend
 from ocpar.macs.algorithm import Macs, MacsOutcome, MacsSettings
 from ocpar.macs.archive import Member
 from ocpar.macs.local_search import STATIONARITY_TOL, search_settings
-from ocpar.macs.metrics import generational_distance, hypervolume, inverted_generational_distance
+from ocpar.macs.metrics import (
+    generational_distance,
+    hypervolume,
+    inverted_generational_distance,
+    spacing,
+)
 from ocpar.macs.objectives import objective_functions
 from ocpar.macs.problem import MacsProblem
 from ocpar.macs.result import MacsResult
@@ -36,9 +41,11 @@ def hypervolume_box(problem: MacsProblem, front: np.ndarray) -> np.ndarray | Non
     return box if len(box) >= 2 and np.all(np.ptp(box, axis=0) > 0) else None
 
 
-def refinement_fields(members: list[Member], evaluations: int) -> dict:
+def refinement_fields(members: list[Member], evaluations: int, rounds: int = 0,
+                      extra_evaluations: int = 0) -> dict:
     """The members' refinement outcome as :class:`MacsResult` fields (none if the
-    refinement did not run)."""
+    refinement did not run): with its ``evaluations``, its ``rounds`` of checks and the
+    evaluations of those after the first (``extra_evaluations``)."""
     if not members or members[0].stationarity is None:
         return {}
     return {"refined": np.array([mb.refined for mb in members]),
@@ -47,7 +54,20 @@ def refinement_fields(members: list[Member], evaluations: int) -> dict:
             "settled": np.array([mb.settled for mb in members]),
             "stationarity": np.array([mb.stationarity for mb in members]),
             "tradeoff": np.array([mb.tradeoff for mb in members]),
-            "refinement_evaluations": evaluations}
+            "refinement_evaluations": evaluations, "refinement_rounds": rounds,
+            "refinement_extra_evaluations": extra_evaluations}
+
+
+def spread_fields(settings: MacsSettings, outcome: MacsOutcome,
+                  front: np.ndarray) -> dict | None:
+    """The final placement's outcome (None if it did not run: ``no_spread``, not two
+    objectives, or fewer than two members): its evaluations, targets placed (of the
+    ``archive_size`` − 2 inner ones) and the ``front``'s spacing
+    (:func:`~ocpar.macs.metrics.spacing`)."""
+    if settings.no_spread or front.shape[1] != 2 or len(front) < 2:
+        return None
+    return {"evaluations": outcome.spread_evaluations, "placed": outcome.spread_placed,
+            "targets": settings.archive_size - 2, **spacing(front)}
 
 
 def failure_message(outcome: MacsOutcome) -> str:
@@ -111,6 +131,7 @@ def solve_macs(
     known = reference is not None and len(front) > 0
     dfet = dfet_problem(problem.shape)
     status, message = run_status(members, outcome)
+    transcribed = np.array([mb.objectives for mb in members]).reshape(-1, m)
     return MacsResult(
         problem=problem.name,
         seed=settings.seed,
@@ -119,7 +140,7 @@ def solve_macs(
         status=status,
         message=message,
         front=front,
-        front_transcribed=np.array([mb.objectives for mb in members]).reshape(-1, m),
+        front_transcribed=transcribed,
         decisions=np.array([mb.z[dfet.decision_slice] for mb in members]).reshape(
             -1, dfet.nz - dfet.decision_slice.start),
         states=np.array([dfet.state_nodes_of(mb.z) for mb in members]).reshape(
@@ -143,7 +164,9 @@ def solve_macs(
         objective_names=problem.objective_names,
         reference_front=reference,
         history=history,
-        **refinement_fields(members, outcome.refinement_evaluations),
+        **refinement_fields(members, outcome.refinement_evaluations, outcome.refinement_rounds,
+                            outcome.refinement_extra_evaluations),
+        spread=spread_fields(settings, outcome, transcribed),
         trace=backend.traces[first_trace:],
         solver_options=used(macs.solver_options, {
             kind: {"ipopt": value}
