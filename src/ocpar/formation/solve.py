@@ -53,6 +53,7 @@ from ocpar.formation.targets.slots import SLOT_CANDIDATES, Slots
 from ocpar.formation.targets.surface import Surface
 from ocpar.formation.verify import (
     Verification,
+    checked_positions,
     near_collision_words,
     verify_checked,
     verify_formation,
@@ -387,7 +388,8 @@ def _check_ode_applicable(options: FormationOptions) -> None:
 
 def obstacle_check(problem: FormationProblem, positions: np.ndarray, status: str,
                     message: str) -> tuple[str, str, dict]:
-    """The returned paths' positions (n, N+1, p) checked against ``problem``'s obstacles
+    """The returned paths' positions (n, P, p; :func:`~ocpar.formation.verify.checked_positions`:
+    the nodes, or an ODE agent's re-integrated path) checked against ``problem``'s obstacles
     (:func:`~ocpar.formation.keep_out.obstacles.closest_obstacle`, independently of the
     inner planes): the status (``obstacles_not_cleared`` if a path of a run that reached its
     answer is inside one), the message and the result's obstacle fields (clearance, each
@@ -683,11 +685,13 @@ def solve_formation(
         positions, squares, parts = done.positions, done.squares, done.parts
         verification = verify_checked(problem, positions, done.ends, phi, done.checks,
                                       distance, backend,
-                                      time.perf_counter() - checking - done.written_s)
+                                      time.perf_counter() - checking - done.written_s,
+                                      checked_positions(problem, trajectories, controls))
         if parts:   # the workers wrote their agents' part of the array file
             extra["timings"] = {"files_s": done.written_s}
     checking = time.perf_counter()
-    status, message, obstacle_fields = obstacle_check(problem, positions, status, message)
+    status, message, obstacle_fields = obstacle_check(
+        problem, checked_positions(problem, trajectories, controls), status, message)
     extra |= obstacle_fields
     verification, status, message = _verified(verification, status, message)
     status, message = ordering_status(ordered, status, message)

@@ -18,6 +18,22 @@ j = 0..N−1; one of ``x`` alone at x_1..x_N) are inequalities, imposed at those
 (between samples an RK4 path is no segment). A model's finite ``state_bounds`` are refused
 (write them as path constraints of ``x``: the verification checks those).
 
+Obstacles (``obstacles``, :mod:`ocpar.ocp.obstacles`: ellipsoids and half-spaces in the
+position entries ``obstacle_positions``, by default the model's ``position_indices``): an RK4
+path is no chain of segments, so the keep-out is imposed on the polyline through the
+integrator's own states, x_j, the ``steps`` − 1 sub-step states of interval j, x_{j+1}: one
+row |y*|² − 1 ≥ 0 per sub-step and ellipsoid (:func:`~ocpar.ocp.obstacles.segment_rows`,
+y* the scaled chord's point nearest the centre: the polyline is clear exactly) and the
+half-spaces at every point of it but x_0 and x_N (data). Between two sub-step states the
+path is the integrator's continuous solution, not the chord: it bulges out of the chord by
+about (h/``steps``)² |r̈| / 8, outwards where it bends round the obstacle, inwards where it
+bends away; :mod:`ocpar.formation.verify` re-integrates each sub-step with
+:data:`~ocpar.formation.verify.DENSE_SUBSTEPS` finer steps and checks the clearance there
+(raise ``steps`` where it reports a path inside). The side of each ellipsoid is the one the
+first guess takes (:meth:`MsEndpointTranscription.default_guesses` pushes a guess that
+enters an ellipsoid out on the side of its point nearest the centre); the other side is not
+searched.
+
 The contract of a formation's agent (:mod:`ocpar.ocp.endpoint_agents`): J*, dJ*/dp (CasADi's
 −λ_p), and ``end_hessian`` d²J*/dx̄_N² (nx, nx) from the KKT system
 (:mod:`ocpar.ocp.sensitivity`; of the active set where a bound or a path row is active), the
@@ -55,6 +71,7 @@ from ocpar.ocp.constraints import (
 )
 from ocpar.ocp.contract import InnerSolution, call_nlpsol, check_params
 from ocpar.ocp.multiple_shooting import INTEGRATORS, step_function
+from ocpar.ocp.obstacles import Obstacle, check_obstacles, segment_rows, side_guesses
 from ocpar.ocp.sensitivity import cost_hessian_function
 from ocpar.ocp.solver_options import SolverOptions, ipopt, newton, solver_options, sqpmethod
 
@@ -95,7 +112,9 @@ class MsEndpointShape:
     at its noise after 17 supersteps instead of converging in 4); ``tol`` and
     ``max_iter`` IPOPT's; ``solver_options`` the inner solvers' own options (``ipopt.tol``,
     ``sqpmethod.max_iter``, ``newton.kkt_tol``, …; :mod:`ocpar.ocp.solver_options`) over
-    these defaults, checked when the shape is built."""
+    these defaults, checked when the shape is built; ``obstacles`` kept out of on the
+    polyline through the integrator's sub-step states of the entries ``obstacle_positions``
+    (default: the model's ``position_indices``; module docstring)."""
 
     model: OdeModel
     intervals: int = 10
@@ -110,6 +129,8 @@ class MsEndpointShape:
     tol: float = 1e-12
     max_iter: int = 500
     solver_options: SolverOptions = ()
+    obstacles: tuple[Obstacle, ...] = ()
+    obstacle_positions: tuple[int, ...] = ()
 
     def __post_init__(self) -> None:
         check_ode_model(self.model, "shape.model")
@@ -131,6 +152,7 @@ class MsEndpointShape:
                              f"the position entries {tuple(positions)}, got {self.free_end}")
         object.__setattr__(self, "path_constraints", compile_constraints(
             self.path_constraints, {"x": nx, "u": nu}))
+        self._check_obstacles(tuple(positions))
         if self.control_bounds is not None:
             object.__setattr__(self, "control_bounds", _pairs(self.control_bounds, nu))
         for name, value in (("intervals", self.intervals), ("steps", self.steps)):
@@ -149,10 +171,26 @@ class MsEndpointShape:
                              "and the newton solver takes equalities only; choose sqpmethod, "
                              "ipopt or auto (the default)")
 
+    def _check_obstacles(self, positions: tuple[int, ...]) -> None:
+        """``obstacles`` (of one dimension d) on ``obstacle_positions`` (d distinct state
+        entries; default ``positions``, the model's), or ValueError naming the field."""
+        if not self.obstacles:
+            if self.obstacle_positions:
+                raise ValueError("obstacle_positions needs obstacles")
+            return
+        entries = tuple(int(i) for i in (self.obstacle_positions or positions))
+        if len(set(entries)) != len(entries) \
+                or not all(0 <= i < self.model.nx for i in entries):
+            raise ValueError(f"obstacle_positions: must be distinct state entries "
+                             f"(0..{self.model.nx - 1}), got {entries}")
+        object.__setattr__(self, "obstacle_positions", entries)
+        object.__setattr__(self, "obstacles", check_obstacles(self.obstacles, len(entries)))
+
     @property
     def has_inequalities(self) -> bool:
-        """Whether the NLP has inequalities (control bounds, path constraints)."""
-        return self.control_bounds is not None or bool(self.path_constraints)
+        """Whether the NLP has inequalities (control bounds, path constraints, obstacles)."""
+        return self.control_bounds is not None or bool(self.path_constraints) \
+            or bool(self.obstacles)
 
     @property
     def chosen_solver(self) -> str:
@@ -247,13 +285,15 @@ class MsEndpointTranscription:
         p = ca.SX.sym("p", 2 * nx)
         x_free, u = ca.SX.sym("x", nx, n), ca.SX.sym("u", nu, n)
         x = ca.horzcat(p[:nx], x_free)
-        gaps, rates = [], []
+        gaps, rates, polyline = [], [], [x[:, 0]]
         for j in range(n):
             state = x[:, j]
             for _ in range(shape.steps):
                 state, rate = phi(state, u[:, j])
                 rates.append(rate)
+                polyline.append(state)
             gaps.append(x[:, j + 1] - state)
+            polyline[-1] = x[:, j + 1]   # the node itself: the same point where gap = 0
         fixed = [i for i in range(nx) if i not in shape.free_end]
         ends = [x[i, n] - p[nx + i] for i in fixed]
         cost = h / shape.steps * ca.sum1(ca.vertcat(*rates))
@@ -262,14 +302,18 @@ class MsEndpointTranscription:
             path.add(constraint, [{"x": x[:, j], "u": u[:, j]} for j in range(n)]
                      if constraint.depends_on("u") else [{"x": x[:, j]} for j in range(1, n + 1)])
         equations = ca.vertcat(*gaps, *ends)
+        keep_out = ca.vertcat(*segment_rows(shape.obstacles, [
+            point[list(shape.obstacle_positions)] for point in polyline]))
         w = ca.vertcat(ca.vec(x_free), ca.vec(u))
-        g = ca.vertcat(equations, path.expr)
+        inequalities = ca.vertcat(path.expr, keep_out)
+        g = ca.vertcat(equations, inequalities)
         self._w, self._p, self._f, self._g = w, p, cost, g
         self.nw, self.ng, self.n_eq, self.n_path = w.numel(), g.numel(), equations.numel(), \
-            path.count
+            inequalities.numel()
         self.n_params = shape.n_params
-        self.lbg = np.concatenate([np.zeros(self.n_eq), path.lower])
-        self.ubg = np.concatenate([np.zeros(self.n_eq), path.upper])
+        clear = np.full(keep_out.numel(), np.inf)
+        self.lbg = np.concatenate([np.zeros(self.n_eq), path.lower, np.zeros(clear.size)])
+        self.ubg = np.concatenate([np.zeros(self.n_eq), path.upper, clear])
         lo, hi = (np.array(b) for b in zip(*(shape.control_bounds or [(-np.inf, np.inf)] * nu),
                                            strict=True))
         self.lbx = np.concatenate([np.full(nx * n, -np.inf), np.tile(lo, n)])
@@ -282,7 +326,7 @@ class MsEndpointTranscription:
         self.active_hessian = cost_hessian_function("ms_end", w, p, cost, g, block,
                                                     active_set=True) \
             if shape.has_inequalities else None
-        self.path_rows = ca.Function("path", [w, p], [path.expr])
+        self.path_rows = ca.Function("path", [w, p], [inequalities])
 
     @cached_property
     def solver(self) -> ca.Function:
@@ -341,7 +385,20 @@ class MsEndpointTranscription:
         return self.default_guesses(np.asarray(params, float)[None])[0]
 
     def default_guesses(self, params: np.ndarray) -> np.ndarray:
-        """:meth:`default_guess` of each row of ``params`` (k, 2 nx): (k, nw)."""
+        """:meth:`default_guess` of each row of ``params`` (k, 2 nx): (k, nw); with
+        ellipsoid obstacles, each guess's free nodes inside one pushed out on the side of its
+        point nearest the centre (:func:`~ocpar.ocp.obstacles.side_guesses`' first)."""
+        guesses = self._line_guesses(params)
+        if not self.shape.obstacles:
+            return guesses
+        q, u = self.unpack_many(guesses, params)
+        entries = list(self.shape.obstacle_positions)
+        for path in q:
+            path[:, entries] = side_guesses(self.shape.obstacles, path[:, entries])[0][0]
+        return self.shape.previous_guesses(q, u)
+
+    def _line_guesses(self, params: np.ndarray) -> np.ndarray:
+        """The guesses of :meth:`default_guesses` before the obstacles (k, nw)."""
         nx, n, k = self.nx, self.n, len(params)
         x0, xn = params[:, :nx], params[:, nx:].copy()
         free = list(self.shape.free_end)
