@@ -1,0 +1,176 @@
+"""ODE agents (:class:`~ocpar.ocp.MsEndpointShape`) past an obstacle: unicycles whose free
+paths cross a disc, kept out of it on the polyline through their RK4 sub-step states, against
+one NLP of all agents with the same clearance rows written here (IPOPT, independent of the
+package's code); the returned paths clear of the disc on a dense re-integration; serial and
+mpirun -n 2 bit-identical."""
+
+from __future__ import annotations
+
+import dataclasses
+import itertools
+
+import casadi as ca
+import numpy as np
+import pytest
+from conftest import computed, read_result, run_ocpar
+from test_ode_agents import IPOPT, _rk4
+
+from ocpar.examples.formation_unicycles import make
+from ocpar.formation import solve_formation
+from ocpar.formation.keep_out.obstacles import closest_obstacle, segment_clearance
+from ocpar.formation.verify import checked_positions
+from ocpar.ocp import MsEndpointShape
+from ocpar.ocp.obstacles import HalfSpace, Sphere
+
+AGENTS, DURATION, INTERVALS, STEPS = 4, 6.0, 20, 4
+#: A disc the first agent's free path crosses (it passes x ≈ −1.4 at y ≈ −0.1).
+CENTER, RADIUS = (-1.3, -0.5), 0.6
+
+
+def obstacle_problem():
+    """Four unicycles onto a circle past the disc, ``STEPS`` RK4 steps per interval."""
+    problem = make(agents=AGENTS, duration=DURATION, intervals=INTERVALS)
+    return dataclasses.replace(problem, shape=dataclasses.replace(problem.shape, steps=STEPS),
+                               obstacles=(Sphere(CENTER, RADIUS),))
+
+
+@pytest.fixture(scope="module")
+def free_and_kept_out():
+    free = make(agents=AGENTS, duration=DURATION, intervals=INTERVALS)
+    problem = obstacle_problem()
+    return free, solve_formation(free), problem, solve_formation(problem)
+
+
+def _clearance_rows(points: list[ca.MX]) -> list[ca.MX]:
+    """|y*|² − 1 ≥ 0 per chord of the polyline ``points`` (positions), y* the chord's point
+    nearest the disc's centre, scaled by its radius."""
+    rows = []
+    for a, b in itertools.pairwise(points):
+        ya, yb = (a - ca.DM(CENTER)) / RADIUS, (b - ca.DM(CENTER)) / RADIUS
+        step = yb - ya
+        s = ca.fmin(ca.fmax(-ca.dot(ya, step) / ca.dot(step, step), 0), 1)
+        rows.append(ca.sumsqr(ya + s * step) - 1)
+    return rows
+
+
+def monolithic(problem, result) -> float:
+    """All agents, the coupling (the potential's equidistant angles on the circle in the
+    agents' order, rotation θ free) and each agent's clearance rows on the polyline through
+    its RK4 sub-step states in one IPOPT NLP, started at the run's answer; returns J*."""
+    n, radius = problem.agents, problem.curve.radius
+    rank = np.argsort(np.argsort(problem.starts[:, 0], kind="stable"))
+    theta = ca.MX.sym("theta")
+    phi = theta + 2 * np.pi * rank / n
+    variables, guess = [theta], [float(np.asarray(result.phi)[np.argmin(rank)])]
+    lower, upper = [-np.inf], [np.inf]
+    cost, equations, clear = 0, [], []
+    h = DURATION / INTERVALS
+    for i in range(n):
+        end = radius * ca.vertcat(ca.cos(phi[i]), ca.sin(phi[i]))
+        xs = [ca.MX.sym(f"x{i}_{k}", 4) for k in range(INTERVALS)]
+        us = [ca.MX.sym(f"u{i}_{k}", 2) for k in range(INTERVALS)]
+        x, points = ca.DM(problem.starts[i]), [ca.DM(problem.starts[i][:2])]
+        for k in range(INTERVALS):
+            state = x
+            for _ in range(STEPS):
+                state, c = _rk4(state, us[k], h / STEPS)
+                cost += c
+                points.append(state[:2])
+            equations.append(xs[k] - state)
+            points[-1] = xs[k][:2]
+            x = xs[k]
+        equations += [x[:2] - end, x[3]]
+        clear += _clearance_rows(points)
+        variables += xs + us
+        guess += [result.trajectories[i, 1:].ravel(), result.controls[i].ravel()]
+        lower += [-np.inf] * (6 * INTERVALS)
+        upper += [np.inf] * (6 * INTERVALS)
+    g = ca.vertcat(*equations, *clear)
+    solver = ca.nlpsol("reference", "ipopt", {"x": ca.vertcat(*variables), "f": cost, "g": g},
+                       IPOPT)
+    m = ca.vertcat(*equations).numel()
+    out = solver(x0=np.hstack([np.ravel(v) for v in guess]), lbx=lower, ubx=upper,
+                 lbg=np.zeros(g.numel()), ubg=np.r_[np.zeros(m), np.full(g.numel() - m, np.inf)])
+    assert solver.stats()["success"], solver.stats()["return_status"]
+    return float(out["f"])
+
+
+def test_the_free_paths_cross_the_disc(free_and_kept_out):
+    free, result = free_and_kept_out[:2]
+    assert result.status == "converged"
+    gaps = segment_clearance(free.positions(result.trajectories), (Sphere(CENTER, RADIUS),))
+    assert np.min(gaps) < -0.1
+
+
+def test_unicycles_past_a_disc_equal_the_monolithic_nlp(free_and_kept_out):
+    free_result, problem, result = free_and_kept_out[1:]
+    assert result.status == "converged" and result.verification.passed, result.message
+    assert result.total_cost > free_result.total_cost
+    # clear on the dense re-integration (the verification's) and on an independent one
+    assert result.obstacle_clearance.distance >= -1e-9
+    dense = checked_positions(problem, result.trajectories, result.controls)
+    assert dense.shape == (AGENTS, INTERVALS * STEPS * 8 + 1, 2)
+    assert closest_obstacle(dense, problem.obstacles, DURATION).distance >= -1e-9
+    assert np.min(_finely_integrated_clearance(problem, result)) >= -1e-9
+    # the disc binds: some sub-step state lies on it
+    assert result.obstacle_clearance.distance <= 1e-3
+    value = monolithic(problem, result)
+    assert abs(result.total_cost - value) <= 1e-8 * abs(value)
+
+
+def _finely_integrated_clearance(problem, result) -> np.ndarray:
+    """Each agent's distance from the disc (length unit) at 64 points per interval, its
+    controls integrated from its start node by 64 RK4 steps per interval (the test's RK4)."""
+    h = DURATION / INTERVALS / 64
+    x, u = ca.MX.sym("x", 4), ca.MX.sym("u", 2)
+    step = ca.Function("step", [x, u], [_rk4(x, u, h)[0]])
+    gaps = []
+    for i in range(AGENTS):
+        state = result.trajectories[i, 0]
+        for k in range(INTERVALS):
+            for _ in range(64):
+                state = np.asarray(step(state, result.controls[i, k])).ravel()
+                gaps.append(np.linalg.norm(state[:2] - CENTER) - RADIUS)
+    return np.array(gaps)
+
+
+def test_obstacle_fields_are_checked_in_one_line():
+    for kwargs, match in (({"obstacle_positions": (0, 1)}, "obstacle_positions needs"),
+                          ({"obstacles": (Sphere((0, 0, 0), 1.0),)}, r"obstacles\[0\]"),
+                          ({"obstacles": (Sphere((0, 0), 1.0),), "obstacle_positions": (0, 0)},
+                           "obstacle_positions: must be distinct")):
+        with pytest.raises(ValueError, match=match):
+            MsEndpointShape(make(agents=2).shape.model, **kwargs)
+    shape = MsEndpointShape(make(agents=2).shape.model,
+                            obstacles=(HalfSpace((0.0, 1.0), -10.0),))
+    assert shape.obstacle_positions == (0, 1) and shape.chosen_solver == "sqpmethod"
+
+
+FACTORY = f"""\
+import dataclasses
+import itertools
+from ocpar.examples.formation_unicycles import make as unicycles
+from ocpar.formation.keep_out.obstacles import Sphere
+
+
+def make():
+    problem = unicycles(agents={AGENTS}, duration={DURATION}, intervals={INTERVALS})
+    return dataclasses.replace(
+        problem, shape=dataclasses.replace(problem.shape, steps={STEPS}),
+        obstacles=(Sphere({CENTER}, {RADIUS}),))
+"""
+
+
+def test_mpirun_gives_the_serial_result_bitwise(tmp_path, free_and_kept_out):
+    (tmp_path / "disc_unicycles.py").write_text(FACTORY)
+    (tmp_path / "run.toml").write_text('scheme = "formation"\nproblem = '
+                                       '"disc_unicycles:make"\nquiet = true\n')
+    runs = {}
+    for name, ranks in (("serial", None), ("mpi", 2)):
+        proc = run_ocpar(tmp_path, tmp_path, "run", "run.toml", "--output",
+                         str(tmp_path / name), mpi_ranks=ranks)
+        assert proc.returncode == 0, proc.stderr
+        runs[name] = read_result(tmp_path / name)
+    assert runs["serial"]["status"] == "converged" and runs["mpi"]["workers"] == 2
+    assert computed(runs["mpi"]) == computed(runs["serial"])
+    assert runs["serial"]["total_cost"] == free_and_kept_out[3].total_cost
