@@ -1,8 +1,9 @@
 """ODE agents (:class:`~ocpar.ocp.MsEndpointShape`) past an obstacle: unicycles whose free
 paths cross a disc, kept out of it on the polyline through their RK4 sub-step states, against
 one NLP of all agents with the same clearance rows written here (IPOPT, independent of the
-package's code); the returned paths clear of the disc on a dense re-integration; serial and
-mpirun -n 2 bit-identical."""
+package's code); the returned paths clear of the disc on a dense re-integration; an
+infeasible start through phase 1 (the agents' elastic problems) equal to that NLP with the
+acceleration bound; serial and mpirun -n 2 bit-identical."""
 
 from __future__ import annotations
 
@@ -16,10 +17,10 @@ from conftest import computed, read_result, run_ocpar
 from test_ode_agents import IPOPT, _rk4
 
 from ocpar.examples.formation_unicycles import make
-from ocpar.formation import solve_formation
+from ocpar.formation import FormationOptions, solve_formation
 from ocpar.formation.keep_out.obstacles import closest_obstacle, segment_clearance
 from ocpar.formation.verify import checked_positions
-from ocpar.ocp import MsEndpointShape
+from ocpar.ocp import MsEndpointShape, transcription
 from ocpar.ocp.obstacles import HalfSpace, Sphere
 
 AGENTS, DURATION, INTERVALS, STEPS = 4, 6.0, 20, 4
@@ -53,46 +54,65 @@ def _clearance_rows(points: list[ca.MX]) -> list[ca.MX]:
     return rows
 
 
+def _agent(problem, i: int, end: ca.MX):
+    """Agent i's part of an NLP: variables (x_1..x_N, u_0..u_{N−1}), their bounds (|a| ≤ the
+    shape's bound), cost, equations (= 0: continuity by ``steps`` RK4 steps, the end
+    position ``end`` and speed 0) and, with the disc, its clearance rows (≥ 0) on the
+    polyline through the RK4 sub-step states."""
+    shape, h = problem.shapes[i], DURATION / INTERVALS
+    xs = [ca.MX.sym(f"x{i}_{k}", 4) for k in range(INTERVALS)]
+    us = [ca.MX.sym(f"u{i}_{k}", 2) for k in range(INTERVALS)]
+    x, points = ca.DM(problem.starts[i]), [ca.DM(problem.starts[i][:2])]
+    cost, equations = 0, []
+    for k in range(INTERVALS):
+        state = x
+        for _ in range(shape.steps):
+            state, c = _rk4(state, us[k], h / shape.steps)
+            cost += c
+            points.append(state[:2])
+        equations.append(xs[k] - state)
+        points[-1] = xs[k][:2]
+        x = xs[k]
+    equations += [x[:2] - end, x[3]]
+    a = np.inf if shape.control_bounds is None else shape.control_bounds[0][1]
+    lower = np.r_[np.full(4 * INTERVALS, -np.inf), np.tile([-a, -np.inf], INTERVALS)]
+    upper = np.r_[np.full(4 * INTERVALS, np.inf), np.tile([a, np.inf], INTERVALS)]
+    clear = _clearance_rows(points) if problem.obstacles else []
+    return xs + us, lower, upper, cost, equations, clear
+
+
+def _ipopt(variables, lower, upper, cost, equations, clear, guess) -> tuple[bool, float]:
+    """IPOPT on the NLP: (success, J*)."""
+    g = ca.vertcat(*equations, *clear)
+    m = ca.vertcat(*equations).numel()
+    solver = ca.nlpsol("reference", "ipopt", {"x": ca.vertcat(*variables), "f": cost, "g": g},
+                       IPOPT)
+    out = solver(x0=guess, lbx=lower, ubx=upper, lbg=np.zeros(g.numel()),
+                 ubg=np.r_[np.zeros(m), np.full(g.numel() - m, np.inf)])
+    return solver.stats()["success"], float(out["f"])
+
+
 def monolithic(problem, result) -> float:
     """All agents, the coupling (the potential's equidistant angles on the circle in the
-    agents' order, rotation θ free) and each agent's clearance rows on the polyline through
-    its RK4 sub-step states in one IPOPT NLP, started at the run's answer; returns J*."""
+    agents' order, rotation θ free), their bounds and (with the disc) their clearance rows
+    in one IPOPT NLP, started at the run's answer; returns J*."""
     n, radius = problem.agents, problem.curve.radius
     rank = np.argsort(np.argsort(problem.starts[:, 0], kind="stable"))
     theta = ca.MX.sym("theta")
     phi = theta + 2 * np.pi * rank / n
-    variables, guess = [theta], [float(np.asarray(result.phi)[np.argmin(rank)])]
-    lower, upper = [-np.inf], [np.inf]
-    cost, equations, clear = 0, [], []
-    h = DURATION / INTERVALS
+    parts = [[theta], [-np.inf], [np.inf], 0, [], []]
+    guess = [float(np.asarray(result.phi)[np.argmin(rank)])]
     for i in range(n):
-        end = radius * ca.vertcat(ca.cos(phi[i]), ca.sin(phi[i]))
-        xs = [ca.MX.sym(f"x{i}_{k}", 4) for k in range(INTERVALS)]
-        us = [ca.MX.sym(f"u{i}_{k}", 2) for k in range(INTERVALS)]
-        x, points = ca.DM(problem.starts[i]), [ca.DM(problem.starts[i][:2])]
-        for k in range(INTERVALS):
-            state = x
-            for _ in range(STEPS):
-                state, c = _rk4(state, us[k], h / STEPS)
-                cost += c
-                points.append(state[:2])
-            equations.append(xs[k] - state)
-            points[-1] = xs[k][:2]
-            x = xs[k]
-        equations += [x[:2] - end, x[3]]
-        clear += _clearance_rows(points)
-        variables += xs + us
+        agent = _agent(problem, i, radius * ca.vertcat(ca.cos(phi[i]), ca.sin(phi[i])))
+        for j in (0, 4, 5):
+            parts[j] += agent[j]
+        parts[1] = np.r_[parts[1], agent[1]]
+        parts[2] = np.r_[parts[2], agent[2]]
+        parts[3] += agent[3]
         guess += [result.trajectories[i, 1:].ravel(), result.controls[i].ravel()]
-        lower += [-np.inf] * (6 * INTERVALS)
-        upper += [np.inf] * (6 * INTERVALS)
-    g = ca.vertcat(*equations, *clear)
-    solver = ca.nlpsol("reference", "ipopt", {"x": ca.vertcat(*variables), "f": cost, "g": g},
-                       IPOPT)
-    m = ca.vertcat(*equations).numel()
-    out = solver(x0=np.hstack([np.ravel(v) for v in guess]), lbx=lower, ubx=upper,
-                 lbg=np.zeros(g.numel()), ubg=np.r_[np.zeros(m), np.full(g.numel() - m, np.inf)])
-    assert solver.stats()["success"], solver.stats()["return_status"]
-    return float(out["f"])
+    success, value = _ipopt(*parts, np.hstack([np.ravel(v) for v in guess]))
+    assert success
+    return value
 
 
 def test_the_free_paths_cross_the_disc(free_and_kept_out):
@@ -132,6 +152,44 @@ def _finely_integrated_clearance(problem, result) -> np.ndarray:
                 state = np.asarray(step(state, result.controls[i, k])).ravel()
                 gaps.append(np.linalg.norm(state[:2] - CENTER) - RADIUS)
     return np.array(gaps)
+
+
+def test_an_infeasible_start_goes_through_phase_one_and_equals_the_monolithic_nlp():
+    """|a| ≤ 0.8 (the free optimum's peak is 1.2) with the formation turned by π at the start:
+    some agent cannot reach its target there (the test's own NLP of it is infeasible), phase
+    1 (the agents' elastic problems) finds a feasible rotation, phase 2 the optimum."""
+    problem = make(agents=AGENTS, duration=DURATION, intervals=INTERVALS,
+                   acceleration_limit=0.8)
+    start = problem.initial_phi() + np.pi
+    reachable = []
+    for i in range(AGENTS):
+        agent = _agent(problem, i, ca.DM(problem.curve.radius * np.array(
+            [np.cos(start[i]), np.sin(start[i])])))
+        guess = np.zeros(6 * INTERVALS)
+        reachable.append(_ipopt(*agent, guess)[0])
+    assert not all(reachable)
+    result = solve_formation(problem, options=FormationOptions(initial_rotation=np.pi))
+    assert result.status == "converged" and result.verification.passed, result.message
+    assert "phase 1" in result.message
+    value = monolithic(problem, result)
+    assert abs(result.total_cost - value) <= 1e-8 * abs(value)
+    assert np.max(np.abs(result.controls[..., 0])) <= 0.8 * (1 + 1e-9)
+
+
+def test_the_elastic_problem_s_gradient_is_the_finite_difference():
+    """ds*/dx̄_N of an ODE agent's elastic problem (−λ_p) against central differences, where
+    the end is out of reach under |a| ≤ 0.3 (s > 0)."""
+    shape = make(agents=2, acceleration_limit=0.3).shape
+    elastic = transcription(dataclasses.replace(shape, elastic=True, solver="ipopt"))
+    params = np.array([0.0, -5.0, np.pi / 2, 0.0, 0.5, -2.0, 0.0, 0.0])
+    solved = elastic.solve(params)
+    assert solved.success and solved.cost > 1e-3
+    assert not transcription(shape).solve(params).success
+    for entry in (4, 5):
+        step = np.zeros(8)
+        step[entry] = 1e-5
+        slope = (elastic.solve(params + step).cost - elastic.solve(params - step).cost) / 2e-5
+        assert abs(solved.cost_gradient[entry] - slope) <= 1e-5 * (1 + abs(slope))
 
 
 def test_obstacle_fields_are_checked_in_one_line():

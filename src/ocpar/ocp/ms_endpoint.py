@@ -67,6 +67,7 @@ from ocpar.ocp.constraints import (
     CompiledConstraint,
     ConstraintRows,
     PathConstraint,
+    bound_sizes,
     compile_constraints,
 )
 from ocpar.ocp.contract import InnerSolution, call_nlpsol, check_params
@@ -114,7 +115,8 @@ class MsEndpointShape:
     ``sqpmethod.max_iter``, ``newton.kkt_tol``, …; :mod:`ocpar.ocp.solver_options`) over
     these defaults, checked when the shape is built; ``obstacles`` kept out of on the
     polyline through the integrator's sub-step states of the entries ``obstacle_positions``
-    (default: the model's ``position_indices``; module docstring)."""
+    (default: the model's ``position_indices``; module docstring); ``elastic`` the phase-1
+    problem of this shape instead (module docstring)."""
 
     model: OdeModel
     intervals: int = 10
@@ -131,6 +133,7 @@ class MsEndpointShape:
     solver_options: SolverOptions = ()
     obstacles: tuple[Obstacle, ...] = ()
     obstacle_positions: tuple[int, ...] = ()
+    elastic: bool = False
 
     def __post_init__(self) -> None:
         check_ode_model(self.model, "shape.model")
@@ -167,9 +170,10 @@ class MsEndpointShape:
             raise ValueError(f"solver: choose one of {AUTO_SOLVER}, {', '.join(SOLVERS)}, got "
                              f"{self.solver!r}")
         if self.solver == "newton" and self.has_inequalities:
-            raise ValueError("solver: control bounds and path constraints are inequalities "
-                             "and the newton solver takes equalities only; choose sqpmethod, "
-                             "ipopt or auto (the default)")
+            raise ValueError("solver: control bounds, path constraints, obstacles and an "
+                             "elastic problem's slacks are inequalities and the newton solver "
+                             "takes equalities only; choose sqpmethod, ipopt or auto (the "
+                             "default)")
 
     def _check_obstacles(self, positions: tuple[int, ...]) -> None:
         """``obstacles`` (of one dimension d) on ``obstacle_positions`` (d distinct state
@@ -190,7 +194,7 @@ class MsEndpointShape:
     def has_inequalities(self) -> bool:
         """Whether the NLP has inequalities (control bounds, path constraints, obstacles)."""
         return self.control_bounds is not None or bool(self.path_constraints) \
-            or bool(self.obstacles)
+            or bool(self.obstacles) or self.elastic
 
     @property
     def chosen_solver(self) -> str:
@@ -295,7 +299,10 @@ class MsEndpointTranscription:
             gaps.append(x[:, j + 1] - state)
             polyline[-1] = x[:, j + 1]   # the node itself: the same point where gap = 0
         fixed = [i for i in range(nx) if i not in shape.free_end]
-        ends = [x[i, n] - p[nx + i] for i in fixed]
+        end_slack = ca.SX.sym("end_slack", 2 * len(fixed) if shape.elastic else 0)
+        reached = p[nx:][fixed] + (end_slack[:len(fixed)] - end_slack[len(fixed):]
+                                   if shape.elastic else 0)
+        ends = [x[i, n] - reached[k] for k, i in enumerate(fixed)]
         cost = h / shape.steps * ca.sum1(ca.vertcat(*rates))
         path = ConstraintRows()
         for constraint in shape.path_constraints:
@@ -304,28 +311,44 @@ class MsEndpointTranscription:
         equations = ca.vertcat(*gaps, *ends)
         keep_out = ca.vertcat(*segment_rows(shape.obstacles, [
             point[list(shape.obstacle_positions)] for point in polyline]))
-        w = ca.vertcat(ca.vec(x_free), ca.vec(u))
-        inequalities = ca.vertcat(path.expr, keep_out)
+        lo, hi = (np.array(b) for b in zip(*(shape.control_bounds or [(-np.inf, np.inf)] * nu),
+                                           strict=True))
+        clear = np.full(keep_out.numel(), np.inf)
+        if shape.elastic:   # module docstring: the slacks after (x, u), the cost their sum
+            elastic = _Elastic(end_slack, ca.vec(u), path, np.tile(lo, n), np.tile(hi, n),
+                               shape.control_bounds is not None)
+            w = ca.vertcat(ca.vec(x_free), ca.vec(u), elastic.slacks)
+            inequalities = ca.vertcat(elastic.rows, keep_out)
+            row_lower = np.concatenate([elastic.lower, np.zeros(clear.size)])
+            row_upper = np.concatenate([elastic.upper, clear])
+            lo, hi, cost = np.full(nu, -np.inf), np.full(nu, np.inf), elastic.cost
+        else:
+            w = ca.vertcat(ca.vec(x_free), ca.vec(u))
+            inequalities = ca.vertcat(path.expr, keep_out)
+            row_lower = np.concatenate([path.lower, np.zeros(clear.size)])
+            row_upper = np.concatenate([path.upper, clear])
         g = ca.vertcat(equations, inequalities)
         self._w, self._p, self._f, self._g = w, p, cost, g
         self.nw, self.ng, self.n_eq, self.n_path = w.numel(), g.numel(), equations.numel(), \
             inequalities.numel()
+        self.n_slack = end_slack.numel() + (elastic.slacks.numel() - end_slack.numel()
+                                            if shape.elastic else 0)
         self.n_params = shape.n_params
-        clear = np.full(keep_out.numel(), np.inf)
-        self.lbg = np.concatenate([np.zeros(self.n_eq), path.lower, np.zeros(clear.size)])
-        self.ubg = np.concatenate([np.zeros(self.n_eq), path.upper, clear])
-        lo, hi = (np.array(b) for b in zip(*(shape.control_bounds or [(-np.inf, np.inf)] * nu),
-                                           strict=True))
-        self.lbx = np.concatenate([np.full(nx * n, -np.inf), np.tile(lo, n)])
-        self.ubx = np.concatenate([np.full(nx * n, np.inf), np.tile(hi, n)])
+        self.lbg = np.concatenate([np.zeros(self.n_eq), row_lower])
+        self.ubg = np.concatenate([np.zeros(self.n_eq), row_upper])
+        self.lbx = np.concatenate([np.full(nx * n, -np.inf), np.tile(lo, n),
+                                   np.zeros(self.n_slack)])
+        self.ubx = np.concatenate([np.full(nx * n, np.inf), np.tile(hi, n),
+                                   np.full(self.n_slack, np.inf)])
         block = slice(nx, 2 * nx)
         #: d²J*/dx̄_N² of the equations (w, λ_g, p) → (nx, nx): where no inequality is active
-        self.end_hessian = _on_rows(cost_hessian_function("ms_end", w, p, cost, equations,
-                                                          block), self.ng)
+        #: (None for the elastic problem: phase 1 reads no Hessian)
+        self.end_hessian = None if shape.elastic else _on_rows(cost_hessian_function(
+            "ms_end", w, p, cost, equations, block), self.ng)
         #: the same on the active set given by a mask (w, λ_g, p, a): where one is
         self.active_hessian = cost_hessian_function("ms_end", w, p, cost, g, block,
                                                     active_set=True) \
-            if shape.has_inequalities else None
+            if shape.has_inequalities and not shape.elastic else None
         self.path_rows = ca.Function("path", [w, p], [inequalities])
 
     @cached_property
@@ -389,16 +412,17 @@ class MsEndpointTranscription:
         ellipsoid obstacles, each guess's free nodes inside one pushed out on the side of its
         point nearest the centre (:func:`~ocpar.ocp.obstacles.side_guesses`' first)."""
         guesses = self._line_guesses(params)
-        if not self.shape.obstacles:
-            return guesses
-        q, u = self.unpack_many(guesses, params)
-        entries = list(self.shape.obstacle_positions)
-        for path in q:
-            path[:, entries] = side_guesses(self.shape.obstacles, path[:, entries])[0][0]
-        return self.shape.previous_guesses(q, u)
+        if self.shape.obstacles:
+            q, u = self.unpack_many(guesses, params)
+            entries = list(self.shape.obstacle_positions)
+            for path in q:
+                path[:, entries] = side_guesses(self.shape.obstacles, path[:, entries])[0][0]
+            guesses = self.shape.previous_guesses(q, u)
+        return self._with_slacks(guesses)
 
     def _line_guesses(self, params: np.ndarray) -> np.ndarray:
-        """The guesses of :meth:`default_guesses` before the obstacles (k, nw)."""
+        """The guesses of :meth:`default_guesses` before the obstacles and the slacks
+        (k, N (nx + nu))."""
         nx, n, k = self.nx, self.n, len(params)
         x0, xn = params[:, :nx], params[:, nx:].copy()
         free = list(self.shape.free_end)
@@ -425,7 +449,14 @@ class MsEndpointTranscription:
         """States (k, N+1, nx) with x_0 from ``params`` and controls (k, N, nu) of w (k, nw)."""
         k, nx, n = len(w), self.nx, self.n
         q = np.concatenate([params[:, None, :nx], w[:, :nx * n].reshape(k, n, nx)], axis=1)
-        return q, w[:, nx * n:].reshape(k, n, self.nu)
+        return q, w[:, nx * n:(nx + self.nu) * n].reshape(k, n, self.nu)
+
+    def _with_slacks(self, guesses: np.ndarray) -> np.ndarray:
+        """Guesses (..., nw − slacks) of the path and controls with the elastic problem's
+        slacks appended as 0 (unchanged where they have them, or without slacks)."""
+        if not self.n_slack or guesses.shape[-1] == self.nw:
+            return guesses
+        return np.concatenate([guesses, np.zeros((*guesses.shape[:-1], self.n_slack))], axis=-1)
 
     # solves
 
@@ -446,7 +477,8 @@ class MsEndpointTranscription:
         meets the KKT conditions to ``kkt_tol`` (:func:`~ocpar.ocp.batch.kkt_met`), a
         batch's own test."""
         params = check_params(params, self.n_params, "multiple shooting (endpoint)")
-        x0 = self.default_guess(params) if guess is None else np.asarray(guess, float)
+        x0 = self._with_slacks(self.default_guess(params) if guess is None
+                               else np.asarray(guess, float))
         extra = {} if multipliers is None else {"lam_g0": multipliers}
         call = call_nlpsol(self.solver, x0=x0, p=params, lbg=self.lbg, ubg=self.ubg,
                            lbx=self.lbx, ubx=self.ubx, **extra)
@@ -484,12 +516,14 @@ class MsEndpointTranscription:
             return None
         params = np.asarray(params, float)
         k = len(params)
-        x0 = (guesses.astype(float) if isinstance(guesses, np.ndarray)
-              and guesses.shape == (k, self.nw) else self.default_guesses(params))
+        if isinstance(guesses, np.ndarray):
+            guesses = self._with_slacks(guesses)
+        x0 = self._with_slacks(guesses.astype(float) if isinstance(guesses, np.ndarray)
+                               and guesses.shape == (k, self.nw) else self.default_guesses(params))
         if not isinstance(guesses, np.ndarray):
             for i, guess in enumerate(guesses):
                 if guess is not None:
-                    x0[i] = guess
+                    x0[i] = self._with_slacks(np.asarray(guess, float))
         lam0 = np.zeros((k, self.ng))
         if isinstance(multipliers, np.ndarray) and multipliers.shape == (k, self.ng):
             lam0 = multipliers.astype(float)
@@ -532,6 +566,8 @@ class MsEndpointTranscription:
         active set; NaN where a KKT matrix is singular."""
         k, nx = len(w), self.nx
         hessians = np.full((k, nx, nx), np.nan)
+        if self.end_hessian is None:   # the elastic problem: none
+            return hessians
         rows = np.flatnonzero(solved & np.all(np.isfinite(w), axis=1)
                               & np.all(np.isfinite(lam_g), axis=1))
         if not len(rows):
@@ -572,6 +608,31 @@ class MsEndpointTranscription:
             return np.asarray(function(*args)).reshape(self.nx, self.nx)  # type: ignore[misc]
         except RuntimeError:
             return np.full((self.nx, self.nx), np.nan)
+
+
+class _Elastic:
+    """The elastic problem's slacks, rows and cost (module docstring): the end slacks a±
+    ``end_slack`` (2 × the fixed entries), then one σ per control entry and interval where
+    ``bounded`` (controls ``u``, N nu; bounds ``lo``, ``hi`` (N nu,)), then one per path row
+    of ``path``. ``rows`` (c + σ ≥ lb, c − σ ≤ ub, u + σ ≥ lo, u − σ ≤ hi) with their
+    ``lower`` and ``upper`` bounds, ``cost`` the weighted total slack."""
+
+    def __init__(self, end_slack: ca.SX, u: ca.SX, path: ConstraintRows, lo: np.ndarray,
+                 hi: np.ndarray, bounded: bool) -> None:
+        row_slack = ca.SX.sym("row_slack", path.count)
+        u_slack = ca.SX.sym("u_slack", u.numel() if bounded else 0)
+        self.slacks = ca.vertcat(end_slack, u_slack, row_slack)
+        none, free = np.full(path.count, -np.inf), np.full(path.count, np.inf)
+        self.rows = ca.vertcat(path.expr + row_slack, path.expr - row_slack,
+                               *([u + u_slack, u - u_slack] if bounded else []))
+        self.lower = np.concatenate([path.lower, none, *([lo, np.full(lo.size, -np.inf)]
+                                                         if bounded else [])])
+        self.upper = np.concatenate([free, path.upper, *([np.full(hi.size, np.inf), hi]
+                                                         if bounded else [])])
+        weights = np.concatenate([np.ones(end_slack.numel()),
+                                  1 / bound_sizes(lo, hi) if bounded else [],
+                                  1 / bound_sizes(path.lower, path.upper)])
+        self.cost = ca.dot(ca.DM(weights), self.slacks)
 
 
 def _near(values: np.ndarray, lower: np.ndarray, upper: np.ndarray, tol: float) -> np.ndarray:
