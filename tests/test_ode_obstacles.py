@@ -42,7 +42,7 @@ def free_and_kept_out():
     return free, solve_formation(free), problem, solve_formation(problem)
 
 
-def _clearance_rows(points: list[ca.MX]) -> list[ca.MX]:
+def _clearance_rows(points: list[ca.SX]) -> list[ca.SX]:
     """|y*|² − 1 ≥ 0 per chord of the polyline ``points`` (positions), y* the chord's point
     nearest the disc's centre, scaled by its radius."""
     rows = []
@@ -54,14 +54,14 @@ def _clearance_rows(points: list[ca.MX]) -> list[ca.MX]:
     return rows
 
 
-def _agent(problem, i: int, end: ca.MX):
+def _agent(problem, i: int, end: ca.SX):
     """Agent i's part of an NLP: variables (x_1..x_N, u_0..u_{N−1}), their bounds (|a| ≤ the
     shape's bound), cost, equations (= 0: continuity by ``steps`` RK4 steps, the end
     position ``end`` and speed 0) and, with the disc, its clearance rows (≥ 0) on the
     polyline through the RK4 sub-step states."""
     shape, h = problem.shapes[i], DURATION / INTERVALS
-    xs = [ca.MX.sym(f"x{i}_{k}", 4) for k in range(INTERVALS)]
-    us = [ca.MX.sym(f"u{i}_{k}", 2) for k in range(INTERVALS)]
+    xs = [ca.SX.sym(f"x{i}_{k}", 4) for k in range(INTERVALS)]
+    us = [ca.SX.sym(f"u{i}_{k}", 2) for k in range(INTERVALS)]
     x, points = ca.DM(problem.starts[i]), [ca.DM(problem.starts[i][:2])]
     cost, equations = 0, []
     for k in range(INTERVALS):
@@ -98,7 +98,7 @@ def monolithic(problem, result) -> float:
     in one IPOPT NLP, started at the run's answer; returns J*."""
     n, radius = problem.agents, problem.curve.radius
     rank = np.argsort(np.argsort(problem.starts[:, 0], kind="stable"))
-    theta = ca.MX.sym("theta")
+    theta = ca.SX.sym("theta")
     phi = theta + 2 * np.pi * rank / n
     parts = [[theta], [-np.inf], [np.inf], 0, [], []]
     guess = [float(np.asarray(result.phi)[np.argmin(rank)])]
@@ -140,18 +140,22 @@ def test_unicycles_past_a_disc_equal_the_monolithic_nlp(free_and_kept_out):
 
 def _finely_integrated_clearance(problem, result) -> np.ndarray:
     """Each agent's distance from the disc (length unit) at 64 points per interval, its
-    controls integrated from its start node by 64 RK4 steps per interval (the test's RK4)."""
-    h = DURATION / INTERVALS / 64
-    x, u = ca.MX.sym("x", 4), ca.MX.sym("u", 2)
-    step = ca.Function("step", [x, u], [_rk4(x, u, h)[0]])
-    gaps = []
-    for i in range(AGENTS):
-        state = result.trajectories[i, 0]
-        for k in range(INTERVALS):
-            for _ in range(64):
-                state = np.asarray(step(state, result.controls[i, k])).ravel()
-                gaps.append(np.linalg.norm(state[:2] - CENTER) - RADIUS)
-    return np.array(gaps)
+    controls integrated from its start node by 64 RK4 steps per interval (the test's RK4),
+    all agents at once: (n, N 64)."""
+    x, u = ca.SX.sym("x", 4), ca.SX.sym("u", 2)
+    states, state = [], x
+    for _ in range(64):
+        state = _rk4(state, u, DURATION / INTERVALS / 64)[0]
+        states.append(state)
+    interval = ca.Function("interval", [x, u], [ca.horzcat(*states)]).map(AGENTS)
+    state, gaps = result.trajectories[:, 0].T, []
+    for k in range(INTERVALS):
+        points = np.asarray(interval(state, result.controls[:, k].T)).reshape(4, 64, AGENTS,
+                                                                             order="F")
+        gaps.append(np.linalg.norm(points[:2] - np.reshape(CENTER, (2, 1, 1)), axis=0)
+                    - RADIUS)
+        state = points[:, -1]
+    return np.concatenate(gaps).T
 
 
 def test_an_infeasible_start_goes_through_phase_one_and_equals_the_monolithic_nlp():
