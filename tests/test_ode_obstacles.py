@@ -115,6 +115,31 @@ def monolithic(problem, result) -> float:
     return value
 
 
+def test_the_inner_derivatives_with_the_disc_binding_are_the_finite_differences():
+    """One unicycle past a disc it must go round: dJ*/dx̄_N and the end Hessian (of the
+    active set) against central differences; the batched sqpmethod solve is IPOPT's."""
+    shape = MsEndpointShape(make(agents=2).shape.model, intervals=INTERVALS, duration=DURATION,
+                            steps=STEPS, free_end=(2,), obstacles=(Sphere((-0.1, -0.5), 0.6),))
+    inner = transcription(shape)
+    params = np.array([0.0, -5.0, np.pi / 2, 0.0, 0.3, 2.5, 0.0, 0.0])
+    solved = inner.solve(params)
+    free = transcription(dataclasses.replace(shape, obstacles=(), obstacle_positions=())
+                         ).solve(params)
+    assert solved.success and solved.cost > free.cost + 0.1
+    batch = inner.solve_batch(params[None], [None], [None])
+    assert batch.column("success")[0]
+    assert abs(batch.column("cost")[0] - solved.cost) <= 1e-10 * solved.cost
+    for entry in (4, 5):
+        step = np.zeros(8)
+        step[entry] = 1e-5
+        up, down = (inner.solve(params + sign * step, inner.warm_start(solved))
+                    for sign in (1, -1))
+        slope = (up.cost - down.cost) / 2e-5
+        assert abs(solved.cost_gradient[entry] - slope) <= 1e-6 * (1 + abs(slope))
+        column = (up.cost_gradient[4:6] - down.cost_gradient[4:6]) / 2e-5
+        assert np.allclose(solved.end_hessian[entry - 4, :2], column, rtol=1e-5, atol=1e-6)
+
+
 def test_the_free_paths_cross_the_disc(free_and_kept_out):
     free, result = free_and_kept_out[:2]
     assert result.status == "converged"
