@@ -541,13 +541,11 @@ def _dense_path(shape: MsEndpointShape, x: np.ndarray, u: np.ndarray, refine: in
                 ) -> np.ndarray:
     """The states (m, N steps refine + 1, nx) of ODE agents' paths x (m, N+1, nx) under
     controls u (m, N, nu): each of the integrator's sub-steps (:func:`_sub_steps`)
-    re-integrated from its start by ``refine`` steps of the same integrator; the sub-step
-    states themselves and the nodes exactly where the transcription's keep-out rows read
-    them."""
+    re-integrated from its start by ``refine`` steps of the same integrator, up to the next
+    sub-step's start (the next node after an interval's last): the points of the
+    transcription's keep-out polyline are among them."""
     m, n, nx, steps = x.shape[0], shape.intervals, shape.model.nx, shape.steps
-    coarse = _sub_steps(shape, x, u)
-    coarse[:, :, -1] = x[:, 1:]   # the polyline of the keep-out rows ends at the node
-    state = coarse[:, :, :-1].reshape(-1, nx)
+    state = _sub_steps(shape, x, u)[:, :, :-1].reshape(-1, nx)   # each sub-step's start
     control = np.repeat(u, steps, axis=1).reshape(-1, u.shape[-1])
     fine = [state]
     for _ in range(refine - 1):
