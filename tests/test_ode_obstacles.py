@@ -140,6 +140,29 @@ def test_the_inner_derivatives_with_the_disc_binding_are_the_finite_differences(
         assert np.allclose(solved.end_hessian[entry - 4, :2], column, rtol=1e-5, atol=1e-6)
 
 
+def test_both_sides_of_the_disc_are_tried_and_the_cheaper_kept():
+    """A unicycle heading west at 0.5 whose straight-line guess passes the disc's east side:
+    going round the west side is cheaper (4.28 against 6.27); the IPOPT and batched solves
+    from the default guess both return the west side."""
+    center = (-0.05, -1.0)
+    shape = MsEndpointShape(make(agents=2).shape.model, intervals=INTERVALS, duration=DURATION,
+                            steps=STEPS, free_end=(2,), obstacles=(Sphere(center, 1.0),))
+    inner = transcription(shape)
+    params = np.array([0.0, -5.0, np.pi, 0.5, 0.1, 3.0, 0.0, 0.0])
+    east, west = (inner.solve(params, guess) for guess in inner.side_guesses(params[None])[0])
+    assert east.success and west.success and west.cost < east.cost - 1.0
+
+    def nearest_x(q: np.ndarray) -> float:
+        return float(q[np.argmin(np.linalg.norm(q[:, :2] - center, axis=1)), 0])
+
+    assert nearest_x(east.q) > center[0] > nearest_x(west.q)
+    alone = inner.solve(params)
+    batch = inner.solve_batch(np.stack([params, params]), [None, None], [None, None])
+    for cost, q in ((alone.cost, alone.q), *zip(batch.column("cost"), batch.column("q"),
+                                                strict=True)):
+        assert abs(cost - west.cost) <= 1e-8 * west.cost and nearest_x(q) < center[0]
+
+
 def test_the_free_paths_cross_the_disc(free_and_kept_out):
     free, result = free_and_kept_out[:2]
     assert result.status == "converged"

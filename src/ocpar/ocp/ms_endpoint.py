@@ -29,10 +29,10 @@ path is the integrator's continuous solution, not the chord: it bulges out of th
 about (h/``steps``)² |r̈| / 8, outwards where it bends round the obstacle, inwards where it
 bends away; :mod:`ocpar.formation.verify` re-integrates each sub-step with
 :data:`~ocpar.formation.verify.DENSE_SUBSTEPS` finer steps and checks the clearance there
-(raise ``steps`` where it reports a path inside). The side of each ellipsoid is the one the
-first guess takes (:meth:`MsEndpointTranscription.default_guesses` pushes a guess that
-enters an ellipsoid out on the side of its point nearest the centre); the other side is not
-searched.
+(raise ``steps`` where it reports a path inside). A solve from the default guess tries each
+side of the ellipsoids the straight-line guess enters (:meth:`MsEndpointTranscription.side_guesses`,
+:func:`~ocpar.ocp.obstacles.side_guesses`: its free nodes inside pushed out on that side; at most
+2^3 sides) and keeps the cheapest; a re-solve from a previous solution keeps its side.
 
 The contract of a formation's agent (:mod:`ocpar.ocp.endpoint_agents`): J*, dJ*/dp (CasADi's
 −λ_p), and ``end_hessian`` d²J*/dx̄_N² (nx, nx) from the KKT system
@@ -411,14 +411,28 @@ class MsEndpointTranscription:
         """:meth:`default_guess` of each row of ``params`` (k, 2 nx): (k, nw); with
         ellipsoid obstacles, each guess's free nodes inside one pushed out on the side of its
         point nearest the centre (:func:`~ocpar.ocp.obstacles.side_guesses`' first)."""
-        guesses = self._line_guesses(params)
         if self.shape.obstacles:
-            q, u = self.unpack_many(guesses, params)
-            entries = list(self.shape.obstacle_positions)
-            for path in q:
-                path[:, entries] = side_guesses(self.shape.obstacles, path[:, entries])[0][0]
-            guesses = self.shape.previous_guesses(q, u)
-        return self._with_slacks(guesses)
+            return np.stack([sides[0] for sides in self.side_guesses(params)])
+        return self._with_slacks(self._line_guesses(params))
+
+    def side_guesses(self, params: np.ndarray) -> list[list[np.ndarray]]:
+        """Per row of ``params`` (k, 2 nx) the guesses (nw,) of each side of the ellipsoids
+        its straight-line guess enters (:func:`~ocpar.ocp.obstacles.side_guesses`: the free
+        nodes inside pushed out on that side; the side of the nearest point first; one
+        guess where it enters none)."""
+        guesses = self._line_guesses(params)
+        q, u = self.unpack_many(guesses, params)
+        entries = list(self.shape.obstacle_positions)
+        found = []
+        for path, controls in zip(q, u, strict=True):
+            sides = []
+            for pushed, _ in side_guesses(self.shape.obstacles, path[:, entries]):
+                moved = path.copy()
+                moved[:, entries] = pushed
+                sides.append(self._with_slacks(self.shape.previous_guesses(
+                    moved[None], controls[None])[0]))
+            found.append(sides)
+        return found
 
     def _line_guesses(self, params: np.ndarray) -> np.ndarray:
         """The guesses of :meth:`default_guesses` before the obstacles and the slacks
@@ -477,6 +491,12 @@ class MsEndpointTranscription:
         meets the KKT conditions to ``kkt_tol`` (:func:`~ocpar.ocp.batch.kkt_met`), a
         batch's own test."""
         params = check_params(params, self.n_params, "multiple shooting (endpoint)")
+        if guess is None and self.shape.obstacles:   # each side, the cheapest kept
+            tried = [self.solve(params, side, multipliers)
+                     for side in self.side_guesses(params[None])[0]]
+            best = min(tried, key=lambda t: (not t.success, t.cost if t.success else 0.0))
+            best.solve_time_s = sum(t.solve_time_s for t in tried)
+            return best
         x0 = self._with_slacks(self.default_guess(params) if guess is None
                                else np.asarray(guess, float))
         extra = {} if multipliers is None else {"lam_g0": multipliers}
@@ -531,6 +551,47 @@ class MsEndpointTranscription:
             for i, lam in enumerate(multipliers):
                 if lam is not None:
                     lam0[i] = lam
+        first = self._batch_call(x0, params, lam0)
+        cold = (np.zeros(0, np.intp) if isinstance(guesses, np.ndarray)
+                else np.flatnonzero([guess is None for guess in guesses]))
+        if first is None or not self.shape.obstacles or not len(cold):
+            return first
+        return self._other_sides(first, params[cold], cold, lam0[cold])
+
+    def _other_sides(self, first: Columns, params: np.ndarray, cold: np.ndarray,
+                     lam0: np.ndarray) -> Columns:
+        """``first`` (k solutions) with each column of ``cold`` (its default guess, whose
+        p are ``params``) re-solved from the guess of each other side
+        (:meth:`side_guesses`), one batched call per side, the cheapest success kept (ties:
+        the earlier side); each column's ``solve_time_s`` that of the call it keeps."""
+        sides = self.side_guesses(params)
+        parts, positions = [first], [np.arange(first.length)]
+        chosen = np.zeros(first.length, np.intp)   # the part each column takes
+        best = np.where(first.column("success"), first.column("cost"), np.inf)
+        for j in range(1, max(len(g) for g in sides)):
+            rows = np.flatnonzero([len(g) > j for g in sides])
+            if not len(rows):
+                continue
+            found = self._batch_call(np.stack([sides[r][j] for r in rows]), params[rows],
+                                     lam0[rows])
+            if found is None:
+                continue
+            cost = np.where(found.column("success"), found.column("cost"), np.inf)
+            better = cost < best[cold[rows]]
+            best[cold[rows[better]]] = cost[better]
+            chosen[cold[rows[better]]] = len(parts)
+            parts.append(found)
+            positions.append(cold[rows])
+        pick = [parts[part].take([int(np.flatnonzero(positions[part] == i)[0])])
+                for i, part in enumerate(chosen.tolist())]
+        return Columns.concat(pick) if np.any(chosen) else first
+
+    def _batch_call(self, x0: np.ndarray, params: np.ndarray, lam0: np.ndarray
+                    ) -> Columns | None:
+        """One call of the batched solver from guesses ``x0`` (k, nw) and multipliers
+        ``lam0`` (k, ng) for ``params`` (k, 2 nx): the solutions, or None where CasADi
+        raised."""
+        k = len(params)
         try:
             if isinstance(self.batch_solver, KktNewton):
                 batch = self.batch_solver.solve(x0, params, lam0, self.lbx, self.ubx,
