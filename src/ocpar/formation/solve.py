@@ -671,6 +671,7 @@ def solve_formation(
                     costs, trajectories, controls = exact.costs, exact.q, exact.u
         wall_time_s = time.perf_counter() - start
         positions = problem.positions(trajectories)
+        continuous = checked_positions(problem, trajectories, controls)
         squares = control_squares(problem, controls)
         verification = verify_formation(problem, trajectories, controls, phi, distance,
                                         backend)
@@ -683,15 +684,15 @@ def solve_formation(
         costs, trajectories, controls = done.costs, done.q, done.u
         statuses, solver_iterations = done.status, done.iterations
         positions, squares, parts = done.positions, done.squares, done.parts
+        continuous = checked_positions(problem, trajectories, controls)
         verification = verify_checked(problem, positions, done.ends, phi, done.checks,
                                       distance, backend,
                                       time.perf_counter() - checking - done.written_s,
-                                      checked_positions(problem, trajectories, controls))
+                                      continuous)
         if parts:   # the workers wrote their agents' part of the array file
             extra["timings"] = {"files_s": done.written_s}
     checking = time.perf_counter()
-    status, message, obstacle_fields = obstacle_check(
-        problem, checked_positions(problem, trajectories, controls), status, message)
+    status, message, obstacle_fields = obstacle_check(problem, continuous, status, message)
     extra |= obstacle_fields
     verification, status, message = _verified(verification, status, message)
     status, message = ordering_status(ordered, status, message)
