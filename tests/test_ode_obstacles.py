@@ -163,6 +163,31 @@ def test_both_sides_of_the_disc_are_tried_and_the_cheaper_kept():
         assert abs(cost - west.cost) <= 1e-8 * west.cost and nearest_x(q) < center[0]
 
 
+def test_a_wall_holds_at_every_sub_step_state():
+    """A unicycle starting westward at speed 1 swings out to x = −1.0 on its free path; with
+    the wall x ≥ −0.4 its RK4 sub-step states (the test's own integration of the returned
+    controls from each node) keep x ≥ −0.4, the wall binds, and the cost rises."""
+    wall = HalfSpace((1.0, 0.0), -0.4)
+    shape = MsEndpointShape(make(agents=2).shape.model, intervals=INTERVALS, duration=DURATION,
+                            steps=STEPS, free_end=(2,), obstacles=(wall,))
+    params = np.array([0.5, -5.0, np.pi, 1.0, 0.3, 3.0, 0.0, 0.0])
+    free = transcription(dataclasses.replace(shape, obstacles=(), obstacle_positions=())
+                         ).solve(params)
+    assert free.success and np.min(free.q[:, 0]) < -0.5
+    walled = transcription(shape).solve(params)
+    assert walled.success and walled.cost > free.cost
+    x, u = ca.SX.sym("x", 4), ca.SX.sym("u", 2)
+    step = ca.Function("step", [x, u], [_rk4(x, u, DURATION / INTERVALS / STEPS)[0]])
+    states = []
+    for k in range(INTERVALS):
+        state = walled.q[k]
+        for _ in range(STEPS):
+            state = np.asarray(step(state, walled.u[k])).ravel()
+            states.append(state)
+    lowest = min(float(s[0]) for s in states)
+    assert -0.4 - 1e-9 <= lowest <= -0.4 + 1e-6
+
+
 def test_the_free_paths_cross_the_disc(free_and_kept_out):
     free, result = free_and_kept_out[:2]
     assert result.status == "converged"
