@@ -256,7 +256,7 @@ def test_ode_free_time_is_bitwise_the_same_on_two_mpi_ranks(tmp_path, mode):
     ({"time_weight": 1.0}, "^time_weight: needs time_bounds"),
     ({"time_bounds": (2.0, 1.0)}, "^time_bounds: needs 0 < T_min <= T_max < inf"),
     ({"time_bounds": (1.0, 2.0), "free_duration": True}, "^time_bounds: not with free_duration"),
-    ({"time_bounds": (1.0, 2.0), "solver": "newton"}, "^solver: .*time bounds are inequalities"),
+    ({"time_bounds": (1.0, 2.0), "solver": "newton"}, "^solver: .*time bounds.* are inequalities"),
     ({"time_weight": -1.0, "time_bounds": (1.0, 2.0)}, "^time_weight: must be a finite number"),
 ])
 def test_bad_time_fields_are_refused_in_one_line(fields, words):

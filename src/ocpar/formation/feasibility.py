@@ -20,7 +20,8 @@ Three mechanisms:
   inner problem whose solve failed (and, where the reach set is exact, for one outside it,
   without solving it), so that cost tables and scans carry infeasibility as a value.
 * **Phase 1** (any model, constraint, target and coupling, where the start is infeasible):
-  each agent's elastic inner problem (:func:`elastic_shape`, ``DmocShape.elastic``: slack on
+  each agent's elastic inner problem (:func:`elastic_shape`, ``DmocShape.elastic`` or
+  ``MsEndpointShape.elastic`` for an ODE agent: slack on
   the end conditions, control bounds and inequality rows, the total slack minimised) gives
   s_i(φ_i) ≥ 0, 0 exactly where the agent is feasible, and ds_i/dz from its multipliers
   (:func:`elastic_slacks`); :func:`phase_one` drives S = Σ_i s_i to zero with the outer
@@ -39,11 +40,12 @@ from dataclasses import dataclass
 import numpy as np
 
 from ocpar.bsp import Backend
+from ocpar.bsp.columns import Columns
 from ocpar.formation.couplings.coupling import PROJECTION_TOL, ShiftFamily
 from ocpar.formation.problem import FormationProblem
 from ocpar.formation.targets.slots import Slots
 from ocpar.formation.targets.surface import EllipsoidSurface, Surface
-from ocpar.ocp import DmocShape, solve_tasks
+from ocpar.ocp import DmocShape, MsEndpointShape, solve_tasks
 
 #: Shifts (per period 2π) at which the largest reach excess E(θ) is evaluated.
 WINDOW_GRID = 2048
@@ -291,8 +293,9 @@ class NoFeasibleFormation(InnerSolveFailed):
         self.slack = slack
 
 
-def elastic_shape(shape: DmocShape) -> DmocShape:
-    """``shape``'s elastic (phase-1) NLP (:mod:`ocpar.ocp.dmoc`), solved by IPOPT (the
+def elastic_shape(shape: DmocShape | MsEndpointShape) -> DmocShape | MsEndpointShape:
+    """``shape``'s elastic (phase-1) NLP (:mod:`ocpar.ocp.dmoc`,
+    :mod:`ocpar.ocp.ms_endpoint`), solved by IPOPT (the
     batched ``sqpmethod`` spends its iteration limit on the degenerate ℓ1 problem: ~0.4 s a
     batch against ~3 ms a task): built once per shape and worker like any other, by the
     same cache."""
@@ -300,12 +303,7 @@ def elastic_shape(shape: DmocShape) -> DmocShape:
 
 
 def elastic_problem(problem: FormationProblem) -> FormationProblem:
-    """``problem`` with every agent's shape elastic (once per problem). ODE agents have no
-    elastic NLP yet: :class:`NoFeasibleFormation` (the run is refused, one line)."""
-    if problem.ode_agents:
-        raise NoFeasibleFormation("phase 1: an inner solve failed at the start and ODE agents "
-                                  "(MsEndpointShape) have no elastic phase 1 yet; give a "
-                                  "feasible start (initial_angles)", float("nan"))
+    """``problem`` with every agent's shape elastic (once per problem)."""
     cached = problem.__dict__.get("_elastic")
     if cached is None:
         cached = problem.with_shapes(elastic_shape)
@@ -345,9 +343,7 @@ def elastic_slacks(problem: FormationProblem, backend: Backend, agents: np.ndarr
     success = np.asarray(sols.column("success"), dtype=bool)
     slack = np.maximum(np.where(success, np.asarray(sols.column("cost"), dtype=float),
                                 np.inf), 0.0)
-    nq, d = problem.common_shape.model.nq, problem.curve.dim
-    gradient = np.asarray(sols.column("cost_gradient"))[:, 2 * nq:2 * nq + d]
-    gradient = np.where(success[:, None], gradient, 0.0)
+    gradient = np.where(success[:, None], _end_gradients(problem, agents, sols), 0.0)
     bad = np.flatnonzero(~success)
     first = (f"agent {agents[bad[0]]} ending at phi = {rows[bad[0]].tolist()}: "
              f"{sols.column('status')[bad[0]]}") if len(bad) else ""
@@ -359,6 +355,21 @@ def elastic_slacks(problem: FormationProblem, backend: Backend, agents: np.ndarr
         feasible = doubt[np.isfinite(hard.costs)]
         slack[feasible], gradient[feasible] = 0.0, 0.0
     return Slacks(slack, gradient, len(bad), first, solves)
+
+
+def _end_gradients(problem: FormationProblem, agents: np.ndarray, sols: Columns
+                   ) -> np.ndarray:
+    """ds/dz (k, d) of the elastic solutions ``sols`` of ``agents``: their ``cost_gradient``'s
+    end-position entries (each shape's ``boundary_size`` + ``end_position_entries``)."""
+    d = problem.curve.dim
+    gradients = sols.column("cost_gradient")
+    out = np.empty((len(agents), d))
+    for shape, members in problem.agents_by_shape().items():
+        rows = np.flatnonzero(np.isin(agents, members))
+        if len(rows):
+            entries = shape.boundary_size + shape.end_position_entries(d)
+            out[rows] = np.asarray([gradients[k] for k in rows])[:, entries]
+    return out
 
 
 def _in_doubt(problem: FormationProblem, agents: np.ndarray, slack: np.ndarray

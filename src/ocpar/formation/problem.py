@@ -113,8 +113,9 @@ class FormationProblem:
     (:meth:`_check_mixed_boundary`).
     ``obstacles``: static :class:`~ocpar.formation.keep_out.obstacles.Ellipsoid` (or ``Sphere``) and
     :class:`~ocpar.formation.keep_out.obstacles.HalfSpace` obstacles in position space that every
-    path keeps clear of at all times (:mod:`ocpar.formation.keep_out.obstacles`); the starts must be
-    clear of them. ``coupling``: what the final angles satisfy on a curve
+    path keeps clear of at all times (:mod:`ocpar.formation.keep_out.obstacles`; an ODE agent's
+    on the polyline through its integrator's sub-step states, :mod:`ocpar.ocp.ms_endpoint`); the
+    starts must be clear of them. ``coupling``: what the final angles satisfy on a curve
     (:mod:`ocpar.formation.couplings.coupling`): the paper's potential (default),
     :class:`~ocpar.formation.couplings.coupling.EqualArcLength` or a user's
     :class:`~ocpar.formation.couplings.coupling.UserCoupling`; onto slots only the default.
@@ -193,10 +194,7 @@ class FormationProblem:
             raise ValueError(f"shape: the model's position_indices must be distinct entries "
                              f"of its {nq} configuration entries, got {indices}")
         object.__setattr__(self, "obstacles", check_obstacles(self.obstacles, len(indices)))
-        if self.ode_agents and self.obstacles:
-            raise ValueError("obstacles: not yet for ODE agents (MsEndpointShape)")
-        if not self.ode_agents:
-            self._attach_obstacles()
+        self._attach_obstacles()
         self.check_clear("starts", self.starts)
         self._check_path_constraints()
         self._check_thrust_reach()

@@ -53,6 +53,7 @@ from ocpar.formation.targets.slots import SLOT_CANDIDATES, Slots
 from ocpar.formation.targets.surface import Surface
 from ocpar.formation.verify import (
     Verification,
+    checked_positions,
     near_collision_words,
     verify_checked,
     verify_formation,
@@ -330,7 +331,7 @@ def check_applicable(problem: FormationProblem, options: FormationOptions) -> No
     final time other than ``fixed`` (:func:`~ocpar.formation.final_time.check_final_time`),
     the problem's own duration is only a start: its feasibility is not asked."""
     if problem.ode_agents:
-        _check_ode_applicable(options)
+        _check_ode_applicable(problem, options)
     check_final_time(problem, options)
     check_minimum_time(problem, options)
     if isinstance(problem.curve, Surface) and options.mode != "hierarchical":
@@ -372,7 +373,7 @@ def check_applicable(problem: FormationProblem, options: FormationOptions) -> No
                                   options.min_separation)
 
 
-def _check_ode_applicable(options: FormationOptions) -> None:
+def _check_ode_applicable(problem: FormationProblem, options: FormationOptions) -> None:
     """What ODE agents (:class:`~ocpar.ocp.MsEndpointShape`) do not offer yet: ValueError
     naming the option."""
     if options.mode == "monolithic":
@@ -381,13 +382,17 @@ def _check_ode_applicable(options: FormationOptions) -> None:
     if options.min_separation is not None:
         raise ValueError("min_separation: not yet for ODE agents (MsEndpointShape)")
     if options.final_time == "minimum":
-        raise ValueError("final_time: 'minimum' is not yet for ODE agents (MsEndpointShape): "
-                         "its bisection needs their elastic (phase-1) variant")
+        raise ValueError("final_time: 'minimum' is not yet for ODE agents (MsEndpointShape)")
+    if options.final_time != "fixed" and problem.obstacles:
+        raise ValueError(f"final_time: {options.final_time!r} is not yet for ODE agents "
+                         "(MsEndpointShape) past obstacles (their clearance is checked at the "
+                         "shape's duration)")
 
 
 def obstacle_check(problem: FormationProblem, positions: np.ndarray, status: str,
                     message: str) -> tuple[str, str, dict]:
-    """The returned paths' positions (n, N+1, p) checked against ``problem``'s obstacles
+    """The returned paths' positions (n, P, p; :func:`~ocpar.formation.verify.checked_positions`:
+    the nodes, or an ODE agent's re-integrated path) checked against ``problem``'s obstacles
     (:func:`~ocpar.formation.keep_out.obstacles.closest_obstacle`, independently of the
     inner planes): the status (``obstacles_not_cleared`` if a path of a run that reached its
     answer is inside one), the message and the result's obstacle fields (clearance, each
@@ -669,6 +674,7 @@ def solve_formation(
                     costs, trajectories, controls = exact.costs, exact.q, exact.u
         wall_time_s = time.perf_counter() - start
         positions = problem.positions(trajectories)
+        continuous = checked_positions(problem, trajectories, controls)
         squares = control_squares(problem, controls)
         verification = verify_formation(problem, trajectories, controls, phi, distance,
                                         backend)
@@ -681,13 +687,15 @@ def solve_formation(
         costs, trajectories, controls = done.costs, done.q, done.u
         statuses, solver_iterations = done.status, done.iterations
         positions, squares, parts = done.positions, done.squares, done.parts
+        continuous = checked_positions(problem, trajectories, controls)
         verification = verify_checked(problem, positions, done.ends, phi, done.checks,
                                       distance, backend,
-                                      time.perf_counter() - checking - done.written_s)
+                                      time.perf_counter() - checking - done.written_s,
+                                      continuous)
         if parts:   # the workers wrote their agents' part of the array file
             extra["timings"] = {"files_s": done.written_s}
     checking = time.perf_counter()
-    status, message, obstacle_fields = obstacle_check(problem, positions, status, message)
+    status, message, obstacle_fields = obstacle_check(problem, continuous, status, message)
     extra |= obstacle_fields
     verification, status, message = _verified(verification, status, message)
     status, message = ordering_status(ordered, status, message)

@@ -388,3 +388,11 @@ class ConstraintRows:
     @property
     def upper(self) -> np.ndarray:
         return np.array(self._upper, float)
+
+
+def bound_sizes(lower: np.ndarray, upper: np.ndarray) -> np.ndarray:
+    """max(|lo|, |hi|) over the finite bounds of each entry (1 where that is 0): the size an
+    elastic slack of that bound is measured against."""
+    size = np.maximum(*(np.where(np.isfinite(b), np.abs(b), 0.0)
+                        for b in (np.asarray(lower, float), np.asarray(upper, float))))
+    return np.where(size > 0, size, 1.0)

@@ -164,6 +164,7 @@ from ocpar.ocp.constraints import (
     CompiledFunction,
     ConstraintRows,
     PathConstraint,
+    bound_sizes,
     compile_constraints,
     compile_function,
 )
@@ -668,8 +669,8 @@ class DmocTranscription:
         nq, n = self.nq, self.n
         parts = [ca.DM.ones(2 * nq), self.horizon * ca.DM.ones(2 * nq)]
         if self.shape.control_bounds is not None:
-            parts.append(ca.DM(np.tile(1 / _bound_sizes(self.u_lower, self.u_upper), n)))
-        parts.append(ca.DM(1 / _bound_sizes(path.lower, path.upper)))
+            parts.append(ca.DM(np.tile(1 / bound_sizes(self.u_lower, self.u_upper), n)))
+        parts.append(ca.DM(1 / bound_sizes(path.lower, path.upper)))
         return ca.vertcat(*parts)
 
     def _keep_out_rows(self, data: ca.SX, qs: list[ca.SX], slack: ca.SX) -> list[ca.SX]:
@@ -1443,14 +1444,6 @@ def _cheapest(success: Sequence[bool] | np.ndarray, costs: Sequence[float] | np.
     ``costs`` (the first of equal costs; 0 if none succeeded)."""
     ok = np.flatnonzero(np.asarray(success, bool))
     return int(ok[np.argmin(np.asarray(costs, float)[ok])]) if len(ok) else 0
-
-
-def _bound_sizes(lower: np.ndarray, upper: np.ndarray) -> np.ndarray:
-    """max(|lo|, |hi|) over the finite bounds of each entry (1 where that is 0): the size an
-    elastic slack of that bound is measured against."""
-    size = np.maximum(*(np.where(np.isfinite(b), np.abs(b), 0.0)
-                        for b in (np.asarray(lower, float), np.asarray(upper, float))))
-    return np.where(size > 0, size, 1.0)
 
 
 def _near(values: np.ndarray, lower: np.ndarray, upper: np.ndarray, tol: float) -> np.ndarray:

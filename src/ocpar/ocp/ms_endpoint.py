@@ -18,6 +18,22 @@ j = 0..N−1; one of ``x`` alone at x_1..x_N) are inequalities, imposed at those
 (between samples an RK4 path is no segment). A model's finite ``state_bounds`` are refused
 (write them as path constraints of ``x``: the verification checks those).
 
+Obstacles (``obstacles``, :mod:`ocpar.ocp.obstacles`: ellipsoids and half-spaces in the
+position entries ``obstacle_positions``, by default the model's ``position_indices``): an RK4
+path is no chain of segments, so the keep-out is imposed on the polyline through the
+integrator's own states, x_j, the ``steps`` − 1 sub-step states of interval j, x_{j+1}: one
+row |y*|² − 1 ≥ 0 per sub-step and ellipsoid (:func:`~ocpar.ocp.obstacles.segment_rows`,
+y* the scaled chord's point nearest the centre: the polyline is clear exactly) and the
+half-spaces at every point of it but x_0 and x_N (data). Between two sub-step states the
+path is the integrator's continuous solution, not the chord: it bulges out of the chord by
+about (h/``steps``)² |r̈| / 8, outwards where it bends round the obstacle, inwards where it
+bends away; :mod:`ocpar.formation.verify` re-integrates each sub-step with
+:data:`~ocpar.formation.verify.DENSE_SUBSTEPS` finer steps and checks the clearance there
+(raise ``steps`` where it reports a path inside). A solve from the default guess tries each
+side of the ellipsoids the straight-line guess enters (:meth:`MsEndpointTranscription.side_guesses`,
+:func:`~ocpar.ocp.obstacles.side_guesses`: its free nodes inside pushed out on that side; at most
+2^3 sides) and keeps the cheapest; a re-solve from a previous solution keeps its side.
+
 The contract of a formation's agent (:mod:`ocpar.ocp.endpoint_agents`): J*, dJ*/dp (CasADi's
 −λ_p), and ``end_hessian`` d²J*/dx̄_N² (nx, nx) from the KKT system
 (:mod:`ocpar.ocp.sensitivity`; of the active set where a bound or a path row is active), the
@@ -60,11 +76,13 @@ from ocpar.ocp.constraints import (
     CompiledConstraint,
     ConstraintRows,
     PathConstraint,
+    bound_sizes,
     compile_constraints,
 )
 from ocpar.ocp.contract import InnerSolution, call_nlpsol, check_params, transcription
 from ocpar.ocp.duration import check_time_fields
 from ocpar.ocp.multiple_shooting import INTEGRATORS, step_function, timed_step_function
+from ocpar.ocp.obstacles import Obstacle, check_obstacles, segment_rows, side_guesses
 from ocpar.ocp.sensitivity import cost_hessian_function
 from ocpar.ocp.solver_options import SolverOptions, ipopt, newton, solver_options, sqpmethod
 
@@ -77,6 +95,12 @@ NEWTON_ROUNDS = 12
 #: reach) ran to the 500 of IPOPT's limit, 16 s for the 8 × 8 slot table under |a| ≤ 1.
 #: What fails goes to IPOPT, one task at a time.
 SQP_MAX_ITER = 50
+
+#: ``qrqp`` active-set iterations per QP of a ``sqpmethod`` batch with obstacles (DMOC's
+#: ``SEGMENT_QP_MAX_ITER``): a unicycle past a disc that |a| ≤ 0.8 makes infeasible took
+#: 5.3 s to fail without it (QPs of up to qrqp's 1000), 0.55 s with it, and phase 1 of four
+#: such unicycles 118 s against 30 s (the same answer); what stops goes to IPOPT.
+OBSTACLE_QP_MAX_ITER = 100
 
 #: A bound or path row within this (relative to 1 + |bound|) of its bound counts as active
 #: for the end Hessian: IPOPT's interior points stop ~1e-12..1e-10 from an active bound
@@ -109,7 +133,10 @@ class MsEndpointShape:
     parameter (``duration`` then the caller's value of it, not part of the NLP);
     ``time_bounds`` (T_min, T_max) and ``time_weight`` w: T a decision variable of each task,
     the cost J + w T (module docstring; ``duration``, clipped to the bounds, its first
-    guess)."""
+    guess). ``obstacles`` kept out of on the polyline through the integrator's sub-step
+    states of the entries ``obstacle_positions`` (default: the model's ``position_indices``;
+    module docstring); ``elastic`` the phase-1 problem of this shape instead (module
+    docstring; not with ``time_bounds``)."""
 
     model: OdeModel
     intervals: int = 10
@@ -127,6 +154,9 @@ class MsEndpointShape:
     free_duration: bool = False
     time_weight: float = 0.0
     time_bounds: tuple[float, float] | None = None
+    obstacles: tuple[Obstacle, ...] = ()
+    obstacle_positions: tuple[int, ...] = ()
+    elastic: bool = False
 
     def __post_init__(self) -> None:
         check_ode_model(self.model, "shape.model")
@@ -148,6 +178,7 @@ class MsEndpointShape:
                              f"the position entries {tuple(positions)}, got {self.free_end}")
         object.__setattr__(self, "path_constraints", compile_constraints(
             self.path_constraints, {"x": nx, "u": nu}))
+        self._check_obstacles(tuple(positions))
         if self.control_bounds is not None:
             object.__setattr__(self, "control_bounds", _pairs(self.control_bounds, nu))
         for name, value in (("intervals", self.intervals), ("steps", self.steps)):
@@ -164,15 +195,34 @@ class MsEndpointShape:
             raise ValueError(f"solver: choose one of {AUTO_SOLVER}, {', '.join(SOLVERS)}, got "
                              f"{self.solver!r}")
         if self.solver == "newton" and self.has_inequalities:
-            raise ValueError("solver: control bounds, path constraints and time bounds are "
-                             "inequalities and the newton solver takes equalities only; "
-                             "choose sqpmethod, ipopt or auto (the default)")
+            raise ValueError("solver: control bounds, path constraints, time bounds, obstacles "
+                             "and an elastic problem's slacks are inequalities and the newton "
+                             "solver takes equalities only; choose sqpmethod, ipopt or auto (the "
+                             "default)")
+        if self.elastic and self.time_bounds is not None:
+            raise ValueError("elastic: not with time_bounds (phase 1 at a fixed or parametric T)")
+
+    def _check_obstacles(self, positions: tuple[int, ...]) -> None:
+        """``obstacles`` (of one dimension d) on ``obstacle_positions`` (d distinct state
+        entries; default ``positions``, the model's), or ValueError naming the field."""
+        if not self.obstacles:
+            if self.obstacle_positions:
+                raise ValueError("obstacle_positions needs obstacles")
+            return
+        entries = tuple(int(i) for i in (self.obstacle_positions or positions))
+        if len(set(entries)) != len(entries) \
+                or not all(0 <= i < self.model.nx for i in entries):
+            raise ValueError(f"obstacle_positions: must be distinct state entries "
+                             f"(0..{self.model.nx - 1}), got {entries}")
+        object.__setattr__(self, "obstacle_positions", entries)
+        object.__setattr__(self, "obstacles", check_obstacles(self.obstacles, len(entries)))
 
     @property
     def has_inequalities(self) -> bool:
-        """Whether the NLP has inequalities (control bounds, path constraints, T's bounds)."""
+        """Whether the NLP has inequalities (control bounds, path constraints, T's bounds,
+        obstacles, an elastic problem's slacks)."""
         return (self.control_bounds is not None or bool(self.path_constraints)
-                or self.time_bounds is not None)
+                or self.time_bounds is not None or bool(self.obstacles) or self.elastic)
 
     @property
     def chosen_solver(self) -> str:
@@ -295,15 +345,20 @@ class MsEndpointTranscription:
                 return timed_phi(state, control, h / shape.steps)
         x_free, u = ca.SX.sym("x", nx, n), ca.SX.sym("u", nu, n)
         x = ca.horzcat(p[:nx], x_free)
-        gaps, rates = [], []
+        gaps, rates, polyline = [], [], [x[:, 0]]
         for j in range(n):
             state = x[:, j]
             for _ in range(shape.steps):
                 state, rate = phi(state, u[:, j])
                 rates.append(rate)
+                polyline.append(state)
             gaps.append(x[:, j + 1] - state)
+            polyline[-1] = x[:, j + 1]   # the node itself: the same point where gap = 0
         fixed = [i for i in range(nx) if i not in shape.free_end]
-        ends = [x[i, n] - p[nx + i] for i in fixed]
+        end_slack = ca.SX.sym("end_slack", 2 * len(fixed) if shape.elastic else 0)
+        reached = p[nx:][fixed] + (end_slack[:len(fixed)] - end_slack[len(fixed):]
+                                   if shape.elastic else 0)
+        ends = [x[i, n] - reached[k] for k, i in enumerate(fixed)]
         cost = h / shape.steps * ca.sum1(ca.vertcat(*rates))
         if timed:
             cost += shape.time_weight * self.horizon
@@ -312,32 +367,51 @@ class MsEndpointTranscription:
             path.add(constraint, [{"x": x[:, j], "u": u[:, j]} for j in range(n)]
                      if constraint.depends_on("u") else [{"x": x[:, j]} for j in range(1, n + 1)])
         equations = ca.vertcat(*gaps, *ends)
-        w = ca.vertcat(ca.vec(x_free), ca.vec(u), t_var)
-        #: T's entry of w (time bounds, the last), else None
-        self.t_index = w.numel() - 1 if timed else None
-        g = ca.vertcat(equations, path.expr)
-        self._w, self._p, self._f, self._g = w, p, cost, g
-        self.nw, self.ng, self.n_eq, self.n_path = w.numel(), g.numel(), equations.numel(), \
-            path.count
-        self.n_params = shape.n_params
-        self.lbg = np.concatenate([np.zeros(self.n_eq), path.lower])
-        self.ubg = np.concatenate([np.zeros(self.n_eq), path.upper])
+        keep_out = ca.vertcat(*segment_rows(shape.obstacles, [
+            point[list(shape.obstacle_positions)] for point in polyline]))
         lo, hi = (np.array(b) for b in zip(*(shape.control_bounds or [(-np.inf, np.inf)] * nu),
                                            strict=True))
+        clear = np.full(keep_out.numel(), np.inf)
+        if shape.elastic:   # module docstring: the slacks after (x, u), the cost their sum
+            elastic = _Elastic(end_slack, ca.vec(u), path, np.tile(lo, n), np.tile(hi, n),
+                               shape.control_bounds is not None)
+            slacks = elastic.slacks
+            inequalities = ca.vertcat(elastic.rows, keep_out)
+            row_lower = np.concatenate([elastic.lower, np.zeros(clear.size)])
+            row_upper = np.concatenate([elastic.upper, clear])
+            lo, hi, cost = np.full(nu, -np.inf), np.full(nu, np.inf), elastic.cost
+        else:
+            slacks = end_slack   # empty
+            inequalities = ca.vertcat(path.expr, keep_out)
+            row_lower = np.concatenate([path.lower, np.zeros(clear.size)])
+            row_upper = np.concatenate([path.upper, clear])
+        w = ca.vertcat(ca.vec(x_free), ca.vec(u), t_var, slacks)
+        #: T's entry of w (time bounds: after the controls; never with slacks), else None
+        self.t_index = nx * n + nu * n if timed else None
+        g = ca.vertcat(equations, inequalities)
+        self._w, self._p, self._f, self._g = w, p, cost, g
+        self.nw, self.ng, self.n_eq, self.n_path = w.numel(), g.numel(), equations.numel(), \
+            inequalities.numel()
+        self.n_slack = slacks.numel()
+        self.n_params = shape.n_params
+        self.lbg = np.concatenate([np.zeros(self.n_eq), row_lower])
+        self.ubg = np.concatenate([np.zeros(self.n_eq), row_upper])
         t_lower, t_upper = shape.time_bounds or (None, None)
         self.lbx = np.concatenate([np.full(nx * n, -np.inf), np.tile(lo, n),
-                                   np.full(int(timed), t_lower or 0.0)])
+                                   np.full(int(timed), t_lower or 0.0), np.zeros(self.n_slack)])
         self.ubx = np.concatenate([np.full(nx * n, np.inf), np.tile(hi, n),
-                                   np.full(int(timed), t_upper or 0.0)])
+                                   np.full(int(timed), t_upper or 0.0),
+                                   np.full(self.n_slack, np.inf)])
         block = list(range(nx, 2 * nx)) + ([shape.n_params - 1] if shape.free_duration else [])
         #: d²J*/dx̄_N² of the equations (w, λ_g, p) → (nx, nx): where no inequality is active
-        self.end_hessian = _on_rows(cost_hessian_function("ms_end", w, p, cost, equations,
-                                                          block), self.ng)
+        #: (None for the elastic problem: phase 1 reads no Hessian)
+        self.end_hessian = None if shape.elastic else _on_rows(cost_hessian_function(
+            "ms_end", w, p, cost, equations, block), self.ng)
         #: the same on the active set given by a mask (w, λ_g, p, a): where one is
         self.active_hessian = cost_hessian_function("ms_end", w, p, cost, g, block,
                                                     active_set=True) \
-            if shape.has_inequalities else None
-        self.path_rows = ca.Function("path", [w, p], [path.expr])
+            if shape.has_inequalities and not shape.elastic else None
+        self.path_rows = ca.Function("path", [w, p], [inequalities])
 
     @cached_property
     def solver(self) -> ca.Function:
@@ -378,7 +452,9 @@ class MsEndpointTranscription:
         if chosen == "sqpmethod":
             return MappedNlp("ms_endpoint_sqp", self._w, self._p, self._f, self._g,
                              self.shape.kkt_tol, min(self.shape.max_iter, SQP_MAX_ITER),
-                             self.shape.kkt_tol, options=self.shape.solver_options)
+                             self.shape.kkt_tol, options=self.shape.solver_options,
+                             qp_max_iter=OBSTACLE_QP_MAX_ITER if self.shape.obstacles
+                             else None)
         return None
 
     def prepare(self, count: int) -> None:
@@ -397,7 +473,35 @@ class MsEndpointTranscription:
 
     def default_guesses(self, params: np.ndarray) -> np.ndarray:
         """:meth:`default_guess` of each row of ``params`` (k, n_params): (k, nw), the
-        model's guess at each row's T (its first guess where T is a variable)."""
+        model's guess at each row's T (its first guess where T is a variable); with
+        ellipsoid obstacles, each guess's free nodes inside one pushed out on the side of its
+        point nearest the centre (:func:`~ocpar.ocp.obstacles.side_guesses`' first)."""
+        if self.shape.obstacles:
+            return np.stack([sides[0] for sides in self.side_guesses(params)])
+        return self._completed(self._line_guesses(params))
+
+    def side_guesses(self, params: np.ndarray) -> list[list[np.ndarray]]:
+        """Per row of ``params`` (k, n_params) the guesses (nw,) of each side of the ellipsoids
+        its straight-line guess enters (:func:`~ocpar.ocp.obstacles.side_guesses`: the free
+        nodes inside pushed out on that side; the side of the nearest point first; one
+        guess where it enters none)."""
+        guesses = self._line_guesses(params)
+        q, u = self.unpack_many(guesses, params)
+        entries = list(self.shape.obstacle_positions)
+        found = []
+        for path, controls in zip(q, u, strict=True):
+            sides = []
+            for pushed, _ in side_guesses(self.shape.obstacles, path[:, entries]):
+                moved = path.copy()
+                moved[:, entries] = pushed
+                sides.append(self._completed(self.shape.previous_guesses(
+                    moved[None], controls[None])[0]))
+            found.append(sides)
+        return found
+
+    def _line_guesses(self, params: np.ndarray) -> np.ndarray:
+        """The guesses of :meth:`default_guesses` before the obstacles and the slacks
+        (k, N (nx + nu))."""
         nx, n, k = self.nx, self.n, len(params)
         x0, xn = params[:, :nx], params[:, nx:2 * nx].copy()
         free = list(self.shape.free_end)
@@ -406,17 +510,16 @@ class MsEndpointTranscription:
         if guess is None:
             s = np.arange(1, n + 1)[None, :, None] / n
             states = x0[:, None] + s * (xn - x0)[:, None]
-            return self._with_duration(np.hstack([states.reshape(k, -1),
-                                                  np.zeros((k, self.nu * n))]))
+            return np.hstack([states.reshape(k, -1), np.zeros((k, self.nu * n))])
         durations = (params[:, -1] if self.shape.free_duration
                      else np.full(k, self.first_duration))
-        guesses = np.empty((k, self.nw - int(self.t_index is not None)))
+        guesses = np.empty((k, n * (nx + self.nu)))
         for duration in np.unique(durations).tolist():   # the model's guess per T
             rows = durations == duration
             states, controls = guess(x0[rows], xn[rows], np.linspace(0.0, duration, n + 1))
             guesses[rows] = np.hstack([np.asarray(states, float)[:, 1:].reshape(rows.sum(), -1),
                                        np.asarray(controls, float).reshape(rows.sum(), -1)])
-        return self._with_duration(guesses)
+        return guesses
 
     @property
     def first_duration(self) -> float:
@@ -424,12 +527,15 @@ class MsEndpointTranscription:
         low, high = self.shape.time_bounds or (-np.inf, np.inf)
         return float(np.clip(self.shape.duration, low, high))
 
-    def _with_duration(self, guesses: np.ndarray) -> np.ndarray:
-        """Guesses (k, ·) of the states and controls with T's first guess appended where it
-        is a variable and they have none."""
-        if self.t_index is None or guesses.shape[1] == self.nw:
+    def _completed(self, guesses: np.ndarray) -> np.ndarray:
+        """Guesses (..., ·) of the states and controls with what w holds after them appended
+        where they have none: T's first guess (T a variable) or the elastic problem's slacks
+        (0)."""
+        extra = self.nw - self.n * (self.nx + self.nu)
+        if not extra or guesses.shape[-1] == self.nw:
             return guesses
-        return np.hstack([guesses, np.full((len(guesses), 1), self.first_duration)])
+        fill = self.first_duration if self.t_index is not None else 0.0
+        return np.concatenate([guesses, np.full((*guesses.shape[:-1], extra), fill)], axis=-1)
 
     def durations(self, w: np.ndarray, params: np.ndarray) -> np.ndarray:
         """T of each solution w (k, nw) with ``params`` (k, n_params): (k,)."""
@@ -476,8 +582,14 @@ class MsEndpointTranscription:
         meets the KKT conditions to ``kkt_tol`` (:func:`~ocpar.ocp.batch.kkt_met`), a
         batch's own test."""
         params = check_params(params, self.n_params, "multiple shooting (endpoint)")
-        x0 = (self.default_guess(params) if guess is None
-              else self._with_duration(np.asarray(guess, float)[None])[0])
+        if guess is None and self.shape.obstacles:   # each side, the cheapest kept
+            tried = [self.solve(params, side, multipliers)
+                     for side in self.side_guesses(params[None])[0]]
+            best = min(tried, key=lambda t: (not t.success, t.cost if t.success else 0.0))
+            best.solve_time_s = sum(t.solve_time_s for t in tried)
+            return best
+        x0 = self._completed(self.default_guess(params) if guess is None
+                             else np.asarray(guess, float))
         extra = {} if multipliers is None else {"lam_g0": multipliers}
         call = call_nlpsol(self.solver, x0=x0, p=params, lbg=self.lbg, ubg=self.ubg,
                            lbx=self.lbx, ubx=self.ubx, **extra)
@@ -515,14 +627,14 @@ class MsEndpointTranscription:
             return None
         params = np.asarray(params, float)
         k = len(params)
-        x0 = (self._with_duration(guesses.astype(float)) if isinstance(guesses, np.ndarray)
-              and guesses.ndim == 2 and len(guesses) == k
-              and guesses.shape[1] in (self.nw, self.nw - int(self.t_index is not None))
+        if isinstance(guesses, np.ndarray) and guesses.ndim == 2 and len(guesses) == k:
+            guesses = self._completed(guesses.astype(float))
+        x0 = (guesses if isinstance(guesses, np.ndarray) and guesses.shape == (k, self.nw)
               else self.default_guesses(params))
         if not isinstance(guesses, np.ndarray):
             for i, guess in enumerate(guesses):
                 if guess is not None:
-                    x0[i] = self._with_duration(np.asarray(guess, float)[None])[0]
+                    x0[i] = self._completed(np.asarray(guess, float))
         lam0 = np.zeros((k, self.ng))
         if isinstance(multipliers, np.ndarray) and multipliers.shape == (k, self.ng):
             lam0 = multipliers.astype(float)
@@ -530,6 +642,47 @@ class MsEndpointTranscription:
             for i, lam in enumerate(multipliers):
                 if lam is not None:
                     lam0[i] = lam
+        first = self._batch_call(x0, params, lam0)
+        cold = (np.zeros(0, np.intp) if isinstance(guesses, np.ndarray)
+                else np.flatnonzero([guess is None for guess in guesses]))
+        if first is None or not self.shape.obstacles or not len(cold):
+            return first
+        return self._other_sides(first, params[cold], cold, lam0[cold])
+
+    def _other_sides(self, first: Columns, params: np.ndarray, cold: np.ndarray,
+                     lam0: np.ndarray) -> Columns:
+        """``first`` (k solutions) with each column of ``cold`` (its default guess, whose
+        p are ``params``) re-solved from the guess of each other side
+        (:meth:`side_guesses`), one batched call per side, the cheapest success kept (ties:
+        the earlier side); each column's ``solve_time_s`` that of the call it keeps."""
+        sides = self.side_guesses(params)
+        parts, positions = [first], [np.arange(first.length)]
+        chosen = np.zeros(first.length, np.intp)   # the part each column takes
+        best = np.where(first.column("success"), first.column("cost"), np.inf)
+        for j in range(1, max(len(g) for g in sides)):
+            rows = np.flatnonzero([len(g) > j for g in sides])
+            if not len(rows):
+                continue
+            found = self._batch_call(np.stack([sides[r][j] for r in rows]), params[rows],
+                                     lam0[rows])
+            if found is None:
+                continue
+            cost = np.where(found.column("success"), found.column("cost"), np.inf)
+            better = cost < best[cold[rows]]
+            best[cold[rows[better]]] = cost[better]
+            chosen[cold[rows[better]]] = len(parts)
+            parts.append(found)
+            positions.append(cold[rows])
+        pick = [parts[part].take([int(np.flatnonzero(positions[part] == i)[0])])
+                for i, part in enumerate(chosen.tolist())]
+        return Columns.concat(pick) if np.any(chosen) else first
+
+    def _batch_call(self, x0: np.ndarray, params: np.ndarray, lam0: np.ndarray
+                    ) -> Columns | None:
+        """One call of the batched solver from guesses ``x0`` (k, nw) and multipliers
+        ``lam0`` (k, ng) for ``params`` (k, 2 nx): the solutions, or None where CasADi
+        raised."""
+        k = len(params)
         try:
             if isinstance(self.batch_solver, KktNewton):
                 batch = self.batch_solver.solve(x0, params, lam0, self.lbx, self.ubx,
@@ -566,6 +719,8 @@ class MsEndpointTranscription:
         active set; NaN where a KKT matrix is singular."""
         k, nx = len(w), self.nh
         hessians = np.full((k, nx, nx), np.nan)
+        if self.end_hessian is None:   # the elastic problem: none
+            return hessians
         rows = np.flatnonzero(solved & np.all(np.isfinite(w), axis=1)
                               & np.all(np.isfinite(lam_g), axis=1))
         if not len(rows):
@@ -606,6 +761,31 @@ class MsEndpointTranscription:
             return np.asarray(function(*args)).reshape(self.nh, self.nh)  # type: ignore[misc]
         except RuntimeError:
             return np.full((self.nh, self.nh), np.nan)
+
+
+class _Elastic:
+    """The elastic problem's slacks, rows and cost (module docstring): the end slacks a±
+    ``end_slack`` (2 × the fixed entries), then one σ per control entry and interval where
+    ``bounded`` (controls ``u``, N nu; bounds ``lo``, ``hi`` (N nu,)), then one per path row
+    of ``path``. ``rows`` (c + σ ≥ lb, c − σ ≤ ub, u + σ ≥ lo, u − σ ≤ hi) with their
+    ``lower`` and ``upper`` bounds, ``cost`` the weighted total slack."""
+
+    def __init__(self, end_slack: ca.SX, u: ca.SX, path: ConstraintRows, lo: np.ndarray,
+                 hi: np.ndarray, bounded: bool) -> None:
+        row_slack = ca.SX.sym("row_slack", path.count)
+        u_slack = ca.SX.sym("u_slack", u.numel() if bounded else 0)
+        self.slacks = ca.vertcat(end_slack, u_slack, row_slack)
+        none, free = np.full(path.count, -np.inf), np.full(path.count, np.inf)
+        self.rows = ca.vertcat(path.expr + row_slack, path.expr - row_slack,
+                               *([u + u_slack, u - u_slack] if bounded else []))
+        self.lower = np.concatenate([path.lower, none, *([lo, np.full(lo.size, -np.inf)]
+                                                         if bounded else [])])
+        self.upper = np.concatenate([free, path.upper, *([np.full(hi.size, np.inf), hi]
+                                                         if bounded else [])])
+        weights = np.concatenate([np.ones(end_slack.numel()),
+                                  1 / bound_sizes(lo, hi) if bounded else [],
+                                  1 / bound_sizes(path.lower, path.upper)])
+        self.cost = ca.dot(ca.DM(weights), self.slacks)
 
 
 def _near(values: np.ndarray, lower: np.ndarray, upper: np.ndarray, tol: float) -> np.ndarray:

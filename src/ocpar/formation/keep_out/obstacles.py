@@ -13,7 +13,9 @@ when every segment is. :func:`segment_clearance` measures it on each segment, in
 of the planes that produced the path: the Euclidean distance for a sphere or a half-space,
 and for an ellipsoid the lower bound min(a) (min_s |A (r − c)| − 1) (A⁻¹ stretches by at
 least min(a)); negative inside. :func:`passing_sides` says on which side each agent passed
-each ellipsoid.
+each ellipsoid. An ODE agent's path is no chain of segments: the verification hands these
+functions its path re-integrated densely
+(:func:`~ocpar.formation.verify.checked_positions`), whose polyline they measure.
 """
 
 from __future__ import annotations
