@@ -15,7 +15,8 @@ returned point gives the end Hessian d²J*/dx̄_N² = −(E D)⁻¹ on the fixed
 = −dμ/dx̄: the Schur complement of the end rows).
 
 The stage data of all k N stages are one evaluation of one SX function per Newton step
-(:func:`~ocpar.ocp.columns_eval.evaluate_columns`: numpy over the points); the recursion is
+(compiled, :mod:`ocpar.ocp.compiled`; numpy over the points where this host has no C
+compiler, :func:`~ocpar.ocp.columns_eval.evaluate_columns`); the recursion is
 numpy on (k, nx, nx) arrays. Each column's arithmetic is that of the column alone, so a task's
 result does not depend on which tasks share its batch (tested bitwise). Per unicycle solve
 this replaces one sparse QR of the whole KKT matrix per Newton step (module
@@ -31,6 +32,7 @@ import numpy as np
 
 from ocpar.ocp.batch import BatchSolve
 from ocpar.ocp.columns_eval import evaluate_columns
+from ocpar.ocp.compiled import CompiledPoints
 
 
 def stage_function(phi: ca.Function, steps: int, step: float) -> ca.Function:
@@ -65,6 +67,10 @@ class RiccatiNewton:
         self.fixed = np.asarray(fixed, int)
         self.nw = n * (self.nx + self.nu)
         self.ng = n * self.nx + len(self.fixed)
+        #: The stage data at many points, each entry's values a row (size, m): compiled
+        #: (:mod:`ocpar.ocp.compiled`), else by numpy.
+        self.evaluate = CompiledPoints.of(stage) or (lambda *rows: [
+            out.T for out in evaluate_columns(stage, *(row.T for row in rows))])
 
     def prepare(self, count: int) -> None:
         """Nothing to build per batch size (as :class:`~ocpar.ocp.batch.KktNewton` has)."""
@@ -119,9 +125,9 @@ class RiccatiNewton:
                            ).transpose(0, 2, 1)
         u = w[:, n * nx:].reshape(k, n, nu).transpose(1, 2, 0)
         lam_x = lam[:, :n * nx].reshape(k, n, nx).transpose(1, 2, 0)
-        points = [np.ascontiguousarray(a.transpose(1, 0, 2)).reshape(len(a[0]), n * k).T
-                  for a in (x[:n], u, lam_x)]
-        nxt, cost, jac, grad, hess = (out.T for out in evaluate_columns(self.stage, *points))
+        rows = [np.ascontiguousarray(a.transpose(1, 0, 2)).reshape(len(a[0]), n * k)
+                for a in (x[:n], u, lam_x)]
+        nxt, cost, jac, grad, hess = self.evaluate(*rows)
         nz = nx + nu
         jac = jac.reshape(nz, nx, n, k).transpose(2, 1, 0, 3)   # column-major entries
         hess = hess.reshape(nz, nz, n, k).transpose(2, 1, 0, 3)
@@ -239,15 +245,18 @@ def _mv(a: np.ndarray, v: np.ndarray) -> np.ndarray:
 
 def _solve(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """x with a x = b: (n, n, k), (n, m, k) → (n, m, k), by Gaussian elimination with
-    partial pivoting, column by column; a singular column gives inf or NaN."""
+    partial pivoting (the first largest entry), column by column; a singular column gives
+    inf or NaN."""
     a, b = a.copy(), b.copy()
-    n, cols = len(a), np.arange(a.shape[-1])
+    n = len(a)
     for i in range(n):
-        pivot = i + np.argmax(np.abs(a[i:, i]), axis=0)
-        for matrix in (a, b):
-            row = matrix[i].copy()
-            matrix[i] = matrix[pivot, :, cols].T
-            matrix[pivot, :, cols] = row.T
+        for r in range(i + 1, n):   # the largest |a[r, i]|, r ≥ i, into row i
+            swap = np.abs(a[r, i]) > np.abs(a[i, i])
+            if swap.any():
+                for matrix in (a, b):
+                    top = np.where(swap, matrix[r], matrix[i])
+                    matrix[r] = np.where(swap, matrix[i], matrix[r])
+                    matrix[i] = top
         for r in range(i + 1, n):
             factor = a[r, i] / a[i, i]
             a[r, i:] -= factor * a[i, i:]
