@@ -14,7 +14,10 @@ import pytest
 
 from ocpar.models import ClohessyWiltshire, Unicycle
 from ocpar.ocp import MsEndpointShape, transcription
-from ocpar.ocp.riccati import RiccatiNewton
+from ocpar.ocp.columns_eval import evaluate_columns
+from ocpar.ocp.compiled import BLOCK, CompiledPoints
+from ocpar.ocp.multiple_shooting import step_function
+from ocpar.ocp.riccati import RiccatiNewton, stage_function
 
 TASKS = 6
 FIELDS = ("cost", "cost_gradient", "end_hessian", "q", "u")
@@ -157,3 +160,45 @@ def test_a_warm_start_takes_fewer_steps_and_lands_on_the_same_point():
 def test_the_kkt_solver_option_is_checked():
     with pytest.raises(ValueError, match=r"newton\.kkt_solver: 'lu' is not a valid value"):
         MsEndpointShape(Unicycle(), free_end=(2,), solver_options={"newton.kkt_solver": "lu"})
+
+
+def test_compiled_stage_data_equal_casadi_and_numpy(tmp_path, monkeypatch):
+    """The compiled stage derivatives (built into an empty cache, then loaded from it) equal
+    CasADi's own evaluation and the numpy walk at points of a partial last block; where the
+    host has no C compiler the solver evaluates them by numpy, with the same solutions to
+    1e-12."""
+    monkeypatch.setenv("OCPAR_CACHE", str(tmp_path))
+    shape, tasks = CASES["unicycle"]
+    step = shape.duration / shape.intervals
+
+    def stage():
+        return stage_function(step_function(shape.model, step, "rk4"), 1, step)
+
+    points = np.random.default_rng(5).normal(size=(BLOCK + 7, 10))
+    rows = [points[:, :4].T.copy(), points[:, 4:6].T.copy(), points[:, 6:].T.copy()]
+    first = CompiledPoints.of(stage())
+    assert first is not None and len(list((tmp_path / "compiled").glob("*.so"))) == 1
+    again = CompiledPoints.of(stage())
+    assert again is not None and len(list((tmp_path / "compiled").glob("*.so"))) == 1
+    function = stage()
+    casadi = function.map(len(points))(*rows)
+    walked = evaluate_columns(function, *(row.T for row in rows))
+    for i, (out, also, ref, by_numpy) in enumerate(zip(first(*rows), again(*rows), casadi,
+                                                       walked, strict=True)):
+        size1, size2 = function.size_out(i)
+        ref = np.asarray(ref).reshape(size1, len(points), size2).transpose(2, 0, 1)
+        assert np.array_equal(out, also)
+        assert np.allclose(out, ref.reshape(size1 * size2, -1), rtol=1e-14, atol=1e-14)
+        assert np.allclose(out, by_numpy.T, rtol=1e-14, atol=1e-14)
+    params = tasks(np.random.default_rng(11))
+    nlp = transcription(shape)
+    guesses = nlp.default_guesses(params)
+    compiled_solve = RiccatiNewton(stage(), shape.intervals, (0, 1, 3), 1e-12).solve(
+        guesses, params, np.zeros((TASKS, nlp.ng)), nlp.lbx, nlp.ubx)
+    monkeypatch.setenv("CC", str(tmp_path / "no-such-compiler"))
+    assert CompiledPoints.of(stage()) is None
+    numpy_solve = RiccatiNewton(stage(), shape.intervals, (0, 1, 3), 1e-12).solve(
+        guesses, params, np.zeros((TASKS, nlp.ng)), nlp.lbx, nlp.ubx)
+    assert all(compiled_solve.success) and all(numpy_solve.success)
+    for name in ("x", "f", "lam_g", "lam_p", "extra"):
+        assert _close(getattr(compiled_solve, name), getattr(numpy_solve, name), 1e-12), name
