@@ -9,7 +9,8 @@ T = 10. Usage::
     python scripts/ode_agents_speed.py --agents 10000 --repeats 3 --runs mpi
 
 ``serial`` (in this process, the variants interleaved in each repetition, after a warm-up
-solve of each): per agent per inner iteration (the solve's wall time over its inner solves)
+solve of each): per agent per inner iteration (the solve's wall time, and the process's CPU
+time over the solve (steadier on a shared machine), over its inner solves)
 of the point masses, the unicycles by the Riccati Newton (:mod:`ocpar.ocp.riccati`, the
 default) and by sparse QR on the whole KKT matrix (``newton.kkt_solver = qr``, the solver
 before it). ``mpi``: the Riccati unicycles' solve wall time by ``python -m ocpar.formation``
@@ -26,6 +27,7 @@ import json
 import os
 import statistics
 import sys
+import time
 from pathlib import Path
 
 import numpy as np
@@ -65,12 +67,15 @@ def serial(agents: int, repeats: int) -> dict:
     problems = dict(zip(VARIANTS, (point_masses(agents), unicycles(agents),
                                    unicycles(agents, "qr")), strict=True))
     samples: dict[str, list[float]] = {name: [] for name in VARIANTS}
+    cpu: dict[str, list[float]] = {name: [] for name in VARIANTS}
     runs = {}
     for problem in problems.values():
         solve_formation(problem)   # warm-up: builds the solvers
     for rep in range(repeats):
         for name, problem in problems.items():
+            start = time.process_time()
             result = solve_formation(problem)
+            cpu[name].append(1e6 * (time.process_time() - start) / result.inner_solves)
             if result.status != "converged":
                 raise RuntimeError(f"{name}: {result.status}: {result.message}")
             samples[name].append(1e6 * result.wall_time_s / result.inner_solves)
@@ -78,12 +83,18 @@ def serial(agents: int, repeats: int) -> dict:
                           "inner_solves": result.inner_solves, "retries": result.retries,
                           "total_cost": result.total_cost}
         print(f"repetition {rep + 1}/{repeats}: " + ", ".join(
-            f"{name} {samples[name][-1]:.2f} µs" for name in VARIANTS), flush=True)
+            f"{name} {samples[name][-1]:.2f} µs ({cpu[name][-1]:.2f} µs CPU)"
+            for name in VARIANTS), flush=True)
     medians = {name: statistics.median(values) for name, values in samples.items()}
-    mass = medians[VARIANTS[0]]
+    cpu_medians = {name: statistics.median(values) for name, values in cpu.items()}
+    mass, mass_cpu = medians[VARIANTS[0]], cpu_medians[VARIANTS[0]]
     return {"us_per_agent_per_inner_iteration": medians, "samples_us": samples, "runs": runs,
             "ratio_to_point_masses": {name: medians[name] / mass for name in VARIANTS[1:]},
-            "riccati_speedup_over_qr": medians[VARIANTS[2]] / medians[VARIANTS[1]]}
+            "riccati_speedup_over_qr": medians[VARIANTS[2]] / medians[VARIANTS[1]],
+            "cpu_us_per_agent_per_inner_iteration": cpu_medians, "cpu_samples_us": cpu,
+            "cpu_ratio_to_point_masses": {name: cpu_medians[name] / mass_cpu
+                                          for name in VARIANTS[1:]},
+            "cpu_riccati_speedup_over_qr": cpu_medians[VARIANTS[2]] / cpu_medians[VARIANTS[1]]}
 
 
 def mpi(agents: int, repeats: int, output: Path) -> dict:
@@ -155,9 +166,12 @@ def main() -> int:
     report |= {"agents": args.agents, "repeats": args.repeats}
     if "serial" in args.runs:
         report["serial"] = serial(args.agents, args.repeats)
-        for name, ratio in report["serial"]["ratio_to_point_masses"].items():
-            print(f"{name} / point masses: {ratio:.2f}×")
-        print(f"Riccati over sparse QR: {report['serial']['riccati_speedup_over_qr']:.2f}×")
+        part = report["serial"]
+        for name, ratio in part["ratio_to_point_masses"].items():
+            print(f"{name} / point masses: {ratio:.2f}× "
+                  f"(CPU time {part['cpu_ratio_to_point_masses'][name]:.2f}×)")
+        print(f"Riccati over sparse QR: {part['riccati_speedup_over_qr']:.2f}× "
+              f"(CPU time {part['cpu_riccati_speedup_over_qr']:.2f}×)")
     if "mpi" in args.runs:
         report["mpi"] = mpi(args.agents, args.repeats, args.output)
         print(f"mpirun -n 2 over -n 1: {report['mpi']['speedup_2_ranks']:.2f}×")
