@@ -22,9 +22,10 @@ The contract of a formation's agent (:mod:`ocpar.ocp.endpoint_agents`): J*, dJ*/
 −λ_p), and ``end_hessian`` d²J*/dx̄_N² (nx, nx) from the KKT system
 (:mod:`ocpar.ocp.sensitivity`; of the active set where a bound or a path row is active), the
 path ``q`` (N+1, nx: the states at the nodes) and controls ``u`` (N, nu). Batches: the
-``newton`` solver (:class:`~ocpar.ocp.riccati.RiccatiNewton`, equalities only) or ``sqpmethod``
-(:class:`~ocpar.ocp.batch.MappedNlp`), each column accepted by its KKT check; IPOPT one task
-at a time (:meth:`MsEndpointTranscription.solve`) for the others.
+``newton`` solver (:class:`~ocpar.ocp.riccati.RiccatiNewton`, equalities only, its end
+Hessians from its own factorisation) or ``sqpmethod`` (:class:`~ocpar.ocp.batch.MappedNlp`),
+each column accepted by its KKT check; IPOPT one task at a time
+(:meth:`MsEndpointTranscription.solve`) for the others.
 """
 
 from __future__ import annotations
