@@ -5,7 +5,8 @@ CasADi's virtual machine spends a few ns per instruction per point, as numpy doe
 points (:mod:`ocpar.ocp.columns_eval`); its generated C (``CodeGenerator``) compiled with
 ``-O2`` evaluates a unicycle's RK4 stage derivatives (344 instructions) in 85 ns per point
 (190 ns with the blocks' transposes to and from rows of entries) against 500 ns by numpy
-(CPU time, 50,000 points, this machine, 2026-12). The shared
+(CPU time, 50,000 points, this machine, 2026-12); building one costs seconds (a unicycle's
+Newton step, :mod:`ocpar.ocp.riccati`: 3 s at N = 10, 8 s at N = 20), once per host. The shared
 library is named by a hash of the generated source, the compiler command and CasADi's
 version, written under a temporary name and renamed into place (processes that compile the
 same function at once each write a whole file; the last rename wins, with the same bits),

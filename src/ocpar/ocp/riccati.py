@@ -16,7 +16,7 @@ returned point gives the end Hessian d²J*/dx̄_N² = −(E D)⁻¹ on the fixed
 The recursion is written once, per agent, as a CasADi SX function of (w, λ, p)
 (:func:`newton_step_function`: the KKT check of the iterate, its Newton step and its end
 Hessian; the small solves by Gaussian elimination with partial pivoting), whose sparsity
-CasADi exploits (a unicycle's N = 10 step: ~5,500 instructions); it is compiled by the
+CasADi exploits (a unicycle's N = 10 step: ~6,900 instructions); it is compiled by the
 host's C compiler (:mod:`ocpar.ocp.compiled`, cached on disk by content; numpy over the agents,
 :func:`~ocpar.ocp.columns_eval.evaluate_columns`, where the host has none) and evaluated on
 all of a batch's agents at once, one call per Newton step. Each agent's arithmetic is that of
