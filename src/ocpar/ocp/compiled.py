@@ -3,10 +3,10 @@ and cached on disk by content, and evaluated on many points.
 
 CasADi's virtual machine spends a few ns per instruction per point, as numpy does over many
 points (:mod:`ocpar.ocp.columns_eval`); its generated C (``CodeGenerator``) compiled with
-``-O2`` evaluates a unicycle's RK4 stage derivatives (344 instructions) in 85 ns per point
+``-O2`` evaluated a unicycle's RK4 stage derivatives (344 instructions) in 85 ns per point
 (190 ns with the blocks' transposes to and from rows of entries) against 500 ns by numpy
-(CPU time, 50,000 points, this machine, 2026-12); building one costs seconds (a unicycle's
-Newton step, :mod:`ocpar.ocp.riccati`: 3 s at N = 10, 8 s at N = 20), once per host. The shared
+(CPU time, 50,000 points, this machine, 2026-12); building one costs seconds, once per host
+(:data:`FLAGS`). The shared
 library is named by a hash of the generated source, the compiler command and CasADi's
 version, written under a temporary name and renamed into place (processes that compile the
 same function at once each write a whole file; the last rename wins, with the same bits),
@@ -29,8 +29,9 @@ import numpy as np
 
 #: Points per call of a compiled map: 256 ran faster than 2048.
 BLOCK = 256
-#: The compiler's flags: optimised, IEEE arithmetic (no contraction into FMA, no fast-math).
-FLAGS = ("-O2", "-fPIC", "-shared", "-ffp-contract=off")
+#: The compiler's flags: -O1 (a unicycle's N = 20 Newton step: 4.5 s to build against 19.6 s
+#: at -O2, and 5 % slower), IEEE arithmetic (no contraction into FMA, no fast-math).
+FLAGS = ("-O1", "-fPIC", "-shared", "-ffp-contract=off")
 
 
 def cache_directory() -> Path:
