@@ -38,9 +38,10 @@ The contract of a formation's agent (:mod:`ocpar.ocp.endpoint_agents`): J*, dJ*/
 −λ_p), and ``end_hessian`` d²J*/dx̄_N² (nx, nx) from the KKT system
 (:mod:`ocpar.ocp.sensitivity`; of the active set where a bound or a path row is active), the
 path ``q`` (N+1, nx: the states at the nodes) and controls ``u`` (N, nu). Batches: the
-``newton`` solver (:class:`~ocpar.ocp.batch.KktNewton`, equalities only) or ``sqpmethod``
-(:class:`~ocpar.ocp.batch.MappedNlp`), each column accepted by its KKT check; IPOPT one task
-at a time (:meth:`MsEndpointTranscription.solve`) for the others.
+``newton`` solver (:class:`~ocpar.ocp.riccati.RiccatiNewton`, equalities only, its end
+Hessians from its own factorisation) or ``sqpmethod`` (:class:`~ocpar.ocp.batch.MappedNlp`),
+each column accepted by its KKT check; IPOPT one task at a time
+(:meth:`MsEndpointTranscription.solve`) for the others.
 
 Free duration (optional, as DMOC's: :mod:`ocpar.ocp.dmoc`), h = T/N inside every step
 (:func:`~ocpar.ocp.multiple_shooting.timed_step_function`): ``free_duration``, T the last
@@ -83,6 +84,7 @@ from ocpar.ocp.contract import InnerSolution, call_nlpsol, check_params, transcr
 from ocpar.ocp.duration import check_time_fields
 from ocpar.ocp.multiple_shooting import INTEGRATORS, step_function, timed_step_function
 from ocpar.ocp.obstacles import Obstacle, check_obstacles, segment_rows, side_guesses
+from ocpar.ocp.riccati import RiccatiNewton, stage_function
 from ocpar.ocp.sensitivity import cost_hessian_function
 from ocpar.ocp.solver_options import SolverOptions, ipopt, newton, solver_options, sqpmethod
 
@@ -428,6 +430,9 @@ class MsEndpointTranscription:
         settings = {"ipopt": ipopt(given, shape.tol, shape.max_iter, bound_relax_factor=0.0)}
         if shape.chosen_solver == "newton":
             settings["newton"] = {
+                # the recursion's stages have a fixed step: sparse QR where T is a parameter
+                "kkt_solver": "qr" if shape.free_duration
+                else newton(given, "kkt_solver", "riccati"),
                 "kkt_tol": newton(given, "kkt_tol", shape.kkt_tol),
                 "max_iter": newton(given, "max_iter", min(NEWTON_ROUNDS, shape.max_iter))}
         elif shape.chosen_solver == "sqpmethod":
@@ -441,11 +446,20 @@ class MsEndpointTranscription:
         return kkt_residuals("ms_endpoint", self._w, self._p, self._f, self._g)
 
     @cached_property
-    def batch_solver(self) -> KktNewton | MappedNlp | None:
-        """The batched solver (None for ``ipopt``); the end Hessians are evaluated after
-        it, at the accepted columns only (:meth:`_hessians`: a failed column's KKT matrix
-        may be singular)."""
-        chosen = self.shape.chosen_solver
+    def batch_solver(self) -> RiccatiNewton | KktNewton | MappedNlp | None:
+        """The batched solver (None for ``ipopt``): ``newton`` by the Riccati recursion
+        (:mod:`ocpar.ocp.riccati`, its end Hessians from its factorisation) or, with
+        ``newton.kkt_solver = qr``, by sparse QR; the others' end Hessians are evaluated
+        after it, at the accepted columns only (:meth:`_hessians`: a failed column's KKT
+        matrix may be singular)."""
+        chosen, settings = self.shape.chosen_solver, self.solver_settings
+        if chosen == "newton" and settings["newton"]["kkt_solver"] == "riccati":
+            shape = self.shape
+            step = shape.duration / self.n / shape.steps
+            stage = stage_function(step_function(shape.model, step, shape.integrator),
+                                   shape.steps, step)
+            fixed = tuple(i for i in range(self.nx) if i not in shape.free_end)
+            return RiccatiNewton(stage, self.n, fixed, settings["newton"]["kkt_tol"])
         if chosen == "newton":
             return KktNewton("ms_endpoint", self._w, self._p, self._f, self._g, 1,
                              self.solver_settings["newton"]["kkt_tol"])
@@ -684,7 +698,7 @@ class MsEndpointTranscription:
         raised."""
         k = len(params)
         try:
-            if isinstance(self.batch_solver, KktNewton):
+            if not isinstance(self.batch_solver, MappedNlp):
                 batch = self.batch_solver.solve(x0, params, lam0, self.lbx, self.ubx,
                                                 self.solver_settings["newton"]["max_iter"])
             else:
@@ -693,7 +707,9 @@ class MsEndpointTranscription:
         except RuntimeError:
             return None
         success = np.asarray(batch.success, bool)
-        hessians = self._hessians(batch.x, batch.lam_g, params, success)
+        hessians = (batch.extra.reshape(k, self.nh, self.nh)
+                    if isinstance(self.batch_solver, RiccatiNewton)
+                    else self._hessians(batch.x, batch.lam_g, params, success))
         q, u = self.unpack_many(batch.x, params)
         statuses = [BATCH_STATUS[ok] for ok in success.tolist()]
         return Columns(cls=MsEndpointSolution, length=k, fields={

@@ -11,8 +11,9 @@ An option is named ``SOLVER.NAME`` and has a scalar value (bool, int, float or s
 * ``qrqp.NAME``: the ``qrqp`` QP solver's (``casadi.conic_options("qrqp")``: ``max_iter``,
   ``constr_viol_tol``, ``dual_inf_tol``, …);
 * ``newton.NAME``: the batched Newton kernel's (:data:`NEWTON_OPTIONS`): ``kkt_tol``, the
-  KKT-residual tolerance a column must meet to be accepted, and ``max_iter``, its Newton
-  steps at most.
+  KKT-residual tolerance a column must meet to be accepted, ``max_iter``, its Newton
+  steps at most, and ``kkt_solver`` (ODE agents between two states): ``riccati``
+  (:mod:`ocpar.ocp.riccati`, the default) or ``qr`` (:class:`~ocpar.ocp.batch.KktNewton`).
 
 :func:`solver_options` turns what a user gives (a mapping of ``SOLVER.NAME`` to a value, or
 nested ``{SOLVER: {NAME: value}}`` as a TOML table gives it) into the sorted tuple of (name,
@@ -55,7 +56,11 @@ SOLVERS = ("ipopt", "sqpmethod", "qrqp", "newton")
 NEWTON_OPTIONS = {
     "kkt_tol": (float, "the KKT-residual tolerance a column must meet to be accepted"),
     "max_iter": (int, "Newton steps at most"),
+    "kkt_solver": (str, "how an ODE agent's Newton step solves its KKT system: riccati "
+                        "(stage by stage, the default) or qr (sparse QR of the whole matrix)"),
 }
+#: The values of the batched Newton kernel's options of type str.
+NEWTON_CHOICES = {"kkt_solver": ("riccati", "qr")}
 #: ``sqpmethod`` options that are not the user's to set: its QP solver (the batches and
 #: their failure handling are built on ``qrqp``).
 FIXED_SQPMETHOD = frozenset({"qpsol"})
@@ -70,7 +75,8 @@ BUILT_IN_LINEAR_SOLVER = "mumps"
 SOLVER_OPTIONS_HELP = (
     "an inner solver's own option SOLVER.NAME=VALUE: ipopt.NAME (any IPOPT option: ipopt.tol, "
     "ipopt.linear_solver, ipopt.print_level, ipopt.max_iter, ...), sqpmethod.NAME and "
-    "qrqp.NAME (CasADi's), newton.kkt_tol or newton.max_iter (the batched Newton kernel); "
+    "qrqp.NAME (CasADi's), newton.kkt_tol, newton.max_iter or newton.kkt_solver (the "
+    "batched Newton kernel); "
     "checked before any worker starts; repeat for more (TOML: a [solver_options] table; "
     "docs/solver-options.md)")
 #: CasADi's option types, as the scalar Python types they take.
@@ -185,7 +191,10 @@ def _check(options: SolverOptions) -> None:
                                  f"newton has {', '.join(NEWTON_OPTIONS)}")
             kind = NEWTON_OPTIONS[name][0]
             _check_type(key, value, kind)
-            if not value > 0:
+            if kind is str and value not in NEWTON_CHOICES[name]:
+                raise ValueError(f"solver option {key}: {value!r} is not a valid value "
+                                 f"(expected one of {', '.join(NEWTON_CHOICES[name])})")
+            if kind is not str and not value > 0:
                 raise ValueError(f"solver option {key}: expected a positive value, got {value!r}")
         else:
             _check_type(key, value, _casadi_type(solver, name))
