@@ -360,17 +360,16 @@ def best_isolated_formation(problem: FormationProblem, backend: Backend,
     for candidate, table in zip(sets, tables, strict=True):
         try:
             candidate.assignment = cheapest_assignment(table)
+            candidate.total_cost = assignment_cost(table, candidate.assignment)
         except InnerSolveFailed:   # no assignment with every pair feasible: not a candidate
-            candidate.total_cost = math.inf
-            continue
-        candidate.total_cost = assignment_cost(table, candidate.assignment)
+            candidate.total_cost = math.inf   # unless a turn of it has one
         if isinstance(problem.curve, Surface) and _turnable(problem, candidate.phi):
             candidate.rotated, candidate.total_cost, rotated_solves = _rotate(
                 problem, backend, candidate.phi, tol)
             solves += rotated_solves
     dropped = []
     if isinstance(problem.curve, Surface):
-        kept = [_verify(problem, s) for s in sets]
+        kept = [not math.isfinite(s.total_cost) or _verify(problem, s) for s in sets]
         dropped = [s for s, ok in zip(sets, kept, strict=True) if not ok]
         sets = [s for s, ok in zip(sets, kept, strict=True) if ok]
         if progress is not None:
@@ -402,8 +401,9 @@ def _rotate(problem: FormationProblem, backend: Backend, phi: np.ndarray, tol: f
     free directions (the rotations applied rigidly, :func:`rotation_newton`; on a parametric
     surface the tangent space of c = 0, :func:`tangent_newton`) and the cheapest assignment of
     the agents to the points reached (one table superstep each), while the assignment changes
-    (at most :data:`ROTATION_ROUNDS`). Returns (φ in agent order, its total cost, inner
-    solves)."""
+    (at most :data:`ROTATION_ROUNDS`); a start with no assignment of feasible pairs is
+    skipped. Returns (φ in agent order, its total cost, inner solves), (None, +∞, inner
+    solves) if no start has one."""
     n, solves = problem.agents, 0
     axes = _rotations(problem)
     starts = [phi]
@@ -417,7 +417,10 @@ def _rotate(problem: FormationProblem, backend: Backend, phi: np.ndarray, tol: f
     for start in starts:
         table = cost_tables(problem, backend, start.reshape(1, n, -1))[0]
         solves += table.size
-        phi = start.reshape(n, -1)[cheapest_assignment(table)].ravel()
+        try:
+            phi = start.reshape(n, -1)[cheapest_assignment(table)].ravel()
+        except InnerSolveFailed:   # no agent order reaches this turn: the next start
+            continue
         for _ in range(ROTATION_ROUNDS):
             objective = OuterObjective(problem, backend)
             phi, _, _, _ = newton(objective, phi, tol, MAX_ROTATION_ITERATIONS)
@@ -432,7 +435,7 @@ def _rotate(problem: FormationProblem, backend: Backend, phi: np.ndarray, tol: f
             phi, cost = phi.reshape(n, -1)[assignment].ravel(), assignment_cost(table, assignment)
         if best is None or cost < best[1]:
             best = (phi, cost)
-    return best[0], best[1], solves
+    return (None, math.inf, solves) if best is None else (best[0], best[1], solves)
 
 
 def _turns(axes: np.ndarray) -> Rotation:
