@@ -186,18 +186,21 @@ def cost_tables(problem: FormationProblem, backend: Backend, slots: np.ndarray) 
     return solved_tables(problem, backend, slots)[0]
 
 
-def solved_tables(problem: FormationProblem, backend: Backend, slots: np.ndarray
-                  ) -> tuple[np.ndarray, InnerCosts]:
+def solved_tables(problem: FormationProblem, backend: Backend, slots: np.ndarray,
+                  all_infeasible: bool = False) -> tuple[np.ndarray, InnerCosts]:
     """:func:`cost_tables` (M, n, n) and the superstep's
     :class:`~ocpar.formation.feasibility.InnerCosts` (pair k = (m n + i) n + j: table m,
-    agent i, slot j; with dĴ/dz)."""
+    agent i, slot j; with dĴ/dz). ``all_infeasible``: tables of +∞ only are an answer (on a
+    surface a turn of a critical set may lie beyond every agent's reach), not
+    :class:`~ocpar.formation.hierarchical.InnerSolveFailed`."""
     n = problem.agents
     if not np.all(np.isfinite(slots)):
         raise ValueError("slots must be finite angles (rad)")
     tables = len(slots)
     agents = np.tile(np.repeat(np.arange(n), n), tables)
     angles = np.repeat(slots, n, axis=0).ravel()  # row (m, i) holds the slots of table m
-    found = solved_pairs(problem, backend, agents, angles, "cost-table")
+    found = inner_costs(problem, backend, agents, angles) if all_infeasible \
+        else solved_pairs(problem, backend, agents, angles, "cost-table")
     return found.costs.reshape(tables, n, n), found
 
 
