@@ -10,6 +10,7 @@ solve time, serial) to stdout or ``--output``.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import time
 from pathlib import Path
@@ -85,7 +86,41 @@ def run(case: str) -> dict:
             "supersteps": result.supersteps, "inner_solves": result.inner_solves,
             "failed_solves": result.failed_solves, "seconds": round(seconds, 3),
             "message": result.message,
-            "backend": "serial"}
+            "backend": "serial",
+            "per_solve": per_solve(make(), problem, result.phi)
+            if result.status == "converged" else None}
+
+
+def per_solve(free: FormationProblem, problem: FormationProblem, phi: np.ndarray,
+              repeats: int = 5) -> dict:
+    """The least time per inner solve (ms) of the table of every agent to every point of
+    the answer ``phi`` solved by :func:`~ocpar.ocp.solve_tasks` (the batched path and any
+    failure policy), for the ``free`` problem (its own solver, ``newton``, and
+    ``sqpmethod``, the limited one's) and for the limited ``problem`` (the pairs inside the
+    reach set), best of ``repeats``; the IPOPT retries (attempts beyond the first) and the
+    ratios limited / free."""
+    from ocpar.formation.feasibility import outside_reach
+    from ocpar.ocp import solve_tasks
+    record = {}
+    same_solver = free.with_shapes(lambda shape: dataclasses.replace(shape, solver="sqpmethod"))
+    for name, shaped in (("free", free), ("free_sqpmethod", same_solver), ("limited", problem)):
+        n = shaped.agents
+        agents = np.repeat(np.arange(n), n)
+        ends = np.tile(np.reshape(phi, (n, -1)), (n, 1))
+        inside = ~outside_reach(shaped, agents, ends if ends.shape[1] > 1 else ends[:, 0])
+        tasks = shaped.tasks_for(agents[inside], ends[inside].ravel())
+        times = []
+        for _ in range(repeats):
+            start = time.perf_counter()
+            solved = solve_tasks(tasks)
+            times.append(time.perf_counter() - start)
+        record[name] = {"tasks": int(inside.sum()),
+                        "ms_per_solve": 1e3 * min(times) / int(inside.sum()),
+                        "retries": int(np.sum(np.asarray(solved.column("attempts")) - 1))}
+    limited = record["limited"]["ms_per_solve"]
+    record["ratio"] = limited / record["free"]["ms_per_solve"]
+    record["ratio_same_solver"] = limited / record["free_sqpmethod"]["ms_per_solve"]
+    return record
 
 
 def main() -> None:
