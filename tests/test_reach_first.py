@@ -93,3 +93,36 @@ def test_the_best_formation_on_a_sphere_under_a_limit_is_every_agent_straight_in
     np.testing.assert_allclose(problem.final_positions(result.phi), TETRAHEDRON, atol=1e-6)
     one = hand_dmoc(1.0, [0, 0, 0], [0.5, 0, 0], INTERVALS, DURATION, "norm", U)
     assert result.total_cost == pytest.approx(4 * one, rel=1e-8)
+
+
+@pytest.mark.parametrize("limit", ["norm", "box"])
+def test_six_masses_onto_a_sphere_under_a_limit_below_the_free_peak(limit):
+    """The issue's case (``scripts/reach_first.py``): six unit masses at radius 3 onto the
+    sphere of radius 2 under a limit at 80 % of the free optimum's peak, ``--ordering
+    optimal``: converged with no IPOPT retry, each agent's cost at its returned end equal to
+    the hand-written NLP's there and the total their sum."""
+    directions = np.random.default_rng(4).normal(size=(6, 3))
+    starts = 3.0 * directions / np.linalg.norm(directions, axis=1, keepdims=True)
+
+    def make(**bounds) -> FormationProblem:
+        return FormationProblem(name="sphere6", curve=SphereSurface(radius=2.0),
+                                starts=starts, shape=DmocShape(PointMass(dim=3), INTERVALS,
+                                                               DURATION, **bounds))
+
+    options = FormationOptions(ordering="optimal")
+    free = solve_formation(make(), options=options)
+    assert free.status == "converged", free.message
+    peak = np.linalg.norm(free.controls, axis=2) if limit == "norm" else np.abs(free.controls)
+    u_max = 0.8 * float(peak.max())
+    bounds = {"norm": {"path_constraints": (PathConstraint(lambda u: ca.sumsqr(u),
+                                                           upper=u_max**2, name="thrust"),)},
+              "box": {"control_bounds": ((-u_max, u_max),) * 3}}[limit]
+    problem = make(**bounds)
+    result = solve_formation(problem, options=options)
+    assert result.status == "converged", result.message
+    assert result.retries == 0 and result.failed_solves == 0
+    ends = problem.final_positions(result.phi)
+    hand = [hand_dmoc(1.0, start, end, INTERVALS, DURATION, limit, u_max)
+            for start, end in zip(starts, ends, strict=True)]
+    assert result.total_cost == pytest.approx(sum(hand), rel=1e-8)
+    assert result.total_cost > free.total_cost   # the limit is felt
