@@ -186,11 +186,12 @@ def feasible_start(problem: FormationProblem, phi0: np.ndarray) -> np.ndarray:
 
 def outside_reach(problem: FormationProblem, agents: np.ndarray, phi: np.ndarray
                   ) -> np.ndarray:
-    """Mask (p,): agent ``agents[k]`` cannot reach its target at ``phi[k]`` (an angle, or a
-    slot index) by its exact reach set (False where none is known)."""
+    """Mask (p,): agent ``agents[k]`` cannot reach its target at ``phi[k]`` (an angle, a
+    slot index, or on a surface ``phi`` (p, 2) its parameters) by its exact reach set (False
+    where none is known)."""
     out = np.zeros(len(agents), dtype=bool)
     sets = problem.reach_sets()
-    if not sets or isinstance(problem.curve, Surface):
+    if not sets:
         return out
     starts = problem.positions(problem.starts)
     for reach, members in sets:
@@ -227,8 +228,7 @@ def inner_costs(problem: FormationProblem, backend: Backend, agents: np.ndarray,
     costs = np.full(len(agents), np.inf)
     d = problem.curve.dim
     gradients = np.full((len(agents), d), np.nan)
-    skip = outside_reach(problem, agents, rows[:, 0]) if rows.shape[1] == 1 \
-        else np.zeros(len(agents), dtype=bool)
+    skip = outside_reach(problem, agents, rows[:, 0] if rows.shape[1] == 1 else rows)
     todo = np.flatnonzero(~skip)
     failed, first = 0, ""
     if len(todo):

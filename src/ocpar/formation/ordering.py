@@ -186,18 +186,21 @@ def cost_tables(problem: FormationProblem, backend: Backend, slots: np.ndarray) 
     return solved_tables(problem, backend, slots)[0]
 
 
-def solved_tables(problem: FormationProblem, backend: Backend, slots: np.ndarray
-                  ) -> tuple[np.ndarray, InnerCosts]:
+def solved_tables(problem: FormationProblem, backend: Backend, slots: np.ndarray,
+                  all_infeasible: bool = False) -> tuple[np.ndarray, InnerCosts]:
     """:func:`cost_tables` (M, n, n) and the superstep's
     :class:`~ocpar.formation.feasibility.InnerCosts` (pair k = (m n + i) n + j: table m,
-    agent i, slot j; with dĴ/dz)."""
+    agent i, slot j; with dĴ/dz). ``all_infeasible``: tables of +∞ only are an answer (on a
+    surface a turn of a critical set may lie beyond every agent's reach), not
+    :class:`~ocpar.formation.hierarchical.InnerSolveFailed`."""
     n = problem.agents
     if not np.all(np.isfinite(slots)):
         raise ValueError("slots must be finite angles (rad)")
     tables = len(slots)
     agents = np.tile(np.repeat(np.arange(n), n), tables)
     angles = np.repeat(slots, n, axis=0).ravel()  # row (m, i) holds the slots of table m
-    found = solved_pairs(problem, backend, agents, angles, "cost-table")
+    found = inner_costs(problem, backend, agents, angles) if all_infeasible \
+        else solved_pairs(problem, backend, agents, angles, "cost-table")
     return found.costs.reshape(tables, n, n), found
 
 
@@ -382,7 +385,7 @@ def optimal_ordering(
     # multi-start: tables at `starts` offsets within one slot width, one superstep
     offsets = np.arange(starts) * width / starts
     tables, seed = solved_tables(problem, backend, base[None, :] + offsets[:, None])
-    inner_solves, table_supersteps = tables.size, 1
+    inner_solves, table_supersteps = seed.solved, 1   # pairs out of reach: not solved
     found: dict[tuple[int, ...], np.ndarray] = {}
     scanned: dict[float, float] = {}
     if np.all(np.isfinite(tables)):
@@ -476,7 +479,7 @@ def _descend(problem: FormationProblem, backend: Backend, objective: OuterObject
     assignment stops changing or ``max_rounds`` offset searches were run. Returns the fields
     of :class:`OrderingResult` it decides, with ``tables`` and ``solves`` (its table
     supersteps and their solves)."""
-    n, width = problem.agents, 2 * np.pi / problem.agents
+    width = 2 * np.pi / problem.agents
     converged, message = False, f"assignment still changing after {max_rounds} round(s)"
     all_offsets_converged, surrogate_error = True, 0.0 if surrogate is not None else math.nan
     tables = solves = 0
@@ -494,9 +497,10 @@ def _descend(problem: FormationProblem, backend: Backend, objective: OuterObject
             all_offsets_converged = False
             message = f"offset search of round {rounds}: {offset_message}"
         assignment, offset = _wrap(assignment, float(phi[0] - base[assignment[0]]), width)
-        table = cost_table(problem, backend, base + offset)
+        found_tables, found = solved_tables(problem, backend, (base + offset)[None, :])
+        table = found_tables[0]
         tables += 1
-        solves += n * n
+        solves += found.solved
         if surrogate is not None:
             surrogate_error = max(surrogate_error, float(
                 np.max(np.abs(surrogate.table(offset) - table)) / np.max(np.abs(table))))

@@ -11,7 +11,7 @@ import numpy as np
 
 from ocpar.bsp import Backend
 from ocpar.formation.feasibility import InnerSolveFailed, NoFeasibleFormation, phase_one
-from ocpar.formation.ordering import pair_costs
+from ocpar.formation.ordering import solved_pairs
 from ocpar.formation.problem import FormationProblem
 from ocpar.formation.targets.slots import SLOT_CANDIDATES, assign_over_candidates
 
@@ -46,8 +46,9 @@ def assign_slots(problem: FormationProblem, backend: Backend,
 
     def inner_costs(agents: np.ndarray, chosen: np.ndarray) -> np.ndarray:
         nonlocal solves
-        solves += len(agents)
-        return pair_costs(problem, backend, agents, chosen.astype(float), "slot-cost")
+        found = solved_pairs(problem, backend, agents, chosen.astype(float), "slot-cost")
+        solves += found.solved   # the pairs out of reach are +∞, not solved
+        return found.costs
 
     starts = problem.positions(problem.starts)
     try:

@@ -242,7 +242,9 @@ class DmocShape:
     ~0.05 / 1.7 ms), both with IPOPT for the tasks whose KKT check fails, or ``ipopt`` (one
     IPOPT call per task, ~0.5 / 1.5 ms); ``auto`` (the default) is :attr:`chosen_solver`:
     ``newton`` (the fastest, by measurement) for a shape of equalities only, ``sqpmethod``
-    for one with inequalities (path constraints, keep-out slots, obstacles). ``kkt_tol`` is
+    for one with inequalities (control bounds, path constraints, keep-out slots, obstacles:
+    ``newton`` only checks bounds afterwards, and a task with an active bound went to IPOPT,
+    ~10 ms). ``kkt_tol`` is
     the batched solvers' stopping tolerance on the (unscaled) primal and dual residuals and
     their acceptance test;
     ``tol`` is IPOPT's (scaled). With 1e-10 a point-mass QP takes one sqpmethod iteration
@@ -379,11 +381,12 @@ class DmocShape:
     def chosen_solver(self) -> str:
         """The solver this shape's NLPs are solved with: ``solver``, or for ``auto``
         ``newton`` where the NLP has equalities only and ``sqpmethod`` where it has
-        inequalities (path constraints, keep-out slots, obstacles)."""
+        inequalities (control bounds, path constraints, keep-out slots, obstacles)."""
         if self.solver != AUTO_SOLVER:
             return self.solver
-        inequalities = (self.path_constraints or self.keep_out_slots or self.obstacles
-                        or self.elastic or self.time_bounds is not None)
+        inequalities = (self.control_bounds is not None or self.path_constraints
+                        or self.keep_out_slots or self.obstacles or self.elastic
+                        or self.time_bounds is not None)
         return "sqpmethod" if inequalities else "newton"
 
     @property

@@ -15,7 +15,8 @@ agents to its points is feasible. :func:`best_isolated_formation` searches both 
    2π and merged when they agree to :data:`SAME_SET_TOL` (rad) up to a cyclic shift.
 2. **Assignments**, on the workers: for each of the M distinct sets S_m the table
    C[m, i, j] = Ĵ_i(S_m[j]) of n² inner optimal costs, all M tables in one superstep
-   (:func:`~ocpar.formation.ordering.cost_tables`), then the cheapest assignment of each
+   (:func:`~ocpar.formation.ordering.cost_tables`; a pair outside an exact reach set +∞
+   without a solve), then the cheapest assignment of each
    (:func:`scipy.optimize.linear_sum_assignment`, exact).
 
 On a surface the search runs in the surface's chart, except that a set found with a point
@@ -58,7 +59,7 @@ from ocpar.formation.hierarchical import (
     rotation_newton,
     tangent_newton,
 )
-from ocpar.formation.ordering import assignment_cost, cheapest_assignment, cost_tables
+from ocpar.formation.ordering import assignment_cost, cheapest_assignment, solved_tables
 from ocpar.formation.problem import FormationProblem
 from ocpar.formation.targets.curve import Curve
 from ocpar.formation.targets.surface import EllipsoidSurface, Surface
@@ -355,22 +356,20 @@ def best_isolated_formation(problem: FormationProblem, backend: Backend,
         raise ValueError(f"no critical set of the potential found from {made} starts "
                          f"(reading {critical!r})")
     n = problem.agents
-    tables = cost_tables(problem, backend, np.array([s.phi.reshape(n, -1) for s in sets]))
-    solves = tables.size
+    tables, solves = _tables(problem, backend, np.array([s.phi.reshape(n, -1) for s in sets]))
     for candidate, table in zip(sets, tables, strict=True):
         try:
             candidate.assignment = cheapest_assignment(table)
+            candidate.total_cost = assignment_cost(table, candidate.assignment)
         except InnerSolveFailed:   # no assignment with every pair feasible: not a candidate
-            candidate.total_cost = math.inf
-            continue
-        candidate.total_cost = assignment_cost(table, candidate.assignment)
+            candidate.total_cost = math.inf   # unless a turn of it has one
         if isinstance(problem.curve, Surface) and _turnable(problem, candidate.phi):
             candidate.rotated, candidate.total_cost, rotated_solves = _rotate(
                 problem, backend, candidate.phi, tol)
             solves += rotated_solves
     dropped = []
     if isinstance(problem.curve, Surface):
-        kept = [_verify(problem, s) for s in sets]
+        kept = [not math.isfinite(s.total_cost) or _verify(problem, s) for s in sets]
         dropped = [s for s, ok in zip(sets, kept, strict=True) if not ok]
         sets = [s for s, ok in zip(sets, kept, strict=True) if ok]
         if progress is not None:
@@ -402,8 +401,9 @@ def _rotate(problem: FormationProblem, backend: Backend, phi: np.ndarray, tol: f
     free directions (the rotations applied rigidly, :func:`rotation_newton`; on a parametric
     surface the tangent space of c = 0, :func:`tangent_newton`) and the cheapest assignment of
     the agents to the points reached (one table superstep each), while the assignment changes
-    (at most :data:`ROTATION_ROUNDS`). Returns (φ in agent order, its total cost, inner
-    solves)."""
+    (at most :data:`ROTATION_ROUNDS`); a start with no assignment of feasible pairs is
+    skipped. Returns (φ in agent order, its total cost, inner solves), (None, +∞, inner
+    solves) if no start has one."""
     n, solves = problem.agents, 0
     axes = _rotations(problem)
     starts = [phi]
@@ -415,16 +415,19 @@ def _rotate(problem: FormationProblem, backend: Backend, phi: np.ndarray, tol: f
     newton = rotation_newton if axes is not None else tangent_newton
     best: tuple[np.ndarray, float] | None = None
     for start in starts:
-        table = cost_tables(problem, backend, start.reshape(1, n, -1))[0]
-        solves += table.size
-        phi = start.reshape(n, -1)[cheapest_assignment(table)].ravel()
+        tables, solved = _tables(problem, backend, start.reshape(1, n, -1))
+        table, solves = tables[0], solves + solved
+        try:
+            phi = start.reshape(n, -1)[cheapest_assignment(table)].ravel()
+        except InnerSolveFailed:   # no agent order reaches this turn: the next start
+            continue
         for _ in range(ROTATION_ROUNDS):
             objective = OuterObjective(problem, backend)
             phi, _, _, _ = newton(objective, phi, tol, MAX_ROTATION_ITERATIONS)
             cost = objective.value(phi)
             objective.close()
-            table = cost_tables(problem, backend, phi.reshape(1, n, -1))[0]
-            solves += objective.inner_solves + table.size
+            tables, solved = _tables(problem, backend, phi.reshape(1, n, -1))
+            table, solves = tables[0], solves + objective.inner_solves + solved
             assignment = cheapest_assignment(table)
             if assignment_cost(table, assignment) >= cost * (1 - ROUNDING_RTOL):
                 break
@@ -432,7 +435,16 @@ def _rotate(problem: FormationProblem, backend: Backend, phi: np.ndarray, tol: f
             phi, cost = phi.reshape(n, -1)[assignment].ravel(), assignment_cost(table, assignment)
         if best is None or cost < best[1]:
             best = (phi, cost)
-    return best[0], best[1], solves
+    return (None, math.inf, solves) if best is None else (best[0], best[1], solves)
+
+
+def _tables(problem: FormationProblem, backend: Backend, slots: np.ndarray
+            ) -> tuple[np.ndarray, int]:
+    """The cost tables (M, n, n) of the M point sets ``slots`` (M, n, k) in one superstep,
+    +∞ where a pair is infeasible (the pairs outside an exact reach set not solved; all may
+    be), and the inner solves made."""
+    tables, found = solved_tables(problem, backend, slots, all_infeasible=True)
+    return tables, found.solved
 
 
 def _turns(axes: np.ndarray) -> Rotation:

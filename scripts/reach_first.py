@@ -1,0 +1,139 @@
+"""Thrust-limited searches priced by the reach set first (issue 47, item 4): six point masses
+in 3-D onto a sphere (the potential, ``--ordering optimal``) under |u| ≤ U and under a box
+limit, both below the free optimum's peak, and a thrust-limited fleet onto an ellipse with
+``--critical any``. Writes one JSON record per case (cost, status, supersteps, inner solves,
+solve time, serial) to stdout or ``--output``.
+
+    python scripts/reach_first.py [--cases sphere-norm,sphere-box,ellipse-any] [--output F]
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import time
+from pathlib import Path
+
+import casadi as ca
+import numpy as np
+
+from ocpar.formation import DmocShape, FormationProblem
+from ocpar.formation.couplings.coupling import PotentialCoupling
+from ocpar.formation.solve import FormationOptions, solve_formation
+from ocpar.formation.targets.curve import Ellipse
+from ocpar.formation.targets.surface import SphereSurface
+from ocpar.models import PointMass
+from ocpar.ocp.constraints import PathConstraint
+
+#: The thrust limit as a fraction of the free (unlimited) optimum's peak |u|.
+FRACTION = 0.8
+#: The seed of the sphere case's start directions.
+SEED = 4
+
+
+def sphere_problem(**limit) -> FormationProblem:
+    """Six unit masses at rest at radius 3 in seeded random directions onto the sphere of
+    radius 2 about the origin (T = 2, N = 10), ``limit`` the shape's thrust fields."""
+    directions = np.random.default_rng(SEED).normal(size=(6, 3))
+    starts = 3.0 * directions / np.linalg.norm(directions, axis=1, keepdims=True)
+    return FormationProblem(name="sphere6", curve=SphereSurface(radius=2.0),
+                            shape=DmocShape(PointMass(dim=3), 10, 2.0, **limit), starts=starts)
+
+
+def ellipse_problem(**limit) -> FormationProblem:
+    """Five unit planar masses at rest outside the ellipse 3 × 1.5 onto it (the potential's
+    isolated critical sets), T = 2, N = 10."""
+    angles = np.array([0.3, 1.5, 2.9, 4.1, 5.2])
+    starts = np.column_stack([4.0 * np.cos(angles), 2.5 * np.sin(angles)])
+    return FormationProblem(name="ellipse5", curve=Ellipse(semi_axes=(3.0, 1.5),
+                                                           center=np.zeros(2)),
+                            starts=starts, coupling=PotentialCoupling(),
+                            shape=DmocShape(PointMass(dim=2), 10, 2.0, **limit))
+
+
+def limited(make, kind: str, options: FormationOptions) -> FormationProblem:
+    """``make``'s problem under a ``kind`` (``norm`` or ``box``) thrust limit at
+    :data:`FRACTION` of its free optimum's peak (of |u| or of max |u_j|)."""
+    free = solve_formation(make(), options=options)
+    if free.status != "converged":
+        raise RuntimeError(f"free solve: {free.message}")
+    if kind == "norm":
+        u_max = FRACTION * float(np.linalg.norm(free.controls, axis=2).max())
+        return make(path_constraints=(PathConstraint(lambda u: ca.sumsqr(u),
+                                                     upper=u_max**2, name="thrust"),))
+    u_max = FRACTION * float(np.abs(free.controls).max())
+    dim = free.controls.shape[2]
+    return make(control_bounds=((-u_max, u_max),) * dim)
+
+
+CASES = {
+    "sphere-norm": (sphere_problem, "norm", {}),
+    "sphere-box": (sphere_problem, "box", {}),
+    "ellipse-any": (ellipse_problem, "norm", {"critical": "any"}),
+}
+
+
+def run(case: str) -> dict:
+    make, kind, extra = CASES[case]
+    options = FormationOptions(ordering="optimal", **extra)
+    problem = limited(make, kind, options)
+    start = time.perf_counter()
+    result = solve_formation(problem, options=options)
+    seconds = time.perf_counter() - start
+    return {"case": case, "limit": kind, "fraction": FRACTION, "status": result.status,
+            "total_cost": result.total_cost if result.status == "converged" else None,
+            "supersteps": result.supersteps, "inner_solves": result.inner_solves,
+            "failed_solves": result.failed_solves, "seconds": round(seconds, 3),
+            "message": result.message,
+            "backend": "serial",
+            "per_solve": per_solve(make(), problem, result.phi)
+            if result.status == "converged" else None}
+
+
+def per_solve(free: FormationProblem, problem: FormationProblem, phi: np.ndarray,
+              repeats: int = 5) -> dict:
+    """The least time per inner solve (ms) of the table of every agent to every point of
+    the answer ``phi`` solved by :func:`~ocpar.ocp.solve_tasks` (the batched path and any
+    failure policy), for the ``free`` problem (its own solver, ``newton``, and
+    ``sqpmethod``, the limited one's) and for the limited ``problem`` (the pairs inside the
+    reach set), best of ``repeats``; the IPOPT retries (attempts beyond the first) and the
+    ratios limited / free."""
+    from ocpar.formation.feasibility import outside_reach
+    from ocpar.ocp import solve_tasks
+    record = {}
+    same_solver = free.with_shapes(lambda shape: dataclasses.replace(shape, solver="sqpmethod"))
+    for name, shaped in (("free", free), ("free_sqpmethod", same_solver), ("limited", problem)):
+        n = shaped.agents
+        agents = np.repeat(np.arange(n), n)
+        ends = np.tile(np.reshape(phi, (n, -1)), (n, 1))
+        inside = ~outside_reach(shaped, agents, ends if ends.shape[1] > 1 else ends[:, 0])
+        tasks = shaped.tasks_for(agents[inside], ends[inside].ravel())
+        times = []
+        for _ in range(repeats):
+            start = time.perf_counter()
+            solved = solve_tasks(tasks)
+            times.append(time.perf_counter() - start)
+        record[name] = {"tasks": int(inside.sum()),
+                        "ms_per_solve": 1e3 * min(times) / int(inside.sum()),
+                        "retries": int(np.sum(np.asarray(solved.column("attempts")) - 1))}
+    limited = record["limited"]["ms_per_solve"]
+    record["ratio"] = limited / record["free"]["ms_per_solve"]
+    record["ratio_same_solver"] = limited / record["free_sqpmethod"]["ms_per_solve"]
+    return record
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--cases", default=",".join(CASES))
+    parser.add_argument("--output", type=Path)
+    args = parser.parse_args()
+    records = [run(case) for case in args.cases.split(",")]
+    text = json.dumps(records, indent=1)
+    if args.output:
+        args.output.write_text(text + "\n")
+    print(text)
+
+
+if __name__ == "__main__":
+    main()
