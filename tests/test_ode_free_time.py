@@ -24,6 +24,7 @@ from ocpar.formation.final_time import at_duration
 from ocpar.formation.verify import agent_checks
 from ocpar.models.expressions import ode_model
 from ocpar.ocp import MsEndpointShape, transcription
+from ocpar.ocp.obstacles import Sphere
 
 WEIGHT = 100.0
 AGENTS = 8
@@ -221,8 +222,9 @@ def test_unicycles_per_agent_times_are_each_stationary(unicycles):
         assert (costs[0] - costs[1]) / (2 * step) == pytest.approx(-weight, rel=1e-6)
 
 
-def test_minimum_time_is_refused_in_one_line():
-    unicycles = formation_unicycles.make(agents=3)
+def test_minimum_time_past_obstacles_is_refused_in_one_line():
+    unicycles = dataclasses.replace(formation_unicycles.make(agents=3),
+                                    obstacles=(Sphere((10.0, 10.0), 0.5),))
     with pytest.raises(ValueError, match=r"^final_time: 'minimum' is not yet for ODE") as caught:
         solve_formation(unicycles, options=FormationOptions(final_time="minimum",
                                                             time_bounds=(1.0, 10.0)))

@@ -90,9 +90,8 @@ def minimum_reach(problem: FormationProblem) -> list[Reach]:
     reaches = {}
     for shape, agents in problem.agents_by_shape().items():
         reach = rest_to_rest_reach(shape.with_duration(1.0))
-        at_rest = (np.all(problem.start_velocities[agents] == 0)
-                   and np.all(problem.final_velocities(agents) == 0))
-        if reach is None or not at_rest:
+        if reach is None or not (np.all(problem.start_velocities[agents] == 0)
+                                 and np.all(problem.final_velocities(agents) == 0)):
             raise ValueError("final_time 'minimum': needs point masses at rest at both ends "
                              "under box or norm thrust limits (exact reach sets)")
         if not np.all(np.isfinite(reach.upper) & (reach.upper > 0) & (reach.lower < 0)):

@@ -381,8 +381,9 @@ def _check_ode_applicable(problem: FormationProblem, options: FormationOptions) 
                          "(MsEndpointShape) are solved hierarchically only")
     if options.min_separation is not None:
         raise ValueError("min_separation: not yet for ODE agents (MsEndpointShape)")
-    if options.final_time == "minimum":
-        raise ValueError("final_time: 'minimum' is not yet for ODE agents (MsEndpointShape)")
+    if options.final_time == "minimum" and problem.obstacles:
+        raise ValueError("final_time: 'minimum' is not yet for ODE agents (MsEndpointShape) "
+                         "past obstacles (phase 1's search fails on them there)")
     if options.final_time != "fixed" and problem.obstacles:
         raise ValueError(f"final_time: {options.final_time!r} is not yet for ODE agents "
                          "(MsEndpointShape) past obstacles (their clearance is checked at the "
