@@ -283,3 +283,57 @@ def test_without_controls_in_memory_the_thrust_panel_says_where_they_are(drawn, 
     check_layout(fig)
     assert not fig.axes[-1].axison
     assert fig.axes[-1].get_title() == "thrust: controls are in the workers' array files"
+
+
+def test_the_path_density_counts_as_numpys_histogram():
+    rng = np.random.default_rng(0)
+    points = rng.normal(size=(5000, 2))
+    extent = (-2.0, 3.0, -1.5, 2.5)
+    counts = ocpar.formation.plot.path_density(points, extent, bins=37)
+    expected, _, _ = np.histogram2d(points[:, 1], points[:, 0], bins=37,
+                                    range=[extent[2:], extent[:2]])
+    assert np.array_equal(counts, expected)
+
+
+def artists(fig) -> int:
+    """Every artist of the figure's axes and legends (their children, recursively)."""
+    def count(artist) -> int:
+        return 1 + sum(count(child) for child in artist.get_children())
+
+    return sum(count(ax) for ax in fig.axes) + sum(count(legend) for legend in fig.legends)
+
+
+@pytest.mark.parametrize("agents", [300, 2_000, 10_000,
+                                    pytest.param(100_000, marks=pytest.mark.slow)])
+def test_a_large_formation_is_drawn_as_a_path_density_under_a_sample_of_paths(
+        agents, drawn, tmp_path):
+    """Above MAX_PATHS_DRAWN agents the paths are a density (said in the title and legend)
+    under every k-th agent's path: the figure's artists do not grow with the fleet."""
+    problem = formation_point_masses.make(agents=agents)
+    result = solve_formation(problem)
+    ocpar.formation.plot.plot_formation(problem, result, tmp_path / "formation.png")
+    (fig,) = drawn
+    check_layout(fig)
+    ax_all, ax_end, _ = fig.axes
+    step = ocpar.formation.plot.path_step(agents)
+    (paths,) = [c for c in ax_all.collections if isinstance(c, LineCollection)]
+    assert len(paths.get_segments()) == len(range(0, agents, step))
+    legend = [t.get_text() for t in fig.legends[0].get_texts()]
+    dense = agents > ocpar.formation.plot.MAX_PATHS_DRAWN
+    assert (len(ax_all.images), len(ax_end.images)) == ((1, 1) if dense else (0, 0))
+    assert ("shade: path density" in ax_all.get_title()) == dense
+    assert any(t.startswith("path density") for t in legend) == dense
+    if dense:
+        assert len(paths.get_segments()) <= ocpar.formation.plot.SAMPLE_PATHS
+        assert f"every {step:,}th agent" in ax_all.get_title().replace("\n", " ")
+        assert f"trajectories of every {step:,}th agent" in legend
+        # the shade counts path points: the agents' starts lie in it, nothing far away
+        image = ax_all.images[0]
+        x0, x1, y0, y1 = image.get_extent()
+        shade = image.get_array()
+        bins = shade.shape[0]
+        ix = ((problem.starts[:, 0] - x0) / (x1 - x0) * bins).astype(int).clip(0, bins - 1)
+        iy = ((problem.starts[:, 1] - y0) / (y1 - y0) * bins).astype(int).clip(0, bins - 1)
+        assert not np.any(np.ma.getmaskarray(shade)[iy, ix])
+        assert np.ma.getmaskarray(shade).any()
+        assert artists(fig) <= 700   # independent of the fleet's size

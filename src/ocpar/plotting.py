@@ -96,12 +96,23 @@ def pyplot() -> ModuleType:
     return plt
 
 
+#: The pictures' resolution (dots per inch).
+DPI = 120
+
+
 def save(fig: Any, path: Path) -> Path:
-    """Lay out ``fig`` (tight layout unless it has a layout engine), write it to ``path`` as a
-    120-dpi PNG and close it (where pyplot holds it)."""
+    """Lay out ``fig`` (tight layout unless it has a layout engine), render it once at
+    :data:`DPI` and write it to ``path`` as a PNG (fast zlib level 1, no metadata; ``savefig``
+    would draw it a second time), then close it (where pyplot holds it)."""
+    from PIL import Image
+
     if fig.get_layout_engine() is None:
         fig.tight_layout()
-    fig.savefig(path, dpi=120)
+    fig.set_dpi(DPI)
+    fig.canvas.draw()
+    width, height = fig.canvas.get_width_height(physical=True)
+    Image.frombuffer("RGBA", (width, height), fig.canvas.buffer_rgba(), "raw", "RGBA", 0,
+                     1).save(path, format="png", compress_level=1)
     if (plt := sys.modules.get("matplotlib.pyplot")) is not None:
         plt.close(fig)
     return Path(path)

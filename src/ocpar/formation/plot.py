@@ -17,22 +17,54 @@ from ocpar.formation.targets.surface import Surface, fibonacci_directions
 from ocpar.ocp.reach import thrust_limit
 from ocpar.plotting import components, figure, fit, legend_below, save, subplots
 
-#: Most agents a picture draws (trajectory, start and final position): above it every k-th,
-#: said in the title (drawing and writing the planar picture: 10,000 paths 0.9 s, 2000 0.3 s,
-#: 100,000 start and final markers another 0.3 s; 100,000 paths took ~15 s, and at 120 dpi
-#: show no more than a few thousand).
-MAX_PATHS_DRAWN = 2_000
+#: Most agents whose paths, starts and ends a picture draws one by one; above it the paths
+#: are shown as a density (:func:`path_density`) under every :func:`path_step`-th agent's
+#: path, start and end, all said in the title (at 2,000 agents single lines already merge
+#: into one band at 120 dpi).
+MAX_PATHS_DRAWN = 1_000
+
+#: Agents drawn one by one over the density view.
+SAMPLE_PATHS = 40
+
+#: Most path points the density view counts: above it those of every k-th agent, said in
+#: the title (a million points are binned in ~0.03 s).
+DENSITY_POINTS = 1_000_000
+
+#: Bins along each axis of the density view.
+DENSITY_BINS = 200
 
 
 def path_step(agents: int) -> int:
-    """Draw every ``path_step``-th agent: 1 up to :data:`MAX_PATHS_DRAWN` agents, else the
-    smallest step that draws at most that many."""
-    return max(1, -(-agents // MAX_PATHS_DRAWN))
+    """Draw every ``path_step``-th agent one by one: 1 up to :data:`MAX_PATHS_DRAWN` agents,
+    else the smallest step that draws at most :data:`SAMPLE_PATHS`."""
+    return 1 if agents <= MAX_PATHS_DRAWN else -(-agents // SAMPLE_PATHS)
 
 
-def _drawn_note(agents: int) -> str:
-    step = path_step(agents)
-    return "" if step == 1 else f" (every {step}th agent drawn)"
+def _every(step: int) -> str:
+    return "every agent" if step == 1 else f"every {step:,}th agent"
+
+
+def path_density(points: np.ndarray, extent: tuple[float, float, float, float],
+                 bins: int = DENSITY_BINS) -> np.ndarray:
+    """Counts (bins, bins), indexed [y, x], of the points (k, 2) that lie in ``extent``
+    (x0, x1, y0, y1), on a regular grid; one ``bincount``, not ``histogram2d``."""
+    x0, x1, y0, y1 = extent
+    ix = np.floor((points[:, 0] - x0) * (bins / (x1 - x0))).astype(np.int64)
+    iy = np.floor((points[:, 1] - y0) * (bins / (y1 - y0))).astype(np.int64)
+    inside = (ix >= 0) & (ix < bins) & (iy >= 0) & (iy < bins)
+    return np.bincount(iy[inside] * bins + ix[inside], minlength=bins * bins).reshape(
+        bins, bins)
+
+
+def _draw_density(ax, points: np.ndarray, extent: tuple[float, float, float, float],
+                  label: str | None) -> None:
+    """The density of ``points`` in ``extent`` on ``ax``, log-shaded, empty bins blank."""
+    counts = path_density(points, extent)
+    shade = np.ma.masked_equal(np.log1p(counts), 0)
+    ax.imshow(shade, origin="lower", extent=extent, cmap="Blues", vmin=-0.3 * shade.max(),
+              interpolation="nearest", aspect="auto", zorder=0)
+    if label:   # a legend entry for the shading
+        ax.fill([], [], color="#4a90c4", label=label)
 
 
 def _target(problem: FormationProblem, samples: int) -> tuple[np.ndarray, dict]:
@@ -61,37 +93,75 @@ def plot_formation(problem: FormationProblem, result: FormationResult, path: Pat
     fig, (ax_all, ax_end, ax_u) = subplots(1, 3, figsize=(15, 5.6),
                                            width_ratios=(1, 1, 1.1))
     circle, style = _target(problem, 400)
-    shown = slice(None, None, path_step(result.agents))
+    step = path_step(result.agents)
+    shown = slice(None, None, step)
     ends = problem.final_positions(result.phi[shown])
-    drawn = result.positions[shown]
+    drawn = result.positions[shown, :, :2]
+    dense = step > 1
+    low, high = circle.min(axis=0), circle.max(axis=0)
+    margin = 0.25 * np.max(high - low)
+    close = (low[0] - margin, high[0] + margin, low[1] - margin, high[1] + margin)
+    if dense:   # every path point (or every k-th agent's) binned, in both panels' frames
+        counted, points = _path_points(result.positions[..., :2])
+        whole = _frame(np.vstack([points.min(axis=0), points.max(axis=0), low, high]))
+        _draw_density(ax_all, points, whole, f"path density (log shade) of {_every(counted)}")
+        _draw_density(ax_end, points, close, None)
+        ax_all.set_xlim(whole[:2])
+        ax_all.set_ylim(whole[2:])
+    trajectories = "trajectories" if not dense else f"trajectories of {_every(step)}"
     axes = _position_labels(problem)
     for ax in (ax_all, ax_end):
-        # one collection, not one line per agent: 10,000 paths in ~1 s instead of ~1 min;
-        # the close-up draws the whole paths too, cut by its frame, none starting mid-air
-        ax.add_collection(LineCollection(drawn[..., :2], colors="tab:blue", lw=0.7, alpha=0.7,
-                                         label="trajectories"))
-        ax.autoscale_view()
+        # one collection, not one line per agent; the close-up draws the whole paths too,
+        # cut by its frame, none starting mid-air
+        ax.add_collection(LineCollection(drawn, colors="tab:blue" if not dense else "0.1",
+                                         lw=0.7 if not dense else 0.5, alpha=0.7,
+                                         label=trajectories))
+        if not dense:
+            ax.autoscale_view()
         ax.plot(circle[:, 0], circle[:, 1], **style, label="target")
-        ax.plot(ends[:, 0], ends[:, 1], "x", color="tab:red", ms=5, label="final positions")
+        ax.plot(ends[:, 0], ends[:, 1], "x", color="tab:red", ms=5,
+                label="final positions" if not dense else f"final positions of {_every(step)}")
         ax.set_aspect("equal")
         ax.set_xlabel(axes[0].label)
         ax.set_ylabel(axes[1].label)
     starts = problem.starts[shown]
     ax_all.plot(starts[:, 0], starts[:, 1], "o", mfc="none", color="k", ms=3,
-                label="start positions")
+                label="start positions" if not dense else f"start positions of {_every(step)}")
     for ax in (ax_all, ax_end):
         _draw_obstacles(ax, problem)
     _mark_closest(ax_all, problem, result)
-    ax_all.set_title(fit(f"{result.agents} agents, {result.title()}"
-                         f"{_drawn_note(result.agents)}", fig, 10, 1 / 3), fontsize=10)
-    low, high = circle.min(axis=0), circle.max(axis=0)
-    margin = 0.25 * np.max(high - low)
-    ax_end.set_xlim(low[0] - margin, high[0] + margin)
-    ax_end.set_ylim(low[1] - margin, high[1] + margin)
+    view = (f"\nshade: path density; lines and markers: {_every(step)} "
+            f"({len(range(0, result.agents, step))} drawn)" if dense else "")
+    ax_all.set_title(fit(f"{result.agents} agents, {result.title()}{view}", fig, 10, 1 / 3),
+                     fontsize=10)
+    ax_end.set_xlim(close[:2])
+    ax_end.set_ylim(close[2:])
     ax_end.set_title("final positions and the trajectories' ends", fontsize=10)
     _plot_thrust(ax_u, problem, result)
     legend_below(fig, (ax_all, ax_end, ax_u))
     return save(fig, path)
+
+
+def _path_points(positions: np.ndarray) -> tuple[int, np.ndarray]:
+    """Points (k, 2) along the straight segments between the nodes of the paths
+    ``positions`` (n, N + 1, 2) of every ``step``-th agent, evenly spaced in each segment's
+    parameter, at most :data:`DENSITY_POINTS` of them; returns (step, points)."""
+    agents, segments = positions.shape[0], positions.shape[1] - 1
+    step = max(1, -(-agents * segments // DENSITY_POINTS))
+    paths = positions[::step]
+    per = max(1, min(64, DENSITY_POINTS // (len(paths) * max(segments, 1))))
+    if segments == 0:
+        return step, paths.reshape(-1, 2)
+    f = np.arange(per)[:, None] / per                        # (per, 1)
+    start, delta = paths[:, :-1, None, :], np.diff(paths, axis=1)[:, :, None, :]
+    return step, (start + f * delta).reshape(-1, 2)
+
+
+def _frame(points: np.ndarray) -> tuple[float, float, float, float]:
+    """(x0, x1, y0, y1): the box of the planar ``points`` (k, 2) with a 4 % margin."""
+    low, high = points.min(axis=0), points.max(axis=0)
+    pad = 0.04 * np.maximum(high - low, 1e-9)
+    return (low[0] - pad[0], high[0] + pad[0], low[1] - pad[1], high[1] + pad[1])
 
 
 def _position_labels(problem: FormationProblem) -> list:
@@ -161,7 +231,8 @@ def _plot_3d(problem: FormationProblem, result: FormationResult, path: Path) -> 
     ax = fig.add_subplot(grid[0], projection="3d")
     ax_u = fig.add_subplot(grid[1])
     circle, style = _target(problem, 200)
-    shown = slice(None, None, path_step(result.agents))
+    step = path_step(result.agents)
+    shown = slice(None, None, step)
     ends = problem.final_positions(result.phi[shown])
     drawn = result.positions[shown, :, :3]
     ax.add_collection(Line3DCollection(drawn, colors="tab:blue", lw=0.7, alpha=0.8,
@@ -177,8 +248,9 @@ def _plot_3d(problem: FormationProblem, result: FormationResult, path: Path) -> 
     ax.set_ylabel(axes[1].label)
     ax.set_zlabel(axes[2].label)
     _mark_closest(ax, problem, result)
-    ax.set_title(fit(f"{problem.name}: {result.agents} agents, {result.title()}"
-                     f"{_drawn_note(result.agents)}", fig, 10), fontsize=10)
+    note = "" if step == 1 else f" ({_every(step)} drawn)"
+    ax.set_title(fit(f"{problem.name}: {result.agents} agents, {result.title()}{note}", fig,
+                     10), fontsize=10)
     _plot_thrust(ax_u, problem, result)
     legend_below(fig, (ax, ax_u))
     return save(fig, path)
