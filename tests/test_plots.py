@@ -255,6 +255,31 @@ def test_macs_pictures_keep_the_title_and_legends_in_and_draw_the_control_bounds
                     if line.get_label() == "control bounds")
     assert bounds == sorted(np.ravel(problem.control_bounds))
     assert controls.axes[0].get_ylabel() == "thrust_angle (rad)"   # the model's name
+    # the archive's rings are drawn over every other mark
+    (archive,) = [line for line in front.axes[0].get_lines()
+                  if line.get_label().startswith("MACS archive")]
+    others = [line for line in front.axes[0].get_lines() if line is not archive]
+    assert archive.get_markerfacecolor() == "none"
+    assert all(archive.get_zorder() > line.get_zorder() for line in others)
+    # the control nodes, where the NLP imposes the bounds, lie within them; the curves
+    # between them are the element polynomials, and the title says how far they reach
+    ax = controls.axes[0]
+    (low, high), = problem.control_bounds
+    nodes = [line for line in ax.get_lines() if line.get_label().startswith("control nodes")]
+    curves = [line for line in ax.get_lines() if line.get_marker() == "None"
+              and line.get_label() != "control bounds"]
+    assert len(nodes) == len(curves) >= 2
+    for line in nodes:
+        assert np.all((line.get_ydata() >= low - 1e-6) & (line.get_ydata() <= high + 1e-6))
+    reach = (min(np.nanmin(c.get_ydata()) for c in curves),
+             max(np.nanmax(c.get_ydata()) for c in curves))
+    beyond = reach[0] < low or reach[1] > high
+    title = ax.get_title().replace("\n", " ")
+    assert beyond == ("between them the element polynomials reach" in title)
+    if beyond:
+        assert f"reach {reach[0]:.3g} … {reach[1]:.3g}" in title
+    # each element's polynomial on its own element: a break between elements
+    assert sum(np.isnan(curves[0].get_ydata())) == problem.elements
 
 
 def test_a_picture_on_a_small_figure_keeps_its_text_inside(van_der_pol, drawn, tmp_path,
