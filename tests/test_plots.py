@@ -178,10 +178,18 @@ def test_formation_pictures_keep_text_off_the_data_and_draw_thrust_with_its_limi
     check_layout(fig)
     thrust = fig.axes[-1]
     assert "thrust" in thrust.get_title()
-    # one unit where the entries share it; a unicycle's a and ω do not (1 and rad)
-    assert thrust.get_ylabel().endswith("(entries of different units)") == (
-        example == "unicycles")
     u = np.asarray(result.controls)
+    if example == "unicycles":   # a and ω: no norm over entries of different units
+        entries = ocpar.plotting.components((problem, problem.common_shape.model), "control",
+                                            2, "u")
+        assert len({c.unit for c in entries}) == 2
+        lines = thrust.get_lines()
+        assert [line.get_label() for line in lines] == [
+            f"|{c.name}| ({c.unit}): largest over all agents" for c in entries]
+        for j, line in enumerate(lines):
+            assert np.array_equal(line.get_ydata()[::2], np.abs(u[..., j]).max(axis=0))
+        assert not [c for c in thrust.collections if isinstance(c, LineCollection)]
+        return
     if example == "halo":   # the force entries (cost_parts' first group), not the torque
         u = u[..., :3]
     size = (np.abs(u).max(axis=2) if example == "mixed-fleet" else np.linalg.norm(u, axis=2))

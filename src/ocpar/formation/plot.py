@@ -203,14 +203,18 @@ def _plot_thrust(ax, problem: FormationProblem, result: FormationResult) -> None
     group, (first, last) = next(iter(parts.items())) if parts else ("", (0, u.shape[2]))
     u = u[..., first:last]
     units = {c.unit for c in control[first:last]}   # one norm over entries of one unit
-    force = units.pop() if len(units) == 1 else "entries of different units"
-    entries = "" if not parts else f"$_{{{first + 1}…{last}}}$"
     limits = {thrust_limit(s) for s in problem.agents_by_shape()} - {None}
+    fraction = np.repeat(np.linspace(0.0, 1.0, u.shape[1] + 1), 2)[1:-1]
+    durations = _durations(problem, result)
+    if len(units) > 1:
+        _plot_entries(ax, u, control[first:last], fraction, durations)
+        _draw_limits(ax, limits, np.abs(u).max(initial=0.0))
+        return
+    force = units.pop()
+    entries = "" if not parts else f"$_{{{first + 1}…{last}}}$"
     box = bool(limits) and all(kind == "box" for kind, _ in limits)
     size = np.max(np.abs(u), axis=2) if box else np.linalg.norm(u, axis=2)   # (n, N)
     name = f"max$_j$ |$u_j$|{entries}" if box else f"|$u${entries}|"
-    fraction = np.repeat(np.linspace(0.0, 1.0, u.shape[1] + 1), 2)[1:-1]
-    durations = _durations(problem, result)
     peaks = size.max(axis=1)
     top = np.argpartition(-peaks, min(THRUST_AGENTS, len(peaks)) - 1)[:THRUST_AGENTS]
     top = top[np.argsort(-peaks[top])]        # largest first, O(n) over the fleet
@@ -221,13 +225,40 @@ def _plot_thrust(ax, problem: FormationProblem, result: FormationResult) -> None
         ax.plot(fraction * durations[0], np.repeat(size.max(axis=0), 2), color="k", lw=0.6,
                 ls=":",
                 label=f"{name}: largest over all agents")
+    _draw_limits(ax, limits, size.max(initial=0.0))
+    ax.set_ylabel(f"{name} ({force})")
+    ax.set_title(f"{group.removesuffix('_cost')} thrust over time".lstrip(), fontsize=10)
+
+
+def _draw_limits(ax, limits: set[tuple[str, float]], largest: float) -> None:
+    """Each thrust limit (kind, value) as a dashed line, the y axis from 0 to above the
+    ``largest`` value drawn and every limit, a grid."""
     for kind, value in sorted(limits):
         ax.axhline(value, color="tab:red", ls="--", lw=1, label=f"{kind} thrust limit {value:g}")
     ax.autoscale_view()
-    ax.set_ylim(0, 1.08 * max([size.max(initial=0.0)] + [v for _, v in limits]) or 1.0)
-    ax.set_ylabel(f"{name} ({force})")
+    ax.set_ylim(0, 1.08 * max([largest] + [v for _, v in limits]) or 1.0)
     ax.grid(alpha=0.3)
-    ax.set_title(f"{group.removesuffix('_cost')} thrust over time".lstrip(), fontsize=10)
+
+
+def _plot_entries(ax, u: np.ndarray, entries: list, fraction: np.ndarray,
+                  durations: np.ndarray) -> None:
+    """Controls ``u`` (n, N, k) whose entries have different units (no norm over them): each
+    entry's magnitude |u_j| over time, held on each interval, named with its unit
+    (``entries``: :class:`~ocpar.plotting.Component`); the largest over all agents where
+    they share one horizon, else the agent of the entry's largest peak over its own."""
+    one_axis = bool(np.all(durations == durations[0]))
+    for j, entry in enumerate(entries):
+        size = np.abs(u[..., j])                      # (n, N)
+        if one_axis:
+            agent, curve, who = 0, size.max(axis=0), "largest over all agents"
+        else:
+            agent = int(np.argmax(size.max(axis=1)))
+            curve, who = size[agent], f"agent {agent}, of the largest peak"
+        ax.plot(fraction * durations[agent], np.repeat(curve, 2), lw=1.2,
+                label=f"|{entry.name}| ({entry.unit}): {who}")
+    ax.set_ylabel("|$u_j$| (each entry's unit: see the legend)")
+    ax.set_title("control entries over time (no thrust norm: their units differ)",
+                 fontsize=10)
 
 
 def _plot_3d(problem: FormationProblem, result: FormationResult, path: Path) -> Path:
