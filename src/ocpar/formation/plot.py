@@ -30,6 +30,9 @@ SAMPLE_PATHS = 40
 #: the title (half a million points are binned in ~0.01 s).
 DENSITY_POINTS = 500_000
 
+#: Points the density view counts along each segment of a path.
+SEGMENT_POINTS = 24
+
 #: Bins along each axis of the density view.
 DENSITY_BINS = 200
 
@@ -41,7 +44,12 @@ def path_step(agents: int) -> int:
 
 
 def _every(step: int) -> str:
-    return "every agent" if step == 1 else f"every {step:,}th agent"
+    """'every agent', 'every 2nd agent', 'every 2,500th agent', ..."""
+    if step == 1:
+        return "every agent"
+    suffix = "th" if step % 100 in (11, 12, 13) else {1: "st", 2: "nd", 3: "rd"}.get(
+        step % 10, "th")
+    return f"every {step:,}{suffix} agent"
 
 
 def path_density(points: np.ndarray, extent: tuple[float, float, float, float],
@@ -57,14 +65,14 @@ def path_density(points: np.ndarray, extent: tuple[float, float, float, float],
 
 
 def _draw_density(ax, points: np.ndarray, extent: tuple[float, float, float, float],
-                  label: str | None) -> None:
-    """The density of ``points`` in ``extent`` on ``ax``, log-shaded, empty bins blank."""
+                  label: str) -> None:
+    """The density of ``points`` in ``extent`` on ``ax``, log-shaded, empty bins blank, with
+    a legend entry ``label``."""
     counts = path_density(points, extent)
     shade = np.ma.masked_equal(np.log1p(counts), 0)
     ax.imshow(shade, origin="lower", extent=extent, cmap="Blues", vmin=-0.3 * shade.max(),
               interpolation="nearest", aspect="auto", zorder=0)
-    if label:   # a legend entry for the shading
-        ax.fill([], [], color="#4a90c4", label=label)
+    ax.fill([], [], color="#4a90c4", label=label)
 
 
 def _target(problem: FormationProblem, samples: int) -> tuple[np.ndarray, dict]:
@@ -101,11 +109,10 @@ def plot_formation(problem: FormationProblem, result: FormationResult, path: Pat
     low, high = circle.min(axis=0), circle.max(axis=0)
     margin = 0.25 * np.max(high - low)
     close = (low[0] - margin, high[0] + margin, low[1] - margin, high[1] + margin)
-    if dense:   # every path point (or every k-th agent's) binned, in both panels' frames
+    if dense:   # every agent's (or every k-th agent's) path binned; the close-up as drawn
         counted, points = _path_points(result.positions[..., :2])
         whole = _frame(np.vstack([_box(points), low, high]))
         _draw_density(ax_all, points, whole, f"path density (log shade) of {_every(counted)}")
-        _draw_density(ax_end, points, close, None)
         ax_all.set_xlim(whole[:2])
         ax_all.set_ylim(whole[2:])
     trajectories = "trajectories" if not dense else f"trajectories of {_every(step)}"
@@ -136,7 +143,8 @@ def plot_formation(problem: FormationProblem, result: FormationResult, path: Pat
                      fontsize=10)
     ax_end.set_xlim(close[:2])
     ax_end.set_ylim(close[2:])
-    ax_end.set_title("final positions and the trajectories' ends", fontsize=10)
+    ax_end.set_title("final positions and the trajectories' ends"
+                     + ("" if not dense else f" of {_every(step)}"), fontsize=10)
     _plot_thrust(ax_u, problem, result)
     legend_below(fig, (ax_all, ax_end, ax_u))
     return save(fig, path)
@@ -144,15 +152,15 @@ def plot_formation(problem: FormationProblem, result: FormationResult, path: Pat
 
 def _path_points(positions: np.ndarray) -> tuple[int, np.ndarray]:
     """Points (k, 2) along the straight segments between the nodes of the paths
-    ``positions`` (n, N + 1, 2) of every ``step``-th agent, evenly spaced in each segment's
-    parameter, at most :data:`DENSITY_POINTS` of them; returns (step, points)."""
-    agents, segments = positions.shape[0], positions.shape[1] - 1
-    step = max(1, -(-agents * segments // DENSITY_POINTS))
+    ``positions`` (n, N + 1, 2) of every ``step``-th agent: :data:`SEGMENT_POINTS` evenly
+    spaced in each segment's parameter, at most :data:`DENSITY_POINTS` in all (nodes alone
+    would show rings of equal time, not paths); returns (step, points)."""
+    agents, segments = positions.shape[0], max(positions.shape[1] - 1, 1)
+    step = max(1, -(-agents * segments * SEGMENT_POINTS // DENSITY_POINTS))
     paths = positions[::step]
-    per = max(1, min(64, DENSITY_POINTS // (len(paths) * max(segments, 1))))
-    if segments == 0:
+    if paths.shape[1] == 1:
         return step, paths.reshape(-1, 2)
-    f = np.arange(per)[:, None] / per                        # (per, 1)
+    f = np.arange(SEGMENT_POINTS)[:, None] / SEGMENT_POINTS       # (per, 1)
     start, delta = paths[:, :-1, None, :], np.diff(paths, axis=1)[:, :, None, :]
     return step, (start + f * delta).reshape(-1, 2)
 
