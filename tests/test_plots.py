@@ -369,4 +369,13 @@ def test_a_large_formation_is_drawn_as_a_path_density_under_a_sample_of_paths(
         iy = ((problem.starts[:, 1] - y0) / (y1 - y0) * bins).astype(int).clip(0, bins - 1)
         assert not np.any(np.ma.getmaskarray(shade)[iy, ix])
         assert np.ma.getmaskarray(shade).any()
-        assert artists(fig) <= 700   # independent of the fleet's size
+        # what the paths' panels hold is independent of the fleet's size: the sampled
+        # paths, starts and ends, the 400-point target, the closest pair
+        nodes = result.positions.shape[1]
+        sample = ocpar.formation.plot.SAMPLE_PATHS
+        for ax in (ax_all, ax_end):
+            held = sum(len(line.get_xdata()) for line in ax.get_lines()) + sum(
+                len(segment) for c in ax.collections if isinstance(c, LineCollection)
+                for segment in c.get_segments())
+            assert held <= sample * nodes + 2 * sample + 400 + 2
+        assert artists(fig) <= 700
