@@ -133,10 +133,10 @@ def test_components_default_to_nondimensional_and_read_a_models_names():
         time_unit = "min"
 
     assert [c.label for c in ocpar.plotting.components(object(), "state", 2, "x")] == [
-        "$x_{1}$ (nondimensional)", "$x_{2}$ (nondimensional)"]
+        "x₁ (nondimensional)", "x₂ (nondimensional)"]
     assert [c.label for c in ocpar.plotting.components(Named(), "state", 2, "x")] == [
         "r (Mm)", "v (Mm/min)"]
-    assert ocpar.plotting.components(Named(), "time", 1, "t")[0].label == "$t$ (min)"
+    assert ocpar.plotting.components(Named(), "time", 1, "t")[0].label == "t (min)"
     # the members the result files read, and only those: the axes say what the files say
     time = ocpar.plotting.components(Named(), "time", 1, "t")[0]
     assert time_unit(Named()) == "min" == time.unit
@@ -225,10 +225,10 @@ def test_pursuit_pictures_name_the_states_the_answer_and_show_one_agent(example,
     labels = [ax.get_ylabel() for ax in trajectories.axes]
     if example == "orbit-transfer":
         assert labels[:nx] == ["r (Mm)", "r_dot (Mm/min)", "theta_dot (rad/min)", "mass (t)"]
-        assert trajectories.axes[-1].get_xlabel() == "$t$ (min)"
+        assert trajectories.axes[-1].get_xlabel() == "t (min)"
     else:
-        assert labels == ["$x_{1}$ (nondimensional)", "$x_{2}$ (nondimensional)",
-                          "$u$ (nondimensional)"]
+        assert labels == ["x₁ (nondimensional)", "x₂ (nondimensional)",
+                          "u (nondimensional)"]
     # the controls drawn are the answer's, held on each interval, with the model's bounds
     for j, ax in enumerate(trajectories.axes[nx:]):
         line = ax.get_lines()[0]

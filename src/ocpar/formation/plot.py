@@ -15,7 +15,7 @@ from ocpar.formation.result import FormationResult
 from ocpar.formation.targets.slots import Slots
 from ocpar.formation.targets.surface import Surface, fibonacci_directions
 from ocpar.ocp.reach import thrust_limit
-from ocpar.plotting import components, figure, fit, legend_below, save, subplots
+from ocpar.plotting import components, figure, fit, legend_below, save, subplots, subscript
 
 #: Most agents whose paths, starts and ends a picture draws one by one; above it the paths
 #: are shown as a density (:func:`path_density`) under every :func:`path_step`-th agent's
@@ -219,10 +219,10 @@ def _plot_thrust(ax, problem: FormationProblem, result: FormationResult) -> None
         _draw_limits(ax, limits, np.abs(u).max(initial=0.0))
         return
     force = units.pop()
-    entries = "" if not parts else f"$_{{{first + 1}…{last}}}$"
+    entries = "" if not parts else f"{subscript(first + 1)}…{subscript(last)}"
     box = bool(limits) and all(kind == "box" for kind, _ in limits)
     size = np.max(np.abs(u), axis=2) if box else np.linalg.norm(u, axis=2)   # (n, N)
-    name = f"max$_j$ |$u_j$|{entries}" if box else f"|$u${entries}|"
+    name = f"maxⱼ |uⱼ|{entries}" if box else f"|u{entries}|"
     peaks = size.max(axis=1)
     top = np.argpartition(-peaks, min(THRUST_AGENTS, len(peaks)) - 1)[:THRUST_AGENTS]
     top = top[np.argsort(-peaks[top])]        # largest first, O(n) over the fleet
@@ -264,7 +264,7 @@ def _plot_entries(ax, u: np.ndarray, entries: list, fraction: np.ndarray,
             curve, who = size[agent], f"agent {agent}, of the largest peak"
         ax.plot(fraction * durations[agent], np.repeat(curve, 2), lw=1.2,
                 label=f"|{entry.name}| ({entry.unit}): {who}")
-    ax.set_ylabel("|$u_j$| (each entry's unit: see the legend)")
+    ax.set_ylabel("|uⱼ| (each entry's unit: see the legend)")
     ax.set_title("control entries over time (no thrust norm: their units differ)",
                  fontsize=10)
 
