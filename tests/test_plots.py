@@ -6,6 +6,7 @@ after drawing, on the paper examples and the mixed fleet at small sizes."""
 from __future__ import annotations
 
 import dataclasses
+import warnings
 
 import casadi as ca
 import numpy as np
@@ -379,3 +380,17 @@ def test_a_large_formation_is_drawn_as_a_path_density_under_a_sample_of_paths(
                 for segment in c.get_segments())
             assert held <= sample * nodes + 2 * sample + 400 + 2
         assert artists(fig) <= 700
+
+
+def test_the_density_view_leaves_out_an_agent_without_a_path(drawn, tmp_path):
+    """A failed agent's NaN positions are not binned (nor warned about)."""
+    problem = formation_point_masses.make(agents=1_200)
+    result = solve_formation(problem)
+    positions = np.array(result.positions)
+    positions[7] = np.nan
+    with_gap = dataclasses.replace(result, positions=positions)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        ocpar.formation.plot.plot_formation(problem, with_gap, tmp_path / "formation.png")
+    (image,) = drawn[0].axes[0].images
+    assert np.all(np.isfinite(image.get_extent())) and image.get_array().count() > 0

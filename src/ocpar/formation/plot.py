@@ -111,7 +111,7 @@ def plot_formation(problem: FormationProblem, result: FormationResult, path: Pat
     close = (low[0] - margin, high[0] + margin, low[1] - margin, high[1] + margin)
     if dense:   # every agent's (or every k-th agent's) path binned; the close-up as drawn
         counted, points = _path_points(result.positions[..., :2])
-        whole = _frame(np.vstack([_box(points), low, high]))
+        whole = _frame(np.vstack([_box(points), low, high]) if len(points) else circle)
         _draw_density(ax_all, points, whole, f"path density (log shade) of {_every(counted)}")
         ax_all.set_xlim(whole[:2])
         ax_all.set_ylim(whole[2:])
@@ -159,10 +159,12 @@ def _path_points(positions: np.ndarray) -> tuple[int, np.ndarray]:
     step = max(1, -(-agents * segments * SEGMENT_POINTS // DENSITY_POINTS))
     paths = positions[::step]
     if paths.shape[1] == 1:
-        return step, paths.reshape(-1, 2)
-    f = np.arange(SEGMENT_POINTS)[:, None] / SEGMENT_POINTS       # (per, 1)
-    start, delta = paths[:, :-1, None, :], np.diff(paths, axis=1)[:, :, None, :]
-    return step, (start + f * delta).reshape(-1, 2)
+        points = paths.reshape(-1, 2)
+    else:
+        f = np.arange(SEGMENT_POINTS)[:, None] / SEGMENT_POINTS       # (per, 1)
+        start, delta = paths[:, :-1, None, :], np.diff(paths, axis=1)[:, :, None, :]
+        points = (start + f * delta).reshape(-1, 2)
+    return step, points[np.isfinite(points).all(axis=1)]   # a failed agent's NaN left out
 
 
 def _box(points: np.ndarray) -> np.ndarray:
