@@ -6,6 +6,7 @@ after drawing, on the paper examples and the mixed fleet at small sizes."""
 from __future__ import annotations
 
 import dataclasses
+import warnings
 
 import casadi as ca
 import numpy as np
@@ -133,10 +134,10 @@ def test_components_default_to_nondimensional_and_read_a_models_names():
         time_unit = "min"
 
     assert [c.label for c in ocpar.plotting.components(object(), "state", 2, "x")] == [
-        "$x_{1}$ (nondimensional)", "$x_{2}$ (nondimensional)"]
+        "x₁ (nondimensional)", "x₂ (nondimensional)"]
     assert [c.label for c in ocpar.plotting.components(Named(), "state", 2, "x")] == [
         "r (Mm)", "v (Mm/min)"]
-    assert ocpar.plotting.components(Named(), "time", 1, "t")[0].label == "$t$ (min)"
+    assert ocpar.plotting.components(Named(), "time", 1, "t")[0].label == "t (min)"
     # the members the result files read, and only those: the axes say what the files say
     time = ocpar.plotting.components(Named(), "time", 1, "t")[0]
     assert time_unit(Named()) == "min" == time.unit
@@ -178,10 +179,18 @@ def test_formation_pictures_keep_text_off_the_data_and_draw_thrust_with_its_limi
     check_layout(fig)
     thrust = fig.axes[-1]
     assert "thrust" in thrust.get_title()
-    # one unit where the entries share it; a unicycle's a and ω do not (1 and rad)
-    assert thrust.get_ylabel().endswith("(entries of different units)") == (
-        example == "unicycles")
     u = np.asarray(result.controls)
+    if example == "unicycles":   # a and ω: no norm over entries of different units
+        entries = ocpar.plotting.components((problem, problem.common_shape.model), "control",
+                                            2, "u")
+        assert len({c.unit for c in entries}) == 2
+        lines = thrust.get_lines()
+        assert [line.get_label() for line in lines] == [
+            f"|{c.name}| ({c.unit}): largest over all agents" for c in entries]
+        for j, line in enumerate(lines):
+            assert np.array_equal(line.get_ydata()[::2], np.abs(u[..., j]).max(axis=0))
+        assert not [c for c in thrust.collections if isinstance(c, LineCollection)]
+        return
     if example == "halo":   # the force entries (cost_parts' first group), not the torque
         u = u[..., :3]
     size = (np.abs(u).max(axis=2) if example == "mixed-fleet" else np.linalg.norm(u, axis=2))
@@ -217,10 +226,10 @@ def test_pursuit_pictures_name_the_states_the_answer_and_show_one_agent(example,
     labels = [ax.get_ylabel() for ax in trajectories.axes]
     if example == "orbit-transfer":
         assert labels[:nx] == ["r (Mm)", "r_dot (Mm/min)", "theta_dot (rad/min)", "mass (t)"]
-        assert trajectories.axes[-1].get_xlabel() == "$t$ (min)"
+        assert trajectories.axes[-1].get_xlabel() == "t (min)"
     else:
-        assert labels == ["$x_{1}$ (nondimensional)", "$x_{2}$ (nondimensional)",
-                          "$u$ (nondimensional)"]
+        assert labels == ["x₁ (nondimensional)", "x₂ (nondimensional)",
+                          "u (nondimensional)"]
     # the controls drawn are the answer's, held on each interval, with the model's bounds
     for j, ax in enumerate(trajectories.axes[nx:]):
         line = ax.get_lines()[0]
@@ -255,6 +264,31 @@ def test_macs_pictures_keep_the_title_and_legends_in_and_draw_the_control_bounds
                     if line.get_label() == "control bounds")
     assert bounds == sorted(np.ravel(problem.control_bounds))
     assert controls.axes[0].get_ylabel() == "thrust_angle (rad)"   # the model's name
+    # the archive's rings are drawn over every other mark
+    (archive,) = [line for line in front.axes[0].get_lines()
+                  if line.get_label().startswith("MACS archive")]
+    others = [line for line in front.axes[0].get_lines() if line is not archive]
+    assert archive.get_markerfacecolor() == "none"
+    assert all(archive.get_zorder() > line.get_zorder() for line in others)
+    # the control nodes, where the NLP imposes the bounds, lie within them; the curves
+    # between them are the element polynomials, and the title says how far they reach
+    ax = controls.axes[0]
+    (low, high), = problem.control_bounds
+    nodes = [line for line in ax.get_lines() if line.get_label().startswith("control nodes")]
+    curves = [line for line in ax.get_lines() if line.get_marker() == "None"
+              and line.get_label() != "control bounds"]
+    assert len(nodes) == len(curves) >= 2
+    for line in nodes:
+        assert np.all((line.get_ydata() >= low - 1e-6) & (line.get_ydata() <= high + 1e-6))
+    reach = (min(np.nanmin(c.get_ydata()) for c in curves),
+             max(np.nanmax(c.get_ydata()) for c in curves))
+    beyond = reach[0] < low or reach[1] > high
+    title = ax.get_title().replace("\n", " ")
+    assert beyond == ("between them the element polynomials reach" in title)
+    if beyond:
+        assert f"reach {reach[0]:.3g} … {reach[1]:.3g}" in title
+    # each element's polynomial on its own element: a break between elements
+    assert sum(np.isnan(curves[0].get_ydata())) == problem.elements
 
 
 def test_a_picture_on_a_small_figure_keeps_its_text_inside(van_der_pol, drawn, tmp_path,
@@ -283,3 +317,80 @@ def test_without_controls_in_memory_the_thrust_panel_says_where_they_are(drawn, 
     check_layout(fig)
     assert not fig.axes[-1].axison
     assert fig.axes[-1].get_title() == "thrust: controls are in the workers' array files"
+
+
+def test_the_path_density_counts_as_numpys_histogram():
+    rng = np.random.default_rng(0)
+    points = rng.normal(size=(5000, 2))
+    extent = (-2.0, 3.0, -1.5, 2.5)
+    counts = ocpar.formation.plot.path_density(points, extent, bins=37)
+    expected, _, _ = np.histogram2d(points[:, 1], points[:, 0], bins=37,
+                                    range=[extent[2:], extent[:2]])
+    assert np.array_equal(counts, expected)
+
+
+def artists(fig) -> int:
+    """Every artist of the figure's axes and legends (their children, recursively)."""
+    def count(artist) -> int:
+        return 1 + sum(count(child) for child in artist.get_children())
+
+    return sum(count(ax) for ax in fig.axes) + sum(count(legend) for legend in fig.legends)
+
+
+@pytest.mark.parametrize("agents", [300, 2_000, 10_000,
+                                    pytest.param(100_000, marks=pytest.mark.slow)])
+def test_a_large_formation_is_drawn_as_a_path_density_under_a_sample_of_paths(
+        agents, drawn, tmp_path):
+    """Above MAX_PATHS_DRAWN agents the paths are a density (said in the title and legend)
+    under every k-th agent's path: the figure's artists do not grow with the fleet."""
+    problem = formation_point_masses.make(agents=agents)
+    result = solve_formation(problem)
+    ocpar.formation.plot.plot_formation(problem, result, tmp_path / "formation.png")
+    (fig,) = drawn
+    check_layout(fig)
+    ax_all, ax_end, _ = fig.axes
+    step = ocpar.formation.plot.path_step(agents)
+    (paths,) = [c for c in ax_all.collections if isinstance(c, LineCollection)]
+    assert len(paths.get_segments()) == len(range(0, agents, step))
+    legend = [t.get_text() for t in fig.legends[0].get_texts()]
+    dense = agents > ocpar.formation.plot.MAX_PATHS_DRAWN
+    assert (len(ax_all.images), len(ax_end.images)) == ((1, 0) if dense else (0, 0))
+    assert ("shade: path density" in ax_all.get_title()) == dense
+    assert any(t.startswith("path density") for t in legend) == dense
+    if dense:
+        assert len(paths.get_segments()) <= ocpar.formation.plot.SAMPLE_PATHS
+        assert f"every {step:,}th agent" in ax_all.get_title().replace("\n", " ")
+        assert f"trajectories of every {step:,}th agent" in legend
+        # the shade counts path points: the agents' starts lie in it, nothing far away
+        image = ax_all.images[0]
+        x0, x1, y0, y1 = image.get_extent()
+        shade = image.get_array()
+        bins = shade.shape[0]
+        ix = ((problem.starts[:, 0] - x0) / (x1 - x0) * bins).astype(int).clip(0, bins - 1)
+        iy = ((problem.starts[:, 1] - y0) / (y1 - y0) * bins).astype(int).clip(0, bins - 1)
+        assert not np.any(np.ma.getmaskarray(shade)[iy, ix])
+        assert np.ma.getmaskarray(shade).any()
+        # what the paths' panels hold is independent of the fleet's size: the sampled
+        # paths, starts and ends, the 400-point target, the closest pair
+        nodes = result.positions.shape[1]
+        sample = ocpar.formation.plot.SAMPLE_PATHS
+        for ax in (ax_all, ax_end):
+            held = sum(len(line.get_xdata()) for line in ax.get_lines()) + sum(
+                len(segment) for c in ax.collections if isinstance(c, LineCollection)
+                for segment in c.get_segments())
+            assert held <= sample * nodes + 2 * sample + 400 + 2
+        assert artists(fig) <= 700
+
+
+def test_the_density_view_leaves_out_an_agent_without_a_path(drawn, tmp_path):
+    """A failed agent's NaN positions are not binned (nor warned about)."""
+    problem = formation_point_masses.make(agents=1_200)
+    result = solve_formation(problem)
+    positions = np.array(result.positions)
+    positions[7] = np.nan
+    with_gap = dataclasses.replace(result, positions=positions)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        ocpar.formation.plot.plot_formation(problem, with_gap, tmp_path / "formation.png")
+    (image,) = drawn[0].axes[0].images
+    assert np.all(np.isfinite(image.get_extent())) and image.get_array().count() > 0

@@ -191,8 +191,9 @@ class RuntimeOptions:
     overwrite: bool = option(False, "let --output DIR replace another run's files (its "
                              "result.json, array file, trace and plots)", group=OUTPUT_GROUP)
     picture: str = option(
-        "png", "with --output: the plots as PNG, or none (drawing takes ~1.3 s, more than "
-        "a small solve)", choices=PICTURES, name="plot", group=OUTPUT_GROUP)
+        "png", "with --output: the plots as PNG, or none (drawing, Matplotlib's import "
+        "included, can cost more than a small solve)", choices=PICTURES, name="plot",
+        group=OUTPUT_GROUP)
     quiet: bool = option(False, "no progress lines", group=OUTPUT_GROUP)
 
 

@@ -34,8 +34,14 @@ class Component:
 
     @property
     def label(self) -> str:
-        """``name (unit)``, e.g. ``r (Mm)`` or ``$x_1$ (nondimensional)``."""
+        """``name (unit)``, e.g. ``r (Mm)`` or ``x₁ (nondimensional)``."""
         return f"{self.name} ({self.unit})"
+
+
+def subscript(number: int) -> str:
+    """``number`` in Unicode subscript digits (x₁₂): plain text, not mathtext, whose parser
+    costs a fresh process ~0.3 s to build on the first label that uses it."""
+    return str(number).translate(str.maketrans("0123456789", "₀₁₂₃₄₅₆₇₈₉"))
 
 
 def components(source: Any, kind: str, size: int, symbol: str) -> list[Component]:
@@ -45,8 +51,8 @@ def components(source: Any, kind: str, size: int, symbol: str) -> list[Component
     model)``): the first one's ``<kind>_names`` and ``<kind>_units`` (``time_unit`` for the
     time; a sequence, or one string for all) that it has, the members
     :mod:`ocpar.models.labels` reads for the result files; else ``symbol`` with subscripts
-    1 … size (``symbol`` alone for one component); unit '1' (or none) is shown as
-    :data:`NONDIMENSIONAL`."""
+    ₁, ₂, … (:func:`subscript`; ``symbol`` alone for one component); unit '1' (or none) is
+    shown as :data:`NONDIMENSIONAL`."""
     sources = source if isinstance(source, tuple) else (source,)
     kinds = (kind, "state") if kind == "configuration" else (kind,)
 
@@ -56,8 +62,7 @@ def components(source: Any, kind: str, size: int, symbol: str) -> list[Component
 
     names, units = first("names"), first("unit" if kind == "time" else "units")
     if names is None:
-        names = ([f"${symbol}$"] if size == 1
-                 else [f"${symbol}_{{{i + 1}}}$" for i in range(size)])
+        names = [symbol] if size == 1 else [symbol + subscript(i + 1) for i in range(size)]
     if units is None:
         units = [NONDIMENSIONAL] * size
     if isinstance(units, str):
@@ -96,12 +101,23 @@ def pyplot() -> ModuleType:
     return plt
 
 
+#: The pictures' resolution (dots per inch).
+DPI = 120
+
+
 def save(fig: Any, path: Path) -> Path:
-    """Lay out ``fig`` (tight layout unless it has a layout engine), write it to ``path`` as a
-    120-dpi PNG and close it (where pyplot holds it)."""
+    """Lay out ``fig`` (tight layout unless it has a layout engine), render it once at
+    :data:`DPI` and write it to ``path`` as a PNG (fast zlib level 1, no metadata; ``savefig``
+    would draw it a second time), then close it (where pyplot holds it)."""
+    from PIL import Image
+
     if fig.get_layout_engine() is None:
         fig.tight_layout()
-    fig.savefig(path, dpi=120)
+    fig.set_dpi(DPI)
+    fig.canvas.draw()
+    width, height = fig.canvas.get_width_height(physical=True)
+    Image.frombuffer("RGBA", (width, height), fig.canvas.buffer_rgba(), "raw", "RGBA", 0,
+                     1).save(path, format="png", compress_level=1)
     if (plt := sys.modules.get("matplotlib.pyplot")) is not None:
         plt.close(fig)
     return Path(path)

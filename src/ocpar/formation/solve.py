@@ -688,7 +688,7 @@ def solve_formation(
         costs, trajectories, controls = done.costs, done.q, done.u
         statuses, solver_iterations = done.status, done.iterations
         positions, squares, parts = done.positions, done.squares, done.parts
-        continuous = checked_positions(problem, trajectories, controls)
+        continuous = checked_positions(problem, trajectories, controls, positions)
         verification = verify_checked(problem, positions, done.ends, phi, done.checks,
                                       distance, backend,
                                       time.perf_counter() - checking - done.written_s,

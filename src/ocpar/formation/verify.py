@@ -566,16 +566,17 @@ def _dense_path(shape: MsEndpointShape, x: np.ndarray, u: np.ndarray, refine: in
 
 
 def checked_positions(problem: FormationProblem, trajectories: np.ndarray,
-                      controls: np.ndarray) -> np.ndarray:
+                      controls: np.ndarray, nodes: np.ndarray | None = None) -> np.ndarray:
     """The positions (n, P, d) the obstacle clearance is checked on: the nodes (P = N+1;
     :meth:`~ocpar.formation.FormationProblem.positions`) where no agent is an ODE agent or
     there are no obstacles (a DMOC path is linear between nodes); else every agent on a
     common dense grid of S = :data:`DENSE_SUBSTEPS` · lcm(ODE shapes' ``steps``) points per
     interval (P = N S + 1): an ODE agent's path re-integrated (:func:`_dense_path`), a DMOC
-    agent's nodes joined linearly."""
-    q, u = np.asarray(trajectories, float), np.asarray(controls, float)
+    agent's nodes joined linearly. ``nodes``: the nodes' positions where they are at hand
+    (the paths of a run whose workers wrote them are not gathered)."""
     if not problem.obstacles or not problem.ode_agents:
-        return problem.positions(q)
+        return problem.positions(trajectories) if nodes is None else nodes
+    q, u = np.asarray(trajectories, float), np.asarray(controls, float)
     groups = problem.agents_by_shape()
     sub = math.lcm(*(s.steps for s in groups if isinstance(s, MsEndpointShape)))
     refine = DENSE_SUBSTEPS * sub

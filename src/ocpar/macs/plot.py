@@ -31,14 +31,16 @@ def plot_front(result: MacsResult, path: Path) -> Path:
             style = "-" if len(names) == 2 else "."
             ax.plot(reference[:, a], reference[:, b], style, color="grey", lw=1, ms=2,
                     label="reference front")
+        # the archive's hollow rings on top of the status marks inside them (zorder)
         ax.plot(result.front[:, a], result.front[:, b], "o", mfc="none", color="tab:blue",
-                label=f"MACS archive ({len(result.front)})")
+                ms=8, mew=1.2, zorder=4, label=f"MACS archive ({len(result.front)})")
         if result.converged is not None:
             for members, style, label in (
-                    (result.converged, dict(marker="o", color="tab:blue"),
+                    (result.converged, dict(marker="o", color="tab:green", ms=4, zorder=3),
                      f"converged (stationary to {STATIONARITY_TOL:g})"),
                     (~np.asarray(result.refined, dtype=bool),
-                     dict(marker="x", color="tab:red"), "refinement not kept")):
+                     dict(marker="x", color="tab:red", ms=5, zorder=3),
+                     "refinement not kept")):
                 if np.any(members):
                     ax.plot(result.front[members, a], result.front[members, b], ls="none",
                             label=f"{label} ({int(np.sum(members))})", **style)
@@ -55,32 +57,55 @@ def plot_front(result: MacsResult, path: Path) -> Path:
     return save(fig, path)
 
 
+#: Points per element at which a control polynomial is drawn.
+ELEMENT_POINTS = 40
+
+
 def plot_controls(problem: MacsProblem, result: MacsResult, path: Path, count: int = 4) -> Path:
     """Control laws u(t) of ``count`` archive members spread along the front (every control
-    component: one panel each, with its bounds), axes named with units
+    component: one panel each, with its bounds), as DFET defines them: each element's
+    polynomial drawn on its own element (a break between elements) through its control nodes
+    (dots), where the NLP imposes the bounds; where a polynomial leaves the bounds between its
+    nodes the panel's title says how far. Axes named with units
     (:func:`~ocpar.plotting.components`)."""
     dfet = dfet_problem(problem.shape)
-    nu = problem.model.nu
+    nu, elements = problem.model.nu, dfet.n
+    m1 = problem.shape.control_order + 1
     controls = components((problem, problem.model), "control", nu, "u")
     time = components((problem, problem.model), "time", 1, "t")[0]
     fig, axes = subplots(nu, 1, figsize=(6.5, 3.6 * nu + 1.6), squeeze=False)
+    axes = axes[:, 0]
     picks = np.unique(np.linspace(0, len(result.decisions) - 1, count).round().astype(int))
+    # within each element (the last point just inside it), a NaN between elements
+    inside = np.append(np.linspace(0.0, 1.0 - 1e-9, ELEMENT_POINTS), np.nan)
+    reach = np.full((nu, 2), [np.inf, -np.inf])
     for i in picks:
-        law = dfet.control_law(result.decisions[i])
-        tf = float(result.decisions[i][-1])
-        t = np.linspace(0, tf, 400)
-        u = np.array([np.ravel(law(s)) for s in t])
+        p = dfet.decision(result.decisions[i])
+        law, step = dfet.control_law(p), p[-1] / elements
+        t = ((np.arange(elements)[:, None] + inside) * step).ravel()
+        u = np.array([np.ravel(law(s)) if np.isfinite(s) else np.full(nu, np.nan) for s in t])
+        node_t = ((np.arange(elements)[:, None] + (dfet.control_nodes + 1) / 2) * step).ravel()
+        nodes = p[:-1].reshape(elements * m1, nu)
+        reach[:, 0] = np.minimum(reach[:, 0], np.nanmin(u, axis=0))
+        reach[:, 1] = np.maximum(reach[:, 1], np.nanmax(u, axis=0))
         label = ", ".join(f"{n} = {v:.4g}" for n, v in zip(result.objective_names,
                                                             result.front[i], strict=True))
-        for c in range(nu):
-            axes[c, 0].plot(t, u[:, c], label=label)
-    for c, (low, high) in enumerate(problem.shape.control_bounds):
+        for c, ax in enumerate(axes):
+            (line,) = ax.plot(t, u[:, c], label=label)
+            ax.plot(node_t, nodes[:, c], ".", color=line.get_color(), ms=4,
+                    label="control nodes (bounds imposed)")
+    titles = [f"{result.problem}: controls of archive members"] + [""] * (nu - 1)
+    for c, ((low, high), ax) in enumerate(zip(problem.shape.control_bounds, axes, strict=True)):
         for bound in (low, high):
-            axes[c, 0].axhline(bound, color="tab:red", ls="--", lw=0.9, label="control bounds")
-        axes[c, 0].set_xlabel(time.label)
-        axes[c, 0].set_ylabel(controls[c].label)
-        axes[c, 0].grid(alpha=0.3)
-    axes[0, 0].set_title(fit(f"{result.problem}: controls of archive members", fig, 10),
-                         fontsize=10)
-    legend_below(fig, axes[:, 0])
+            ax.axhline(bound, color="tab:red", ls="--", lw=0.9, label="control bounds")
+        if reach[c, 0] < low or reach[c, 1] > high:
+            titles[c] = "\n".join(filter(None, (titles[c], (
+                f"{controls[c].name}: the bounds hold at the control nodes; between them the "
+                f"element polynomials reach {reach[c, 0]:.3g} … {reach[c, 1]:.3g}"))))
+        if titles[c]:
+            ax.set_title(fit(titles[c], fig, 10), fontsize=10)
+        ax.set_xlabel(time.label)
+        ax.set_ylabel(controls[c].label)
+        ax.grid(alpha=0.3)
+    legend_below(fig, axes)
     return save(fig, path)
