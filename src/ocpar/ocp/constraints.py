@@ -396,3 +396,20 @@ def bound_sizes(lower: np.ndarray, upper: np.ndarray) -> np.ndarray:
     size = np.maximum(*(np.where(np.isfinite(b), np.abs(b), 0.0)
                         for b in (np.asarray(lower, float), np.asarray(upper, float))))
     return np.where(size > 0, size, 1.0)
+
+
+def check_control_bounds(bounds: object, nu: int) -> tuple[tuple[float, float], ...]:
+    """``bounds`` as ``nu`` pairs (lo, hi) of floats with lo ≤ hi, lo < ∞, hi > −∞, or
+    ValueError naming the field."""
+    try:
+        pairs = tuple((float(lo), float(hi)) for lo, hi in bounds)  # type: ignore[attr-defined]
+    except (TypeError, ValueError):
+        raise ValueError(f"control_bounds: must be {nu} pairs (lo, hi) of numbers") from None
+    if len(pairs) != nu:
+        raise ValueError(f"control_bounds: must be {nu} pairs (lo, hi), one per control entry, "
+                         f"got {len(pairs)}")
+    for j, (lo, hi) in enumerate(pairs):
+        if not (lo <= hi and lo < np.inf and hi > -np.inf):
+            raise ValueError(f"control_bounds: entry {j} needs lo <= hi (finite on one side at "
+                             f"least, no NaN), got ({lo}, {hi})")
+    return pairs

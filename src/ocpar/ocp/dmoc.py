@@ -165,6 +165,7 @@ from ocpar.ocp.constraints import (
     ConstraintRows,
     PathConstraint,
     bound_sizes,
+    check_control_bounds,
     compile_constraints,
     compile_function,
 )
@@ -303,7 +304,7 @@ class DmocShape:
                 self.running_cost, sizes, "running_cost", "running_cost", scalar=True))
         if self.control_bounds is not None:
             object.__setattr__(self, "control_bounds",
-                               _check_control_bounds(self.control_bounds, self.model.nu))
+                               check_control_bounds(self.control_bounds, self.model.nu))
         if self.intervals < 1:
             raise ValueError(f"DMOC needs at least 1 interval, got {self.intervals}")
         if not self.duration > 0:
@@ -444,23 +445,6 @@ class DmocShape:
         if self.free_duration and self.duration != 1.0:
             return transcription(self.with_duration(1.0))  # type: ignore[return-value]
         return DmocTranscription(self)
-
-
-def _check_control_bounds(bounds: object, nu: int) -> tuple[tuple[float, float], ...]:
-    """``bounds`` as ``nu`` pairs (lo, hi) of floats with lo ≤ hi, lo < ∞, hi > −∞, or
-    ValueError naming the field."""
-    try:
-        pairs = tuple((float(lo), float(hi)) for lo, hi in bounds)  # type: ignore[attr-defined]
-    except (TypeError, ValueError):
-        raise ValueError(f"control_bounds: must be {nu} pairs (lo, hi) of numbers") from None
-    if len(pairs) != nu:
-        raise ValueError(f"control_bounds: must be {nu} pairs (lo, hi), one per control entry, "
-                         f"got {len(pairs)}")
-    for j, (lo, hi) in enumerate(pairs):
-        if not (lo <= hi and lo < np.inf and hi > -np.inf):
-            raise ValueError(f"control_bounds: entry {j} needs lo <= hi (finite on one side at "
-                             f"least, no NaN), got ({lo}, {hi})")
-    return pairs
 
 
 @dataclass

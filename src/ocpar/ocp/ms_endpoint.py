@@ -78,6 +78,7 @@ from ocpar.ocp.constraints import (
     ConstraintRows,
     PathConstraint,
     bound_sizes,
+    check_control_bounds,
     compile_constraints,
 )
 from ocpar.ocp.contract import InnerSolution, call_nlpsol, check_params, transcription
@@ -182,7 +183,8 @@ class MsEndpointShape:
             self.path_constraints, {"x": nx, "u": nu}))
         self._check_obstacles(tuple(positions))
         if self.control_bounds is not None:
-            object.__setattr__(self, "control_bounds", _pairs(self.control_bounds, nu))
+            object.__setattr__(self, "control_bounds",
+                               check_control_bounds(self.control_bounds, nu))
         for name, value in (("intervals", self.intervals), ("steps", self.steps)):
             if not isinstance(value, int | np.integer) or value < 1:
                 raise ValueError(f"{name}: must be an integer ≥ 1, got {value!r}")
@@ -290,18 +292,6 @@ class MsEndpointShape:
         if self.free_duration and self.duration != 1.0:
             return transcription(self.with_duration(1.0))  # type: ignore[return-value]
         return MsEndpointTranscription(self)
-
-
-def _pairs(bounds: object, nu: int) -> tuple[tuple[float, float], ...]:
-    """``bounds`` as ``nu`` pairs (lo, hi), lo ≤ hi, or ValueError naming the field."""
-    try:
-        pairs = tuple((float(lo), float(hi)) for lo, hi in bounds)  # type: ignore[attr-defined]
-    except (TypeError, ValueError):
-        raise ValueError(f"control_bounds: must be {nu} pairs (lo, hi) of numbers") from None
-    if len(pairs) != nu or not all(lo <= hi for lo, hi in pairs):
-        raise ValueError(f"control_bounds: must be {nu} pairs (lo, hi) with lo <= hi, got "
-                         f"{pairs}")
-    return pairs
 
 
 @dataclass
