@@ -3,12 +3,13 @@ one superstep returns at (θ, T) (J, its first and second derivatives in θ and 
 term, from the inner problems' multipliers and KKT systems, reduced on the workers) against
 central differences of those sums; the joint search in a few supersteps more than a fixed-T
 solve; the formation solve per T (kept where no shift family is searched) reaching the
-same T."""
+same T; a common T's KKT matrix factorised once per block."""
 
 from __future__ import annotations
 
 import dataclasses
 
+import numpy as np
 import pytest
 
 from ocpar.bsp.serial import SerialBackend
@@ -16,6 +17,8 @@ from ocpar.examples import formation_minimum_time, formation_point_masses, forma
 from ocpar.formation import FormationOptions, solve_formation
 from ocpar.formation.final_time import at_duration
 from ocpar.formation.hierarchical import OuterObjective
+from ocpar.models import PointMass
+from ocpar.ocp import DmocShape, transcription
 
 WEIGHT = 1e3
 
@@ -104,3 +107,29 @@ def test_an_infeasible_first_t_is_left_by_the_sequence():
         found[result.final_time["method"]] = result.final_time["T"]
     assert set(found) == {"joint", "sequence"}
     assert found["sequence"] == pytest.approx(found["joint"], rel=1e-8)
+
+
+def test_a_common_t_factorises_the_kkt_matrix_once_per_block():
+    """Point masses with T a parameter: the KKT matrix depends on T alone, so a block of
+    columns of one T shares its factorisation (Newton step and end Hessian): the same bits
+    as factorising it column by column."""
+    shape = DmocShape(PointMass(dim=2, mass=1.0), duration=3.0, free_duration=True)
+    solver = transcription(shape).batch_solver
+    assert solver.shared_rows == [shape.n_params - 1]
+    params = np.zeros((40, shape.n_params))
+    params[:, 4:6] = np.random.default_rng(0).normal(size=(40, 2))
+    params[:, -1] = 2.5
+    guesses = [None] * len(params)
+    shared = transcription(shape).solve_batch(params, guesses, guesses)
+    rows, solver.shared_rows = solver.shared_rows, None
+    try:
+        alone = transcription(shape).solve_batch(params, guesses, guesses)
+    finally:
+        solver.shared_rows = rows
+    for name in ("cost", "cost_gradient", "end_hessian", "q", "u"):
+        np.testing.assert_array_equal(np.asarray(shared.column(name)),
+                                      np.asarray(alone.column(name)))
+    fixed = transcription(DmocShape(PointMass(dim=2, mass=1.0), duration=2.5)).solve_batch(
+        params[:, :-1], guesses, guesses)
+    np.testing.assert_allclose(np.asarray(shared.column("cost")),
+                               np.asarray(fixed.column("cost")), rtol=1e-12)
