@@ -1,20 +1,27 @@
 """Free final time of a formation: one common horizon T as an outer variable, or each
 agent's own T_i as a variable of its inner problem.
 
-``free`` (:func:`solve_free_time`): min over T in [T_min, T_max] of F(T) + w T, where F(T) is
-the formation's optimum Σ_i Ĵ_i at horizon T (the outer problem over φ solved at T, as for
-a fixed T). By the envelope theorem F'(T) = Σ_i ∂J_i*/∂T at the formation's optimum: each
-agent's inner problem with T as its last parameter (``free_duration`` of ``DmocShape`` and
-``MsEndpointShape``) gives
-∂J_i*/∂T from its parameters' multiplier and ∂²J_i*/∂T² from its KKT system
-(:mod:`ocpar.ocp.duration`), summed on the workers over fixed units of agents (the same
-numbers on any number of workers). A safeguarded Newton step on F'(T) + w = 0 (in log–log
-coordinates where F falls and is convex: exact in one step for F ∝ T^k, point masses from
-rest to rest having J ∝ 1/T³), its curvature Σ_i ∂²J_i*/∂T² at the first T and the secant
-of the exact F' after (the reduced curvature where φ* moves with T), a bisection step where
-it leaves the bracket of the root, gives the next T; the formation is re-solved there from
-the previous φ. T stops at a bound where F' + w points outward; a T where no formation is
-solved counts as F = +∞.
+``free`` (:func:`solve_free_time`): min over T in [T_min, T_max] of Σ_i J_i + w T. Each
+agent's inner problem takes T as its last parameter (``free_duration`` of ``DmocShape`` and
+``MsEndpointShape``), which gives ∂J_i*/∂T from its parameters' multiplier (the envelope
+theorem) and ∂²J_i*/∂T², ∂²J_i*/∂q_N∂T from its KKT system.
+
+* Where the outer problem is the shift Newton over a family φ(θ) (:func:`joint_family`), T
+  is an outer variable beside θ (:func:`solve_jointly`): each superstep solves the agents at
+  (θ, T), T set on the workers, and returns the sums of J and its first and second
+  derivatives in (θ, T) per reduction unit (:mod:`ocpar.formation.outer_step`), so that one
+  Newton step moves both (:mod:`ocpar.formation.joint_time`); one fixed-T formation solve at
+  the T found gives the answer.
+* Elsewhere (:func:`solve_by_sequence`) F(T), the formation's optimum at T, is a formation
+  solve per T, F'(T) = Σ_i ∂J_i*/∂T at its optimum and Σ_i ∂²J_i*/∂T² one superstep
+  after it (:mod:`ocpar.ocp.duration`), summed on the workers over fixed units of agents
+  (the same numbers on any number of workers). A safeguarded Newton step on F'(T) + w = 0
+  (in log–log coordinates where F falls and is convex: exact in one step for F ∝ T^k, point
+  masses from rest to rest having J ∝ 1/T³), its curvature Σ_i ∂²J_i*/∂T² at the first T
+  and the secant of the exact F' after (the reduced curvature where φ* moves with T), a
+  bisection step where it leaves the bracket of the root, gives the next T; the formation is
+  re-solved there from the previous φ. T stops at a bound where F' + w points outward; a T
+  where no formation is solved counts as F = +∞.
 
 ``free_per_agent`` (:func:`solve_per_agent_time`): each agent's own T_i in [T_min, T_max],
 its inner cost J_i + w T_i: T_i a variable of its inner problem (the shapes' ``time_bounds``,
