@@ -161,7 +161,8 @@ class OuterObjective:
         self._phi, self._shift, self.last_outcomes, self._gathered = \
             None, (family, theta), None, None
         if self.progress is not None:
-            self._report(None, f"{values.value:.12e}")
+            self._report(None, f"{values.value:.12e}" if duration is None else
+                         f"{values.value:.12e}  T {duration:.12g}  dJ/dT {values.time_slope:.6e}")
         if values.failed:
             raise InnerSolveFailed(f"{values.failed} inner solve(s) failed, first agent "
                                    f"{values.first_failed}: {values.first_status}")
