@@ -1,20 +1,27 @@
 """Free final time of a formation: one common horizon T as an outer variable, or each
 agent's own T_i as a variable of its inner problem.
 
-``free`` (:func:`solve_free_time`): min over T in [T_min, T_max] of F(T) + w T, where F(T) is
-the formation's optimum Σ_i Ĵ_i at horizon T (the outer problem over φ solved at T, as for
-a fixed T). By the envelope theorem F'(T) = Σ_i ∂J_i*/∂T at the formation's optimum: each
-agent's inner problem with T as its last parameter (``free_duration`` of ``DmocShape`` and
-``MsEndpointShape``) gives
-∂J_i*/∂T from its parameters' multiplier and ∂²J_i*/∂T² from its KKT system
-(:mod:`ocpar.ocp.duration`), summed on the workers over fixed units of agents (the same
-numbers on any number of workers). A safeguarded Newton step on F'(T) + w = 0 (in log–log
-coordinates where F falls and is convex: exact in one step for F ∝ T^k, point masses from
-rest to rest having J ∝ 1/T³), its curvature Σ_i ∂²J_i*/∂T² at the first T and the secant
-of the exact F' after (the reduced curvature where φ* moves with T), a bisection step where
-it leaves the bracket of the root, gives the next T; the formation is re-solved there from
-the previous φ. T stops at a bound where F' + w points outward; a T where no formation is
-solved counts as F = +∞.
+``free`` (:func:`solve_free_time`): min over T in [T_min, T_max] of Σ_i J_i + w T. Each
+agent's inner problem takes T as its last parameter (``free_duration`` of ``DmocShape`` and
+``MsEndpointShape``), which gives ∂J_i*/∂T from its parameters' multiplier (the envelope
+theorem) and ∂²J_i*/∂T², ∂²J_i*/∂q_N∂T from its KKT system.
+
+* Where the outer problem is the shift Newton over a family φ(θ) (:func:`joint_family`), T
+  is an outer variable beside θ (:func:`solve_jointly`): each superstep solves the agents at
+  (θ, T), T set on the workers, and returns the sums of J and its first and second
+  derivatives in (θ, T) per reduction unit (:mod:`ocpar.formation.outer_step`), so that one
+  Newton step moves both (:mod:`ocpar.formation.joint_time`); one fixed-T formation solve at
+  the T found gives the answer.
+* Elsewhere (:func:`solve_by_sequence`) F(T), the formation's optimum at T, is a formation
+  solve per T, F'(T) = Σ_i ∂J_i*/∂T at its optimum and Σ_i ∂²J_i*/∂T² one superstep
+  after it (:mod:`ocpar.ocp.duration`), summed on the workers over fixed units of agents
+  (the same numbers on any number of workers). A safeguarded Newton step on F'(T) + w = 0
+  (in log–log coordinates where F falls and is convex: exact in one step for F ∝ T^k, point
+  masses from rest to rest having J ∝ 1/T³), its curvature Σ_i ∂²J_i*/∂T² at the first T
+  and the secant of the exact F' after (the reduced curvature where φ* moves with T), a
+  bisection step where it leaves the bracket of the root, gives the next T; the formation is
+  re-solved there from the previous φ. T stops at a bound where F' + w points outward; a T
+  where no formation is solved counts as F = +∞.
 
 ``free_per_agent`` (:func:`solve_per_agent_time`): each agent's own T_i in [T_min, T_max],
 its inner cost J_i + w T_i: T_i a variable of its inner problem (the shapes' ``time_bounds``,
@@ -44,9 +51,15 @@ import numpy as np
 from ocpar.bsp import Backend
 from ocpar.bsp.columns import LISTED, Columns
 from ocpar.bsp.partition import unit_size
+from ocpar.formation.couplings.coupling import ShiftFamily
+from ocpar.formation.feasibility import InnerSolveFailed, feasible_window
+from ocpar.formation.hierarchical import OuterObjective
+from ocpar.formation.joint_time import joint_newton, next_duration
 from ocpar.formation.keep_out.separation import ClosestApproach, closest_approach
+from ocpar.formation.outer_step import prepare_workers
 from ocpar.formation.problem import FormationProblem
 from ocpar.formation.result import FormationResult
+from ocpar.formation.targets.slots import Slots
 from ocpar.formation.verify import near_collision, near_collision_words
 from ocpar.ocp import DmocShape, OcpTask, solve_tasks
 from ocpar.ocp.batch import AUTO_SOLVER
@@ -58,6 +71,10 @@ class TimeOptions(Protocol):
     (:class:`ocpar.formation.FormationOptions`, which imports this module)."""
 
     mode: str
+    outer: str
+    outer_tol: float
+    max_outer_iterations: int
+    ordering: str
     min_separation: float | None
     final_time: str
     time_bounds: tuple[float, ...] | None
@@ -150,6 +167,93 @@ def solve_free_time(problem: FormationProblem, backend: Backend, options: TimeOp
                     solve: Callable[..., FormationResult], phi0: np.ndarray | None = None,
                     progress: Callable[[str], None] | None = None,
                     output: Path | None = None) -> FormationResult:
+    """min over T of F(T) + w T (module docstring): by joint Newton steps in (θ, T)
+    (:func:`solve_jointly`) where the outer problem is a shift family's, else by a
+    formation solve per T (:func:`solve_by_sequence`). ``solve`` is
+    :func:`~ocpar.formation.solve_formation` (with ``options`` at a fixed T); ``phi0`` the
+    start (None: the problem's)."""
+    family = joint_family(problem, options, phi0)
+    if family is not None:
+        result = solve_jointly(problem, backend, options, solve, family, progress, output)
+        if result is not None:
+            return result
+    return solve_by_sequence(problem, backend, options, solve, phi0, progress, output)
+
+
+def joint_family(problem: FormationProblem, options: TimeOptions,
+                 phi0: np.ndarray | None) -> ShiftFamily | None:
+    """The shift family through the start ``phi0`` (None: the problem's initial angles)
+    where the joint (θ, T) search applies: the ``newton`` outer solver, ordering ``keep``,
+    a coupling whose solutions through the start form a family
+    (:class:`~ocpar.formation.couplings.coupling.ShiftFamily`), no obstacles; else None."""
+    if options.outer != "newton" or options.ordering != "keep" or problem.obstacles \
+            or isinstance(problem.curve, Slots):
+        return None
+    start = problem.initial_phi() if phi0 is None else np.asarray(phi0, float).ravel()
+    return problem.coupling.family(start, problem.curve)
+
+
+def solve_jointly(problem: FormationProblem, backend: Backend, options: TimeOptions,
+                  solve: Callable[..., FormationResult], family: ShiftFamily,
+                  progress: Callable[[str], None] | None = None,
+                  output: Path | None = None) -> FormationResult | None:
+    """T an outer variable beside the family's shift θ: the agents' inner problems take T
+    as their last parameter (set on the workers each superstep) and
+    :func:`~ocpar.formation.joint_time.joint_newton` moves (θ, T) together, from T the
+    problem's duration (clipped to the bounds) and θ the feasible start of the thrust
+    limits' window there (:func:`~ocpar.formation.feasibility.feasible_window`); then one
+    formation solve by ``solve`` at the T found, from its angles, gives the answer, checked
+    and written as any fixed-T one. None where no formation is solved at the first T (no
+    formation within reach, or the first superstep's solves fail): the sequence of
+    formation solves then finds a T where one is."""
+    low, high = time_bounds(options)
+    weight = options.time_weight
+    duration = float(np.clip(problem.common_shape.duration, low, high))
+    try:
+        window = feasible_window(at_duration(problem, duration), family)
+    except ValueError:   # no formation within the agents' reach at this T
+        return None
+    start, first_trace = time.perf_counter(), len(backend.traces)
+    timed = problem.with_shapes(lambda shape: dataclasses.replace(
+        shape, free_duration=True, duration=duration))
+    prepare_workers(timed, backend)
+    objective = OuterObjective(timed, backend, progress)
+    try:
+        search = joint_newton(objective, family, 0.0 if window is None else window.start,
+                              duration, weight, (low, high), options.outer_tol,
+                              options.time_tol, options.max_outer_iterations)
+    except InnerSolveFailed:
+        return None
+    finally:
+        objective.close()
+    fixed = dataclasses.replace(options, final_time="fixed")
+    result = solve(at_duration(problem, search.duration), backend, fixed,
+                   family.angles(search.theta)[0], progress, output)
+    reached = search.success and result.converged
+    status = "not_converged" if result.converged and not search.success else result.status
+    values = search.values
+    reason = (f"T and the shift by joint Newton steps, {search.iterations} step(s) in "
+              f"{len(search.history)} superstep(s): {search.reason}")
+    fields = {"mode": "free", "method": "joint", "T": search.duration,
+              "time_weight": weight, "time_bounds": [low, high],
+              "objective": result.total_cost + weight * search.duration if reached else None,
+              "dF_dT_plus_w": values.time_slope + weight, "at_bound": search.at_bound,
+              "iterations": search.history, "message": reason}
+    return dataclasses.replace(
+        result, status=status, final_time=fields,
+        inner_solves=objective.inner_solves + result.inner_solves,
+        failed_solves=objective.failed_solves + result.failed_solves,
+        retries=objective.retries + result.retries,
+        outer_iterations=(search.iterations + result.outer_iterations
+                          if result.outer_iterations is not None else None),
+        wall_time_s=time.perf_counter() - start, trace=backend.traces[first_trace:],
+        message=f"{result.message}; free final time: {reason}")
+
+
+def solve_by_sequence(problem: FormationProblem, backend: Backend, options: TimeOptions,
+                      solve: Callable[..., FormationResult], phi0: np.ndarray | None = None,
+                      progress: Callable[[str], None] | None = None,
+                      output: Path | None = None) -> FormationResult:
     """min over T of F(T) + w T (module docstring), each F(T) a formation solve by ``solve``
     (:func:`~ocpar.formation.solve_formation` with ``options`` at a fixed T). Returns the
     formation solve at the last T with ``final_time`` set: T, w, the objective
@@ -217,7 +321,7 @@ def solve_free_time(problem: FormationProblem, backend: Backend, options: TimeOp
         if previous is not None and previous[0] != duration:   # the secant of exact F'
             curvature = (sums.gradient - previous[1]) / (duration - previous[0])
         previous = (duration, sums.gradient)
-        new = _next_duration(duration, sums.gradient, curvature, weight)
+        new = next_duration(duration, sums.gradient, curvature, weight)
         if new >= upper and upper == high and slope < 0:   # to the bound, then stop there
             new = high
         elif new <= lower and lower == low and slope > 0 and infeasible < low:
@@ -239,7 +343,7 @@ def solve_free_time(problem: FormationProblem, backend: Backend, options: TimeOp
                                                               "at the least T"))
     status = result.status if stationary or not result.converged else "not_converged"
     duration = solved_at
-    fields = {"mode": "free", "T": duration, "time_weight": weight,
+    fields = {"mode": "free", "method": "sequence", "T": duration, "time_weight": weight,
               "time_bounds": [low, high], "objective": (result.total_cost + weight * duration
                                                         if result.converged else None),
               "dF_dT_plus_w": slope if math.isfinite(slope) else None,
@@ -328,27 +432,16 @@ def closest_across_horizons(positions: np.ndarray, durations: np.ndarray,
     return ClosestApproach(found.distance, found.agents, float(t))
 
 
-def _next_duration(duration: float, gradient: float, curvature: float, weight: float
-                   ) -> float:
-    """The Newton step's T for F'(T) + w = 0 given F' (``gradient``) and F''
-    (``curvature``): in log–log coordinates where F decreases and is convex (log(−F') =
-    log w, linear in log T: exact in one step for F ∝ T^k, e.g. point masses from rest to
-    rest, k = −3), else on F' + w itself; NaN where neither applies."""
-    if gradient < 0 and curvature > 0:
-        order = duration * curvature / gradient   # d log(−F') / d log T < 0
-        return duration * (weight / -gradient) ** (1 / order)
-    if curvature > 0:
-        return duration - (gradient + weight) / curvature
-    return math.nan
-
-
 __all__ = [
     "FINAL_TIMES",
     "at_duration",
     "check_final_time",
     "closest_across_horizons",
     "duration_derivatives",
+    "joint_family",
+    "solve_by_sequence",
     "solve_free_time",
+    "solve_jointly",
     "solve_per_agent_time",
     "task_columns",
     "time_bounds",

@@ -142,13 +142,16 @@ class OuterObjective:
                 )
         return self.last_outcomes  # type: ignore[return-value]
 
-    def shifted(self, family: ShiftFamily, theta: float) -> ShiftValues:
-        """J, dJ/dθ, Σ|g_i φ_i′| and d²J/dθ² at the shift θ (rad) of ``family``: one
-        superstep whose arithmetic the workers do (:mod:`ocpar.formation.outer_step`: θ out,
-        a few sums per reduction unit back). Raises :class:`InnerSolveFailed` if a solve
-        failed."""
+    def shifted(self, family: ShiftFamily, theta: float, duration: float | None = None
+                ) -> ShiftValues:
+        """J, dJ/dθ, Σ|g_i φ_i′| and d²J/dθ² at the shift θ (rad) of ``family``, and where
+        the agents' shapes take T as a parameter (``free_duration``) at T = ``duration``
+        also dJ/dT, d²J/dT² and d²J/dθ dT: one superstep whose arithmetic the workers do
+        (:mod:`ocpar.formation.outer_step`: θ (and T) out, a few sums per reduction unit
+        back). Raises :class:`InnerSolveFailed` if a solve failed."""
         first = self._agents.version == 0
-        tasks = shift_tasks(self.problem, family, theta, first, family is not self._family)
+        tasks = shift_tasks(self.problem, family, theta, first, family is not self._family,
+                            duration)
         rows = self._agents.step(tasks, reduce=unit_terms)
         self._family = family
         values = combine(rows, unit_size(self.problem.agents))
@@ -158,7 +161,8 @@ class OuterObjective:
         self._phi, self._shift, self.last_outcomes, self._gathered = \
             None, (family, theta), None, None
         if self.progress is not None:
-            self._report(None, f"{values.value:.12e}")
+            self._report(None, f"{values.value:.12e}" if duration is None else
+                         f"{values.value:.12e}  T {duration:.12g}  dJ/dT {values.time_slope:.6e}")
         if values.failed:
             raise InnerSolveFailed(f"{values.failed} inner solve(s) failed, first agent "
                                    f"{values.first_failed}: {values.first_status}")

@@ -18,6 +18,13 @@ order. So per superstep a worker sends back four sums and a failure count per un
 computes no O(n) term, and the sums are the same bits on any number of workers (below
 2,048 agents every agent is its own unit: the sums are those of the coordinator-side
 arithmetic, bit for bit).
+
+A free common final time (:mod:`ocpar.formation.final_time`) makes T an outer variable
+beside θ: the superstep carries T too (one number; the agents' shapes take it as their
+last parameter, set on the workers), and each agent adds dJ_i*/dT, d²J_i*/dT² and the
+cross term d²Ĵ_i/dθ dT = (∂²J_i*/∂q_N ∂T · z′(φ_i)) φ_i′ to its terms
+(:func:`~ocpar.ocp.endpoint_agents.duration_terms`), summed over the same units: the
+superstep then gives the whole gradient and Hessian of J in (θ, T).
 """
 
 from __future__ import annotations
@@ -34,7 +41,7 @@ from ocpar.formation.couplings.coupling import ShiftFamily, shifted
 from ocpar.formation.problem import FormationProblem
 from ocpar.formation.targets.curve import CircleEvaluator, CurveEvaluator
 from ocpar.ocp.contract import PrepareTask, Shape, prepare_solvers
-from ocpar.ocp.endpoint_agents import AgentState, agent_tasks, solve_agents
+from ocpar.ocp.endpoint_agents import AgentState, agent_tasks, duration_terms, solve_agents
 
 
 @dataclass(frozen=True)
@@ -45,7 +52,8 @@ class ShiftTask:
     :class:`~ocpar.formation.couplings.coupling.ShiftFamily`):
     ``base`` its base angle u_i where the family is new to it (None: the one it has),
     ``params`` its DMOC boundary data (4 nq,) on its first solve (None: the ones it has, its
-    end position moved to z(φ_i))."""
+    end position moved to z(φ_i)); ``duration`` the common T of shapes with
+    ``free_duration`` (None: T fixed)."""
 
     shape: Shape
     theta: float
@@ -53,6 +61,7 @@ class ShiftTask:
     curve: CurveEvaluator | CircleEvaluator
     base: float | None
     params: np.ndarray | None
+    duration: float | None
 
 
 @dataclass
@@ -67,13 +76,18 @@ class ShiftState(AgentState):
 @dataclass
 class ShiftTerms:
     """One agent's share of the outer step at θ: ``cost`` Ĵ_i, ``slope`` g_i φ_i′,
-    ``scale`` |g_i φ_i′|, ``curvature`` h_i φ_i′² + g_i φ_i″; ``success``, the solver's
-    ``status`` and the failure policy's ``attempts``."""
+    ``scale`` |g_i φ_i′|, ``curvature`` h_i φ_i′² + g_i φ_i″; where T is free
+    ``time_slope`` dJ_i*/dT, ``time_curvature`` d²J_i*/dT² and ``cross`` d²Ĵ_i/dθ dT (NaN
+    where T is fixed); ``success``, the solver's ``status`` and the failure policy's
+    ``attempts``."""
 
     cost: float
     slope: float
     scale: float
     curvature: float
+    time_slope: float
+    time_curvature: float
+    cross: float
     success: bool
     status: str
     attempts: int
@@ -82,18 +96,25 @@ class ShiftTerms:
 @dataclass
 class UnitTerms:
     """The sums of a reduction unit's :class:`ShiftTerms` (``cost``, ``slope``, ``scale``,
-    ``curvature``), its ``failed`` solves, the first failed agent's row in the unit
-    (``first_failed``, −1 if none) and status (``first_status``), and its ``retries``
-    (attempts beyond the first)."""
+    ``curvature``, ``time_slope``, ``time_curvature``, ``cross``), its ``failed`` solves,
+    the first failed agent's row in the unit (``first_failed``, −1 if none) and status
+    (``first_status``), and its ``retries`` (attempts beyond the first)."""
 
     cost: float
     slope: float
     scale: float
     curvature: float
+    time_slope: float
+    time_curvature: float
+    cross: float
     failed: int
     first_failed: int
     first_status: str
     retries: int
+
+
+#: The summed fields of :class:`ShiftTerms`, in :class:`UnitTerms`' order.
+SUMS = ("cost", "slope", "scale", "curvature", "time_slope", "time_curvature", "cross")
 
 
 def solve_shifted(tasks: Columns, states: Columns | None) -> tuple[Columns, Columns]:
@@ -106,11 +127,12 @@ def solve_shifted(tasks: Columns, states: Columns | None) -> tuple[Columns, Colu
     kind, base = tasks.fields["base"]
     base = np.asarray(states.column("base") if kind == SHARED else base, float)
     phi, along, bend = shifted(base + theta, chart)
-    d = curve.dim
+    d, duration = curve.dim, tasks.fields["duration"][1]
     if states is None:
-        agents = agent_tasks(_shapes(tasks), d, params=np.asarray(tasks.column("params")))
+        agents = agent_tasks(_shapes(tasks), d, params=np.asarray(tasks.column("params")),
+                             duration=duration)
     else:
-        agents = agent_tasks(_shapes(tasks), d, end=curve.evaluate(phi, 0))
+        agents = agent_tasks(_shapes(tasks), d, end=curve.evaluate(phi, 0), duration=duration)
     outcomes, solved = solve_agents(agents, states)
     d_end = np.asarray(outcomes.column("end_gradient"))
     nq = d_end.shape[1]
@@ -121,9 +143,16 @@ def solve_shifted(tasks: Columns, states: Columns | None) -> tuple[Columns, Colu
                    tangent)
          + np.sum(d_end[:, :d] * curve.evaluate(phi, 2), axis=1))
     slope = g * along
+    if duration is None:
+        time_slope = time_curvature = cross = np.full(k, np.nan)
+    else:
+        time_slope, time_curvature, d_end_time = duration_terms(agents, solved)
+        cross = np.sum(d_end_time * tangent, axis=1) * along
     terms = Columns(cls=ShiftTerms, length=k, fields={
         "cost": outcomes.fields["cost"], "slope": (STACKED, slope),
         "scale": (STACKED, np.abs(slope)), "curvature": (STACKED, h * along**2 + g * bend),
+        "time_slope": (STACKED, time_slope), "time_curvature": (STACKED, time_curvature),
+        "cross": (STACKED, cross),
         "success": outcomes.fields["success"], "status": outcomes.fields["status"],
         "attempts": outcomes.fields["attempts"]})
     states = Columns(cls=ShiftState, length=k,
@@ -155,7 +184,7 @@ def unit_terms(terms: Columns, bounds: np.ndarray) -> Columns:
     ``terms`` (Columns of :class:`ShiftTerms`, unit j rows bounds[j]:bounds[j+1])."""
     starts, units = bounds[:-1], len(bounds) - 1
     sums = {name: np.add.reduceat(np.asarray(terms.column(name), float), starts)
-            if units else np.zeros(0) for name in ("cost", "slope", "scale", "curvature")}
+            if units else np.zeros(0) for name in SUMS}
     failed = ~np.asarray(terms.column("success"), bool)
     attempts = np.asarray(terms.column("attempts"), np.int64) - 1
     counts = np.add.reduceat(failed.astype(np.int64), starts) if units else np.zeros(0, int)
@@ -174,10 +203,11 @@ def unit_terms(terms: Columns, bounds: np.ndarray) -> Columns:
 
 
 def shift_tasks(problem: FormationProblem, family: ShiftFamily, theta: float,
-                first: bool, new_family: bool) -> Columns:
+                first: bool, new_family: bool, duration: float | None = None) -> Columns:
     """The superstep's :class:`ShiftTask` s for every agent at the shift ``theta``: with the
     base angles where the family is ``new_family`` to the agents, with their boundary data
-    on their ``first`` solve (then at φ(θ), computed here once)."""
+    on their ``first`` solve (then at φ(θ), computed here once); at the common T
+    ``duration`` where the shapes take it as a parameter (None: T fixed)."""
     n = problem.agents
     params = (problem.boundary_params_rows(np.arange(n), family.angles(theta)[0])
               if first else None)
@@ -187,7 +217,8 @@ def shift_tasks(problem: FormationProblem, family: ShiftFamily, theta: float,
         "theta": (SHARED, float(theta)), "chart": (SHARED, family.chart),
         "curve": (SHARED, problem.curve.evaluator),
         "base": (STACKED, family.base) if new_family or first else (SHARED, None),
-        "params": (STACKED, params) if first else (SHARED, None)})
+        "params": (STACKED, params) if first else (SHARED, None),
+        "duration": (SHARED, None if duration is None else float(duration))})
 
 
 def prepare_workers(problem: FormationProblem, backend: Backend) -> None:
@@ -207,12 +238,17 @@ def prepare_workers(problem: FormationProblem, backend: Backend) -> None:
 @dataclass(frozen=True)
 class ShiftValues:
     """J, dJ/dθ, Σ|g_i φ_i′| and d²J/dθ² at a shift (the units' sums added in unit order),
-    the failed solves (with the first failed agent and its status) and the retries."""
+    where T is free dJ/dT, d²J/dT² and d²J/dθ dT (``time_slope``, ``time_curvature``,
+    ``cross``; NaN where T is fixed), the failed solves (with the first failed agent and its
+    status) and the retries."""
 
     value: float
     slope: float
     scale: float
     curvature: float
+    time_slope: float
+    time_curvature: float
+    cross: float
     failed: int
     first_failed: int
     first_status: str
@@ -228,7 +264,6 @@ def combine(rows: Columns, unit: int) -> ShiftValues:
         j = int(np.argmax(counts > 0))
         first = j * unit + int(np.asarray(rows.column("first_failed"))[j])
         status = rows.column("first_status")[j]
-    return ShiftValues(*(float(np.sum(np.asarray(rows.column(name))))
-                         for name in ("cost", "slope", "scale", "curvature")),
+    return ShiftValues(*(float(np.sum(np.asarray(rows.column(name)))) for name in SUMS),
                        failed=int(np.sum(counts)), first_failed=first, first_status=status,
                        retries=int(np.sum(np.asarray(rows.column("retries")))))

@@ -147,7 +147,9 @@ class FormationResult(RunResult):
     :mod:`~ocpar.formation.ordering_bound`); ``final_time`` with a free or minimum final
     time (None for a fixed one): T and how it was found (:mod:`ocpar.formation.final_time`:
     ``free``: the weight w, the objective Σ J_i + w T, dF/dT + w at T, the bound T stopped
-    at, the iterations; ``minimum``: the ``bracket`` [T_lo, T_hi], ``proven``, the rotation,
+    at, the ``method`` (``joint``: T and the shift by joint Newton steps, each iteration a
+    superstep at (θ, T); ``sequence``: a formation solve per T), the iterations;
+    ``minimum``: the ``bracket`` [T_lo, T_hi], ``proven``, the rotation,
     phase 1's total slack at ``phase_one_T``; ``free_per_agent``: the weight, the largest
     T_i) and ``durations`` (n,) each agent's own T_i (None but there; the array file's
     ``duration``); ``fleet`` (:class:`Fleet`) and per agent the inner

@@ -510,9 +510,6 @@ def solve_formation(
     options = options or FormationOptions()
     backend = backend or SerialBackend()
     check_applicable(problem, options)
-    if options.final_time == "free":
-        return solve_free_time(problem, backend, options, solve_formation, phi0, progress,
-                               output)
     if options.final_time == "minimum":
         return solve_minimum_time(problem, backend, options, solve_formation, progress, output)
     if options.final_time == "free_per_agent":
@@ -522,6 +519,10 @@ def solve_formation(
         problem = problem.with_shapes(
             lambda shape: dataclasses.replace(shape, solver=options.inner_solver))
     problem = with_solver_options(problem, options.solver_options)
+    if options.final_time == "free":
+        return solve_free_time(problem, backend, options, solve_formation,
+                               given_start(problem, options) if phi0 is None else phi0,
+                               progress, output)
     slots = isinstance(problem.curve, Slots)   # then the assignment chooses φ: no φ0
     if phi0 is None:
         phi0 = given_start(problem, options)

@@ -29,6 +29,7 @@ failure policy (:func:`ocpar.ocp.solve_tasks`).
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from functools import cached_property, lru_cache
 from typing import Any
@@ -248,6 +249,24 @@ class KktSystem:
             return None
         return ca.evalf(self.matrix)
 
+    def parameter_rows(self) -> list[int] | None:
+        """The entries of p the KKT matrix depends on where it depends on p alone (not on x
+        or λ_g) and not constant (e.g. a linear–quadratic problem with its duration a
+        parameter), else None."""
+        if ca.depends_on(self.matrix, ca.vertcat(self.x, self.lam)):
+            return None
+        rows = [i for i in range(self.p.numel()) if ca.depends_on(self.matrix, self.p[i])]
+        return rows or None
+
+    def shared_newton(self, name: str, steps: int, columns: int) -> ca.Function:
+        """:meth:`newton` mapped over ``columns`` columns whose KKT matrix, a function of p
+        alone (:meth:`parameter_rows`), is the same: the first column's, factorised once per
+        call (as :meth:`batched_newton` does a constant one)."""
+        kkt = ca.Function("kkt", [self.p], [self.matrix])
+        return self._steps(f"{name}_shared_newton_{columns}", steps, columns,
+                           lambda _x, _lam, ps: kkt(ps[:, 0]), self.rhs.map(columns, "serial"),
+                           self.check.map(columns, "serial"))
+
     def newton(self, name: str, steps: int) -> ca.Function:
         """Function (x, λ_g, p) → (x, λ_g, f, g, ‖∇_x L‖∞, ∇_p L) after ``steps`` full Newton
         steps (sparse QR, one factorisation per call; no globalisation, bounds ignored). At a
@@ -300,16 +319,25 @@ class KktNewton:
     (:meth:`KktSystem.newton`), each column accepted if ‖g‖∞ ≤ ``tol``·(1 + ‖p‖∞),
     ‖∇_x L‖∞ ≤ ``tol``·(1 + ‖∇f‖∞) and lbx ≤ x ≤ ubx. ``post`` as in :class:`MappedNlp`,
     evaluated once per column, at its last iterate (once per batch where it is constant).
-    A constant KKT matrix is factorised once per batch (:meth:`KktSystem.batched_newton`)."""
+    A constant KKT matrix is factorised once per batch (:meth:`KktSystem.batched_newton`);
+    one that depends on p alone, once per block whose columns share the entries it depends
+    on (:meth:`KktSystem.shared_newton`; e.g. T, set alike for a superstep's agents), and
+    ``post`` then by ``shared_post(k)``, a Function of k such columns at once (e.g.
+    :func:`~ocpar.ocp.sensitivity.shared_cost_hessian_function`)."""
 
     def __init__(self, name: str, x: ca.SX, p: ca.SX, f: ca.SX, g: ca.SX, steps: int,
-                 tol: float, post: ca.Function | None = None) -> None:
+                 tol: float, post: ca.Function | None = None,
+                 shared_post: Callable[[int], ca.Function] | None = None) -> None:
         self.name, self.tol, self.steps = name, tol, steps
         self.nx, self.ng, self.np = x.numel(), g.numel(), p.numel()
         self.system = KktSystem.of(x, p, f, g)
         #: The KKT matrix where it is constant (an equality-constrained QP: batches factorise
         #: it once per call, :meth:`KktSystem.batched_newton`), else None.
         self.constant_matrix = self.system.constant_matrix()
+        #: The entries of p a KKT matrix of p alone depends on (None: constant, or of x, λ).
+        self.shared_rows = None if self.constant_matrix is not None else \
+            self.system.parameter_rows()
+        self.shared_post = shared_post
         self.gradient = ca.Function(f"{name}_grad", [x, p], [ca.norm_inf(ca.gradient(f, x))])
         self.post = post
         #: ``post`` is evaluated once per batch and repeated where its value is constant.
@@ -321,15 +349,21 @@ class KktNewton:
         """One column's Newton steps (:meth:`KktSystem.newton`), where the matrix varies."""
         return self.system.newton(self.name, self.steps)
 
-    def _map(self, k: int) -> tuple[BufferedFunction, BufferedFunction, BufferedFunction | None]:
+    def _map(self, k: int, shared: bool = False
+             ) -> tuple[BufferedFunction, BufferedFunction, BufferedFunction | None]:
+        """The calls of a block of k columns; ``shared``: columns sharing a KKT matrix of p
+        alone (:attr:`shared_rows`)."""
         post = None
         if self.post is not None:
-            post = BufferedFunction(self.post if self.constant_post
-                                    else self.post.map(k, "serial"))
-        if self.constant_matrix is None:
-            newton = self._per_column.map(k, "serial")
-        else:
+            post = BufferedFunction(
+                self.post if self.constant_post else self.shared_post(k)
+                if shared and self.shared_post is not None else self.post.map(k, "serial"))
+        if self.constant_matrix is not None:
             newton = self.system.batched_newton(self.name, self.steps, self.constant_matrix, k)
+        elif shared:
+            newton = self.system.shared_newton(self.name, self.steps, k)
+        else:
+            newton = self._per_column.map(k, "serial")
         return (BufferedFunction(newton), BufferedFunction(self.gradient.map(k, "serial")),
                 post)
 
@@ -337,7 +371,12 @@ class KktNewton:
         """Build the mapped calls that solving ``count`` NLPs at once takes (one per block
         size), so that the first solve does not."""
         for rows in _blocks(np.arange(count)):
-            self._mapped(len(rows))
+            self._mapped(len(rows), self.shared_rows is not None)
+
+    def _shares(self, p: np.ndarray) -> bool:
+        """Whether the columns ``p`` (k, np) share a KKT matrix of p alone."""
+        rows = self.shared_rows
+        return rows is not None and bool(np.all(p[:, rows] == p[0, rows]))
 
     def solve(self, x0: np.ndarray, p: np.ndarray, lam_g0: np.ndarray, lbx: np.ndarray,
               ubx: np.ndarray, rounds: int = 1) -> BatchSolve:
@@ -369,7 +408,7 @@ class KktNewton:
 
     def _post(self, x: np.ndarray, lam: np.ndarray, p: np.ndarray) -> np.ndarray:
         """``post`` at each row, (k, m) with each output's entries column-major."""
-        post = self._mapped(len(p))[2]
+        post = self._mapped(len(p), self._shares(p))[2]
         if self.constant_post:
             return np.tile(post(x[0], lam[0], p[0])[0], (len(p), 1))
         return post(x.ravel(), lam.ravel(), p.ravel())[0].reshape(len(p), -1)
@@ -377,7 +416,7 @@ class KktNewton:
     def _solve_block(self, x0: np.ndarray, p: np.ndarray, lam_g0: np.ndarray,
                      lbx: np.ndarray, ubx: np.ndarray) -> tuple[np.ndarray, ...]:
         k = len(p)
-        newton, gradient, _ = self._mapped(k)
+        newton, gradient, _ = self._mapped(k, self._shares(p))
         x, lam, f, g, dual, grad_p = newton(x0.ravel(), lam_g0.ravel(), p.ravel())
         x, lam, g = x.reshape(k, self.nx), lam.reshape(k, self.ng), g.reshape(k, self.ng)
         scale = 1.0 + gradient(x.ravel(), p.ravel())[0]

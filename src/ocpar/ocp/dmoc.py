@@ -191,7 +191,7 @@ from ocpar.ocp.obstacles import (
     segment_rows,
     side_guesses,
 )
-from ocpar.ocp.sensitivity import cost_hessian_function
+from ocpar.ocp.sensitivity import cost_hessian_function, shared_cost_hessian_function
 from ocpar.ocp.solver_options import (
     SolverOptions,
     ipopt,
@@ -626,7 +626,7 @@ class DmocTranscription:
         # old, ~25 % faster to evaluate than the bare expressions)
         # (the planes' variables are free where no row binds them: that of the equations is
         # singular there, every solve's comes from the active set, NaN until then)
-        equations = ca.Function("g_eq", [w, p], [ca.vertcat(*eqs)])
+        equations = self._equations = ca.Function("g_eq", [w, p], [ca.vertcat(*eqs)])
         self.end_hessian = None if shape.keep_out_slots or shape.elastic else ca.Function(
             "dmoc_no_hessian", [w, ca.SX.sym("lam_g", self.ng), p],
             [ca.DM(np.full((self.nh, self.nh), np.nan))]) if self.n_planes else \
@@ -831,12 +831,22 @@ class DmocTranscription:
         w, p = self._w, self._p
         if self.shape.chosen_solver == "newton":  # DmocShape refuses it with keep-out slots
             return KktNewton("dmoc", w, p, self.cost(w, p), self.constraints(w, p), 1,
-                             self.solver_settings["newton"]["kkt_tol"], post=self.end_hessian)
+                             self.solver_settings["newton"]["kkt_tol"], post=self.end_hessian,
+                             shared_post=self._shared_end_hessian)
         if self.shape.chosen_solver != "sqpmethod" or self.n_planes:
             return None
         return MappedNlp("dmoc_sqp", w, p, self.cost(w, p), self.constraints(w, p),
                          self.shape.kkt_tol, self.shape.max_iter, self.shape.kkt_tol,
                          post=self.end_hessian, options=self.shape.solver_options)
+
+    def _shared_end_hessian(self, columns: int) -> ca.Function:
+        """:attr:`end_hessian` of ``columns`` solutions at once whose KKT matrix is the same
+        (:func:`~ocpar.ocp.sensitivity.shared_cost_hessian_function`; the Newton kernel's
+        columns of a common T, :class:`~ocpar.ocp.batch.KktNewton`)."""
+        w, p = self._w, self._p
+        return _on_equations(shared_cost_hessian_function(
+            "dmoc", w, p, self.cost(w, p), self._equations(w, p), self.hessian_block, columns),
+            self.ng, columns)
 
     def default_guess(self, params: np.ndarray) -> np.ndarray:
         """Cubic Hermite path through the boundary data (projected onto the constraints, if
@@ -1446,14 +1456,16 @@ def _at_step(function: ca.Function, h: ca.SX | float) -> Callable[[ca.SX, ca.SX]
     return lambda a, b: function(a, b, h)
 
 
-def _on_equations(hessian: ca.Function, ng: int) -> ca.Function:
+def _on_equations(hessian: ca.Function, ng: int, columns: int = 1) -> ca.Function:
     """``hessian`` (w, λ_eq, p) of the equations (the first rows of g) as a function of the
-    multipliers of all ``ng`` rows (w, λ_g, p); the same function when there are no others."""
-    if hessian.nnz_in(1) == ng:
+    multipliers of all ``ng`` rows (w, λ_g, p), each input ``columns`` columns wide; the
+    same function when there are no others."""
+    rows = hessian.size1_in(1)
+    if rows == ng:
         return hessian
-    w, lam, p = (ca.MX.sym(name, hessian.nnz_in(i) if i != 1 else ng)
+    w, lam, p = (ca.MX.sym(name, hessian.size1_in(i) if i != 1 else ng, columns)
                  for i, name in enumerate(("w", "lam_g", "p")))
-    return ca.Function(hessian.name(), [w, lam, p], [hessian(w, lam[:hessian.nnz_in(1)], p)])
+    return ca.Function(hessian.name(), [w, lam, p], [hessian(w, lam[:rows, :], p)])
 
 
 def dmoc_problem(shape: DmocShape) -> DmocTranscription:

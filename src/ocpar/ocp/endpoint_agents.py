@@ -11,7 +11,10 @@ the end's position entries are ``end_position_entries(d)``, a solution has ``cos
 dJ*/dp, ``end_hessian`` (the end state's block), the path ``q`` and controls ``u``, and
 ``previous_guesses(q, u)`` re-solves from them. An agent's first task (an
 :class:`AgentTask`) carries its shape (shared by a chunk's agents) and its boundary data p;
-later tasks only its end position (d numbers), the rest of p being fixed. Back comes an
+later tasks only its end position (d numbers), the rest of p being fixed; where the shapes
+take the duration T as their last parameter (``free_duration``), a task may set it
+(``duration``, shared by a superstep's agents: the coordinator sends one number per T, and
+:func:`duration_terms` gives the solutions' derivatives in T). Back comes an
 :class:`AgentOutcome` (J*, dJ*/d(end position), the end Hessian's position block, success,
 status, attempts: 1 + d + d² numbers and three small ones). The agent's :class:`AgentState` (its
 :class:`~ocpar.ocp.DmocSolution`: paths, controls, multipliers; and its boundary data) stays
@@ -50,12 +53,14 @@ class AgentTask:
     """One agent's inner solve in a superstep: its ``shape`` (module docstring); on its
     first task its boundary data ``params`` p (n_params,) and ``end`` None, later ``params``
     None and ``end`` its end position (d,) (the rest of p is kept from the first task);
-    ``positions`` d, the target's dimension."""
+    ``positions`` d, the target's dimension; ``duration`` T (the model's time unit) set as
+    the last parameter of a shape with ``free_duration`` (None: the one p has)."""
 
     shape: Shape
     params: np.ndarray | None
     end: np.ndarray | None
     positions: int
+    duration: float | None
 
 
 @dataclass
@@ -102,7 +107,7 @@ def solve_agents(tasks: Columns, states: Columns | None) -> tuple[Columns, Colum
     fallback: tuple[str, object] = (SHARED, None)
     warm: tuple[str, object] = (SHARED, None)
     if states is None:
-        params = np.asarray(tasks.column("params"), float)
+        params = np.array(tasks.column("params"), float)
     else:
         previous = shape.previous_guesses(np.asarray(states.column("q")),
                                           np.asarray(states.column("u")))
@@ -110,6 +115,11 @@ def solve_agents(tasks: Columns, states: Columns | None) -> tuple[Columns, Colum
         params = np.array(states.column("params"), float)
         params[:, ends] = tasks.column("end")
         warm, fallback = _from_previous(tasks, previous, fallback)
+    duration = tasks.fields["duration"][1]   # shared by the superstep's agents
+    if duration is not None:
+        if not shape.free_duration:
+            raise ValueError("a task's duration needs shapes with free_duration")
+        params[:, -1] = duration
     inner = Columns(cls=OcpTask, length=k, fields={
         "shape": tasks.fields["shape"], "params": (STACKED, params),
         "warm_start": warm, "multipliers": (SHARED, None), "fallback": fallback})
@@ -128,6 +138,24 @@ def solve_agents(tasks: Columns, states: Columns | None) -> tuple[Columns, Colum
     states = Columns(cls=AgentState, length=k,
                      fields=solutions.fields | {"params": (STACKED, params)})
     return outcome, states
+
+
+def duration_terms(tasks: Columns, states: Columns) -> tuple[np.ndarray, ...]:
+    """dJ*/dT (k,), d²J*/dT² (k,) and d²J*/(d end position dT) (k, d) of the agents'
+    solutions ``states`` (Columns of :class:`AgentState`) to ``tasks`` (Columns of
+    :class:`AgentTask`), whose shapes take T as their last parameter: the last entry of
+    ``cost_gradient`` (the envelope theorem) and the last column of ``end_hessian`` (the
+    KKT system, :mod:`ocpar.ocp.sensitivity`); NaN for a failed solve."""
+    k, d = len(tasks), int(tasks.column("positions")[0])
+    slope, curvature, cross = np.empty(k), np.empty(k), np.empty((k, d))
+    for rows in _kinds(tasks) or [np.arange(k)]:   # each kind its own end_hessian's size
+        entries = _first_shape(tasks.take(rows)).end_position_entries(d)
+        part = states.take(rows)
+        hessian = np.asarray(part.column("end_hessian"), float)
+        slope[rows] = np.asarray(part.column("cost_gradient"), float)[:, -1]
+        curvature[rows] = hessian[:, -1, -1]
+        cross[rows] = hessian[:, entries, -1]
+    return slope, curvature, cross
 
 
 def _kinds(tasks: Columns) -> list[np.ndarray] | None:
@@ -176,10 +204,12 @@ def _from_previous(tasks: Columns, previous: np.ndarray, fallback: tuple[str, ob
 
 
 def agent_tasks(shapes: Shape | Sequence[Shape], positions: int,
-                params: np.ndarray | None = None, end: np.ndarray | None = None) -> Columns:
+                params: np.ndarray | None = None, end: np.ndarray | None = None,
+                duration: float | None = None) -> Columns:
     """Columns of :class:`AgentTask`, one per agent: their first tasks given their boundary
     data ``params`` (n, n_params), later ones given their end positions ``end`` (n, d =
-    ``positions``) instead. ``shapes``: one shape for all, or one per agent."""
+    ``positions``) instead. ``shapes``: one shape for all, or one per agent; ``duration``
+    the common T of shapes with ``free_duration`` (None: p's)."""
     rows = params if params is not None else end
     if rows is None or (params is None) == (end is None):
         raise ValueError("agent_tasks needs either params or end")
@@ -189,8 +219,9 @@ def agent_tasks(shapes: Shape | Sequence[Shape], positions: int,
         "shape": shape_column,
         "params": (SHARED, None) if params is None else (STACKED, params),
         "end": (SHARED, None) if end is None else (STACKED, end),
-        "positions": (SHARED, positions)})
+        "positions": (SHARED, positions),
+        "duration": (SHARED, None if duration is None else float(duration))})
 
 
 __all__ = ["INNER_KERNEL", "AgentOutcome", "AgentState", "AgentTask", "agent_tasks",
-           "solve_agents"]
+           "duration_terms", "solve_agents"]

@@ -34,6 +34,39 @@ def cost_hessian_function(name: str, x: ca.SX, p: ca.SX, f: ca.SX, g: ca.SX,
     rows of g, then the bounds of x; module docstring)."""
     if active_set:
         return _active_set_hessian_function(name, x, p, f, g, block)
+    kkt, parts = _kkt_parts(name, x, p, f, g, block)
+    xs, lams, ps = (ca.MX.sym(s, v.numel()) for s, v in (("x", x), ("lam_g", g), ("p", p)))
+    r, c, h = parts(xs, lams, ps)
+    return ca.Function(f"{name}_cost_hessian", [xs, lams, ps],
+                       [h - c @ ca.solve(kkt(xs, lams, ps), r, "qr")])
+
+
+def shared_cost_hessian_function(name: str, x: ca.SX, p: ca.SX, f: ca.SX, g: ca.SX,
+                                 block: slice | list[int], columns: int) -> ca.Function:
+    """:func:`cost_hessian_function` of ``columns`` NLPs at once whose KKT matrix K is the
+    same, that of the first column (it depends on p alone, and the columns share the entries
+    it depends on, e.g. a linear–quadratic problem's common duration T): K factorised once
+    per call for every column's right-hand side. Function (x* (nx, k), λ* (ng, k),
+    p (np, k)) → the k Hessians (m, m k) side by side; each column's is
+    :func:`cost_hessian_function`'s at that column."""
+    kkt, parts = _kkt_parts(name, x, p, f, g, block)
+    xs, lams, ps = (ca.MX.sym(s, v.numel(), columns)
+                    for s, v in (("x", x), ("lam_g", g), ("p", p)))
+    r, c, h = parts.map(columns, "serial")(xs, lams, ps)
+    solved = ca.solve(kkt(xs[:, 0], lams[:, 0], ps[:, 0]), r, "qr")
+    m = h.size1()
+    cs, ss, hs = ca.MX.sym("c", m, c.size2() // columns), ca.MX.sym("s", c.size2() // columns,
+                                                                    m), ca.MX.sym("h", m, m)
+    combine = ca.Function(f"{name}_combine", [cs, ss, hs], [hs - cs @ ss]).map(columns,
+                                                                                "serial")
+    return ca.Function(f"{name}_shared_cost_hessian_{columns}", [xs, lams, ps],
+                       [combine(c, solved, h)])
+
+
+def _kkt_parts(name: str, x: ca.SX, p: ca.SX, f: ca.SX, g: ca.SX, block: slice | list[int]
+               ) -> tuple[ca.Function, ca.Function]:
+    """The KKT matrix K (x, λ, p) and the parts (x, λ, p) → ([∇²_xp L; ∇_p g],
+    [∇²_px L, ∇_p gᵀ], ∇²_pp L) of the module docstring's formula, over ``block``."""
     lam = ca.SX.sym("lam_g", g.numel())
     lagrangian = f + ca.dot(lam, g)
     grad_x = ca.gradient(lagrangian, x)
@@ -43,11 +76,9 @@ def cost_hessian_function(name: str, x: ca.SX, p: ca.SX, f: ca.SX, g: ca.SX,
                        [ca.jacobian(g, x), ca.SX(g.numel(), g.numel())]])
     rhs = ca.vertcat(ca.jacobian(grad_x, pb), ca.jacobian(g, pb))
     cross = ca.horzcat(ca.jacobian(grad_p, x), ca.jacobian(grad_p, lam))
-    parts = ca.Function(f"{name}_kkt_parts", [x, lam, p],
-                        [kkt, rhs, cross, ca.jacobian(grad_p, pb)])
-    xs, lams, ps = (ca.MX.sym(s, v.numel()) for s, v in (("x", x), ("lam_g", lam), ("p", p)))
-    k, r, c, h = parts(xs, lams, ps)
-    return ca.Function(f"{name}_cost_hessian", [xs, lams, ps], [h - c @ ca.solve(k, r, "qr")])
+    return (ca.Function(f"{name}_kkt", [x, lam, p], [kkt]),
+            ca.Function(f"{name}_kkt_parts", [x, lam, p],
+                        [rhs, cross, ca.jacobian(grad_p, pb)]))
 
 
 def _active_set_hessian_function(name: str, x: ca.SX, p: ca.SX, f: ca.SX, g: ca.SX,
