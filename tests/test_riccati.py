@@ -12,10 +12,12 @@ import math
 import numpy as np
 import pytest
 
+from ocpar.bsp.columns import SHARED, Columns
 from ocpar.models import ClohessyWiltshire, Unicycle
 from ocpar.ocp import MsEndpointShape, transcription
 from ocpar.ocp.columns_eval import evaluate_columns
 from ocpar.ocp.compiled import BLOCK, CompiledPoints
+from ocpar.ocp.endpoint_agents import agent_tasks, solve_agents
 from ocpar.ocp.multiple_shooting import step_function
 from ocpar.ocp.riccati import RiccatiNewton, stage_function
 
@@ -140,8 +142,9 @@ def test_a_task_does_not_depend_on_its_batch_bitwise(case):
 
 
 def test_a_warm_start_takes_fewer_steps_and_lands_on_the_same_point():
-    """From a solution of nearby ends (a formation's later supersteps) the batch takes 1–3
-    steps and meets the KKT check; the same point as from the default guess to 1e-10."""
+    """From a solution of nearby ends and its multipliers (a formation's later supersteps)
+    the batch takes 1–3 steps, fewer than from the default guess, and meets the KKT check;
+    the same point as from the default guess to 1e-10."""
     shape, tasks = CASES["unicycle"]
     params = tasks(np.random.default_rng(3))
     nlp = transcription(shape)
@@ -150,10 +153,34 @@ def test_a_warm_start_takes_fewer_steps_and_lands_on_the_same_point():
     moved[:, 4:6] += 0.05
     cold = nlp.solve_batch(moved, [None] * TASKS, [None] * TASKS)
     q, u = np.asarray(first.column("q")), np.asarray(first.column("u"))
-    warm = nlp.solve_batch(moved, nlp.shape.previous_guesses(q, u), [None] * TASKS)
+    warm = nlp.solve_batch(moved, nlp.shape.previous_guesses(q, u),
+                           np.asarray(first.column("multipliers")))
     assert all(warm.column("success")) and all(cold.column("success"))
-    assert np.all(np.asarray(warm.column("iterations")) <= 3)
+    steps = np.asarray(warm.column("iterations"))
+    assert np.all(steps <= 3) and np.all(steps < np.asarray(cold.column("iterations")))
     for name in FIELDS:
+        assert _close(warm.column(name), cold.column(name)), name
+
+
+def test_agents_re_solve_from_their_previous_multipliers():
+    """An ODE agent's state keeps its solution's multipliers and its next solve starts from
+    them (:func:`~ocpar.ocp.endpoint_agents.solve_agents`): fewer Newton steps than from the
+    same path with λ = 0, the same solution to 1e-10."""
+    shape, tasks = CASES["unicycle"]
+    params = tasks(np.random.default_rng(5))
+    _, states = solve_agents(agent_tasks(shape, 2, params=params), None)
+    multipliers = np.asarray(states.column("multipliers"))
+    assert multipliers.shape == (TASKS, transcription(shape).ng)
+    assert np.all(np.isfinite(multipliers)) and np.any(multipliers != 0.0)
+    moved = agent_tasks(shape, 2, end=params[:, 4:6] + 0.2)
+    without = Columns(cls=states.cls, length=TASKS,
+                      fields=states.fields | {"multipliers": (SHARED, None)})
+    warm, warm_states = solve_agents(moved, states)
+    cold, cold_states = solve_agents(moved, without)
+    assert all(warm.column("success")) and all(cold.column("success"))
+    steps, cold_steps = (np.asarray(s.column("iterations")) for s in (warm_states, cold_states))
+    assert np.all(steps <= cold_steps) and np.sum(steps) < np.sum(cold_steps)
+    for name in ("cost", "end_gradient", "end_hessian"):
         assert _close(warm.column(name), cold.column(name)), name
 
 

@@ -66,9 +66,12 @@ class AgentTask:
 @dataclass
 class AgentState(DmocSolution):
     """What stays on an agent's worker: its latest solution (a DMOC or multiple-shooting
-    one: the same fields) and its boundary data ``params`` (n_params,) of that solve."""
+    one: the same fields), its boundary data ``params`` (n_params,) of that solve and the
+    solution's constraint ``multipliers`` where its transcription returns them (an ODE
+    agent's: its next solve starts from them with its path; None for DMOC)."""
 
     params: np.ndarray
+    multipliers: np.ndarray | None
 
 
 @dataclass
@@ -106,6 +109,7 @@ def solve_agents(tasks: Columns, states: Columns | None) -> tuple[Columns, Colum
     ends = shape.boundary_size + entries   # the end position's entries of p
     fallback: tuple[str, object] = (SHARED, None)
     warm: tuple[str, object] = (SHARED, None)
+    multipliers: tuple[str, object] = (SHARED, None)
     if states is None:
         params = np.array(tasks.column("params"), float)
     else:
@@ -115,6 +119,7 @@ def solve_agents(tasks: Columns, states: Columns | None) -> tuple[Columns, Colum
         params = np.array(states.column("params"), float)
         params[:, ends] = tasks.column("end")
         warm, fallback = _from_previous(tasks, previous, fallback)
+        multipliers = _warm_multipliers(warm, states)
     duration = tasks.fields["duration"][1]   # shared by the superstep's agents
     if duration is not None:
         if not shape.free_duration:
@@ -122,7 +127,7 @@ def solve_agents(tasks: Columns, states: Columns | None) -> tuple[Columns, Colum
         params[:, -1] = duration
     inner = Columns(cls=OcpTask, length=k, fields={
         "shape": tasks.fields["shape"], "params": (STACKED, params),
-        "warm_start": warm, "multipliers": (SHARED, None), "fallback": fallback})
+        "warm_start": warm, "multipliers": multipliers, "fallback": fallback})
     solutions = to_columns(run_chunk(INNER_KERNEL, inner).results)
     assert isinstance(solutions, Columns)
     gradient = np.asarray(solutions.column("cost_gradient"))[:, ends]
@@ -135,8 +140,8 @@ def solve_agents(tasks: Columns, states: Columns | None) -> tuple[Columns, Colum
         "status": solutions.fields["status"],
         "attempts": solutions.fields["attempts"],
     })
-    states = Columns(cls=AgentState, length=k,
-                     fields=solutions.fields | {"params": (STACKED, params)})
+    states = Columns(cls=AgentState, length=k, fields={"multipliers": (SHARED, None)}
+                     | solutions.fields | {"params": (STACKED, params)})
     return outcome, states
 
 
@@ -201,6 +206,19 @@ def _from_previous(tasks: Columns, previous: np.ndarray, fallback: tuple[str, ob
         return (STACKED, previous), (SHARED, None)
     return ((LISTED, [p if w else None for p, w in zip(previous, warm, strict=True)]),
             (LISTED, [None if w else p for p, w in zip(previous, warm, strict=True)]))
+
+
+def _warm_multipliers(warm: tuple[str, object], states: Columns) -> tuple[str, object]:
+    """The inner tasks' ``multipliers`` column: the previous solution's (``states``) where an
+    agent starts from its previous solution (``warm``, :func:`_from_previous`), else None."""
+    kind, guesses = warm
+    if kind == SHARED:
+        return SHARED, None
+    multipliers = states.column("multipliers")
+    if kind == STACKED and isinstance(multipliers, np.ndarray):
+        return STACKED, multipliers
+    return LISTED, [lam if guess is not None else None
+                    for guess, lam in zip(guesses, multipliers, strict=True)]  # type: ignore
 
 
 def agent_tasks(shapes: Shape | Sequence[Shape], positions: int,

@@ -300,13 +300,16 @@ class MsEndpointSolution(InnerSolution):
     ``end_hessian`` d²J*/dx̄_N² (nx, nx; rows and columns of a free entry zero; with a free
     duration (nx + 1, nx + 1) over (x̄_N, T)), ``q`` the states at the nodes (N+1, nx),
     ``u`` the interval controls (N, nu), ``duration`` T (the shape's, the parameter's, or
-    the one the task chose: ``time_bounds``)."""
+    the one the task chose: ``time_bounds``), ``multipliers`` the constraints' λ_g (ng,; NaN
+    on failure): a re-solve from this solution starts from them (one Newton step fewer than
+    from λ = 0, where the end moved a little)."""
 
     cost_gradient: np.ndarray
     end_hessian: np.ndarray
     q: np.ndarray
     u: np.ndarray
     duration: float
+    multipliers: np.ndarray
 
 
 class MsEndpointTranscription:
@@ -576,7 +579,8 @@ class MsEndpointTranscription:
             end_hessian=np.full((self.nh, self.nh), np.nan), q=np.full((n + 1, nx), np.nan),
             u=np.full((n, nu), np.nan), duration=float(
                 params[-1] if self.shape.free_duration and len(params) == self.n_params
-                else np.nan if self.t_index is not None else self.shape.duration))
+                else np.nan if self.t_index is not None else self.shape.duration),
+            multipliers=np.full(self.ng, np.nan))
 
     def solve(self, params: np.ndarray, guess: np.ndarray | None = None,
               multipliers: np.ndarray | None = None) -> MsEndpointSolution:
@@ -609,7 +613,7 @@ class MsEndpointTranscription:
             cost=float(call.out["f"]), status=status, success=success,
             iterations=call.iterations, attempts=1, solve_time_s=call.solve_time_s,
             cost_gradient=call.cost_gradient, end_hessian=hessian, q=q[0], u=u[0],
-            duration=float(self.durations(w, params[None])[0]))
+            duration=float(self.durations(w, params[None])[0]), multipliers=lam_g[0])
 
     def _met(self, w: np.ndarray, params: np.ndarray, lam_g: np.ndarray, lam_x: np.ndarray
              ) -> np.ndarray:
@@ -713,7 +717,7 @@ class MsEndpointTranscription:
             "solve_time_s": (VALUES, np.full(k, batch.solve_time_s / k)),
             "cost_gradient": (STACKED, -batch.lam_p),
             "end_hessian": (STACKED, hessians),
-            "q": (STACKED, q), "u": (STACKED, u),
+            "q": (STACKED, q), "u": (STACKED, u), "multipliers": (STACKED, batch.lam_g),
             "duration": ((SHARED, self.shape.duration) if self.horizon is None
                          else (VALUES, self.durations(batch.x, params)))})
 
