@@ -653,8 +653,9 @@ def solve_formation(
         statuses, solver_iterations = sols.column("status"), np.asarray(
             sols.column("iterations"))
         if distance is not None and status != "failed":
+            exactly = options.separation == "exact" and not problem.obstacles
             rounds = separate(problem, backend, phi, sols, distance,
-                              options.separation_rounds, progress)
+                              options.separation_rounds, progress, until_met=exactly)
             extra = {"required_separation": distance, "separation_rounds": rounds.rounds,
                      "unconstrained_cost": float(np.sum(costs))}
             costs, trajectories, controls = rounds.costs, rounds.q, rounds.u
