@@ -829,7 +829,12 @@ def _exact_words(problem: FormationProblem, exact: ExactSeparation, distance: fl
     search over the rotation did not converge or the angles have free directions it does not
     search (a surface's rotations, a user's coupling without a shift family), ``failed`` if a
     cluster's solve failed (no answer), else ``converged``."""
-    if not exact.success and exact.message.startswith("a cluster"):
+    if exact.too_large:
+        return "converged", (f"{message}; exact separation {exact.message}: the rounds' "
+                             "answer, separated, its optimality not proven (the cost's "
+                             "increase over the unconstrained optimum bounds the gap where "
+                             "that optimum is global)")
+    if not exact.success and exact.message.startswith(("a cluster", "the inner solve")):
         return "failed", f"exact separation: {exact.message}"
     closest = problem.closest_approach(exact.q)
     words = (f"{message}; exact separation: {len(exact.pairs)} pair(s) with separating planes "
