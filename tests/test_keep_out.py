@@ -245,15 +245,14 @@ def test_rounds_resolve_only_agents_near_a_conflict():
     problem = point_masses()
     free = solve_formation(problem)
     lines: list[str] = []
-    rounds = solve_formation(problem, options=FormationOptions(min_separation=0.2,
-                                                                separation="rounds"),
-                             progress=lines.append)
+    rounds = solve_formation(problem, options=FormationOptions(
+        min_separation=0.2, separation="rounds", separation_rounds=3), progress=lines.append)
     resolved = [int(line.split("agents")[1].split()[0]) for line in lines
                 if line.startswith("separation round")]
     assert rounds.status == "converged" and len(resolved) == rounds.separation_rounds > 0
     assert 0 < max(resolved) < 20
     kept = np.all(rounds.trajectories == free.trajectories, axis=(1, 2))
-    assert np.sum(kept) >= 40   # measured: 48 never moved, 12 re-solved in every round
+    assert np.sum(kept) >= 40   # measured: 48 never moved, 12 re-solved in each round
     assert sampled_min_distance(problem.positions(rounds.trajectories)) >= 0.2 * (1 - 1e-9)
 
 
