@@ -213,7 +213,8 @@ class ExactSeparation:
     """Outcome of :func:`separate_exactly`: angles ``phi`` (n,) rad, paths ``q`` (n, N+1,
     nq), controls ``u`` (n, N, nu), ``costs`` (n,), the constrained ``pairs`` (P, 2) at the
     end, the largest cluster's size ``largest``, ``evaluations`` (supersteps),
-    ``inner_solves`` (cluster NLP solves), ``failed_solves``, ``rotation`` θ (rad; 0 without
+    ``inner_solves`` (cluster NLP solves, and the inner solves of agents in no pair),
+    ``failed_solves``, ``rotation`` θ (rad; 0 without
     a family), ``slope`` the last |dV/dθ| relative to Σ|dJ_i/dθ|, ``success`` and a
     ``message``; ``too_large`` where a cluster had more than :data:`MAX_CLUSTER` agents (then
     the rest is the rounds' answer, ``largest`` that cluster's size)."""
