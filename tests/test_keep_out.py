@@ -266,7 +266,8 @@ def test_a_cluster_above_the_limit_leaves_the_rounds_answer(twelve, four, monkey
     result = solve_formation(problem, options=FormationOptions(min_separation=4.0))
     assert result.status == "converged"
     assert "exact separation not run: a cluster of 12 agents (more than 8)" in result.message
-    assert "optimality not proven" in result.message
+    increase = result.total_cost / result.unconstrained_cost - 1
+    assert f"optimality not proven (cost {increase:.3g} relative above" in result.message
     assert sampled_min_distance(problem.positions(result.trajectories)) >= 4 * (1 - 1e-9)
     assert result.total_cost > monolithic.total_cost * (1 + 1e-6)
 
