@@ -146,8 +146,7 @@ class Separation:
     ``change`` the largest node move of the last round (length unit); ``inner_solves``,
     ``failed_solves`` (kept their previous path), ``retries``; ``dropped`` half-spaces left
     out for want of slots over all rounds; with obstacles ``clearance`` the smallest obstacle
-    clearance of ``q`` and ``cleared`` whether it is ≥ 0 (None and True without);
-    ``resolved`` the number of agents each round re-solved (:func:`resolving`)."""
+    clearance of ``q`` and ``cleared`` whether it is ≥ 0 (None and True without)."""
 
     q: np.ndarray
     u: np.ndarray
@@ -162,7 +161,6 @@ class Separation:
     dropped: int = 0
     clearance: Clearance | None = None
     cleared: bool = True
-    resolved: list[int] = dataclasses.field(default_factory=list)
 
 
 def keep_out_problem(problem: FormationProblem) -> FormationProblem:
@@ -436,7 +434,6 @@ def separate(problem: FormationProblem, backend: Backend, phi: np.ndarray, base:
             break
         resolve_with_keep_outs(slotted, backend, agents, boundary, np.concatenate(data, axis=2),
                                penalty, outcome)
-        outcome.resolved.append(len(agents))
         outcome.change = float(np.abs(problem.positions(q) - before).max())
         outcome.dropped += dropped
         outcome.closest, outcome.met, outcome.clearance, outcome.cleared = _measure(
