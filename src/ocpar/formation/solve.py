@@ -654,8 +654,9 @@ def solve_formation(
         statuses, solver_iterations = sols.column("status"), np.asarray(
             sols.column("iterations"))
         if distance is not None and status != "failed":
+            exactly = options.separation == "exact" and not problem.obstacles
             rounds = separate(problem, backend, phi, sols, distance,
-                              options.separation_rounds, progress)
+                              options.separation_rounds, progress, until_met=exactly)
             extra = {"required_separation": distance, "separation_rounds": rounds.rounds,
                      "unconstrained_cost": float(np.sum(costs))}
             costs, trajectories, controls = rounds.costs, rounds.q, rounds.u
@@ -670,7 +671,8 @@ def solve_formation(
                 exact = separate_exactly(problem, backend, phi, rounds, distance, progress)
                 inner_solves += exact.inner_solves
                 failed_solves += exact.failed_solves
-                status, message = _exact_words(problem, exact, distance, message)
+                status, message = _exact_words(problem, exact, distance, message,
+                                               extra["unconstrained_cost"])
                 if status != "failed":
                     phi = np.reshape(exact.phi, np.shape(phi))
                     costs, trajectories, controls = exact.costs, exact.q, exact.u
@@ -820,7 +822,7 @@ def _separation_words(rounds: Separation, distance: float, status: str, message:
 
 
 def _exact_words(problem: FormationProblem, exact: ExactSeparation, distance: float,
-                 message: str) -> tuple[str, str]:
+                 message: str, unconstrained: float) -> tuple[str, str]:
     """The status and message after the exact separation ``exact``
     (:mod:`ocpar.formation.keep_out.exact`) for the required ``distance`` (length unit),
     appended to the rounds' ``message``: ``separation_not_met`` if the answer's closest
@@ -828,8 +830,16 @@ def _exact_words(problem: FormationProblem, exact: ExactSeparation, distance: fl
     :data:`~ocpar.formation.keep_out.rounds.SEPARATION_RTOL`), ``not_converged`` if its
     search over the rotation did not converge or the angles have free directions it does not
     search (a surface's rotations, a user's coupling without a shift family), ``failed`` if a
-    cluster's solve failed (no answer), else ``converged``."""
-    if not exact.success and exact.message.startswith("a cluster"):
+    cluster's solve failed (no answer), else ``converged``; where a cluster was too large
+    for it, the rounds' answer, ``converged``, its cost's increase over the
+    ``unconstrained`` total cost stated (the gap's bound where that optimum is global)."""
+    if exact.too_large:
+        increase = float(np.sum(exact.costs)) / unconstrained - 1
+        return "converged", (f"{message}; exact separation {exact.message}: the rounds' "
+                             f"answer, separated, its optimality not proven (cost "
+                             f"{increase:.3g} relative above the unconstrained optimum, which "
+                             "bounds the gap where that optimum is global)")
+    if not exact.success and exact.message.startswith(("a cluster", "the inner solve")):
         return "failed", f"exact separation: {exact.message}"
     closest = problem.closest_approach(exact.q)
     words = (f"{message}; exact separation: {len(exact.pairs)} pair(s) with separating planes "

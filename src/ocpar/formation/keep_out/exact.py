@@ -32,9 +32,17 @@ superstep any two agents of different clusters within D join one (and the supers
 repeated at the same θ). A cluster's planes start along each interval's closest direction on
 the latest paths, its paths from the latest ones (warm start).
 
+An agent in no pair (a cluster of one) is its own inner problem: those are solved together by
+the batched inner solves (:func:`~ocpar.ocp.solve_tasks`, one more superstep), not as one
+IPOPT NLP each.
+
 The price: a cluster's problem is solved as one NLP on one worker, so the work per superstep
 is that of the largest cluster: a crowd whose separation binds everywhere (every agent a
-neighbour's neighbour) is one cluster, i.e. the monolithic NLP.
+neighbour's neighbour) is one cluster, i.e. the monolithic NLP. Above :data:`MAX_CLUSTER`
+agents the exact separation does not run: the rounds' answer stands, separated, and the run
+says that its optimality is not proven (its cost's increase over the unconstrained optimum,
+a relaxation, bounds the gap where that optimum is the global one). The 1,000 point masses
+at D = 0.05 are one cluster of 1,000 (every neighbour within 1.5 D).
 """
 
 from __future__ import annotations
@@ -57,7 +65,7 @@ from ocpar.formation.keep_out.rounds import (
 from ocpar.formation.keep_out.separation import close_pairs, segment_closest
 from ocpar.formation.problem import FormationProblem
 from ocpar.formation.targets.slots import Slots
-from ocpar.ocp import DmocShape, dmoc_problem
+from ocpar.ocp import DmocShape, dmoc_problem, solve_tasks
 from ocpar.ocp.ipopt import ipopt_options
 
 #: Solves of a cluster's constraint generation at most (as the monolithic mode's).
@@ -70,6 +78,10 @@ SHIFT_RTOL = 1e-10
 PROBE = 1e-3
 #: IPOPT's tolerance for a cluster's NLP.
 CLUSTER_TOL = 1e-12
+#: Agents in one cluster at most: a larger one would be solved as one NLP on one worker
+#: (the monolithic problem in disguise); the exact separation then stops and the rounds'
+#: answer stands, its optimality not proven (:attr:`ExactSeparation.largest` says how large).
+MAX_CLUSTER = 32
 
 
 @dataclass(frozen=True)
@@ -201,9 +213,11 @@ class ExactSeparation:
     """Outcome of :func:`separate_exactly`: angles ``phi`` (n,) rad, paths ``q`` (n, N+1,
     nq), controls ``u`` (n, N, nu), ``costs`` (n,), the constrained ``pairs`` (P, 2) at the
     end, the largest cluster's size ``largest``, ``evaluations`` (supersteps),
-    ``inner_solves`` (cluster NLP solves), ``failed_solves``, ``rotation`` θ (rad; 0 without
+    ``inner_solves`` (cluster NLP solves, and the inner solves of agents in no pair),
+    ``failed_solves``, ``rotation`` θ (rad; 0 without
     a family), ``slope`` the last |dV/dθ| relative to Σ|dJ_i/dθ|, ``success`` and a
-    ``message``."""
+    ``message``; ``too_large`` where a cluster had more than :data:`MAX_CLUSTER` agents (then
+    the rest is the rounds' answer, ``largest`` that cluster's size)."""
 
     phi: np.ndarray
     q: np.ndarray
@@ -218,6 +232,7 @@ class ExactSeparation:
     slope: float = float("nan")
     success: bool = False
     message: str = ""
+    too_large: bool = False
 
 
 def clusters(agents: int, pairs: np.ndarray) -> list[np.ndarray]:
@@ -275,6 +290,10 @@ def separate_exactly(problem: FormationProblem, backend: Backend, phi: np.ndarra
         params = problem.boundary_params_rows(np.arange(n), phi_now)
         for _ in range(n):
             groups = clusters(n, state.pairs)
+            alone = np.array([m[0] for m in groups if len(m) == 1], np.intp)
+            groups = [m for m in groups if len(m) > 1]
+            if groups and max(len(m) for m in groups) > MAX_CLUSTER:
+                raise _TooLarge(max(len(m) for m in groups))
             index = {}
             for g, members in enumerate(groups):
                 for local, agent in enumerate(members.tolist()):
@@ -291,10 +310,11 @@ def separate_exactly(problem: FormationProblem, backend: Backend, phi: np.ndarra
                                  state.u[members].reshape(len(members), -1)]))
                 for g, members in enumerate(groups)]
             outcomes = backend.superstep(solve_cluster, tasks,
-                                         costs=[len(m) ** 3 for m in groups])
+                                         costs=[len(m) ** 3 for m in groups]) if tasks else []
             state.evaluations += 1
-            state.largest = max(len(m) for m in groups)
+            state.largest = max([1, *(len(m) for m in groups)])
             gradient = np.zeros((n, problem.common_shape.model.nq))
+            _solve_alone(problem, backend, alone, params[alone], state, gradient)
             found = [state.pairs]
             for members, outcome in zip(groups, outcomes, strict=True):
                 state.inner_solves += outcome.solves
@@ -340,6 +360,13 @@ def separate_exactly(problem: FormationProblem, backend: Backend, phi: np.ndarra
             evaluate(state.rotation)
     except _Failed as exc:
         state.message = str(exc)
+    except _TooLarge as exc:   # the rounds' answer stands, as it was
+        state = ExactSeparation(phi=fixed, q=rounds.q.copy(), u=rounds.u.copy(),
+                                costs=rounds.costs.copy(), pairs=state.pairs,
+                                largest=exc.size, evaluations=state.evaluations,
+                                inner_solves=state.inner_solves, too_large=True,
+                                message=f"not run: a cluster of {exc.size} agents (more than "
+                                        f"{MAX_CLUSTER})")
     return state
 
 
@@ -393,8 +420,41 @@ def _minimise_shift(evaluate: Callable[[float], tuple[float, float, float]]
     return theta, abs(slope) / scale, False, "the rotation search reached its evaluation limit"
 
 
+def _solve_alone(problem: FormationProblem, backend: Backend, agents: np.ndarray,
+                 params: np.ndarray, state: ExactSeparation, gradient: np.ndarray) -> None:
+    """The agents in no pair (``agents`` (m,), boundary data ``params`` (m, 4 nq)): each a
+    cluster of one, its own inner problem, solved in one superstep of the batched inner
+    solves (:func:`~ocpar.ocp.solve_tasks`) from its latest path; ``state``'s paths,
+    controls and costs and the end ``gradient`` dJ*/dq_N (n, nq) updated in place."""
+    if not len(agents):
+        return
+    nq = gradient.shape[1]
+    warm = np.hstack([state.q[agents, 1:-1].reshape(len(agents), -1),
+                      state.u[agents].reshape(len(agents), -1)])
+    sols = backend.superstep_columns(solve_tasks,
+                                     problem.task_columns(agents, params, warm_start=warm))
+    ok = np.asarray(sols.column("success"), bool)
+    state.inner_solves += len(agents)
+    if not ok.all():
+        state.failed_solves += int(np.sum(~ok))
+        raise _Failed(f"the inner solve of agent {agents[~ok][0]} (in no pair) failed: "
+                      f"{sols.column('status')[int(np.flatnonzero(~ok)[0])]}")
+    state.q[agents] = np.asarray(sols.column("q"))
+    state.u[agents] = np.asarray(sols.column("u"))
+    state.costs[agents] = np.asarray(sols.column("cost"), float)
+    gradient[agents] = np.asarray(sols.column("cost_gradient"), float)[:, 2 * nq:3 * nq]
+
+
 class _Failed(RuntimeError):
     """A cluster's solve failed."""
+
+
+class _TooLarge(RuntimeError):
+    """A cluster has more than :data:`MAX_CLUSTER` agents."""
+
+    def __init__(self, size: int) -> None:
+        super().__init__(size)
+        self.size = size
 
 
 __all__ = ["ClusterOutcome", "ClusterTask", "ExactSeparation", "clusters",
