@@ -36,6 +36,7 @@ from typing import Any
 import casadi as ca
 import numpy as np
 
+from ocpar.ocp.compiled import compiled
 from ocpar.ocp.solver_options import SolverOptions, sqpmethod
 
 #: Solver names a transcription's ``solver`` option accepts: ``newton`` (:class:`KktNewton`)
@@ -108,7 +109,7 @@ class MappedNlp:
     def prepare(self, count: int) -> None:
         """Build the mapped calls that solving ``count`` NLPs at once takes (one per block
         size), so that the first solve does not."""
-        for rows in _blocks(np.arange(count)):
+        for rows in _full_blocks(np.arange(count)):
             self._mapped(len(rows))
 
     def solve(self, x0: np.ndarray, p: np.ndarray, lam_g0: np.ndarray, lbg: np.ndarray,
@@ -173,9 +174,21 @@ def kkt_met(x: np.ndarray, p: np.ndarray, lam_g: np.ndarray, lam_x: np.ndarray,
             & np.all(np.isfinite(x), axis=1))
 
 
-def _blocks(rows: np.ndarray) -> list[np.ndarray]:
-    """``rows`` split into consecutive blocks of at most :data:`MAX_COLUMNS`."""
-    return np.array_split(rows, max(1, -(-len(rows) // MAX_COLUMNS)))
+def _full_blocks(rows: np.ndarray) -> list[np.ndarray]:
+    """``rows`` split into blocks of :data:`MAX_COLUMNS` and the rest (the blocks whose calls
+    are compiled, :func:`kernel`)."""
+    return [rows[i:i + MAX_COLUMNS] for i in range(0, len(rows), MAX_COLUMNS)]
+
+
+def kernel(function: ca.Function, columns: int) -> BufferedFunction:
+    """``function``, a call on a block of ``columns`` columns, called through buffers;
+    compiled by the host's C compiler (:func:`ocpar.ocp.compiled.compiled`: cached on disk by
+    content, the same bits as the virtual machine's) where ``columns`` is :data:`MAX_COLUMNS`,
+    the full blocks that large batches are made of: the shape then compiles once per host,
+    whatever the batch sizes, and small batches never wait for a compiler."""
+    if columns == MAX_COLUMNS:
+        function = compiled(function) or function
+    return BufferedFunction(function)
 
 
 def _complementarity(lam: np.ndarray, value: np.ndarray, lower: np.ndarray,
@@ -322,21 +335,21 @@ class KktNewton:
         return self.system.newton(self.name, self.steps)
 
     def _map(self, k: int) -> tuple[BufferedFunction, BufferedFunction, BufferedFunction | None]:
+        """The calls of a block of ``k`` columns: the Newton steps, the cost gradient's norm
+        and ``post``; compiled (:func:`kernel`) for full blocks of :data:`MAX_COLUMNS`."""
         post = None
         if self.post is not None:
-            post = BufferedFunction(self.post if self.constant_post
-                                    else self.post.map(k, "serial"))
+            post = kernel(self.post if self.constant_post else self.post.map(k, "serial"), k)
         if self.constant_matrix is None:
             newton = self._per_column.map(k, "serial")
         else:
             newton = self.system.batched_newton(self.name, self.steps, self.constant_matrix, k)
-        return (BufferedFunction(newton), BufferedFunction(self.gradient.map(k, "serial")),
-                post)
+        return kernel(newton, k), kernel(self.gradient.map(k, "serial"), k), post
 
     def prepare(self, count: int) -> None:
-        """Build the mapped calls that solving ``count`` NLPs at once takes (one per block
-        size), so that the first solve does not."""
-        for rows in _blocks(np.arange(count)):
+        """Build (and compile, or load from the cache) the mapped calls that solving
+        ``count`` NLPs at once takes (one per block size), so that the first solve does not."""
+        for rows in _full_blocks(np.arange(count)):
             self._mapped(len(rows))
 
     def solve(self, x0: np.ndarray, p: np.ndarray, lam_g0: np.ndarray, lbx: np.ndarray,
@@ -353,7 +366,7 @@ class KktNewton:
         todo = np.arange(k)
         for _ in range(rounds):
             parts = [self._solve_block(x[rows], p[rows], lam[rows], lbx, ubx)
-                     for rows in _blocks(todo)]
+                     for rows in _full_blocks(todo)]
             xs, fs, lams, lam_ps, oks = (np.concatenate(column)
                                          for column in zip(*parts, strict=True))
             x[todo], f[todo], lam[todo], lam_p[todo], ok[todo] = xs, fs, lams, lam_ps, oks
@@ -364,7 +377,7 @@ class KktNewton:
         extra = np.zeros((k, 0))
         if self.post is not None:
             extra = np.concatenate([self._post(x[rows], lam[rows], p[rows])
-                                    for rows in _blocks(np.arange(k))])
+                                    for rows in _full_blocks(np.arange(k))])
         return BatchSolve(x, f, lam, lam_p, ok, extra, time.perf_counter() - start, iterations)
 
     def _post(self, x: np.ndarray, lam: np.ndarray, p: np.ndarray) -> np.ndarray:

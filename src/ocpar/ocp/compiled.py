@@ -10,8 +10,14 @@ points (:mod:`ocpar.ocp.columns_eval`); its generated C (``CodeGenerator``) comp
 library is named by a hash of the generated source, the compiler command and CasADi's
 version, written under a temporary name and renamed into place (processes that compile the
 same function at once each write a whole file; the last rename wins, with the same bits),
-then loaded with ``casadi.external``. The compiled code keeps IEEE arithmetic
-(``-ffp-contract=off``, no fast-math): each point's result depends on that point alone.
+then loaded with ``casadi.external``: processes on one host (MPI ranks, Dask workers) compile
+a shape once between them, a later run not at all. The cache is ``$OCPAR_CACHE/compiled``
+(default ``~/.cache/ocpar/compiled``); the compiler ``$CC`` (default ``cc``). The compiled
+code keeps IEEE arithmetic (``-ffp-contract=off``, no fast-math) and CasADi's generated C does
+the virtual machine's operations in its order, so its results are the virtual machine's bit
+for bit (tested per kernel). Where the host has no compiler, or compiling fails, the process
+says so in one line on stderr (once per compiler and reason) and evaluates on the virtual
+machine.
 """
 
 from __future__ import annotations
@@ -20,6 +26,7 @@ import hashlib
 import os
 import shutil
 import subprocess
+import sys
 import tempfile
 from functools import lru_cache
 from pathlib import Path
@@ -45,8 +52,11 @@ def cache_directory() -> Path:
 def compiled(function: ca.Function) -> ca.Function | None:
     """``function`` compiled (module docstring), or None where this host has no C compiler
     (``$CC``, else ``cc``) or the compilation fails: the caller then evaluates it as it is."""
-    compiler = shutil.which(os.environ.get("CC", "cc"))
+    command = os.environ.get("CC", "cc")
+    compiler = shutil.which(command)
     if compiler is None:
+        _say_once(f"ocpar: no C compiler ({command!r} not found): inner functions run on "
+                  "CasADi's virtual machine")
         return None
     name = function.name()
     generator = ca.CodeGenerator(f"{name}.c", {"with_header": False})
@@ -65,9 +75,17 @@ def compiled(function: ca.Function) -> ca.Function | None:
                 subprocess.run([compiler, *FLAGS, str(c_file), "-o", str(built)], check=True,
                                capture_output=True, timeout=300)
                 os.replace(built, library)
-        except (OSError, subprocess.SubprocessError):
+        except (OSError, subprocess.SubprocessError) as error:
+            _say_once(f"ocpar: compiling with {compiler} failed ({type(error).__name__}): "
+                      "inner functions run on CasADi's virtual machine")
             return None
     return ca.external(name, str(library))
+
+
+@lru_cache(maxsize=None)
+def _say_once(line: str) -> None:
+    """``line`` on stderr, once per process."""
+    print(line, file=sys.stderr)
 
 
 class CompiledPoints:
