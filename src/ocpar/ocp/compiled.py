@@ -28,7 +28,7 @@ import shutil
 import subprocess
 import sys
 import tempfile
-from functools import lru_cache
+from functools import cache, lru_cache
 from pathlib import Path
 
 import casadi as ca
@@ -82,7 +82,7 @@ def compiled(function: ca.Function) -> ca.Function | None:
     return ca.external(name, str(library))
 
 
-@lru_cache(maxsize=None)
+@cache
 def _say_once(line: str) -> None:
     """``line`` on stderr, once per process."""
     print(line, file=sys.stderr)
