@@ -220,12 +220,17 @@ class BufferedFunction:
 
     def __call__(self, *args: np.ndarray) -> list[np.ndarray]:
         """The outputs (copies) for inputs ``args``, in the Function's order."""
+        return [array.copy() for array in self.evaluate(*args)]
+
+    def evaluate(self, *args: np.ndarray) -> list[np.ndarray]:
+        """The outputs for inputs ``args``: the output buffers themselves, overwritten by the
+        next call."""
         for array, value in zip(self._inputs, args, strict=True):
             array[:] = value
         self._evaluate()
         if self._buffer.ret():
             raise RuntimeError(f"{self._name}: evaluation failed")
-        return [array.copy() for array in self._outputs]
+        return self._outputs
 
 
 @dataclass(frozen=True)
@@ -365,38 +370,50 @@ class KktNewton:
         lam_p, iterations = np.full((k, self.np), np.nan), np.zeros(k, int)
         todo = np.arange(k)
         for _ in range(rounds):
-            parts = [self._solve_block(x[rows], p[rows], lam[rows], lbx, ubx)
-                     for rows in _full_blocks(todo)]
-            xs, fs, lams, lam_ps, oks = (np.concatenate(column)
-                                         for column in zip(*parts, strict=True))
-            x[todo], f[todo], lam[todo], lam_p[todo], ok[todo] = xs, fs, lams, lam_ps, oks
+            for rows in _full_blocks(todo):
+                ok[rows] = self._solve_block(_as_slice(rows), x, lam, f, lam_p, p, lbx, ubx)
             iterations[todo] += self.steps
-            todo = todo[~oks & np.all(np.isfinite(xs), axis=1)]
+            todo = todo[~ok[todo] & np.all(np.isfinite(x[todo]), axis=1)]
             if not len(todo):
                 break
-        extra = np.zeros((k, 0))
-        if self.post is not None:
+        if self.post is None:
+            extra = np.zeros((k, 0))
+        elif self.constant_post:
+            extra = np.tile(self._mapped(k)[2](x[0], lam[0], p[0])[0], (k, 1))
+        else:
             extra = np.concatenate([self._post(x[rows], lam[rows], p[rows])
                                     for rows in _full_blocks(np.arange(k))])
         return BatchSolve(x, f, lam, lam_p, ok, extra, time.perf_counter() - start, iterations)
 
     def _post(self, x: np.ndarray, lam: np.ndarray, p: np.ndarray) -> np.ndarray:
-        """``post`` at each row, (k, m) with each output's entries column-major."""
-        post = self._mapped(len(p))[2]
-        if self.constant_post:
-            return np.tile(post(x[0], lam[0], p[0])[0], (len(p), 1))
-        return post(x.ravel(), lam.ravel(), p.ravel())[0].reshape(len(p), -1)
+        """``post`` (not constant) at each row, (k, m) with each output's entries
+        column-major."""
+        return self._mapped(len(p))[2](x.ravel(), lam.ravel(), p.ravel())[0].reshape(
+            len(p), -1)
 
-    def _solve_block(self, x0: np.ndarray, p: np.ndarray, lam_g0: np.ndarray,
-                     lbx: np.ndarray, ubx: np.ndarray) -> tuple[np.ndarray, ...]:
-        k = len(p)
+    def _solve_block(self, rows: slice | np.ndarray, x: np.ndarray, lam: np.ndarray,
+                     f: np.ndarray, lam_p: np.ndarray, p: np.ndarray, lbx: np.ndarray,
+                     ubx: np.ndarray) -> np.ndarray:
+        """One call on the columns ``rows`` of x (k, nx), λ_g (k, ng), f (k,) and λ_p (k, np),
+        overwritten with the call's results; whether each column is accepted."""
+        block_p = p[rows]
+        k = len(block_p)
         newton, gradient, _ = self._mapped(k)
-        x, lam, f, g, dual, grad_p = newton(x0.ravel(), lam_g0.ravel(), p.ravel())
-        x, lam, g = x.reshape(k, self.nx), lam.reshape(k, self.ng), g.reshape(k, self.ng)
-        scale = 1.0 + gradient(x.ravel(), p.ravel())[0]
+        x_new, lam_new, f_new, g, dual, grad_p = newton.evaluate(
+            x[rows].ravel(), lam[rows].ravel(), block_p.ravel())
+        x[rows], lam[rows], f[rows] = x_new.reshape(k, self.nx), lam_new.reshape(k, self.ng), f_new
+        lam_p[rows] = -grad_p.reshape(k, self.np)
+        scale = 1.0 + gradient.evaluate(x_new, block_p.ravel())[0]
         with np.errstate(invalid="ignore"):
-            ok = ((np.max(np.abs(g), axis=1, initial=0.0)
-                   <= self.tol * (1.0 + np.max(np.abs(p), axis=1)))
-                  & (dual <= self.tol * scale)
-                  & np.all((x >= lbx) & (x <= ubx), axis=1))
-        return x, f, lam, -grad_p.reshape(k, self.np), ok
+            return ((np.max(np.abs(g.reshape(k, self.ng)), axis=1, initial=0.0)
+                     <= self.tol * (1.0 + np.max(np.abs(block_p), axis=1)))
+                    & (dual <= self.tol * scale)
+                    & np.all((x[rows] >= lbx) & (x[rows] <= ubx), axis=1))
+
+
+def _as_slice(rows: np.ndarray) -> slice | np.ndarray:
+    """Increasing indices ``rows`` as the slice they make where consecutive (its arrays are
+    views, not copies), else themselves."""
+    if len(rows) and rows[-1] - rows[0] == len(rows) - 1:
+        return slice(int(rows[0]), int(rows[-1]) + 1)
+    return rows
