@@ -339,12 +339,19 @@ class KktNewton:
         """One column's Newton steps (:meth:`KktSystem.newton`), where the matrix varies."""
         return self.system.newton(self.name, self.steps)
 
+    @cached_property
+    def _constant_post(self) -> BufferedFunction:
+        """``post`` where its value is constant: evaluated once per batch."""
+        assert self.post is not None
+        return BufferedFunction(self.post)
+
     def _map(self, k: int) -> tuple[BufferedFunction, BufferedFunction, BufferedFunction | None]:
         """The calls of a block of ``k`` columns: the Newton steps, the cost gradient's norm
-        and ``post``; compiled (:func:`kernel`) for full blocks of :data:`MAX_COLUMNS`."""
+        and ``post`` (None where it has none or it is constant); compiled (:func:`kernel`)
+        for full blocks of :data:`MAX_COLUMNS`."""
         post = None
-        if self.post is not None:
-            post = kernel(self.post if self.constant_post else self.post.map(k, "serial"), k)
+        if self.post is not None and not self.constant_post:
+            post = kernel(self.post.map(k, "serial"), k)
         if self.constant_matrix is None:
             newton = self._per_column.map(k, "serial")
         else:
@@ -379,7 +386,7 @@ class KktNewton:
         if self.post is None:
             extra = np.zeros((k, 0))
         elif self.constant_post:
-            extra = np.tile(self._mapped(k)[2](x[0], lam[0], p[0])[0], (k, 1))
+            extra = np.tile(self._constant_post(x[0], lam[0], p[0])[0], (k, 1))
         else:
             extra = np.concatenate([self._post(x[rows], lam[rows], p[rows])
                                     for rows in _full_blocks(np.arange(k))])
