@@ -20,7 +20,7 @@ import pytest
 from ocpar.examples.formation_halo import make as halo_example
 from ocpar.examples.formation_point_masses import make as point_masses
 from ocpar.ocp import dmoc_problem
-from ocpar.ocp.batch import MAX_COLUMNS, BatchSolve, KktNewton
+from ocpar.ocp.batch import MAX_COLUMNS, BatchSolve, KktNewton, MappedNlp
 
 COMPILER = shutil.which(os.environ.get("CC", "cc"))
 needs_compiler = pytest.mark.skipif(COMPILER is None, reason="no C compiler on this host")
@@ -28,42 +28,54 @@ needs_compiler = pytest.mark.skipif(COMPILER is None, reason="no C compiler on t
 TASKS = MAX_COLUMNS + 3
 
 
-def solve_fresh(problem, seed: int = 0) -> BatchSolve:
-    """``problem``'s DMOC NLP solved by a new :class:`KktNewton` (no kernel built before in
-    this process) on :data:`TASKS` tasks near its own, from the default guesses."""
+def solve_fresh(problem, solver: str = "newton", seed: int = 0) -> BatchSolve:
+    """``problem``'s DMOC NLP solved by a new :class:`KktNewton` (``newton``) or
+    :class:`MappedNlp` (``sqpmethod``), no kernel built before in this process, on
+    :data:`TASKS` tasks near its own, from the default guesses."""
     nlp = dmoc_problem(problem.shape)
     w, p = nlp._w, nlp._p
-    solver = KktNewton("dmoc", w, p, nlp.cost(w, p), nlp.constraints(w, p), 1,
-                       nlp.solver_settings["newton"]["kkt_tol"], post=nlp.end_hessian)
+    f, g = nlp.cost(w, p), nlp.constraints(w, p)
     params = np.array([task.params for task in problem.tasks(problem.initial_phi()).items()])
     rng = np.random.default_rng(seed)
     params = params[np.arange(TASKS) % len(params)] + 0.01 * rng.standard_normal(
         (TASKS, params.shape[1]))
-    return solver.solve(nlp.default_guesses(params), params, np.zeros((TASKS, nlp.ng)),
-                        nlp.lbx, nlp.ubx, rounds=nlp.solver_settings["newton"]["max_iter"])
+    guesses, multipliers = nlp.default_guesses(params), np.zeros((TASKS, nlp.ng))
+    if solver == "sqpmethod":
+        shape = problem.shape
+        return MappedNlp("dmoc_sqp", w, p, f, g, shape.kkt_tol, shape.max_iter, shape.kkt_tol,
+                         post=nlp.end_hessian).solve(guesses, params, multipliers, nlp.lbg,
+                                                     nlp.ubg, nlp.lbx, nlp.ubx)
+    newton = KktNewton("dmoc", w, p, f, g, 1, nlp.solver_settings["newton"]["kkt_tol"],
+                       post=nlp.end_hessian)
+    return newton.solve(guesses, params, multipliers, nlp.lbx, nlp.ubx,
+                        rounds=nlp.solver_settings["newton"]["max_iter"])
 
 
 def digest(solve: BatchSolve) -> str:
     """A hash of every number a batched solve returns (bitwise comparison)."""
     arrays = (solve.x, solve.f, solve.lam_g, solve.lam_p, solve.success, solve.extra,
-              solve.iterations)
-    return hashlib.sha256(b"".join(np.asarray(a).tobytes() for a in arrays)).hexdigest()
+              solve.iterations, solve.lam_x)
+    return hashlib.sha256(b"".join(np.asarray(a).tobytes() for a in arrays
+                                   if a is not None)).hexdigest()
 
 
 @needs_compiler
-@pytest.mark.parametrize("example", ["point-masses", "halo"])
-def test_compiled_kernels_give_the_virtual_machines_bits(example, tmp_path, monkeypatch):
+@pytest.mark.parametrize(("example", "solver"), [("point-masses", "newton"),
+                                                 ("halo", "newton"),
+                                                 ("point-masses", "sqpmethod")])
+def test_compiled_kernels_give_the_virtual_machines_bits(example, solver, tmp_path,
+                                                         monkeypatch):
     """Compiled (into an empty cache: one library per kernel) and on the virtual machine
-    (``CC`` a missing compiler), every output of the batched solve is the same bits; every
-    task converged."""
+    (``CC`` a missing compiler), every output of the batched solve (Newton steps; the mapped
+    ``sqpmethod``) is the same bits; every task converged."""
     problem = point_masses(4) if example == "point-masses" else halo_example(agents=3,
                                                                              intervals=4)
     monkeypatch.setenv("OCPAR_CACHE", str(tmp_path))
-    compiled = solve_fresh(problem)
+    compiled = solve_fresh(problem, solver)
     libraries = list((tmp_path / "compiled").glob("*.so"))
-    assert len(libraries) >= 2        # the Newton steps and the gradient's norm at least
+    assert len(libraries) >= 2        # the solver and the gradient's or residuals' at least
     monkeypatch.setenv("CC", str(tmp_path / "no-such-compiler"))
-    virtual = solve_fresh(problem)
+    virtual = solve_fresh(problem, solver)
     assert compiled.success.all() and virtual.success.all()
     assert digest(compiled) == digest(virtual)
 
