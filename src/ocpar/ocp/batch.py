@@ -393,10 +393,17 @@ class KktNewton:
         x, lam = np.array(x0, float), np.array(lam_g0, float)
         f, ok = np.full(k, np.nan), np.zeros(k, dtype=bool)
         lam_p, iterations = np.full((k, self.np), np.nan), np.zeros(k, int)
+        g, dual, scale = np.empty((k, self.ng)), np.empty(k), np.empty(k)
         todo = np.arange(k)
         for _ in range(rounds):
             for rows in _full_blocks(todo):
-                ok[rows] = self._solve_block(_as_slice(rows), x, lam, f, lam_p, p, lbx, ubx)
+                self._solve_block(_as_slice(rows), x, lam, p, (f, lam_p, g, dual, scale))
+            rows = _as_slice(todo)
+            with np.errstate(invalid="ignore"):
+                ok[rows] = ((np.max(np.abs(g[rows]), axis=1, initial=0.0)
+                             <= self.tol * (1.0 + np.max(np.abs(p[rows]), axis=1)))
+                            & (dual[rows] <= self.tol * scale[rows])
+                            & np.all((x[rows] >= lbx) & (x[rows] <= ubx), axis=1))
             iterations[todo] += self.steps
             todo = todo[~ok[todo] & np.all(np.isfinite(x[todo]), axis=1)]
             if not len(todo):
@@ -417,23 +424,20 @@ class KktNewton:
             len(p), -1)
 
     def _solve_block(self, rows: slice | np.ndarray, x: np.ndarray, lam: np.ndarray,
-                     f: np.ndarray, lam_p: np.ndarray, p: np.ndarray, lbx: np.ndarray,
-                     ubx: np.ndarray) -> np.ndarray:
-        """One call on the columns ``rows`` of x (k, nx), λ_g (k, ng), f (k,) and λ_p (k, np),
-        overwritten with the call's results; whether each column is accepted."""
+                     p: np.ndarray, out: tuple[np.ndarray, ...]) -> None:
+        """One call on the columns ``rows`` of x (k, nx) and λ_g (k, ng), overwritten with the
+        call's iterates, and of ``out``: f (k,), λ_p (k, np), g (k, ng), ‖∇_x L‖∞ (k,) and
+        1 + ‖∇f‖∞ (k,) at the new iterate (what a column is accepted by), written."""
+        f, lam_p, g, dual, scale = out
         block_p = p[rows]
         k = len(block_p)
         newton, gradient, _ = self._mapped(k)
-        x_new, lam_new, f_new, g, dual, grad_p = newton.evaluate(
+        x_new, lam_new, f_new, g_new, dual_new, grad_p = newton.evaluate(
             x[rows].ravel(), lam[rows].ravel(), block_p.ravel())
-        x[rows], lam[rows], f[rows] = x_new.reshape(k, self.nx), lam_new.reshape(k, self.ng), f_new
+        x[rows], lam[rows] = x_new.reshape(k, self.nx), lam_new.reshape(k, self.ng)
+        f[rows], g[rows], dual[rows] = f_new, g_new.reshape(k, self.ng), dual_new
         lam_p[rows] = -grad_p.reshape(k, self.np)
-        scale = 1.0 + gradient.evaluate(x_new, block_p.ravel())[0]
-        with np.errstate(invalid="ignore"):
-            return ((np.max(np.abs(g.reshape(k, self.ng)), axis=1, initial=0.0)
-                     <= self.tol * (1.0 + np.max(np.abs(block_p), axis=1)))
-                    & (dual <= self.tol * scale)
-                    & np.all((x[rows] >= lbx) & (x[rows] <= ubx), axis=1))
+        scale[rows] = 1.0 + gradient.evaluate(x_new, block_p.ravel())[0]
 
 
 def _as_slice(rows: np.ndarray) -> slice | np.ndarray:
