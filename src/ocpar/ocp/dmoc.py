@@ -853,15 +853,10 @@ class DmocTranscription:
              else self.first_duration)
         h00, h10 = 2 * s**3 - 3 * s**2 + 1, s**3 - 2 * s**2 + s
         h01, h11 = -2 * s**3 + 3 * s**2, s**3 - s**2
-        guesses = np.zeros((k, self.nw))
-        path = guesses[:, :(n - 1) * nq].reshape(k, n - 1, nq)   # a view: summed in place
-        np.multiply(h00, q0, out=path)
-        path += h10 * t * v0
-        path += h01 * qn
-        path += h11 * t * vn
+        path = (h00 * q0 + h10 * t * v0 + h01 * qn + h11 * t * vn).reshape(-1, nq)
         if self.nc:
-            guesses[:, :(n - 1) * nq] = self.shape.model.project(path.reshape(-1, nq)).reshape(
-                k, -1)
+            path = self.shape.model.project(path)
+        guesses = np.hstack([path.reshape(k, -1), np.zeros((k, self.nw - path.size // k))])
         if self.t_index is not None:
             guesses[:, self.t_index] = self.first_duration
         return self._with_planes(guesses, params)
