@@ -121,8 +121,9 @@ def ipopt_kernel() -> tuple[Call, Call, float]:
                         np.clip(0.0, lower, upper))
     args = {"x0": dfet.guess_from_decision(decision), "lbx": dfet.lbz, "ubx": dfet.ubz,
             "lbg": inner.lbg, "ubg": inner.ubg}
-    start = time.perf_counter()
     plain(**args)
+    start = time.perf_counter()
+    plain(**args)                       # a second solve: IPOPT's set-up done
     wall = time.perf_counter() - start
     nlp_time = sum(v for k, v in plain.stats().items() if k.startswith("t_wall_nlp_"))
     return ((lambda: [np.asarray(plain(**args)["x"])]),
