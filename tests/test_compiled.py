@@ -20,12 +20,13 @@ import pytest
 from ocpar.examples.formation_halo import make as halo_example
 from ocpar.examples.formation_point_masses import make as point_masses
 from ocpar.ocp import dmoc_problem
-from ocpar.ocp.batch import MAX_COLUMNS, BatchSolve, KktNewton, MappedNlp
+from ocpar.ocp.batch import COMPILED_BLOCKS, BatchSolve, KktNewton, MappedNlp
 
 COMPILER = shutil.which(os.environ.get("CC", "cc"))
 needs_compiler = pytest.mark.skipif(COMPILER is None, reason="no C compiler on this host")
-#: Tasks per solve: one full (compiled) block and a rest the virtual machine solves.
-TASKS = MAX_COLUMNS + 3
+#: Tasks per solve: one full (compiled) block of each size and a rest the virtual machine
+#: solves.
+TASKS = sum(COMPILED_BLOCKS) + 3
 
 
 def solve_fresh(problem, solver: str = "newton", seed: int = 0) -> BatchSolve:
@@ -73,7 +74,7 @@ def test_compiled_kernels_give_the_virtual_machines_bits(example, solver, tmp_pa
     monkeypatch.setenv("OCPAR_CACHE", str(tmp_path))
     compiled = solve_fresh(problem, solver)
     libraries = list((tmp_path / "compiled").glob("*.so"))
-    assert len(libraries) >= 2        # the solver and the gradient's or residuals' at least
+    assert len(libraries) >= 2 * len(COMPILED_BLOCKS)   # solver, gradient or residuals
     monkeypatch.setenv("CC", str(tmp_path / "no-such-compiler"))
     virtual = solve_fresh(problem, solver)
     assert compiled.success.all() and virtual.success.all()

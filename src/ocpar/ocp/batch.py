@@ -19,11 +19,12 @@ DMOC solve against ~0.5 ms for one IPOPT call. Each column is computed exactly a
 that column alone would compute it, so a task's result does not depend on which tasks share
 its batch (tested bitwise).
 
-Batches are cut into full blocks of :data:`MAX_COLUMNS` columns and a rest; a full block's
-calls (Newton steps, gradient, ``post``; the mapped ``sqpmethod`` and its KKT residuals) run
-compiled by the host's C compiler (:func:`compiled_block`, :mod:`ocpar.ocp.compiled`: once per
-shape per host, cached on disk; the virtual machine's bits), the rest on CasADi's virtual
-machine. Per call of a block, compiled against the virtual machine (this machine, 2026-12,
+Batches are cut into full blocks of :data:`COMPILED_BLOCKS` columns (256, then 32) and a
+rest; a full block's calls (Newton steps, gradient, ``post``; the mapped ``sqpmethod`` and its
+KKT residuals) run compiled by the host's C compiler (:func:`compiled_block`,
+:mod:`ocpar.ocp.compiled`: once per shape and block size per host, cached on disk; the virtual
+machine's bits), the rest (under 32 columns) on CasADi's virtual machine. Per call of a
+256-column block, compiled against the virtual machine (this machine, 2026-12,
 ``scripts/compiled_kernels.py``): point-mass Newton step 2.0×, its gradient 2.1×, point-mass
 ``sqpmethod`` 1.7×, rigid-spacecraft Newton 1.17× and ``sqpmethod`` 0.98× (a sparse QR per
 column: the same C++ either way).
@@ -57,6 +58,10 @@ AUTO_SOLVER = "auto"
 
 #: Columns per mapped call at most (larger chunks are split): bounds the compiled map's size.
 MAX_COLUMNS = 256
+#: The block sizes whose calls are compiled (:func:`compiled_block`), largest first: a batch is
+#: cut into blocks of these sizes in turn and a rest of fewer columns than the smallest (e.g.
+#: 625 = 2 · 256 + 3 · 32 + 17: 97 % compiled; a rank's share of a formation on 16 ranks).
+COMPILED_BLOCKS = (MAX_COLUMNS, 32)
 
 
 def sqp_options(tol: float, max_iter: int, qp_max_iter: int | None = None) -> dict:
@@ -130,9 +135,8 @@ class MappedNlp:
         multipliers ``lam_g0`` (k, ng); bounds are vectors shared by all. Raises RuntimeError
         if CasADi does (e.g. NaN in a model): the caller then solves one by one."""
         start = time.perf_counter()
-        parts = [self._solve_block(x0[i:i + MAX_COLUMNS], p[i:i + MAX_COLUMNS],
-                                   lam_g0[i:i + MAX_COLUMNS], lbg, ubg, lbx, ubx)
-                 for i in range(0, len(p), MAX_COLUMNS)]
+        parts = [self._solve_block(x0[rows], p[rows], lam_g0[rows], lbg, ubg, lbx, ubx)
+                 for rows in map(_as_slice, _full_blocks(np.arange(len(p))))]
         x, f, lam_g, lam_p, ok, extra, lam_x = (np.concatenate(column)
                                                 for column in zip(*parts, strict=True))
         return BatchSolve(x, f, lam_g, lam_p, ok, extra, time.perf_counter() - start,
@@ -187,19 +191,24 @@ def kkt_met(x: np.ndarray, p: np.ndarray, lam_g: np.ndarray, lam_x: np.ndarray,
 
 
 def _full_blocks(rows: np.ndarray) -> list[np.ndarray]:
-    """``rows`` split into blocks of :data:`MAX_COLUMNS` and the rest (the blocks whose calls
-    are compiled, :func:`kernel`)."""
-    return [rows[i:i + MAX_COLUMNS] for i in range(0, len(rows), MAX_COLUMNS)]
+    """``rows`` split into consecutive blocks of each size of :data:`COMPILED_BLOCKS` in turn
+    (as many as fit) and the rest (the blocks whose calls are compiled, :func:`kernel`)."""
+    blocks, start = [], 0
+    for size in COMPILED_BLOCKS:
+        while len(rows) - start >= size:
+            blocks.append(rows[start:start + size])
+            start += size
+    return [*blocks, rows[start:]] if start < len(rows) else blocks
 
 
 def compiled_block(function: ca.Function, columns: int) -> ca.Function:
     """``function``, a call on a block of ``columns`` columns, compiled by the host's C
     compiler (:func:`ocpar.ocp.compiled.compiled`: cached on disk by content, the same bits
-    as the virtual machine's) where ``columns`` is :data:`MAX_COLUMNS`, the full blocks that
-    large batches are made of: a shape then compiles once per host, whatever the batch sizes,
-    and small batches never wait for a compiler. Elsewhere (or without a compiler) the
-    function itself, on the virtual machine."""
-    if columns == MAX_COLUMNS:
+    as the virtual machine's) where ``columns`` is one of :data:`COMPILED_BLOCKS`, the full
+    blocks that batches are made of: a shape then compiles once per block size per host,
+    whatever the batch sizes, and batches under 32 tasks never wait for a compiler. Elsewhere
+    (or without a compiler) the function itself, on the virtual machine."""
+    if columns in COMPILED_BLOCKS:
         return compiled(function) or function
     return function
 
@@ -366,7 +375,7 @@ class KktNewton:
     def _map(self, k: int) -> tuple[BufferedFunction, BufferedFunction, BufferedFunction | None]:
         """The calls of a block of ``k`` columns: the Newton steps, the cost gradient's norm
         and ``post`` (None where it has none or it is constant); compiled (:func:`kernel`)
-        for full blocks of :data:`MAX_COLUMNS`."""
+        for full blocks (:data:`COMPILED_BLOCKS`)."""
         post = None
         if self.post is not None and not self.constant_post:
             post = kernel(self.post.map(k, "serial"), k)
