@@ -2,8 +2,8 @@
 :class:`~ocpar.ocp.batch.KktNewton`): the same bits as CasADi's virtual machine on DMOC point
 masses (a constant KKT matrix, factorised once per block) and rigid spacecraft (one
 factorisation per column); compiled once per host (a second process finds the library in the
-cache and never calls the compiler); without a compiler, one line on stderr and the virtual
-machine's result."""
+cache and never calls the compiler; two processes at once compile it once between them);
+without a compiler, one line on stderr and the virtual machine's result."""
 
 from __future__ import annotations
 
@@ -90,32 +90,40 @@ print(digest(solve_fresh(make(4))))
 """
 
 
-def run_solve(cache: Path, compiler: str) -> subprocess.CompletedProcess:
-    """:func:`solve_fresh` of four point masses in a new process with ``OCPAR_CACHE`` and
-    ``CC`` set; its stdout the result's digest."""
+def start_solve(cache: Path, compiler: str) -> subprocess.Popen:
+    """:func:`solve_fresh` of four point masses started in a new process with
+    ``OCPAR_CACHE`` and ``CC`` set; its stdout the result's digest."""
     env = os.environ | {"OCPAR_CACHE": str(cache), "CC": compiler}
-    return subprocess.run([sys.executable, "-c", SCRIPT, str(Path(__file__).parent)],
-                          capture_output=True, text=True, env=env, timeout=300, check=True)
+    return subprocess.Popen([sys.executable, "-c", SCRIPT, str(Path(__file__).parent)],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
+
+
+def outputs(*processes: subprocess.Popen) -> list[tuple[str, str]]:
+    """Each process's (stdout, stderr), once it exited with status 0."""
+    out = [process.communicate(timeout=300) for process in processes]
+    assert all(process.returncode == 0 for process in processes), out
+    return out
 
 
 @needs_compiler
-def test_a_second_process_finds_the_cache_and_a_host_without_compiler_says_so(tmp_path):
-    """A process compiles into an empty cache (the compiler, a wrapper that logs its calls,
-    runs); a second process with the same cache loads the libraries and never calls it;
-    with ``CC`` a missing binary a process says so in one line on stderr and returns the
-    same bits from the virtual machine."""
+def test_processes_of_one_host_compile_once_and_a_host_without_compiler_says_so(tmp_path):
+    """Two processes started together on an empty cache (the compiler a wrapper that logs its
+    calls) compile each library once between them; a third process with the same cache loads
+    the libraries and never calls the compiler; with ``CC`` a missing binary a process says
+    so in one line on stderr and returns the same bits from the virtual machine."""
     log = tmp_path / "calls.log"
     wrapper = tmp_path / "logging-cc"
     wrapper.write_text(f'#!/bin/sh\necho "$@" >> {log}\nexec {COMPILER} "$@"\n')
     wrapper.chmod(0o755)
     cache = tmp_path / "cache"
-    first = run_solve(cache, str(wrapper))
+    (first, first_err), (other, _) = outputs(start_solve(cache, str(wrapper)),
+                                             start_solve(cache, str(wrapper)))
     calls = log.read_text().count("\n")
-    assert calls >= 2 and first.stderr == ""
-    second = run_solve(cache, str(wrapper))
-    assert log.read_text().count("\n") == calls
-    assert second.stdout == first.stdout
-    without = run_solve(cache, str(tmp_path / "no-such-compiler"))
-    assert without.stdout == first.stdout
-    lines = without.stderr.splitlines()
+    assert calls == len(list((cache / "compiled").glob("*.so"))) >= 2 * len(COMPILED_BLOCKS)
+    assert first == other and first_err == ""
+    (again, _), = outputs(start_solve(cache, str(wrapper)))
+    assert log.read_text().count("\n") == calls and again == first
+    (without, without_err), = outputs(start_solve(cache, str(tmp_path / "no-such-compiler")))
+    assert without == first
+    lines = without_err.splitlines()
     assert len(lines) == 1 and lines[0].startswith("ocpar: no C compiler")

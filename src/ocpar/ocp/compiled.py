@@ -8,10 +8,10 @@ points (:mod:`ocpar.ocp.columns_eval`); its generated C (``CodeGenerator``) comp
 (CPU time, 50,000 points, this machine, 2026-12); building one costs seconds, once per host
 (:data:`FLAGS`). The shared
 library is named by a hash of the generated source, the compiler command and CasADi's
-version, written under a temporary name and renamed into place (processes that compile the
-same function at once each write a whole file; the last rename wins, with the same bits),
-then loaded with ``casadi.external``: processes on one host (MPI ranks, Dask workers) compile
-a shape once between them, a later run not at all. The cache is ``$OCPAR_CACHE/compiled``
+version, built by one process while the others that need it wait on a lock file beside it
+(MPI ranks or Dask workers of one host compile it once between them; a later run not at
+all), written under a temporary name and renamed into place, then loaded with
+``casadi.external``. The cache is ``$OCPAR_CACHE/compiled``
 (default ``~/.cache/ocpar/compiled``); the compiler ``$CC`` (default ``cc``). The compiled
 code keeps IEEE arithmetic (``-ffp-contract=off``, no fast-math) and CasADi's generated C does
 the virtual machine's operations in its order, so its results are the virtual machine's bit
@@ -22,6 +22,7 @@ machine.
 
 from __future__ import annotations
 
+import fcntl
 import hashlib
 import os
 import shutil
@@ -69,17 +70,25 @@ def compiled(function: ca.Function) -> ca.Function | None:
     if not library.exists():
         try:
             directory.mkdir(parents=True, exist_ok=True)
-            with tempfile.TemporaryDirectory(dir=directory) as tmp:
-                c_file, built = Path(tmp) / f"{name}.c", Path(tmp) / f"{name}.so"
-                c_file.write_text(source)
-                subprocess.run([compiler, *FLAGS, str(c_file), "-o", str(built)], check=True,
-                               capture_output=True, timeout=300)
-                os.replace(built, library)
+            with open(directory / f"{name}_{key}.lock", "w") as lock:
+                fcntl.flock(lock, fcntl.LOCK_EX)    # the others wait, then find the library
+                if not library.exists():
+                    _compile(compiler, source, name, library)
         except (OSError, subprocess.SubprocessError) as error:
             _say_once(f"ocpar: compiling with {compiler} failed ({type(error).__name__}): "
                       "inner functions run on CasADi's virtual machine")
             return None
     return ca.external(name, str(library))
+
+
+def _compile(compiler: str, source: str, name: str, library: Path) -> None:
+    """``source`` compiled by ``compiler`` into a temporary file renamed to ``library``."""
+    with tempfile.TemporaryDirectory(dir=library.parent) as tmp:
+        c_file, built = Path(tmp) / f"{name}.c", Path(tmp) / f"{name}.so"
+        c_file.write_text(source)
+        subprocess.run([compiler, *FLAGS, str(c_file), "-o", str(built)], check=True,
+                       capture_output=True, timeout=300)
+        os.replace(built, library)
 
 
 @cache
