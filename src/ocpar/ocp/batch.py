@@ -19,6 +19,16 @@ DMOC solve against ~0.5 ms for one IPOPT call. Each column is computed exactly a
 that column alone would compute it, so a task's result does not depend on which tasks share
 its batch (tested bitwise).
 
+Batches are cut into full blocks of :data:`COMPILED_BLOCKS` columns (256, then 32) and a
+rest; a full block's calls (Newton steps, gradient, ``post``; the mapped ``sqpmethod`` and its
+KKT residuals) run compiled by the host's C compiler (:func:`compiled_block`,
+:mod:`ocpar.ocp.compiled`: once per shape and block size per host, cached on disk; the virtual
+machine's bits), the rest (under 32 columns) on CasADi's virtual machine. Per call of a
+256-column block, compiled against the virtual machine (this machine, 2026-12,
+``scripts/compiled_kernels.py``): point-mass Newton step 2.0×, its gradient 2.1×, point-mass
+``sqpmethod`` 1.7×, rigid-spacecraft Newton 1.17× and ``sqpmethod`` 0.98× (a sparse QR per
+column: the same C++ either way).
+
 A mapped call returns no per-column solver status, so each column's success is decided from
 its KKT residuals at the returned point (:meth:`MappedNlp.solve`): primal infeasibility,
 stationarity of the Lagrangian and complementarity of active bounds, each at most
@@ -37,6 +47,7 @@ from typing import Any
 import casadi as ca
 import numpy as np
 
+from ocpar.ocp.compiled import compiled
 from ocpar.ocp.solver_options import SolverOptions, sqpmethod
 
 #: Solver names a transcription's ``solver`` option accepts: ``newton`` (:class:`KktNewton`)
@@ -48,6 +59,10 @@ AUTO_SOLVER = "auto"
 
 #: Columns per mapped call at most (larger chunks are split): bounds the compiled map's size.
 MAX_COLUMNS = 256
+#: The block sizes whose calls are compiled (:func:`compiled_block`), largest first: a batch is
+#: cut into blocks of these sizes in turn and a rest of fewer columns than the smallest (e.g.
+#: 625 = 2 · 256 + 3 · 32 + 17: 97 % compiled; a rank's share of a formation on 16 ranks).
+COMPILED_BLOCKS = (MAX_COLUMNS, 32)
 
 
 def sqp_options(tol: float, max_iter: int, qp_max_iter: int | None = None) -> dict:
@@ -102,14 +117,17 @@ class MappedNlp:
         self._mapped = lru_cache(maxsize=16)(self._map)
 
     def _map(self, columns: int) -> tuple[ca.Function, ca.Function, ca.Function | None]:
-        post = None if self.post is None else self.post.map(columns, "serial")
-        return (self.solver.map(columns, "serial"), self.residuals.map(columns, "serial"),
-                post)
+        """The mapped solver, KKT residuals and ``post`` of a block of ``columns`` columns,
+        compiled (:func:`compiled_block`) for full blocks."""
+        post = None if self.post is None else compiled_block(self.post.map(columns, "serial"),
+                                                             columns)
+        return (compiled_block(self.solver.map(columns, "serial"), columns),
+                compiled_block(self.residuals.map(columns, "serial"), columns), post)
 
     def prepare(self, count: int) -> None:
         """Build the mapped calls that solving ``count`` NLPs at once takes (one per block
         size), so that the first solve does not."""
-        for rows in _blocks(np.arange(count)):
+        for rows in _full_blocks(np.arange(count)):
             self._mapped(len(rows))
 
     def solve(self, x0: np.ndarray, p: np.ndarray, lam_g0: np.ndarray, lbg: np.ndarray,
@@ -118,9 +136,8 @@ class MappedNlp:
         multipliers ``lam_g0`` (k, ng); bounds are vectors shared by all. Raises RuntimeError
         if CasADi does (e.g. NaN in a model): the caller then solves one by one."""
         start = time.perf_counter()
-        parts = [self._solve_block(x0[i:i + MAX_COLUMNS], p[i:i + MAX_COLUMNS],
-                                   lam_g0[i:i + MAX_COLUMNS], lbg, ubg, lbx, ubx)
-                 for i in range(0, len(p), MAX_COLUMNS)]
+        parts = [self._solve_block(x0[rows], p[rows], lam_g0[rows], lbg, ubg, lbx, ubx)
+                 for rows in map(_as_slice, _full_blocks(np.arange(len(p))))]
         x, f, lam_g, lam_p, ok, extra, lam_x = (np.concatenate(column)
                                                 for column in zip(*parts, strict=True))
         return BatchSolve(x, f, lam_g, lam_p, ok, extra, time.perf_counter() - start,
@@ -174,9 +191,32 @@ def kkt_met(x: np.ndarray, p: np.ndarray, lam_g: np.ndarray, lam_x: np.ndarray,
             & np.all(np.isfinite(x), axis=1))
 
 
-def _blocks(rows: np.ndarray) -> list[np.ndarray]:
-    """``rows`` split into consecutive blocks of at most :data:`MAX_COLUMNS`."""
-    return np.array_split(rows, max(1, -(-len(rows) // MAX_COLUMNS)))
+def _full_blocks(rows: np.ndarray) -> list[np.ndarray]:
+    """``rows`` split into consecutive blocks of each size of :data:`COMPILED_BLOCKS` in turn
+    (as many as fit) and the rest (the blocks whose calls are compiled, :func:`kernel`)."""
+    blocks, start = [], 0
+    for size in COMPILED_BLOCKS:
+        while len(rows) - start >= size:
+            blocks.append(rows[start:start + size])
+            start += size
+    return [*blocks, rows[start:]] if start < len(rows) else blocks
+
+
+def compiled_block(function: ca.Function, columns: int) -> ca.Function:
+    """``function``, a call on a block of ``columns`` columns, compiled by the host's C
+    compiler (:func:`ocpar.ocp.compiled.compiled`: cached on disk by content, the same bits
+    as the virtual machine's) where ``columns`` is one of :data:`COMPILED_BLOCKS`, the full
+    blocks that batches are made of: a shape then compiles once per block size per host,
+    whatever the batch sizes, and batches under 32 tasks never wait for a compiler. Elsewhere
+    (or without a compiler) the function itself, on the virtual machine."""
+    if columns in COMPILED_BLOCKS:
+        return compiled(function) or function
+    return function
+
+
+def kernel(function: ca.Function, columns: int) -> BufferedFunction:
+    """:func:`compiled_block` called through buffers."""
+    return BufferedFunction(compiled_block(function, columns))
 
 
 def _complementarity(lam: np.ndarray, value: np.ndarray, lower: np.ndarray,
@@ -208,12 +248,17 @@ class BufferedFunction:
 
     def __call__(self, *args: np.ndarray) -> list[np.ndarray]:
         """The outputs (copies) for inputs ``args``, in the Function's order."""
+        return [array.copy() for array in self.evaluate(*args)]
+
+    def evaluate(self, *args: np.ndarray) -> list[np.ndarray]:
+        """The outputs for inputs ``args``: the output buffers themselves, overwritten by the
+        next call."""
         for array, value in zip(self._inputs, args, strict=True):
             array[:] = value
         self._evaluate()
         if self._buffer.ret():
             raise RuntimeError(f"{self._name}: evaluation failed")
-        return [array.copy() for array in self._outputs]
+        return self._outputs
 
 
 @dataclass(frozen=True)
@@ -349,28 +394,34 @@ class KktNewton:
         """One column's Newton steps (:meth:`KktSystem.newton`), where the matrix varies."""
         return self.system.newton(self.name, self.steps)
 
+    @cached_property
+    def _constant_post(self) -> BufferedFunction:
+        """``post`` where its value is constant: evaluated once per batch."""
+        assert self.post is not None
+        return BufferedFunction(self.post)
+
     def _map(self, k: int, shared: bool = False
              ) -> tuple[BufferedFunction, BufferedFunction, BufferedFunction | None]:
-        """The calls of a block of k columns; ``shared``: columns sharing a KKT matrix of p
-        alone (:attr:`shared_rows`)."""
+        """The calls of a block of ``k`` columns: the Newton steps, the cost gradient's norm
+        and ``post`` (None where it has none or it is constant); ``shared``: columns sharing
+        a KKT matrix of p alone (:attr:`shared_rows`). Compiled (:func:`kernel`) for full
+        blocks (:data:`COMPILED_BLOCKS`)."""
         post = None
-        if self.post is not None:
-            post = BufferedFunction(
-                self.post if self.constant_post else self.shared_post(k)
-                if shared and self.shared_post is not None else self.post.map(k, "serial"))
+        if self.post is not None and not self.constant_post:
+            post = kernel(self.shared_post(k) if shared and self.shared_post is not None
+                          else self.post.map(k, "serial"), k)
         if self.constant_matrix is not None:
             newton = self.system.batched_newton(self.name, self.steps, self.constant_matrix, k)
         elif shared:
             newton = self.system.shared_newton(self.name, self.steps, k)
         else:
             newton = self._per_column.map(k, "serial")
-        return (BufferedFunction(newton), BufferedFunction(self.gradient.map(k, "serial")),
-                post)
+        return kernel(newton, k), kernel(self.gradient.map(k, "serial"), k), post
 
     def prepare(self, count: int) -> None:
-        """Build the mapped calls that solving ``count`` NLPs at once takes (one per block
-        size), so that the first solve does not."""
-        for rows in _blocks(np.arange(count)):
+        """Build (and compile, or load from the cache) the mapped calls that solving
+        ``count`` NLPs at once takes (one per block size), so that the first solve does not."""
+        for rows in _full_blocks(np.arange(count)):
             self._mapped(len(rows), self.shared_rows is not None)
 
     def _shares(self, p: np.ndarray) -> bool:
@@ -389,40 +440,56 @@ class KktNewton:
         x, lam = np.array(x0, float), np.array(lam_g0, float)
         f, ok = np.full(k, np.nan), np.zeros(k, dtype=bool)
         lam_p, iterations = np.full((k, self.np), np.nan), np.zeros(k, int)
+        g, dual, scale = np.empty((k, self.ng)), np.empty(k), np.empty(k)
         todo = np.arange(k)
         for _ in range(rounds):
-            parts = [self._solve_block(x[rows], p[rows], lam[rows], lbx, ubx)
-                     for rows in _blocks(todo)]
-            xs, fs, lams, lam_ps, oks = (np.concatenate(column)
-                                         for column in zip(*parts, strict=True))
-            x[todo], f[todo], lam[todo], lam_p[todo], ok[todo] = xs, fs, lams, lam_ps, oks
+            for rows in _full_blocks(todo):
+                self._solve_block(_as_slice(rows), x, lam, p, (f, lam_p, g, dual, scale))
+            rows = _as_slice(todo)
+            with np.errstate(invalid="ignore"):
+                ok[rows] = ((np.max(np.abs(g[rows]), axis=1, initial=0.0)
+                             <= self.tol * (1.0 + np.max(np.abs(p[rows]), axis=1)))
+                            & (dual[rows] <= self.tol * scale[rows])
+                            & np.all((x[rows] >= lbx) & (x[rows] <= ubx), axis=1))
             iterations[todo] += self.steps
-            todo = todo[~oks & np.all(np.isfinite(xs), axis=1)]
+            todo = todo[~ok[todo] & np.all(np.isfinite(x[todo]), axis=1)]
             if not len(todo):
                 break
-        extra = np.zeros((k, 0))
-        if self.post is not None:
+        if self.post is None:
+            extra = np.zeros((k, 0))
+        elif self.constant_post:
+            extra = np.tile(self._constant_post(x[0], lam[0], p[0])[0], (k, 1))
+        else:
             extra = np.concatenate([self._post(x[rows], lam[rows], p[rows])
-                                    for rows in _blocks(np.arange(k))])
+                                    for rows in _full_blocks(np.arange(k))])
         return BatchSolve(x, f, lam, lam_p, ok, extra, time.perf_counter() - start, iterations)
 
     def _post(self, x: np.ndarray, lam: np.ndarray, p: np.ndarray) -> np.ndarray:
-        """``post`` at each row, (k, m) with each output's entries column-major."""
+        """``post`` (not constant) at each row, (k, m) with each output's entries
+        column-major."""
         post = self._mapped(len(p), self._shares(p))[2]
-        if self.constant_post:
-            return np.tile(post(x[0], lam[0], p[0])[0], (len(p), 1))
         return post(x.ravel(), lam.ravel(), p.ravel())[0].reshape(len(p), -1)
 
-    def _solve_block(self, x0: np.ndarray, p: np.ndarray, lam_g0: np.ndarray,
-                     lbx: np.ndarray, ubx: np.ndarray) -> tuple[np.ndarray, ...]:
-        k = len(p)
-        newton, gradient, _ = self._mapped(k, self._shares(p))
-        x, lam, f, g, dual, grad_p = newton(x0.ravel(), lam_g0.ravel(), p.ravel())
-        x, lam, g = x.reshape(k, self.nx), lam.reshape(k, self.ng), g.reshape(k, self.ng)
-        scale = 1.0 + gradient(x.ravel(), p.ravel())[0]
-        with np.errstate(invalid="ignore"):
-            ok = ((np.max(np.abs(g), axis=1, initial=0.0)
-                   <= self.tol * (1.0 + np.max(np.abs(p), axis=1)))
-                  & (dual <= self.tol * scale)
-                  & np.all((x >= lbx) & (x <= ubx), axis=1))
-        return x, f, lam, -grad_p.reshape(k, self.np), ok
+    def _solve_block(self, rows: slice | np.ndarray, x: np.ndarray, lam: np.ndarray,
+                     p: np.ndarray, out: tuple[np.ndarray, ...]) -> None:
+        """One call on the columns ``rows`` of x (k, nx) and λ_g (k, ng), overwritten with the
+        call's iterates, and of ``out``: f (k,), λ_p (k, np), g (k, ng), ‖∇_x L‖∞ (k,) and
+        1 + ‖∇f‖∞ (k,) at the new iterate (what a column is accepted by), written."""
+        f, lam_p, g, dual, scale = out
+        block_p = p[rows]
+        k = len(block_p)
+        newton, gradient, _ = self._mapped(k, self._shares(block_p))
+        x_new, lam_new, f_new, g_new, dual_new, grad_p = newton.evaluate(
+            x[rows].ravel(), lam[rows].ravel(), block_p.ravel())
+        x[rows], lam[rows] = x_new.reshape(k, self.nx), lam_new.reshape(k, self.ng)
+        f[rows], g[rows], dual[rows] = f_new, g_new.reshape(k, self.ng), dual_new
+        lam_p[rows] = -grad_p.reshape(k, self.np)
+        scale[rows] = 1.0 + gradient.evaluate(x_new, block_p.ravel())[0]
+
+
+def _as_slice(rows: np.ndarray) -> slice | np.ndarray:
+    """Increasing indices ``rows`` as the slice they make where consecutive (its arrays are
+    views, not copies), else themselves."""
+    if len(rows) and rows[-1] - rows[0] == len(rows) - 1:
+        return slice(int(rows[0]), int(rows[-1]) + 1)
+    return rows

@@ -8,20 +8,28 @@ points (:mod:`ocpar.ocp.columns_eval`); its generated C (``CodeGenerator``) comp
 (CPU time, 50,000 points, this machine, 2026-12); building one costs seconds, once per host
 (:data:`FLAGS`). The shared
 library is named by a hash of the generated source, the compiler command and CasADi's
-version, written under a temporary name and renamed into place (processes that compile the
-same function at once each write a whole file; the last rename wins, with the same bits),
-then loaded with ``casadi.external``. The compiled code keeps IEEE arithmetic
-(``-ffp-contract=off``, no fast-math): each point's result depends on that point alone.
+version, built by one process while the others that need it wait on a lock file beside it
+(MPI ranks or Dask workers of one host compile it once between them; a later run not at
+all), written under a temporary name and renamed into place, then loaded with
+``casadi.external``. The cache is ``$OCPAR_CACHE/compiled``
+(default ``~/.cache/ocpar/compiled``); the compiler ``$CC`` (default ``cc``). The compiled
+code keeps IEEE arithmetic (``-ffp-contract=off``, no fast-math) and CasADi's generated C does
+the virtual machine's operations in its order, so its results are the virtual machine's bit
+for bit (tested per kernel). Where the host has no compiler, or compiling fails, the process
+says so in one line on stderr (once per compiler and reason) and evaluates on the virtual
+machine.
 """
 
 from __future__ import annotations
 
+import fcntl
 import hashlib
 import os
 import shutil
 import subprocess
+import sys
 import tempfile
-from functools import lru_cache
+from functools import cache, lru_cache
 from pathlib import Path
 
 import casadi as ca
@@ -45,8 +53,11 @@ def cache_directory() -> Path:
 def compiled(function: ca.Function) -> ca.Function | None:
     """``function`` compiled (module docstring), or None where this host has no C compiler
     (``$CC``, else ``cc``) or the compilation fails: the caller then evaluates it as it is."""
-    compiler = shutil.which(os.environ.get("CC", "cc"))
+    command = os.environ.get("CC", "cc")
+    compiler = shutil.which(command)
     if compiler is None:
+        _say_once(f"ocpar: no C compiler ({command!r} not found): inner functions run on "
+                  "CasADi's virtual machine")
         return None
     name = function.name()
     generator = ca.CodeGenerator(f"{name}.c", {"with_header": False})
@@ -59,15 +70,31 @@ def compiled(function: ca.Function) -> ca.Function | None:
     if not library.exists():
         try:
             directory.mkdir(parents=True, exist_ok=True)
-            with tempfile.TemporaryDirectory(dir=directory) as tmp:
-                c_file, built = Path(tmp) / f"{name}.c", Path(tmp) / f"{name}.so"
-                c_file.write_text(source)
-                subprocess.run([compiler, *FLAGS, str(c_file), "-o", str(built)], check=True,
-                               capture_output=True, timeout=300)
-                os.replace(built, library)
-        except (OSError, subprocess.SubprocessError):
+            with open(directory / f"{name}_{key}.lock", "w") as lock:
+                fcntl.flock(lock, fcntl.LOCK_EX)    # the others wait, then find the library
+                if not library.exists():
+                    _compile(compiler, source, name, library)
+        except (OSError, subprocess.SubprocessError) as error:
+            _say_once(f"ocpar: compiling with {compiler} failed ({type(error).__name__}): "
+                      "inner functions run on CasADi's virtual machine")
             return None
     return ca.external(name, str(library))
+
+
+def _compile(compiler: str, source: str, name: str, library: Path) -> None:
+    """``source`` compiled by ``compiler`` into a temporary file renamed to ``library``."""
+    with tempfile.TemporaryDirectory(dir=library.parent) as tmp:
+        c_file, built = Path(tmp) / f"{name}.c", Path(tmp) / f"{name}.so"
+        c_file.write_text(source)
+        subprocess.run([compiler, *FLAGS, str(c_file), "-o", str(built)], check=True,
+                       capture_output=True, timeout=300)
+        os.replace(built, library)
+
+
+@cache
+def _say_once(line: str) -> None:
+    """``line`` on stderr, once per process."""
+    print(line, file=sys.stderr)
 
 
 class CompiledPoints:
