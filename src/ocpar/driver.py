@@ -245,7 +245,7 @@ def run_scheme(options: SchemeRun, given: frozenset[str] | None = None) -> int:
     def solve(backend: Backend, say: Progress) -> RunResult:
         built.append(time.perf_counter() - entered)
         said.append(say)
-        if out is not None and options.picture != "none" and backend.workers < cores():
+        if out is not None and options.picture != "none" and spare_core(backend.workers):
             warm_up()   # Matplotlib imported on a core the solve leaves idle
         say(f"{prog}: {options.describe(problem)}, backend {backend.name} with "
             f"{backend.workers} worker(s)")
@@ -274,12 +274,18 @@ def run_scheme(options: SchemeRun, given: frozenset[str] | None = None) -> int:
     return result.exit_status
 
 
-def cores() -> int:
-    """The CPU cores this process may run on."""
+def spare_core(busy: int) -> bool:
+    """Whether a core stays idle while ``busy`` processes of this run compute: the cores this
+    process may run on hold more than ``busy`` plus the machine's other runnable threads now
+    (Linux's ``/proc/loadavg``, this thread counted among ``busy``); False where the system
+    does not say."""
     try:
-        return len(os.sched_getaffinity(0))
-    except AttributeError:   # not on Linux
-        return os.cpu_count() or 1
+        cores = len(os.sched_getaffinity(0))
+        with open("/proc/loadavg") as loadavg:
+            running = int(loadavg.read().split()[3].split("/")[0])
+    except (OSError, AttributeError, ValueError, IndexError):
+        return False
+    return cores > busy + max(running - 1, 0)
 
 
 def main(scheme: type[SchemeRun], argv: Sequence[str] | None = None) -> int:

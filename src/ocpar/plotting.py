@@ -4,9 +4,10 @@ The schemes draw on :func:`figure`, a :class:`matplotlib.figure.Figure` with its
 canvas: no ``pyplot`` (whose import, ~0.3–0.5 s, a run's picture need not pay) and no global
 figure registry to close. Scripts may use :func:`pyplot`.
 
-A run that will draw calls :func:`warm_up` before its solve: Matplotlib's import (~0.3–0.5 s)
-and its first render's font loading then happen in a background thread, on a core the solve
-leaves idle (CasADi's calls release the GIL), and :func:`figure` waits for them.
+A run that will draw calls :func:`warm_up` before its solve where a core is idle: Matplotlib's
+import (~0.3–0.5 s) and its first render's font loading then happen in a background thread on
+that core while the solve runs (CasADi's calls release the GIL; the thread asks for it back
+within :data:`WARM_UP_SWITCH_S`), and :func:`figure` waits for them.
 
 Figures are laid out by Matplotlib's constrained layout, legends go below the axes
 (:func:`legend_below`) and titles are wrapped to the figure's width (:func:`fit`), so no
@@ -76,6 +77,11 @@ def components(source: Any, kind: str, size: int, symbol: str) -> list[Component
     return [Component(str(n), u) for n, u in zip(names[:size], units[:size], strict=True)]
 
 
+#: The interpreter's switch interval (s) while :func:`warm_up`'s thread runs: a thread that
+#: wants the GIL waits this long before asking its holder for it (Python's default, 5 ms, would
+#: hold the solve back after each of its CasADi calls while the import holds the GIL).
+WARM_UP_SWITCH_S = 2e-4
+
 #: The background thread of :func:`warm_up`, while one was started (at most one per process).
 _warming: list[threading.Thread] = []
 
@@ -93,13 +99,18 @@ def warm_up() -> None:
 
 def _warm() -> None:
     """:func:`warm_up`'s work: a 2 × 2 inch figure with one line, drawn and dropped."""
-    fig = _new_figure(figsize=(2, 2))
-    ax = fig.subplots()
-    ax.plot([0.0, 1.0], [0.0, 1.0], label="t (s)")
-    ax.set_title("warm-up", fontsize=10)
-    ax.set_xlabel("x₁ (m)")
-    fig.legend(loc="outside lower center", fontsize=8, frameon=False)
-    fig.canvas.draw()
+    interval = sys.getswitchinterval()
+    sys.setswitchinterval(WARM_UP_SWITCH_S)
+    try:
+        fig = _new_figure(figsize=(2, 2))
+        ax = fig.subplots()
+        ax.plot([0.0, 1.0], [0.0, 1.0], label="t (s)")
+        ax.set_title("warm-up", fontsize=10)
+        ax.set_xlabel("x₁ (m)")
+        fig.legend(loc="outside lower center", fontsize=8, frameon=False)
+        fig.canvas.draw()
+    finally:
+        sys.setswitchinterval(interval)
 
 
 def _wait_for_warm_up() -> None:
