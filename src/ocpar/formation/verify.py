@@ -375,6 +375,17 @@ class AgentChecks:
     violation: np.ndarray
 
 
+def _rows_by_shape(shapes: list[Shape]) -> dict[Shape, np.ndarray]:
+    """The rows (ascending) of each distinct shape of ``shapes``, in order of first use; one
+    shape object repeated (a fleet of one shape) without hashing it once per row."""
+    if shapes and all(shape is shapes[0] for shape in shapes):
+        return {shapes[0]: np.arange(len(shapes))}
+    groups: dict[Shape, list[int]] = {}
+    for row, shape in enumerate(shapes):
+        groups.setdefault(shape, []).append(row)
+    return {shape: np.array(rows) for shape, rows in groups.items()}
+
+
 def agent_checks(shapes: list[Shape], q: np.ndarray, u: np.ndarray, params: np.ndarray,
                  positions: int, first: int = 0, durations: np.ndarray | None = None
                  ) -> AgentChecks:
@@ -386,15 +397,13 @@ def agent_checks(shapes: list[Shape], q: np.ndarray, u: np.ndarray, params: np.n
     (default: its shape's). Each agent's numbers are its own: any block of agents
     gives the rows of the whole fleet's."""
     m = len(q)
-    groups: dict[Shape, list[int]] = {}
-    for row, shape in enumerate(shapes):
-        groups.setdefault(shape, []).append(row)
+    groups = _rows_by_shape(shapes)
     start, attitude = np.empty(m), np.zeros(m)
     momentum, dynamics = np.empty(m), np.empty(m)
     has_attitude = False
     bounds, path, agents = {}, {}, {}
     for shape, members in groups.items():
-        rows = np.array(members)
+        rows = members
         agents[shape] = rows + first
         qs, us, ps = q[rows][..., :shape.node_size], u[rows], params[rows]
         own_durations = (np.full(len(rows), shape.duration) if durations is None
