@@ -109,6 +109,8 @@ def _warm() -> None:
         ax.set_xlabel("x₁ (m)")
         fig.legend(loc="outside lower center", fontsize=8, frameon=False)
         fig.canvas.draw()
+    except Exception:  # only a head start: the picture itself then says what fails
+        pass
     finally:
         sys.setswitchinterval(interval)
 
