@@ -49,6 +49,17 @@ def test_small_run_writes_result_and_plot(tmp_path):
     assert_result_contract(tmp_path / "run")
 
 
+def test_no_core_is_spare_where_the_run_keeps_them_all_busy():
+    """The picture's warm-up (Matplotlib imported beside the solve) never takes a core from a
+    run whose workers fill the machine; one more busy process than cores leaves none either."""
+    import os
+
+    from ocpar.driver import spare_core
+
+    cores = len(os.sched_getaffinity(0))
+    assert not spare_core(cores) and not spare_core(cores + 1)
+
+
 def test_monolithic_mode_from_the_command_line(tmp_path):
     proc = run_cli("-m", "ocpar.formation", "--agents", "8", "--radius", "5", "--mode",
                    "monolithic", "--quiet", "--output", str(tmp_path))

@@ -127,6 +127,21 @@ def check_layout(fig) -> None:
             assert label.endswith(")") and "(" in label, f"no unit in {label!r}"
 
 
+def test_a_figure_waits_for_the_warm_up_and_draws_after_it(tmp_path):
+    """The warm-up thread (Matplotlib imported, one figure rendered beside a solve) is done
+    before the first figure is made, and a picture drawn after it is a whole PNG."""
+    ocpar.plotting.warm_up()
+    (thread,) = ocpar.plotting._warming
+    fig, ax = ocpar.plotting.subplots(1, 1, figsize=(3, 2))
+    assert not thread.is_alive()
+    ax.plot([0, 1], [1, 0])
+    path = ocpar.plotting.save(fig, tmp_path / "after.png")
+    from PIL import Image
+
+    with Image.open(path) as image:
+        assert image.size == (3 * ocpar.plotting.DPI, 2 * ocpar.plotting.DPI)
+
+
 def test_components_default_to_nondimensional_and_read_a_models_names():
     class Named:
         state_names = ("r", "v")

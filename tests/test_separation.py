@@ -156,6 +156,22 @@ def test_bundled_and_coincident_paths_match_all_pairs(seed):
         np.testing.assert_array_equal(close_pairs(positions, radius), pairs[minima <= radius])
 
 
+@pytest.mark.parametrize("seed", range(3))
+def test_levels_refined_in_small_chunks_give_the_all_pairs_answer(monkeypatch, seed):
+    """Each tree level's node pairs refined a few at a time (the chunks of large fleets, here
+    5 pairs), whole and cut into spatial cells: the closest approach and the close pairs are
+    the all-pairs exact ones."""
+    monkeypatch.setattr(separation, "PAIR_CHUNK", 5)
+    positions = bundles(np.random.default_rng(500 + seed), 240, 7, 1 + seed % 3)
+    expected = all_pairs(positions, 2.0)
+    for found in (closest_approach(positions, 2.0), closest_approach(positions, 2.0,
+                                                                     InProcess(16))):
+        assert (found.distance, found.agents, found.time) == expected
+    pairs = np.array(list(itertools.combinations(range(len(positions)), 2)))
+    minima = interval_closest(positions, pairs)[0].min(axis=1)
+    np.testing.assert_array_equal(close_pairs(positions, 1e-2), pairs[minima <= 1e-2])
+
+
 def test_ten_thousand_agents_with_a_known_closest_pair():
     """Agents on a grid of spacing 10 wander by less than 1 in each coordinate (every pair stays
     ≥ 8 apart) except two that cross a cell's centre line at t = 0.35 T, 0.01 apart (≥ 4 from

@@ -29,7 +29,11 @@ from ocpar.formation import (
 from ocpar.formation.plot import plot_formation
 from ocpar.formation.solve import _verified
 from ocpar.formation.targets.surface import SphereSurface
-from ocpar.formation.verify import NEAR_COLLISION_FRACTION, verify_formation
+from ocpar.formation.verify import (
+    NEAR_COLLISION_FRACTION,
+    formation_spacing,
+    verify_formation,
+)
 from ocpar.models import PointMass
 from ocpar.ocp.columns_eval import evaluate_columns
 from ocpar.result_files import write_result
@@ -237,6 +241,25 @@ def test_a_near_collision_is_said(tmp_path):
     assert "near-collision: agents 0 and 1" in result.message
     assert "--min-separation" in result.message
     assert "optimum without a separation requirement" in result.message
+
+
+@pytest.mark.parametrize("dim", [2, 3])
+def test_the_spacing_on_a_circle_is_the_all_pairs_minimum(dim):
+    """Neighbours in angle give the smallest distance of points on a circle (in a plane of
+    space too), as the distance matrix does."""
+    rng = np.random.default_rng(dim)
+    axes = np.eye(dim)[:2] if dim == 2 else np.linalg.qr(rng.normal(size=(3, 3)))[0][:, :2].T
+    circle = Circle(center=np.arange(dim, dtype=float), axes=axes, radius=3.0)
+    phi = rng.uniform(-10, 10, 300)
+    points = circle.evaluator.evaluate(phi, 0)
+    gaps = np.linalg.norm(points[:, None] - points[None], axis=-1)
+    np.fill_diagonal(gaps, np.inf)
+
+    class OnCircle:
+        on_circle = True
+
+    assert formation_spacing(OnCircle(), points, phi) == pytest.approx(
+        gaps.min(), rel=1e-12)
 
 
 def test_no_near_collision_where_paths_keep_apart(six):

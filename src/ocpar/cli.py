@@ -24,10 +24,10 @@ from ocpar.bsp import (
     Backend,
     BackendError,
     RunCancelled,
+    UnreadableRequest,
     launched_by_mpirun,
     open_backend,
 )
-from ocpar.bsp.channel import UnreadableRequest
 from ocpar.bsp.journal import CheckpointError, Journal
 from ocpar.bsp.mpi import SUPERSTEP_TIMEOUT_S
 from ocpar.options import option, option_specs

@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 import textwrap
 import time
@@ -45,6 +46,7 @@ from ocpar.cli import (
     run_on_backend,
 )
 from ocpar.options import add_options, option, option_specs, options_from_namespace
+from ocpar.plotting import warm_up
 from ocpar.references import REFERENCE, ProblemReferenceError, is_reference, load_problem
 from ocpar.result_files import write_result, write_summary
 from ocpar.results import RunResult
@@ -243,6 +245,8 @@ def run_scheme(options: SchemeRun, given: frozenset[str] | None = None) -> int:
     def solve(backend: Backend, say: Progress) -> RunResult:
         built.append(time.perf_counter() - entered)
         said.append(say)
+        if out is not None and options.picture != "none" and spare_core(backend.workers):
+            warm_up()   # Matplotlib imported on a core the solve leaves idle
         say(f"{prog}: {options.describe(problem)}, backend {backend.name} with "
             f"{backend.workers} worker(s)")
         return options.solve(problem, backend, say)
@@ -268,6 +272,20 @@ def run_scheme(options: SchemeRun, given: frozenset[str] | None = None) -> int:
         print("wrote " + ", ".join(str(p) for p in written), flush=True)
     said[0](timings_line(result.all_timings()))
     return result.exit_status
+
+
+def spare_core(busy: int) -> bool:
+    """Whether a core stays idle while ``busy`` processes of this run compute: the cores this
+    process may run on hold more than ``busy`` plus the machine's other runnable threads now
+    (Linux's ``/proc/loadavg``, this thread counted among ``busy``); False where the system
+    does not say."""
+    try:
+        cores = len(os.sched_getaffinity(0))
+        with open("/proc/loadavg") as loadavg:
+            running = int(loadavg.read().split()[3].split("/")[0])
+    except (OSError, AttributeError, ValueError, IndexError):
+        return False
+    return cores > busy + max(running - 1, 0)
 
 
 def main(scheme: type[SchemeRun], argv: Sequence[str] | None = None) -> int:

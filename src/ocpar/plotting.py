@@ -4,6 +4,11 @@ The schemes draw on :func:`figure`, a :class:`matplotlib.figure.Figure` with its
 canvas: no ``pyplot`` (whose import, ~0.3–0.5 s, a run's picture need not pay) and no global
 figure registry to close. Scripts may use :func:`pyplot`.
 
+A run that will draw calls :func:`warm_up` before its solve where a core is idle: Matplotlib's
+import (~0.3–0.5 s) and its first render's font loading then happen in a background thread on
+that core while the solve runs (CasADi's calls release the GIL; the thread asks for it back
+within :data:`WARM_UP_SWITCH_S`), and :func:`figure` waits for them.
+
 Figures are laid out by Matplotlib's constrained layout, legends go below the axes
 (:func:`legend_below`) and titles are wrapped to the figure's width (:func:`fit`), so no
 text leaves the picture or covers its data. Axis labels name each component and its unit
@@ -14,6 +19,7 @@ from __future__ import annotations
 
 import sys
 import textwrap
+import threading
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -71,10 +77,61 @@ def components(source: Any, kind: str, size: int, symbol: str) -> list[Component
     return [Component(str(n), u) for n, u in zip(names[:size], units[:size], strict=True)]
 
 
+#: The interpreter's switch interval (s) while :func:`warm_up`'s thread runs: a thread that
+#: wants the GIL waits this long before asking its holder for it (Python's default, 5 ms, would
+#: hold the solve back after each of its CasADi calls while the import holds the GIL).
+WARM_UP_SWITCH_S = 2e-4
+
+#: The background thread of :func:`warm_up`, while one was started (at most one per process).
+_warming: list[threading.Thread] = []
+
+
+def warm_up() -> None:
+    """Import Matplotlib's figure and Agg canvas and render one small figure with a title, a
+    legend and tick labels (loading the fonts) in a background thread, once per process;
+    :func:`figure` and :func:`pyplot` wait for it. Nothing is drawn for the caller: a
+    picture drawn later finds Matplotlib imported and its fonts loaded."""
+    if not _warming:
+        _warming.append(threading.Thread(target=_warm, name="ocpar-plotting-warm-up",
+                                         daemon=True))
+        _warming[0].start()
+
+
+def _warm() -> None:
+    """:func:`warm_up`'s work: a 2 × 2 inch figure with one line, drawn and dropped."""
+    interval = sys.getswitchinterval()
+    sys.setswitchinterval(WARM_UP_SWITCH_S)
+    try:
+        fig = _new_figure(figsize=(2, 2))
+        ax = fig.subplots()
+        ax.plot([0.0, 1.0], [0.0, 1.0], label="t (s)")
+        ax.set_title("warm-up", fontsize=10)
+        ax.set_xlabel("x₁ (m)")
+        fig.legend(loc="outside lower center", fontsize=8, frameon=False)
+        fig.canvas.draw()
+    except Exception:  # only a head start: the picture itself then says what fails
+        pass
+    finally:
+        sys.setswitchinterval(interval)
+
+
+def _wait_for_warm_up() -> None:
+    """Wait until :func:`warm_up`'s thread (if any) is done (its figure is dropped)."""
+    for thread in _warming:
+        if thread is not threading.current_thread():
+            thread.join()
+
+
 def figure(**kwargs: Any) -> Any:
     """A :class:`matplotlib.figure.Figure` (``kwargs``: its options, e.g. ``figsize``;
     constrained layout unless ``layout`` says otherwise) on an Agg canvas of its own; draw
     with ``fig.subplots`` / ``fig.add_subplot``, write with :func:`save`."""
+    _wait_for_warm_up()
+    return _new_figure(**kwargs)
+
+
+def _new_figure(**kwargs: Any) -> Any:
+    """:func:`figure` without waiting for the warm-up (the warm-up's own)."""
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
 
@@ -93,6 +150,7 @@ def subplots(*grid: int, figsize: tuple[float, float] | None = None, **kwargs: A
 
 def pyplot() -> ModuleType:
     """``matplotlib.pyplot`` on the non-interactive Agg backend (imported on first use)."""
+    _wait_for_warm_up()
     import matplotlib
 
     matplotlib.use("Agg")

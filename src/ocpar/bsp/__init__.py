@@ -20,6 +20,7 @@ from ocpar.bsp.backend import (
     Backend,
     BackendError,
     RunCancelled,
+    UnreadableRequest,
     check_balance,
 )
 from ocpar.bsp.kernel import ChunkResult, kernel_name, run_chunk
@@ -90,6 +91,7 @@ __all__ = [
     "ResidentSet",
     "RunCancelled",
     "SuperstepTrace",
+    "UnreadableRequest",
     "contiguous_blocks",
     "kernel_name",
     "launched_by_mpirun",

@@ -39,6 +39,11 @@ class BackendError(RuntimeError):
     """A backend could not be started (bad address, unreachable scheduler, too few workers)."""
 
 
+class UnreadableRequest(RuntimeError):
+    """A worker could not unpickle a request: a module or class the run's tasks need is
+    missing there (the message names it, and the worker's host; :mod:`ocpar.bsp.channel`)."""
+
+
 def check_balance(balance: str) -> None:
     """Raise :class:`BackendError` unless ``balance`` is one of :data:`BALANCE_POLICIES`."""
     if balance not in BALANCE_POLICIES:

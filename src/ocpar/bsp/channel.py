@@ -26,6 +26,8 @@ import threading
 from collections.abc import Callable
 from typing import Any
 
+from ocpar.bsp.backend import UnreadableRequest
+
 #: One solver call at a time per worker process: held while a request runs (and by the Dask
 #: paths that run chunks in the worker's task thread, see :mod:`ocpar.bsp.dask_worker`).
 SOLVE_LOCK = threading.Lock()
@@ -35,11 +37,6 @@ _COUNT = struct.Struct("!Q")
 
 class ChannelClosed(ConnectionError):
     """The peer closed the channel (e.g. its process is gone)."""
-
-
-class UnreadableRequest(RuntimeError):
-    """A worker could not unpickle a request: a module or class the run's tasks need is
-    missing there (the message names it, and the worker's host)."""
 
 
 def unreadable(exc: Exception) -> UnreadableRequest:

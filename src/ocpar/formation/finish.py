@@ -303,6 +303,7 @@ def padded_paths(paths: list[np.ndarray] | np.ndarray, width: int | None = None
 def cost_groups(problem: FormationProblem) -> dict[str, tuple[int, int]]:
     """The model's named control groups (name → (first, last + 1) control columns) whose
     cost parts h Σ|u|² the run reports; none where an agent has a running cost of its own."""
-    if any(getattr(shape, "running_cost", None) is not None for shape in set(problem.shapes)):
+    if any(getattr(shape, "running_cost", None) is not None
+           for shape in problem.agents_by_shape()):
         return {}
     return dict(getattr(problem.common_shape.model, "cost_parts", {}))

@@ -375,6 +375,17 @@ class AgentChecks:
     violation: np.ndarray
 
 
+def _rows_by_shape(shapes: list[Shape]) -> dict[Shape, np.ndarray]:
+    """The rows (ascending) of each distinct shape of ``shapes``, in order of first use; one
+    shape object repeated (a fleet of one shape) without hashing it once per row."""
+    if shapes and all(shape is shapes[0] for shape in shapes):
+        return {shapes[0]: np.arange(len(shapes))}
+    groups: dict[Shape, list[int]] = {}
+    for row, shape in enumerate(shapes):
+        groups.setdefault(shape, []).append(row)
+    return {shape: np.array(rows) for shape, rows in groups.items()}
+
+
 def agent_checks(shapes: list[Shape], q: np.ndarray, u: np.ndarray, params: np.ndarray,
                  positions: int, first: int = 0, durations: np.ndarray | None = None
                  ) -> AgentChecks:
@@ -386,15 +397,13 @@ def agent_checks(shapes: list[Shape], q: np.ndarray, u: np.ndarray, params: np.n
     (default: its shape's). Each agent's numbers are its own: any block of agents
     gives the rows of the whole fleet's."""
     m = len(q)
-    groups: dict[Shape, list[int]] = {}
-    for row, shape in enumerate(shapes):
-        groups.setdefault(shape, []).append(row)
+    groups = _rows_by_shape(shapes)
     start, attitude = np.empty(m), np.zeros(m)
     momentum, dynamics = np.empty(m), np.empty(m)
     has_attitude = False
     bounds, path, agents = {}, {}, {}
     for shape, members in groups.items():
-        rows = np.array(members)
+        rows = members
         agents[shape] = rows + first
         qs, us, ps = q[rows][..., :shape.node_size], u[rows], params[rows]
         own_durations = (np.full(len(rows), shape.duration) if durations is None
@@ -678,7 +687,6 @@ def verify_checked(problem: FormationProblem, positions: np.ndarray, ends: np.nd
     nodes' ``positions``)."""
     start = time.perf_counter() - spent_s
     positions, ends = np.asarray(positions, float), np.asarray(ends, float)
-    n = problem.agents
     found: dict[str, Check] = {}
 
     located, distance = _locate(problem, ends, phi)
@@ -715,12 +723,26 @@ def verify_checked(problem: FormationProblem, positions: np.ndarray, ends: np.nd
         found["separation"] = Check(min_separation - closest.distance, closest.agents[0],
                                     min_separation * SEPARATION_RTOL,
                                     f"{closest.agents[0]} and {closest.agents[1]}")
-    targets = positions[:, -1]
-    spacing = (closest_pair(targets)[0] if n > 1 and np.all(np.isfinite(targets))
-               else math.inf if n < 2 else math.nan)
+    spacing = formation_spacing(problem, positions[:, -1], located)
     near = near_collision(closest, spacing) if min_separation is None else None
     return Verification(found, located, residual, closest, spacing, clearance, near,
                         time.perf_counter() - start, checks.violation)
+
+
+def formation_spacing(problem: FormationProblem, targets: np.ndarray, located: np.ndarray
+                      ) -> float:
+    """The smallest distance between two of the end points ``targets`` (n, d), length unit
+    (inf with one agent, NaN if a point is not finite): on a circle, of neighbours in the
+    order of their angles ``located`` (n,) (the chord grows with the angle between two
+    points: O(n log n), no tree), else :func:`~ocpar.formation.keep_out.separation.closest_pair`."""
+    if len(targets) < 2:
+        return math.inf
+    if not np.all(np.isfinite(targets)):
+        return math.nan
+    if not (problem.on_circle and np.all(np.isfinite(located))):
+        return closest_pair(targets)[0]
+    ring = targets[np.argsort(np.mod(located, 2 * np.pi), kind="stable")]
+    return float(np.linalg.norm(ring - np.roll(ring, -1, axis=0), axis=1).min())
 
 
 def near_collision(closest: ClosestApproach, spacing: float) -> dict | None:

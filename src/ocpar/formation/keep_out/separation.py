@@ -43,6 +43,11 @@ LEAF = 2
 KEY_BITS = 16
 #: Pairs per chunk of the exact test (bounds its temporary arrays to a few hundred MB).
 CHUNK = 200_000
+#: Node pairs per chunk of a level of the tree (:func:`_interval_within`): each chunk's
+#: temporary arrays (~200 bytes per pair) stay in the cache and on the heap. Whole levels at
+#: 1,000,000 agents (~2.7 million pairs) took ~1.8x the CPU time, much of it page faults of
+#: fresh arrays.
+PAIR_CHUNK = 8_192
 #: A search cut into C spatial cells cuts at the first tree level with at least this many
 #: nodes per cell (:func:`_interval_within`): the levels above are every cell's (few pairs).
 CELL_NODES = 16
@@ -211,18 +216,27 @@ def _interval_within(x: np.ndarray, reach: float, cell: int = 0, cells: int = 1
     levels = _tree_levels(x)
     split = cells == 1
     for depth, (lo, hi, count) in enumerate(levels):
-        if depth:
-            a, b = _children(a, b)
-            filled = (count[a] > 0) & (count[b] > 0)
-            a, b = a[filled], b[filled]
-        if not split and (len(count) >= CELL_NODES * cells or depth == len(levels) - 1):
-            mine = a * cells // len(count) == cell
-            a, b, split = a[mine], b[mine], True
-        meet = _may_meet(*_box_terms(lo, hi, reach), a, b)
-        a, b = a[meet], b[meet]
+        terms = _box_terms(lo, hi, reach)
+        cut = not split and (len(count) >= CELL_NODES * cells or depth == len(levels) - 1)
+        kept_a, kept_b = [a[:0]], [b[:0]]
+        for chunk in range(0, len(a), PAIR_CHUNK):   # the node pairs of this level, by chunk
+            ca, cb = a[chunk:chunk + PAIR_CHUNK], b[chunk:chunk + PAIR_CHUNK]
+            if depth:
+                ca, cb = _children(ca, cb)
+                filled = (count[ca] > 0) & (count[cb] > 0)
+                ca, cb = ca[filled], cb[filled]
+            if cut:
+                mine = ca * cells // len(count) == cell
+                ca, cb = ca[mine], cb[mine]
+            meet = _may_meet(*terms, ca, cb)
+            kept_a.append(ca[meet])
+            kept_b.append(cb[meet])
+        a, b = np.concatenate(kept_a), np.concatenate(kept_b)
+        split = split or cut
     found_i, found_j = [], []
-    for chunk in range(0, len(a), CHUNK):
-        i, j = _leaf_pairs(a[chunk:chunk + CHUNK], b[chunk:chunk + CHUNK], levels[-1][2])
+    for chunk in range(0, len(a), PAIR_CHUNK):
+        i, j = _leaf_pairs(a[chunk:chunk + PAIR_CHUNK], b[chunk:chunk + PAIR_CHUNK],
+                           levels[-1][2])
         relative = x[i] - x[j]
         distance, _ = segment_closest(relative[:, :dim], relative[:, dim:])
         close = distance <= reach
@@ -267,10 +281,15 @@ def close_pairs(positions: np.ndarray, radius: float) -> np.ndarray:
 
 def _upper_bound(positions: np.ndarray) -> float:
     """An actual pair distance at some node (so at least the closest approach): the nearest
-    of neighbours in order along the first coordinate, at every node."""
-    order = np.argsort(positions[..., 0], axis=0, kind="stable")      # (n, N+1)
-    ranked = np.take_along_axis(positions, order[..., None], axis=0)
-    return float(np.linalg.norm(np.diff(ranked, axis=0), axis=-1).min())
+    of neighbours in order along the first coordinate, at every node (node by node: the sort of
+    one node's column ~4x faster than the strided sort of all at once, 0.6 against 2.4 CPU s
+    at 1,000,000 agents)."""
+    best = math.inf
+    for k in range(positions.shape[1]):
+        nodes = positions[:, k]
+        ranked = nodes[np.argsort(nodes[:, 0], kind="stable")]
+        best = min(best, float(np.linalg.norm(np.diff(ranked, axis=0), axis=-1).min()))
+    return best
 
 
 @dataclass(frozen=True)
