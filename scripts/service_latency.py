@@ -6,8 +6,10 @@ backend (the embedded Dask cluster of 2 workers), quiet and with CPU burners; wr
 
     python scripts/service_latency.py --output latency.json [--load 0 2] [--repeat 10]
 
-Start time: from launching ``python -m ocpar serve`` to its first answer (``/openapi.json``).
-A job's latency: from sending its POST to the first ``GET /jobs/ID`` (polled every 20 ms;
+Start time: from launching ``python -m ocpar serve`` to its first answer (``/openapi.json``),
+and to its saying it is ready (``GET /health`` 200: the cluster up, the warm runners warmed
+up; a server without ``/health`` is taken as ready at its first answer). A job's latency:
+from sending its POST to the first ``GET /jobs/ID`` (polled every 20 ms;
 every 100 ms for the jobs at once) that says ``succeeded``. The first job of a server (the
 workers build their inner solvers) is a warm-up, reported apart. Resume: a MACS job
 cancelled at its third superstep, from ``POST /jobs/ID/resume`` to ``running`` (and to its
@@ -97,6 +99,19 @@ def cancel_and_resume(client) -> dict:
             "resume_to_next_superstep_s": round(step_s, 3), "state": final["state"]}
 
 
+def wait_ready(url: str, timeout: float = 300) -> None:
+    """Wait until the server at ``url`` says it is ready (``/health``; none: at once)."""
+    import httpx
+
+    deadline = time.perf_counter() + timeout
+    while (code := httpx.get(url + "/health", timeout=10).status_code) == 503:
+        if time.perf_counter() > deadline:
+            raise TimeoutError(f"{url} not ready after {timeout:g} s")
+        time.sleep(0.1)
+    if code not in (200, 404):
+        raise RuntimeError(f"{url}/health: HTTP {code}")
+
+
 def measure(workdir: Path, load: int, repeat: int, concurrent: int) -> dict:
     import httpx
 
@@ -106,6 +121,8 @@ def measure(workdir: Path, load: int, repeat: int, concurrent: int) -> dict:
         t0 = time.perf_counter()
         with ocpar_serve(state) as url:
             start_s = time.perf_counter() - t0
+            wait_ready(url)
+            ready_s = time.perf_counter() - t0
             headers = {"Authorization": f"Bearer {token}"}
             with httpx.Client(base_url=url, headers=headers, timeout=120) as client:
                 first, _ = one_job(client)
@@ -127,6 +144,7 @@ def measure(workdir: Path, load: int, repeat: int, concurrent: int) -> dict:
     one = [s for s, _ in single]
     many = [s for s, _ in results]
     return {"cpu_burners": load, "server_start_s": round(start_s, 3),
+            "server_ready_s": round(ready_s, 3),
             "first_job_s": round(first, 3),
             "one_at_a_time": {"jobs": repeat, "succeeded": sum(s == "succeeded"
                                                               for _, s in single),

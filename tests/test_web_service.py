@@ -393,6 +393,39 @@ def test_a_job_that_kills_its_runner_fails_alone_and_jobs_run_on_warm(server):
     assert len(set(pids)) < len(pids) and not set(pids) & set(crashed), (pids, crashed)
 
 
+def test_a_jobs_plot_is_drawn_when_first_fetched_as_a_direct_run_draws_it(server, tmp_path):
+    """The server says it is ready; a job draws no plot (no picture time in its timings):
+    its plot is listed without a size until the first GET draws it, with the pixels of
+    ``ocpar run``'s plot of the same configuration; the second GET serves the same bytes."""
+    from PIL import Image
+
+    srv, tokens = server
+    deadline = time.monotonic() + 120
+    while (health := httpx.get(srv.url + "/health")).status_code == 503:
+        assert health.json() == {"ready": False} and time.monotonic() < deadline
+        time.sleep(0.1)
+    assert health.json() == {"ready": True}
+    client = srv.client(tokens["c"])
+    final = wait_final(client, client.post("/jobs", json=CONFIGS[2]).json()["id"])
+    assert final["state"] == "succeeded", final
+    assert "picture_s" not in fetch_result(client, final["id"])["timings"]
+    listed = {f["name"]: f["size"] for f in client.get(f"/jobs/{final['id']}/files").json()[
+        "files"]}
+    assert listed["formation.png"] is None and listed["result.json"] > 0
+    drawn = client.get(f"/jobs/{final['id']}/files/formation.png")
+    assert drawn.status_code == 200, drawn.text
+    assert client.get(f"/jobs/{final['id']}/files/formation.png").content == drawn.content
+    listed = {f["name"]: f["size"] for f in client.get(f"/jobs/{final['id']}/files").json()[
+        "files"]}
+    assert listed["formation.png"] == len(drawn.content)
+    run_direct(CONFIGS[2], tmp_path / "direct")
+    (tmp_path / "served.png").write_bytes(drawn.content)
+    with Image.open(tmp_path / "served.png") as served, \
+            Image.open(tmp_path / "direct" / "formation.png") as direct:
+        assert served.size == direct.size
+        assert served.tobytes() == direct.tobytes()
+
+
 def test_a_job_over_the_memory_limit_is_refused_naming_estimate_and_limit(server):
     """The module's server allows 0.3 GB per job: 50,000 agents (112 MiB + 3.9 KB each:
     0.312 GB) are refused before a job exists, 40,000 (0.273 GB) pass that check."""

@@ -17,10 +17,13 @@ from pathlib import Path
 from ocpar.service.jobs import outcome, run_command, write_state
 
 
-def dask_options(scheduler: str, job_id: str, tls: dict | None = None) -> list[str]:
+def dask_options(scheduler: str, job_id: str, tls: dict | None = None,
+                 dispatch: str = "tasks") -> list[str]:
     """The backend options of a job's run on the cluster at ``scheduler``: its tasks go
-    through the scheduler, named after the job; ``tls``: the certificate files it presents."""
-    return ["--backend", "dask", "--scheduler", scheduler, "--dispatch", "tasks",
+    through the scheduler, named after the job (``dispatch`` ``direct``: straight to the
+    workers, which must be reachable from here); ``tls``: the certificate files it
+    presents."""
+    return ["--backend", "dask", "--scheduler", scheduler, "--dispatch", dispatch,
             "--job-name", job_id,
             *(arg for name, path in (tls or {}).items()
               for arg in ("--" + name.replace("_", "-"), path))]

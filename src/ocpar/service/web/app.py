@@ -45,6 +45,7 @@ from ocpar.service.client import SERVICE_OPTIONS
 from ocpar.service.jobs import JOB_ID, has_checkpoint, new_job_id, supersteps_done
 from ocpar.service.web import memory
 from ocpar.service.web.events import parse_progress
+from ocpar.service.web.figures import DrawingFailed, Figures, pending
 from ocpar.service.web.runner import Runner, Settings
 from ocpar.service.web.store import FINAL, Store, Token
 from ocpar.service.web.tokens import authenticate
@@ -61,6 +62,9 @@ LIMITED = {"formation": ("agents", "agents", "agents"),
 #: Most bytes of the log one ``GET /jobs/{id}/log`` returns.
 LOG_CHUNK = 1 << 20
 STATIC = Path(__file__).with_name("static")
+#: A request checked before the server answers, so that the first POST finds what a check
+#: imports and builds loaded.
+WARM_UP_REQUEST = {"config": "formation-60", "set": {"agents": 12}}
 
 
 class JobRecord(BaseModel):
@@ -102,7 +106,12 @@ class LogChunk(BaseModel):
 
 class FileEntry(BaseModel):
     name: str
-    size: int
+    size: int | None = Field(description="bytes; null for a plot drawn when first fetched")
+
+
+class Health(BaseModel):
+    ready: bool = Field(description="whether a job submitted now starts at once on warm "
+                        "processes (the cluster up, every runner warmed up)")
 
 
 class FileList(BaseModel):
@@ -176,10 +185,12 @@ def create_app(settings: Settings) -> FastAPI:
     jobs a :class:`~ocpar.service.web.runner.Runner` starts while the application runs."""
     store = Store(settings.state_dir)
     runner = Runner(store, settings)
+    figures = Figures(runner.pool)
 
     @asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
         await run_in_threadpool(runner.start)
+        await run_in_threadpool(checked, WARM_UP_REQUEST, Token("warm-up"))
         yield
         await run_in_threadpool(runner.stop)
 
@@ -401,14 +412,30 @@ def create_app(settings: Settings) -> FastAPI:
         return {"files": output_files(store.job_dir(job_id))}
 
     @app.get("/jobs/{job_id}/files/{name}", tags=["jobs"], responses={
-        **errors, 200: {"content": {"application/octet-stream": {}}}},
-             summary="one file of the job's output directory")
+        **errors, 200: {"content": {"application/octet-stream": {}}},
+        500: {"model": Problem, "description": "a plot that could not be drawn"}},
+             summary="one file of the job's output directory (a plot is drawn when first "
+                     "fetched)")
     def get_file(job_id: str, name: str, token: Caller) -> FileResponse:
-        owned(job_id, token)
+        row = owned(job_id, token)
         path = store.job_dir(job_id)
         if name not in {entry["name"] for entry in output_files(path)}:
             raise HTTPException(404, f"job {job_id} has no file {name[:80]!r}")
+        if name in pending(path):
+            try:
+                figures.draw(path, row["scheme"], json.loads(row["argv"]))
+            except DrawingFailed as exc:
+                raise HTTPException(500, f"job {job_id}: {name}: {exc}") from None
         return FileResponse(path / "output" / name)
+
+    @app.get("/health", response_model=Health, tags=["server"],
+             responses={503: {"model": Health, "description": "not ready yet"}},
+             summary="whether the server is ready: jobs start at once on warm processes")
+    def health(response: Response) -> dict:
+        ready = runner.ready
+        if not ready:
+            response.status_code = 503
+        return {"ready": ready}
 
     @app.delete("/jobs/{job_id}", status_code=204, tags=["jobs"],
                 responses={**errors, 409: {"model": Problem}},
@@ -448,12 +475,15 @@ def create_app(settings: Settings) -> FastAPI:
 
 
 def output_files(path: Path) -> list[dict]:
-    """Name and size of every file in the output directory of the job in ``path``."""
+    """Name and size of every file in the output directory of the job in ``path``, and its
+    plots still to be drawn (size None, :func:`~ocpar.service.web.figures.pending`)."""
     output = path / "output"
     if not output.is_dir():
         return []
-    return [{"name": p.name, "size": p.stat().st_size} for p in sorted(output.iterdir())
-            if p.is_file() and not p.name.startswith(".")]
+    files = [{"name": p.name, "size": p.stat().st_size} for p in output.iterdir()
+             if p.is_file() and not p.name.startswith(".")]
+    return sorted(files + [{"name": name, "size": None} for name in pending(path)],
+                  key=lambda entry: entry["name"])
 
 
 def _read(path: Path, offset: int, limit: int) -> tuple[bytes, int]:

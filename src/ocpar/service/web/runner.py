@@ -39,7 +39,7 @@ from typing import Any
 from ocpar.service.coordinator import dask_options
 from ocpar.service.jobs import has_checkpoint, outcome, run_command, supersteps_done
 from ocpar.service.web.store import DEFAULT_SOLVER_OPTIONS, Store
-from ocpar.service.web.warm import WarmPool
+from ocpar.service.web.warm import PICTURE_INPUT, PICTURE_NAMES, WarmPool
 
 log = logging.getLogger("ocpar.serve")
 
@@ -77,8 +77,10 @@ class Runner:
         self._stop = threading.Event()
         #: Set to start the supervisor's next round now (a job submitted, or one ended).
         self.wake = threading.Event()
+        role = (["dask", str(self._address_file), self.dispatch]
+                if settings.backend == "dask" else [settings.backend])
         self.pool = (WarmPool(store.state_dir, settings.max_running, _job_environment(),
-                              self.wake) if settings.backend in WARM_BACKENDS else None)
+                              self.wake, role) if settings.backend in WARM_BACKENDS else None)
         self._thread = threading.Thread(target=self._loop, name="ocpar-runner", daemon=True)
 
     # life cycle ---------------------------------------------------------------------------
@@ -90,6 +92,8 @@ class Runner:
         self.recover()
         if self.settings.backend == "dask" and self.address is None:
             self._start_cluster()
+        elif self.address is not None:  # an existing cluster's, for the warm runners
+            self._address_file.write_text(self.address)
         if self.pool is not None:
             self.pool.maintain()
         self._thread.start()
@@ -141,6 +145,16 @@ class Runner:
                 raise RuntimeError("the embedded Dask cluster did not start (see "
                                    f"{self.store.state_dir / 'cluster.log'})")
         return self.address
+
+    @property
+    def ready(self) -> bool:
+        """Whether a job submitted now starts at once on warm processes: the cluster is up
+        (Dask) and every warm runner has made its warm-up run."""
+        try:
+            cluster = self.settings.backend != "dask" or self.cluster_address() is not None
+        except RuntimeError:
+            return False
+        return cluster and (self.pool is None or self.pool.ready)
 
     def recover(self) -> None:
         """Queue again every job left ``running`` by a server that was stopped or killed,
@@ -254,7 +268,9 @@ class Runner:
             return False  # cancelled meanwhile
         path = self.store.job_dir(job_id)
         (path / "output").mkdir(parents=True, exist_ok=True)
-        (path / "output" / "result.json").unlink(missing_ok=True)  # a previous run's
+        for previous in (path / "output" / "result.json", path / PICTURE_NAMES,
+                         path / PICTURE_INPUT):  # a previous run's
+            previous.unlink(missing_ok=True)
         backend, launcher = self._backend(job_id)
         command = run_command(path, row["scheme"], json.loads(row["argv"]), backend,
                               resume=bool(row["resume"]), launcher=launcher)
@@ -284,7 +300,13 @@ class Runner:
             return [], [str(mpirun) if mpirun.exists() else "mpirun", "-n",
                         str(self.settings.workers)]
         assert self.address is not None
-        return dask_options(self.address, job_id), None
+        return dask_options(self.address, job_id, dispatch=self.dispatch), None
+
+    @property
+    def dispatch(self) -> str:
+        """How Dask jobs hand their chunks to the workers: ``direct`` on the embedded
+        cluster (its workers on this host), through the scheduler (``tasks``) on another."""
+        return "tasks" if self.settings.scheduler else "direct"
 
 
 def _job_environment() -> dict[str, str]:
