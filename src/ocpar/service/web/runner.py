@@ -8,7 +8,8 @@ owned by the server), an existing cluster (``--scheduler``), ``mpirun -n W`` (``
 mpi``) or serially. On the Dask and serial backends it runs in a warm runner
 (:mod:`ocpar.service.web.warm`: a process group of its own that has imported ocpar and keeps
 its cluster connection, one job at a time, ``max_running`` of them); under ``mpirun`` as a
-process group of its own, started for it.
+process group of its own, started for it. Every process that runs jobs has
+:data:`~ocpar.service.web.warm.JOB_NICENESS`: the server answers first.
 
 A job's state: ``queued`` → ``running`` → ``succeeded`` (its ``result.json`` has status
 converged), ``failed`` (any other result status, or no result: the reason says why) or
@@ -39,7 +40,7 @@ from typing import Any
 from ocpar.service.coordinator import dask_options
 from ocpar.service.jobs import has_checkpoint, outcome, run_command, supersteps_done
 from ocpar.service.web.store import DEFAULT_SOLVER_OPTIONS, Store
-from ocpar.service.web.warm import PICTURE_INPUT, PICTURE_NAMES, WarmPool
+from ocpar.service.web.warm import PICTURE_INPUT, PICTURE_NAMES, WarmPool, lower_priority
 
 log = logging.getLogger("ocpar.serve")
 
@@ -129,6 +130,7 @@ class Runner:
                 [sys.executable, "-m", "ocpar.service.web.cluster", str(self._address_file),
                  str(self.settings.workers)], stdin=subprocess.DEVNULL, stdout=out,
                 stderr=out, start_new_session=True, env=_job_environment())
+        lower_priority(self.cluster.pid)
         self._cluster_deadline = time.monotonic() + 120
 
     @property
@@ -287,6 +289,7 @@ class Runner:
                 self.store.update(job_id, state="failed", finished=time.time(),
                                   reason=f"cannot start {command[0]}: {exc.strerror or exc}")
                 return False
+        lower_priority(proc.pid)
         self.procs[job_id] = proc
         self.store.update(job_id, pid=proc.pid)
         return True

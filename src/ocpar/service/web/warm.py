@@ -48,8 +48,18 @@ JOBS_PER_RUNNER = 200
 #: are drawn when first asked for (:func:`draw`), and the names of those plots (JSON list).
 PICTURE_INPUT = "picture.pickle"
 PICTURE_NAMES = "picture.json"
+#: The niceness of every process that runs jobs (warm runners, the embedded cluster and its
+#: workers, ``mpirun``): the server's own process, which answers the HTTP requests, comes
+#: first on a machine its jobs keep busy.
+JOB_NICENESS = 5
 #: Seconds a runner has to start (imports) before the pool gives up on it and starts another.
 START_TIMEOUT_S = 120.0
+
+
+def lower_priority(group: int) -> None:
+    """Give the process group ``group`` (and the processes it starts) :data:`JOB_NICENESS`."""
+    with contextlib.suppress(OSError):
+        os.setpriority(os.PRIO_PGRP, group, JOB_NICENESS)
 
 
 class WarmJob:
@@ -81,6 +91,7 @@ class WarmRunner:
                 [sys.executable, "-m", "ocpar.service.web.warm", str(state_dir), *role],
                 stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=out,
                 start_new_session=True, env=env)
+        lower_priority(self.proc.pid)
         self.ready = False
         self.jobs = 0
         self.job: WarmJob | None = None
