@@ -14,7 +14,7 @@ import subprocess
 import sys
 from pathlib import Path
 
-from ocpar.service.jobs import outcome, run_command, write_state
+from ocpar.service.jobs import log_last_line, outcome, run_command, write_state
 
 
 def dask_options(scheduler: str, job_id: str, tls: dict | None = None,
@@ -43,7 +43,9 @@ def main(argv: list[str] | None = None) -> int:
         status = subprocess.run(command(path, job), stdout=log, stderr=log,
                                 stdin=subprocess.DEVNULL).returncode
     state, result_status = outcome(path, status)
-    details = {"result_status": result_status} if state == "finished" else {}
+    details = ({"result_status": result_status} if state == "finished" else
+               {"reason": f"exit status {status}; {log_last_line(path)}"} if state == "failed"
+               else {})
     write_state(path, state, exit_status=status, **details)
     return 0
 
