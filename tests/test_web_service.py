@@ -2,11 +2,11 @@
 (``python -m ocpar serve``), requests over HTTP with httpx.
 
 The module's server runs on the default backend, its embedded Dask cluster of 2 workers, which
-the jobs of all three schemes share (a resident set's chunks of one job and another job's
-queue on the same workers); the restart test's server runs each job as one serial process.
-Results are compared with ``ocpar run`` of the same configuration, run here in this process
-at the same time (the machine is busy). The 20 concurrent jobs take about 50 s on 2 shared
-cores."""
+the formation and MACS jobs share (a resident set's chunks of one job and another job's queue
+on the same workers; pursuit jobs run serially in their warm runners); the restart test's
+server runs each job as one serial process. Results are compared with ``ocpar run`` of the
+same configuration, run here in this process at the same time (the machine is busy). The 20
+concurrent jobs take about 50 s on 2 shared cores."""
 
 from __future__ import annotations
 
@@ -238,7 +238,9 @@ def test_twenty_jobs_from_four_tokens_equal_their_direct_runs(server, tmp_path):
                 assert final["result_status"] == "converged" and final["reason"] is None
                 assert "result.json" in final["files"]
                 result = fetch_result(client, record["id"])
-                assert result["backend"] == "dask" and result["workers"] == 2
+                # pursuit's supersteps are smaller than a round trip to the workers
+                assert (result["backend"], result["workers"]) == (
+                    ("serial", 1) if result["scheme"] == "pursuit" else ("dask", 2))
                 assert computed(result) == expected[index], (name, index)
                 assert final["supersteps"] >= result["supersteps"] > 0  # checkpointed ones
                 arrays = client.get(f"/jobs/{record['id']}/files/{result['arrays']}")
