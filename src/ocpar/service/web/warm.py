@@ -1,13 +1,17 @@
 """Warm runners of ``ocpar serve``: processes that have imported ocpar, the three schemes and
 Distributed once, and run the server's jobs one at a time, in process.
 
-A runner is ``python -m ocpar.service.web.warm STATE_DIR``, a process group of its own,
-started by the server (:class:`WarmPool`, as many as jobs may run at once). It reads one
+A runner is ``python -m ocpar.service.web.warm STATE_DIR ROLE ...`` (:func:`main`), a process
+group of its own, started by the server (:class:`WarmPool`, as many as jobs may run at once,
+and one that draws their plots), warmed up by a small run on the server's backend
+(:func:`warm_up`) before it says it is ready. It reads one
 request per line on its standard input (the job's directory and the scheme's command line
 of :func:`ocpar.service.jobs.run_command`), runs it as ``python -m ocpar.<scheme>`` would
 (:func:`ocpar.driver.run_scheme`: the same checkpoint, output, stop file and exit status),
 its file descriptors 1 and 2 (Python's, IPOPT's) on the job's ``log.txt`` and its working
-directory the job's, and answers ``{"exit": STATUS}`` on a line. Its client of the cluster's
+directory the job's, and answers ``{"exit": STATUS}`` on a line. It draws no plot: it keeps
+the result for the drawing runner (:func:`keep_for_picture`, :func:`draw`;
+:mod:`ocpar.service.web.figures`). Its client of the cluster's
 scheduler is connected by the first job and kept for the next ones
 (:func:`ocpar.bsp.dask.keep_clients`); the inner solvers stay cached on the workers as for
 any run.
