@@ -67,9 +67,10 @@ LIMITED = {"formation": ("agents", "agents", "agents"),
 #: Most bytes of the log one ``GET /jobs/{id}/log`` returns.
 LOG_CHUNK = 1 << 20
 STATIC = Path(__file__).with_name("static")
-#: A request checked before the server answers, so that the first POST finds what a check
-#: imports and builds loaded.
-WARM_UP_REQUEST = {"config": "formation-60", "set": {"agents": 12}}
+#: A request of each scheme checked before the server answers, so that the first POST finds
+#: what a check imports and builds loaded.
+WARM_UP_REQUESTS = ({"config": "formation-60", "set": {"agents": 12}},
+                    {"config": "pursuit-case1"}, {"config": "macs-goddard"})
 
 
 class JobRecord(BaseModel):
@@ -195,7 +196,8 @@ def create_app(settings: Settings) -> FastAPI:
     @asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
         await run_in_threadpool(runner.start)
-        await run_in_threadpool(checked, WARM_UP_REQUEST, Token("warm-up"))
+        for request in WARM_UP_REQUESTS:
+            await run_in_threadpool(checked, request, Token("warm-up", None, None, None, None))
         yield
         await run_in_threadpool(runner.stop)
 
