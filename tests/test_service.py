@@ -5,13 +5,16 @@ cancelled by separate ``ocpar`` processes."""
 from __future__ import annotations
 
 import json
+import os
 import re
+import signal
+import subprocess
 import time
 from pathlib import Path
 from types import SimpleNamespace
 
 import pytest
-from conftest import local_cluster, run_cli
+from conftest import free_port, local_cluster, run_cli
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
@@ -243,3 +246,42 @@ def test_submit_refuses_service_options_after_the_configuration(capsys):
     err = capsys.readouterr().err
     assert exc.value.code == 2 and err.splitlines() == [
         "ocpar submit: error: --output is set by the service for a submitted job; leave it out"]
+
+
+@pytest.mark.parametrize("when", ["before its run", "during its run"])
+def test_a_job_whose_coordinator_is_killed_ends_failed_with_the_reason(tmp_path, monkeypatch,
+                                                                       when):
+    """A job's coordinator killed (SIGKILL) before it records ``running``, or while its run
+    waits for a scheduler that does not answer: the job's status says ``failed`` within 5 s,
+    naming the signal and the state it was in, and no process of the job lives on."""
+    monkeypatch.setenv(jobs.JOBS_DIR_ENV, str(tmp_path))
+    job = jobs.create_and_start("formation", ["--agents", "4"],
+                                f"tcp://127.0.0.1:{free_port()}")  # nobody listens there
+    path = tmp_path / job
+    pid = int((path / jobs.COORDINATOR_PID).read_text())
+    if when == "during its run":
+        deadline = time.monotonic() + 60
+        while jobs.job_status(job)["state"] != "running" or "ocpar.formation" not in \
+                subprocess.run(["ps", "-o", "args=", "-g", str(pid)], capture_output=True,
+                               text=True).stdout:
+            assert time.monotonic() < deadline
+            time.sleep(0.05)
+        was = "running"
+    else:
+        assert jobs.job_status(job)["state"] == "queued"
+        was = "queued"
+    if was == "queued":
+        os.killpg(pid, signal.SIGKILL)
+    else:  # the coordinator alone: its run (the scheme's process) lives on until the check
+        os.kill(pid, signal.SIGKILL)
+    deadline = time.monotonic() + 5
+    while (status := jobs.job_status(job))["state"] != "failed":
+        assert status["state"] == was and time.monotonic() < deadline, status
+        time.sleep(0.05)
+    assert status["reason"].startswith(f"its coordinator killed by signal {signal.SIGKILL:d} "
+                                       f"while the job was {was}"), status
+    deadline = time.monotonic() + 5
+    while (left := subprocess.run(["ps", "-o", "stat=", "-g", str(pid)], capture_output=True,
+                                  text=True).stdout.split()) and set(left) != {"Z"}:
+        assert time.monotonic() < deadline, left  # (zombies wait for their reaper)
+        time.sleep(0.05)

@@ -199,8 +199,9 @@ def _describe(status: dict) -> str:
     age = time.strftime("%Y-%m-%d %H:%M:%S", time.localtime(status["submitted"]))
     cancel = "  (cancel requested)" if status["cancel_requested"] and \
         status["state"] == "running" else ""
+    reason = f"  ({status['reason']})" if status.get("reason") else ""
     return (f"{status['id']:38} {status['state']:9} supersteps {status['supersteps']:5d}  "
-            f"submitted {age}{cancel}")
+            f"submitted {age}{cancel}{reason}")
 
 
 def jobs(args: argparse.Namespace) -> int:

@@ -24,7 +24,7 @@ import os
 import sys
 import textwrap
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, ClassVar
@@ -119,6 +119,10 @@ class SchemeRun(RuntimeOptions):
              out: Path) -> list[Path]:  # pragma: no cover - provided by each scheme
         """Write the scheme's plots into ``out``; returns their paths."""
         raise NotImplementedError
+
+    def plot_names(self, result: RunResult) -> tuple[str, ...]:
+        """The file names :meth:`plot` writes for ``result`` (of :attr:`plots`)."""
+        return self.plots
 
 
 def build_parser(scheme: type[SchemeRun],
@@ -222,9 +226,11 @@ def previous_run_files(options: SchemeRun, out: Path, problem: Any) -> list[Path
     return [out / Path(n).name for n in names if isinstance(n, str) and n]
 
 
-def run_scheme(options: SchemeRun, given: frozenset[str] | None = None) -> int:
+def run_scheme(options: SchemeRun, given: frozenset[str] | None = None,
+               kept: Callable[[Any, RunResult], None] | None = None) -> int:
     """Run ``options`` (on MPI, on every rank) and return the exit status; bad input exits 2
-    with one line before any worker starts."""
+    with one line before any worker starts. ``kept(problem, result)`` is called once the
+    result files are written (e.g. to draw the plots later: ``ocpar serve``)."""
     prog = options.prog
     started, entered = process_age(), time.perf_counter()
     given = explicitly_set(options) if given is None else given
@@ -260,6 +266,8 @@ def run_scheme(options: SchemeRun, given: frozenset[str] | None = None) -> int:
     print(result.summary(), flush=True)
     if out is not None:
         written = write_result(result, out)
+        if kept is not None:
+            kept(problem, result)
         if options.picture != "none":
             drawing = time.perf_counter()
             written += options.plot(problem, result, out)

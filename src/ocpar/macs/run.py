@@ -86,6 +86,10 @@ class MacsRun(SchemeRun, MacsSettings):
         from ocpar.macs.plot import plot_controls, plot_front
 
         written = [plot_front(result, out / "front.png")]
-        if len(result.front):
+        if "controls.png" in self.plot_names(result):
             written.append(plot_controls(problem, result, out / "controls.png"))
         return written
+
+    def plot_names(self, result: MacsResult) -> tuple[str, ...]:
+        """front.png, and controls.png if the archive has members."""
+        return self.plots if len(result.front) else self.plots[:1]

@@ -121,6 +121,10 @@ class PursuitRun(SchemeRun, PursuitSettings):
         from ocpar.pursuit.plot import plot_convergence, plot_trajectories
 
         written = [plot_trajectories(problem, result, out / "pursuit.png")]
-        if self.mode == "pbms":
+        if "convergence.png" in self.plot_names(result):
             written.append(plot_convergence(result, out / "convergence.png"))
         return written
+
+    def plot_names(self, result: PursuitResult) -> tuple[str, ...]:
+        """pursuit.png, and convergence.png in mode pbms."""
+        return self.plots if self.mode == "pbms" else self.plots[:1]

@@ -14,13 +14,16 @@ import subprocess
 import sys
 from pathlib import Path
 
-from ocpar.service.jobs import outcome, run_command, write_state
+from ocpar.service.jobs import log_last_line, outcome, run_command, write_state
 
 
-def dask_options(scheduler: str, job_id: str, tls: dict | None = None) -> list[str]:
+def dask_options(scheduler: str, job_id: str, tls: dict | None = None,
+                 dispatch: str = "tasks") -> list[str]:
     """The backend options of a job's run on the cluster at ``scheduler``: its tasks go
-    through the scheduler, named after the job; ``tls``: the certificate files it presents."""
-    return ["--backend", "dask", "--scheduler", scheduler, "--dispatch", "tasks",
+    through the scheduler, named after the job (``dispatch`` ``direct``: straight to the
+    workers, which must be reachable from here); ``tls``: the certificate files it
+    presents."""
+    return ["--backend", "dask", "--scheduler", scheduler, "--dispatch", dispatch,
             "--job-name", job_id,
             *(arg for name, path in (tls or {}).items()
               for arg in ("--" + name.replace("_", "-"), path))]
@@ -40,7 +43,9 @@ def main(argv: list[str] | None = None) -> int:
         status = subprocess.run(command(path, job), stdout=log, stderr=log,
                                 stdin=subprocess.DEVNULL).returncode
     state, result_status = outcome(path, status)
-    details = {"result_status": result_status} if state == "finished" else {}
+    details = ({"result_status": result_status} if state == "finished" else
+               {"reason": f"exit status {status}; {log_last_line(path)}"} if state == "failed"
+               else {})
     write_state(path, state, exit_status=status, **details)
     return 0
 

@@ -256,7 +256,7 @@ class Server:
 
     def files(self, job: str) -> list[dict]:
         """The files of the job's output directory: ``[{"name", "size"}, ...]`` (size in
-        bytes)."""
+        bytes; None for a plot the server draws when it is first downloaded)."""
         return self._json("GET", _path(job, "files"))["files"]
 
     def download(self, job: str, name: str, path: str | Path) -> Path:

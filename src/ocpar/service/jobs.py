@@ -7,8 +7,14 @@ no shared file system. A job directory holds
 
 * ``job.json``: id, scheme, the scheme's command line, scheduler address, the paths of the
   certificate files its coordinator presents on a ``tls://`` cluster, submission time;
+* ``coordinator.pid``: the pid of the job's coordinator (the leader of its process group),
+  written as it starts;
 * ``state.json``: ``queued`` → ``running`` (with the coordinator's pid) → ``finished``,
-  ``failed`` or ``cancelled`` (with the exit status), written atomically;
+  ``failed`` (with a ``reason``) or ``cancelled`` (with the exit status), written
+  atomically. A job whose coordinator is gone while its state says ``queued`` or ``running``
+  (killed or crashed at any moment, before its run or during it) is ``failed`` with the
+  reason as soon as its status is asked for (:func:`job_status`), the rest of its process
+  group killed;
 * ``checkpoint/`` (the run's journal: supersteps done, resumable with ``--resume``),
   ``output/`` (``result.json`` and plots), ``log.txt`` (the coordinator's progress lines),
   and ``cancel`` once a cancellation is asked for (the run stops at the next superstep
@@ -23,10 +29,12 @@ certificate must be good for both ends, as workers/tls.md makes them).
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import re
 import secrets
+import signal
 import subprocess
 import sys
 import time
@@ -38,6 +46,8 @@ from ocpar.cli import EXIT_CANCELLED
 from ocpar.results import EXIT_STATUS
 
 JOBS_DIR_ENV = "OCPAR_JOBS_DIR"
+#: The file of a job's directory that holds its coordinator's pid.
+COORDINATOR_PID = "coordinator.pid"
 #: A job's id: its scheme, the submission time and 6 random hex digits.
 JOB_ID = re.compile(r"(?:formation|pursuit|macs)-[0-9]{8}-[0-9]{6}-[0-9a-f]{6}", re.ASCII)
 #: Files of a finished job that ``ocpar result`` fetches (from ``output/``).
@@ -167,17 +177,74 @@ def create_and_start(scheme: str, argv: list[str], scheduler: str,
                                     "submitted": time.time()})
     write_state(path, "queued")
     with open(path / "log.txt", "ab") as log:
-        subprocess.Popen([sys.executable, "-m", "ocpar.service.coordinator", str(path)],
-                         stdin=subprocess.DEVNULL, stdout=log, stderr=log,
-                         start_new_session=True, cwd=path)
+        proc = subprocess.Popen([sys.executable, "-m", "ocpar.service.coordinator", str(path)],
+                                stdin=subprocess.DEVNULL, stdout=log, stderr=log,
+                                start_new_session=True, cwd=path)
+    tmp = path / f".{COORDINATOR_PID}"
+    tmp.write_text(str(proc.pid))
+    os.replace(tmp, path / COORDINATOR_PID)
     return job_id
+
+
+def coordinator_gone(path: Path) -> str | None:
+    """How the coordinator of the job in ``path`` ended (``killed by signal 9``, ``exit status
+    1`` where this process started it, else ``ended``), None while it lives or if its pid is
+    not known yet."""
+    try:
+        pid = int((path / COORDINATOR_PID).read_text())
+    except (OSError, ValueError):
+        return None
+    try:  # this process's child (the scheduler started it): its exit status, once reaped
+        done, status = os.waitpid(pid, os.WNOHANG)
+    except ChildProcessError:
+        done = 0
+    else:
+        if not done:
+            return None
+        return (f"killed by signal {os.WTERMSIG(status)}" if os.WIFSIGNALED(status)
+                else f"exit status {os.WEXITSTATUS(status)}")
+    try:
+        stat = Path(f"/proc/{pid}/stat").read_text()
+        command = Path(f"/proc/{pid}/cmdline").read_bytes().decode(errors="replace")
+    except OSError:
+        return "ended"
+    alive = stat.rsplit(")", 1)[1].split()[0] != "Z" and str(path) in command
+    return None if alive else "ended"
+
+
+def _fail_if_orphaned(path: Path, state: dict) -> dict:
+    """``state``, or the ``failed`` state (recorded, the coordinator's process group killed)
+    if it says queued or running but the coordinator is gone."""
+    if state.get("state") not in ("queued", "running"):
+        return state
+    how = coordinator_gone(path)
+    if how is None:
+        return state
+    current = json.loads((path / "state.json").read_text())  # written before it exited?
+    if current.get("state") not in ("queued", "running"):
+        return current
+    with contextlib.suppress(ProcessLookupError, PermissionError, ValueError, OSError):
+        os.killpg(int((path / COORDINATOR_PID).read_text()), signal.SIGKILL)
+    write_state(path, "failed", reason=f"its coordinator {how} while the job was "
+                f"{current['state']} (killed or crashed); {log_last_line(path)}")
+    return json.loads((path / "state.json").read_text())
+
+
+def log_last_line(path: Path) -> str:
+    """The last non-blank line of the job's log, for a reason."""
+    try:
+        lines = (path / "log.txt").read_text(errors="replace").splitlines()
+    except OSError:
+        lines = []
+    last = next((line.strip() for line in reversed(lines) if line.strip()), None)
+    return f"its log's last line: {last[:300]}" if last else "its log is empty"
 
 
 def job_status(job_id: str) -> dict:
     """State, supersteps done and the last progress line of ``job_id``."""
     path = job_dir(job_id)
     job = json.loads((path / "job.json").read_text())
-    state = json.loads((path / "state.json").read_text())
+    state = _fail_if_orphaned(path, json.loads((path / "state.json").read_text()))
     supersteps = supersteps_done(path)
     lines = [line for line in (path / "log.txt").read_text(errors="replace").splitlines()
              if line.strip()] if (path / "log.txt").exists() else []

@@ -11,6 +11,11 @@ the token's limits; nothing of a request is imported or unpickled but an
 allowed reference, and the job's memory estimate against the server's limit
 (:mod:`ocpar.service.web.memory`). ``GET /`` and ``/static`` serve the page (no token needed).
 
+The reading endpoints are coroutines: they run on the event loop, whose reads of the store
+(a read-only connection, never waiting for the write lock) and of a job's few files take well
+under a millisecond, with no hop to a worker thread (which, on a busy machine, costs a
+scheduler's time slice each). Those that write, check or draw run in worker threads.
+
 (No ``from __future__ import annotations`` here: FastAPI reads the endpoints' annotations,
 some of them local to :func:`create_app`.)
 """
@@ -45,6 +50,7 @@ from ocpar.service.client import SERVICE_OPTIONS
 from ocpar.service.jobs import JOB_ID, has_checkpoint, new_job_id, supersteps_done
 from ocpar.service.web import memory
 from ocpar.service.web.events import parse_progress
+from ocpar.service.web.figures import DrawingFailed, Figures, pending
 from ocpar.service.web.runner import Runner, Settings
 from ocpar.service.web.store import FINAL, Store, Token
 from ocpar.service.web.tokens import authenticate
@@ -61,6 +67,10 @@ LIMITED = {"formation": ("agents", "agents", "agents"),
 #: Most bytes of the log one ``GET /jobs/{id}/log`` returns.
 LOG_CHUNK = 1 << 20
 STATIC = Path(__file__).with_name("static")
+#: A request of each scheme checked before the server answers, so that the first POST finds
+#: what a check imports and builds loaded.
+WARM_UP_REQUESTS = ({"config": "formation-60", "set": {"agents": 12}},
+                    {"config": "pursuit-case1"}, {"config": "macs-goddard"})
 
 
 class JobRecord(BaseModel):
@@ -102,7 +112,12 @@ class LogChunk(BaseModel):
 
 class FileEntry(BaseModel):
     name: str
-    size: int
+    size: int | None = Field(description="bytes; null for a plot drawn when first fetched")
+
+
+class Health(BaseModel):
+    ready: bool = Field(description="whether a job submitted now starts at once on warm "
+                        "processes (the cluster up, every runner warmed up)")
 
 
 class FileList(BaseModel):
@@ -176,10 +191,13 @@ def create_app(settings: Settings) -> FastAPI:
     jobs a :class:`~ocpar.service.web.runner.Runner` starts while the application runs."""
     store = Store(settings.state_dir)
     runner = Runner(store, settings)
+    figures = Figures(runner.pool)
 
     @asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
         await run_in_threadpool(runner.start)
+        for request in WARM_UP_REQUESTS:
+            await run_in_threadpool(checked, request, Token("warm-up", None, None, None, None))
         yield
         await run_in_threadpool(runner.stop)
 
@@ -199,7 +217,7 @@ def create_app(settings: Settings) -> FastAPI:
         where = ".".join(str(part) for part in first.get("loc", ())[1:]) or "request"
         return JSONResponse({"detail": f"{where}: {first.get('msg')}"}, status_code=422)
 
-    def caller(credentials: Annotated[HTTPAuthorizationCredentials | None,
+    async def caller(credentials: Annotated[HTTPAuthorizationCredentials | None,
                                       Security(bearer)]) -> Token:
         token = authenticate(store, credentials.credentials) if credentials else None
         if token is None:
@@ -341,12 +359,12 @@ def create_app(settings: Settings) -> FastAPI:
 
     @app.get("/jobs", response_model=JobList, tags=["jobs"], summary="the caller's jobs",
              responses={401: errors[401]})
-    def list_jobs(token: Caller) -> dict:
+    async def list_jobs(token: Caller) -> dict:
         return {"jobs": [record(row) for row in store.jobs(owner=token.name)]}
 
     @app.get("/jobs/{job_id}", response_model=JobRecord, tags=["jobs"], summary="one job",
              responses=errors)
-    def get_job(job_id: str, token: Caller) -> dict:
+    async def get_job(job_id: str, token: Caller) -> dict:
         return record(owned(job_id, token))
 
     @app.get("/jobs/{job_id}/events", tags=["jobs"], responses={
@@ -355,14 +373,14 @@ def create_app(settings: Settings) -> FastAPI:
                         "event: state (data: the record) on each change, event: end (data: "
                         "the record) once final"}},
              summary="progress lines and state changes as server-sent events")
-    def events(job_id: str, token: Caller) -> StreamingResponse:
+    async def events(job_id: str, token: Caller) -> StreamingResponse:
         owned(job_id, token)
         log_path = store.job_dir(job_id) / "log.txt"
 
         async def stream() -> AsyncIterator[str]:
             offset, partial, last = 0, b"", None
             while True:
-                row = await run_in_threadpool(store.job, job_id)
+                row = store.job(job_id)
                 data, offset = _read(log_path, offset, LOG_CHUNK)
                 final = row["state"] in FINAL and len(data) < LOG_CHUNK
                 *lines, partial = (partial + data).split(b"\n")
@@ -388,7 +406,7 @@ def create_app(settings: Settings) -> FastAPI:
 
     @app.get("/jobs/{job_id}/log", response_model=LogChunk, tags=["jobs"], responses=errors,
              summary="the job's log from a byte offset")
-    def get_log(job_id: str, token: Caller,
+    async def get_log(job_id: str, token: Caller,
                 offset: Annotated[int, Query(ge=0)] = 0) -> dict:
         owned(job_id, token)
         data, end = _read(store.job_dir(job_id) / "log.txt", offset, LOG_CHUNK)
@@ -396,19 +414,35 @@ def create_app(settings: Settings) -> FastAPI:
 
     @app.get("/jobs/{job_id}/files", response_model=FileList, tags=["jobs"], responses=errors,
              summary="the files of the job's output directory")
-    def list_files(job_id: str, token: Caller) -> dict:
+    async def list_files(job_id: str, token: Caller) -> dict:
         owned(job_id, token)
         return {"files": output_files(store.job_dir(job_id))}
 
     @app.get("/jobs/{job_id}/files/{name}", tags=["jobs"], responses={
-        **errors, 200: {"content": {"application/octet-stream": {}}}},
-             summary="one file of the job's output directory")
+        **errors, 200: {"content": {"application/octet-stream": {}}},
+        500: {"model": Problem, "description": "a plot that could not be drawn"}},
+             summary="one file of the job's output directory (a plot is drawn when first "
+                     "fetched)")
     def get_file(job_id: str, name: str, token: Caller) -> FileResponse:
-        owned(job_id, token)
+        row = owned(job_id, token)
         path = store.job_dir(job_id)
         if name not in {entry["name"] for entry in output_files(path)}:
             raise HTTPException(404, f"job {job_id} has no file {name[:80]!r}")
+        if name in pending(path):
+            try:
+                figures.draw(path, row["scheme"], json.loads(row["argv"]))
+            except DrawingFailed as exc:
+                raise HTTPException(500, f"job {job_id}: {name}: {exc}") from None
         return FileResponse(path / "output" / name)
+
+    @app.get("/health", response_model=Health, tags=["server"],
+             responses={503: {"model": Health, "description": "not ready yet"}},
+             summary="whether the server is ready: jobs start at once on warm processes")
+    async def health(response: Response) -> dict:
+        ready = runner.ready
+        if not ready:
+            response.status_code = 503
+        return {"ready": ready}
 
     @app.delete("/jobs/{job_id}", status_code=204, tags=["jobs"],
                 responses={**errors, 409: {"model": Problem}},
@@ -448,12 +482,15 @@ def create_app(settings: Settings) -> FastAPI:
 
 
 def output_files(path: Path) -> list[dict]:
-    """Name and size of every file in the output directory of the job in ``path``."""
+    """Name and size of every file in the output directory of the job in ``path``, and its
+    plots still to be drawn (size None, :func:`~ocpar.service.web.figures.pending`)."""
     output = path / "output"
     if not output.is_dir():
         return []
-    return [{"name": p.name, "size": p.stat().st_size} for p in sorted(output.iterdir())
-            if p.is_file() and not p.name.startswith(".")]
+    files = [{"name": p.name, "size": p.stat().st_size} for p in output.iterdir()
+             if p.is_file() and not p.name.startswith(".")]
+    return sorted(files + [{"name": name, "size": None} for name in pending(path)],
+                  key=lambda entry: entry["name"])
 
 
 def _read(path: Path, offset: int, limit: int) -> tuple[bytes, int]:

@@ -2,8 +2,11 @@
 the jobs' directories beside it (``STATE_DIR/jobs/<id>``, laid out as
 :mod:`ocpar.service.jobs` describes: ``checkpoint/``, ``output/``, ``log.txt``, ``cancel``).
 
-Every call opens its own connection, so the HTTP handlers' threads, the supervisor's thread
-and the ``ocpar serve token`` command can use one store at once.
+Readers never take the write lock: every read runs on a read-only connection of its thread
+(``mode=ro``, kept open), whose SELECT sees the last committed state (WAL: readers and the
+one writer do not wait for each other). Every write opens its own connection for one short
+``BEGIN IMMEDIATE`` transaction, so the HTTP handlers' threads, the supervisor's thread and
+the ``ocpar serve token`` command can use one store at once.
 """
 
 from __future__ import annotations
@@ -11,6 +14,7 @@ from __future__ import annotations
 import contextlib
 import json
 import sqlite3
+import threading
 import time
 from collections.abc import Iterator
 from dataclasses import dataclass
@@ -102,10 +106,23 @@ class Store:
                 db.execute("ALTER TABLE tokens ADD COLUMN solver_options TEXT")
         finally:
             db.close()
+        self._readers = threading.local()
+
+    def reader(self) -> sqlite3.Connection:
+        """This thread's read-only connection (rows as mappings); each statement is a read
+        transaction of its own."""
+        db = getattr(self._readers, "db", None)
+        if db is None:
+            db = sqlite3.connect(f"{self.path.as_uri()}?mode=ro", uri=True, timeout=30,
+                                 isolation_level=None)
+            db.row_factory = sqlite3.Row
+            self._readers.db = db
+        return db
 
     @contextlib.contextmanager
     def connect(self) -> Iterator[sqlite3.Connection]:
-        """A connection in one transaction (committed on success), rows as mappings."""
+        """A connection in one write transaction (committed on success), rows as
+        mappings."""
         db = sqlite3.connect(self.path, timeout=30, isolation_level=None)
         db.row_factory = sqlite3.Row
         try:
@@ -146,20 +163,19 @@ class Store:
 
     def token_by_hash(self, digest: str) -> Token | None:
         """The token whose secret has SHA-256 ``digest``, if any."""
-        with self.connect() as db:
-            row = db.execute("SELECT * FROM tokens WHERE hash = ?", (digest,)).fetchone()
+        row = self.reader().execute("SELECT * FROM tokens WHERE hash = ?",
+                                    (digest,)).fetchone()
         return _token(row) if row else None
 
     def token(self, name: str) -> Token | None:
         """The token named ``name``, if any."""
-        with self.connect() as db:
-            row = db.execute("SELECT * FROM tokens WHERE name = ?", (name,)).fetchone()
+        row = self.reader().execute("SELECT * FROM tokens WHERE name = ?", (name,)).fetchone()
         return _token(row) if row else None
 
     def tokens(self) -> list[Token]:
         """Every token, by name."""
-        with self.connect() as db:
-            return [_token(row) for row in db.execute("SELECT * FROM tokens ORDER BY name")]
+        return [_token(row) for row in self.reader().execute(
+            "SELECT * FROM tokens ORDER BY name")]
 
     # jobs --------------------------------------------------------------------------------
 
@@ -180,15 +196,13 @@ class Store:
 
     def job(self, job_id: str) -> dict[str, Any] | None:
         """The row of job ``job_id``, if any."""
-        with self.connect() as db:
-            row = db.execute("SELECT * FROM jobs WHERE id = ?", (job_id,)).fetchone()
+        row = self.reader().execute("SELECT * FROM jobs WHERE id = ?", (job_id,)).fetchone()
         return dict(row) if row else None
 
     def job_by_key(self, owner: str, key: str) -> dict[str, Any] | None:
         """The job ``owner`` submitted with idempotency key ``key``, if any."""
-        with self.connect() as db:
-            row = db.execute("SELECT * FROM jobs WHERE owner = ? AND idempotency_key = ?",
-                             (owner, key)).fetchone()
+        row = self.reader().execute("SELECT * FROM jobs WHERE owner = ? AND idempotency_key = ?",
+                                    (owner, key)).fetchone()
         return dict(row) if row else None
 
     def jobs(self, owner: str | None = None, state: str | None = None) -> list[dict[str, Any]]:
@@ -201,9 +215,8 @@ class Store:
             where.append("state = ?")
             args.append(state)
         sql = "SELECT * FROM jobs" + (f" WHERE {' AND '.join(where)}" if where else "")
-        with self.connect() as db:
-            return [dict(row) for row in db.execute(sql + " ORDER BY submitted DESC, id DESC",
-                                                    args)]
+        return [dict(row) for row in self.reader().execute(
+            sql + " ORDER BY submitted DESC, id DESC", args)]
 
     def update(self, job_id: str, only_if: str | tuple[str, ...] | None = None,
                **values: Any) -> bool:

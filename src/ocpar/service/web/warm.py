@@ -1,13 +1,17 @@
 """Warm runners of ``ocpar serve``: processes that have imported ocpar, the three schemes and
 Distributed once, and run the server's jobs one at a time, in process.
 
-A runner is ``python -m ocpar.service.web.warm STATE_DIR``, a process group of its own,
-started by the server (:class:`WarmPool`, as many as jobs may run at once). It reads one
+A runner is ``python -m ocpar.service.web.warm STATE_DIR ROLE ...`` (:func:`main`), a process
+group of its own, started by the server (:class:`WarmPool`, as many as jobs may run at once,
+and one that draws their plots), warmed up by a small run on the server's backend
+(:func:`warm_up`) before it says it is ready. It reads one
 request per line on its standard input (the job's directory and the scheme's command line
 of :func:`ocpar.service.jobs.run_command`), runs it as ``python -m ocpar.<scheme>`` would
 (:func:`ocpar.driver.run_scheme`: the same checkpoint, output, stop file and exit status),
 its file descriptors 1 and 2 (Python's, IPOPT's) on the job's ``log.txt`` and its working
-directory the job's, and answers ``{"exit": STATUS}`` on a line. Its client of the cluster's
+directory the job's, and answers ``{"exit": STATUS}`` on a line. It draws no plot: it keeps
+the result for the drawing runner (:func:`keep_for_picture`, :func:`draw`;
+:mod:`ocpar.service.web.figures`). Its client of the cluster's
 scheduler is connected by the first job and kept for the next ones
 (:func:`ocpar.bsp.dask.keep_clients`); the inner solvers stay cached on the workers as for
 any run.
@@ -28,12 +32,15 @@ import ctypes
 import json
 import logging
 import os
+import pickle
 import subprocess
 import sys
 import threading
 import time
 import traceback
 import warnings
+from dataclasses import replace
+from functools import partial
 from pathlib import Path
 from typing import IO, Any
 
@@ -41,8 +48,22 @@ log = logging.getLogger("ocpar.serve")
 
 #: Jobs a runner runs before the pool replaces it (bounds what jobs leave in a process).
 JOBS_PER_RUNNER = 200
+#: A finished job's result, kept in its directory (beside ``output/``) for its plots, which
+#: are drawn when first asked for (:func:`draw`), and the names of those plots (JSON list).
+PICTURE_INPUT = "picture.pickle"
+PICTURE_NAMES = "picture.json"
+#: The niceness of every process that runs jobs (warm runners, the embedded cluster and its
+#: workers, ``mpirun``): the server's own process, which answers the HTTP requests, comes
+#: first on a machine its jobs keep busy.
+JOB_NICENESS = 5
 #: Seconds a runner has to start (imports) before the pool gives up on it and starts another.
 START_TIMEOUT_S = 120.0
+
+
+def lower_priority(group: int) -> None:
+    """Give the process group ``group`` (and the processes it starts) :data:`JOB_NICENESS`."""
+    with contextlib.suppress(OSError):
+        os.setpriority(os.PRIO_PGRP, group, JOB_NICENESS)
 
 
 class WarmJob:
@@ -65,14 +86,16 @@ class WarmJob:
 class WarmRunner:
     """The server's side of one runner process."""
 
-    def __init__(self, state_dir: Path, env: dict[str, str], wake: threading.Event) -> None:
+    def __init__(self, state_dir: Path, env: dict[str, str], wake: threading.Event,
+                 role: list[str]) -> None:
         self.wake = wake
         self.started = time.monotonic()
         with open(state_dir / "runners.log", "ab") as out:
             self.proc = subprocess.Popen(
-                [sys.executable, "-m", "ocpar.service.web.warm", str(state_dir)],
+                [sys.executable, "-m", "ocpar.service.web.warm", str(state_dir), *role],
                 stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=out,
                 start_new_session=True, env=env)
+        lower_priority(self.proc.pid)
         self.ready = False
         self.jobs = 0
         self.job: WarmJob | None = None
@@ -108,13 +131,13 @@ class WarmRunner:
         return self.proc.poll() is not None or (
             not self.ready and time.monotonic() - self.started > START_TIMEOUT_S)
 
-    def run(self, path: Path, command: list[str]) -> WarmJob:
+    def run(self, path: Path, command: list[str], draw: bool = False) -> WarmJob:
         """Start the job in ``path`` whose command line (``python -m ocpar.SCHEME ...``) is
-        ``command``."""
+        ``command`` (``draw``: draw its plots instead, :func:`draw`)."""
         assert self.idle and command[1:2] == ["-m"]
         self.job = job = WarmJob(self)
         self.jobs += 1
-        request = {"dir": str(path), "module": command[2], "argv": command[3:]}
+        request = {"dir": str(path), "module": command[2], "argv": command[3:], "draw": draw}
         assert self.proc.stdin is not None
         try:
             self.proc.stdin.write(json.dumps(request).encode() + b"\n")
@@ -148,19 +171,38 @@ class WarmRunner:
 
 
 class WarmPool:
-    """``size`` warm runners for the jobs of the server whose state is in ``state_dir``;
-    :meth:`maintain` replaces those that died or ran :data:`JOBS_PER_RUNNER` jobs."""
+    """``size`` warm runners for the jobs of the server whose state is in ``state_dir``, on
+    its backend (``role``: ``["serial"]``, or ``["dask", ADDRESS_FILE]``), and one that
+    draws their plots (:attr:`drawer`); :meth:`maintain` replaces those that died or ran
+    :data:`JOBS_PER_RUNNER` jobs."""
 
     def __init__(self, state_dir: Path, size: int, env: dict[str, str],
-                 wake: threading.Event) -> None:
+                 wake: threading.Event, role: list[str]) -> None:
         self.state_dir, self.size, self.env, self.wake = state_dir, size, env, wake
+        self.role = role
         self.runners: list[WarmRunner] = []
+        self.drawer: WarmRunner | None = None
+
+    @property
+    def ready(self) -> bool:
+        """Whether every runner (the drawer too) is warm and waiting or running a job."""
+        return (len(self.runners) == self.size and self.drawer is not None
+                and all(runner.ready and runner.proc.poll() is None
+                        for runner in [*self.runners, self.drawer]))
 
     def maintain(self) -> None:
         """Drop the runners that are dead (or worn out and idle) and start new ones up to
-        ``size``."""
+        ``size``, and a drawer if it has none."""
+        self.runners = self._kept(self.runners)
+        while len(self.runners) < self.size:
+            self.runners.append(WarmRunner(self.state_dir, self.env, self.wake, self.role))
+        if not self._kept([self.drawer] if self.drawer else []):
+            self.drawer = WarmRunner(self.state_dir, self.env, self.wake, ["draw"])
+
+    def _kept(self, runners: list[WarmRunner]) -> list[WarmRunner]:
+        """Those of ``runners`` that live on (the others stopped)."""
         kept = []
-        for runner in self.runners:
+        for runner in runners:
             if runner.job is not None:
                 kept.append(runner)  # its job's end is recorded first (poll)
             elif runner.dead or runner.jobs >= JOBS_PER_RUNNER:
@@ -173,9 +215,7 @@ class WarmPool:
                                 runner.proc.returncode)
             else:
                 kept.append(runner)
-        self.runners = kept
-        while len(self.runners) < self.size:
-            self.runners.append(WarmRunner(self.state_dir, self.env, self.wake))
+        return kept
 
     def idle(self) -> WarmRunner | None:
         """A runner ready for a job, if any."""
@@ -183,16 +223,17 @@ class WarmPool:
 
     def stop(self) -> None:
         """End every runner (waiting up to 10 s each, then SIGKILL)."""
-        for runner in self.runners:
+        everyone = [*self.runners, *([self.drawer] if self.drawer else [])]
+        for runner in everyone:
             runner.stop()
-        for runner in self.runners:
+        for runner in everyone:
             try:
                 runner.proc.wait(10)
             except subprocess.TimeoutExpired:
                 with contextlib.suppress(ProcessLookupError, PermissionError):
                     os.killpg(runner.proc.pid, 9)
                 runner.proc.wait()
-        self.runners = []
+        self.runners, self.drawer = [], None
 
 
 # the runner's process -----------------------------------------------------------------------
@@ -204,47 +245,60 @@ def _schemes() -> dict[str, Any]:
     return {f"ocpar.{scheme}": scheme_class(scheme) for scheme in SCHEMES}
 
 
-#: The small run a runner makes, serially, before its first job (0.3 s to 1 s).
-WARM_UP = ("ocpar.formation", ["--agents", "12"])
+#: The small run a runner makes before its first job (0.3 s to 1 s), on the server's backend.
+WARM_UP = ("ocpar.formation", ["--agents", "12", "--quiet"])
+#: Its name on the cluster's dashboard.
+WARM_UP_JOB = "warm-up"
 
 
-def warm_up(schemes: dict[str, Any]) -> None:
-    """Make the run :data:`WARM_UP` in a temporary directory and import the other schemes'
-    plots, so that what a run imports and loads on its way (Matplotlib and its fonts, the
-    array file) is loaded before the first job; its output goes to the runner's log."""
+def warm_up(schemes: dict[str, Any], backend: list[str], drawer: bool) -> None:
+    """Make the run :data:`WARM_UP` on ``backend`` (its command-line options) in a temporary
+    directory, so that what a run imports, builds and connects to on its way (the cluster's
+    client, the workers' inner solvers of that shape, the array file) is ready before the
+    first job; a ``drawer`` draws its plots too (Matplotlib and its fonts). Its output goes
+    to the runner's log."""
     import tempfile
-
-    import ocpar.macs.plot
-    import ocpar.pursuit.plot  # noqa: F401
 
     module, argv = WARM_UP
     with tempfile.TemporaryDirectory(prefix="ocpar-warm-") as tmp:
-        run_job(schemes, {"dir": tmp, "module": module, "argv": [
-            *argv, "--backend", "serial", "--quiet", "--output", f"{tmp}/output"]})
+        request = {"dir": tmp, "module": module,
+                   "argv": [*argv, *backend, "--output", f"{tmp}/output"]}
+        if run_job(schemes, request) == 0 and drawer:
+            run_job(schemes, {**request, "draw": True})
 
 
 def run_job(schemes: dict[str, Any], request: dict[str, Any]) -> int:
     """Run one request in this process as ``python -m MODULE ARGV`` in the job's directory
-    would, its output on the job's ``log.txt``; returns the exit status."""
+    would, its output on the job's ``log.txt``; returns the exit status. Its plots are not
+    drawn: the result is kept for :func:`draw` (:func:`keep_for_picture`). A request with
+    ``"draw": true`` draws them instead (:func:`draw`, its output on the runner's log)."""
     from ocpar.driver import parse_options, run_scheme
     from ocpar.timing import restart_process_clock
 
     path = Path(request["dir"])
+    drawing = bool(request.get("draw"))
     here = os.getcwd()
-    out = os.open(path / "log.txt", os.O_WRONLY | os.O_APPEND | os.O_CREAT, 0o644)
     saved = os.dup(1), os.dup(2)
     _flush()
-    os.dup2(out, 1)
-    os.dup2(out, 2)
-    os.close(out)
+    if not drawing:
+        out = os.open(path / "log.txt", os.O_WRONLY | os.O_APPEND | os.O_CREAT, 0o644)
+        os.dup2(out, 1)
+        os.dup2(out, 2)
+        os.close(out)
     sys.argv = [request["module"], *request["argv"]]
     try:
         os.chdir(path)
         restart_process_clock()
         with warnings.catch_warnings():  # each job says its warnings, as a process of its own
             warnings.onceregistry.clear()
-            code: Any = run_scheme(*parse_options(schemes[request["module"]],
-                                                  request["argv"]))
+            options, given = parse_options(schemes[request["module"]], request["argv"])
+            if drawing:
+                code: Any = draw(options, path)
+            elif options.output is not None and options.picture != "none":
+                code = run_scheme(replace(options, picture="none"), given,
+                                  partial(keep_for_picture, path, options))
+            else:
+                code = run_scheme(options, given)
     except SystemExit as exc:
         code = exc.code
         if code is not None and not isinstance(code, int):
@@ -263,6 +317,27 @@ def run_job(schemes: dict[str, Any], request: dict[str, Any]) -> int:
     return 0 if code is None else int(code)
 
 
+def keep_for_picture(path: Path, options: Any, problem: Any, result: Any) -> None:
+    """Keep the ``result`` of the job in ``path`` for its plots (:data:`PICTURE_INPUT`) and
+    the plots' names (:data:`PICTURE_NAMES`, written last)."""
+    for name, data in ((PICTURE_INPUT, pickle.dumps(result, pickle.HIGHEST_PROTOCOL)),
+                       (PICTURE_NAMES, json.dumps(list(options.plot_names(result))).encode())):
+        tmp = path / f".{name}.tmp"
+        tmp.write_bytes(data)
+        os.replace(tmp, path / name)
+
+
+def draw(options: Any, path: Path) -> int:
+    """Draw the plots of the job in ``path`` (whose options are ``options``) from the result
+    :func:`keep_for_picture` kept, into its output directory; the exit status (0)."""
+    from ocpar.driver import checked_problem
+
+    with open(path / PICTURE_INPUT, "rb") as kept:
+        result = pickle.load(kept)
+    options.plot(checked_problem(options), result, Path(options.output))
+    return 0
+
+
 def _flush() -> None:
     """Flush Python's and C's standard streams (IPOPT prints through C's ``stdout``)."""
     for stream in (sys.stdout, sys.stderr):
@@ -279,11 +354,27 @@ def _orphaned(parent: int) -> None:
     os._exit(70)
 
 
+def scheduler_address(address_file: Path) -> str:
+    """The scheduler's address, once the server has written it into ``address_file``
+    (SystemExit after :data:`START_TIMEOUT_S`)."""
+    deadline = time.monotonic() + START_TIMEOUT_S
+    while not address_file.exists():
+        if time.monotonic() > deadline:
+            raise SystemExit(f"no scheduler address in {address_file}")
+        time.sleep(0.1)
+    return address_file.read_text().strip()
+
+
 def main(argv: list[str] | None = None) -> int:
-    """The runner: import, say ready, then run one request per line of standard input."""
+    """The runner ``STATE_DIR ROLE [ADDRESS_FILE DISPATCH]`` (ROLE: ``serial`` or ``dask``,
+    the backend of its jobs, whose scheduler's address is in ADDRESS_FILE and whose chunks go
+    by DISPATCH; or ``draw``, the plots' runner): import, warm up, say ready, then run one
+    request per line of standard input."""
     from ocpar.bsp.dask import keep_clients
     from ocpar.cli import freeze_objects_at_exit
+    from ocpar.service.coordinator import dask_options
 
+    role, *cluster = (argv if argv is not None else sys.argv[1:])[1:]
     replies: IO[str] = os.fdopen(os.dup(1), "w", buffering=1)
     # between jobs, descriptor 1 is the runner's log (stderr), never the reply channel
     os.dup2(2, 1)
@@ -291,9 +382,10 @@ def main(argv: list[str] | None = None) -> int:
     schemes = _schemes()
     import distributed  # noqa: F401  (the Dask backend's import, once)
 
-    warm_up(schemes)
-
     keep_clients()
+    backend = (dask_options(scheduler_address(Path(cluster[0])), WARM_UP_JOB,
+                            dispatch=cluster[1]) if role == "dask" else ["--backend", "serial"])
+    warm_up(schemes, backend, drawer=role == "draw")
     freeze_objects_at_exit()
     print(json.dumps({"ready": True}), file=replies)
     for line in sys.stdin:

@@ -391,7 +391,7 @@ async function loadResults(id) {
       event.preventDefault();
       download(id, file.name);
     });
-    item.append(link, ` (${file.size} bytes)`);
+    item.append(link, file.size === null ? " (drawn when opened)" : ` (${file.size} bytes)`);
     list.appendChild(item);
   }
   if (files.length === 0) list.appendChild(noneYet("li"));
