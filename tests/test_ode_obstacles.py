@@ -209,6 +209,12 @@ def test_unicycles_past_a_disc_equal_the_monolithic_nlp(free_and_kept_out):
     assert result.obstacle_clearance.distance <= 1e-3
     value = monolithic(problem, result)
     assert abs(result.total_cost - value) <= 1e-8 * abs(value)
+    # --mode monolithic: the package's one NLP of the agents' own transcriptions, the disc's
+    # rows included, from each agent's inner optimum at the initial angles
+    mono = solve_formation(problem, options=FormationOptions(mode="monolithic"))
+    assert mono.status == "converged" and mono.verification.passed, mono.message
+    assert abs(mono.total_cost - value) <= 1e-8 * abs(value)
+    assert mono.obstacle_clearance.distance >= -1e-9
 
 
 def _finely_integrated_clearance(problem, result) -> np.ndarray:

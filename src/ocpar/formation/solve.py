@@ -376,9 +376,6 @@ def check_applicable(problem: FormationProblem, options: FormationOptions) -> No
 def _check_ode_applicable(problem: FormationProblem, options: FormationOptions) -> None:
     """What ODE agents (:class:`~ocpar.ocp.MsEndpointShape`) do not offer yet: ValueError
     naming the option."""
-    if options.mode == "monolithic":
-        raise ValueError("mode: the monolithic reference NLP is DMOC's; ODE agents "
-                         "(MsEndpointShape) are solved hierarchically only")
     if options.min_separation is not None:
         raise ValueError("min_separation: not yet for ODE agents (MsEndpointShape)")
     if options.final_time == "minimum" and problem.obstacles:
@@ -588,7 +585,8 @@ def solve_formation(
                  f"{sol.violation:.3g}: an infeasible iterate, no answer")
         wall_time_s = time.perf_counter() - start  # before the checks below (reporting)
         status, message, obstacle_fields = obstacle_check(
-            problem, problem.positions(sol.trajectories), status, words + note)
+            problem, checked_positions(problem, sol.trajectories, sol.controls), status,
+            words + note)
         verification, status, message = _verified(verify_formation(
             problem, sol.trajectories, sol.controls, sol.phi, options.min_separation, backend),
             status, message)
