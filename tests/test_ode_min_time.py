@@ -87,10 +87,12 @@ def test_bracket_holds_the_discrete_minimum_time(result):
 DISC = ((0.0, -3.0), 0.5)
 
 
-def _clear_at(duration: float, start: np.ndarray, end: np.ndarray) -> bool:
+def _clear_at(duration: float, start: np.ndarray, end: np.ndarray, guess: np.ndarray
+              ) -> bool:
     """Whether a double integrator reaches ``end`` at rest from ``start`` at rest in
     ``duration`` under |u_j| ≤ LIMIT with its polyline clear of the disc: an NLP written
-    here (RK4 is exact on it: p + h v + h²/2 u, v + h u per sub-step), IPOPT."""
+    here (RK4 is exact on it: p + h v + h²/2 u, v + h u per sub-step), IPOPT from the
+    controls ``guess`` (N, 2)."""
     h = duration / INTERVALS / 2
     center, radius = ca.DM(DISC[0]), DISC[1]
     us = [ca.SX.sym(f"u{k}", 2) for k in range(INTERVALS)]
@@ -109,7 +111,8 @@ def _clear_at(duration: float, start: np.ndarray, end: np.ndarray) -> bool:
     solver = ca.nlpsol("clear", "ipopt", {"x": ca.vertcat(*us), "f": ca.sumsqr(ca.vertcat(*us)),
                                           "g": g},
                        {"print_time": False, "ipopt.print_level": 0, "ipopt.tol": 1e-10})
-    out = solver(x0=0.1, lbx=-LIMIT, ubx=LIMIT, lbg=np.r_[np.zeros(4), np.zeros(len(rows))],
+    out = solver(x0=guess.ravel(), lbx=-LIMIT, ubx=LIMIT,
+                 lbg=np.r_[np.zeros(4), np.zeros(len(rows))],
                  ubg=np.r_[np.zeros(4), np.full(len(rows), np.inf)])
     return bool(solver.stats()["success"]) and np.all(np.isfinite(np.asarray(out["x"])))
 
@@ -135,6 +138,7 @@ def test_the_minimum_time_past_a_disc_is_bracketed():
     assert result.obstacle_clearance.distance >= -1e-9
     phi = np.asarray(result.phi, float)
     ends = RADIUS * np.column_stack([np.cos(phi), np.sin(phi)])
-    assert all(_clear_at(high, STARTS[i], ends[i]) for i in range(len(STARTS)))
+    assert all(_clear_at(high, STARTS[i], ends[i], result.controls[i])
+               for i in range(len(STARTS)))
     free = max(_least_time(abs(d)) for d in (ends - STARTS[:, :2]).ravel())
     assert high >= free * (1 - 1e-6)
