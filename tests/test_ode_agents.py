@@ -283,6 +283,33 @@ def test_the_monolithic_mode_takes_ode_agents(case, circle, mixed, bounded):
         assert np.max(np.abs(mono.controls[..., 0])) >= 0.8 - 1e-9
 
 
+@pytest.mark.slow
+def test_phase_one_refuses_an_unreachable_bound_in_few_supersteps():
+    """|a| ≤ 0.6 for four unicycles: no rotation lets every robot reach its place, and the
+    NLP written here says so at every rotation of a grid (some agent's is infeasible);
+    phase 1 ends ``failed`` with its smallest total slack, its descents started from the
+    scan's local minima only (75 supersteps; 1101 before, smallest slack 1.072 against 1.057)."""
+    problem = make(agents=4, radius=RADIUS, duration=DURATION, intervals=INTERVALS,
+                   acceleration_limit=0.6)
+    result = solve_formation(problem)
+    assert result.status == "failed", result.message
+    assert result.message.startswith("no feasible formation: phase 1")
+    assert len(result.trace) <= 100
+    rank = np.argsort(np.argsort(problem.starts[:, 0], kind="stable"))
+    for theta in np.linspace(0, 2 * np.pi, 8, endpoint=False):
+        phi = theta + 2 * np.pi * rank / 4
+        reachable = []
+        for i in range(4):
+            end = ca.DM(RADIUS * np.array([np.cos(phi[i]), np.sin(phi[i])]))
+            v, lo, hi, c, r = _agent_nlp(problem.starts[i], end, 0.6)
+            x = ca.vertcat(*v)
+            solver = ca.nlpsol("reach", "ipopt", {"x": x, "f": c, "g": ca.vertcat(*r)}, IPOPT)
+            solver(x0=np.zeros(x.numel()), lbx=np.concatenate(lo), ubx=np.concatenate(hi),
+                   lbg=0, ubg=0)
+            reachable.append(solver.stats()["success"])
+        assert not all(reachable), theta
+
+
 def test_the_verification_re_integrates_the_returned_controls(circle):
     problem, result = circle
     checks = result.verification.to_dict()["checks"]
