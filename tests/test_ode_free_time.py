@@ -24,7 +24,6 @@ from ocpar.formation.final_time import at_duration
 from ocpar.formation.verify import agent_checks
 from ocpar.models.expressions import ode_model
 from ocpar.ocp import MsEndpointShape, transcription
-from ocpar.ocp.obstacles import Sphere
 
 WEIGHT = 100.0
 AGENTS = 8
@@ -220,15 +219,6 @@ def test_unicycles_per_agent_times_are_each_stationary(unicycles):
         costs = [transcription(unicycles.shapes[i].with_duration(d)).solve(params[i]).cost
                  for d in (t + step, t - step)]
         assert (costs[0] - costs[1]) / (2 * step) == pytest.approx(-weight, rel=1e-6)
-
-
-def test_minimum_time_past_obstacles_is_refused_in_one_line():
-    unicycles = dataclasses.replace(formation_unicycles.make(agents=3),
-                                    obstacles=(Sphere((10.0, 10.0), 0.5),))
-    with pytest.raises(ValueError, match=r"^final_time: 'minimum' is not yet for ODE") as caught:
-        solve_formation(unicycles, options=FormationOptions(final_time="minimum",
-                                                            time_bounds=(1.0, 10.0)))
-    assert "\n" not in str(caught.value)
 
 
 @pytest.mark.parametrize("mode", ["free", "free_per_agent"])

@@ -21,7 +21,7 @@ from ocpar.formation import FormationOptions, solve_formation
 from ocpar.formation.keep_out.obstacles import closest_obstacle, segment_clearance
 from ocpar.formation.verify import checked_positions
 from ocpar.ocp import MsEndpointShape, transcription
-from ocpar.ocp.obstacles import HalfSpace, Sphere
+from ocpar.ocp.obstacles import HalfSpace, Sphere, segment_rows
 
 AGENTS, DURATION, INTERVALS, STEPS = 4, 6.0, 20, 4
 #: A disc the first agent's free path crosses (it passes x ≈ −1.4 at y ≈ −0.1).
@@ -42,24 +42,27 @@ def free_and_kept_out():
     return free, solve_formation(free), problem, solve_formation(problem)
 
 
-def _clearance_rows(points: list[ca.SX]) -> list[ca.SX]:
+def _clearance_rows(points: list[ca.SX], disc=(CENTER, RADIUS)) -> list[ca.SX]:
     """|y*|² − 1 ≥ 0 per chord of the polyline ``points`` (positions), y* the chord's point
-    nearest the disc's centre, scaled by its radius."""
+    nearest the centre of ``disc`` (centre, radius), scaled by its radius."""
+    center, radius = disc
     rows = []
     for a, b in itertools.pairwise(points):
-        ya, yb = (a - ca.DM(CENTER)) / RADIUS, (b - ca.DM(CENTER)) / RADIUS
+        ya, yb = (a - ca.DM(center)) / radius, (b - ca.DM(center)) / radius
         step = yb - ya
         s = ca.fmin(ca.fmax(-ca.dot(ya, step) / ca.dot(step, step), 0), 1)
         rows.append(ca.sumsqr(ya + s * step) - 1)
     return rows
 
 
-def _agent(problem, i: int, end: ca.SX):
-    """Agent i's part of an NLP: variables (x_1..x_N, u_0..u_{N−1}), their bounds (|a| ≤ the
-    shape's bound), cost, equations (= 0: continuity by ``steps`` RK4 steps, the end
-    position ``end`` and speed 0) and, with the disc, its clearance rows (≥ 0) on the
-    polyline through the RK4 sub-step states."""
-    shape, h = problem.shapes[i], DURATION / INTERVALS
+def _agent(problem, i: int, end: ca.SX, duration: float | ca.SX = DURATION,
+           disc=(CENTER, RADIUS)):
+    """Agent i's part of an NLP over ``duration`` (a number or a variable): variables
+    (x_1..x_N, u_0..u_{N−1}), their bounds (|a| ≤ the shape's bound), cost, equations (= 0:
+    continuity by ``steps`` RK4 steps, the end position ``end`` and speed 0) and, with an
+    obstacle, the clearance rows (≥ 0) of ``disc`` on the polyline through the RK4 sub-step
+    states."""
+    shape, h = problem.shapes[i], duration / INTERVALS
     xs = [ca.SX.sym(f"x{i}_{k}", 4) for k in range(INTERVALS)]
     us = [ca.SX.sym(f"u{i}_{k}", 2) for k in range(INTERVALS)]
     x, points = ca.DM(problem.starts[i]), [ca.DM(problem.starts[i][:2])]
@@ -77,19 +80,20 @@ def _agent(problem, i: int, end: ca.SX):
     a = np.inf if shape.control_bounds is None else shape.control_bounds[0][1]
     lower = np.r_[np.full(4 * INTERVALS, -np.inf), np.tile([-a, -np.inf], INTERVALS)]
     upper = np.r_[np.full(4 * INTERVALS, np.inf), np.tile([a, np.inf], INTERVALS)]
-    clear = _clearance_rows(points) if problem.obstacles else []
+    clear = _clearance_rows(points, disc) if problem.obstacles else []
     return xs + us, lower, upper, cost, equations, clear
 
 
-def _ipopt(variables, lower, upper, cost, equations, clear, guess) -> tuple[bool, float]:
-    """IPOPT on the NLP: (success, J*)."""
+def _ipopt(variables, lower, upper, cost, equations, clear, guess
+           ) -> tuple[bool, float, np.ndarray]:
+    """IPOPT on the NLP: (success, J*, the optimal variables)."""
     g = ca.vertcat(*equations, *clear)
     m = ca.vertcat(*equations).numel()
     solver = ca.nlpsol("reference", "ipopt", {"x": ca.vertcat(*variables), "f": cost, "g": g},
                        IPOPT)
     out = solver(x0=guess, lbx=lower, ubx=upper, lbg=np.zeros(g.numel()),
                  ubg=np.r_[np.zeros(m), np.full(g.numel() - m, np.inf)])
-    return solver.stats()["success"], float(out["f"])
+    return solver.stats()["success"], float(out["f"]), np.asarray(out["x"]).ravel()
 
 
 def monolithic(problem, result) -> float:
@@ -110,7 +114,7 @@ def monolithic(problem, result) -> float:
         parts[2] = np.r_[parts[2], agent[2]]
         parts[3] += agent[3]
         guess += [result.trajectories[i, 1:].ravel(), result.controls[i].ravel()]
-    success, value = _ipopt(*parts, np.hstack([np.ravel(v) for v in guess]))
+    success, value, _ = _ipopt(*parts, np.hstack([np.ravel(v) for v in guess]))
     assert success
     return value
 
@@ -209,6 +213,12 @@ def test_unicycles_past_a_disc_equal_the_monolithic_nlp(free_and_kept_out):
     assert result.obstacle_clearance.distance <= 1e-3
     value = monolithic(problem, result)
     assert abs(result.total_cost - value) <= 1e-8 * abs(value)
+    # --mode monolithic: the package's one NLP of the agents' own transcriptions, the disc's
+    # rows included, from each agent's inner optimum at the initial angles
+    mono = solve_formation(problem, options=FormationOptions(mode="monolithic"))
+    assert mono.status == "converged" and mono.verification.passed, mono.message
+    assert abs(mono.total_cost - value) <= 1e-8 * abs(value)
+    assert mono.obstacle_clearance.distance >= -1e-9
 
 
 def _finely_integrated_clearance(problem, result) -> np.ndarray:
@@ -251,6 +261,49 @@ def test_an_infeasible_start_goes_through_phase_one_and_equals_the_monolithic_nl
     value = monolithic(problem, result)
     assert abs(result.total_cost - value) <= 1e-8 * abs(value)
     assert np.max(np.abs(result.controls[..., 0])) <= 0.8 * (1 + 1e-9)
+
+
+#: A disc on agent 0's path of the free per-agent T without obstacles (its midpoint, 0.1 on).
+TIMED_DISC = ((-1.78, -2.33), 0.4)
+
+
+def test_free_time_per_agent_past_a_disc_is_each_agents_nlp_with_t_a_variable():
+    """Each agent its own T_i past a disc that binds: every T_i and J_i + w T_i equal to the
+    agent's NLP written here with T a variable (the clearance rows on its RK4 sub-step
+    polyline) at its returned end; the returned paths checked at their own T_i."""
+    problem = dataclasses.replace(obstacle_problem(), obstacles=(Sphere(*TIMED_DISC),))
+    weight, low, high = 1.0, 1.0, 50.0
+    result = solve_formation(problem, options=FormationOptions(
+        final_time="free_per_agent", time_bounds=(low, high), time_weight=weight))
+    assert result.status == "converged" and result.verification.passed, result.message
+    assert 0 <= result.obstacle_clearance.distance <= 1e-3   # the disc binds
+    assert np.ptp(result.durations) > 0.5
+    ends = problem.final_positions(result.phi)
+    for i in range(AGENTS):
+        t = ca.SX.sym("T")
+        v, lo, hi, cost, equations, clear = _agent(problem, i, ca.DM(ends[i]), t, TIMED_DISC)
+        guess = np.r_[result.trajectories[i, 1:].ravel(), result.controls[i].ravel(),
+                      result.durations[i]]
+        ok, value, x = _ipopt([*v, t], np.r_[lo, low], np.r_[hi, high], cost + weight * t,
+                              equations, clear, guess)
+        assert ok
+        assert value == pytest.approx(result.agent_costs[i], rel=1e-8)
+        assert x[-1] == pytest.approx(result.durations[i], rel=1e-6)
+
+
+def test_a_chord_of_length_zero_has_finite_keep_out_derivatives():
+    """A node that repeats (an ODE guess at rest: its sub-step states coincide): the keep-out
+    row is the point's, and its gradient and Hessian are finite (they were NaN: IPOPT
+    stopped at Invalid_Number_Detected, phase 1's elastic solves all failed)."""
+    a, b = ca.SX.sym("a", 2), ca.SX.sym("b", 2)
+    (row,) = segment_rows((Sphere(CENTER, RADIUS),), [a, b])
+    at = [np.array([0.5, 0.2]), np.array([0.5, 0.2])]
+    x = ca.vertcat(a, b)
+    value, gradient, hessian = (np.asarray(ca.Function("f", [a, b], [e])(*at))
+                                for e in (row, ca.gradient(row, x), ca.hessian(row, x)[0]))
+    expected = np.sum((at[0] - CENTER) ** 2) / RADIUS**2 - 1
+    assert value.item() == pytest.approx(expected, rel=1e-15)
+    assert np.all(np.isfinite(gradient)) and np.all(np.isfinite(hessian))
 
 
 def test_the_elastic_problem_s_gradient_is_the_finite_difference():

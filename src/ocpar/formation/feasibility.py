@@ -416,8 +416,10 @@ def phase_one(problem: FormationProblem, backend: Backend, phi0: np.ndarray,
 
     * along ``family`` (its shift θ in (``low``, ``high``), a period if unbounded): S at
       the shifts of each scan of :data:`PHASE_ONE_SCANS` in one superstep, then descent from
-      the least (and from the next while within twice its S), the finer scan only if no
-      descent from the coarse one reached S = 0;
+      each of the scan's local minima, least first, while within twice the least S (one start
+      per basin the scan resolves: a descent from another of its points ends at the same
+      minimum; none from where an earlier descent ended), the finer scan only if no descent
+      from the coarse one reached S = 0;
     * otherwise along the coupling's free directions Z at φ (none where its solutions are
       isolated): steps −α ZZᵀ∇S, each retracted onto c = 0;
     * where the coupling's solutions may be permuted among the agents (the permuted φ still
@@ -427,7 +429,9 @@ def phase_one(problem: FormationProblem, backend: Backend, phi0: np.ndarray,
       pairs); then the descent again.
 
     A descent step is the Polyak step α = :data:`POLYAK_OVERSHOOT` S/|ZZᵀ∇S|² (S grows
-    linearly outside the feasible set), halved until S falls. Raises
+    linearly outside the feasible set), at most π/2 in any angle, halved until S falls and
+    doubled (up to that) after each step that lowers it: near a minimum of S above 0, where
+    the Polyak step is far too long, the length that last lowered S is kept. Raises
     :class:`NoFeasibleFormation` (one line: the smallest S found, the agent with the largest
     s_i there) if S stays above :data:`SLACK_TOL`."""
     search = _Search(problem, backend, progress)
@@ -446,6 +450,22 @@ def phase_one(problem: FormationProblem, backend: Backend, phi0: np.ndarray,
         if search.best[0] > SLACK_TOL:
             phi = search.descend(phi)
     return search.result(phi, None)
+
+
+def _basins(totals: np.ndarray, periodic: bool) -> list[int]:
+    """The indices of a scan's totals (K,) that are local minima (below the one before, at
+    most the one after; a ``periodic`` scan's ends are neighbours, else an end has one), least
+    first: one start per basin the scan resolves (a descent from another point of a basin
+    ends at its minimum too)."""
+    before, after = np.roll(totals, 1), np.roll(totals, -1)
+    if not periodic:
+        before[0], after[-1] = np.inf, np.inf
+    with np.errstate(invalid="ignore"):
+        low = (totals < before) & (totals <= after) & np.isfinite(totals)
+    if not low.any():   # flat (or one point): the least
+        return [int(np.nanargmin(totals))] if np.any(np.isfinite(totals)) else []
+    found = np.flatnonzero(low)
+    return [int(k) for k in found[np.argsort(totals[found], kind="stable")]]
 
 
 class _Search:
@@ -492,9 +512,11 @@ class _Search:
 
     def along_family(self, family: ShiftFamily, low: float, high: float) -> PhaseOne:
         """Scan, then descent over θ (see :func:`phase_one`)."""
-        if not np.isfinite(low) or not np.isfinite(high):
+        periodic = not (np.isfinite(low) and np.isfinite(high))
+        if periodic:
             low, high = -np.pi, np.pi
         n = self.problem.agents
+        ends: list[float] = []   # where the descents so far ended
         for count in PHASE_ONE_SCANS:
             shifts = low + (np.arange(count) + 0.5) * (high - low) / count
             phi = np.stack([family.angles(float(t))[0] for t in shifts])
@@ -504,11 +526,17 @@ class _Search:
             totals = slacks.sum(axis=1)
             if not np.any(np.isfinite(totals)):   # no measure anywhere: the solver's limit
                 return self.result(None, None)   # raises
-            for k in np.argsort(totals):   # from the least, while the descent stalls above 0
-                if totals[k] <= SLACK_TOL:   # a feasible shift on the scan
-                    theta, self.best = float(shifts[k]), (float(totals[k]), phi[k], slacks[k])
-                    return self.result(phi[k], theta)
+            feasible = np.flatnonzero(totals <= SLACK_TOL)
+            if len(feasible):   # a feasible shift on the scan
+                k = int(feasible[np.argmin(totals[feasible])])
+                theta, self.best = float(shifts[k]), (float(totals[k]), phi[k], slacks[k])
+                return self.result(phi[k], theta)
+            spacing = (high - low) / count
+            for k in _basins(totals, periodic):   # from the least, while the descent stalls above 0
+                if any(abs(shifts[k] - end) < spacing / 2 for end in ends):
+                    continue   # a descent already ended here: the same minimum
                 theta = self._descend_shift(family, float(shifts[k]))
+                ends.append(theta)
                 if self.best[0] <= SLACK_TOL:
                     return self.result(family.angles(theta)[0], theta)
                 if totals[k] > 2 * totals.min():
@@ -526,13 +554,14 @@ class _Search:
         value, slope = at(theta)
         shrink, budget = 1.0, self.steps + PHASE_ONE_STEPS
         while SLACK_TOL < value < np.inf and self.steps < budget and slope != 0:
-            step = -shrink * POLYAK_OVERSHOOT * value / slope
-            step = float(np.clip(step, -np.pi / 2, np.pi / 2))
+            step = shrink * float(np.clip(-POLYAK_OVERSHOOT * value / slope,
+                                          -np.pi / 2, np.pi / 2))
             self.steps += 1
             t_value, t_slope = at(theta + step)
             if t_value < value:
                 stalled = t_value > (1 - STALL_RTOL) * value
-                theta, value, slope, shrink = theta + step, t_value, t_slope, 1.0
+                theta, value, slope = theta + step, t_value, t_slope
+                shrink = min(1.0, 2 * shrink)
                 if stalled:   # a local minimum of S above 0: another start
                     break
             else:
@@ -553,8 +582,8 @@ class _Search:
             size = float(g @ g)
             if size == 0:
                 break
-            step = -shrink * POLYAK_OVERSHOOT * value / size * g
-            step *= min(1.0, (np.pi / 2) / max(np.max(np.abs(step)), 1e-300))
+            step = -POLYAK_OVERSHOOT * value / size * g
+            step *= shrink * min(1.0, (np.pi / 2) / max(np.max(np.abs(step)), 1e-300))
             self.steps += 1
             trial = coupling.retract(phi + step, curve)
             if np.max(np.abs(coupling.residual(trial, curve))) > PROJECTION_TOL:
@@ -564,14 +593,17 @@ class _Search:
             t_value = float(np.sum(t_found.slack))
             if t_value < value:
                 stalled = t_value > (1 - STALL_RTOL) * value
-                phi, found, value, shrink = trial, t_found, t_value, 1.0
+                phi, found, value = trial, t_found, t_value
+                shrink = min(1.0, 2 * shrink)
                 if stalled:   # a local minimum of S above 0: another start
                     break
             else:
                 shrink /= 2
                 if shrink < 1e-12:
                     break
-        return phi if value <= SLACK_TOL else self.best[1]
+        # the least S seen where this one is above the tolerance; where no S was finite (every
+        # elastic solve failed), φ: :meth:`result` then says so
+        return self.best[1] if value > SLACK_TOL and self.best[1] is not None else phi
 
     def turned(self, phi: np.ndarray) -> list[np.ndarray]:
         """``phi`` and, on an ellipsoid with rotational symmetry, its points turned by

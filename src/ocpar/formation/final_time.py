@@ -61,7 +61,7 @@ from ocpar.formation.problem import FormationProblem
 from ocpar.formation.result import FormationResult
 from ocpar.formation.targets.slots import Slots
 from ocpar.formation.verify import near_collision, near_collision_words
-from ocpar.ocp import DmocShape, OcpTask, solve_tasks
+from ocpar.ocp import DmocShape, OcpTask
 from ocpar.ocp.batch import AUTO_SOLVER
 from ocpar.ocp.duration import DurationSums, DurationUnit, duration_sums
 
@@ -360,8 +360,8 @@ def solve_per_agent_time(problem: FormationProblem, backend: Backend,
                          phi0: np.ndarray | None = None,
                          progress: Callable[[str], None] | None = None) -> FormationResult:
     """Each agent's own T_i (module docstring): the formation solved by ``solve`` with every
-    agent's inner problem choosing T_i, then one superstep at the returned φ for the T_i
-    (the agents' solutions stay on the workers). Its arrays come back to the coordinator
+    agent's inner problem choosing T_i, each T_i that of its returned path (the result's
+    ``durations``, from the agents' finish on the workers). Its arrays come back to the coordinator
     (the velocities need each T_i); ``agent_costs`` are J_i + w T_i."""
     low, high = time_bounds(options)
     weight = options.time_weight
@@ -371,15 +371,10 @@ def solve_per_agent_time(problem: FormationProblem, backend: Backend,
         solver=AUTO_SOLVER if shape.solver == "newton" else shape.solver))
     fixed = dataclasses.replace(options, final_time="fixed")
     result = solve(timed, backend, fixed, phi0, progress, None)
-    durations = np.full(problem.agents, np.nan)
-    if np.all(np.isfinite(result.phi)):
-        tasks = timed.tasks(np.reshape(result.phi, problem.parameter_shape))
-        kinds = np.array([type(shape).__name__ for shape in timed.shapes])
-        for kind in sorted(set(kinds)):   # one superstep per agent kind (a mixed fleet: two)
-            rows = np.flatnonzero(kinds == kind)
-            sols = backend.superstep_columns(solve_tasks, tasks.take(rows))
-            durations[rows] = np.where(np.asarray(sols.column("success"), bool),
-                                       np.asarray(sols.column("duration"), float), np.nan)
+    # each agent's T_i is its returned path's (a re-solve from the default guess could end
+    # at another local optimum: another side of an obstacle)
+    durations = (np.full(problem.agents, np.nan) if result.durations is None
+                 or not np.all(np.isfinite(result.phi)) else np.asarray(result.durations, float))
     message = result.message
     if result.verification is not None and result.verification.near_collision is not None:
         message = message.replace(f"; {near_collision_words(result.verification.near_collision)}",
@@ -399,7 +394,7 @@ def solve_per_agent_time(problem: FormationProblem, backend: Backend,
         fleet = dataclasses.replace(fleet, duration=fields["T"])
     return dataclasses.replace(
         result, final_time=fields, durations=durations, separation=closest, fleet=fleet,
-        verification=verification, inner_solves=result.inner_solves + problem.agents,
+        verification=verification, inner_solves=result.inner_solves,
         message=message + "; each agent its own final time", wall_time_s=time.perf_counter()
         - start)
 

@@ -79,7 +79,8 @@ class AgentFinish:
     control bounds), ``path`` (one per path constraint of its shape), ``violation``), its
     ``positions`` (N+1, p) and ``end`` (d,), its ``cost`` and ``cost_parts`` (h Σ|u|² per
     control group, before the factor h); and, where its worker wrote no part, its paths
-    ``q``, controls ``u``, solver ``status`` and ``iterations`` (None where written)."""
+    ``q``, controls ``u``, solver ``status`` and ``iterations`` (None where written); its
+    horizon ``duration`` T (the model's time unit: the one it chose where T is its own)."""
 
     start: float
     attitude: float
@@ -97,6 +98,7 @@ class AgentFinish:
     status: str | None
     iterations: int | None
     written: float
+    duration: float
 
 
 def finish_agents(tasks: Columns, states: Columns) -> Columns:
@@ -154,6 +156,7 @@ def finish_agents(tasks: Columns, states: Columns) -> Columns:
         "cost": (STACKED, cost),
         "cost_parts": (STACKED, squares),
         "written": (STACKED, np.full(k, written)),
+        "duration": (STACKED, np.asarray(states.column("duration"), float)),
     }
     if directory is None:
         rows |= {"q": (STACKED, q), "u": (STACKED, u),
@@ -216,8 +219,8 @@ class Finished:
     ``positions`` (n, N+1, p) and ``ends`` (n, d), ``costs`` (n,), the cost parts' per-agent
     sums ``squares`` (n, groups), the part files' names (``parts``; empty where the agents
     were sent back) or else the paths ``q`` (n, N+1, nq), controls ``u``, solver
-    ``status`` and ``iterations``, and the longest time a worker spent writing its part
-    (``written_s``)."""
+    ``status`` and ``iterations``, the longest time a worker spent writing its part
+    (``written_s``) and each agent's horizon T ``durations`` (n,)."""
 
     checks: AgentChecks
     positions: np.ndarray
@@ -230,6 +233,7 @@ class Finished:
     status: list[str] | None
     iterations: np.ndarray | None
     written_s: float
+    durations: np.ndarray
 
 
 def finish(problem: FormationProblem, agents: ResidentSet, phi: np.ndarray,
@@ -282,7 +286,8 @@ def finish(problem: FormationProblem, agents: ResidentSet, phi: np.ndarray,
         u=None if written else np.asarray(rows.column("u")),
         status=None if written else list(rows.column("status")),
         iterations=None if written else np.asarray(rows.column("iterations")),
-        written_s=float(np.max(rows.column("written"))))
+        written_s=float(np.max(rows.column("written"))),
+        durations=np.asarray(rows.column("duration"), float))
 
 
 def padded_paths(paths: list[np.ndarray] | np.ndarray, width: int | None = None

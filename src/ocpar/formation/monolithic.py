@@ -1,19 +1,23 @@
-"""The monolithic formulation (paper §III): every agent's DMOC variables, the angles φ and the
+"""The monolithic formulation (paper §III): every agent's NLP variables, the angles φ and the
 coupling c(φ) = 0 in one CasADi NLP, solved by IPOPT in the coordinator process. The final
-positions are the curve's symbolic z(φ_i), so any curve works.
+positions are the curve's symbolic z(φ_i), so any curve works. Each agent's part is the NLP of
+its shape's transcription, the one its inner problems solve (the agent-shape interface of
+:mod:`ocpar.ocp.endpoint_agents`: a DMOC agent's, or an ODE agent's multiple shooting), its
+boundary data p with the end position's entries the curve's point: any fleet, mixed ones too.
 
 It is the reference for the paper's equivalence theorem (§IV-B): from the same initial guess it
 must reach the same optimum as the hierarchical scheme. With obstacles, every agent's NLP
-carries them with the same planes (:mod:`ocpar.ocp.obstacles`), and the side each agent
+carries them as its inner problems do (:mod:`ocpar.ocp.obstacles`), and the side each agent
 passes each obstacle on is the start's: each agent's path starts as its own inner optimum at
-the initial angles (the cheapest side, as in the hierarchical scheme's inner solves).
+the initial angles (the cheapest side, as in the hierarchical scheme's inner solves), as does
+every ODE agent's (its default guess is a straight line, far from a nonlinear model's path).
 
-With a minimum separation D every pair that comes within D of each other gets, on each
-interval, a separating plane: a normal ν (|ν| ≤ 1, variables of the NLP) with
-ν·(p_i − p_j) ≥ D at the interval's two nodes, so that the whole segment of their relative
-position stays D from the origin (a segment lies at distance ≥ D from the origin exactly when
-such a ν exists: the plane is no approximation). Pairs are added by constraint generation:
-solve, find the pairs whose continuous paths come within D
+With a minimum separation D (DMOC agents: their paths between nodes are segments) every pair
+that comes within D of each other gets, on each interval, a separating plane: a normal ν (|ν| ≤
+1, variables of the NLP) with ν·(p_i − p_j) ≥ D at the interval's two nodes, so that the whole
+segment of their relative position stays D from the origin (a segment lies at distance ≥ D from
+the origin exactly when such a ν exists: the plane is no approximation). Pairs are added by
+constraint generation: solve, find the pairs whose continuous paths come within D
 (:func:`~ocpar.formation.keep_out.separation.close_pairs`), add their planes and solve again
 from the last point, until no pair breaks D (at most :data:`SEPARATION_ROUNDS` solves).
 """
@@ -26,15 +30,26 @@ from dataclasses import dataclass
 import casadi as ca
 import numpy as np
 
+from ocpar.formation.finish import padded_paths
 from ocpar.formation.keep_out.separation import close_pairs
 from ocpar.formation.problem import FormationProblem
-from ocpar.ocp import DmocTranscription, dmoc_problem
+from ocpar.ocp import (
+    DmocShape,
+    DmocTranscription,
+    MsEndpointShape,
+    MsEndpointTranscription,
+    transcription,
+)
 from ocpar.ocp.solver_options import ipopt
+
+#: An agent's NLP: its shape's transcription.
+AgentNlp = DmocTranscription | MsEndpointTranscription
 
 
 @dataclass
 class MonolithicSolution:
-    """φ (n,), per-agent costs (n,), trajectories (n, N+1, nq), controls (n, N, nu), IPOPT's
+    """φ (n,), per-agent costs (n,), trajectories (n, N+1, nq; a mixed fleet's narrower
+    paths padded with NaN), controls (n, N, nu), IPOPT's
     verdict, and ``violation``: the returned point's largest constraint or bound violation
     (the model's units; checked here, not taken from IPOPT)."""
 
@@ -60,7 +75,8 @@ def solve_monolithic(
     min_separation: float | None = None,
 ) -> MonolithicSolution:
     """Solve the whole formation as one NLP from the initial angles ``phi0``: each agent's
-    DMOC NLP on its own shape (a mixed fleet), with its bounds and inequalities, the angles
+    NLP on its own shape (DMOC or multiple shooting; a mixed fleet), with its bounds and
+    inequalities, the angles
     free, the coupling = 0; with ``min_separation`` D (length unit) every two agents' paths
     at least D apart (module docstring)."""
     pairs = np.zeros((0, 2), np.intp)
@@ -106,37 +122,34 @@ def _solve(problem: FormationProblem, phi0: np.ndarray, tol: float, max_iteratio
            lam0: np.ndarray | None) -> tuple[MonolithicSolution, np.ndarray, np.ndarray]:
     """One IPOPT solve with the separating planes of ``pairs`` (from ``x0``, the default
     start if None): the solution, its primal point and constraint multipliers."""
-    dmocs = [dmoc_problem(shape) for shape in problem.shapes]
+    nlps: list[AgentNlp] = [transcription(shape) for shape in problem.shapes]
     n = problem.agents
-    offsets = np.concatenate([[0], np.cumsum([dmoc.nw for dmoc in dmocs])])
+    offsets = np.concatenate([[0], np.cumsum([nlp.nw for nlp in nlps])])
     phi = ca.SX.sym("phi", n)
     w = ca.SX.sym("w", int(offsets[-1]))
-    end_velocities = problem.final_velocities(np.arange(n))
-    params = [
-        ca.vertcat(problem.starts[i], problem.start_velocities[i], problem.curve.point(phi[i]),
-                   problem.final_attitude, end_velocities[i])
-        for i in range(n)
-    ]
+    given = problem.boundary_params_rows(np.arange(n), phi0)
+    params = [_ending_at(shape, given[i], problem.curve.point(phi[i]))
+              for i, shape in enumerate(problem.shapes)]
     w_i = [w[offsets[i] : offsets[i + 1]] for i in range(n)]
-    costs = ca.vertcat(*[dmocs[i].cost(w_i[i], params[i]) for i in range(n)])
+    costs = ca.vertcat(*[nlps[i].cost(w_i[i], params[i]) for i in range(n)])
     coupling_rows = problem.coupling.expr(phi, problem.curve)
     planes = ca.SX.sym("planes", _plane_count(problem, len(pairs)))
-    separation = _separation_rows(problem, dmocs, w_i, params, pairs, planes, min_separation)
-    g = ca.vertcat(*[dmocs[i].constraints(w_i[i], params[i]) for i in range(n)],
+    separation = _separation_rows(problem, nlps, w_i, params, pairs, planes, min_separation)
+    g = ca.vertcat(*[nlps[i].constraints(w_i[i], params[i]) for i in range(n)],
                    coupling_rows, separation)
     x = ca.vertcat(w, phi, planes)
     nlp = {"x": x, "f": ca.sum1(costs), "g": g}
-    bounds = _bounds(dmocs, coupling_rows.numel(), n, len(pairs) * problem.common_shape.intervals,
+    bounds = _bounds(nlps, coupling_rows.numel(), n, len(pairs) * problem.common_shape.intervals,
                      planes.numel())
     # IPOPT relaxes inequalities by 1e-8 (relative) unless told not to
     exact = ({"bound_relax_factor": 0.0}
-             if any(d.has_inequalities for d in dmocs) or len(pairs) else {})
+             if any(d.has_inequalities for d in nlps) or len(pairs) else {})
     # the user's ipopt.* solver options, as the first agent's shape has them
     solver = ca.nlpsol("formation", "ipopt", nlp, ipopt(
         problem.common_shape.solver_options, tol, max_iterations, **exact))
 
     if x0 is None:
-        x0 = np.concatenate([_start(dmocs[i], problem.boundary_params(i, phi0[i]))
+        x0 = np.concatenate([_start(nlps[i], problem.boundary_params(i, phi0[i]))
                              for i in range(n)] + [phi0])
     start = time.perf_counter()
     out = solver(x0=x0, **bounds, **({} if lam0 is None else {"lam_g0": lam0}))
@@ -146,12 +159,12 @@ def _solve(problem: FormationProblem, phi0: np.ndarray, tol: float, max_iteratio
     phi_opt = x_opt[offsets[-1]:offsets[-1] + n]
     agent_costs = np.asarray(ca.Function("costs", [x], [costs])(x_opt)).ravel()
     rows = np.asarray(ca.Function("g", [x], [g])(x_opt)).ravel()
-    paths = [dmocs[i].unpack(x_opt[offsets[i] : offsets[i + 1]],
+    paths = [nlps[i].unpack(x_opt[offsets[i] : offsets[i + 1]],
                              problem.boundary_params(i, phi_opt[i])) for i in range(n)]
     return MonolithicSolution(
         phi=phi_opt,
         agent_costs=agent_costs,
-        trajectories=np.stack([q for q, _ in paths]),
+        trajectories=padded_paths([q for q, _ in paths], problem.node_width),
         controls=np.stack([u for _, u in paths]),
         success=bool(stats["success"]),
         status=str(stats["return_status"]),
@@ -162,7 +175,17 @@ def _solve(problem: FormationProblem, phi0: np.ndarray, tol: float, max_iteratio
     ), x_opt, np.asarray(out["lam_g"]).ravel()
 
 
-def _separation_rows(problem: FormationProblem, dmocs: list[DmocTranscription],
+def _ending_at(shape: DmocShape | MsEndpointShape, params: np.ndarray, point: ca.SX) -> ca.SX:
+    """The boundary data ``params`` (n_params,) with the end position's entries (those of
+    the agent-shape interface, :mod:`ocpar.ocp.endpoint_agents`) the symbolic ``point`` (d,)."""
+    entries = shape.boundary_size + shape.end_position_entries(point.numel())
+    symbolic = ca.SX(ca.DM(params))
+    for k, entry in enumerate(entries.tolist()):
+        symbolic[entry] = point[k]
+    return symbolic
+
+
+def _separation_rows(problem: FormationProblem, nlps: list[DmocTranscription],
                      w_i: list[ca.SX], params: list[ca.SX], pairs: np.ndarray, planes: ca.SX,
                      distance: float | None) -> ca.SX:
     """Per pair and interval: ν·(p_i − p_j) − D at the interval's two nodes (≥ 0) and
@@ -170,7 +193,7 @@ def _separation_rows(problem: FormationProblem, dmocs: list[DmocTranscription],
     if not len(pairs):
         return ca.SX(0, 1)
     index = list(problem.position_indices)
-    nodes = [dmocs[i].nodes(w_i[i], params[i]) for i in range(problem.agents)]
+    nodes = [nlps[i].nodes(w_i[i], params[i]) for i in range(problem.agents)]
     d, intervals = len(index), problem.common_shape.intervals
     rows = []
     for k, (i, j) in enumerate(pairs):
@@ -195,27 +218,28 @@ def violation(rows: np.ndarray, x: np.ndarray, bounds: dict) -> float:
                      np.max(x - ubx)))
 
 
-def _start(dmoc: DmocTranscription, params: np.ndarray) -> np.ndarray:
-    """Agent's start: the default guess; with obstacle planes its inner optimum at ``params``
-    (its side of each obstacle; the default guess if that solve fails)."""
-    guess = dmoc.default_guess(params)
-    if not dmoc.n_planes:
+def _start(nlp: AgentNlp, params: np.ndarray) -> np.ndarray:
+    """Agent's start: its inner optimum at ``params`` where its shape re-solves from its
+    previous solution (:attr:`~ocpar.ocp.DmocShape.resolves_from_previous`: obstacle planes'
+    sides, every ODE agent; the default guess if that solve fails), else the default guess."""
+    guess = nlp.default_guess(params)
+    if not nlp.shape.resolves_from_previous:
         return guess
-    solution = dmoc.solve(params)
-    return dmoc.full_guess(dmoc.warm_start(solution), params) if solution.success else guess
+    solution = nlp.solve(params)
+    return nlp.full_guess(nlp.warm_start(solution), params) if solution.success else guess
 
 
-def _bounds(dmocs: list[DmocTranscription], n_coupling: int, n_angles: int,
+def _bounds(nlps: list[AgentNlp], n_coupling: int, n_angles: int,
             plane_intervals: int = 0, n_planes: int = 0) -> dict[str, np.ndarray | float]:
     """IPOPT's bounds for the stacked agents' NLPs, the coupling rows (= 0), the free angles
     and, with a minimum separation, the planes' rows (≥ 0, three per pair and interval) and
     free normals: none where nothing has inequalities (the NLP of old)."""
-    if not any(dmoc.has_inequalities for dmoc in dmocs) and not plane_intervals:
+    if not any(nlp.has_inequalities for nlp in nlps) and not plane_intervals:
         return {"lbg": 0, "ubg": 0}
     free = np.full(n_angles + n_planes, np.inf)
     rows = 3 * plane_intervals
-    return {"lbg": np.concatenate([d.lbg for d in dmocs] + [np.zeros(n_coupling + rows)]),
-            "ubg": np.concatenate([d.ubg for d in dmocs]
+    return {"lbg": np.concatenate([d.lbg for d in nlps] + [np.zeros(n_coupling + rows)]),
+            "ubg": np.concatenate([d.ubg for d in nlps]
                                   + [np.zeros(n_coupling), np.full(rows, np.inf)]),
-            "lbx": np.concatenate([d.lbx for d in dmocs] + [-free]),
-            "ubx": np.concatenate([d.ubx for d in dmocs] + [free])}
+            "lbx": np.concatenate([d.lbx for d in nlps] + [-free]),
+            "ubx": np.concatenate([d.ubx for d in nlps] + [free])}

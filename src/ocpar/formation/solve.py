@@ -376,31 +376,24 @@ def check_applicable(problem: FormationProblem, options: FormationOptions) -> No
 def _check_ode_applicable(problem: FormationProblem, options: FormationOptions) -> None:
     """What ODE agents (:class:`~ocpar.ocp.MsEndpointShape`) do not offer yet: ValueError
     naming the option."""
-    if options.mode == "monolithic":
-        raise ValueError("mode: the monolithic reference NLP is DMOC's; ODE agents "
-                         "(MsEndpointShape) are solved hierarchically only")
     if options.min_separation is not None:
         raise ValueError("min_separation: not yet for ODE agents (MsEndpointShape)")
-    if options.final_time == "minimum" and problem.obstacles:
-        raise ValueError("final_time: 'minimum' is not yet for ODE agents (MsEndpointShape) "
-                         "past obstacles (phase 1's search fails on them there)")
-    if options.final_time != "fixed" and problem.obstacles:
-        raise ValueError(f"final_time: {options.final_time!r} is not yet for ODE agents "
-                         "(MsEndpointShape) past obstacles (their clearance is checked at the "
-                         "shape's duration)")
 
 
 def obstacle_check(problem: FormationProblem, positions: np.ndarray, status: str,
-                    message: str) -> tuple[str, str, dict]:
+                    message: str, durations: np.ndarray | None = None
+                    ) -> tuple[str, str, dict]:
     """The returned paths' positions (n, P, p; :func:`~ocpar.formation.verify.checked_positions`:
     the nodes, or an ODE agent's re-integrated path) checked against ``problem``'s obstacles
     (:func:`~ocpar.formation.keep_out.obstacles.closest_obstacle`, independently of the
     inner planes): the status (``obstacles_not_cleared`` if a path of a run that reached its
     answer is inside one), the message and the result's obstacle fields (clearance, each
-    agent's sides); unchanged and none without obstacles."""
+    agent's sides); unchanged and none without obstacles. ``durations`` (n,): each agent's
+    horizon T where it chose its own (the closest point's time; default the shapes')."""
     if not problem.obstacles:
         return status, message, {}
-    closest = closest_obstacle(positions, problem.obstacles, problem.common_shape.duration)
+    closest = closest_obstacle(positions, problem.obstacles, problem.common_shape.duration
+                               if durations is None else durations)
     fields = {"obstacle_clearance": closest,
               "obstacle_sides": passing_sides(positions, problem.obstacles)}
     if not np.isfinite(closest.distance):
@@ -589,7 +582,8 @@ def solve_formation(
                  f"{sol.violation:.3g}: an infeasible iterate, no answer")
         wall_time_s = time.perf_counter() - start  # before the checks below (reporting)
         status, message, obstacle_fields = obstacle_check(
-            problem, problem.positions(sol.trajectories), status, words + note)
+            problem, checked_positions(problem, sol.trajectories, sol.controls), status,
+            words + note)
         verification, status, message = _verified(verify_formation(
             problem, sol.trajectories, sol.controls, sol.phi, options.min_separation, backend),
             status, message)
@@ -678,7 +672,9 @@ def solve_formation(
                     costs, trajectories, controls = exact.costs, exact.q, exact.u
         wall_time_s = time.perf_counter() - start
         positions = problem.positions(trajectories)
-        continuous = checked_positions(problem, trajectories, controls)
+        durations = (np.asarray(sols.column("duration"), float) if distance is None
+                     else None)   # the rounds' paths: at the shapes' T
+        continuous = checked_positions(problem, trajectories, controls, durations=durations)
         squares = control_squares(problem, controls)
         verification = verify_formation(problem, trajectories, controls, phi, distance,
                                         backend)
@@ -691,7 +687,8 @@ def solve_formation(
         costs, trajectories, controls = done.costs, done.q, done.u
         statuses, solver_iterations = done.status, done.iterations
         positions, squares, parts = done.positions, done.squares, done.parts
-        continuous = checked_positions(problem, trajectories, controls, positions)
+        durations = done.durations
+        continuous = checked_positions(problem, trajectories, controls, positions, durations)
         verification = verify_checked(problem, positions, done.ends, phi, done.checks,
                                       distance, backend,
                                       time.perf_counter() - checking - done.written_s,
@@ -699,8 +696,12 @@ def solve_formation(
         if parts:   # the workers wrote their agents' part of the array file
             extra["timings"] = {"files_s": done.written_s}
     checking = time.perf_counter()
-    status, message, obstacle_fields = obstacle_check(problem, continuous, status, message)
+    status, message, obstacle_fields = obstacle_check(problem, continuous, status, message,
+                                                      durations)
     extra |= obstacle_fields
+    if durations is not None and any(getattr(shape, "time_bounds", None) is not None
+                                     for shape in problem.agents_by_shape()):
+        extra["durations"] = durations   # each agent's own T_i, that of its returned path
     verification, status, message = _verified(verification, status, message)
     status, message = ordering_status(ordered, status, message)
     if refusal is not None:

@@ -557,32 +557,37 @@ def _shooting(shape: MsEndpointShape, x: np.ndarray, u: np.ndarray, durations: n
     return np.max(gap.reshape(m, shape.intervals), axis=1)
 
 
-def _dense_path(shape: MsEndpointShape, x: np.ndarray, u: np.ndarray, refine: int
-                ) -> np.ndarray:
+def _dense_path(shape: MsEndpointShape, x: np.ndarray, u: np.ndarray, refine: int,
+                durations: np.ndarray | None = None) -> np.ndarray:
     """The states (m, N steps refine + 1, nx) of ODE agents' paths x (m, N+1, nx) under
-    controls u (m, N, nu): each of the integrator's sub-steps (:func:`_sub_steps`)
-    re-integrated from its start by ``refine`` steps of the same integrator, up to the next
-    sub-step's start (the next node after an interval's last): the points of the
-    transcription's keep-out polyline are among them."""
+    controls u (m, N, nu), each over its horizon T ``durations`` (m,; default the shape's):
+    each of the integrator's sub-steps (:func:`_sub_steps`) re-integrated from its start by
+    ``refine`` steps of the same integrator, up to the next sub-step's start (the next node
+    after an interval's last): the points of the transcription's keep-out polyline are among
+    them."""
     m, n, nx, steps = x.shape[0], shape.intervals, shape.model.nx, shape.steps
-    state = _sub_steps(shape, x, u)[:, :, :-1].reshape(-1, nx)   # each sub-step's start
+    horizon = np.full(m, shape.duration) if durations is None else np.asarray(durations, float)
+    state = _sub_steps(shape, x, u, horizon)[:, :, :-1].reshape(-1, nx)   # each sub-step's start
     control = np.repeat(u, steps, axis=1).reshape(-1, u.shape[-1])
+    step = np.repeat(horizon / n / steps / refine, n * steps)[:, None]
     fine = [state]
     for _ in range(refine - 1):
-        fine.append(_advance(shape, fine[-1], control, shape.duration / n / steps / refine))
+        fine.append(_advance(shape, fine[-1], control, step))
     points = np.stack(fine, axis=1).reshape(m, n * steps * refine, nx)
     return np.concatenate([points, x[:, -1:]], axis=1)
 
 
 def checked_positions(problem: FormationProblem, trajectories: np.ndarray,
-                      controls: np.ndarray, nodes: np.ndarray | None = None) -> np.ndarray:
+                      controls: np.ndarray, nodes: np.ndarray | None = None,
+                      durations: np.ndarray | None = None) -> np.ndarray:
     """The positions (n, P, d) the obstacle clearance is checked on: the nodes (P = N+1;
     :meth:`~ocpar.formation.FormationProblem.positions`) where no agent is an ODE agent or
     there are no obstacles (a DMOC path is linear between nodes); else every agent on a
     common dense grid of S = :data:`DENSE_SUBSTEPS` · lcm(ODE shapes' ``steps``) points per
     interval (P = N S + 1): an ODE agent's path re-integrated (:func:`_dense_path`), a DMOC
     agent's nodes joined linearly. ``nodes``: the nodes' positions where they are at hand
-    (the paths of a run whose workers wrote them are not gathered)."""
+    (the paths of a run whose workers wrote them are not gathered); ``durations`` (n,) each
+    agent's horizon T where it chose its own (default: its shape's)."""
     if not problem.obstacles or not problem.ode_agents:
         return problem.positions(trajectories) if nodes is None else nodes
     q, u = np.asarray(trajectories, float), np.asarray(controls, float)
@@ -595,7 +600,8 @@ def checked_positions(problem: FormationProblem, trajectories: np.ndarray,
     for shape, agents in groups.items():
         if isinstance(shape, MsEndpointShape):
             path = _dense_path(shape, q[agents][..., :shape.node_size], u[agents],
-                               refine // shape.steps)
+                               refine // shape.steps,
+                               None if durations is None else np.asarray(durations)[agents])
             dense[agents] = path[..., entries]
         else:
             nodes_at = problem.positions(q[agents])

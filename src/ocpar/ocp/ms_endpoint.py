@@ -385,6 +385,10 @@ class MsEndpointTranscription:
         self.t_index = nx * n + nu * n if timed else None
         g = ca.vertcat(equations, inequalities)
         self._w, self._p, self._f, self._g = w, p, cost, g
+        #: the NLP as functions of (w, p): its cost and its rows (bounds ``lbg``, ``ubg``),
+        #: for an NLP that holds this one among others (the monolithic formation)
+        self.cost = ca.Function("J", [w, p], [cost], ["w", "p"], ["J"])
+        self.constraints = ca.Function("g", [w, p], [g], ["w", "p"], ["g"])
         self.nw, self.ng, self.n_eq, self.n_path = w.numel(), g.numel(), equations.numel(), \
             inequalities.numel()
         self.n_slack = slacks.numel()
@@ -463,6 +467,11 @@ class MsEndpointTranscription:
                              qp_max_iter=OBSTACLE_QP_MAX_ITER if self.shape.obstacles
                              else None)
         return None
+
+    @property
+    def has_inequalities(self) -> bool:
+        """Whether the NLP has inequalities (:attr:`MsEndpointShape.has_inequalities`)."""
+        return self.shape.has_inequalities
 
     def prepare(self, count: int) -> None:
         """Build the batched solver's mapped calls for ``count`` tasks at once."""
@@ -544,6 +553,11 @@ class MsEndpointTranscription:
         fill = self.first_duration if self.t_index is not None else 0.0
         return np.concatenate([guesses, np.full((*guesses.shape[:-1], extra), fill)], axis=-1)
 
+    def full_guess(self, guess: np.ndarray, params: np.ndarray) -> np.ndarray:
+        """``guess`` (the states and controls, or all of w) as a whole w (nw,): what w
+        holds after them appended where it has none (:meth:`_completed`)."""
+        return self._completed(np.asarray(guess, float))
+
     def durations(self, w: np.ndarray, params: np.ndarray) -> np.ndarray:
         """T of each solution w (k, nw) with ``params`` (k, n_params): (k,)."""
         if self.t_index is not None:
@@ -561,6 +575,11 @@ class MsEndpointTranscription:
         """The guess that re-solves from ``solution`` (and its T, where T is a variable)."""
         guess = self.shape.previous_guesses(solution.q[None], solution.u[None])[0]
         return guess if self.t_index is None else np.append(guess, solution.duration)
+
+    def unpack(self, w: np.ndarray, params: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The states at the nodes (N+1, nx) and the interval controls (N, nu) of w (nw,)."""
+        q, u = self.unpack_many(np.asarray(w, float)[None], np.asarray(params, float)[None])
+        return q[0], u[0]
 
     def unpack_many(self, w: np.ndarray, params: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """States (k, N+1, nx) with x_0 from ``params`` and controls (k, N, nu) of w (k, nw)."""

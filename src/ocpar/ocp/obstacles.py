@@ -233,6 +233,15 @@ def _half_space_rows(obstacles: Sequence[Obstacle], nodes: Sequence[ca.SX]) -> l
             if isinstance(o, HalfSpace) for k in range(1, len(nodes) - 1)]
 
 
+#: A segment of :func:`segment_rows` whose squared length in the ellipsoid's scaled space is
+#: at most this is a point (s = 0; |y*| then differs from the segment's by at most 1e-12).
+#: The quotient that places y* on a segment has no finite derivatives at a segment of length
+#: 0: a node that repeats, as an ODE agent's sub-step states do in a guess at rest (zero
+#: speed and control), made the rows' Hessian NaN there (IPOPT: Invalid_Number_Detected,
+#: every elastic solve of phase 1 failed and its search had no point to go on from).
+POINT_CHORD = 1e-24
+
+
 def segment_rows(obstacles: Sequence[Obstacle], nodes: Sequence[ca.SX]) -> list[ca.SX]:
     """The keep-out of :func:`obstacle_rows` without planes: per interval k, per ellipsoid
     (in order) |y*|² − 1 ≥ 0, y* the point of the scaled segment [y(q_k), y(q_{k+1})]
@@ -248,8 +257,10 @@ def segment_rows(obstacles: Sequence[Obstacle], nodes: Sequence[ca.SX]) -> list[
             a, c = ca.DM(ball.matrix), ca.DM(ball.center)
             start, end = a @ (nodes[k] - c), a @ (nodes[k + 1] - c)
             step = end - start
-            s = ca.fmin(ca.fmax(-ca.dot(start, step) / ca.fmax(ca.dot(step, step), 1e-300),
-                                0), 1)
+            length = ca.dot(step, step)
+            chord = length > POINT_CHORD   # else a point: s = 0 (:data:`POINT_CHORD`)
+            toward = ca.if_else(chord, -ca.dot(start, step) / ca.if_else(chord, length, 1), 0)
+            s = ca.fmin(ca.fmax(toward, 0), 1)
             rows.append(ca.sumsqr(start + s * step) - 1)
     return rows + _half_space_rows(obstacles, nodes)
 

@@ -58,16 +58,17 @@ def segment_clearance(positions: np.ndarray, obstacles: Sequence[Obstacle]) -> n
 
 
 def closest_obstacle(positions: np.ndarray, obstacles: Sequence[Obstacle],
-                     duration: float) -> Clearance:
+                     duration: float | np.ndarray) -> Clearance:
     """The smallest clearance over agents, intervals and obstacles (:class:`Clearance`) on
-    the piecewise-linear paths with nodes ``positions`` (n, N+1, d) over [0, ``duration``]."""
+    the piecewise-linear paths with nodes ``positions`` (n, N+1, d) over [0, ``duration``]
+    (one T, or (n,) each agent's own)."""
     positions = np.asarray(positions, float)
     if not obstacles or not np.all(np.isfinite(positions)):
         return Clearance(math.nan, -1, -1, math.nan)
     gaps = segment_clearance(positions, obstacles)
     agent, k, o = np.unravel_index(int(np.argmin(gaps)), gaps.shape)
     _, s = obstacles[o].clearance(positions[agent, k], positions[agent, k + 1])
-    h = duration / (positions.shape[1] - 1)
+    h = float(np.broadcast_to(duration, positions.shape[:1])[agent]) / (positions.shape[1] - 1)
     return Clearance(float(gaps[agent, k, o]), int(agent), int(o), float((k + s) * h))
 
 
