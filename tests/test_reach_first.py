@@ -17,7 +17,7 @@ from ocpar.formation import DmocShape, FormationProblem, SphereSurface, solve_fo
 from ocpar.formation.ordering import solved_tables
 from ocpar.formation.solve import FormationOptions
 from ocpar.models import PointMass
-from ocpar.ocp import solve_tasks
+from ocpar.ocp import OcpTask, solve_tasks
 from ocpar.ocp.constraints import PathConstraint
 
 #: The limit of the sphere search (reach 0.7: the set as found and most of its turns lie
@@ -126,3 +126,36 @@ def test_six_masses_onto_a_sphere_under_a_limit_below_the_free_peak(limit):
             for start, end in zip(starts, ends, strict=True)]
     assert result.total_cost == pytest.approx(sum(hand), rel=1e-8)
     assert result.total_cost > free.total_cost   # the limit is felt
+
+
+@pytest.mark.parametrize("limit", ["norm", "box"])
+def test_newton_first_keeps_the_unlimited_solutions_within_the_limit_and_equals_sqpmethod(
+        limit):
+    """Under ``auto`` a limited shape solves every task by ``newton`` first and only those
+    whose path reaches the limit by ``sqpmethod``: from rest at the origin to rest at ends
+    of growing length (the limit inactive on the short ones, active on the long ones, none
+    beyond reach), every solution (cost, dJ*/dp, d²J*/dq_N², path, controls) equals the
+    one ``sqpmethod`` finds on every task to 1e-10, and both kinds occurred (``newton``
+    counts its steps, ``sqpmethod`` reports −1)."""
+    u_max = TABLE_U[limit]
+    bounds = tetrahedron(limit, u_max).shape
+    directions = np.random.default_rng(7).normal(size=(12, 3))
+    ends = (np.linspace(0.2, 1.6, 12)[:, None] * directions
+            / np.linalg.norm(directions, axis=1, keepdims=True))
+    params = np.hstack([np.zeros((12, 6)), ends, np.zeros((12, 3))])
+    solved = {}
+    for solver in ("auto", "sqpmethod"):
+        shape = DmocShape(PointMass(dim=3), INTERVALS, DURATION, solver=solver,
+                          control_bounds=bounds.control_bounds,
+                          path_constraints=bounds.path_constraints)
+        solved[solver] = solve_tasks([OcpTask(shape, p) for p in params])
+    auto, sqp = solved["auto"], solved["sqpmethod"]
+    assert all(s.success and s.attempts == 1 for s in [*auto, *sqp])
+    by_newton = np.array([s.iterations > 0 for s in auto])
+    assert by_newton.any() and not by_newton.all()
+    assert all(s.iterations == -1 for s in sqp)
+    for a, b in zip(auto, sqp, strict=True):
+        assert a.cost == pytest.approx(b.cost, rel=1e-10)
+        for field in ("cost_gradient", "end_hessian", "q", "u"):
+            x, y = getattr(a, field), getattr(b, field)
+            np.testing.assert_allclose(x, y, rtol=1e-10, atol=1e-10 * np.max(np.abs(y)))

@@ -1113,10 +1113,11 @@ class DmocTranscription:
 
     def prepare(self, count: int) -> None:
         """Build what solving ``count`` tasks in one :meth:`solve_batch` takes (the batched
-        solver's mapped calls; with planes, those of :attr:`without_obstacles`), so that the
-        first superstep does not."""
-        if self.without_obstacles is not None:
-            self.without_obstacles.prepare(count)
+        solver's mapped calls; with planes or limits, those of :attr:`without_obstacles` or
+        :attr:`without_limits`), so that the first superstep does not."""
+        screen = self.without_obstacles or self.without_limits
+        if screen is not None:
+            screen.prepare(count)
         elif self.batch_solver is not None:
             self.batch_solver.prepare(count)
 
@@ -1156,20 +1157,82 @@ class DmocTranscription:
         (:meth:`clear_of_obstacles`) keeps it: it is a KKT point of the NLP with the
         obstacles, their rows inactive (with the canonical planes; ``end_hessian`` and
         ``cost_gradient`` the same, no obstacle row carrying a multiplier). Only the others
-        are solved with the planes."""
+        are solved with the planes. Likewise with control bounds or path constraints alone
+        (:attr:`without_limits`): every task by ``newton`` first, and only those whose path
+        breaks or touches a limit (:meth:`_within_limits`) by ``sqpmethod``."""
         params = np.asarray(params, float)
         if self.without_obstacles is not None:
-            return self._screened(params, guesses, multipliers)
+            return self._screened(params, guesses, multipliers, self.without_obstacles,
+                                  self._clears, self._solve_segments)
+        if self.without_limits is not None:
+            return self._screened(params, guesses, multipliers, self.without_limits,
+                                  self._within_limits, self._solve_limited)
         if self.batch_solver is None:
             return None
         return self._solve_batch(params, guesses, multipliers)
 
+    @cached_property
+    def without_limits(self) -> DmocTranscription | None:
+        """The transcription of this shape without its control bounds and path constraints
+        where ``auto`` chose ``sqpmethod`` for them alone (``newton`` solves it: no
+        obstacles, keep-out slots, elastic slacks or time bounds), whose batch
+        :meth:`solve_batch` tries first; None otherwise."""
+        shape = self.shape
+        if (shape.solver != AUTO_SOLVER or shape.obstacles
+                or (shape.control_bounds is None and not shape.path_constraints)):
+            return None
+        free = dataclasses.replace(shape, control_bounds=None, path_constraints=())
+        return transcription(free) if free.chosen_solver == "newton" else None  # type: ignore[return-value]
+
+    def _clears(self, free: Columns, params: np.ndarray) -> np.ndarray:
+        """Whether each solution ``free`` of :attr:`without_obstacles` succeeded and clears
+        the obstacles (:meth:`clear_of_obstacles`): (k,) bool."""
+        return (np.asarray(free.column("success"), bool)
+                & self.clear_of_obstacles(np.asarray(free.column("q"))))
+
+    def _within_limits(self, free: Columns, params: np.ndarray) -> np.ndarray:
+        """Whether each solution ``free`` of :attr:`without_limits` succeeded and keeps every
+        control and path row farther than ``kkt_tol`` (relative, :func:`_near`) inside its
+        bounds: a KKT point of this NLP with no limit active (their multipliers 0, the same
+        cost, gradient and ``end_hessian``): (k,) bool."""
+        w = self._points(free, params)
+        inside = np.asarray(free.column("success"), bool) & np.all(np.isfinite(w), axis=1)
+        tol = self.shape.kkt_tol
+        if self.shape.control_bounds is not None:
+            inside &= ~np.any(_near(w, self.lbx, self.ubx, tol), axis=1)
+        if self.n_path:
+            k, n_eq = len(w), self.ng - self.n_rows
+            rows = np.asarray(self.path_rows.map(k)(w.T, params.T)).reshape(self.n_path, k).T
+            end = n_eq + self.n_path
+            inside &= ~np.any(_near(rows, self.lbg[n_eq:end], self.ubg[n_eq:end], tol), axis=1)
+        return inside
+
+    def _points(self, solved: Columns, params: np.ndarray) -> np.ndarray:
+        """The points w (k, nw) of solutions ``solved`` (their inner nodes and controls, the
+        rest of w 0)."""
+        q, u = np.asarray(solved.column("q")), np.asarray(solved.column("u"))
+        inner = self.shape.previous_guesses(q, u)
+        return np.hstack([inner, np.zeros((len(inner), self.nw - inner.shape[1]))])
+
+    def _solve_limited(self, params: np.ndarray, guesses: list[np.ndarray | None],
+                       multipliers: list[np.ndarray | None], free: Columns) -> Columns | None:
+        """The tasks ``params`` (k, n_params) whose solutions without limits ``free`` break
+        one, by :attr:`batch_solver` (``sqpmethod``) from their own guesses (a column that
+        fails goes on to IPOPT, :func:`~ocpar.ocp.solve_tasks`); None if CasADi raised."""
+        return self._solve_batch(params, guesses, multipliers)
+
     def _screened(self, params: np.ndarray, guesses: np.ndarray | list[np.ndarray | None],
-                  multipliers: np.ndarray | list[np.ndarray | None]) -> Columns | None:
-        """:meth:`solve_batch` with obstacles: without them first, then with them for the
-        tasks whose paths do not clear them."""
-        free_nlp = self.without_obstacles
-        assert free_nlp is not None
+                  multipliers: np.ndarray | list[np.ndarray | None],
+                  free_nlp: DmocTranscription,
+                  keep: Callable[[Columns, np.ndarray], np.ndarray],
+                  rest: Callable[[np.ndarray, list[np.ndarray | None],
+                                  list[np.ndarray | None], Columns], Columns | None]
+                  ) -> Columns | None:
+        """:meth:`solve_batch` of a shape with obstacles or limits: every task first by
+        ``free_nlp`` (the shape without them, fewer variables and rows), then ``rest``
+        (params, guesses, multipliers, the free solutions) of the tasks whose free solution
+        ``keep`` (free solutions, params) rejects; None if CasADi raised in either (the
+        caller then solves one by one)."""
         k = len(params)
         guess_rows = list(guesses) if len(guesses) == k else [None] * k
         lam_rows = list(multipliers) if len(multipliers) == k else [None] * k
@@ -1184,24 +1247,23 @@ class DmocTranscription:
         free_time = time.perf_counter() - start
         if free is None:   # CasADi raised: the caller solves one by one
             return None
-        q = np.asarray(free.column("q"))
-        kept = np.asarray(free.column("success"), bool) & self.clear_of_obstacles(q)
+        kept = keep(free, params)
         if kept.all():
             return free
-        rest = np.flatnonzero(~kept)
-        solved = self._solve_segments(params[rest], [guess_rows[i] for i in rest],
-                                      [lam_rows[i] for i in rest], free.take(rest))
-        if not kept.any():
-            return solved
-        done = np.flatnonzero(kept)
-        parts = free.take(done), solved
-        joined = Columns.concat(parts)
-        order = np.empty(k, np.intp)
-        order[np.concatenate([done, rest])] = np.arange(k)
-        joined = joined.take(order)
+        redo = np.flatnonzero(~kept)
+        solved = rest(params[redo], [guess_rows[i] for i in redo],
+                      [lam_rows[i] for i in redo], free.take(redo))
+        if solved is None:
+            return None
+        joined = solved
+        if kept.any():
+            done = np.flatnonzero(kept)
+            order = np.empty(k, np.intp)
+            order[np.concatenate([done, redo])] = np.arange(k)
+            joined = Columns.concat([free.take(done), solved]).take(order)
         # the first batch's time is shared by all, the second's by the tasks it solved
         times = np.full(k, free_time / k)
-        times[rest] += np.asarray(solved.column("solve_time_s"))
+        times[redo] += np.asarray(solved.column("solve_time_s"))
         joined.fields["solve_time_s"] = (VALUES, times)
         return joined
 
