@@ -2,7 +2,8 @@
 in 3-D onto a sphere (the potential, ``--ordering optimal``) under |u| ≤ U and under a box
 limit, both below the free optimum's peak, and a thrust-limited fleet onto an ellipse with
 ``--critical any``. Writes one JSON record per case (cost, status, supersteps, inner solves,
-solve time, serial) to stdout or ``--output``.
+solve time, serial; each limited solve's time against the batched unconstrained solve of its
+shape, :func:`per_solve`) to stdout or ``--output``, with the machine's load.
 
     python scripts/reach_first.py [--cases sphere-norm,sphere-box,ellipse-any] [--output F]
 """
@@ -12,6 +13,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
+import os
 import time
 from pathlib import Path
 
@@ -86,40 +88,60 @@ def run(case: str) -> dict:
             "supersteps": result.supersteps, "inner_solves": result.inner_solves,
             "failed_solves": result.failed_solves, "seconds": round(seconds, 3),
             "message": result.message,
-            "backend": "serial",
+            "backend": "serial", "load": [round(x, 2) for x in os.getloadavg()],
             "per_solve": per_solve(make(), problem, result.phi)
             if result.status == "converged" else None}
 
 
 def per_solve(free: FormationProblem, problem: FormationProblem, phi: np.ndarray,
-              repeats: int = 5) -> dict:
-    """The least time per inner solve (ms) of the table of every agent to every point of
-    the answer ``phi`` solved by :func:`~ocpar.ocp.solve_tasks` (the batched path and any
-    failure policy), for the ``free`` problem (its own solver, ``newton``, and
-    ``sqpmethod``, the limited one's) and for the limited ``problem`` (the pairs inside the
-    reach set), best of ``repeats``; the IPOPT retries (attempts beyond the first) and the
-    ratios limited / free."""
+              repeats: int = 7) -> dict:
+    """Time per inner solve (ms, the median of ``repeats`` rounds, the variants alternating)
+    of the limited ``problem``'s table at the answer ``phi`` (every agent to every point of
+    it, the pairs inside the reach set) by :func:`~ocpar.ocp.solve_tasks` (the batched path
+    and any failure policy): the same tasks without the limit (``free``: ``newton``, the
+    batched unconstrained solve of the shape, and ``sqpmethod``), with it under ``auto``
+    (``limited``: ``newton`` first, ``sqpmethod`` for the tasks whose path reaches the
+    limit), with it by ``sqpmethod`` alone (``limited_sqpmethod``: ``auto``'s choice before
+    newton first) and the tasks ``auto`` sent to ``sqpmethod`` alone by it
+    (``sqpmethod_part``); the IPOPT retries, the tasks each solved by ``sqpmethod`` and the
+    ratios of each limited variant to ``free`` (``newton``)."""
     from ocpar.formation.feasibility import outside_reach
     from ocpar.ocp import solve_tasks
-    record = {}
-    same_solver = free.with_shapes(lambda shape: dataclasses.replace(shape, solver="sqpmethod"))
-    for name, shaped in (("free", free), ("free_sqpmethod", same_solver), ("limited", problem)):
-        n = shaped.agents
-        agents = np.repeat(np.arange(n), n)
-        ends = np.tile(np.reshape(phi, (n, -1)), (n, 1))
-        inside = ~outside_reach(shaped, agents, ends if ends.shape[1] > 1 else ends[:, 0])
-        tasks = shaped.tasks_for(agents[inside], ends[inside].ravel())
-        times = []
-        for _ in range(repeats):
+    n = problem.agents
+    agents = np.repeat(np.arange(n), n)
+    ends = np.tile(np.reshape(phi, (n, -1)), (n, 1))
+    inside = ~outside_reach(problem, agents, ends if ends.shape[1] > 1 else ends[:, 0])
+
+    def solver(name: str):
+        return lambda shape: dataclasses.replace(shape, solver=name)
+
+    variants = {"free": free, "free_sqpmethod": free.with_shapes(solver("sqpmethod")),
+                "limited": problem,
+                "limited_sqpmethod": problem.with_shapes(solver("sqpmethod"))}
+    tasks = {name: shaped.tasks_for(agents[inside], ends[inside].ravel())
+             for name, shaped in variants.items()}
+    solved = {name: solve_tasks(batch) for name, batch in tasks.items()}
+    by_sqp = np.asarray(solved["limited"].column("iterations")) < 0
+    if by_sqp.any():
+        tasks["sqpmethod_part"] = tasks["limited_sqpmethod"].take(np.flatnonzero(by_sqp))
+    times: dict[str, list[float]] = {name: [] for name in tasks}
+    for _ in range(repeats):
+        for name, batch in tasks.items():
             start = time.perf_counter()
-            solved = solve_tasks(tasks)
-            times.append(time.perf_counter() - start)
-        record[name] = {"tasks": int(inside.sum()),
-                        "ms_per_solve": 1e3 * min(times) / int(inside.sum()),
-                        "retries": int(np.sum(np.asarray(solved.column("attempts")) - 1))}
-    limited = record["limited"]["ms_per_solve"]
-    record["ratio"] = limited / record["free"]["ms_per_solve"]
-    record["ratio_same_solver"] = limited / record["free_sqpmethod"]["ms_per_solve"]
+            solved[name] = solve_tasks(batch)
+            times[name].append((time.perf_counter() - start) / len(batch))
+    record = {name: {"tasks": len(tasks[name]),
+                     "ms_per_solve": 1e3 * float(np.median(times[name])),
+                     "by_sqpmethod": int(np.sum(np.asarray(solved[name].column("iterations"))
+                                                < 0)),
+                     "retries": int(np.sum(np.asarray(solved[name].column("attempts")) - 1))}
+              for name in tasks}
+    unconstrained = record["free"]["ms_per_solve"]
+    for name in ("limited", "limited_sqpmethod", "sqpmethod_part"):
+        if name in record:
+            record[name]["ratio"] = record[name]["ms_per_solve"] / unconstrained
+    record["ratio_same_solver"] = (record["limited_sqpmethod"]["ms_per_solve"]
+                                   / record["free_sqpmethod"]["ms_per_solve"])
     return record
 
 

@@ -149,6 +149,7 @@ import numpy as np
 
 from ocpar.bsp.columns import LISTED, SHARED, STACKED, VALUES, Columns, to_columns
 from ocpar.models.mechanical import MechanicalSystem
+from ocpar.ocp.active_set import ActiveSetNewton
 from ocpar.ocp.batch import (
     AUTO_SOLVER,
     SOLVERS,
@@ -1214,12 +1215,73 @@ class DmocTranscription:
         inner = self.shape.previous_guesses(q, u)
         return np.hstack([inner, np.zeros((len(inner), self.nw - inner.shape[1]))])
 
+    @cached_property
+    def limit_newton(self) -> tuple[ActiveSetNewton, np.ndarray]:
+        """This NLP by guessed active sets on the KKT Newton kernel
+        (:class:`~ocpar.ocp.active_set.ActiveSetNewton`: the equations, and as limit rows the
+        path rows, then the bounded entries of w), and those entries' indices."""
+        w, p = self._w, self._p
+        n_eq = self.ng - self.n_rows
+        bounded = np.flatnonzero(np.isfinite(self.lbx) | np.isfinite(self.ubx))
+        rows = ca.vertcat(self.path_rows(w, p), w[bounded.tolist()])
+        lower = np.concatenate([self.lbg[n_eq:], self.lbx[bounded]])
+        upper = np.concatenate([self.ubg[n_eq:], self.ubx[bounded]])
+        return ActiveSetNewton("dmoc_limits", w, p, self.cost(w, p), self._equations(w, p),
+                               rows, lower, upper, self.shape.kkt_tol), bounded
+
     def _solve_limited(self, params: np.ndarray, guesses: list[np.ndarray | None],
                        multipliers: list[np.ndarray | None], free: Columns) -> Columns | None:
         """The tasks ``params`` (k, n_params) whose solutions without limits ``free`` break
-        one, by :attr:`batch_solver` (``sqpmethod``) from their own guesses (a column that
-        fails goes on to IPOPT, :func:`~ocpar.ocp.solve_tasks`); None if CasADi raised."""
-        return self._solve_batch(params, guesses, multipliers)
+        or touch one: by :attr:`limit_newton` from those solutions (the default guess where
+        one failed), each accepted where this NLP's KKT conditions hold to ``kkt_tol``
+        (:func:`~ocpar.ocp.batch.kkt_met`; its ``end_hessian`` from the active set); the
+        others by :attr:`batch_solver` (``sqpmethod``) from their own guesses (a column that
+        fails there goes on to IPOPT, :func:`~ocpar.ocp.solve_tasks`). None if CasADi
+        raised."""
+        start = time.perf_counter()
+        k, n_eq = len(params), self.ng - self.n_rows
+        solver, bounded = self.limit_newton
+        x0 = self._points(free, params)
+        failed = ~np.asarray(free.column("success"), bool)
+        if failed.any():
+            x0[failed] = self.default_guesses(params[failed])
+        rounds = newton(self.shape.solver_options, "max_iter",
+                        min(NEWTON_ROUNDS, self.shape.max_iter))
+        try:
+            solved = solver.solve(x0, params, np.zeros((k, n_eq)), rounds)
+        except RuntimeError:
+            return None
+        w, lam_g = solved.x, np.hstack([solved.lam_g, solved.lam_c[:, :self.n_path]])
+        lam_x = np.zeros((k, self.nw))
+        lam_x[:, bounded] = solved.lam_c[:, self.n_path:]
+        g, stationarity, gradient = (np.asarray(r) for r in self.kkt_residuals.map(k)(
+            w.T, params.T, lam_g.T, lam_x.T))
+        accepted = solved.done & kkt_met(w, params, lam_g, lam_x, g.T, stationarity.ravel(),
+                                         gradient.ravel(), (self.lbg, self.ubg, self.lbx,
+                                                            self.ubx), self.shape.kkt_tol)
+        ok, others = np.flatnonzero(accepted), np.flatnonzero(~accepted)
+        parts, positions = [], []
+        if len(ok):
+            q, u = self.unpack_many(w[ok], params[ok])
+            assert self.end_hessian is not None   # no keep-outs, not elastic
+            equality = np.asarray(self.end_hessian.map(len(ok))(w[ok].T, lam_g[ok].T,
+                                                                params[ok].T))
+            equality = equality.reshape(self.nh, len(ok), self.nh).transpose(1, 0, 2)
+            hessians = self._hessians(w[ok], lam_g[ok], params[ok], equality)
+            elapsed = np.full(len(ok), (time.perf_counter() - start) / k)
+            parts.append(_solution_columns(solved.f[ok], np.ones(len(ok), bool),
+                                           solved.iterations[ok], elapsed,
+                                           -solved.lam_p[ok], hessians, q, u,
+                                           self.durations(w[ok], params[ok])))
+            positions.append(ok)
+        if len(others):
+            rest = self._solve_batch(params[others], [guesses[i] for i in others],
+                                     [multipliers[i] for i in others])
+            if rest is None:
+                return None
+            parts.append(rest)
+            positions.append(others)
+        return _in_order(parts, positions)
 
     def _screened(self, params: np.ndarray, guesses: np.ndarray | list[np.ndarray | None],
                   multipliers: np.ndarray | list[np.ndarray | None],
@@ -1255,12 +1317,8 @@ class DmocTranscription:
                       [lam_rows[i] for i in redo], free.take(redo))
         if solved is None:
             return None
-        joined = solved
-        if kept.any():
-            done = np.flatnonzero(kept)
-            order = np.empty(k, np.intp)
-            order[np.concatenate([done, redo])] = np.arange(k)
-            joined = Columns.concat([free.take(done), solved]).take(order)
+        done = np.flatnonzero(kept)
+        joined = _in_order([free.take(done), solved], [done, redo]) if len(done) else solved
         # the first batch's time is shared by all, the second's by the tasks it solved
         times = np.full(k, free_time / k)
         times[redo] += np.asarray(solved.column("solve_time_s"))
@@ -1458,6 +1516,15 @@ class DmocTranscription:
         return _solution_columns(costs, np.asarray(batch.success, bool), iterations,
                                  np.full(k, batch.solve_time_s / k), -batch.lam_p, hessians,
                                  q, u, self.durations(batch.x, params))
+
+
+def _in_order(parts: list[Columns], positions: list[np.ndarray]) -> Columns:
+    """``parts`` joined, row r of part j going to position ``positions[j][r]``."""
+    if len(parts) == 1:
+        return parts[0]
+    order = np.empty(sum(len(i) for i in positions), np.intp)
+    order[np.concatenate(positions)] = np.arange(len(order))
+    return Columns.concat(parts).take(order)
 
 
 def _solution_columns(costs: np.ndarray, success: np.ndarray, iterations: np.ndarray,
