@@ -100,11 +100,12 @@ def per_solve(free: FormationProblem, problem: FormationProblem, phi: np.ndarray
     it, the pairs inside the reach set) by :func:`~ocpar.ocp.solve_tasks` (the batched path
     and any failure policy): the same tasks without the limit (``free``: ``newton``, the
     batched unconstrained solve of the shape, and ``sqpmethod``), with it under ``auto``
-    (``limited``: ``newton`` first, ``sqpmethod`` for the tasks whose path reaches the
-    limit), with it by ``sqpmethod`` alone (``limited_sqpmethod``: ``auto``'s choice before
-    newton first) and the tasks ``auto`` sent to ``sqpmethod`` alone by it
-    (``sqpmethod_part``); the IPOPT retries, the tasks each solved by ``sqpmethod`` and the
-    ratios of each limited variant to ``free`` (``newton``)."""
+    (``limited``: ``newton`` first, Newton on a guessed active set for the tasks whose path
+    reaches the limit, ``sqpmethod`` for what that misses), with it by ``sqpmethod`` alone
+    (``limited_sqpmethod``: ``auto``'s choice before), and the tasks whose cost the limit
+    raises (``felt``: an active limit) alone, under ``auto`` and by ``sqpmethod``
+    (``felt_sqpmethod``); the IPOPT retries, the tasks each solved by ``sqpmethod``
+    (iterations −1) and the ratios of each limited variant to ``free`` (``newton``)."""
     from ocpar.formation.feasibility import outside_reach
     from ocpar.ocp import solve_tasks
     n = problem.agents
@@ -121,9 +122,11 @@ def per_solve(free: FormationProblem, problem: FormationProblem, phi: np.ndarray
     tasks = {name: shaped.tasks_for(agents[inside], ends[inside].ravel())
              for name, shaped in variants.items()}
     solved = {name: solve_tasks(batch) for name, batch in tasks.items()}
-    by_sqp = np.asarray(solved["limited"].column("iterations")) < 0
-    if by_sqp.any():
-        tasks["sqpmethod_part"] = tasks["limited_sqpmethod"].take(np.flatnonzero(by_sqp))
+    felt = np.flatnonzero(np.asarray(solved["limited"].column("cost"))
+                          > np.asarray(solved["free"].column("cost")) * (1 + 1e-9))
+    if len(felt):
+        tasks["felt"] = tasks["limited"].take(felt)
+        tasks["felt_sqpmethod"] = tasks["limited_sqpmethod"].take(felt)
     times: dict[str, list[float]] = {name: [] for name in tasks}
     for _ in range(repeats):
         for name, batch in tasks.items():
@@ -137,7 +140,7 @@ def per_solve(free: FormationProblem, problem: FormationProblem, phi: np.ndarray
                      "retries": int(np.sum(np.asarray(solved[name].column("attempts")) - 1))}
               for name in tasks}
     unconstrained = record["free"]["ms_per_solve"]
-    for name in ("limited", "limited_sqpmethod", "sqpmethod_part"):
+    for name in ("limited", "limited_sqpmethod", "felt", "felt_sqpmethod"):
         if name in record:
             record[name]["ratio"] = record[name]["ms_per_solve"] / unconstrained
     record["ratio_same_solver"] = (record["limited_sqpmethod"]["ms_per_solve"]

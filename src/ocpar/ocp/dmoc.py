@@ -43,7 +43,12 @@ Control bounds (optional, ``DmocShape.control_bounds``): lo_j ≤ u_k[j] ≤ hi_
 interval's control, as bounds on w. u_k is constant on its interval, so the bound holds at
 all times of the continuous control. The ``newton`` solver ignores bounds and only checks
 them: a task whose unconstrained optimum leaves them goes on to IPOPT, which imposes them
-exactly (no bound relaxation); ``sqpmethod`` imposes them in its batch. ``end_hessian``
+exactly (no bound relaxation); ``sqpmethod`` imposes them in its batch. ``auto``, for a
+shape whose only inequalities are control bounds and path constraints, stays on the Newton
+kernel: every task by ``newton`` without them first (:attr:`DmocTranscription.without_limits`),
+kept where its path keeps every limit inactive; the others by Newton on a guessed active set
+(:class:`~ocpar.ocp.active_set.ActiveSetNewton`), accepted where this NLP's KKT conditions
+hold to ``kkt_tol``; only the rest by ``sqpmethod``, then IPOPT. ``end_hessian``
 comes from the KKT system of the equations where no bound is active, and from that of the
 active set where one is (a control within ``kkt_tol`` of its bound, as a path row below;
 strict complementarity assumed, :mod:`ocpar.ocp.sensitivity` says what happens otherwise).
@@ -246,7 +251,8 @@ class DmocShape:
     ``newton`` (the fastest, by measurement) for a shape of equalities only, ``sqpmethod``
     for one with inequalities (control bounds, path constraints, keep-out slots, obstacles:
     ``newton`` only checks bounds afterwards, and a task with an active bound went to IPOPT,
-    ~10 ms). ``kkt_tol`` is
+    ~10 ms), its batch trying ``newton`` first where control bounds and path constraints
+    are its only inequalities (module docstring). ``kkt_tol`` is
     the batched solvers' stopping tolerance on the (unscaled) primal and dual residuals and
     their acceptance test;
     ``tol`` is IPOPT's (scaled). With 1e-10 a point-mass QP takes one sqpmethod iteration
