@@ -22,6 +22,7 @@ NLP's own KKT conditions (:func:`~ocpar.ocp.batch.kkt_met`) before it accepts it
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import lru_cache
 
 import casadi as ca
 import numpy as np
@@ -72,6 +73,7 @@ class ActiveSetNewton:
         self.newton = KktNewton(name, ca.vertcat(x, mu), ca.vertcat(p, at_lower, at_upper),
                                 cost, ca.vertcat(g, rows), 1, tol * TOL_FACTOR)
         self.rows = ca.Function(f"{name}_limits", [x, p], [c])
+        self._rows_of = lru_cache(maxsize=16)(lambda k: self.rows.map(k, "serial"))
 
     def solve(self, x0: np.ndarray, p: np.ndarray, lam_g0: np.ndarray, rounds: int
               ) -> ActiveSetSolve:
@@ -115,7 +117,7 @@ class ActiveSetNewton:
 
     def _rows(self, x: np.ndarray, p: np.ndarray) -> np.ndarray:
         """The limit rows c (k, nc) at the points x (k, nx) with p (k, np)."""
-        return np.asarray(self.rows.map(len(p))(x.T, p.T)).reshape(self.nc, len(p)).T
+        return np.asarray(self._rows_of(len(p))(x.T, p.T)).reshape(self.nc, len(p)).T
 
     def _beyond(self, c: np.ndarray, side: float) -> tuple[np.ndarray, np.ndarray]:
         """Masks (k, nc) of the rows c beyond their lower and upper bounds by more than

@@ -479,6 +479,7 @@ class DmocTranscription:
 
     def __init__(self, shape: DmocShape) -> None:
         self.shape = shape
+        self._maps: dict[tuple[str, int], ca.Function] = {}
         model, n = shape.model, shape.intervals
         nq, nu = model.nq, model.nu
         p = ca.SX.sym("p", shape.n_params)
@@ -818,12 +819,29 @@ class DmocTranscription:
                                  | bool(self.n_planes)) & finite)
         hessians = equality.copy()
         hessians[~finite] = np.nan
+        if not len(active):
+            return hessians
+        try:   # one mapped call, each column computed as alone
+            value = np.asarray(self.mapped("active_hessian", len(active))(
+                w[active].T, lam_g[active].T, params[active].T, mask[active].T))
+            hessians[active] = value.reshape(self.nh, len(active), self.nh).transpose(1, 0, 2)
+            return hessians
+        except RuntimeError:
+            pass
         for k in active:  # one call each: a singular active set fails alone (NaN)
             try:
                 hessians[k] = np.asarray(self.active_hessian(w[k], lam_g[k], params[k], mask[k]))
             except RuntimeError:
                 hessians[k] = np.nan
         return hessians
+
+    def mapped(self, name: str, columns: int) -> ca.Function:
+        """This transcription's Function attribute ``name`` mapped over ``columns`` columns
+        (serially), built once per (name, columns)."""
+        key = (name, columns)
+        if key not in self._maps:
+            self._maps[key] = getattr(self, name).map(columns, "serial")
+        return self._maps[key]
 
     @property
     def batches(self) -> bool:
@@ -1209,7 +1227,7 @@ class DmocTranscription:
             inside &= ~np.any(_near(w, self.lbx, self.ubx, tol), axis=1)
         if self.n_path:
             k, n_eq = len(w), self.ng - self.n_rows
-            rows = np.asarray(self.path_rows.map(k)(w.T, params.T)).reshape(self.n_path, k).T
+            rows = np.asarray(self.mapped("path_rows", k)(w.T, params.T)).reshape(self.n_path, k).T
             end = n_eq + self.n_path
             inside &= ~np.any(_near(rows, self.lbg[n_eq:end], self.ubg[n_eq:end], tol), axis=1)
         return inside
@@ -1260,7 +1278,7 @@ class DmocTranscription:
         w, lam_g = solved.x, np.hstack([solved.lam_g, solved.lam_c[:, :self.n_path]])
         lam_x = np.zeros((k, self.nw))
         lam_x[:, bounded] = solved.lam_c[:, self.n_path:]
-        g, stationarity, gradient = (np.asarray(r) for r in self.kkt_residuals.map(k)(
+        g, stationarity, gradient = (np.asarray(r) for r in self.mapped("kkt_residuals", k)(
             w.T, params.T, lam_g.T, lam_x.T))
         accepted = solved.done & kkt_met(w, params, lam_g, lam_x, g.T, stationarity.ravel(),
                                          gradient.ravel(), (self.lbg, self.ubg, self.lbx,
@@ -1270,8 +1288,8 @@ class DmocTranscription:
         if len(ok):
             q, u = self.unpack_many(w[ok], params[ok])
             assert self.end_hessian is not None   # no keep-outs, not elastic
-            equality = np.asarray(self.end_hessian.map(len(ok))(w[ok].T, lam_g[ok].T,
-                                                                params[ok].T))
+            equality = np.asarray(self.mapped("end_hessian", len(ok))(w[ok].T, lam_g[ok].T,
+                                                                    params[ok].T))
             equality = equality.reshape(self.nh, len(ok), self.nh).transpose(1, 0, 2)
             hessians = self._hessians(w[ok], lam_g[ok], params[ok], equality)
             elapsed = np.full(len(ok), (time.perf_counter() - start) / k)
