@@ -27,7 +27,7 @@ from functools import lru_cache
 import casadi as ca
 import numpy as np
 
-from ocpar.ocp.batch import KktNewton
+from ocpar.ocp.batch import BatchSolve, KktNewton
 
 #: Corrections of the active set at most (each a batched Newton solve of the columns left).
 MAX_CORRECTIONS = 6
@@ -89,11 +89,10 @@ class ActiveSetNewton:
         f, lam_p = np.full(k, np.nan), np.full((k, self.np), np.nan)
         done, iterations = np.zeros(k, bool), np.zeros(k, int)
         todo = np.arange(k)
-        free = (-np.inf * np.ones(self.nx + self.nc), np.inf * np.ones(self.nx + self.nc))
         for _ in range(MAX_CORRECTIONS):
             masks = np.hstack([p[todo], at_lower[todo], at_upper[todo]])
             start = np.hstack([x[todo], np.zeros((len(todo), self.nc))])
-            batch = self.newton.solve(start, masks, lam[todo], *free, rounds)
+            batch = self._newton(start, masks, lam[todo], rounds)
             x[todo], f[todo], lam[todo] = batch.x[:, :self.nx], batch.f, batch.lam_g
             lam_p[todo] = batch.lam_p[:, :self.np]
             iterations[todo] += batch.iterations
@@ -114,6 +113,32 @@ class ActiveSetNewton:
         lam_c = np.where(at_lower | at_upper, lam[:, self.ng:], 0.0)
         return ActiveSetSolve(x, f, lam[:, :self.ng], lam_c, lam_p, done,
                               iterations)
+
+    def _newton(self, x0: np.ndarray, p: np.ndarray, lam0: np.ndarray, rounds: int
+                ) -> BatchSolve:
+        """The masked NLPs' Newton solve of the columns x0, p, lam0; where CasADi raises
+        (e.g. a singular KKT matrix of a column whose limits cannot all hold), column by
+        column, a column that raises alone failed (NaN)."""
+        n = self.nx + self.nc
+        free = np.full(n, -np.inf), np.full(n, np.inf)
+        try:
+            return self.newton.solve(x0, p, lam0, *free, rounds)
+        except RuntimeError:
+            pass
+        rows = []
+        for i in range(len(p)):
+            try:
+                rows.append(self.newton.solve(x0[i:i + 1], p[i:i + 1], lam0[i:i + 1], *free,
+                                              rounds))
+            except RuntimeError:
+                nan = np.full((1, n), np.nan)
+                rows.append(BatchSolve(nan, np.full(1, np.nan), np.full_like(lam0[:1], np.nan),
+                                       np.full((1, p.shape[1]), np.nan), np.zeros(1, bool),
+                                       np.zeros((1, 0)), 0.0, np.zeros(1, int)))
+        return BatchSolve(*(np.concatenate([getattr(r, name) for r in rows]) for name in
+                            ("x", "f", "lam_g", "lam_p", "success", "extra")),
+                          sum(r.solve_time_s for r in rows),
+                          np.concatenate([r.iterations for r in rows]))
 
     def _rows(self, x: np.ndarray, p: np.ndarray) -> np.ndarray:
         """The limit rows c (k, nc) at the points x (k, nx) with p (k, np)."""
