@@ -3,9 +3,11 @@ in 3-D onto a sphere (the potential, ``--ordering optimal``) under |u| ≤ U and
 limit, both below the free optimum's peak, and a thrust-limited fleet onto an ellipse with
 ``--critical any``. Writes one JSON record per case (cost, status, supersteps, inner solves,
 solve time, serial; each limited solve's time against the batched unconstrained solve of its
-shape, :func:`per_solve`) to stdout or ``--output``, with the machine's load.
+shape, :func:`per_solve`), then the same ratio on larger batches (:func:`batches`) to stdout
+or ``--output``, with the machine's load.
 
-    python scripts/reach_first.py [--cases sphere-norm,sphere-box,ellipse-any] [--output F]
+    python scripts/reach_first.py [--cases sphere-norm,sphere-box,ellipse-any]
+        [--batches 36,200] [--output F]
 """
 
 from __future__ import annotations
@@ -148,12 +150,57 @@ def per_solve(free: FormationProblem, problem: FormationProblem, phi: np.ndarray
     return record
 
 
+def batches(sizes: list[int], repeats: int = 9) -> list[dict]:
+    """Time per solve (ms, medians of ``repeats``, alternating) of k point masses in 3-D from
+    rest at the origin to rest at ends 1.0–1.4 away in seeded directions (T = 2, N = 10),
+    under |u| ≤ 1.7 (``norm``) or |u_j| ≤ 1.5 (``box``; the limit active on most), under
+    ``auto`` and by ``sqpmethod`` alone, against the same tasks without the limit
+    (``newton``), for each k in ``sizes``."""
+    from ocpar.ocp import OcpTask, solve_tasks
+    limits = {"norm": {"path_constraints": (PathConstraint(lambda u: ca.sumsqr(u),
+                                                           upper=1.7**2, name="thrust"),)},
+              "box": {"control_bounds": ((-1.5, 1.5),) * 3}}
+    records = []
+    for limit, fields in limits.items():
+        for k in sizes:
+            directions = np.random.default_rng(7).normal(size=(k, 3))
+            ends = (np.linspace(1.0, 1.4, k)[:, None] * directions
+                    / np.linalg.norm(directions, axis=1, keepdims=True))
+            params = np.hstack([np.zeros((k, 6)), ends, np.zeros((k, 3))])
+            shapes = {"free": DmocShape(PointMass(dim=3), 10, 2.0),
+                      **{solver: DmocShape(PointMass(dim=3), 10, 2.0, solver=solver, **fields)
+                         for solver in ("auto", "sqpmethod")}}
+            tasks = {name: [OcpTask(shape, p) for p in params] for name, shape in shapes.items()}
+            solved = {name: solve_tasks(batch) for name, batch in tasks.items()}
+            times: dict[str, list[float]] = {name: [] for name in tasks}
+            for _ in range(repeats):
+                for name, batch in tasks.items():
+                    start = time.perf_counter()
+                    solve_tasks(batch)
+                    times[name].append((time.perf_counter() - start) / k)
+            ms = {name: 1e3 * float(np.median(t)) for name, t in times.items()}
+            records.append({"limit": limit, "tasks": k, "ms_per_solve": ms,
+                            "ratio": {name: ms[name] / ms["free"]
+                                      for name in ("auto", "sqpmethod")},
+                            "failed": {name: int(sum(not s.success for s in solved[name]))
+                                       for name in solved},
+                            "by_sqpmethod": int(sum(s.iterations < 0 for s in solved["auto"]))})
+    return records
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--cases", default=",".join(CASES))
+    parser.add_argument("--batches", default="36,200",
+                        help="batch sizes of the limited solve against the unconstrained one "
+                             "(empty: none)")
     parser.add_argument("--output", type=Path)
     args = parser.parse_args()
-    records = [run(case) for case in args.cases.split(",")]
+    records = [run(case) for case in args.cases.split(",") if case]
+    sizes = [int(k) for k in args.batches.split(",") if k]
+    if sizes:
+        records.append({"batches": batches(sizes),
+                        "load": [round(x, 2) for x in os.getloadavg()]})
     text = json.dumps(records, indent=1)
     if args.output:
         args.output.write_text(text + "\n")
