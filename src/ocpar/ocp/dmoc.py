@@ -822,7 +822,7 @@ class DmocTranscription:
         if not len(active):
             return hessians
         try:   # one mapped call, each column computed as alone
-            value = np.asarray(self.mapped("active_hessian", len(active))(
+            value = np.asarray(self._mapped("active_hessian", len(active))(
                 w[active].T, lam_g[active].T, params[active].T, mask[active].T))
             hessians[active] = value.reshape(self.nh, len(active), self.nh).transpose(1, 0, 2)
             return hessians
@@ -835,7 +835,7 @@ class DmocTranscription:
                 hessians[k] = np.nan
         return hessians
 
-    def mapped(self, name: str, columns: int) -> ca.Function:
+    def _mapped(self, name: str, columns: int) -> ca.Function:
         """This transcription's Function attribute ``name`` mapped over ``columns`` columns
         (serially), built once per (name, columns)."""
         key = (name, columns)
@@ -1184,7 +1184,8 @@ class DmocTranscription:
         ``cost_gradient`` the same, no obstacle row carrying a multiplier). Only the others
         are solved with the planes. Likewise with control bounds or path constraints alone
         (:attr:`without_limits`): every task by ``newton`` first, and only those whose path
-        breaks or touches a limit (:meth:`_within_limits`) by ``sqpmethod``."""
+        breaks or touches a limit (:meth:`_within_limits`) by :meth:`_solve_limited` (Newton
+        on a guessed active set, then ``sqpmethod`` for what that misses)."""
         params = np.asarray(params, float)
         if self.without_obstacles is not None:
             return self._screened(params, guesses, multipliers, self.without_obstacles,
@@ -1227,7 +1228,7 @@ class DmocTranscription:
             inside &= ~np.any(_near(w, self.lbx, self.ubx, tol), axis=1)
         if self.n_path:
             k, n_eq = len(w), self.ng - self.n_rows
-            rows = np.asarray(self.mapped("path_rows", k)(w.T, params.T)).reshape(self.n_path, k).T
+            rows = np.asarray(self._mapped("path_rows", k)(w.T, params.T)).reshape(self.n_path, k).T
             end = n_eq + self.n_path
             inside &= ~np.any(_near(rows, self.lbg[n_eq:end], self.ubg[n_eq:end], tol), axis=1)
         return inside
@@ -1278,7 +1279,7 @@ class DmocTranscription:
         w, lam_g = solved.x, np.hstack([solved.lam_g, solved.lam_c[:, :self.n_path]])
         lam_x = np.zeros((k, self.nw))
         lam_x[:, bounded] = solved.lam_c[:, self.n_path:]
-        g, stationarity, gradient = (np.asarray(r) for r in self.mapped("kkt_residuals", k)(
+        g, stationarity, gradient = (np.asarray(r) for r in self._mapped("kkt_residuals", k)(
             w.T, params.T, lam_g.T, lam_x.T))
         accepted = solved.done & kkt_met(w, params, lam_g, lam_x, g.T, stationarity.ravel(),
                                          gradient.ravel(), (self.lbg, self.ubg, self.lbx,
@@ -1288,7 +1289,7 @@ class DmocTranscription:
         if len(ok):
             q, u = self.unpack_many(w[ok], params[ok])
             assert self.end_hessian is not None   # no keep-outs, not elastic
-            equality = np.asarray(self.mapped("end_hessian", len(ok))(w[ok].T, lam_g[ok].T,
+            equality = np.asarray(self._mapped("end_hessian", len(ok))(w[ok].T, lam_g[ok].T,
                                                                     params[ok].T))
             equality = equality.reshape(self.nh, len(ok), self.nh).transpose(1, 0, 2)
             hessians = self._hessians(w[ok], lam_g[ok], params[ok], equality)
@@ -1437,10 +1438,7 @@ class DmocTranscription:
             assert isinstance(again, Columns)
             parts.append(again)
             positions.append(others)
-        joined = Columns.concat(parts)
-        order = np.empty(k, np.intp)
-        order[np.concatenate(positions)] = np.arange(k)
-        return joined.take(order)
+        return _in_order(parts, positions)
 
     def _in_two_rounds(self, x0: np.ndarray, params: np.ndarray, owner: np.ndarray,
                        lam0: np.ndarray, far: list[tuple[tuple[int, np.ndarray], ...]]
