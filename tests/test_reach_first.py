@@ -17,7 +17,7 @@ from ocpar.formation import DmocShape, FormationProblem, SphereSurface, solve_fo
 from ocpar.formation.ordering import solved_tables
 from ocpar.formation.solve import FormationOptions
 from ocpar.models import PointMass
-from ocpar.ocp import solve_tasks
+from ocpar.ocp import OcpTask, solve_tasks
 from ocpar.ocp.constraints import PathConstraint
 
 #: The limit of the sphere search (reach 0.7: the set as found and most of its turns lie
@@ -126,3 +126,41 @@ def test_six_masses_onto_a_sphere_under_a_limit_below_the_free_peak(limit):
             for start, end in zip(starts, ends, strict=True)]
     assert result.total_cost == pytest.approx(sum(hand), rel=1e-8)
     assert result.total_cost > free.total_cost   # the limit is felt
+
+
+@pytest.mark.parametrize("limit", ["norm", "box"])
+def test_limited_solves_stay_on_the_newton_kernel_and_equal_sqpmethods(limit):
+    """Under ``auto`` a limited shape solves every task by ``newton`` first and those whose
+    path reaches the limit by Newton on a guessed active set (:mod:`ocpar.ocp.active_set`):
+    from rest at the origin to rest at ends of growing length (the limit inactive on the
+    short ones, active on the long ones), every task is solved by Newton steps
+    (``sqpmethod`` would report −1) and every solution (cost, dJ*/dp, d²J*/dq_N², path,
+    controls) equals the one ``sqpmethod`` finds to 1e-10; a task beyond reach in the same
+    batch (its active set singular) fails alone, through the same attempts as by
+    ``sqpmethod``."""
+    u_max = TABLE_U[limit]
+    bounds = tetrahedron(limit, u_max).shape
+    directions = np.random.default_rng(7).normal(size=(12, 3))
+    ends = (np.linspace(0.2, 1.6, 12)[:, None] * directions
+            / np.linalg.norm(directions, axis=1, keepdims=True))
+    ends = np.vstack([ends, [2.5, 0.0, 0.0]])   # beyond reach (1.7 and 1.5 in x)
+    params = np.hstack([np.zeros((13, 6)), ends, np.zeros((13, 3))])
+    solved = {}
+    for solver in ("auto", "sqpmethod"):
+        shape = DmocShape(PointMass(dim=3), INTERVALS, DURATION, solver=solver,
+                          control_bounds=bounds.control_bounds,
+                          path_constraints=bounds.path_constraints)
+        solved[solver] = solve_tasks([OcpTask(shape, p) for p in params])
+    (*auto, auto_far), (*sqp, sqp_far) = solved["auto"], solved["sqpmethod"]
+    assert not auto_far.success and auto_far.attempts == sqp_far.attempts > 1
+    assert all(s.success and s.attempts == 1 for s in [*auto, *sqp])
+    assert all(s.iterations > 0 for s in auto) and all(s.iterations == -1 for s in sqp)
+    peaks = np.array([np.max(np.abs(s.u)) if limit == "box" else
+                      np.max(np.linalg.norm(s.u, axis=1)) for s in sqp])
+    active = peaks >= u_max * (1 - 1e-9)
+    assert active.any() and not active.all()
+    for a, b in zip(auto, sqp, strict=True):
+        assert a.cost == pytest.approx(b.cost, rel=1e-10)
+        for field in ("cost_gradient", "end_hessian", "q", "u"):
+            x, y = getattr(a, field), getattr(b, field)
+            np.testing.assert_allclose(x, y, rtol=1e-10, atol=1e-10 * np.max(np.abs(y)))

@@ -43,7 +43,12 @@ Control bounds (optional, ``DmocShape.control_bounds``): lo_j ≤ u_k[j] ≤ hi_
 interval's control, as bounds on w. u_k is constant on its interval, so the bound holds at
 all times of the continuous control. The ``newton`` solver ignores bounds and only checks
 them: a task whose unconstrained optimum leaves them goes on to IPOPT, which imposes them
-exactly (no bound relaxation); ``sqpmethod`` imposes them in its batch. ``end_hessian``
+exactly (no bound relaxation); ``sqpmethod`` imposes them in its batch. ``auto``, for a
+shape whose only inequalities are control bounds and path constraints, stays on the Newton
+kernel: every task by ``newton`` without them first (:attr:`DmocTranscription.without_limits`),
+kept where its path keeps every limit inactive; the others by Newton on a guessed active set
+(:class:`~ocpar.ocp.active_set.ActiveSetNewton`), accepted where this NLP's KKT conditions
+hold to ``kkt_tol``; only the rest by ``sqpmethod``, then IPOPT. ``end_hessian``
 comes from the KKT system of the equations where no bound is active, and from that of the
 active set where one is (a control within ``kkt_tol`` of its bound, as a path row below;
 strict complementarity assumed, :mod:`ocpar.ocp.sensitivity` says what happens otherwise).
@@ -149,6 +154,7 @@ import numpy as np
 
 from ocpar.bsp.columns import LISTED, SHARED, STACKED, VALUES, Columns, to_columns
 from ocpar.models.mechanical import MechanicalSystem
+from ocpar.ocp.active_set import ActiveSetNewton
 from ocpar.ocp.batch import (
     AUTO_SOLVER,
     SOLVERS,
@@ -245,7 +251,8 @@ class DmocShape:
     ``newton`` (the fastest, by measurement) for a shape of equalities only, ``sqpmethod``
     for one with inequalities (control bounds, path constraints, keep-out slots, obstacles:
     ``newton`` only checks bounds afterwards, and a task with an active bound went to IPOPT,
-    ~10 ms). ``kkt_tol`` is
+    ~10 ms), its batch trying ``newton`` first where control bounds and path constraints
+    are its only inequalities (module docstring). ``kkt_tol`` is
     the batched solvers' stopping tolerance on the (unscaled) primal and dual residuals and
     their acceptance test;
     ``tol`` is IPOPT's (scaled). With 1e-10 a point-mass QP takes one sqpmethod iteration
@@ -472,6 +479,7 @@ class DmocTranscription:
 
     def __init__(self, shape: DmocShape) -> None:
         self.shape = shape
+        self._maps: dict[tuple[str, int], ca.Function] = {}
         model, n = shape.model, shape.intervals
         nq, nu = model.nq, model.nu
         p = ca.SX.sym("p", shape.n_params)
@@ -811,12 +819,29 @@ class DmocTranscription:
                                  | bool(self.n_planes)) & finite)
         hessians = equality.copy()
         hessians[~finite] = np.nan
+        if not len(active):
+            return hessians
+        try:   # one mapped call, each column computed as alone
+            value = np.asarray(self._mapped("active_hessian", len(active))(
+                w[active].T, lam_g[active].T, params[active].T, mask[active].T))
+            hessians[active] = value.reshape(self.nh, len(active), self.nh).transpose(1, 0, 2)
+            return hessians
+        except RuntimeError:
+            pass
         for k in active:  # one call each: a singular active set fails alone (NaN)
             try:
                 hessians[k] = np.asarray(self.active_hessian(w[k], lam_g[k], params[k], mask[k]))
             except RuntimeError:
                 hessians[k] = np.nan
         return hessians
+
+    def _mapped(self, name: str, columns: int) -> ca.Function:
+        """This transcription's Function attribute ``name`` mapped over ``columns`` columns
+        (serially), built once per (name, columns)."""
+        key = (name, columns)
+        if key not in self._maps:
+            self._maps[key] = getattr(self, name).map(columns, "serial")
+        return self._maps[key]
 
     @property
     def batches(self) -> bool:
@@ -1113,10 +1138,11 @@ class DmocTranscription:
 
     def prepare(self, count: int) -> None:
         """Build what solving ``count`` tasks in one :meth:`solve_batch` takes (the batched
-        solver's mapped calls; with planes, those of :attr:`without_obstacles`), so that the
-        first superstep does not."""
-        if self.without_obstacles is not None:
-            self.without_obstacles.prepare(count)
+        solver's mapped calls; with planes or limits, those of :attr:`without_obstacles` or
+        :attr:`without_limits`), so that the first superstep does not."""
+        screen = self.without_obstacles or self.without_limits
+        if screen is not None:
+            screen.prepare(count)
         elif self.batch_solver is not None:
             self.batch_solver.prepare(count)
 
@@ -1156,20 +1182,144 @@ class DmocTranscription:
         (:meth:`clear_of_obstacles`) keeps it: it is a KKT point of the NLP with the
         obstacles, their rows inactive (with the canonical planes; ``end_hessian`` and
         ``cost_gradient`` the same, no obstacle row carrying a multiplier). Only the others
-        are solved with the planes."""
+        are solved with the planes. Likewise with control bounds or path constraints alone
+        (:attr:`without_limits`): every task by ``newton`` first, and only those whose path
+        breaks or touches a limit (:meth:`_within_limits`) by :meth:`_solve_limited` (Newton
+        on a guessed active set, then ``sqpmethod`` for what that misses)."""
         params = np.asarray(params, float)
         if self.without_obstacles is not None:
-            return self._screened(params, guesses, multipliers)
+            return self._screened(params, guesses, multipliers, self.without_obstacles,
+                                  self._clears, self._solve_segments)
+        if self.without_limits is not None:
+            return self._screened(params, guesses, multipliers, self.without_limits,
+                                  self._within_limits, self._solve_limited)
         if self.batch_solver is None:
             return None
         return self._solve_batch(params, guesses, multipliers)
 
+    @cached_property
+    def without_limits(self) -> DmocTranscription | None:
+        """The transcription of this shape without its control bounds and path constraints
+        where ``auto`` chose ``sqpmethod`` for them alone (``newton`` solves it: no
+        obstacles, keep-out slots, elastic slacks or time bounds), whose batch
+        :meth:`solve_batch` tries first; None otherwise."""
+        shape = self.shape
+        if (shape.solver != AUTO_SOLVER or shape.obstacles
+                or (shape.control_bounds is None and not shape.path_constraints)):
+            return None
+        free = dataclasses.replace(shape, control_bounds=None, path_constraints=())
+        return transcription(free) if free.chosen_solver == "newton" else None  # type: ignore[return-value]
+
+    def _clears(self, free: Columns, params: np.ndarray) -> np.ndarray:
+        """Whether each solution ``free`` of :attr:`without_obstacles` succeeded and clears
+        the obstacles (:meth:`clear_of_obstacles`): (k,) bool."""
+        return (np.asarray(free.column("success"), bool)
+                & self.clear_of_obstacles(np.asarray(free.column("q"))))
+
+    def _within_limits(self, free: Columns, params: np.ndarray) -> np.ndarray:
+        """Whether each solution ``free`` of :attr:`without_limits` succeeded and keeps every
+        control and path row farther than ``kkt_tol`` (relative, :func:`_near`) inside its
+        bounds: a KKT point of this NLP with no limit active (their multipliers 0, the same
+        cost, gradient and ``end_hessian``): (k,) bool."""
+        w = self._points(free, params)
+        inside = np.asarray(free.column("success"), bool) & np.all(np.isfinite(w), axis=1)
+        tol = self.shape.kkt_tol
+        if self.shape.control_bounds is not None:
+            inside &= ~np.any(_near(w, self.lbx, self.ubx, tol), axis=1)
+        if self.n_path:
+            k, n_eq = len(w), self.ng - self.n_rows
+            rows = np.asarray(self._mapped("path_rows", k)(w.T, params.T)).reshape(self.n_path, k).T
+            end = n_eq + self.n_path
+            inside &= ~np.any(_near(rows, self.lbg[n_eq:end], self.ubg[n_eq:end], tol), axis=1)
+        return inside
+
+    def _points(self, solved: Columns, params: np.ndarray) -> np.ndarray:
+        """The points w (k, nw) of solutions ``solved`` (their inner nodes and controls, the
+        rest of w 0)."""
+        q, u = np.asarray(solved.column("q")), np.asarray(solved.column("u"))
+        inner = self.shape.previous_guesses(q, u)
+        return np.hstack([inner, np.zeros((len(inner), self.nw - inner.shape[1]))])
+
+    @cached_property
+    def limit_newton(self) -> tuple[ActiveSetNewton, np.ndarray]:
+        """This NLP by guessed active sets on the KKT Newton kernel
+        (:class:`~ocpar.ocp.active_set.ActiveSetNewton`: the equations, and as limit rows the
+        path rows, then the bounded entries of w), and those entries' indices."""
+        w, p = self._w, self._p
+        n_eq = self.ng - self.n_rows
+        bounded = np.flatnonzero(np.isfinite(self.lbx) | np.isfinite(self.ubx))
+        rows = ca.vertcat(self.path_rows(w, p), w[bounded.tolist()])
+        lower = np.concatenate([self.lbg[n_eq:], self.lbx[bounded]])
+        upper = np.concatenate([self.ubg[n_eq:], self.ubx[bounded]])
+        return ActiveSetNewton("dmoc_limits", w, p, self.cost(w, p), self._equations(w, p),
+                               rows, lower, upper, self.shape.kkt_tol), bounded
+
+    def _solve_limited(self, params: np.ndarray, guesses: list[np.ndarray | None],
+                       multipliers: list[np.ndarray | None], free: Columns) -> Columns | None:
+        """The tasks ``params`` (k, n_params) whose solutions without limits ``free`` break
+        or touch one: by :attr:`limit_newton` from those solutions (the default guess where
+        one failed), each accepted where this NLP's KKT conditions hold to ``kkt_tol``
+        (:func:`~ocpar.ocp.batch.kkt_met`; its ``end_hessian`` from the active set); the
+        others by :attr:`batch_solver` (``sqpmethod``) from their own guesses (a column that
+        fails there goes on to IPOPT, :func:`~ocpar.ocp.solve_tasks`). None if CasADi
+        raised."""
+        start = time.perf_counter()
+        k, n_eq = len(params), self.ng - self.n_rows
+        solver, bounded = self.limit_newton
+        x0 = self._points(free, params)
+        failed = ~np.asarray(free.column("success"), bool)
+        if failed.any():
+            x0[failed] = self.default_guesses(params[failed])
+        rounds = newton(self.shape.solver_options, "max_iter",
+                        min(NEWTON_ROUNDS, self.shape.max_iter))
+        try:
+            solved = solver.solve(x0, params, np.zeros((k, n_eq)), rounds)
+        except RuntimeError:
+            return None
+        w, lam_g = solved.x, np.hstack([solved.lam_g, solved.lam_c[:, :self.n_path]])
+        lam_x = np.zeros((k, self.nw))
+        lam_x[:, bounded] = solved.lam_c[:, self.n_path:]
+        g, stationarity, gradient = (np.asarray(r) for r in self._mapped("kkt_residuals", k)(
+            w.T, params.T, lam_g.T, lam_x.T))
+        accepted = solved.done & kkt_met(w, params, lam_g, lam_x, g.T, stationarity.ravel(),
+                                         gradient.ravel(), (self.lbg, self.ubg, self.lbx,
+                                                            self.ubx), self.shape.kkt_tol)
+        ok, others = np.flatnonzero(accepted), np.flatnonzero(~accepted)
+        parts, positions = [], []
+        if len(ok):
+            q, u = self.unpack_many(w[ok], params[ok])
+            assert self.end_hessian is not None   # no keep-outs, not elastic
+            equality = np.asarray(self._mapped("end_hessian", len(ok))(w[ok].T, lam_g[ok].T,
+                                                                    params[ok].T))
+            equality = equality.reshape(self.nh, len(ok), self.nh).transpose(1, 0, 2)
+            hessians = self._hessians(w[ok], lam_g[ok], params[ok], equality)
+            elapsed = np.full(len(ok), (time.perf_counter() - start) / k)
+            parts.append(_solution_columns(solved.f[ok], np.ones(len(ok), bool),
+                                           solved.iterations[ok], elapsed,
+                                           -solved.lam_p[ok], hessians, q, u,
+                                           self.durations(w[ok], params[ok])))
+            positions.append(ok)
+        if len(others):
+            rest = self._solve_batch(params[others], [guesses[i] for i in others],
+                                     [multipliers[i] for i in others])
+            if rest is None:
+                return None
+            parts.append(rest)
+            positions.append(others)
+        return _in_order(parts, positions)
+
     def _screened(self, params: np.ndarray, guesses: np.ndarray | list[np.ndarray | None],
-                  multipliers: np.ndarray | list[np.ndarray | None]) -> Columns | None:
-        """:meth:`solve_batch` with obstacles: without them first, then with them for the
-        tasks whose paths do not clear them."""
-        free_nlp = self.without_obstacles
-        assert free_nlp is not None
+                  multipliers: np.ndarray | list[np.ndarray | None],
+                  free_nlp: DmocTranscription,
+                  keep: Callable[[Columns, np.ndarray], np.ndarray],
+                  rest: Callable[[np.ndarray, list[np.ndarray | None],
+                                  list[np.ndarray | None], Columns], Columns | None]
+                  ) -> Columns | None:
+        """:meth:`solve_batch` of a shape with obstacles or limits: every task first by
+        ``free_nlp`` (the shape without them, fewer variables and rows), then ``rest``
+        (params, guesses, multipliers, the free solutions) of the tasks whose free solution
+        ``keep`` (free solutions, params) rejects; None if CasADi raised in either (the
+        caller then solves one by one)."""
         k = len(params)
         guess_rows = list(guesses) if len(guesses) == k else [None] * k
         lam_rows = list(multipliers) if len(multipliers) == k else [None] * k
@@ -1184,24 +1334,19 @@ class DmocTranscription:
         free_time = time.perf_counter() - start
         if free is None:   # CasADi raised: the caller solves one by one
             return None
-        q = np.asarray(free.column("q"))
-        kept = np.asarray(free.column("success"), bool) & self.clear_of_obstacles(q)
+        kept = keep(free, params)
         if kept.all():
             return free
-        rest = np.flatnonzero(~kept)
-        solved = self._solve_segments(params[rest], [guess_rows[i] for i in rest],
-                                      [lam_rows[i] for i in rest], free.take(rest))
-        if not kept.any():
-            return solved
+        redo = np.flatnonzero(~kept)
+        solved = rest(params[redo], [guess_rows[i] for i in redo],
+                      [lam_rows[i] for i in redo], free.take(redo))
+        if solved is None:
+            return None
         done = np.flatnonzero(kept)
-        parts = free.take(done), solved
-        joined = Columns.concat(parts)
-        order = np.empty(k, np.intp)
-        order[np.concatenate([done, rest])] = np.arange(k)
-        joined = joined.take(order)
+        joined = _in_order([free.take(done), solved], [done, redo]) if len(done) else solved
         # the first batch's time is shared by all, the second's by the tasks it solved
         times = np.full(k, free_time / k)
-        times[rest] += np.asarray(solved.column("solve_time_s"))
+        times[redo] += np.asarray(solved.column("solve_time_s"))
         joined.fields["solve_time_s"] = (VALUES, times)
         return joined
 
@@ -1293,10 +1438,7 @@ class DmocTranscription:
             assert isinstance(again, Columns)
             parts.append(again)
             positions.append(others)
-        joined = Columns.concat(parts)
-        order = np.empty(k, np.intp)
-        order[np.concatenate(positions)] = np.arange(k)
-        return joined.take(order)
+        return _in_order(parts, positions)
 
     def _in_two_rounds(self, x0: np.ndarray, params: np.ndarray, owner: np.ndarray,
                        lam0: np.ndarray, far: list[tuple[tuple[int, np.ndarray], ...]]
@@ -1396,6 +1538,15 @@ class DmocTranscription:
         return _solution_columns(costs, np.asarray(batch.success, bool), iterations,
                                  np.full(k, batch.solve_time_s / k), -batch.lam_p, hessians,
                                  q, u, self.durations(batch.x, params))
+
+
+def _in_order(parts: list[Columns], positions: list[np.ndarray]) -> Columns:
+    """``parts`` joined, row r of part j going to position ``positions[j][r]``."""
+    if len(parts) == 1:
+        return parts[0]
+    order = np.empty(sum(len(i) for i in positions), np.intp)
+    order[np.concatenate(positions)] = np.arange(len(order))
+    return Columns.concat(parts).take(order)
 
 
 def _solution_columns(costs: np.ndarray, success: np.ndarray, iterations: np.ndarray,
