@@ -40,12 +40,13 @@ channel), ``Client.run`` 15–20×, and a Dask actor (own thread, reached direct
 from __future__ import annotations
 
 import asyncio
+import collections
 import contextlib
 import copy
-import dataclasses
 import gc
 import itertools
 import os
+import selectors
 import signal
 import sys
 import threading
@@ -388,29 +389,35 @@ class DaskBackend(Backend):
         return self.client.gather(futures)
 
     def _run_direct(self, name: str, chunks: list[Columns | list[Any]]) -> list[ChunkResult]:
-        """Chunk w on worker w over its channel: every chunk sent, then every reply received.
-        A chunk whose worker is lost meanwhile runs again on a live worker (at most
-        :data:`MAX_CHUNK_RETRIES` times), all within the superstep deadline."""
+        """Chunk w on worker w over its channel: every chunk encoded, then sent (back to back,
+        so that the workers start together), then every reply received as it arrives (the
+        first ones unpickled while the last worker still works). A chunk whose worker is lost
+        meanwhile runs again on a live worker (at most :data:`MAX_CHUNK_RETRIES` times), all
+        within the superstep deadline."""
         deadline = time.monotonic() + self.superstep_timeout_s
         targets = list(self.addresses)
         replies: list[ChunkResult | None] = [None] * len(chunks)
         pending = list(range(len(chunks)))
         for _ in range(MAX_CHUNK_RETRIES + 1):
             failed: dict[int, BaseException] = {}
+            requests = {w: Channel.request(run_chunk_in_worker, name, chunks[w])
+                        for w in pending}
+            waiting: dict[Channel, collections.deque[int]] = {}  # in the order sent
             for w in pending:
                 try:
-                    self._channel(targets[w]).send(run_chunk_in_worker, name, chunks[w])
+                    channel = self._channel(targets[w])
+                    channel.send_request(requests[w])
                 except OSError as exc:
                     failed[w] = exc
+                else:
+                    waiting.setdefault(channel, collections.deque()).append(w)
             kernel_error: Exception | None = None
-            for w in pending:
-                if w in failed:
-                    continue
+            for channel, w in _as_they_come(waiting, deadline):
                 try:
-                    channel = self._channels[targets[w]]
                     reply = channel.receive(max(deadline - time.monotonic(), 0.0))
-                    replies[w] = dataclasses.replace(reply, sent_bytes=channel.sent_bytes,
-                                                     received_bytes=channel.received_bytes)
+                    reply.sent_bytes = requests[w].size
+                    reply.received_bytes = channel.received_bytes
+                    replies[w] = reply
                 except TimeoutError:
                     for address in list(self._channels):  # replies may still come: out of step
                         self._drop_channel(address)
@@ -475,3 +482,29 @@ class DaskBackend(Backend):
         if self._cluster is not None:
             self._cluster.close()
             self._cluster = None
+
+
+def _as_they_come(waiting: dict[Channel, collections.deque[int]], deadline: float
+                  ) -> Iterator[tuple[Channel, int]]:
+    """(channel, chunk) for each chunk in ``waiting`` (per channel, its chunks in the order
+    sent), as the channels' replies arrive; the caller reads each reply. After ``deadline``
+    (``time.monotonic()``) the chunks still waiting come as they are (the caller's read then
+    times out)."""
+    if len(waiting) == 1:  # nothing to wait for in another order
+        ((channel, chunks),) = waiting.items()
+        for w in chunks:
+            yield channel, w
+        return
+    with selectors.DefaultSelector() as selector:
+        for channel in waiting:
+            selector.register(channel, selectors.EVENT_READ)
+        while waiting:
+            ready = [c for c in waiting if c.buffered()] or [
+                key.fileobj for key, _ in selector.select(max(deadline - time.monotonic(), 0.0))]
+            for channel in ready or list(waiting):
+                chunks = waiting[channel]  # type: ignore[index]
+                w = chunks.popleft()
+                if not chunks:
+                    del waiting[channel]  # type: ignore[arg-type]
+                    selector.unregister(channel)
+                yield channel, w  # type: ignore[misc]
