@@ -362,7 +362,10 @@ class DaskBackend(Backend):
         return sorted(self.client.scheduler_info(n_workers=-1)["workers"])
 
     def _run_chunks(self, name: str, chunks: list[list[Any] | Columns]) -> list[ChunkResult]:
-        packed = [to_columns(chunk) for chunk in chunks]
+        # a chunk of one task (a resident set's, a pursuit train's) travels as it is: packing
+        # it into columns and back costs more than it saves
+        packed = [chunk if isinstance(chunk, list) and len(chunk) == 1 else to_columns(chunk)
+                  for chunk in chunks]
         if self.dispatch == "direct":
             return self._run_direct(name, packed)
         from distributed import wait
