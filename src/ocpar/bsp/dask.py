@@ -19,13 +19,12 @@ Two ways to hand a chunk to its worker (``dispatch``):
   start together, and the replies are read as they arrive (the first ones unpickled while the
   last worker still works); a chunk of one task is sent as it is, not as columns. The worker
   end is a channel server that the worker plugin :class:`~ocpar.bsp.dask_worker.ChunkChannel`
-  starts on every worker, present and future,
-  when the backend registers it; the coordinator learns its address from the worker over
-  Dask's comm. Chunks run one at a time per process, under the lock that the ``tasks`` path
-  takes too. A chunk whose worker is lost runs again on a live one
-  (:data:`MAX_CHUNK_RETRIES`). The workers must be reachable from the coordinator (the
-  channel listens on an ephemeral port of the worker's host); the chunks do not appear on the
-  dashboard.
+  starts on every worker, present and future, when the backend registers it; the
+  coordinator learns its address from the worker over Dask's comm. Chunks run one at a time
+  per process, under the lock that the ``tasks`` path takes too. A chunk whose worker is lost
+  runs again on a live one (:data:`MAX_CHUNK_RETRIES`). The workers must be reachable from
+  the coordinator (the channel listens on an ephemeral port of the worker's host); the chunks
+  do not appear on the dashboard.
 * ``tasks``: one Dask task per chunk, with a key that names the run, superstep and chunk
   (visible in the dashboard's task stream), through the scheduler, which reruns a lost
   worker's chunk elsewhere.
