@@ -70,3 +70,27 @@ def test_a_worker_that_joins_later_runs_chunks_like_the_first(cluster):
         got = backend.superstep_columns(solve_task, tasks).column("cost").tolist()
         assert backend.traces[-1].worker_tasks == [3, 3]
     assert got == serial_costs(tasks)
+
+
+def test_replies_are_read_as_they_arrive():
+    """The coordinator reads the worker that answers first first, whatever the order it
+    sent to them (the slow one's reply is unpickled after, not before)."""
+    import collections
+    import select
+    import time
+
+    from ocpar.bsp.channel import Channel, ChannelServer
+    from ocpar.bsp.dask import _as_they_come
+
+    servers = [ChannelServer("127.0.0.1") for _ in range(2)]
+    slow, fast = (Channel(s.address) for s in servers)
+    fast.send(abs, -1)
+    select.select([fast], [], [], 5.0)  # its reply is in (the servers share one solve lock)
+    slow.send(time.sleep, 0.5)
+    waiting = {slow: collections.deque([0]), fast: collections.deque([1])}
+    order = [(w, channel.receive(5.0)) for channel, w in
+             _as_they_come(waiting, time.monotonic() + 5.0)]
+    assert order == [(1, 1), (0, None)]
+    for channel, server in zip((slow, fast), servers, strict=True):
+        channel.close()
+        server.close()

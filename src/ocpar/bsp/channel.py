@@ -8,16 +8,22 @@ machine; here the coordinator's thread writes to the socket and the worker's cha
 reads it (:mod:`ocpar.bsp.dask`, ``dispatch="direct"``; ``scripts/dask_overhead.py``
 measures both).
 
-A message is a header (``!Q`` count, then one ``!Q`` length per frame) followed by the frames:
-the pickle stream first, then its out-of-band buffers. A request is ``(function, args)``; a
-reply is ``(True, value)`` or ``(False, exception)``. The server runs requests one at a time
-under :data:`SOLVE_LOCK`, which the worker's other ways into the solvers take too, so a
-process still makes one solver call at a time.
+A message is a prefix (``!QQ``: the frame count and the length of the rest) followed by one
+``!Q`` length per frame and the frames: the pickle stream first, then its out-of-band buffers,
+each at an :data:`ALIGN`-byte boundary; a receiver reads it in two system calls, the prefix
+and the rest. NumPy arrays (C-contiguous,
+of a plain dtype) are pickled as their dtype's string, their shape and their data out of band
+(:func:`encode`): ~2x cheaper on each side than NumPy's own reduction, the same bits. A
+request is ``(function, args)``; a reply is ``(True, value)`` or ``(False, exception)``. The
+server runs requests one at a time under :data:`SOLVE_LOCK`, which the worker's other ways into
+the solvers take too, so a process still makes one solver call at a time.
 """
 
 from __future__ import annotations
 
-import itertools
+import copyreg
+import dataclasses
+import io
 import pickle
 import socket
 import ssl
@@ -26,14 +32,21 @@ import threading
 from collections.abc import Callable
 from typing import Any
 
+import numpy as np
+
 from ocpar.bsp.backend import UnreadableRequest
 
 #: One solver call at a time per worker process: held while a request runs (and by the Dask
 #: paths that run chunks in the worker's task thread, see :mod:`ocpar.bsp.dask_worker`).
 SOLVE_LOCK = threading.Lock()
 
-_COUNT = struct.Struct("!Q")
+_PREFIX = struct.Struct("!QQ")
 
+#: Out-of-band buffers start at multiples of this many bytes in a message's body, which a
+#: receiver reads into memory aligned as ``malloc``'s (16 bytes): an array read from the
+#: channel is aligned like a fresh one. NumPy reduces unaligned arrays in buffered pieces,
+#: in another order: a float64 sum can differ in its last bit.
+ALIGN = 16
 
 class ChannelClosed(ConnectionError):
     """The peer closed the channel (e.g. its process is gone)."""
@@ -53,22 +66,88 @@ def unreadable(exc: Exception) -> UnreadableRequest:
                              "there?")
 
 
-def send_message(sock: socket.socket, obj: Any) -> int:
-    """Send ``obj`` pickled (protocol 5) with its out-of-band buffers as one message; return
-    the message's length (bytes, header included)."""
+#: The dtype kinds :func:`_reduce_array` sends as raw data: booleans, integers, floats, complex.
+_PLAIN_KINDS = frozenset("biufc")
+
+
+def _array(data: pickle.PickleBuffer, dtype: str, shape: tuple[int, ...]) -> np.ndarray:
+    """The array that :func:`_reduce_array` reduced: a view of ``data``."""
+    return np.frombuffer(data, dtype=dtype).reshape(shape)
+
+
+def _reduce_array(array: np.ndarray) -> tuple[Any, ...]:
+    """``array`` as its data (a buffer, out of band) with its dtype's string and its shape,
+    for C-contiguous arrays of booleans or numbers; NumPy's own reduction for the others
+    (object, structured, string, date dtypes; non-contiguous or Fortran-ordered arrays)."""
+    if array.dtype.kind not in _PLAIN_KINDS or not array.flags.c_contiguous:
+        return array.__reduce_ex__(5)
+    return _array, (pickle.PickleBuffer(array), array.dtype.str, array.shape)
+
+
+#: The reductions a message's pickler uses: copyreg's, and :func:`_reduce_array` for arrays.
+_DISPATCH = {**copyreg.dispatch_table, np.ndarray: _reduce_array}
+
+
+@dataclasses.dataclass(frozen=True)
+class Message:
+    """An object pickled for the channel (:func:`encode`): ``parts`` to write one after the
+    other, ``size`` bytes in all."""
+
+    parts: tuple[bytes | memoryview, ...]
+    size: int
+
+
+def _starts(lengths: list[int] | tuple[int, ...]) -> list[int]:
+    """Where each frame of a message's body starts (the body: the frames' lengths, then the
+    frames): the pickle stream right after the lengths, each buffer at the next multiple of
+    :data:`ALIGN` bytes. Both ends compute it from the lengths alone."""
+    starts, end = [], 8 * len(lengths)
+    for k, length in enumerate(lengths):
+        start = end if k == 0 else -(-end // ALIGN) * ALIGN
+        starts.append(start)
+        end = start + length
+    return starts
+
+
+def encode(obj: Any) -> Message:
+    """``obj`` pickled (protocol 5, out-of-band buffers, arrays as :func:`_reduce_array`
+    makes them) as one message (module docstring)."""
     buffers: list[pickle.PickleBuffer] = []
-    stream = pickle.dumps(obj, protocol=5, buffer_callback=buffers.append)
-    frames = [memoryview(stream), *(b.raw() for b in buffers)]
-    header = struct.pack(f"!{1 + len(frames)}Q", len(frames), *(f.nbytes for f in frames))
-    total = len(header) + sum(f.nbytes for f in frames)
+    stream = io.BytesIO()
+    pickler = pickle.Pickler(stream, protocol=5, buffer_callback=buffers.append)
+    pickler.dispatch_table = _DISPATCH
+    pickler.dump(obj)
+    frames = [stream.getbuffer(), *(b.raw() for b in buffers)]
+    lengths = [f.nbytes for f in frames]
+    starts = _starts(lengths)
+    rest = starts[-1] + lengths[-1]
+    parts: list[bytes | memoryview] = [
+        struct.pack(f"!QQ{len(frames)}Q", len(frames), rest, *lengths)]
+    end = 8 * len(frames)
+    for start, frame in zip(starts, frames, strict=True):
+        if start > end:
+            parts.append(bytes(start - end))  # padding: the next buffer starts aligned
+        parts.append(frame)
+        end = start + frame.nbytes
+    return Message(parts=tuple(parts), size=_PREFIX.size + rest)
+
+
+def send_encoded(sock: socket.socket, message: Message) -> int:
+    """Write ``message`` (:func:`encode`); return its size (bytes, header included)."""
     if isinstance(sock, ssl.SSLSocket):  # no scatter-gather over TLS
-        for part in (header, *frames):
+        for part in message.parts:
             sock.sendall(part)
-        return total
-    sent = sock.sendmsg([header, *frames])  # one system call for a whole small message
-    if sent < total:
-        sock.sendall(memoryview(b"".join([header, *frames]))[sent:])
-    return total
+        return message.size
+    sent = sock.sendmsg(message.parts)  # one system call for a whole small message
+    if sent < message.size:
+        sock.sendall(memoryview(b"".join(message.parts))[sent:])
+    return message.size
+
+
+def send_message(sock: socket.socket, obj: Any) -> int:
+    """Send ``obj`` as one message (:func:`encode`); return the message's length (bytes,
+    header included)."""
+    return send_encoded(sock, encode(obj))
 
 
 def _recv_exact(sock: socket.socket, n: int) -> bytearray:
@@ -86,13 +165,11 @@ def receive_message(sock: socket.socket) -> tuple[Any, int]:
     """Receive one message sent by :func:`send_message`: its object, unpickled, and its
     length (bytes, header included). The whole message is read before it is unpickled, so an
     object that does not unpickle (its exception raised) leaves the channel usable."""
-    (count,) = _COUNT.unpack(_recv_exact(sock, _COUNT.size))
-    lengths = struct.unpack(f"!{count}Q", _recv_exact(sock, 8 * count))
-    payload = memoryview(_recv_exact(sock, sum(lengths)))  # every frame in one read
-    ends = list(itertools.accumulate(lengths))
-    frames = [payload[end - n:end] for n, end in zip(lengths, ends, strict=True)]
-    size = _COUNT.size * (1 + count) + sum(lengths)
-    return pickle.loads(frames[0], buffers=frames[1:]), size
+    count, rest = _PREFIX.unpack(_recv_exact(sock, _PREFIX.size))
+    body = memoryview(_recv_exact(sock, rest))  # the lengths and every frame in one read
+    lengths = struct.unpack_from(f"!{count}Q", body)
+    frames = [body[start:start + n] for start, n in zip(_starts(lengths), lengths, strict=True)]
+    return pickle.loads(frames[0], buffers=frames[1:]), _PREFIX.size + rest
 
 
 class ChannelServer:
@@ -166,10 +243,20 @@ class Channel:
         #: Length (bytes) of the last request sent and of the last reply received.
         self.sent_bytes = self.received_bytes = 0
 
+    @staticmethod
+    def request(function: Callable[..., Any], *args: Any) -> Message:
+        """The request to run ``function(*args)``, encoded (for :meth:`send_request`)."""
+        return encode((function, args))
+
     def send(self, function: Callable[..., Any], *args: Any) -> None:
         """Ask the worker to run ``function(*args)`` (``function`` importable there)."""
+        self.send_request(self.request(function, *args))
+
+    def send_request(self, request: Message) -> None:
+        """Send a request made by :meth:`request` (several channels' requests encoded first
+        go out back to back)."""
         self._sock.settimeout(None)
-        self.sent_bytes = send_message(self._sock, (function, args))
+        self.sent_bytes = send_encoded(self._sock, request)
 
     def receive(self, timeout_s: float | None = None) -> Any:
         """The value of the last request sent, or its exception raised here; ``socket.timeout``
@@ -179,6 +266,15 @@ class Channel:
         if not ok:
             raise value
         return value
+
+    def buffered(self) -> bool:
+        """Whether a reply's bytes are read from the socket already (TLS's buffer), so that
+        waiting for the socket to be readable would not see them."""
+        return isinstance(self._sock, ssl.SSLSocket) and self._sock.pending() > 0
+
+    def fileno(self) -> int:
+        """The socket's file descriptor (to wait on several channels' replies, ``selectors``)."""
+        return self._sock.fileno()
 
     def close(self) -> None:
         self._sock.close()

@@ -15,14 +15,16 @@ Two ways to hand a chunk to its worker (``dispatch``):
 * ``direct`` (default): the coordinator's own thread writes each chunk to a socket of its
   worker (:mod:`ocpar.bsp.channel`: pickled, NumPy buffers out of band, plain TCP or TLS with
   the cluster's certificates), kept open for the run, and reads the reply; no scheduler, no
-  event loop in between. The worker end is a channel server that the worker plugin
-  :class:`~ocpar.bsp.dask_worker.ChunkChannel` starts on every worker, present and future,
-  when the backend registers it; the coordinator learns its address from the worker over
-  Dask's comm. Chunks run one at a time per process, under the lock that the ``tasks`` path
-  takes too. A chunk whose worker is lost runs again on a live one
-  (:data:`MAX_CHUNK_RETRIES`). The workers must be reachable from the coordinator (the
-  channel listens on an ephemeral port of the worker's host); the chunks do not appear on the
-  dashboard.
+  event loop in between. Every chunk is encoded before the first is sent, so that the workers
+  start together, and the replies are read as they arrive (the first ones unpickled while the
+  last worker still works); a chunk of one task is sent as it is, not as columns. The worker
+  end is a channel server that the worker plugin :class:`~ocpar.bsp.dask_worker.ChunkChannel`
+  starts on every worker, present and future, when the backend registers it; the
+  coordinator learns its address from the worker over Dask's comm. Chunks run one at a time
+  per process, under the lock that the ``tasks`` path takes too. A chunk whose worker is lost
+  runs again on a live one (:data:`MAX_CHUNK_RETRIES`). The workers must be reachable from
+  the coordinator (the channel listens on an ephemeral port of the worker's host); the chunks
+  do not appear on the dashboard.
 * ``tasks``: one Dask task per chunk, with a key that names the run, superstep and chunk
   (visible in the dashboard's task stream), through the scheduler, which reruns a lost
   worker's chunk elsewhere.
@@ -40,12 +42,13 @@ channel), ``Client.run`` 15–20×, and a Dask actor (own thread, reached direct
 from __future__ import annotations
 
 import asyncio
+import collections
 import contextlib
 import copy
-import dataclasses
 import gc
 import itertools
 import os
+import select
 import signal
 import sys
 import threading
@@ -361,7 +364,10 @@ class DaskBackend(Backend):
         return sorted(self.client.scheduler_info(n_workers=-1)["workers"])
 
     def _run_chunks(self, name: str, chunks: list[list[Any] | Columns]) -> list[ChunkResult]:
-        packed = [to_columns(chunk) for chunk in chunks]
+        # a chunk of one task (a resident set's, a pursuit train's) travels as it is: packing
+        # it into columns and back costs more than it saves
+        packed = [chunk if isinstance(chunk, list) and len(chunk) == 1 else to_columns(chunk)
+                  for chunk in chunks]
         if self.dispatch == "direct":
             return self._run_direct(name, packed)
         from distributed import wait
@@ -388,29 +394,35 @@ class DaskBackend(Backend):
         return self.client.gather(futures)
 
     def _run_direct(self, name: str, chunks: list[Columns | list[Any]]) -> list[ChunkResult]:
-        """Chunk w on worker w over its channel: every chunk sent, then every reply received.
-        A chunk whose worker is lost meanwhile runs again on a live worker (at most
-        :data:`MAX_CHUNK_RETRIES` times), all within the superstep deadline."""
+        """Chunk w on worker w over its channel: every chunk encoded, then sent (back to back,
+        so that the workers start together), then every reply received as it arrives (the
+        first ones unpickled while the last worker still works). A chunk whose worker is lost
+        meanwhile runs again on a live worker (at most :data:`MAX_CHUNK_RETRIES` times), all
+        within the superstep deadline."""
         deadline = time.monotonic() + self.superstep_timeout_s
         targets = list(self.addresses)
         replies: list[ChunkResult | None] = [None] * len(chunks)
         pending = list(range(len(chunks)))
         for _ in range(MAX_CHUNK_RETRIES + 1):
             failed: dict[int, BaseException] = {}
+            requests = {w: Channel.request(run_chunk_in_worker, name, chunks[w])
+                        for w in pending}
+            waiting: dict[Channel, collections.deque[int]] = {}  # in the order sent
             for w in pending:
                 try:
-                    self._channel(targets[w]).send(run_chunk_in_worker, name, chunks[w])
+                    channel = self._channel(targets[w])
+                    channel.send_request(requests[w])
                 except OSError as exc:
                     failed[w] = exc
+                else:
+                    waiting.setdefault(channel, collections.deque()).append(w)
             kernel_error: Exception | None = None
-            for w in pending:
-                if w in failed:
-                    continue
+            for channel, w in _as_they_come(waiting, deadline):
                 try:
-                    channel = self._channels[targets[w]]
                     reply = channel.receive(max(deadline - time.monotonic(), 0.0))
-                    replies[w] = dataclasses.replace(reply, sent_bytes=channel.sent_bytes,
-                                                     received_bytes=channel.received_bytes)
+                    reply.sent_bytes = requests[w].size
+                    reply.received_bytes = channel.received_bytes
+                    replies[w] = reply
                 except TimeoutError:
                     for address in list(self._channels):  # replies may still come: out of step
                         self._drop_channel(address)
@@ -475,3 +487,35 @@ class DaskBackend(Backend):
         if self._cluster is not None:
             self._cluster.close()
             self._cluster = None
+
+
+def _as_they_come(waiting: dict[Channel, collections.deque[int]], deadline: float
+                  ) -> Iterator[tuple[Channel, int]]:
+    """(channel, chunk) for each chunk in ``waiting`` (per channel, its chunks in the order
+    sent), as the channels' replies arrive; the caller reads each reply. After ``deadline``
+    (``time.monotonic()``) the chunks still waiting come as they are (the caller's read then
+    times out). Waits with ``poll`` (one system call; a ``selectors`` selector costs seven
+    per superstep), ``select`` where there is none."""
+    by_fd = {channel.fileno(): channel for channel in waiting}
+    while waiting:
+        if len(waiting) == 1:  # nothing to wait for in another order
+            ready = list(waiting)
+        else:
+            ready = [c for c in waiting if c.buffered()] or _readable(
+                [c.fileno() for c in waiting], max(deadline - time.monotonic(), 0.0), by_fd)
+        for channel in ready or list(waiting):
+            chunks = waiting[channel]
+            w = chunks.popleft()
+            if not chunks:
+                del waiting[channel]
+            yield channel, w
+
+
+def _readable(fds: list[int], timeout_s: float, by_fd: dict[int, Channel]) -> list[Channel]:
+    """The channels of ``fds`` that have bytes to read, within ``timeout_s`` (none after)."""
+    if hasattr(select, "poll"):
+        poller = select.poll()
+        for fd in fds:
+            poller.register(fd, select.POLLIN)
+        return [by_fd[fd] for fd, _ in poller.poll(timeout_s * 1e3)]
+    return [by_fd[fd] for fd in select.select(fds, [], [], timeout_s)[0]]

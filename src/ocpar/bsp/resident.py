@@ -529,9 +529,10 @@ class ResidentSet:
 
 
 def _outside(group: range, block: range) -> np.ndarray:
-    """The agents of ``group`` that are not in ``block``, in increasing order."""
-    agents = np.arange(group.start, group.stop, dtype=np.int64)
-    return agents[(agents < block.start) | (agents >= block.stop)]
+    """The agents of ``group`` that are not in ``block``, in increasing order (the work of
+    the agents that leave, not of the group's)."""
+    return np.concatenate([np.arange(group.start, min(group.stop, block.start), dtype=np.int64),
+                           np.arange(max(group.start, block.stop), group.stop, dtype=np.int64)])
 
 
 def _replies(chunk: ChunkResult) -> list[ResidentReply]:
