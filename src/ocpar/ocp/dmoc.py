@@ -857,16 +857,19 @@ class DmocTranscription:
     def default_guesses(self, params: np.ndarray) -> np.ndarray:
         """:meth:`default_guess` of each row of ``params`` (k, 4 nq): (k, nw)."""
         nq, n, k = self.nq, self.n, len(params)
-        q0, v0, qn, vn = (params[:, None, i * nq:(i + 1) * nq] for i in range(4))
-        s = np.arange(1, n)[None, :, None] / n
-        t = (params[:, -1, None, None] if self.shape.free_duration
-             else self.first_duration)
+        # agents along the last axis: (node, entry, agent), each product contiguous
+        q0, v0, qn, vn = np.ascontiguousarray(params[:, :4 * nq].T).reshape(4, 1, nq, k)
+        s = np.arange(1, n)[:, None, None] / n
+        t = params[:, -1] if self.shape.free_duration else self.first_duration
         h00, h10 = 2 * s**3 - 3 * s**2 + 1, s**3 - 2 * s**2 + s
         h01, h11 = -2 * s**3 + 3 * s**2, s**3 - s**2
-        path = (h00 * q0 + h10 * t * v0 + h01 * qn + h11 * t * vn).reshape(-1, nq)
+        path = h00 * q0 + h10 * t * v0 + h01 * qn + h11 * t * vn   # (N−1, nq, k)
+        guesses = np.zeros((k, self.nw))
+        inner = (n - 1) * nq
+        guesses[:, :inner] = path.reshape(inner, k).T
         if self.nc:
-            path = self.shape.model.project(path)
-        guesses = np.hstack([path.reshape(k, -1), np.zeros((k, self.nw - path.size // k))])
+            guesses[:, :inner] = self.shape.model.project(
+                guesses[:, :inner].reshape(-1, nq)).reshape(k, inner)
         if self.t_index is not None:
             guesses[:, self.t_index] = self.first_duration
         return self._with_planes(guesses, params)
