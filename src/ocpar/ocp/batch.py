@@ -442,17 +442,19 @@ class KktNewton:
         lam_p, iterations = np.full((k, self.np), np.nan), np.zeros(k, int)
         g, dual, scale = np.empty((k, self.ng)), np.empty(k), np.empty(k)
         todo = np.arange(k)
+        bounded = (lbx > -np.inf) | (ubx < np.inf)   # the other entries hold all but NaN
         for _ in range(rounds):
             for rows in _full_blocks(todo):
                 self._solve_block(_as_slice(rows), x, lam, p, (f, lam_p, g, dual, scale))
             rows = _as_slice(todo)
+            finite = np.all(np.isfinite(x[rows]), axis=1)
             with np.errstate(invalid="ignore"):
                 ok[rows] = ((np.max(np.abs(g[rows]), axis=1, initial=0.0)
                              <= self.tol * (1.0 + np.max(np.abs(p[rows]), axis=1)))
                             & (dual[rows] <= self.tol * scale[rows])
-                            & np.all((x[rows] >= lbx) & (x[rows] <= ubx), axis=1))
+                            & _within(x[rows], finite, lbx, ubx, bounded))
             iterations[todo] += self.steps
-            todo = todo[~ok[todo] & np.all(np.isfinite(x[todo]), axis=1)]
+            todo = todo[~ok[rows] & finite]
             if not len(todo):
                 break
         if self.post is None:
@@ -485,6 +487,19 @@ class KktNewton:
         f[rows], g[rows], dual[rows] = f_new, g_new.reshape(k, self.ng), dual_new
         lam_p[rows] = -grad_p.reshape(k, self.np)
         scale[rows] = 1.0 + gradient.evaluate(x_new, block_p.ravel())[0]
+
+
+def _within(x: np.ndarray, finite: np.ndarray, lbx: np.ndarray, ubx: np.ndarray,
+            bounded: np.ndarray) -> np.ndarray:
+    """Whether each row of x (k, nx) lies within [lbx, ubx] (nx,), given which rows are
+    ``finite`` (k,) and which entries are ``bounded`` (nx,; the others only exclude NaN)."""
+    inside = finite.copy()
+    if not inside.all():
+        inside[~finite] = ~np.any(np.isnan(x[~finite]), axis=1)
+    if bounded.any():
+        inside &= np.all((x[:, bounded] >= lbx[bounded]) & (x[:, bounded] <= ubx[bounded]),
+                         axis=1)
+    return inside
 
 
 def _as_slice(rows: np.ndarray) -> slice | np.ndarray:

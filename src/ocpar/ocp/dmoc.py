@@ -138,6 +138,7 @@ from __future__ import annotations
 
 import dataclasses
 import itertools
+import operator
 import time
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
@@ -1364,16 +1365,14 @@ class DmocTranscription:
             lam0 = multipliers.astype(float)
         else:
             lam0 = np.zeros((len(params), self.ng))
-            for k, lam in enumerate(multipliers):
-                if lam is not None:
-                    lam0[k] = lam
+            for k in _given(multipliers):
+                lam0[k] = multipliers[k]
         if isinstance(guesses, np.ndarray) and guesses.shape == (len(params), self.nw):
             x0 = guesses.astype(float)
         else:
             x0 = self.default_guesses(params)
-            for k, guess in enumerate(guesses):
-                if guess is not None:
-                    x0[k] = self.full_guess(guess, params[k])
+            for k in _given(guesses):
+                x0[k] = self.full_guess(guesses[k], params[k])
         try:
             if isinstance(self.batch_solver, KktNewton):
                 rounds = self.solver_settings["newton"]["max_iter"]
@@ -1401,17 +1400,24 @@ class DmocTranscription:
                                  q, u, self.durations(batch.x, params))
 
 
+def _given(rows: np.ndarray | list[np.ndarray | None]) -> list[int]:
+    """The indices of the entries of ``rows`` that are not None (compared in C: a
+    superstep's tasks mostly have none)."""
+    return list(itertools.compress(range(len(rows)),
+                                   map(operator.is_not, rows, itertools.repeat(None))))
+
+
 def _solution_columns(costs: np.ndarray, success: np.ndarray, iterations: np.ndarray,
                       times: np.ndarray, gradients: np.ndarray, hessians: np.ndarray,
                       q: np.ndarray, u: np.ndarray, durations: np.ndarray) -> Columns:
     """k batched solutions as columns of :class:`DmocSolution` (one attempt each, the status
     from ``success``)."""
     k = len(costs)
-    statuses = [BATCH_STATUS[ok] for ok in success.tolist()]
+    alike = k > 0 and bool(np.all(success == success[0]))
     return Columns(cls=DmocSolution, length=k, fields={
         "cost": (VALUES, np.asarray(costs, float)),
-        "status": ((SHARED, statuses[0]) if len(set(statuses)) == 1
-                   else (LISTED, statuses)),
+        "status": ((SHARED, BATCH_STATUS[bool(success[0])]) if alike
+                   else (LISTED, [BATCH_STATUS[ok] for ok in success.tolist()])),
         "success": (VALUES, success),
         "iterations": (VALUES, np.asarray(iterations, np.int64)),
         "attempts": (VALUES, np.ones(k, np.int64)),
