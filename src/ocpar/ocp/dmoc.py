@@ -1403,6 +1403,8 @@ class DmocTranscription:
 def _given(rows: np.ndarray | list[np.ndarray | None]) -> list[int]:
     """The indices of the entries of ``rows`` that are not None (compared in C: a
     superstep's tasks mostly have none)."""
+    if not any(map(operator.is_not, rows, itertools.repeat(None))):
+        return []
     return list(itertools.compress(range(len(rows)),
                                    map(operator.is_not, rows, itertools.repeat(None))))
 
