@@ -437,8 +437,12 @@ class DmocShape:
     def previous_guesses(self, q: np.ndarray, u: np.ndarray) -> np.ndarray:
         """The guesses (k, inner nodes and controls) that re-solve from node paths
         q (k, N+1, nq) and controls u (k, N, nu)."""
-        k = len(q)
-        return np.hstack([q[:, 1:-1].reshape(k, -1), u.reshape(k, -1)])
+        k, nodes, nq = q.shape
+        inner = (nodes - 2) * nq
+        guesses = np.empty((k, inner + int(np.prod(u.shape[1:]))))
+        guesses[:, :inner].reshape(k, nodes - 2, nq)[:] = q[:, 1:-1]  # a view: no copy first
+        guesses[:, inner:] = u.reshape(k, guesses.shape[1] - inner)
+        return guesses
 
     def build(self) -> DmocTranscription:
         """The transcription of this shape (see :func:`~ocpar.ocp.transcription`); with a
