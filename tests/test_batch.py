@@ -15,7 +15,7 @@ from ocpar.bsp.partition import contiguous_blocks
 from ocpar.examples.formation_halo import make as halo_example
 from ocpar.examples.formation_point_masses import make as point_masses
 from ocpar.ocp import DmocShape, OcpTask, dmoc_problem, solve_task, solve_tasks
-from ocpar.ocp.batch import KktSystem, MappedNlp, constant_outputs
+from ocpar.ocp.batch import KktNewton, KktSystem, MappedNlp, constant_outputs
 
 
 def formation_tasks(problem, phi=None, solver: str | None = None) -> list[OcpTask]:
@@ -185,3 +185,18 @@ def test_a_nonlinear_problem_keeps_its_per_column_factorisation():
     assert KktSystem.of(x, p, transcription.cost(x, p),
                         transcription.constraints(x, p)).constant_matrix() is None
     assert not constant_outputs(transcription.end_hessian)
+
+
+@pytest.mark.parametrize(("upper", "accepted"), [(np.inf, [True, True, False]),
+                                                 (1.0, [True, False, False])])
+def test_the_newton_kernel_accepts_columns_within_their_bounds(upper, accepted):
+    """min (x₀ − p)² + (x₁ − p)² s.t. x₀ = x₁: one Newton step reaches x = (p, p). A column is
+    accepted where that lies within lbx ≤ x ≤ ubx: p = 2 exceeds a finite x₀ ≤ 1, p = NaN
+    never passes."""
+    x, p = ca.SX.sym("x", 2), ca.SX.sym("p")
+    newton = KktNewton("bounds", x, p, (x[0] - p) ** 2 + (x[1] - p) ** 2, x[0] - x[1], 1, 1e-10)
+    params = np.array([[0.5], [2.0], [np.nan]])
+    batch = newton.solve(np.zeros((3, 2)), params, np.zeros((3, 1)), np.full(2, -np.inf),
+                         np.array([upper, np.inf]))
+    assert batch.success.tolist() == accepted
+    np.testing.assert_allclose(batch.x[:2], [[0.5, 0.5], [2.0, 2.0]], rtol=1e-14)

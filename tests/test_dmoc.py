@@ -228,3 +228,26 @@ def test_the_default_solver_is_chosen_from_the_shapes_constraints():
     assert np.max(np.linalg.norm(tight.u, axis=-1)) == pytest.approx(5.0, abs=1e-6)
     with pytest.raises(ValueError, match="newton solver takes equalities only"):
         DmocShape(PointMass(), solver="newton", path_constraints=(limit,))
+
+
+@pytest.mark.parametrize("free_duration", [False, True])
+def test_default_guesses_are_the_cubic_hermite_paths_row_by_row(free_duration):
+    """A batch's default guesses: node j of row i is the cubic Hermite point at s = j/N
+    through (q0, T v0) and (qN, T vN), zero controls; a row is the one-task guess bit for
+    bit (the batch is laid out agent-last, the one-task guess is a batch of one)."""
+    shape = DmocShape(PointMass(), 5, duration=2.0, free_duration=free_duration)
+    nlp = dmoc_problem(shape)
+    rng = np.random.default_rng(7)
+    params = rng.standard_normal((6, nlp.n_params))
+    if free_duration:
+        params[:, -1] = rng.uniform(0.5, 3.0, 6)
+    guesses = nlp.default_guesses(params)
+    for row, guess in zip(params, guesses, strict=True):
+        q0, v0, qn, vn = row[:8].reshape(4, 2)
+        t = row[-1] if free_duration else 2.0
+        s = np.arange(1, 5)[:, None] / 5
+        hermite = ((2 * s**3 - 3 * s**2 + 1) * q0 + (s**3 - 2 * s**2 + s) * t * v0
+                   + (-2 * s**3 + 3 * s**2) * qn + (s**3 - s**2) * t * vn)
+        np.testing.assert_allclose(guess[:8].reshape(4, 2), hermite, rtol=1e-14, atol=1e-14)
+        assert not np.any(guess[8:])
+        assert guess.tobytes() == nlp.default_guess(row).tobytes()

@@ -440,19 +440,23 @@ class KktNewton:
         x, lam = np.array(x0, float), np.array(lam_g0, float)
         f, ok = np.full(k, np.nan), np.zeros(k, dtype=bool)
         lam_p, iterations = np.full((k, self.np), np.nan), np.zeros(k, int)
-        g, dual, scale = np.empty((k, self.ng)), np.empty(k), np.empty(k)
+        primal, dual, scale = np.empty(k), np.empty(k), np.empty(k)
+        finite = np.empty(k, dtype=bool)
+        with np.errstate(invalid="ignore"):
+            limit = self.tol * (1.0 + np.max(np.abs(p), axis=1))
         todo = np.arange(k)
+        bounded = (lbx > -np.inf) | (ubx < np.inf)   # the other entries hold all but NaN
         for _ in range(rounds):
             for rows in _full_blocks(todo):
-                self._solve_block(_as_slice(rows), x, lam, p, (f, lam_p, g, dual, scale))
+                self._solve_block(_as_slice(rows), x, lam, p,
+                                  (f, lam_p, primal, dual, scale, finite))
             rows = _as_slice(todo)
             with np.errstate(invalid="ignore"):
-                ok[rows] = ((np.max(np.abs(g[rows]), axis=1, initial=0.0)
-                             <= self.tol * (1.0 + np.max(np.abs(p[rows]), axis=1)))
+                ok[rows] = ((primal[rows] <= limit[rows])
                             & (dual[rows] <= self.tol * scale[rows])
-                            & np.all((x[rows] >= lbx) & (x[rows] <= ubx), axis=1))
+                            & _within(x[rows], finite[rows], lbx, ubx, bounded))
             iterations[todo] += self.steps
-            todo = todo[~ok[todo] & np.all(np.isfinite(x[todo]), axis=1)]
+            todo = todo[~ok[rows] & finite[rows]]
             if not len(todo):
                 break
         if self.post is None:
@@ -473,18 +477,34 @@ class KktNewton:
     def _solve_block(self, rows: slice | np.ndarray, x: np.ndarray, lam: np.ndarray,
                      p: np.ndarray, out: tuple[np.ndarray, ...]) -> None:
         """One call on the columns ``rows`` of x (k, nx) and λ_g (k, ng), overwritten with the
-        call's iterates, and of ``out``: f (k,), λ_p (k, np), g (k, ng), ‖∇_x L‖∞ (k,) and
-        1 + ‖∇f‖∞ (k,) at the new iterate (what a column is accepted by), written."""
-        f, lam_p, g, dual, scale = out
+        call's iterates, and of ``out``: f (k,), λ_p (k, np), ‖g‖∞ (k,), ‖∇_x L‖∞ (k,),
+        1 + ‖∇f‖∞ (k,) and whether x is finite (k,) at the new iterate (what a column is
+        accepted by), written (the norms while the block's arrays are in cache)."""
+        f, lam_p, primal, dual, scale, finite = out
         block_p = p[rows]
         k = len(block_p)
         newton, gradient, _ = self._mapped(k, self._shares(block_p))
         x_new, lam_new, f_new, g_new, dual_new, grad_p = newton.evaluate(
             x[rows].ravel(), lam[rows].ravel(), block_p.ravel())
         x[rows], lam[rows] = x_new.reshape(k, self.nx), lam_new.reshape(k, self.ng)
-        f[rows], g[rows], dual[rows] = f_new, g_new.reshape(k, self.ng), dual_new
+        f[rows], dual[rows] = f_new, dual_new
+        primal[rows] = np.max(np.abs(g_new.reshape(k, self.ng)), axis=1, initial=0.0)
+        finite[rows] = np.all(np.isfinite(x[rows]), axis=1)
         lam_p[rows] = -grad_p.reshape(k, self.np)
         scale[rows] = 1.0 + gradient.evaluate(x_new, block_p.ravel())[0]
+
+
+def _within(x: np.ndarray, finite: np.ndarray, lbx: np.ndarray, ubx: np.ndarray,
+            bounded: np.ndarray) -> np.ndarray:
+    """Whether each row of x (k, nx) lies within [lbx, ubx] (nx,), given which rows are
+    ``finite`` (k,) and which entries are ``bounded`` (nx,; the others only exclude NaN)."""
+    inside = finite.copy()
+    if not inside.all():
+        inside[~finite] = ~np.any(np.isnan(x[~finite]), axis=1)
+    if bounded.any():
+        inside &= np.all((x[:, bounded] >= lbx[bounded]) & (x[:, bounded] <= ubx[bounded]),
+                         axis=1)
+    return inside
 
 
 def _as_slice(rows: np.ndarray) -> slice | np.ndarray:

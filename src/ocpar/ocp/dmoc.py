@@ -143,6 +143,7 @@ from __future__ import annotations
 
 import dataclasses
 import itertools
+import operator
 import time
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
@@ -443,8 +444,12 @@ class DmocShape:
     def previous_guesses(self, q: np.ndarray, u: np.ndarray) -> np.ndarray:
         """The guesses (k, inner nodes and controls) that re-solve from node paths
         q (k, N+1, nq) and controls u (k, N, nu)."""
-        k = len(q)
-        return np.hstack([q[:, 1:-1].reshape(k, -1), u.reshape(k, -1)])
+        k, nodes, nq = q.shape
+        inner = (nodes - 2) * nq
+        guesses = np.empty((k, inner + int(np.prod(u.shape[1:]))))
+        guesses[:, :inner].reshape(k, nodes - 2, nq)[:] = q[:, 1:-1]  # a view: no copy first
+        guesses[:, inner:] = u.reshape(k, guesses.shape[1] - inner)
+        return guesses
 
     def build(self) -> DmocTranscription:
         """The transcription of this shape (see :func:`~ocpar.ocp.transcription`); with a
@@ -882,16 +887,19 @@ class DmocTranscription:
     def default_guesses(self, params: np.ndarray) -> np.ndarray:
         """:meth:`default_guess` of each row of ``params`` (k, 4 nq): (k, nw)."""
         nq, n, k = self.nq, self.n, len(params)
-        q0, v0, qn, vn = (params[:, None, i * nq:(i + 1) * nq] for i in range(4))
-        s = np.arange(1, n)[None, :, None] / n
-        t = (params[:, -1, None, None] if self.shape.free_duration
-             else self.first_duration)
+        # agents along the last axis: (node, entry, agent), each product contiguous
+        q0, v0, qn, vn = np.ascontiguousarray(params[:, :4 * nq].T).reshape(4, 1, nq, k)
+        s = np.arange(1, n)[:, None, None] / n
+        t = params[:, -1] if self.shape.free_duration else self.first_duration
         h00, h10 = 2 * s**3 - 3 * s**2 + 1, s**3 - 2 * s**2 + s
         h01, h11 = -2 * s**3 + 3 * s**2, s**3 - s**2
-        path = (h00 * q0 + h10 * t * v0 + h01 * qn + h11 * t * vn).reshape(-1, nq)
+        path = h00 * q0 + h10 * t * v0 + h01 * qn + h11 * t * vn   # (N−1, nq, k)
+        guesses = np.zeros((k, self.nw))
+        inner = (n - 1) * nq
+        guesses[:, :inner] = path.reshape(inner, k).T
         if self.nc:
-            path = self.shape.model.project(path)
-        guesses = np.hstack([path.reshape(k, -1), np.zeros((k, self.nw - path.size // k))])
+            guesses[:, :inner] = self.shape.model.project(
+                guesses[:, :inner].reshape(-1, nq)).reshape(k, inner)
         if self.t_index is not None:
             guesses[:, self.t_index] = self.first_duration
         return self._with_planes(guesses, params)
@@ -1503,16 +1511,14 @@ class DmocTranscription:
             lam0 = multipliers.astype(float)
         else:
             lam0 = np.zeros((len(params), self.ng))
-            for k, lam in enumerate(multipliers):
-                if lam is not None:
-                    lam0[k] = lam
+            for k in _given(multipliers):
+                lam0[k] = multipliers[k]
         if isinstance(guesses, np.ndarray) and guesses.shape == (len(params), self.nw):
             x0 = guesses.astype(float)
         else:
             x0 = self.default_guesses(params)
-            for k, guess in enumerate(guesses):
-                if guess is not None:
-                    x0[k] = self.full_guess(guess, params[k])
+            for k in _given(guesses):
+                x0[k] = self.full_guess(guesses[k], params[k])
         try:
             if isinstance(self.batch_solver, KktNewton):
                 rounds = self.solver_settings["newton"]["max_iter"]
@@ -1549,17 +1555,26 @@ def _in_order(parts: list[Columns], positions: list[np.ndarray]) -> Columns:
     return Columns.concat(parts).take(order)
 
 
+def _given(rows: np.ndarray | list[np.ndarray | None]) -> list[int]:
+    """The indices of the entries of ``rows`` that are not None (compared in C: a
+    superstep's tasks mostly have none)."""
+    if not any(map(operator.is_not, rows, itertools.repeat(None))):
+        return []
+    return list(itertools.compress(range(len(rows)),
+                                   map(operator.is_not, rows, itertools.repeat(None))))
+
+
 def _solution_columns(costs: np.ndarray, success: np.ndarray, iterations: np.ndarray,
                       times: np.ndarray, gradients: np.ndarray, hessians: np.ndarray,
                       q: np.ndarray, u: np.ndarray, durations: np.ndarray) -> Columns:
     """k batched solutions as columns of :class:`DmocSolution` (one attempt each, the status
     from ``success``)."""
     k = len(costs)
-    statuses = [BATCH_STATUS[ok] for ok in success.tolist()]
+    alike = k > 0 and bool(np.all(success == success[0]))
     return Columns(cls=DmocSolution, length=k, fields={
         "cost": (VALUES, np.asarray(costs, float)),
-        "status": ((SHARED, statuses[0]) if len(set(statuses)) == 1
-                   else (LISTED, statuses)),
+        "status": ((SHARED, BATCH_STATUS[bool(success[0])]) if alike
+                   else (LISTED, [BATCH_STATUS[ok] for ok in success.tolist()])),
         "success": (VALUES, success),
         "iterations": (VALUES, np.asarray(iterations, np.int64)),
         "attempts": (VALUES, np.ones(k, np.int64)),
