@@ -4,7 +4,11 @@ sharing a cluster get their own results, and a worker that joins later is reache
 
 from __future__ import annotations
 
+import logging
 import math
+import os
+import threading
+import time
 from concurrent.futures import ThreadPoolExecutor
 
 import pytest
@@ -94,3 +98,37 @@ def test_replies_are_read_as_they_arrive():
     for channel, server in zip((slow, fast), servers, strict=True):
         channel.close()
         server.close()
+
+
+class _StreamLike(logging.Handler):
+    """A handler whose emit takes a lock of its own, as a stream's write does: a lock Python
+    does not renew in a forked child."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.stream_lock = threading.Lock()
+
+    def emit(self, record: logging.LogRecord) -> None:
+        with self.stream_lock:
+            time.sleep(0.3)
+
+
+@pytest.mark.skipif(not hasattr(os, "fork"), reason="fork")
+def test_a_fork_waits_for_a_thread_writing_a_log_line():
+    import ocpar.bsp.dask  # noqa: F401  (registers the fork hooks)
+
+    logger = logging.getLogger("ocpar.test.fork")
+    handler = _StreamLike()
+    logger.addHandler(handler)
+    try:
+        writer = threading.Thread(target=logger.warning, args=("a line",))
+        writer.start()
+        time.sleep(0.05)   # the writer is inside emit, its stream lock held
+        pid = os.fork()
+        if pid == 0:   # the child: its first log line must not wait for a dead thread
+            os._exit(0 if handler.stream_lock.acquire(timeout=2.0) else 1)
+        _, status = os.waitpid(pid, 0)
+        writer.join()
+        assert os.waitstatus_to_exitcode(status) == 0
+    finally:
+        logger.removeHandler(handler)

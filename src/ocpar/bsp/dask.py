@@ -47,6 +47,7 @@ import contextlib
 import copy
 import gc
 import itertools
+import logging
 import os
 import select
 import signal
@@ -84,11 +85,40 @@ WORKER_PRELOAD = ("ocpar.ocp", "ocpar.formation.outer_step")
 #: Linux, worker processes forked from the process that starts them, with its imports,
 #: instead of spawned afresh (2 workers: started in ~0.9 s instead of ~4 s and closed in
 #: ~0.05 s instead of ~1 s, this 2-core machine, loaded; Python reinitialises its own locks
-#: in the child, and no thread of ocpar's holds a lock while a cluster starts).
+#: in the child, and no thread of ocpar's holds a lock while a cluster starts; the logging
+#: handlers are held across each fork, :func:`_hold_log_handlers`).
 CLUSTER_CONFIG = {"distributed.worker.profile.enabled": False,
                   "distributed.scheduler.work-stealing": False,
                   **({"distributed.worker.multiprocessing-method": "fork"}
                      if sys.platform == "linux" else {})}
+
+#: The logging handlers held by this process's thread that is forking (:func:`_hold_log_handlers`).
+_held_handlers: list[logging.Handler] = []
+
+
+def _hold_log_handlers() -> None:
+    """Before a fork: take every logging handler's lock, so that no other thread is inside
+    a handler's emit then. Python gives the child fresh handler locks, but not the lock of
+    the stream a handler writes to: a worker forked while Dask's event-loop thread wrote a
+    log line found its stream locked for ever at its first log line (its start hung)."""
+    loggers = [logging.getLogger(), *(logger for logger in
+                                      list(logging.Logger.manager.loggerDict.values())
+                                      if isinstance(logger, logging.Logger))]
+    handlers = {id(h): h for logger in loggers for h in logger.handlers}
+    for handler in handlers.values():
+        handler.acquire()
+        _held_handlers.append(handler)
+
+
+def _release_log_handlers() -> None:
+    """After a fork, in the parent: release what :func:`_hold_log_handlers` took."""
+    while _held_handlers:
+        _held_handlers.pop().release()
+
+
+if hasattr(os, "register_at_fork"):
+    os.register_at_fork(before=_hold_log_handlers, after_in_parent=_release_log_handlers,
+                        after_in_child=_held_handlers.clear)  # the child's locks are new
 
 
 DISPATCH = ("direct", "tasks")
