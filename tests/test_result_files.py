@@ -25,7 +25,15 @@ from ocpar.macs import MacsSettings, solve_macs
 from ocpar.models import PointMass
 from ocpar.models.labels import derived
 from ocpar.pursuit import PursuitSettings, solve_pursuit
-from ocpar.result_files import ARRAYS_FILE, SUMMARY_FILE, TRACE_FILE, load_trace, write_result
+from ocpar.result_files import (
+    ARRAYS_FILE,
+    SUMMARY_FILE,
+    TRACE_FILE,
+    load_trace,
+    write_result,
+    write_summary,
+    write_timings,
+)
 
 UNITS = pint.UnitRegistry()
 
@@ -103,6 +111,24 @@ def test_formation_arrays_are_the_returned_paths_and_end_on_the_circle(tmp_path)
     assert np.all(ds["solver_iterations"].values >= 1)
     assert np.all(ds["constraint_violation"].values <= 1e-7)
     assert ds["configuration"].attrs["units"] == ds["control"].attrs["units"] == "1"
+
+
+def test_the_timings_rewritten_after_the_plots_leave_the_rest_of_the_summary(tmp_path):
+    """write_timings (the driver's second write, after the plots) gives the summary that
+    write_summary would write with the new timings, the other fields as written before."""
+    result = solve_formation(formation_point_masses.make(agents=5))
+    write_result(result, tmp_path)
+    before = json.loads((tmp_path / SUMMARY_FILE).read_text())
+    result.timings |= {"picture_s": 0.25, "total_s": 1.5}
+    write_timings(result, tmp_path)
+    after = json.loads((tmp_path / SUMMARY_FILE).read_text())
+    assert after["timings"] == result.all_timings() != before["timings"]
+    assert after["timings"]["picture_s"] == 0.25 and list(after["timings"])[-1] == "total_s"
+    assert {k: v for k, v in after.items() if k != "timings"} == \
+        {k: v for k, v in before.items() if k != "timings"}
+    write_summary(result, tmp_path)   # encoded whole: the same file
+    assert json.loads((tmp_path / SUMMARY_FILE).read_text()) == after
+    assert [p.name for p in tmp_path.iterdir() if p.name.startswith(".")] == []
 
 
 def test_a_dimensional_fleet_s_arrays_carry_its_si_units(tmp_path):

@@ -48,7 +48,7 @@ from ocpar.cli import (
 from ocpar.options import add_options, option, option_specs, options_from_namespace
 from ocpar.plotting import warm_up
 from ocpar.references import REFERENCE, ProblemReferenceError, is_reference, load_problem
-from ocpar.result_files import write_result, write_summary
+from ocpar.result_files import write_result, write_timings
 from ocpar.results import RunResult
 from ocpar.schemes import SCHEMES, scheme_class
 from ocpar.timing import process_age, timings_line
@@ -274,7 +274,7 @@ def run_scheme(options: SchemeRun, given: frozenset[str] | None = None,
             result.timings["picture_s"] = time.perf_counter() - drawing
         if (age := process_age()) is not None:
             result.timings["total_s"] = age
-        write_summary(result, out)
+        write_timings(result, out)   # the summary written above, with the plots' time
         for stale in set(previous) - {out / "result.json", *written}:
             stale.unlink(missing_ok=True)  # the previous run's, which this one did not write
         print("wrote " + ", ".join(str(p) for p in written), flush=True)
