@@ -392,10 +392,32 @@ class DmocShape:
         inequalities (control bounds, path constraints, keep-out slots, obstacles)."""
         if self.solver != AUTO_SOLVER:
             return self.solver
-        inequalities = (self.control_bounds is not None or self.path_constraints
-                        or self.keep_out_slots or self.obstacles or self.elastic
-                        or self.time_bounds is not None)
-        return "sqpmethod" if inequalities else "newton"
+        return "sqpmethod" if self.has_inequalities else "newton"
+
+    @property
+    def has_inequalities(self) -> bool:
+        """Whether the NLP has inequalities (control bounds, path constraints, keep-out
+        slots, obstacles, T's bounds, an elastic problem's slacks)."""
+        return bool(self.control_bounds is not None or self.path_constraints
+                    or self.keep_out_slots or self.obstacles or self.elastic
+                    or self.time_bounds is not None)
+
+    def solver_settings(self) -> dict[str, dict]:
+        """The options this shape's solvers are built with (defaults and the shape's
+        ``solver_options``), by solver: ``ipopt`` (``nlpsol``'s) and the batched solver's,
+        ``newton`` (``kkt_tol``, ``max_iter``: Newton steps at most) or ``sqpmethod``."""
+        given = self.solver_options
+        # IPOPT relaxes inequalities by 1e-8 (relative) unless told not to: a keep-out and a
+        # control bound are exact
+        exact = {"bound_relax_factor": 0.0} if self.has_inequalities else {}
+        settings = {"ipopt": ipopt(given, self.tol, self.max_iter, **exact)}
+        if self.chosen_solver == "newton":
+            settings["newton"] = {
+                "kkt_tol": newton(given, "kkt_tol", self.kkt_tol),
+                "max_iter": newton(given, "max_iter", min(NEWTON_ROUNDS, self.max_iter))}
+        elif self.chosen_solver == "sqpmethod":
+            settings["sqpmethod"] = sqpmethod(given, sqp_options(self.kkt_tol, self.max_iter))
+        return settings
 
     @property
     def resolves_from_previous(self) -> bool:
@@ -723,21 +745,8 @@ class DmocTranscription:
 
     @cached_property
     def solver_settings(self) -> dict[str, dict]:
-        """The options this shape's solvers are built with (defaults and the shape's
-        ``solver_options``), by solver: ``ipopt`` (``nlpsol``'s) and the batched solver's,
-        ``newton`` (``kkt_tol``, ``max_iter``: Newton steps at most) or ``sqpmethod``."""
-        shape, given = self.shape, self.shape.solver_options
-        # IPOPT relaxes inequalities by 1e-8 (relative) unless told not to: a keep-out and a
-        # control bound are exact
-        exact = {"bound_relax_factor": 0.0} if self.has_inequalities else {}
-        settings = {"ipopt": ipopt(given, shape.tol, shape.max_iter, **exact)}
-        if shape.chosen_solver == "newton":
-            settings["newton"] = {
-                "kkt_tol": newton(given, "kkt_tol", shape.kkt_tol),
-                "max_iter": newton(given, "max_iter", min(NEWTON_ROUNDS, shape.max_iter))}
-        elif shape.chosen_solver == "sqpmethod":
-            settings["sqpmethod"] = sqpmethod(given, sqp_options(shape.kkt_tol, shape.max_iter))
-        return settings
+        """:meth:`DmocShape.solver_settings`, once."""
+        return self.shape.solver_settings()
 
     @cached_property
     def kkt_residuals(self) -> ca.Function:
@@ -765,10 +774,8 @@ class DmocTranscription:
 
     @property
     def has_inequalities(self) -> bool:
-        """Whether the NLP has inequalities (keep-out rows, control bounds, path rows,
-        elastic slacks)."""
-        return (bool(self.shape.keep_out_slots) or self.shape.control_bounds is not None
-                or bool(self.n_rows) or self.shape.elastic or self.t_index is not None)
+        """Whether the NLP has inequalities (:attr:`DmocShape.has_inequalities`)."""
+        return self.shape.has_inequalities
 
     def _activity(self, w: np.ndarray, params: np.ndarray, lam_g: np.ndarray
                   ) -> tuple[np.ndarray, np.ndarray]:
