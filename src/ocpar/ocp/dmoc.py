@@ -182,7 +182,7 @@ from ocpar.ocp.contract import (
     check_params,
     transcription,
 )
-from ocpar.ocp.duration import check_time_fields
+from ocpar.ocp.duration import build_at_unit_duration, check_time_fields, over_duration
 from ocpar.ocp.obstacles import (
     SIDE_OBSTACLES,
     Obstacle,
@@ -443,7 +443,7 @@ class DmocShape:
 
     def with_duration(self, duration: float) -> DmocShape:
         """This shape over the horizon ``duration`` (the model's time unit)."""
-        return dataclasses.replace(self, duration=float(duration))
+        return over_duration(self, duration)
 
     # the agent-shape interface of :mod:`ocpar.ocp.endpoint_agents`
 
@@ -471,9 +471,7 @@ class DmocShape:
     def build(self) -> DmocTranscription:
         """The transcription of this shape (see :func:`~ocpar.ocp.transcription`); with a
         free duration the one of every duration (that of ``duration`` 1)."""
-        if self.free_duration and self.duration != 1.0:
-            return transcription(self.with_duration(1.0))  # type: ignore[return-value]
-        return DmocTranscription(self)
+        return build_at_unit_duration(self, DmocTranscription)
 
 
 @dataclass

@@ -54,7 +54,6 @@ cost J + w T (``duration`` the T it chose; its bounds are inequalities: ``sqpmet
 
 from __future__ import annotations
 
-import dataclasses
 from collections.abc import Iterator
 from dataclasses import dataclass
 from functools import cached_property, lru_cache
@@ -81,8 +80,8 @@ from ocpar.ocp.constraints import (
     check_control_bounds,
     compile_constraints,
 )
-from ocpar.ocp.contract import InnerSolution, call_nlpsol, check_params, transcription
-from ocpar.ocp.duration import check_time_fields
+from ocpar.ocp.contract import InnerSolution, call_nlpsol, check_params
+from ocpar.ocp.duration import build_at_unit_duration, check_time_fields, over_duration
 from ocpar.ocp.multiple_shooting import INTEGRATORS, step_function, timed_step_function
 from ocpar.ocp.obstacles import Obstacle, check_obstacles, segment_rows, side_guesses
 from ocpar.ocp.riccati import RiccatiNewton, stage_function
@@ -265,7 +264,7 @@ class MsEndpointShape:
 
     def with_duration(self, duration: float) -> MsEndpointShape:
         """This shape over the horizon ``duration`` (the model's time unit)."""
-        return dataclasses.replace(self, duration=float(duration))
+        return over_duration(self, duration)
 
     # the agent-shape interface of :mod:`ocpar.ocp.endpoint_agents`
 
@@ -307,9 +306,7 @@ class MsEndpointShape:
     def build(self) -> MsEndpointTranscription:
         """The transcription of this shape (see :func:`~ocpar.ocp.transcription`); with a
         free duration the one of every duration (that of ``duration`` 1)."""
-        if self.free_duration and self.duration != 1.0:
-            return transcription(self.with_duration(1.0))  # type: ignore[return-value]
-        return MsEndpointTranscription(self)
+        return build_at_unit_duration(self, MsEndpointTranscription)
 
 
 @dataclass
