@@ -72,7 +72,8 @@ def run(args: list[str], out: Path, backend: str, workers: int) -> dict:
             "status", "message", "final_mass_kg", "agents", "subproblem_solves",
             "failed_solves", "supersteps", "max_agents_in_flight", "wall_time_s",
             "peak_rss_mb_per_worker", "rk_final_altitude_error_m")
-    row = {k: data[k] for k in keep} | trace_summary(load_trace(out), data["wall_time_s"])
+    # ms records no window, update or epsilon (it uses none)
+    row = {k: data.get(k) for k in keep} | trace_summary(load_trace(out), data["wall_time_s"])
     if data["mode"] == "pbms":
         row |= {k: data[k] for k in ("stop_reason", "estimated_remaining_final_mass_kg",
                                      "result_source", "train_final_mass_kg")}

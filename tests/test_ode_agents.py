@@ -464,6 +464,22 @@ def test_linear_quadratic_ode_agents_get_a_proven_optimal_ordering():
     assert best.total_cost < solve_formation(problem).total_cost
 
 
+def test_configuration_is_described_by_the_agents_kind(circle, mixed):
+    """result.nc's ``configuration``: an ODE fleet's node states, a mixed fleet's in neutral
+    words, a DMOC fleet's configurations."""
+    from ocpar.examples import formation_point_masses
+    from ocpar.formation.result import NODE_PATHS, Units
+
+    def described(result) -> str:
+        return result.arrays()["configuration"][2]["long_name"]
+
+    assert described(circle[1]) == NODE_PATHS["ms"] and "state x_k" in NODE_PATHS["ms"]
+    assert described(mixed[1]) == NODE_PATHS["mixed"] and "DMOC" in NODE_PATHS["mixed"]
+    point_masses = formation_point_masses.make(agents=3)
+    assert Units.of_fleet(point_masses).node_path == NODE_PATHS["dmoc"]
+    assert "DMOC node path" in NODE_PATHS["dmoc"]
+
+
 def test_what_ode_agents_do_not_offer_yet_is_refused_in_one_line():
     problem = make(agents=3)
     for options, field in ((FormationOptions(min_separation=0.1), "min_separation"),):

@@ -352,6 +352,16 @@ def vdp_result():
     return solve_pursuit(van_der_pol.make(), VDP_SETTINGS, reference=False)
 
 
+def test_result_records_only_the_settings_its_mode_used(vdp_result):
+    """PBMS records its window, update, ε and levels; the full-horizon MS uses none of them
+    and records none (a tiny problem: 11 samples)."""
+    train = {"window": 21, "update": 10, "epsilon": 1e-9, "levels": 1}
+    assert {k: vdp_result.to_dict()[k] for k in train} == train
+    ms = solve_pursuit(van_der_pol.make(samples=11), VDP_SETTINGS, mode="ms")
+    assert ms.converged and ms.window is None
+    assert not set(train) & set(ms.to_dict())
+
+
 def test_van_der_pol_pbms_reaches_the_full_horizon_optimum(vdp_result):
     problem = van_der_pol.make()
     model = problem.model

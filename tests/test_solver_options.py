@@ -21,7 +21,7 @@ from ocpar.macs.algorithm import MacsSettings
 from ocpar.macs.run import MacsRun
 from ocpar.models import PointMass
 from ocpar.ocp import DmocShape, MsShape, OcpTask, solve_tasks, transcription
-from ocpar.ocp.solver_options import solver_options
+from ocpar.ocp.solver_options import solver_options, used
 from ocpar.pursuit.run import PursuitRun
 from ocpar.pursuit.slp import PursuitSettings
 
@@ -216,6 +216,30 @@ def test_print_level_shows_ipopt_on_the_solving_process_and_result_records_optio
     quiet = run_cli("-m", "ocpar.formation", "--agents", "4", "--inner-solver", "ipopt",
                     "--quiet")
     assert quiet.returncode == 0 and "Ipopt" not in quiet.stdout
+
+
+@pytest.mark.parametrize("example, fields", [
+    ("formation_point_masses", {"agents": 3}),                 # DMOC, newton
+    ("formation_minimum_time", {"agents": 3}),                 # DMOC with |u| limited: sqpmethod
+    ("formation_unicycles", {"agents": 3, "acceleration_limit": 1.0}),   # ODE agents, limited
+    ("formation_unicycles", {"agents": 4, "mixed": True})])   # dmoc[0] and ms[1]
+def test_formation_record_is_the_transcriptions_without_building_them(example, fields):
+    import importlib
+
+    from ocpar.formation.solve import solver_record
+
+    problem = importlib.import_module(f"ocpar.examples.{example}").make(**fields)
+    options = FormationOptions(solver_options={"ipopt.max_iter": 300})
+    calls = transcription.cache_info()
+    record = solver_record(problem, options)
+    after = transcription.cache_info()
+    assert (after.hits, after.misses) == (calls.hits, calls.misses)   # nothing built
+    shapes = list(problem.agents_by_shape())
+    built = {f"{'dmoc' if isinstance(s, DmocShape) else 'ms'}"
+             f"{'' if len(shapes) == 1 else f'[{k}]'}": transcription(s).solver_settings
+             for k, s in enumerate(shapes)}
+    assert record == used(solver_options(options.solver_options), built)
+    assert len(record["used"]) == len(shapes)
 
 
 def test_pursuit_loose_tol_changes_the_full_horizon_answer():

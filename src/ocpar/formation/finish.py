@@ -258,9 +258,7 @@ def finish(problem: FormationProblem, agents: ResidentSet, phi: np.ndarray,
             model_name(s.model) for s in problem.agents_by_shape()))),
         "cost_groups": (SHARED, groups), "directory": (SHARED, directory),
         "width": (SHARED, len(str(n - 1))),
-        "units": (SHARED, Units.of(problem.widest_shape.model, problem.node_width,
-                                   shape.model.nu,
-                                   problem.position_indices))})
+        "units": (SHARED, Units.of_fleet(problem))})
     rows = agents.apply(finish_agents, tasks)
     paths = rows.column("path")
     by_shape = problem.agents_by_shape()

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass, field
 from typing import ClassVar
@@ -22,6 +23,7 @@ from ocpar.models.labels import (
     state_labels,
     time_unit,
 )
+from ocpar.ocp.dmoc import DmocShape
 from ocpar.result_files import categories
 from ocpar.results import (
     Array,
@@ -38,19 +40,40 @@ from ocpar.results import (
 AXES = ("x", "y", "z")
 
 
+#: The ``configuration`` variable's description by the fleet's agents: DMOC agents
+#: (``dmoc``), ODE agents (``ms``), both (``mixed``) or unknown (None)
+NODE_PATHS = {
+    "dmoc": "configuration q_k at the nodes (the DMOC node path)",
+    "ms": "state x_k at the nodes (the multiple-shooting node path)",
+    "mixed": "each agent's node path: a DMOC agent's configuration q_k, an ODE agent's "
+             "state x_k (NaN-padded to the widest)",
+    None: "each agent's node path at the nodes"}
+
+
 @dataclass(frozen=True)
 class Units:
     """The names and units of the fleet's quantities (its first agent's model's,
     :mod:`ocpar.models.labels`): ``state`` the configuration's entries (default x, y, z for
     the position entries, q<i> for the others), ``control`` the control's, and the units of
     ``time``, ``cost`` (the inner optimal cost) and ``mass`` (unit strings, '1' by
-    default)."""
+    default); ``node_path`` what a node of the paths is (:data:`NODE_PATHS`)."""
 
     state: Labels
     control: Labels
     time: str
     cost: str
     mass: str
+    node_path: str = NODE_PATHS[None]
+
+    @classmethod
+    def of_fleet(cls, problem: FormationProblem) -> Units:
+        """The names and units of ``problem``'s fleet: its widest model's (:meth:`of`), and
+        the description of its node paths by its agents' kinds."""
+        kinds = {"dmoc" if isinstance(s, DmocShape) else "ms" for s in problem.agents_by_shape()}
+        units = cls.of(problem.widest_shape.model, problem.node_width,
+                       problem.common_shape.model.nu, problem.position_indices)
+        return dataclasses.replace(units, node_path=NODE_PATHS[
+            kinds.pop() if len(kinds) == 1 else "mixed"])
 
     @classmethod
     def of(cls, model: object, nq: int, nu: int, positions: tuple[int, ...]) -> Units:
@@ -103,9 +126,7 @@ class Fleet:
             model[agents] = names.index(name)
             mass[agents] = float(getattr(shape_i.model, "mass", math.nan))
         return cls(shape.duration, problem.position_indices, targets, model, names, mass,
-                   problem.node_width, Units.of(problem.widest_shape.model,
-                                                problem.node_width, shape.model.nu,
-                                                problem.position_indices))
+                   problem.node_width, Units.of_fleet(problem))
 
 
 @dataclass
@@ -455,7 +476,7 @@ def agent_arrays(records: AgentRecords, duration: float | np.ndarray,
         "agent": array("agent", np.arange(records.first, records.first + m), "1",
                        "agent index"),
         "configuration": array("agent time q_component", q, units.state,
-                               "configuration q_k at the nodes (the DMOC node path)"),
+                               units.node_path),
         "velocity": array("agent interval_time q_component", np.diff(q, axis=1) / h,
                           units.velocity, "velocity (q_{k+1} - q_k)/h on each interval",
                           entry_units="velocity_units"),

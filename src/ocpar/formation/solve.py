@@ -59,7 +59,6 @@ from ocpar.formation.verify import (
     verify_formation,
 )
 from ocpar.ocp.batch import AUTO_SOLVER, SOLVERS
-from ocpar.ocp.contract import transcription
 from ocpar.ocp.dmoc import DmocShape
 from ocpar.ocp.solver_options import SOLVER_OPTIONS_HELP, merged, solver_options, used
 from ocpar.options import numbers, option
@@ -532,7 +531,7 @@ def solve_formation(
     building = time.perf_counter()
     if options.mode == "hierarchical":   # the workers' inner solvers, apart from the solve
         prepare_workers(problem, backend)
-    record = solver_record(problem, options)   # (this process's transcriptions: built here)
+    record = solver_record(problem, options)
     built = time.perf_counter() - building
     first_trace = len(backend.traces)
     start = time.perf_counter()
@@ -757,10 +756,10 @@ def solver_record(problem: FormationProblem, options: FormationOptions) -> dict:
     """result.json's ``solver_options``: the run's, and by inner problem's shape (``dmoc`` for
     DMOC agents, ``ms`` for ODE agents; ``dmoc[k]``, ``ms[k]`` for the k-th distinct shape of a
     fleet of several) the options its solvers are built with
-    (:func:`ocpar.ocp.solver_options.used`)."""
+    (:func:`ocpar.ocp.solver_options.used`), read from the shapes: no transcription is built."""
     shapes = list(problem.agents_by_shape())
     kinds = ["dmoc" if isinstance(s, DmocShape) else "ms" for s in shapes]
-    settings = {kind if len(shapes) == 1 else f"{kind}[{k}]": transcription(s).solver_settings
+    settings = {kind if len(shapes) == 1 else f"{kind}[{k}]": s.solver_settings()
                 for k, (kind, s) in enumerate(zip(kinds, shapes, strict=True))}
     return used(solver_options(options.solver_options), settings)
 

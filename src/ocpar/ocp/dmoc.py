@@ -183,7 +183,7 @@ from ocpar.ocp.contract import (
     check_params,
     transcription,
 )
-from ocpar.ocp.duration import check_time_fields
+from ocpar.ocp.duration import build_at_unit_duration, check_time_fields, over_duration
 from ocpar.ocp.obstacles import (
     SIDE_OBSTACLES,
     Obstacle,
@@ -393,10 +393,32 @@ class DmocShape:
         inequalities (control bounds, path constraints, keep-out slots, obstacles)."""
         if self.solver != AUTO_SOLVER:
             return self.solver
-        inequalities = (self.control_bounds is not None or self.path_constraints
-                        or self.keep_out_slots or self.obstacles or self.elastic
-                        or self.time_bounds is not None)
-        return "sqpmethod" if inequalities else "newton"
+        return "sqpmethod" if self.has_inequalities else "newton"
+
+    @property
+    def has_inequalities(self) -> bool:
+        """Whether the NLP has inequalities (control bounds, path constraints, keep-out
+        slots, obstacles, T's bounds, an elastic problem's slacks)."""
+        return bool(self.control_bounds is not None or self.path_constraints
+                    or self.keep_out_slots or self.obstacles or self.elastic
+                    or self.time_bounds is not None)
+
+    def solver_settings(self) -> dict[str, dict]:
+        """The options this shape's solvers are built with (defaults and the shape's
+        ``solver_options``), by solver: ``ipopt`` (``nlpsol``'s) and the batched solver's,
+        ``newton`` (``kkt_tol``, ``max_iter``: Newton steps at most) or ``sqpmethod``."""
+        given = self.solver_options
+        # IPOPT relaxes inequalities by 1e-8 (relative) unless told not to: a keep-out and a
+        # control bound are exact
+        exact = {"bound_relax_factor": 0.0} if self.has_inequalities else {}
+        settings = {"ipopt": ipopt(given, self.tol, self.max_iter, **exact)}
+        if self.chosen_solver == "newton":
+            settings["newton"] = {
+                "kkt_tol": newton(given, "kkt_tol", self.kkt_tol),
+                "max_iter": newton(given, "max_iter", min(NEWTON_ROUNDS, self.max_iter))}
+        elif self.chosen_solver == "sqpmethod":
+            settings["sqpmethod"] = sqpmethod(given, sqp_options(self.kkt_tol, self.max_iter))
+        return settings
 
     @property
     def resolves_from_previous(self) -> bool:
@@ -422,7 +444,7 @@ class DmocShape:
 
     def with_duration(self, duration: float) -> DmocShape:
         """This shape over the horizon ``duration`` (the model's time unit)."""
-        return dataclasses.replace(self, duration=float(duration))
+        return over_duration(self, duration)
 
     # the agent-shape interface of :mod:`ocpar.ocp.endpoint_agents`
 
@@ -454,9 +476,7 @@ class DmocShape:
     def build(self) -> DmocTranscription:
         """The transcription of this shape (see :func:`~ocpar.ocp.transcription`); with a
         free duration the one of every duration (that of ``duration`` 1)."""
-        if self.free_duration and self.duration != 1.0:
-            return transcription(self.with_duration(1.0))  # type: ignore[return-value]
-        return DmocTranscription(self)
+        return build_at_unit_duration(self, DmocTranscription)
 
 
 @dataclass
@@ -728,21 +748,8 @@ class DmocTranscription:
 
     @cached_property
     def solver_settings(self) -> dict[str, dict]:
-        """The options this shape's solvers are built with (defaults and the shape's
-        ``solver_options``), by solver: ``ipopt`` (``nlpsol``'s) and the batched solver's,
-        ``newton`` (``kkt_tol``, ``max_iter``: Newton steps at most) or ``sqpmethod``."""
-        shape, given = self.shape, self.shape.solver_options
-        # IPOPT relaxes inequalities by 1e-8 (relative) unless told not to: a keep-out and a
-        # control bound are exact
-        exact = {"bound_relax_factor": 0.0} if self.has_inequalities else {}
-        settings = {"ipopt": ipopt(given, shape.tol, shape.max_iter, **exact)}
-        if shape.chosen_solver == "newton":
-            settings["newton"] = {
-                "kkt_tol": newton(given, "kkt_tol", shape.kkt_tol),
-                "max_iter": newton(given, "max_iter", min(NEWTON_ROUNDS, shape.max_iter))}
-        elif shape.chosen_solver == "sqpmethod":
-            settings["sqpmethod"] = sqpmethod(given, sqp_options(shape.kkt_tol, shape.max_iter))
-        return settings
+        """:meth:`DmocShape.solver_settings`, once."""
+        return self.shape.solver_settings()
 
     @cached_property
     def kkt_residuals(self) -> ca.Function:
@@ -770,10 +777,8 @@ class DmocTranscription:
 
     @property
     def has_inequalities(self) -> bool:
-        """Whether the NLP has inequalities (keep-out rows, control bounds, path rows,
-        elastic slacks)."""
-        return (bool(self.shape.keep_out_slots) or self.shape.control_bounds is not None
-                or bool(self.n_rows) or self.shape.elastic or self.t_index is not None)
+        """Whether the NLP has inequalities (:attr:`DmocShape.has_inequalities`)."""
+        return self.shape.has_inequalities
 
     def _activity(self, w: np.ndarray, params: np.ndarray, lam_g: np.ndarray
                   ) -> tuple[np.ndarray, np.ndarray]:

@@ -16,13 +16,21 @@ worker solved which unit, nor on how many workers there are.
 
 from __future__ import annotations
 
+import dataclasses
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
+from typing import Any, TypeVar
 
 import numpy as np
 
 from ocpar.bsp.columns import Columns
-from ocpar.ocp.contract import solve_tasks
+from ocpar.ocp.contract import solve_tasks, transcription
+
+#: a shape dataclass with the fields ``duration`` (T) and ``free_duration``
+S = TypeVar("S")
+#: its transcription
+T = TypeVar("T")
 
 
 @dataclass(frozen=True)
@@ -77,6 +85,20 @@ def check_time_fields(free_duration: bool, time_bounds: object, time_weight: flo
     return low, high
 
 
+def over_duration(shape: S, duration: float) -> S:
+    """``shape`` over the horizon ``duration`` (the model's time unit)."""
+    return dataclasses.replace(shape, duration=float(duration))  # type: ignore[type-var]
+
+
+def build_at_unit_duration(shape: Any, transcribe: Callable[[Any], T]) -> T:
+    """``transcribe(shape)``; with a free duration (T a parameter) the process-wide
+    transcription of ``shape`` at ``duration`` 1, which serves every T
+    (:func:`~ocpar.ocp.transcription`)."""
+    if shape.free_duration and shape.duration != 1.0:
+        return transcription(over_duration(shape, 1.0))  # type: ignore[return-value]
+    return transcribe(shape)
+
+
 def duration_sums(unit: DurationUnit) -> DurationSums:
     """Engine kernel: solve ``unit``'s tasks (:func:`~ocpar.ocp.solve_tasks`) and sum their
     J*, dJ*/dT and d²J*/dT² in task order (module docstring)."""
@@ -92,4 +114,5 @@ def duration_sums(unit: DurationUnit) -> DurationSums:
                         float(np.sum(curvature)), len(ok), int(np.sum(~ok)), first)
 
 
-__all__ = ["DurationSums", "DurationUnit", "check_time_fields", "duration_sums"]
+__all__ = ["DurationSums", "DurationUnit", "build_at_unit_duration", "check_time_fields",
+           "duration_sums", "over_duration"]

@@ -54,7 +54,6 @@ cost J + w T (``duration`` the T it chose; its bounds are inequalities: ``sqpmet
 
 from __future__ import annotations
 
-import dataclasses
 from collections.abc import Iterator
 from dataclasses import dataclass
 from functools import cached_property, lru_cache
@@ -81,8 +80,8 @@ from ocpar.ocp.constraints import (
     check_control_bounds,
     compile_constraints,
 )
-from ocpar.ocp.contract import InnerSolution, call_nlpsol, check_params, transcription
-from ocpar.ocp.duration import check_time_fields
+from ocpar.ocp.contract import InnerSolution, call_nlpsol, check_params
+from ocpar.ocp.duration import build_at_unit_duration, check_time_fields, over_duration
 from ocpar.ocp.multiple_shooting import INTEGRATORS, step_function, timed_step_function
 from ocpar.ocp.obstacles import Obstacle, check_obstacles, segment_rows, side_guesses
 from ocpar.ocp.riccati import RiccatiNewton, stage_function
@@ -245,9 +244,27 @@ class MsEndpointShape:
         """Length of p = (x_0, x̄_N), then T where the duration is free."""
         return 2 * self.model.nx + int(self.free_duration)
 
+    def solver_settings(self) -> dict[str, dict]:
+        """The options this shape's solvers are built with (defaults and the shape's
+        ``solver_options``), by solver: ``ipopt`` (``nlpsol``'s) and the batched solver's,
+        ``newton`` (``kkt_tol``, ``max_iter``: Newton steps at most) or ``sqpmethod``."""
+        given = self.solver_options
+        settings = {"ipopt": ipopt(given, self.tol, self.max_iter, bound_relax_factor=0.0)}
+        if self.chosen_solver == "newton":
+            settings["newton"] = {
+                # the recursion's stages have a fixed step: sparse QR where T is a parameter
+                "kkt_solver": "qr" if self.free_duration
+                else newton(given, "kkt_solver", "riccati"),
+                "kkt_tol": newton(given, "kkt_tol", self.kkt_tol),
+                "max_iter": newton(given, "max_iter", min(NEWTON_ROUNDS, self.max_iter))}
+        elif self.chosen_solver == "sqpmethod":
+            settings["sqpmethod"] = sqpmethod(given, sqp_options(
+                self.kkt_tol, min(self.max_iter, SQP_MAX_ITER)))
+        return settings
+
     def with_duration(self, duration: float) -> MsEndpointShape:
         """This shape over the horizon ``duration`` (the model's time unit)."""
-        return dataclasses.replace(self, duration=float(duration))
+        return over_duration(self, duration)
 
     # the agent-shape interface of :mod:`ocpar.ocp.endpoint_agents`
 
@@ -289,9 +306,7 @@ class MsEndpointShape:
     def build(self) -> MsEndpointTranscription:
         """The transcription of this shape (see :func:`~ocpar.ocp.transcription`); with a
         free duration the one of every duration (that of ``duration`` 1)."""
-        if self.free_duration and self.duration != 1.0:
-            return transcription(self.with_duration(1.0))  # type: ignore[return-value]
-        return MsEndpointTranscription(self)
+        return build_at_unit_duration(self, MsEndpointTranscription)
 
 
 @dataclass
@@ -420,22 +435,8 @@ class MsEndpointTranscription:
 
     @cached_property
     def solver_settings(self) -> dict[str, dict]:
-        """The options this shape's solvers are built with (defaults and the shape's
-        ``solver_options``), by solver: ``ipopt`` (``nlpsol``'s) and the batched solver's,
-        ``newton`` (``kkt_tol``, ``max_iter``: Newton steps at most) or ``sqpmethod``."""
-        shape, given = self.shape, self.shape.solver_options
-        settings = {"ipopt": ipopt(given, shape.tol, shape.max_iter, bound_relax_factor=0.0)}
-        if shape.chosen_solver == "newton":
-            settings["newton"] = {
-                # the recursion's stages have a fixed step: sparse QR where T is a parameter
-                "kkt_solver": "qr" if shape.free_duration
-                else newton(given, "kkt_solver", "riccati"),
-                "kkt_tol": newton(given, "kkt_tol", shape.kkt_tol),
-                "max_iter": newton(given, "max_iter", min(NEWTON_ROUNDS, shape.max_iter))}
-        elif shape.chosen_solver == "sqpmethod":
-            settings["sqpmethod"] = sqpmethod(given, sqp_options(
-                shape.kkt_tol, min(shape.max_iter, SQP_MAX_ITER)))
-        return settings
+        """:meth:`MsEndpointShape.solver_settings`, once."""
+        return self.shape.solver_settings()
 
     @cached_property
     def kkt_residuals(self) -> ca.Function:

@@ -34,7 +34,9 @@ class PursuitResult(RunResult):
     ``result_source``: ``train`` (its last agent) or ``full_horizon`` (the certificate, when it
     is at least as good); the train's own figures are kept beside it (``train_headline``,
     ``train_cost``, ``train_remaining`` and ``train_remaining_method``; its agents are
-    ``agents``), with ``windows`` the (N_Δ, N_δ) it ran with, widened after each stall.
+    ``agents``), with ``windows`` the (N_Δ, N_δ) it ran with, widened after each stall, and
+    the settings it was given (``window``, ``update``, ``epsilon``, ``levels``; None in
+    ``ms`` mode, which uses none of them, and left out of its ``result.json``).
     ``time`` (N,) the sample times t_j of the answer, in real time (the model's time unit,
     ``time_unit``): j T/(N−1) with ``final_time`` T, the problem's duration or, with
     ``free_final_time``, the T found (``plan_time`` (N,) agent 0's sample times); ``states``
@@ -46,10 +48,6 @@ class PursuitResult(RunResult):
 
     samples: int
     mode: str
-    window: int
-    update: int
-    epsilon: float
-    levels: int
     headline_key: str
     headline_name: str
     headline_unit: str
@@ -80,6 +78,10 @@ class PursuitResult(RunResult):
     train_remaining: float | None = None
     train_remaining_method: str | None = None
     windows: list[tuple[int, int]] = field(default_factory=list)
+    window: int | None = None
+    update: int | None = None
+    epsilon: float | None = None
+    levels: int | None = None
     time_unit: str = DIMENSIONLESS
     final_time: float | None = None
     free_final_time: bool = False
@@ -137,10 +139,7 @@ class PursuitResult(RunResult):
             "mode": self.mode,
             "final_time": self.final_time,
             "free_final_time": self.free_final_time,
-            "window": self.window,
-            "update": self.update,
-            "epsilon": self.epsilon,
-            "levels": self.levels,
+            **self.train_settings(),
             "headline": key,
             "headline_name": self.headline_name,
             "headline_unit": self.headline_unit,
@@ -168,6 +167,14 @@ class PursuitResult(RunResult):
             "train_remaining_method": self.train_remaining_method,
             "windows": [list(w) for w in self.windows],
         }
+
+    def train_settings(self) -> dict:
+        """PBMS's settings ``window`` N_Δ, ``update`` N_δ, ``epsilon`` and ``levels``; none
+        in ``ms`` mode, which uses none of them."""
+        if self.mode != "pbms":
+            return {}
+        return {"window": self.window, "update": self.update, "epsilon": self.epsilon,
+                "levels": self.levels}
 
     def arrays(self) -> dict[str, Array]:
         """The array file's variables: the coordinates ``time`` (N) the sample times,

@@ -106,7 +106,9 @@ def solve_pursuit(
                  "train_cost": problem.cost(outcome.best.x, outcome.best.u),
                  "train_remaining": outcome.train_remaining,
                  "train_remaining_method": outcome.train_remaining_method,
-                 "windows": outcome.windows}
+                 "windows": outcome.windows, "window": settings.window,
+                 "update": settings.update, "epsilon": settings.epsilon,
+                 "levels": settings.levels}
     trace = backend.traces[first_trace:]
     wall = time.perf_counter() - start
     timings = {}
@@ -131,8 +133,6 @@ def solve_pursuit(
                    else f"{failures}; {message}")
     return PursuitResult(
         problem=problem.name, samples=problem.samples, mode=mode,
-        window=settings.window, update=settings.update, epsilon=settings.epsilon,
-        levels=settings.levels,
         backend=backend.name, workers=backend.workers, status=status, message=message,
         headline_key=problem.headline_key, headline_name=problem.headline_name,
         headline_unit=problem.headline_unit,
