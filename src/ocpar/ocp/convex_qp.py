@@ -181,8 +181,14 @@ class ConvexQp:
         rest = np.asarray(gradient_x(x.T, p.T, lam[:, :self.ng].T, lam[:, self.ng:].T)).T
         lam[:, self.eq] = -rest @ self.eq_solve.T
         ok = self._kkt_met(x, p, lam, residuals)
-        for i in np.flatnonzero(~ok).tolist():   # again, with its active set as equalities
-            x[i], lam[i], ok[i] = self._polished(p[i], z[i] > slack[i])
+        failed = np.flatnonzero(~ok)
+        if len(failed):   # again, each with its active set as equalities
+            jac, at_zero, gradient = (np.asarray(out) for out in self.affine.map(len(failed))(
+                p[failed].T))
+            jac = jac.reshape(len(at_zero), len(failed), self.nx).transpose(1, 0, 2)
+            for j, i in enumerate(failed.tolist()):
+                x[i], lam[i], ok[i] = self._polished(
+                    p[i], (jac[j], at_zero[:, j], gradient[:, j]), z[i] > slack[i])
         lam_g, lam_x = lam[:, :self.ng], lam[:, self.ng:]
         f = np.asarray(cost(x.T, p.T)).ravel()
         lam_p = -np.asarray(gradient_p(x.T, p.T, lam_g.T)).T
@@ -199,15 +205,15 @@ class ConvexQp:
         return kkt_met(x, p, lam_g, lam_x, g.T, stationarity.ravel(), gradient.ravel(),
                        self.bounds, self.kkt_tol)
 
-    def _polished(self, p: np.ndarray, active: np.ndarray) -> tuple[np.ndarray, np.ndarray,
-                                                                     bool]:
-        """One column's point and multipliers from :meth:`_on_active_set` with the rows
-        ``active`` (z > s), rows whose multiplier has the wrong sign dropped and solved
-        again (at most :data:`ACTIVE_SET_PASSES` times), and whether it meets the KKT
-        check."""
+    def _polished(self, p: np.ndarray, affine: tuple[np.ndarray, ...], active: np.ndarray
+                  ) -> tuple[np.ndarray, np.ndarray, bool]:
+        """One column's point and multipliers from :meth:`_on_active_set` (``affine``: its
+        rows' Jacobian, values and ∇f at x = 0) with the rows ``active`` (z > s), rows
+        whose multiplier has the wrong sign dropped and solved again (at most
+        :data:`ACTIVE_SET_PASSES` times), and whether it meets the KKT check."""
         active = active.copy()
         for _ in range(ACTIVE_SET_PASSES):
-            x, lam = self._on_active_set(p, active)
+            x, lam = self._on_active_set(affine, active)
             if self._kkt_met(x[None], p[None], lam[None], self.residuals)[0]:
                 return x, lam, True
             wrong = active & (lam[self.rows] * self.signs < 0)
@@ -216,7 +222,8 @@ class ConvexQp:
             active &= ~wrong
         return x, lam, False
 
-    def _on_active_set(self, p: np.ndarray, active: np.ndarray) -> tuple[np.ndarray, ...]:
+    def _on_active_set(self, affine: tuple[np.ndarray, ...], active: np.ndarray
+                       ) -> tuple[np.ndarray, ...]:
         """One column's point x (nx) and multipliers (ng + nx) with its equality rows and
         the inequalities ``active`` (m,) at their bounds, the others dropped: the KKT system
         of that equality-constrained QP by least squares. Where the interior point's own
@@ -227,7 +234,7 @@ class ConvexQp:
         rows = np.concatenate([self.eq, picked])
         bound = np.concatenate([lower[self.eq],
                                 np.where(self.signs[active] < 0, lower[picked], upper[picked])])
-        jac, at_zero, gradient = (np.asarray(out) for out in self.affine(p))
+        jac, at_zero, gradient = affine
         jac = jac[rows]
         n = self.nx
         kkt = np.block([[self.hessian_x, jac.T], [jac, np.zeros((len(rows), len(rows)))]])
@@ -243,7 +250,7 @@ class ConvexQp:
         each column (c (k, ny), r_0 (k, m), G's dense columns (k, m, n_dense) and its
         separable entries' coefficients (k, m)): y (k, ny), the rows' slacks s (k, m) and
         multipliers z (k, m), both ≥ 0, and the iterations of each column. A column stops
-        where its residuals are at most ``tol`` (scaled), all where the normal equations no
+        where its residuals are at most ``tol`` (scaled), or where its normal equations no
         longer factorise."""
         k, m = r0.shape
         ny = self.h.shape[0]
@@ -272,10 +279,8 @@ class ConvexQp:
             keep = ~met
             live, cl, gd, gs = live[keep], cl[keep], gd[keep], gs[keep]
             yl, sl, zl, r_p, r_d, mu = (a[keep] for a in (yl, sl, zl, r_p, r_d, mu))
-            try:
-                solve = self._factor(zl / sl, gd, gs)
-            except np.linalg.LinAlgError:   # weights too far apart: the KKT check judges
-                break
+            solve, factored = self._factor(zl / sl, gd, gs)
+            done[live[~factored]] = True   # weights too far apart: the KKT check judges
             system = (solve, r_d, r_p, sl, zl, gd, gs)
             dy, ds, dz = self._direction(sl * zl, *system)
             alpha = np.minimum(_step(sl, ds), _step(zl, dz))[:, None]
@@ -284,8 +289,10 @@ class ConvexQp:
             dy, ds, dz = self._direction(sl * zl + ds * dz - (sigma * mu)[:, None], *system)
             alpha = STEP_FRACTION * np.minimum(np.minimum(_step(sl, ds), _step(zl, dz)), 1 /
                                                STEP_FRACTION)[:, None]
-            y[live], s[live], z[live] = yl + alpha * dy, sl + alpha * ds, zl + alpha * dz
-            iterations[live] += 1
+            step = live[factored]
+            y[step], s[step], z[step] = ((v + alpha * dv)[factored] for v, dv in
+                                         ((yl, dy), (sl, ds), (zl, dz)))
+            iterations[step] += 1
         return y, s, z, iterations
 
     def _direction(self, r_c: np.ndarray, solve: Callable[[np.ndarray], np.ndarray],
@@ -304,7 +311,7 @@ class ConvexQp:
 
     def _rows(self, v: np.ndarray, gd: np.ndarray, gs: np.ndarray) -> np.ndarray:
         """G v (k, m) for directions v (k, ny)."""
-        out = np.einsum("kmd,kd->km", gd, v[:, self.dense])
+        out = (gd @ v[:, self.dense, None])[..., 0]
         if len(self.separate):
             out += np.where(self.has_owner, gs * v[:, self.separate][:, self.row_owner], 0.0)
         return out
@@ -312,7 +319,7 @@ class ConvexQp:
     def _transposed(self, w: np.ndarray, gd: np.ndarray, gs: np.ndarray) -> np.ndarray:
         """Gᵀ w (k, ny) for row weights w (k, m)."""
         out = np.zeros((len(w), self.h.shape[0]))
-        out[:, self.dense] = np.einsum("kmd,km->kd", gd, w)
+        out[:, self.dense] = (w[:, None] @ gd)[:, 0]
         if len(self.separate):
             out[:, self.separate] = self._sum_by_owner(gs * w)
         return out
@@ -323,18 +330,19 @@ class ConvexQp:
         return np.add.reduceat(ordered, self.starts, axis=1)
 
     def _factor(self, weights: np.ndarray, gd: np.ndarray, gs: np.ndarray
-                ) -> Callable[[np.ndarray], np.ndarray]:
+                ) -> tuple[Callable[[np.ndarray], np.ndarray], np.ndarray]:
         """The solver of (H_r + Gᵀ diag(weights) G) dy = rhs, batched, the separable entries
-        eliminated by their diagonal block. The Schur complement on the dense entries is
-        summed in its cancellation-free form: an entry j with Hessian h_j, rows r of
-        weight W_r, coefficient c_r and dense part g_r, and M_j = h_j + Σ W_r c_r², gives
+        eliminated by their diagonal block, and the columns (k,) where it factorised. The
+        Schur complement on the dense entries is summed in its cancellation-free form: an
+        entry j with Hessian h_j, rows r of weight W_r, coefficient c_r and dense part g_r,
+        and M_j = h_j + Σ W_r c_r², gives
         Σ_r (h_j / M_j) W_r g_r g_rᵀ + Σ_{r<r'} (W_r W_r' / M_j) d d ᵀ, d = c_r' g_r − c_r g_r'
         (no difference of large terms where a weight is huge, near an active row)."""
         dense, sep = self.dense, self.separate
         h_dd = self.h[np.ix_(dense, dense)]
         if not len(sep):
-            factor = np.linalg.cholesky(h_dd + np.einsum("kmd,km,kme->kde", gd, weights, gd))
-            return lambda rhs: _cho_solve(factor, rhs)
+            factor, ok = _cholesky(h_dd + (gd * weights[..., None]).transpose(0, 2, 1) @ gd)
+            return (lambda rhs: _cho_solve(factor, rhs)), ok
         h_s = np.diagonal(self.h)[sep]
         m_ss = h_s[None] + self._sum_by_owner(gs * gs * weights)
         direct = np.where(self.has_owner, weights * (h_s / m_ss)[:, self.row_owner], weights)
@@ -342,19 +350,36 @@ class ConvexQp:
         owner = self.row_owner[first]
         d = gs[:, second, None] * gd[:, first] - gs[:, first, None] * gd[:, second]
         pair_weight = weights[:, first] * weights[:, second] / m_ss[:, owner]
-        schur = (h_dd + np.einsum("kmd,km,kme->kde", gd, direct, gd)
-                 + np.einsum("kpd,kp,kpe->kde", d, pair_weight, d))
+        schur = (h_dd + (gd * direct[..., None]).transpose(0, 2, 1) @ gd
+                 + (d * pair_weight[..., None]).transpose(0, 2, 1) @ d)
         m_sd = self._sum_by_owner(gd * (weights * gs)[..., None])
-        factor = np.linalg.cholesky(schur)
+        factor, ok = _cholesky(schur)
 
         def solve(rhs: np.ndarray) -> np.ndarray:
             r_d, r_s = rhs[:, dense], rhs[:, sep]
-            dy_d = _cho_solve(factor, r_d - np.einsum("ksd,ks->kd", m_sd, r_s / m_ss))
+            dy_d = _cho_solve(factor, r_d - ((r_s / m_ss)[:, None] @ m_sd)[:, 0])
             out = np.empty_like(rhs)
             out[:, dense] = dy_d
-            out[:, sep] = (r_s - np.einsum("ksd,kd->ks", m_sd, dy_d)) / m_ss
+            out[:, sep] = (r_s - (m_sd @ dy_d[..., None])[..., 0]) / m_ss
             return out
-        return solve
+        return solve, ok
+
+
+def _cholesky(matrices: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Lower Cholesky factors of symmetric matrices (k, n, n) and which (k,) are positive
+    definite (the others' factor the identity)."""
+    try:
+        return np.linalg.cholesky(matrices), np.ones(len(matrices), bool)
+    except np.linalg.LinAlgError:
+        ok = np.ones(len(matrices), bool)
+        factors = np.empty_like(matrices)
+        for i, matrix in enumerate(matrices):
+            try:
+                factors[i] = np.linalg.cholesky(matrix)
+            except np.linalg.LinAlgError:
+                ok[i] = False
+                factors[i] = np.eye(len(matrix))
+        return factors, ok
 
 
 def _cho_solve(factor: np.ndarray, rhs: np.ndarray) -> np.ndarray:
