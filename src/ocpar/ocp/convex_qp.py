@@ -92,19 +92,21 @@ class ConvexQp:
         rows_y = ca.substitute(rows, x, x_of_y)
         ineq = ca.vertcat(rows_y[low.tolist()] - ca.DM(lower[low]),
                           ca.DM(upper[high]) - rows_y[high.tolist()])
-        #: (kind, row of G) of each inequality: kind −1 a lower bound, +1 an upper one
-        self.signs = np.concatenate([-np.ones(len(low)), np.ones(len(high))])
-        self.rows = np.concatenate([low, high]).astype(int)
-        jac = ca.jacobian(ineq, y)
-        self.separate, self.dense = _separable(self.h, jac.sparsity())
+        signs = np.concatenate([-np.ones(len(low)), np.ones(len(high))])
+        self.separate, self.dense = _separable(self.h, ca.jacobian(ineq, y).sparsity())
         sep, dense = self.separate.tolist(), self.dense.tolist()
-        pattern = np.asarray(ca.DM(jac.sparsity(), 1)) != 0
+        pattern = np.asarray(ca.DM(ca.jacobian(ineq, y).sparsity(), 1)) != 0
         sep_rows = pattern[:, sep]
-        #: the inequality rows ordered by the separable entry they involve (those first)
         owner = np.where(sep_rows.any(axis=1), np.argmax(sep_rows, axis=1), len(sep))
-        self.order = np.argsort(owner, kind="stable")
+        # the inequalities ordered by the separable entry they involve (those first)
+        order = np.argsort(owner, kind="stable")
+        ineq, owner = ineq[order.tolist()], owner[order]
+        jac = ca.jacobian(ineq, y)
+        #: (kind, row of G) of each inequality: kind −1 a lower bound, +1 an upper one
+        self.signs = signs[order]
+        self.rows = np.concatenate([low, high]).astype(int)[order]
         self.n_sep_rows = int(np.sum(owner < len(sep)))
-        self.starts = np.searchsorted(owner[self.order], np.arange(len(sep)))
+        self.starts = np.searchsorted(owner, np.arange(len(sep)))
         #: each inequality row's separable entry (index into ``separate``), and which have one
         self.row_owner = np.minimum(owner, max(len(sep) - 1, 0))
         self.has_owner = owner < len(sep)
@@ -226,9 +228,9 @@ class ConvexQp:
                        ) -> tuple[np.ndarray, ...]:
         """One column's point x (nx) and multipliers (ng + nx) with its equality rows and
         the inequalities ``active`` (m,) at their bounds, the others dropped: the KKT system
-        of that equality-constrained QP by least squares. Where the interior point's own
-        have lost digits (its normal equations ill-conditioned as z/s spreads near the
-        solution); the KKT check then decides."""
+        of that equality-constrained QP (least squares where it is singular). Where the
+        interior point's own have lost digits (its normal equations ill-conditioned as z/s
+        spreads near the solution); the KKT check then decides."""
         lower, upper = self.row_bounds
         picked = self.rows[active]
         rows = np.concatenate([self.eq, picked])
@@ -239,7 +241,10 @@ class ConvexQp:
         n = self.nx
         kkt = np.block([[self.hessian_x, jac.T], [jac, np.zeros((len(rows), len(rows)))]])
         rhs = np.concatenate([-gradient.ravel(), bound - at_zero.ravel()[rows]])
-        solution = np.linalg.lstsq(kkt, rhs, rcond=None)[0]
+        try:
+            solution = np.linalg.solve(kkt, rhs)
+        except np.linalg.LinAlgError:   # dependent rows: the least-squares solution
+            solution = np.linalg.lstsq(kkt, rhs, rcond=None)[0]
         lam = np.zeros(self.ng + n)
         lam[rows] = solution[n:]
         return solution[:n], lam
@@ -328,8 +333,7 @@ class ConvexQp:
 
     def _sum_by_owner(self, values: np.ndarray) -> np.ndarray:
         """Sums over the rows of each separable entry (axis 1 of ``values`` (k, m, ...))."""
-        ordered = values[:, self.order[:self.n_sep_rows]]
-        return np.add.reduceat(ordered, self.starts, axis=1)
+        return np.add.reduceat(values[:, :self.n_sep_rows], self.starts, axis=1)
 
     def _factor(self, weights: np.ndarray, gd: np.ndarray, gs: np.ndarray
                 ) -> tuple[Callable[[np.ndarray], np.ndarray], np.ndarray]:
