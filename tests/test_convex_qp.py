@@ -109,3 +109,14 @@ def test_not_a_convex_qp_is_refused():
     assert ConvexQp.of("q", x, p, ca.sumsqr(x), x[0] * x[1] - p, bounds, 1e-12, 1e-10) is None
     assert ConvexQp.of("q", x, p, -ca.sumsqr(x), x[0] - p, bounds, 1e-12, 1e-10) is None
     assert ConvexQp.of("q", x, p, ca.sumsqr(x), x[0] - p, bounds, 1e-12, 1e-10) is not None
+
+
+def test_a_column_does_not_depend_on_its_batch(auto_nlp):
+    """Bitwise: a task's result is the same whichever tasks share its batch (determinism
+    across worker counts)."""
+    params = random_columns(5, seed=3)
+    together = auto_nlp.keep_out_qp.solve(params)
+    for i in range(len(params)):
+        alone = auto_nlp.keep_out_qp.solve(params[i:i + 1])
+        assert np.array_equal(alone.x[0], together.x[i])
+        assert np.array_equal(alone.lam_p[0], together.lam_p[i])

@@ -34,6 +34,9 @@ import numpy as np
 
 from ocpar.ocp.batch import BatchSolve, kkt_met, kkt_residuals
 
+#: Columns per block at most (larger batches are split): its arrays stay in cache (CPU time
+#: of 700 keep-out point masses: 3.5 s in blocks of 64 against 4.4 s in one, 2026-12).
+BLOCK = 64
 #: Interior-point iterations at most per column.
 MAX_ITER = 60
 #: Steps of iterative refinement of each Newton step (the normal equations lose digits
@@ -167,8 +170,17 @@ class ConvexQp:
     def solve(self, p: np.ndarray) -> BatchSolve:
         """Solve the columns ``p`` (k, np): x (k, nx), f, λ_g, λ_p (= −∇_p L), λ_x, the
         success of each column (:func:`~ocpar.ocp.batch.kkt_met` to ``kkt_tol``) and its
-        interior-point iterations."""
+        interior-point iterations; in blocks of at most :data:`BLOCK` columns, each column
+        computed as it would be alone in its block."""
         start = time.perf_counter()
+        parts = [self._solve_block(p[i:i + BLOCK]) for i in range(0, len(p), BLOCK)]
+        x, f, lam_g, lam_p, ok, lam_x, iterations = (np.concatenate(part)
+                                                      for part in zip(*parts, strict=True))
+        return BatchSolve(x, f, lam_g, lam_p, ok, np.zeros((len(p), 0)),
+                          time.perf_counter() - start, iterations=iterations, lam_x=lam_x)
+
+    def _solve_block(self, p: np.ndarray) -> tuple[np.ndarray, ...]:
+        """:meth:`solve` of one block: x, f, λ_g, λ_p, success, λ_x, iterations."""
         k = len(p)
         data, x_of, gradient_x, cost, gradient_p, residuals = self._mapped(k)
         c, r0, g_dense, g_sep = (np.asarray(out) for out in data(p.T))
@@ -181,7 +193,7 @@ class ConvexQp:
         lam = np.zeros((k, self.ng + self.nx))
         np.add.at(lam.T, self.rows, (self.signs[None] * z).T)
         rest = np.asarray(gradient_x(x.T, p.T, lam[:, :self.ng].T, lam[:, self.ng:].T)).T
-        lam[:, self.eq] = -rest @ self.eq_solve.T
+        lam[:, self.eq] = -_each(self.eq_solve, rest)
         ok = self._kkt_met(x, p, lam, residuals)
         failed = np.flatnonzero(~ok)
         if len(failed):   # again, each with its active set as equalities
@@ -194,8 +206,7 @@ class ConvexQp:
         lam_g, lam_x = lam[:, :self.ng], lam[:, self.ng:]
         f = np.asarray(cost(x.T, p.T)).ravel()
         lam_p = -np.asarray(gradient_p(x.T, p.T, lam_g.T)).T
-        return BatchSolve(x, f, lam_g, lam_p, ok, np.zeros((k, 0)),
-                          time.perf_counter() - start, iterations=iterations, lam_x=lam_x)
+        return x, f, lam_g, lam_p, ok, lam_x, iterations
 
     def _kkt_met(self, x: np.ndarray, p: np.ndarray, lam: np.ndarray,
                  residuals: ca.Function) -> np.ndarray:
@@ -275,7 +286,7 @@ class ConvexQp:
             cl, gd, gs = c[live], g_dense[live], g_sep[live]
             yl, sl, zl = y[live], s[live], z[live]
             r_p = self._rows(yl, gd, gs) + r0[live] - sl
-            r_d = yl @ self.h + cl - self._transposed(zl, gd, gs)
+            r_d = _each(self.h, yl) + cl - self._transposed(zl, gd, gs)
             mu = np.mean(sl * zl, axis=1) if m else np.zeros(len(live))
             met = ((np.max(np.abs(r_p), axis=1, initial=0.0) <= self.tol * scale_p[live])
                    & (np.max(np.abs(r_d), axis=1) <= self.tol * scale_d[live])
@@ -311,7 +322,7 @@ class ConvexQp:
         rhs = -r_d - self._transposed((r_c + z * r_p) / s, gd, gs)
         dy = solve(rhs)
         for _ in range(REFINEMENTS):
-            dy += solve(rhs - dy @ self.h - self._transposed(z / s * self._rows(dy, gd, gs),
+            dy += solve(rhs - _each(self.h, dy) - self._transposed(z / s * self._rows(dy, gd, gs),
                                                              gd, gs))
         ds = self._rows(dy, gd, gs) + r_p
         return dy, ds, -(r_c + z * ds) / s
@@ -369,6 +380,12 @@ class ConvexQp:
             out[:, sep] = (r_s - (m_sd @ dy_d[..., None])[..., 0]) / m_ss
             return out
         return solve, ok
+
+
+def _each(matrix: np.ndarray, vectors: np.ndarray) -> np.ndarray:
+    """``matrix`` times each row of ``vectors`` (k, n), one product per row: a row's result
+    does not depend on the others (a matrix product of all k rows may block them by k)."""
+    return (matrix @ vectors[..., None])[..., 0]
 
 
 def _cholesky(matrices: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
