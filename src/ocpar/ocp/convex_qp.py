@@ -113,11 +113,16 @@ class ConvexQp:
         #: each inequality row's separable entry (index into ``separate``), and which have one
         self.row_owner = np.minimum(owner, max(len(sep) - 1, 0))
         self.has_owner = owner < len(sep)
-        #: the pairs (first, second) of inequality rows of one separable entry
-        self.pairs = tuple(np.array(side, np.intp).reshape(-1) for side in zip(
-            *[(a, b) for j in range(len(sep))
-              for a, b in itertools.combinations(np.flatnonzero(owner == j), 2)],
-            strict=True)) if len(sep) else (np.zeros(0, np.intp),) * 2
+        # the pairs of inequality rows of one separable entry: both with dense entries
+        # (``pairs``), or one (``folds``: (that row, the other), its term a multiple of g gᵀ)
+        with_dense = (np.asarray(ca.DM(jac.sparsity(), 1)) != 0)[:, dense].any(axis=1)
+        pairs = np.array([(a, b) for j in range(len(sep))
+                          for a, b in itertools.combinations(np.flatnonzero(owner == j), 2)],
+                         np.intp).reshape(-1, 2)
+        first, second = with_dense[pairs[:, 0]], with_dense[pairs[:, 1]]
+        self.pairs = tuple(pairs[first & second].T)
+        self.folds = tuple(np.concatenate([pairs[first & ~second], pairs[~first & second][:, ::-1]
+                                           ]).T)
         ineq_zero = ca.substitute(ineq, y, ca.DM.zeros(y.numel()))
         sep_coefficient = ca.sum2(jac[:, sep]) if sep else ca.SX.zeros(ineq.numel())
         self.data = ca.Function(f"{name}_qp_data", [p], [
@@ -351,7 +356,8 @@ class ConvexQp:
         """The solver of (H_r + Gᵀ diag(weights) G) dy = rhs, batched, the separable entries
         eliminated by their diagonal block, and the columns (k,) where it factorised. The
         Schur complement on the dense entries is summed in its cancellation-free form: an
-        entry j with Hessian h_j, rows r of weight W_r, coefficient c_r and dense part g_r,
+        entry j with Hessian h_j, rows r of weight W_r, coefficient c_r and dense part g_r
+        (a pair's term with one g_r' = 0 added to the other row's weight),
         and M_j = h_j + Σ W_r c_r², gives
         Σ_r (h_j / M_j) W_r g_r g_rᵀ + Σ_{r<r'} (W_r W_r' / M_j) d d ᵀ, d = c_r' g_r − c_r g_r'
         (no difference of large terms where a weight is huge, near an active row)."""
@@ -363,6 +369,9 @@ class ConvexQp:
         h_s = np.diagonal(self.h)[sep]
         m_ss = h_s[None] + self._sum_by_owner(gs * gs * weights)
         direct = np.where(self.has_owner, weights * (h_s / m_ss)[:, self.row_owner], weights)
+        row, other = self.folds
+        np.add.at(direct, (slice(None), row), weights[:, row] * weights[:, other]
+                  * gs[:, other] ** 2 / m_ss[:, self.row_owner[row]])
         first, second = self.pairs
         owner = self.row_owner[first]
         d = gs[:, second, None] * gd[:, first] - gs[:, first, None] * gd[:, second]
