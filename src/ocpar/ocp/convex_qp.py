@@ -15,11 +15,15 @@ must have a Jacobian that does not depend on p either. All columns then share th
   one another and no Hessian entry (e.g. elastic slacks, one per keep-out slot) are
   eliminated by their diagonal block, so the dense system is only as large as the others.
 
-Each column stops when its primal and dual residuals and its complementarity are at most
-``tol`` (scaled); the point is then taken back to x with CasADi's multipliers (λ_g, λ_x;
-λ_p = −∇_p L) and checked by the batched solvers' own KKT test
-(:func:`~ocpar.ocp.batch.kkt_met`), which gives each column's success: a failed column is
-the caller's to re-solve (e.g. by IPOPT).
+Each column starts from the least-squares point of its rows and stops when its primal and
+dual residuals and its complementarity are at most ``tol`` (scaled), or when its normal
+equations no longer factorise; the point is then taken back to x with CasADi's multipliers
+(λ_g, λ_x; λ_p = −∇_p L) and checked by the batched solvers' own KKT test
+(:func:`~ocpar.ocp.batch.kkt_met`), which gives each column's success. A column that fails
+it (its multipliers lose digits as z/s spreads near the solution) is solved once more with
+its active rows (z > s) as equalities; a column that still fails is the caller's to
+re-solve (e.g. by IPOPT). Columns are solved in blocks of :data:`BLOCK`, each computed as it
+would be alone (per-column products only).
 """
 
 from __future__ import annotations
@@ -32,7 +36,7 @@ from functools import lru_cache
 import casadi as ca
 import numpy as np
 
-from ocpar.ocp.batch import BatchSolve, BufferedFunction, kkt_met, kkt_residuals
+from ocpar.ocp.batch import BatchSolve, kkt_met, kkt_residuals
 
 #: Columns per block at most (larger batches are split): its arrays stay in cache (CPU time
 #: of 700 keep-out point masses: 3.5 s in blocks of 64 against 4.4 s in one, 2026-12).
@@ -147,9 +151,9 @@ class ConvexQp:
         # the equality multipliers: Aᵀ λ_eq = −(the rest of ∇_x L), least squares
         self.eq_solve = np.linalg.pinv(a.T)
 
-    def _map(self, k: int) -> tuple[_ByColumn, ...]:
+    def _map(self, k: int) -> tuple[ca.Function, ...]:
         """This QP's functions mapped over k columns."""
-        return tuple(_ByColumn(function, k) for function in (
+        return tuple(function.map(k, "serial") for function in (
             self.data, self.x_of, self.gradient_x, self.cost, self.gradient_p, self.residuals))
 
     @classmethod
@@ -188,13 +192,16 @@ class ConvexQp:
         """:meth:`solve` of one block: x, f, λ_g, λ_p, success, λ_x, iterations."""
         k = len(p)
         data, x_of, gradient_x, cost, gradient_p, residuals = self._mapped(k)
-        c, r0, g_dense, g_sep = data(p)
-        g_dense = g_dense.reshape(k, len(self.dense), -1).transpose(0, 2, 1)
+        c, r0, g_dense, g_sep = (np.asarray(out) for out in data(p.T))
+        c, r0, g_sep = c.T, r0.T, g_sep.T
+        m = r0.shape[1]
+        g_dense = g_dense.reshape(m, k, -1).transpose(1, 0, 2) if len(self.dense) else \
+            np.zeros((k, m, 0))
         y, slack, z, iterations = self._interior_point(c, r0, g_dense, g_sep)
-        x = x_of(y, p)[0]
+        x = np.asarray(x_of(y.T, p.T)).T
         lam = np.zeros((k, self.ng + self.nx))
         np.add.at(lam.T, self.rows, (self.signs[None] * z).T)
-        rest = gradient_x(x, p, lam[:, :self.ng], lam[:, self.ng:])[0]
+        rest = np.asarray(gradient_x(x.T, p.T, lam[:, :self.ng].T, lam[:, self.ng:].T)).T
         lam[:, self.eq] = -_each(self.eq_solve, rest)
         ok = self._kkt_met(x, p, lam, residuals)
         failed = np.flatnonzero(~ok)
@@ -206,17 +213,18 @@ class ConvexQp:
                 x[i], lam[i], ok[i] = self._polished(
                     p[i], (jac[j], at_zero[:, j], gradient[:, j]), z[i] > slack[i])
         lam_g, lam_x = lam[:, :self.ng], lam[:, self.ng:]
-        f = cost(x, p)[0].ravel()
-        lam_p = -gradient_p(x, p, lam_g)[0]
+        f = np.asarray(cost(x.T, p.T)).ravel()
+        lam_p = -np.asarray(gradient_p(x.T, p.T, lam_g.T)).T
         return x, f, lam_g, lam_p, ok, lam_x, iterations
 
     def _kkt_met(self, x: np.ndarray, p: np.ndarray, lam: np.ndarray,
-                 residuals: _ByColumn) -> np.ndarray:
+                 residuals: ca.Function) -> np.ndarray:
         """:func:`~ocpar.ocp.batch.kkt_met` of points x (k, nx) with multipliers
-        ``lam`` (k, ng + nx) (``residuals``: :attr:`residuals` over k columns)."""
+        ``lam`` (k, ng + nx) (``residuals``: :attr:`residuals` mapped over k)."""
         lam_g, lam_x = lam[:, :self.ng], lam[:, self.ng:]
-        g, stationarity, gradient = residuals(x, p, lam_g, lam_x)
-        return kkt_met(x, p, lam_g, lam_x, g, stationarity.ravel(), gradient.ravel(),
+        g, stationarity, gradient = (np.asarray(r) for r in residuals(
+            x.T, p.T, lam_g.T, lam_x.T))
+        return kkt_met(x, p, lam_g, lam_x, g.T, stationarity.ravel(), gradient.ravel(),
                        self.bounds, self.kkt_tol)
 
     def _polished(self, p: np.ndarray, affine: tuple[np.ndarray, ...], active: np.ndarray
@@ -228,7 +236,7 @@ class ConvexQp:
         active = active.copy()
         for _ in range(ACTIVE_SET_PASSES):
             x, lam = self._on_active_set(affine, active)
-            if self._kkt_met(x[None], p[None], lam[None], self._mapped(1)[-1])[0]:
+            if self._kkt_met(x[None], p[None], lam[None], self.residuals)[0]:
                 return x, lam, True
             wrong = active & (lam[self.rows] * self.signs < 0)
             if not wrong.any():
@@ -385,24 +393,6 @@ class ConvexQp:
             out[:, sep] = (r_s - (m_sd @ dy_d[..., None])[..., 0]) / m_ss
             return out
         return solve, ok
-
-
-class _ByColumn:
-    """``function`` mapped over k columns, called through numpy buffers
-    (:class:`~ocpar.ocp.batch.BufferedFunction`): each input and output one row per column
-    (k, its entries column-major)."""
-
-    def __init__(self, function: ca.Function, k: int) -> None:
-        mapped = function.map(k, "serial")
-        inputs = [ca.MX.sym(f"in{i}", mapped.sparsity_in(i)) for i in range(mapped.n_in())]
-        self.k = k
-        self.call = BufferedFunction(ca.Function(
-            f"{function.name()}_columns", inputs, [ca.densify(out)
-                                                   for out in mapped.call(inputs)]))
-
-    def __call__(self, *rows: np.ndarray) -> list[np.ndarray]:
-        """The outputs (k, n_out) for inputs (k, n_in)."""
-        return [out.reshape(self.k, -1) for out in self.call(*(np.ravel(r) for r in rows))]
 
 
 def _each(matrix: np.ndarray, vectors: np.ndarray) -> np.ndarray:
