@@ -128,12 +128,16 @@ def test_trust_region_is_the_box_that_keeps_far_pairs_apart(dim):
 
 
 def test_newton_refuses_keep_outs():
-    """newton asked for explicitly; the default (auto) takes keep-outs with sqpmethod."""
+    """newton asked for explicitly; the default (auto) batches a point mass's keep-outs by
+    the convex QP, IPOPT behind it."""
     with pytest.raises(ValueError, match="equalities only"):
         DmocShape(PointMass(dim=2), keep_out_slots=2, keep_out_positions=(0, 1),
                   solver="newton")
-    assert DmocShape(PointMass(dim=2), keep_out_slots=2,
-                     keep_out_positions=(0, 1)).chosen_solver == "sqpmethod"
+    shape = DmocShape(PointMass(dim=2), keep_out_slots=2, keep_out_positions=(0, 1))
+    assert shape.chosen_solver == "ipopt"
+    nlp = transcription(shape)
+    assert nlp.batches and nlp.keep_out_qp is not None
+    assert transcription(point_mass_shape(2)).keep_out_qp is None   # ipopt asked for
 
 
 @pytest.fixture(scope="module")

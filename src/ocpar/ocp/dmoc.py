@@ -183,6 +183,7 @@ from ocpar.ocp.contract import (
     check_params,
     transcription,
 )
+from ocpar.ocp.convex_qp import ConvexQp
 from ocpar.ocp.duration import build_at_unit_duration, check_time_fields, over_duration
 from ocpar.ocp.obstacles import (
     SIDE_OBSTACLES,
@@ -390,9 +391,13 @@ class DmocShape:
     def chosen_solver(self) -> str:
         """The solver this shape's NLPs are solved with: ``solver``, or for ``auto``
         ``newton`` where the NLP has equalities only and ``sqpmethod`` where it has
-        inequalities (control bounds, path constraints, keep-out slots, obstacles)."""
+        inequalities (control bounds, path constraints, obstacles); ``ipopt`` with keep-out
+        slots, their tasks batched by :class:`~ocpar.ocp.convex_qp.ConvexQp` first where
+        the NLP is a convex QP (``DmocTranscription.keep_out_qp``)."""
         if self.solver != AUTO_SOLVER:
             return self.solver
+        if self.keep_out_slots:
+            return "ipopt"
         return "sqpmethod" if self.has_inequalities else "newton"
 
     @property
@@ -855,14 +860,28 @@ class DmocTranscription:
 
     @property
     def batches(self) -> bool:
-        """Whether :meth:`solve_batch` solves (its ``solver`` is not ``ipopt``)."""
-        return self.shape.chosen_solver != "ipopt"
+        """Whether :meth:`solve_batch` solves (its ``solver`` is not ``ipopt``, or it has
+        :attr:`keep_out_qp`)."""
+        return self.shape.chosen_solver != "ipopt" or self.keep_out_qp is not None
 
     @cached_property
-    def batch_solver(self) -> KktNewton | MappedNlp | None:
-        """The batched solver of this shape's NLP (None when its ``solver`` is ``ipopt``, or
-        with planes: their tasks are solved by :attr:`without_obstacles` and
-        :attr:`segment_nlp`)."""
+    def keep_out_qp(self) -> ConvexQp | None:
+        """The batched interior-point solver of a keep-out shape's NLP under the ``auto``
+        solver where it is a convex QP (e.g. a point mass; None otherwise: IPOPT)."""
+        shape = self.shape
+        if shape.solver != AUTO_SOLVER or not shape.keep_out_slots or self.n_planes:
+            return None
+        w, p = self._w, self._p
+        return ConvexQp.of("dmoc_qp", w, p, self.cost(w, p), self.constraints(w, p),
+                           (self.lbg, self.ubg, self.lbx, self.ubx), shape.tol, shape.kkt_tol)
+
+    @cached_property
+    def batch_solver(self) -> KktNewton | MappedNlp | ConvexQp | None:
+        """The batched solver of this shape's NLP (:attr:`keep_out_qp` where there is one;
+        None when its ``solver`` is ``ipopt``, or with planes: their tasks are solved by
+        :attr:`without_obstacles` and :attr:`segment_nlp`)."""
+        if self.keep_out_qp is not None:
+            return self.keep_out_qp
         w, p = self._w, self._p
         if self.shape.chosen_solver == "newton":  # DmocShape refuses it with keep-out slots
             return KktNewton("dmoc", w, p, self.cost(w, p), self.constraints(w, p), 1,
@@ -1525,7 +1544,9 @@ class DmocTranscription:
             for k in _given(guesses):
                 x0[k] = self.full_guess(guesses[k], params[k])
         try:
-            if isinstance(self.batch_solver, KktNewton):
+            if isinstance(self.batch_solver, ConvexQp):   # starts from its own point
+                batch = self.batch_solver.solve(params)
+            elif isinstance(self.batch_solver, KktNewton):
                 rounds = self.solver_settings["newton"]["max_iter"]
                 batch = self.batch_solver.solve(x0, params, lam0, self.lbx, self.ubx, rounds)
             else:

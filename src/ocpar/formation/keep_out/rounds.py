@@ -111,6 +111,7 @@ from ocpar.formation.keep_out.separation import (
 )
 from ocpar.formation.problem import FormationProblem
 from ocpar.ocp import solve_tasks
+from ocpar.ocp.batch import AUTO_SOLVER
 from ocpar.ocp.dmoc import UNUSED_OFFSET
 
 #: Partners' keep-out half-spaces per agent and interval (the DMOC shape has 2 d slots more:
@@ -166,13 +167,14 @@ class Separation:
 def keep_out_problem(problem: FormationProblem) -> FormationProblem:
     """The problem with every agent's DMOC shape given :data:`KEEP_OUT_SLOTS` + 2 d slots on
     its d positions (partners' half-spaces, then the trust region's, :func:`trust_region`;
-    its obstacles, if any, stay in its shape), solved by IPOPT (measured on the 60 point
-    masses' first round: 18 ms per solve, all solved; ``sqpmethod``/``qrqp`` 110 ms per
-    solve, 14 of 32 failing its KKT check)."""
+    its obstacles, if any, stay in its shape), under the ``auto`` solver: batched by the
+    convex QP's interior point where the NLP is one (point masses), else IPOPT (measured on
+    the 60 point masses' first round: 18 ms per solve, all solved; ``sqpmethod``/``qrqp``
+    110 ms per solve, 14 of 32 failing its KKT check)."""
     slots = KEEP_OUT_SLOTS + 2 * len(problem.position_indices)
     return problem.with_shapes(lambda shape: dataclasses.replace(
         shape, keep_out_slots=slots, keep_out_positions=problem.position_indices,
-        solver="ipopt"))
+        solver=AUTO_SOLVER))
 
 
 #: Blends of a boundary interval's normal towards the fixed node's direction, tried in order.
