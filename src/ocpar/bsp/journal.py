@@ -87,36 +87,43 @@ def result_type(name: str) -> type:
 def digest(value: Any) -> str:
     """A stable hash (hex) of tasks: dataclasses field by field, arrays by dtype, shape and
     bytes, numbers by repr; the same tasks give the same digest in any process."""
-    h = hashlib.sha256()
-    _feed(h, value)
-    return h.hexdigest()
+    parts: list[bytes] = []
+    _feed(parts, value, {})
+    return hashlib.sha256(b"".join(parts)).hexdigest()
 
 
-def _feed(h: Any, value: Any) -> None:
+def _feed(parts: list[bytes], value: Any, fed: dict[int, bytes]) -> None:
+    """Append the bytes that stand for ``value`` to ``parts``; ``fed``: those of each
+    dataclass instance already fed, by ``id`` (tasks share e.g. their problem's shape)."""
     if isinstance(value, Columns):
-        h.update(f"columns:{value.cls.__qualname__}:{value.length}".encode())
+        parts.append(f"columns:{value.cls.__qualname__}:{value.length}".encode())
         for name, (kind, data) in value.fields.items():
-            h.update(f"{name}:{kind}".encode())
-            _feed(h, data)
+            parts.append(f"{name}:{kind}".encode())
+            _feed(parts, data, fed)
     elif dataclasses.is_dataclass(value) and not isinstance(value, type):
-        h.update(f"dc:{type(value).__qualname__}".encode())
+        if (known := fed.get(id(value))) is not None:
+            parts.append(known)
+            return
+        start = len(parts)
+        parts.append(f"dc:{type(value).__qualname__}".encode())
         for f in dataclasses.fields(value):
-            h.update(f.name.encode())
-            _feed(h, getattr(value, f.name))
+            parts.append(f.name.encode())
+            _feed(parts, getattr(value, f.name), fed)
+        fed[id(value)] = b"".join(parts[start:])
     elif isinstance(value, np.ndarray):
-        h.update(f"nd:{value.dtype.str}:{value.shape}".encode())
-        h.update(np.ascontiguousarray(value).tobytes())
+        parts.append(f"nd:{value.dtype.str}:{value.shape}".encode())
+        parts.append(np.ascontiguousarray(value).tobytes())
     elif isinstance(value, list | tuple):
-        h.update(f"seq:{len(value)}".encode())
+        parts.append(f"seq:{len(value)}".encode())
         for item in value:
-            _feed(h, item)
+            _feed(parts, item, fed)
     elif isinstance(value, Mapping):
-        h.update(f"map:{len(value)}".encode())
+        parts.append(f"map:{len(value)}".encode())
         for key in sorted(value, key=repr):
-            _feed(h, key)
-            _feed(h, value[key])
+            _feed(parts, key, fed)
+            _feed(parts, value[key], fed)
     else:
-        h.update(f"{type(value).__qualname__}:{value!r}".encode())
+        parts.append(f"{type(value).__qualname__}:{value!r}".encode())
 
 
 class _Encoder:
