@@ -3,6 +3,8 @@ uninterrupted run; a checkpoint of another run or format is refused with one lin
 
 from __future__ import annotations
 
+import hashlib
+import io
 import json
 import os
 import signal
@@ -15,7 +17,7 @@ import numpy as np
 import pytest
 from conftest import REPO, run_cli
 
-from ocpar.bsp.journal import INTERVAL_ENV, MANIFEST, CheckpointError, Journal
+from ocpar.bsp.journal import LOG, MANIFEST, CheckpointError, Journal
 from ocpar.bsp.serial import SerialBackend
 from ocpar.examples.formation_point_masses import make as paper_example
 from ocpar.formation import solve_formation
@@ -28,15 +30,11 @@ def supersteps_recorded(directory: Path) -> int:
         return 0
 
 
-def kill_after(args: list[str], checkpoint: Path, k: int, timeout: float = 120,
-               interval_s: float = 0.0) -> int:
-    """Start ``python -m ...args --checkpoint DIR`` checkpointing every ``interval_s`` (0:
-    every superstep durable), SIGKILL it once DIR holds k durable supersteps; return how many
-    it holds after the kill."""
-    env = os.environ | {INTERVAL_ENV: str(interval_s)}
+def kill_after(args: list[str], checkpoint: Path, k: int, timeout: float = 120) -> int:
+    """Start ``python -m ...args --checkpoint DIR``, SIGKILL it once DIR holds k supersteps;
+    return how many it holds after the kill."""
     proc = subprocess.Popen([sys.executable, "-m", *args, "--checkpoint", str(checkpoint)],
-                            cwd=REPO, env=env, stdout=subprocess.DEVNULL,
-                            stderr=subprocess.PIPE)
+                            cwd=REPO, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
     deadline = time.monotonic() + timeout
     while supersteps_recorded(checkpoint) < k:
         assert proc.poll() is None, f"run ended before superstep {k}: {proc.stderr.read()}"
@@ -100,9 +98,10 @@ def test_a_checkpoint_of_another_run_or_format_is_refused(tmp_path):
 def test_replay_refuses_a_superstep_with_other_tasks(tmp_path):
     """The journal also checks each superstep's tasks: a coordinator that would ask for other
     work than the recorded run (e.g. another problem with the same options) is stopped."""
-    with SerialBackend() as backend:  # its exit makes the supersteps durable
-        backend.journal = Journal(tmp_path, {"run": "x"}, resume=False)
-        solve_formation(paper_example(6), backend)
+    journal = Journal(tmp_path, {"run": "x"}, resume=False)
+    backend = SerialBackend()
+    backend.journal = journal
+    solve_formation(paper_example(6), backend)
     resumed = SerialBackend()
     resumed.journal = Journal(tmp_path, {"run": "x"}, resume=True)
     with pytest.raises(CheckpointError, match="other tasks"):
@@ -110,14 +109,19 @@ def test_replay_refuses_a_superstep_with_other_tasks(tmp_path):
 
 
 def test_checkpoint_files_hold_no_pickles(tmp_path):
-    with SerialBackend() as backend:
-        backend.journal = Journal(tmp_path, {"run": "y"}, resume=False)
-        solve_formation(paper_example(6), backend)
-    segments = sorted(tmp_path.glob("supersteps-*.npz"))
-    assert segments
-    for path in segments:
-        with np.load(path, allow_pickle=False) as data:  # raises on any pickled entry
-            assert all(data[name].dtype != object for name in data.files)
+    backend = SerialBackend()
+    backend.journal = Journal(tmp_path, {"run": "y"}, resume=False)
+    solve_formation(paper_example(6), backend)
+    log = (tmp_path / LOG).read_bytes()
+    entries = 0
+    while log:  # each entry: its length (8 bytes), its SHA-256 (32 bytes), an .npz archive
+        length, sha = int.from_bytes(log[:8], "little"), log[8:40]
+        data, log = log[40:40 + length], log[40 + length:]
+        assert hashlib.sha256(data).digest() == sha
+        with np.load(io.BytesIO(data), allow_pickle=False) as archive:  # raises on pickles
+            assert all(archive[name].dtype != object for name in archive.files)
+        entries += 1
+    assert entries == supersteps_recorded(tmp_path) == len(backend.traces)
 
 
 MPI_HANG = """
@@ -203,7 +207,7 @@ def test_pursuit_resumes_to_the_uninterrupted_train(tmp_path):
     settings = PursuitSettings(window=32, update=16, max_agents=12)
     expected = solve_pursuit(problem, settings, reference=False)
     backend = SerialBackend()
-    backend.journal = Journal(tmp_path, {"run": "pursuit"}, resume=False, interval_s=0)
+    backend.journal = Journal(tmp_path, {"run": "pursuit"}, resume=False)
     crash_after(backend, 7)
     with pytest.raises(Crash):
         solve_pursuit(problem, settings, backend, reference=False)
@@ -227,7 +231,7 @@ def test_pursuit_resumes_across_its_full_horizon_certificate(tmp_path):
     expected = solve_pursuit(problem, settings, reference=False)
     assert expected.stop_reason == "certified_within_epsilon"
     backend = SerialBackend()
-    backend.journal = Journal(tmp_path, {"run": "pursuit"}, resume=False, interval_s=0)
+    backend.journal = Journal(tmp_path, {"run": "pursuit"}, resume=False)
     crash_after(backend, expected.supersteps - 1)  # after the certificate
     with pytest.raises(Crash):
         solve_pursuit(problem, settings, backend, reference=False)

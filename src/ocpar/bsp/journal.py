@@ -8,47 +8,46 @@ again from the start and each superstep already in the journal returns its recor
 outer iterate, archive, agent train, random state and warm starts are thereby restored
 exactly, and the final result is identical to an uninterrupted run's.
 
-Durability: supersteps are kept in memory and made durable together, in one checkpoint, once
-at least ``interval_s`` seconds of run time have passed since the last one (default
-:data:`INTERVAL_S`, or the environment variable :data:`INTERVAL_ENV`; 0: after every
-superstep), and when the run ends, however it ends short of a kill (its backend's ``with``
-block exits: :meth:`Journal.flush`). A killed process (SIGKILL, power loss) keeps the
-supersteps of its last durable checkpoint, so it loses at most the last ``interval_s``
-seconds plus the superstep in flight; resuming replays those and recomputes the rest, to the
-same result bit for bit. A run of hundreds of supersteps of a few ms each (a pursuit train)
-thereby pays two ``fsync`` per interval instead of two per superstep.
+Durability: each superstep is appended to the log as it completes, and the manifest that
+counts it replaced (written to a temporary name and renamed), without waiting for the disk:
+a killed process (SIGKILL, out of memory, a crash) keeps every completed superstep. The disk
+is synced (``fsync`` of the log, then of the manifest) at most every ``interval_s`` seconds
+of run time (default :data:`INTERVAL_S`, or the environment variable :data:`INTERVAL_ENV`;
+0: after every superstep) and when the run ends (its backend's ``with`` block exits:
+:meth:`Journal.flush`), so a machine that loses power keeps at least the supersteps of the
+last sync; resuming replays what is kept and recomputes the rest, to the same result bit for
+bit. A run of hundreds of supersteps of a few ms each (a pursuit train) thereby pays two
+``fsync`` per interval instead of two per superstep.
 
 On disk, in the checkpoint directory:
 
 * ``manifest.json``: ``format``, ``version``, the run's ``fingerprint`` (scheme, problem and
-  options, ocpar's version), the number of durable ``supersteps`` and the ``segments``
-  ``[first, end]`` that hold them;
-* ``supersteps-00000-00012.npz`` …: one file per checkpoint, supersteps first … end − 1: per
-  superstep (``meta{i}``, ``a{i}_{k}``) the kernel, a digest of its tasks, its results and
-  its trace: arrays as arrays, everything else as JSON; no pickles (loaded with
-  ``allow_pickle=False``); objects are rebuilt only as dataclasses defined in ocpar's own
-  modules (:func:`result_type`).
+  options, ocpar's version) and the number of ``supersteps`` recorded;
+* ``supersteps.log``: the supersteps in order, each its length (8 bytes, little-endian), the
+  SHA-256 of its data (32 bytes) and its data: an ``.npz`` archive of the kernel, a digest of
+  its tasks, its results and its trace: arrays as arrays, everything else as JSON; no pickles
+  (loaded with ``allow_pickle=False``); objects are rebuilt only as dataclasses defined in
+  ocpar's own modules (:func:`result_type`).
 
-A checkpoint writes its segment to a temporary name, syncs it (``fsync``) and renames it,
-then does the same with the manifest, so a run killed at any moment leaves the last durable
-checkpoint (a segment the manifest does not name is removed on resume).
+A resumed journal keeps the supersteps the manifest counts whose data match their SHA-256 (a
+log cut short by a power loss ends at its last intact superstep) and cuts the log there.
 """
 
 from __future__ import annotations
 
-import bisect
 import dataclasses
 import hashlib
 import importlib
 import io
 import json
 import os
+import struct
 import tempfile
 import time
 from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, BinaryIO
 
 import numpy as np
 
@@ -63,6 +62,8 @@ INTERVAL_S = 1.0
 #: The environment variable that sets the interval (seconds) for runs started from the
 #: command line or the service (e.g. ``0``: every superstep durable as it completes).
 INTERVAL_ENV = "OCPAR_CHECKPOINT_INTERVAL_S"
+LOG = "supersteps.log"
+_HEADER = struct.Struct("<Q32s")  # an entry's length and SHA-256
 
 class CheckpointError(ValueError):
     """A checkpoint cannot be written, read or resumed (one-line message)."""
@@ -207,13 +208,16 @@ class Recorded:
     trace: SuperstepTrace
 
 
-def _write_atomically(path: Path, data: bytes) -> None:
+def _write_atomically(path: Path, data: bytes, sync: bool = True) -> None:
+    """Write ``data`` to a temporary file and rename it ``path``; ``sync``: the data on disk
+    (``fsync``) before the rename."""
     fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.")
     try:
         with os.fdopen(fd, "wb") as f:
             f.write(data)
-            f.flush()
-            os.fsync(f.fileno())
+            if sync:
+                f.flush()
+                os.fsync(f.fileno())
         os.replace(tmp, path)
     except BaseException:
         Path(tmp).unlink(missing_ok=True)
@@ -234,14 +238,31 @@ def interval_from_environment() -> float:
     return value
 
 
+def _intact(log: BinaryIO, count: int) -> list[tuple[int, int]]:
+    """(offset, length) of the first ``count`` entries of ``log``, up to the first one cut
+    short or altered."""
+    entries: list[tuple[int, int]] = []
+    offset = 0
+    while len(entries) < count:
+        header = log.read(_HEADER.size)
+        if len(header) < _HEADER.size:
+            break
+        length, sha = _HEADER.unpack(header)
+        if hashlib.sha256(log.read(length)).digest() != sha:
+            break
+        entries.append((offset + _HEADER.size, length))
+        offset += _HEADER.size + length
+    return entries
+
+
 class Journal:
     """The checkpoint in ``directory`` of the run with ``fingerprint`` (a JSON-able dict).
 
     ``resume=False`` starts a new checkpoint (refused if the directory holds one);
     ``resume=True`` opens an existing one (refused if it is missing, of another format or
     version, or of another run) and :meth:`replay` serves its supersteps. ``interval_s``:
-    seconds of run time between durable checkpoints (0: every superstep; None:
-    :func:`interval_from_environment`); :meth:`flush` makes the rest durable.
+    seconds of run time between syncs to disk (0: every superstep; None:
+    :func:`interval_from_environment`); :meth:`flush` syncs the rest.
     """
 
     def __init__(self, directory: str | Path, fingerprint: dict, resume: bool,
@@ -252,7 +273,6 @@ class Journal:
         if not self.interval_s >= 0:
             raise CheckpointError(f"checkpoint interval {self.interval_s} s: expected >= 0")
         manifest = self.directory / MANIFEST
-        self.segments: list[tuple[int, int]] = []
         if resume:
             try:
                 stored = json.loads(manifest.read_text())
@@ -266,12 +286,6 @@ class Journal:
             if stored.get("fingerprint") != self.fingerprint:
                 raise CheckpointError(f"{self.directory} is the checkpoint of another run "
                                       f"({_difference(stored.get('fingerprint'), fingerprint)})")
-            self.recorded_supersteps = int(stored["supersteps"])
-            self.segments = [(int(first), int(end)) for first, end in stored["segments"]]
-            named = {self._path(*segment).name for segment in self.segments}
-            for path in self.directory.glob("supersteps-*.npz"):
-                if path.name not in named:  # written by a run killed before its manifest
-                    path.unlink(missing_ok=True)
         else:
             if manifest.exists():
                 raise CheckpointError(f"{self.directory} already holds a checkpoint; resume it "
@@ -280,47 +294,41 @@ class Journal:
                 self.directory.mkdir(parents=True, exist_ok=True)
             except OSError as exc:
                 raise CheckpointError(f"cannot create {self.directory}: {exc}") from None
-            self.recorded_supersteps = 0
-        #: Supersteps durable on disk (those of :attr:`segments`).
+        self._log = self.directory / LOG
+        #: Where each recorded superstep's data lies in the log: (offset, length) in bytes.
+        self._entries: list[tuple[int, int]] = []
+        try:
+            with open(self._log, "r+b" if resume else "wb") as log:
+                if resume:
+                    self._entries = _intact(log, int(stored["supersteps"]))
+                    log.truncate(sum(_HEADER.size + n for _, n in self._entries))
+        except OSError as exc:
+            raise CheckpointError(f"cannot open {self._log}: {exc}") from None
+        self.recorded_supersteps = len(self._entries)
         self.supersteps = self.recorded_supersteps
-        self._pending: list[tuple[dict, list[np.ndarray]]] = []
-        self._open: tuple[int, Any] | None = None  # the segment replay reads: (index, npz)
-        self._durable_at = time.monotonic()
+        self._synced_at = time.monotonic()
         if not resume:
-            self._write_manifest()
+            self._write_manifest(sync=True)
 
-    def _path(self, first: int, end: int) -> Path:
-        return self.directory / f"supersteps-{first:05d}-{end:05d}.npz"
-
-    def _write_manifest(self) -> None:
+    def _write_manifest(self, sync: bool) -> None:
         manifest = {"format": FORMAT, "version": VERSION, "fingerprint": self.fingerprint,
-                    "supersteps": self.supersteps, "segments": self.segments}
-        _write_atomically(self.directory / MANIFEST, json.dumps(manifest, indent=1).encode())
-
-    def _segment(self, index: int) -> Any:
-        """The open npz file of the segment that holds superstep ``index``."""
-        where = bisect.bisect_right([first for first, _ in self.segments], index) - 1
-        if self._open is None or self._open[0] != where:
-            self._close_segment()
-            self._open = (where, np.load(self._path(*self.segments[where]),
-                                         allow_pickle=False))
-        return self._open[1]
-
-    def _close_segment(self) -> None:
-        if self._open is not None:
-            self._open[1].close()
-            self._open = None
+                    "supersteps": self.supersteps}
+        _write_atomically(self.directory / MANIFEST, json.dumps(manifest, indent=1).encode(),
+                          sync)
 
     def replay(self, index: int, kernel: str, tasks_digest: str) -> Recorded | None:
         """The recorded superstep ``index`` if there is one (None: run it live). Raises
         :class:`CheckpointError` if it ran another kernel or other tasks."""
         if index >= self.recorded_supersteps:
-            self._close_segment()
             return None
+        offset, length = self._entries[index]
         try:
-            data = self._segment(index)
-            meta = json.loads(str(data[f"meta{index}"]))
-            arrays = [data[f"a{index}_{k}"] for k in range(meta["arrays"])]
+            with open(self._log, "rb") as log:
+                log.seek(offset)
+                entry = log.read(length)
+            with np.load(io.BytesIO(entry), allow_pickle=False) as data:
+                meta = json.loads(str(data["meta"]))
+                arrays = [data[f"a{k}"] for k in range(meta["arrays"])]
         except (OSError, KeyError, ValueError) as exc:
             raise CheckpointError(f"cannot read superstep {index} of {self.directory}: "
                                   f"{exc}") from None
@@ -332,37 +340,40 @@ class Journal:
 
     def record(self, index: int, kernel: str, tasks_digest: str, results: Any,
                trace: SuperstepTrace) -> None:
-        """Keep superstep ``index`` (the next one), and make every superstep kept durable if
-        :attr:`interval_s` has passed since the last checkpoint."""
-        if index != self.supersteps + len(self._pending):
+        """Append superstep ``index`` (the next one) to the log, then replace the manifest
+        that counts it; sync both to disk if :attr:`interval_s` has passed since the last
+        sync."""
+        if index != self.supersteps:
             raise CheckpointError(f"superstep {index} recorded after superstep "
-                                  f"{self.supersteps + len(self._pending) - 1}")
+                                  f"{self.supersteps - 1}")
         encoder = _Encoder()
         fields = {f.name: getattr(trace, f.name) for f in dataclasses.fields(trace)}
         meta = {"kernel": kernel, "tasks": tasks_digest, "results": encoder.results(results),
                 "trace": encoder.value(fields)}
         meta["arrays"] = len(encoder.arrays)
-        # copies: the coordinator may reuse the results' arrays before they are written
-        self._pending.append((meta, [a.copy() for a in encoder.arrays]))
-        if time.monotonic() - self._durable_at >= self.interval_s:
-            self.flush()
+        buffer = io.BytesIO()
+        np.savez(buffer, meta=np.array(json.dumps(meta)),
+                 **{f"a{k}": a for k, a in enumerate(encoder.arrays)})
+        data = buffer.getvalue()
+        sync = time.monotonic() - self._synced_at >= self.interval_s
+        with open(self._log, "ab") as log:  # written to the OS: a killed process keeps it
+            end = log.tell()
+            log.write(_HEADER.pack(len(data), hashlib.sha256(data).digest()) + data)
+            if sync:
+                log.flush()
+                os.fsync(log.fileno())
+        self._entries.append((end + _HEADER.size, len(data)))
+        self.supersteps = index + 1
+        self._write_manifest(sync)
+        if sync:
+            self._synced_at = time.monotonic()
 
     def flush(self) -> None:
-        """Make every superstep recorded durable: one segment file, then the manifest."""
-        if self._pending:
-            first, end = self.supersteps, self.supersteps + len(self._pending)
-            entries: dict[str, np.ndarray] = {}
-            for index, (meta, arrays) in enumerate(self._pending, start=first):
-                entries[f"meta{index}"] = np.array(json.dumps(meta))
-                entries.update((f"a{index}_{k}", a) for k, a in enumerate(arrays))
-            buffer = io.BytesIO()
-            np.savez(buffer, **entries)
-            _write_atomically(self._path(first, end), buffer.getvalue())
-            self.segments.append((first, end))
-            self.supersteps = end
-            self._pending = []
-            self._write_manifest()
-        self._durable_at = time.monotonic()
+        """Sync every superstep recorded to disk: the log, then the manifest."""
+        with open(self._log, "ab") as log:
+            os.fsync(log.fileno())
+        self._write_manifest(sync=True)
+        self._synced_at = time.monotonic()
 
 
 def _difference(stored: Any, current: Mapping) -> str:
