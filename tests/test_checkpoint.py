@@ -17,7 +17,7 @@ import numpy as np
 import pytest
 from conftest import REPO, run_cli
 
-from ocpar.bsp.journal import LOG, MANIFEST, CheckpointError, Journal
+from ocpar.bsp.journal import INTERVAL_ENV, LOG, MANIFEST, CheckpointError, Journal
 from ocpar.bsp.serial import SerialBackend
 from ocpar.examples.formation_point_masses import make as paper_example
 from ocpar.formation import solve_formation
@@ -31,10 +31,12 @@ def supersteps_recorded(directory: Path) -> int:
 
 
 def kill_after(args: list[str], checkpoint: Path, k: int, timeout: float = 120) -> int:
-    """Start ``python -m ...args --checkpoint DIR``, SIGKILL it once DIR holds k supersteps;
-    return how many it holds after the kill."""
+    """Start ``python -m ...args --checkpoint DIR`` with every superstep synced and counted in
+    the manifest as it completes (interval 0), SIGKILL it once DIR holds k supersteps; return
+    how many it holds after the kill."""
     proc = subprocess.Popen([sys.executable, "-m", *args, "--checkpoint", str(checkpoint)],
-                            cwd=REPO, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+                            cwd=REPO, env=os.environ | {INTERVAL_ENV: "0"},
+                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
     deadline = time.monotonic() + timeout
     while supersteps_recorded(checkpoint) < k:
         assert proc.poll() is None, f"run ended before superstep {k}: {proc.stderr.read()}"
@@ -109,9 +111,9 @@ def test_replay_refuses_a_superstep_with_other_tasks(tmp_path):
 
 
 def test_checkpoint_files_hold_no_pickles(tmp_path):
-    backend = SerialBackend()
-    backend.journal = Journal(tmp_path, {"run": "y"}, resume=False)
-    solve_formation(paper_example(6), backend)
+    with SerialBackend() as backend:  # its exit counts every superstep in the manifest
+        backend.journal = Journal(tmp_path, {"run": "y"}, resume=False)
+        solve_formation(paper_example(6), backend)
     log = (tmp_path / LOG).read_bytes()
     entries = 0
     while log:  # each entry: its length (8 bytes), its SHA-256 (32 bytes), an .npz archive
