@@ -27,10 +27,10 @@ On disk, in the checkpoint directory:
   options, ocpar's version) and the number of ``supersteps`` recorded (at most, as of its
   last rewrite);
 * ``supersteps.log``: the supersteps in order, each its length (8 bytes, little-endian), the
-  SHA-256 of its data (32 bytes) and its data: an ``.npz`` archive of the kernel, a digest of
-  its tasks, its results and its trace: arrays as arrays, everything else as JSON; no pickles
-  (loaded with ``allow_pickle=False``); objects are rebuilt only as dataclasses defined in
-  ocpar's own modules (:func:`result_type`).
+  SHA-256 of its data (32 bytes) and its data (:func:`_pack`): the kernel, a digest of its
+  tasks, its results and its trace as JSON, arrays as their raw bytes after it (dtype as
+  ``.npy`` describes it, and shape, in the JSON); no pickles, no object arrays; objects are
+  rebuilt only as dataclasses defined in ocpar's own modules (:func:`result_type`).
 
 A resumed journal keeps the log's supersteps up to the first whose data do not match their
 SHA-256 (a log cut short by a kill or a power loss ends at its last intact superstep) and
@@ -42,8 +42,8 @@ from __future__ import annotations
 import dataclasses
 import hashlib
 import importlib
-import io
 import json
+import math
 import os
 import struct
 import tempfile
@@ -245,6 +245,33 @@ def interval_from_environment() -> float:
     return value
 
 
+def _pack(meta: dict, arrays: list[np.ndarray]) -> bytes:
+    """An entry's data: the length of its JSON (8 bytes), the JSON (``meta`` with each array's
+    ``.npy`` dtype description and shape under ``"arrays"``) and the arrays' bytes (C order)."""
+    meta = meta | {"arrays": [[np.lib.format.dtype_to_descr(a.dtype), list(a.shape)]
+                              for a in arrays]}
+    text = json.dumps(meta).encode()
+    return b"".join([len(text).to_bytes(8, "little"), text,
+                     *(np.ascontiguousarray(a).tobytes() for a in arrays)])
+
+
+def _unpack(data: bytes) -> tuple[dict, list[np.ndarray]]:
+    """The meta and arrays of :func:`_pack` (raises ValueError if they do not fit)."""
+    length = int.from_bytes(data[:8], "little")
+    meta = json.loads(data[8:8 + length])
+    arrays, offset = [], 8 + length
+    for descr, shape in meta["arrays"]:
+        dtype = np.lib.format.descr_to_dtype(descr)
+        if dtype.hasobject:
+            raise ValueError("an object array")
+        count = math.prod(shape)
+        arrays.append(np.frombuffer(data, dtype, count, offset).reshape(shape).copy())
+        offset += count * dtype.itemsize
+    if offset != len(data):
+        raise ValueError(f"{len(data) - offset} bytes past its arrays")
+    return meta, arrays
+
+
 def _intact(log: BinaryIO) -> list[tuple[int, int]]:
     """(offset, length) of the entries of ``log`` up to the first one cut short or altered."""
     entries: list[tuple[int, int]] = []
@@ -333,10 +360,8 @@ class Journal:
             with open(self._log, "rb") as log:
                 log.seek(offset)
                 entry = log.read(length)
-            with np.load(io.BytesIO(entry), allow_pickle=False) as data:
-                meta = json.loads(str(data["meta"]))
-                arrays = [data[f"a{k}"] for k in range(meta["arrays"])]
-        except (OSError, KeyError, ValueError) as exc:
+            meta, arrays = _unpack(entry)
+        except (OSError, KeyError, ValueError, TypeError) as exc:
             raise CheckpointError(f"cannot read superstep {index} of {self.directory}: "
                                   f"{exc}") from None
         if meta["kernel"] != kernel or meta["tasks"] != tasks_digest:
@@ -357,11 +382,7 @@ class Journal:
         fields = {f.name: getattr(trace, f.name) for f in dataclasses.fields(trace)}
         meta = {"kernel": kernel, "tasks": tasks_digest, "results": encoder.results(results),
                 "trace": encoder.value(fields)}
-        meta["arrays"] = len(encoder.arrays)
-        buffer = io.BytesIO()
-        np.savez(buffer, meta=np.array(json.dumps(meta)),
-                 **{f"a{k}": a for k, a in enumerate(encoder.arrays)})
-        data = buffer.getvalue()
+        data = _pack(meta, encoder.arrays)
         sync = time.monotonic() - self._synced_at >= self.interval_s
         with open(self._log, "ab") as log:  # written to the OS: a killed process keeps it
             end = log.tell()
