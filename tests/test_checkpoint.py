@@ -3,6 +3,7 @@ uninterrupted run; a checkpoint of another run or format is refused with one lin
 
 from __future__ import annotations
 
+import hashlib
 import json
 import os
 import signal
@@ -15,7 +16,7 @@ import numpy as np
 import pytest
 from conftest import REPO, run_cli
 
-from ocpar.bsp.journal import MANIFEST, CheckpointError, Journal
+from ocpar.bsp.journal import INTERVAL_ENV, LOG, MANIFEST, CheckpointError, Journal
 from ocpar.bsp.serial import SerialBackend
 from ocpar.examples.formation_point_masses import make as paper_example
 from ocpar.formation import solve_formation
@@ -28,11 +29,18 @@ def supersteps_recorded(directory: Path) -> int:
         return 0
 
 
-def kill_after(args: list[str], checkpoint: Path, k: int, timeout: float = 120) -> int:
-    """Start ``python -m ...args --checkpoint DIR``, SIGKILL it once DIR holds k supersteps;
-    return how many it holds after the kill."""
+def kill_after(args: list[str], checkpoint: Path, k: int, timeout: float = 120,
+               interval: str | None = "0") -> int:
+    """Start ``python -m ...args --checkpoint DIR`` syncing every ``interval`` seconds (0:
+    every superstep synced and counted in the manifest as it completes; None: the default),
+    SIGKILL it once DIR's manifest counts k supersteps; return how many it counts after the
+    kill."""
+    env = {key: value for key, value in os.environ.items() if key != INTERVAL_ENV}
+    if interval is not None:
+        env[INTERVAL_ENV] = interval
     proc = subprocess.Popen([sys.executable, "-m", *args, "--checkpoint", str(checkpoint)],
-                            cwd=REPO, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+                            cwd=REPO, env=env,
+                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
     deadline = time.monotonic() + timeout
     while supersteps_recorded(checkpoint) < k:
         assert proc.poll() is None, f"run ended before superstep {k}: {proc.stderr.read()}"
@@ -43,22 +51,29 @@ def kill_after(args: list[str], checkpoint: Path, k: int, timeout: float = 120) 
     return supersteps_recorded(checkpoint)
 
 
-@pytest.mark.parametrize("args, k, same", [
+@pytest.mark.parametrize("args, k, same, interval", [
     (["ocpar.formation", "--agents", "60", "--quiet"], 3,
-     lambda a, b: a["total_cost"] == b["total_cost"] and a["phi"] == b["phi"]),
+     lambda a, b: a["total_cost"] == b["total_cost"] and a["phi"] == b["phi"], "0"),
     pytest.param(
         ["ocpar.macs", "--problem", "goddard", "--max-evals", "1500", "--seed", "7", "--quiet"],
-        6, lambda a, b: a["front"] == b["front"] and a["hv"] == b["hv"],
+        6, lambda a, b: a["front"] == b["front"] and a["hv"] == b["hv"], "0",
         marks=pytest.mark.slow),  # 35 s; formation and pursuit resume in the default run
-], ids=["formation", "macs"])
-def test_killed_run_resumes_to_the_uninterrupted_result(tmp_path, args, k, same):
+    # synced once a second (the default): the kill lands between syncs, the log keeps more
+    (["ocpar.pursuit", "--samples", "601", "--window", "12", "--update", "6", "--quiet",
+      "--plot", "none"], 3,
+     lambda a, b: all(a[key] == b[key] for key in
+                      ("final_mass_kg", "train_final_mass_kg", "constraint_violation")), None),
+], ids=["formation", "macs", "pursuit-default-interval"])
+def test_killed_run_resumes_to_the_uninterrupted_result(tmp_path, args, k, same, interval):
     whole = tmp_path / "whole"
-    proc = run_cli("-m", *args, "--output", str(whole))
+    proc = run_cli("-m", *args, "--output", str(whole), "--checkpoint", str(tmp_path / "ck"))
     assert proc.returncode == 0, proc.stderr
     expected = json.loads((whole / "result.json").read_text())
+    journaled = supersteps_recorded(tmp_path / "ck")  # pursuit's finish is one more
+    assert journaled >= expected["supersteps"]
 
     checkpoint = tmp_path / "checkpoint"
-    kept = kill_after(args, checkpoint, k)
+    kept = kill_after(args, checkpoint, k, interval=interval)
     assert k <= kept < expected["supersteps"]  # killed in the middle, checkpoint intact
     resumed = tmp_path / "resumed"
     proc = run_cli("-m", *args, "--resume", str(checkpoint), "--output", str(resumed))
@@ -66,7 +81,7 @@ def test_killed_run_resumes_to_the_uninterrupted_result(tmp_path, args, k, same)
     result = json.loads((resumed / "result.json").read_text())
     assert same(result, expected)
     assert result["supersteps"] == expected["supersteps"]
-    assert supersteps_recorded(checkpoint) == expected["supersteps"]
+    assert supersteps_recorded(checkpoint) == journaled
 
 
 def test_a_checkpoint_of_another_run_or_format_is_refused(tmp_path):
@@ -107,12 +122,24 @@ def test_replay_refuses_a_superstep_with_other_tasks(tmp_path):
 
 
 def test_checkpoint_files_hold_no_pickles(tmp_path):
-    backend = SerialBackend()
-    backend.journal = Journal(tmp_path, {"run": "y"}, resume=False)
-    solve_formation(paper_example(6), backend)
-    for path in sorted(tmp_path.glob("superstep-*.npz")):
-        with np.load(path, allow_pickle=False) as data:  # raises on any pickled entry
-            assert all(data[name].dtype != object for name in data.files)
+    """Each entry of the log: its length, its SHA-256, then JSON and the raw bytes of arrays of
+    plain dtypes (described as in .npy files), which add up to the entry exactly."""
+    with SerialBackend() as backend:  # its exit counts every superstep in the manifest
+        backend.journal = Journal(tmp_path, {"run": "y"}, resume=False)
+        solve_formation(paper_example(6), backend)
+    log = (tmp_path / LOG).read_bytes()
+    entries = 0
+    while log:
+        length, sha = int.from_bytes(log[:8], "little"), log[8:40]
+        data, log = log[40:40 + length], log[40 + length:]
+        assert hashlib.sha256(data).digest() == sha
+        size = int.from_bytes(data[:8], "little")
+        meta = json.loads(data[8:8 + size])
+        dtypes = [(np.lib.format.descr_to_dtype(d), shape) for d, shape in meta["arrays"]]
+        assert not any(dtype.hasobject for dtype, _ in dtypes)
+        assert 8 + size + sum(d.itemsize * int(np.prod(shape)) for d, shape in dtypes) == length
+        entries += 1
+    assert entries == supersteps_recorded(tmp_path) == len(backend.traces)
 
 
 MPI_HANG = """

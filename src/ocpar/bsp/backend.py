@@ -273,7 +273,12 @@ class Backend(ABC):
         return self
 
     def __exit__(self, *exc: object) -> None:
-        self.close()
+        """Make the journal's supersteps durable (however the block ends), then close."""
+        try:
+            if self.journal is not None:
+                self.journal.flush()
+        finally:
+            self.close()
 
 
 def _positions(groups: Sequence[Sequence[int]], n: int) -> np.ndarray | None:
