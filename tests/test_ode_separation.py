@@ -2,7 +2,8 @@
 that start rolling towards one another (their free paths cross) kept ≥ D apart by the
 separation rounds (keep-out rows on the polyline through the RK4 sub-step states), checked
 here on the agents' own paths re-integrated by a numpy RK4 at 64 steps per interval (not the
-package's code); the cost above the free one."""
+package's code); the cost above the free one; and one agent's keep-out rows held at every RK4
+sub-step state (steps = 3)."""
 
 from __future__ import annotations
 
@@ -14,7 +15,7 @@ import pytest
 from ocpar.examples.formation_unicycles import make
 from ocpar.formation import FormationOptions, solve_formation
 from ocpar.models import Unicycle
-from ocpar.ocp import MsEndpointShape
+from ocpar.ocp import MsEndpointShape, transcription
 
 AGENTS, DURATION, INTERVALS, DISTANCE = 4, 6.0, 20, 0.5
 #: RK4 steps per interval of the test's own re-integration.
@@ -91,3 +92,29 @@ def test_keep_out_fields_checked():
     with pytest.raises(ValueError, match="not with free_duration"):
         MsEndpointShape(Unicycle(), keep_out_slots=2, keep_out_positions=(0, 1),
                         free_duration=True)
+
+
+def test_half_spaces_hold_at_every_sub_step_state():
+    """One unicycle from rest at the origin to (3, 0), told y ≥ 0.3 on intervals 3–6 by one
+    keep-out slot (three RK4 steps per interval): every sub-step state of those intervals, by
+    the test's own RK4 from the returned nodes, meets it, the row is active, and the returned
+    cost is h Σ |u_k|² (the penalty left out)."""
+    steps, intervals, duration = 3, 10, 3.0
+    shape = MsEndpointShape(Unicycle(), intervals=intervals, duration=duration, steps=steps,
+                            free_end=(2,), keep_out_slots=1, keep_out_positions=(0, 1),
+                            solver="ipopt")
+    data = np.zeros((intervals, 4))
+    data[:, 2:] = -1.0
+    data[3:7] = (0.0, 1.0, 0.3, 0.3)
+    params = np.concatenate([[0.0, 0.0, 0.0, 0.0], [3.0, 0.0, 0.0, 0.0], data.ravel(), [100.0]])
+    sol = transcription(shape).solve(params)
+    assert sol.success, sol.status
+    h = duration / intervals
+    states, points = sol.q[3:7], []
+    for _ in range(steps + 1):
+        points.append(states[:, 1])
+        states = _rk4_step(states, sol.u[3:7], h / steps)
+    lowest = np.min(points)
+    assert lowest >= 0.3 - 1e-8
+    assert lowest == pytest.approx(0.3, abs=1e-8)
+    assert sol.cost == pytest.approx(h * np.sum(sol.u**2), rel=1e-10)
