@@ -378,6 +378,10 @@ def _check_ode_applicable(problem: FormationProblem, options: FormationOptions) 
     if options.min_separation is not None and options.separation == "exact":
         raise ValueError("separation 'exact': not yet for ODE agents (MsEndpointShape); "
                          "use separation 'rounds'")
+    if options.min_separation is not None \
+            and len({(type(s), s.node_size, s.n_params) for s in set(problem.shapes)}) > 1:
+        raise ValueError("min_separation: not yet for a fleet of agents of different kinds "
+                         "or state sizes (DMOC and ODE agents, or ODE models of different nx)")
 
 
 def obstacle_check(problem: FormationProblem, positions: np.ndarray, status: str,
