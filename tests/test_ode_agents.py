@@ -482,9 +482,11 @@ def test_configuration_is_described_by_the_agents_kind(circle, mixed):
 
 def test_what_ode_agents_do_not_offer_yet_is_refused_in_one_line():
     problem = make(agents=3)
-    for options, field in ((FormationOptions(min_separation=0.1), "min_separation"),):
-        with pytest.raises(ValueError, match=rf"^{field}: "):
-            solve_formation(problem, options=options)
+    with pytest.raises(ValueError, match=r"^separation 'exact': not yet for ODE agents"):
+        solve_formation(problem, options=FormationOptions(min_separation=0.1))
+    with pytest.raises(ValueError, match=r"^min_separation: not yet for a fleet of agents"):
+        solve_formation(make(agents=4, mixed=True), options=FormationOptions(
+            min_separation=0.1, separation="rounds"))
     with pytest.raises(ValueError, match=r"^final_velocity: DMOC agents' field"):
         FormationProblem("x", problem.shape, problem.curve, problem.starts,
                          final_velocity=np.zeros(4))

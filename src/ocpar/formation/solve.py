@@ -365,9 +365,9 @@ def check_applicable(problem: FormationProblem, options: FormationOptions) -> No
     if problem.reach_sets() and options.final_time == "fixed":   # ValueError if none is
         feasible_start(problem, problem.initial_phi())
     if options.min_separation is not None:
-        nq = problem.common_shape.model.nq
+        size = problem.common_shape.boundary_size   # p = (start, end, ...)
         final = problem.boundary_params_rows(np.arange(problem.agents),
-                                             problem.initial_phi())[:, 2 * nq:3 * nq]
+                                             problem.initial_phi())[:, size:2 * size]
         check_separation_feasible(problem.positions(problem.starts), problem.positions(final),
                                   options.min_separation)
 
@@ -375,8 +375,13 @@ def check_applicable(problem: FormationProblem, options: FormationOptions) -> No
 def _check_ode_applicable(problem: FormationProblem, options: FormationOptions) -> None:
     """What ODE agents (:class:`~ocpar.ocp.MsEndpointShape`) do not offer yet: ValueError
     naming the option."""
-    if options.min_separation is not None:
-        raise ValueError("min_separation: not yet for ODE agents (MsEndpointShape)")
+    if options.min_separation is not None and options.separation == "exact":
+        raise ValueError("separation 'exact': not yet for ODE agents (MsEndpointShape); "
+                         "use separation 'rounds'")
+    if options.min_separation is not None \
+            and len({(type(s), s.node_size, s.n_params) for s in set(problem.shapes)}) > 1:
+        raise ValueError("min_separation: not yet for a fleet of agents of different kinds "
+                         "or state sizes (DMOC and ODE agents, or ODE models of different nx)")
 
 
 def obstacle_check(problem: FormationProblem, positions: np.ndarray, status: str,
@@ -673,7 +678,8 @@ def solve_formation(
         positions = problem.positions(trajectories)
         durations = (np.asarray(sols.column("duration"), float) if distance is None
                      else None)   # the rounds' paths: at the shapes' T
-        continuous = checked_positions(problem, trajectories, controls, durations=durations)
+        continuous = checked_positions(problem, trajectories, controls, durations=durations,
+                                       separation=distance is not None)
         squares = control_squares(problem, controls)
         verification = verify_formation(problem, trajectories, controls, phi, distance,
                                         backend)

@@ -36,7 +36,9 @@ interval controls (n, N, nu) and the parameters φ, and the problem's data. It c
   :data:`DENSE_SUBSTEPS` finer steps (:func:`checked_positions`), as a polyline;
 * ``separation`` (with a required one): the closest approach of any two agents on the
   continuous paths (:func:`~ocpar.formation.keep_out.separation.closest_approach`, always
-  measured; ODE agents' on the polyline through their nodes, :data:`DENSE_SUBSTEPS`).
+  measured; ODE agents' on the polyline through their nodes, :data:`DENSE_SUBSTEPS`, where
+  no separation is required, else on the dense re-integration the obstacles' clearance is
+  checked on).
 
 A check that does not apply (no constraint, no obstacle) is not made. Near-collisions are
 reported, not failed: a closest approach below :data:`NEAR_COLLISION_FRACTION` of the
@@ -503,10 +505,10 @@ def _rhs(model: object) -> ca.Function:
 #: The verification's re-integration of an ODE agent for its obstacle clearance: each of the
 #: integrator's sub-steps (``MsEndpointShape.steps`` per interval) re-integrated from its
 #: start by this many steps of the same integrator (:func:`checked_positions`). The closest
-#: approach is not measured on it: on 8 × as many intervals it cost 10 × (0.47 s against
-#: 0.04 s for 200 unicycles, more than their solve), for a difference of 1e-3 (0.6608
-#: against 0.6599 for 8 unicycles); ODE agents' closest approach is that of the nodes'
-#: polyline.
+#: approach is measured on it only where a separation is required: on 8 × as many intervals
+#: it cost 10 × (0.47 s against 0.04 s for 200 unicycles, more than their solve), for a
+#: difference of 1e-3 (0.6608 against 0.6599 for 8 unicycles); without, ODE agents' closest
+#: approach is that of the nodes' polyline.
 DENSE_SUBSTEPS = 8
 
 
@@ -579,16 +581,19 @@ def _dense_path(shape: MsEndpointShape, x: np.ndarray, u: np.ndarray, refine: in
 
 def checked_positions(problem: FormationProblem, trajectories: np.ndarray,
                       controls: np.ndarray, nodes: np.ndarray | None = None,
-                      durations: np.ndarray | None = None) -> np.ndarray:
-    """The positions (n, P, d) the obstacle clearance is checked on: the nodes (P = N+1;
+                      durations: np.ndarray | None = None, separation: bool = False
+                      ) -> np.ndarray:
+    """The positions (n, P, d) the obstacle clearance (and, with ``separation`` required,
+    the closest approach) is checked on: the nodes (P = N+1;
     :meth:`~ocpar.formation.FormationProblem.positions`) where no agent is an ODE agent or
-    there are no obstacles (a DMOC path is linear between nodes); else every agent on a
+    there is neither an obstacle nor a required separation (a DMOC path is linear between
+    nodes); else every agent on a
     common dense grid of S = :data:`DENSE_SUBSTEPS` · lcm(ODE shapes' ``steps``) points per
     interval (P = N S + 1): an ODE agent's path re-integrated (:func:`_dense_path`), a DMOC
     agent's nodes joined linearly. ``nodes``: the nodes' positions where they are at hand
     (the paths of a run whose workers wrote them are not gathered); ``durations`` (n,) each
     agent's horizon T where it chose its own (default: its shape's)."""
-    if not problem.obstacles or not problem.ode_agents:
+    if not (problem.obstacles or separation) or not problem.ode_agents:
         return problem.positions(trajectories) if nodes is None else nodes
     q, u = np.asarray(trajectories, float), np.asarray(controls, float)
     groups = problem.agents_by_shape()
@@ -675,7 +680,8 @@ def verify_formation(problem: FormationProblem, trajectories: np.ndarray,
                           problem.boundary_params_rows(np.arange(n), phi), problem.curve.dim)
     return verify_checked(problem, problem.positions(q), q[:, -1, :problem.curve.dim], phi,
                           checks, min_separation, backend, time.perf_counter() - start,
-                          checked_positions(problem, q, u))
+                          checked_positions(problem, q, u,
+                                            separation=min_separation is not None))
 
 
 def verify_checked(problem: FormationProblem, positions: np.ndarray, ends: np.ndarray,
@@ -689,8 +695,8 @@ def verify_checked(problem: FormationProblem, positions: np.ndarray, ends: np.nd
     the end points, the obstacles, the closest approach (its intervals on the ``backend``'s
     workers, if one is given), the near-collision rule. ``spent_s``: time already spent on
     the checks (s), counted in the verification's. ``clearance_positions`` (n, P, d): the
-    positions the obstacle clearance is checked on (:func:`checked_positions`; None: the
-    nodes' ``positions``)."""
+    positions the obstacle clearance and a required separation are checked on
+    (:func:`checked_positions`; None: the nodes' ``positions``)."""
     start = time.perf_counter() - spent_s
     positions, ends = np.asarray(positions, float), np.asarray(ends, float)
     found: dict[str, Check] = {}
@@ -724,7 +730,9 @@ def verify_checked(problem: FormationProblem, positions: np.ndarray, ends: np.nd
         found["obstacles"] = Check(-clearance.distance, clearance.agent,
                                    CLEARANCE_TOL * min(o.scale for o in problem.obstacles),
                                    where)
-    closest = problem.closest_approach_of(positions, backend)
+    closest = problem.closest_approach_of(
+        positions if min_separation is None or clearance_positions is None
+        else clearance_positions, backend)
     if min_separation is not None:
         found["separation"] = Check(min_separation - closest.distance, closest.agents[0],
                                     min_separation * SEPARATION_RTOL,

@@ -34,6 +34,17 @@ side of the ellipsoids the straight-line guess enters (:meth:`MsEndpointTranscri
 :func:`~ocpar.ocp.obstacles.side_guesses`: its free nodes inside pushed out on that side; at most
 2^3 sides) and keeps the cheapest; a re-solve from a previous solution keeps its side.
 
+Keep-out half-spaces (``keep_out_slots`` K > 0 on the state entries ``keep_out_positions``,
+the separation rounds' :mod:`ocpar.formation.keep_out.rounds`): p gains DMOC's keep-out block
+(:mod:`ocpar.ocp.dmoc`: per interval and slot a normal n and offsets b⁰, b¹ at the
+interval's two nodes, then the penalty ρ), w one slack σ ≥ 0 per interval and slot, the cost
+ρ Σ σ (the returned ``cost`` is without it). Like the obstacles, the rows are imposed on the
+polyline through the sub-step states: n·r(y_j) − b(t_j) + σ ≥ 0 at the interval's sub-step
+states y_j, j = 0..``steps`` (x_0 and x_N left out: data), b linear in time from b⁰ to b¹;
+between two sub-step states the path bulges out of the chord as said above (the formation
+checks the separation on the dense re-integration). Not with a free or bounded duration or
+the elastic problem.
+
 The contract of a formation's agent (:mod:`ocpar.ocp.endpoint_agents`): J*, dJ*/dp (CasADi's
 −λ_p), and ``end_hessian`` d²J*/dx̄_N² (nx, nx) from the KKT system
 (:mod:`ocpar.ocp.sensitivity`; of the active set where a bound or a path row is active), the
@@ -138,7 +149,8 @@ class MsEndpointShape:
     guess). ``obstacles`` kept out of on the polyline through the integrator's sub-step
     states of the entries ``obstacle_positions`` (default: the model's ``position_indices``;
     module docstring); ``elastic`` the phase-1 problem of this shape instead (module
-    docstring; not with ``time_bounds``)."""
+    docstring; not with ``time_bounds``); ``keep_out_slots`` K moving half-spaces per interval
+    on the state entries ``keep_out_positions`` (module docstring)."""
 
     model: OdeModel
     intervals: int = 10
@@ -159,6 +171,8 @@ class MsEndpointShape:
     obstacles: tuple[Obstacle, ...] = ()
     obstacle_positions: tuple[int, ...] = ()
     elastic: bool = False
+    keep_out_slots: int = 0
+    keep_out_positions: tuple[int, ...] = ()
 
     def __post_init__(self) -> None:
         check_ode_model(self.model, "shape.model")
@@ -181,6 +195,7 @@ class MsEndpointShape:
         object.__setattr__(self, "path_constraints", compile_constraints(
             self.path_constraints, {"x": nx, "u": nu}))
         self._check_obstacles(tuple(positions))
+        self._check_keep_outs()
         if self.control_bounds is not None:
             object.__setattr__(self, "control_bounds",
                                check_control_bounds(self.control_bounds, nu))
@@ -220,12 +235,41 @@ class MsEndpointShape:
         object.__setattr__(self, "obstacle_positions", entries)
         object.__setattr__(self, "obstacles", check_obstacles(self.obstacles, len(entries)))
 
+    def _check_keep_outs(self) -> None:
+        """``keep_out_slots`` K ≥ 0 on ``keep_out_positions`` (d distinct state entries), not
+        with a free or bounded duration or the elastic problem, or ValueError naming the
+        field."""
+        if not isinstance(self.keep_out_slots, int | np.integer) or self.keep_out_slots < 0:
+            raise ValueError(f"keep_out_slots must be an integer ≥ 0, got "
+                             f"{self.keep_out_slots!r}")
+        entries = tuple(int(i) for i in self.keep_out_positions)
+        if not self.keep_out_slots:
+            if entries:
+                raise ValueError("keep_out_positions needs keep_out_slots > 0")
+            return
+        if not entries or len(set(entries)) != len(entries) \
+                or not all(0 <= i < self.model.nx for i in entries):
+            raise ValueError(f"keep_out_positions must be distinct state entries "
+                             f"(0..{self.model.nx - 1}), got {self.keep_out_positions!r}")
+        if self.free_duration or self.time_bounds is not None or self.elastic:
+            raise ValueError("keep_out_slots: not with free_duration, time_bounds or elastic")
+        object.__setattr__(self, "keep_out_positions", entries)
+
+    @property
+    def n_keep_out(self) -> int:
+        """Entries of p the keep-outs take: N K (d + 2) slot data and the penalty ρ (0
+        without keep-outs)."""
+        if not self.keep_out_slots:
+            return 0
+        return self.intervals * self.keep_out_slots * (len(self.keep_out_positions) + 2) + 1
+
     @property
     def has_inequalities(self) -> bool:
         """Whether the NLP has inequalities (control bounds, path constraints, T's bounds,
-        obstacles, an elastic problem's slacks)."""
+        obstacles, keep-outs, an elastic problem's slacks)."""
         return (self.control_bounds is not None or bool(self.path_constraints)
-                or self.time_bounds is not None or bool(self.obstacles) or self.elastic)
+                or self.time_bounds is not None or bool(self.obstacles) or self.elastic
+                or self.keep_out_slots > 0)
 
     @property
     def chosen_solver(self) -> str:
@@ -241,8 +285,9 @@ class MsEndpointShape:
 
     @property
     def n_params(self) -> int:
-        """Length of p = (x_0, x̄_N), then T where the duration is free."""
-        return 2 * self.model.nx + int(self.free_duration)
+        """Length of p = (x_0, x̄_N), then the keep-outs' data (:attr:`n_keep_out`), then T
+        where the duration is free."""
+        return 2 * self.model.nx + self.n_keep_out + int(self.free_duration)
 
     def solver_settings(self) -> dict[str, dict]:
         """The options this shape's solvers are built with (defaults and the shape's
@@ -377,8 +422,12 @@ class MsEndpointTranscription:
             path.add(constraint, [{"x": x[:, j], "u": u[:, j]} for j in range(n)]
                      if constraint.depends_on("u") else [{"x": x[:, j]} for j in range(1, n + 1)])
         equations = ca.vertcat(*gaps, *ends)
+        keep_out_slack = ca.SX.sym("keep_out_slack", n * shape.keep_out_slots)
         keep_out = ca.vertcat(*segment_rows(shape.obstacles, [
-            point[list(shape.obstacle_positions)] for point in polyline]))
+            point[list(shape.obstacle_positions)] for point in polyline]),
+            *self._keep_out_rows(p[2 * nx:], polyline, keep_out_slack))
+        if shape.keep_out_slots:
+            cost += p[2 * nx + shape.n_keep_out - 1] * ca.sum1(keep_out_slack)
         lo, hi = (np.array(b) for b in zip(*(shape.control_bounds or [(-np.inf, np.inf)] * nu),
                                            strict=True))
         clear = np.full(keep_out.numel(), np.inf)
@@ -391,7 +440,7 @@ class MsEndpointTranscription:
             row_upper = np.concatenate([elastic.upper, clear])
             lo, hi, cost = np.full(nu, -np.inf), np.full(nu, np.inf), elastic.cost
         else:
-            slacks = end_slack   # empty
+            slacks = keep_out_slack   # (empty without keep-outs)
             inequalities = ca.vertcat(path.expr, keep_out)
             row_lower = np.concatenate([path.lower, np.zeros(clear.size)])
             row_upper = np.concatenate([path.upper, clear])
@@ -426,6 +475,38 @@ class MsEndpointTranscription:
                                                     active_set=True) \
             if shape.has_inequalities and not shape.elastic else None
         self.path_rows = ca.Function("path", [w, p], [inequalities])
+
+    def _keep_out_rows(self, data: ca.SX, polyline: list[ca.SX], slack: ca.SX
+                       ) -> list[ca.SX]:
+        """n·r(y) − b + σ at the sub-step states y of each interval k (its nodes and the
+        ``steps`` − 1 states between, x_0 and x_N left out: data), slot s: b the slot's
+        offset linear in time from b⁰ at x_k to b¹ at x_{k+1}, r the entries
+        ``keep_out_positions``, from the keep-out block ``data`` of p (as
+        :mod:`ocpar.ocp.dmoc`'s) and the slacks σ (N K,)."""
+        shape = self.shape
+        slots, steps, n = shape.keep_out_slots, shape.steps, self.n
+        positions = list(shape.keep_out_positions)
+        dim = len(positions)
+        rows = []
+        for k in range(n):
+            for s in range(slots):
+                start = (k * slots + s) * (dim + 2)
+                normal = data[start:start + dim]
+                first, last = data[start + dim], data[start + dim + 1]
+                rows += [ca.dot(normal, polyline[k * steps + j][positions])
+                         - ((1 - j / steps) * first + j / steps * last) + slack[k * slots + s]
+                         for j in range(steps + 1) if 0 < k * steps + j < n * steps]
+        return rows
+
+    def _without_penalty(self, f: np.ndarray, w: np.ndarray, params: np.ndarray
+                         ) -> np.ndarray:
+        """The costs (k,) of solutions w (k, nw) with ``params`` (k, n_params) whose NLP
+        costs are ``f`` (k,): the keep-outs' penalty ρ Σ σ taken off (none without)."""
+        f = np.asarray(f, float).ravel()
+        if not self.shape.keep_out_slots:
+            return f
+        rho = np.asarray(params, float)[:, 2 * self.nx + self.shape.n_keep_out - 1]
+        return f - rho * np.sum(np.asarray(w, float)[:, self.nw - self.n_slack:], axis=1)
 
     @cached_property
     def solver(self) -> ca.Function:
@@ -630,7 +711,8 @@ class MsEndpointTranscription:
         q, u = self.unpack_many(w, params[None])
         hessian = self._hessians(w, lam_g, params[None], np.array([success]))[0]
         return MsEndpointSolution(
-            cost=float(call.out["f"]), status=status, success=success,
+            cost=float(self._without_penalty(np.asarray(call.out["f"]), w, params[None])[0]),
+            status=status, success=success,
             iterations=call.iterations, attempts=1, solve_time_s=call.solve_time_s,
             cost_gradient=call.cost_gradient, end_hessian=hessian, q=q[0], u=u[0],
             duration=float(self.durations(w, params[None])[0]), multipliers=lam_g[0])
@@ -727,7 +809,7 @@ class MsEndpointTranscription:
         q, u = self.unpack_many(batch.x, params)
         statuses = [BATCH_STATUS[ok] for ok in success.tolist()]
         return Columns(cls=MsEndpointSolution, length=k, fields={
-            "cost": (VALUES, np.asarray(batch.f, float)),
+            "cost": (VALUES, self._without_penalty(batch.f, batch.x, params)),
             "status": ((SHARED, statuses[0]) if len(set(statuses)) == 1
                        else (LISTED, statuses)),
             "success": (VALUES, success),

@@ -84,6 +84,14 @@ about 2× faster than IPOPT per task, mapped.
 The returned paths' separation and clearance are computed, not assumed: a run that misses D
 or an obstacle says by how much.
 
+ODE agents (:class:`~ocpar.ocp.MsEndpointShape`) take the same half-spaces, imposed on the
+polyline through their RK4 sub-step states (:mod:`ocpar.ocp.ms_endpoint`), and the same
+targets about their nodes; their separation is measured where the verification measures it,
+on the dense re-integration (:func:`~ocpar.formation.verify.checked_positions`), which may
+bulge between two sub-step states by about (h/steps)² |r̈| / 8: where it falls short of D once
+the rounds have settled (no node moved by more than :data:`CHANGE_RTOL` · D), the
+half-spaces' D is raised by the shortfall (1 + :data:`SPREAD_MARGIN`) and the rounds go on.
+
 The final angles φ stay those of the outer solve (with its obstacles; the keep-outs move the
 paths, not the formation); the cost increase over the outer solve's paths is reported. With
 ``ordering optimal`` the ordering comes first (fewer close passes to undo), then the outer
@@ -112,7 +120,7 @@ from ocpar.formation.keep_out.separation import (
 from ocpar.formation.problem import FormationProblem
 from ocpar.ocp import solve_tasks
 from ocpar.ocp.batch import AUTO_SOLVER
-from ocpar.ocp.dmoc import UNUSED_OFFSET
+from ocpar.ocp.dmoc import UNUSED_OFFSET, DmocShape
 
 #: Partners' keep-out half-spaces per agent and interval (the DMOC shape has 2 d slots more:
 #: the trust region's).
@@ -141,7 +149,8 @@ DEGENERATE_RTOL = 1e-12
 @dataclass
 class Separation:
     """Outcome of :func:`separate`: ``q`` (n, N+1, nq) paths, ``u`` (n, N, nu) controls,
-    ``costs`` (n,); ``closest`` the exact closest approach of ``q``; ``met`` whether it is
+    ``costs`` (n,); ``closest`` the exact closest approach of ``q`` (an ODE agent's dense
+    re-integration, module docstring); ``met`` whether it is
     ≥ D (1 − :data:`SEPARATION_RTOL`); ``rounds`` rounds (one superstep of keep-out solves
     each);
     ``change`` the largest node move of the last round (length unit); ``inner_solves``,
@@ -167,14 +176,16 @@ class Separation:
 def keep_out_problem(problem: FormationProblem) -> FormationProblem:
     """The problem with every agent's DMOC shape given :data:`KEEP_OUT_SLOTS` + 2 d slots on
     its d positions (partners' half-spaces, then the trust region's, :func:`trust_region`;
-    its obstacles, if any, stay in its shape), under the ``auto`` solver: batched by the
+    its obstacles, if any, stay in its shape); an ODE agent's
+    (:class:`~ocpar.ocp.MsEndpointShape`, the rows on the polyline through its sub-step
+    states) under IPOPT, a DMOC agent's under the ``auto`` solver: batched by the
     convex QP's interior point where the NLP is one (point masses), else IPOPT (measured on
     the 60 point masses' first round: 18 ms per solve, all solved; ``sqpmethod``/``qrqp``
     110 ms per solve, 14 of 32 failing its KKT check)."""
     slots = KEEP_OUT_SLOTS + 2 * len(problem.position_indices)
     return problem.with_shapes(lambda shape: dataclasses.replace(
         shape, keep_out_slots=slots, keep_out_positions=problem.position_indices,
-        solver=AUTO_SOLVER))
+        solver=AUTO_SOLVER if isinstance(shape, DmocShape) else "ipopt"))
 
 
 #: Blends of a boundary interval's normal towards the fixed node's direction, tried in order.
@@ -383,8 +394,7 @@ def resolve_with_keep_outs(slotted: FormationProblem, backend: Backend, agents: 
     and controls, which are updated in place with its costs (a failed solve keeps its
     agent's latest path), and its round and solve counts."""
     q, u, costs = outcome.q, outcome.u, outcome.costs
-    warm = np.hstack([q[agents, 1:-1].reshape(len(agents), -1),
-                      u[agents].reshape(len(agents), -1)])
+    warm = slotted.common_shape.previous_guesses(q[agents], u[agents])
     params = np.hstack([boundary[agents], data[agents].reshape(len(agents), -1),
                         np.full((len(agents), 1), penalty)])
     sols = backend.superstep_columns(solve_tasks,
@@ -419,18 +429,19 @@ def separate(problem: FormationProblem, backend: Backend, phi: np.ndarray, base:
     costs = free_cost.copy()
     boundary = problem.boundary_params_rows(np.arange(n), phi)
     penalty = PENALTY * max(float(np.max(free_cost)), 1e-300) / scale
-    closest, met, clearance, clear = _measure(problem, q, distance)
+    closest, met, clearance, clear = _measure(problem, q, u, distance)
     outcome = Separation(q, u, costs, closest, met, 0, 0.0, clearance=clearance, cleared=clear)
+    planes = distance   # the half-spaces' D: raised where ODE paths dip between sub-steps
     while not (outcome.met and outcome.cleared
                and (outcome.rounds == 0 or until_met or outcome.change <= CHANGE_RTOL * scale)
                ) and outcome.rounds < max_rounds:
         before = problem.positions(q)
-        target, iterations = spread(before, distance, obstacles)
-        entries = conflicts(target, distance)
+        target, iterations = spread(before, planes, obstacles)
+        entries = conflicts(target, planes)
         entries = np.concatenate([entries, entries[:, [1, 0, 2]]])   # both agents of a pair
-        partners, dropped = half_spaces(target, entries, distance, KEEP_OUT_SLOTS)
-        data = [partners, trust_region(target, distance)]
-        agents = resolving(before, target, entries, distance)
+        partners, dropped = half_spaces(target, entries, planes, KEEP_OUT_SLOTS)
+        data = [partners, trust_region(target, planes)]
+        agents = resolving(before, target, entries, planes)
         if not len(agents):   # met, and no pair within reach: no agent would move
             outcome.change = 0.0
             break
@@ -439,7 +450,9 @@ def separate(problem: FormationProblem, backend: Backend, phi: np.ndarray, base:
         outcome.change = float(np.abs(problem.positions(q) - before).max())
         outcome.dropped += dropped
         outcome.closest, outcome.met, outcome.clearance, outcome.cleared = _measure(
-            problem, q, distance)
+            problem, q, u, distance)
+        if problem.ode_agents and not outcome.met and outcome.change <= CHANGE_RTOL * scale:
+            planes += (distance - outcome.closest.distance) * (1 + SPREAD_MARGIN)
         if progress is not None:
             c = outcome.clearance
             progress(f"separation round {outcome.rounds:3d}  spread {iterations:5d} it  "
@@ -452,12 +465,15 @@ def separate(problem: FormationProblem, backend: Backend, phi: np.ndarray, base:
     return outcome
 
 
-def _measure(problem: FormationProblem, q: np.ndarray, distance: float
+def _measure(problem: FormationProblem, q: np.ndarray, u: np.ndarray, distance: float
              ) -> tuple[ClosestApproach, bool, Clearance | None, bool]:
-    """The closest approach of paths ``q`` (n, N+1, nq), whether it is ≥ ``distance`` D
+    """The closest approach of paths ``q`` (n, N+1, nq) under controls ``u`` (n, N, nu) on
+    the positions the verification checks (:func:`~ocpar.formation.verify.checked_positions`:
+    an ODE agent's dense re-integration), whether it is ≥ ``distance`` D
     (1 − :data:`SEPARATION_RTOL`); their obstacle clearance and whether it is clear (None
     and True without obstacles)."""
-    positions = problem.positions(q)
+    from ocpar.formation.verify import checked_positions  # verify imports this module
+    positions = checked_positions(problem, q, u, separation=True)
     duration = problem.common_shape.duration
     closest = closest_approach(positions, duration)
     met = closest.distance >= distance * (1 - SEPARATION_RTOL)
