@@ -65,8 +65,7 @@ from ocpar.formation.couplings.potential import (
     within_expansion,
 )
 from ocpar.formation.keep_out.obstacles import CLEARANCE_TOL, Clearance, closest_obstacle
-from ocpar.formation.keep_out.rounds import SEPARATION_RTOL
-from ocpar.formation.keep_out.separation import ClosestApproach, closest_pair
+from ocpar.formation.keep_out.separation import SEPARATION_RTOL, ClosestApproach, closest_pair
 from ocpar.formation.problem import FormationProblem
 from ocpar.formation.targets.slots import Slots
 from ocpar.formation.targets.surface import Surface

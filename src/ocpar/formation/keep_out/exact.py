@@ -58,11 +58,10 @@ from ocpar.bsp import Backend
 from ocpar.formation.couplings.coupling import ShiftFamily
 from ocpar.formation.keep_out.rounds import (
     NEIGHBOUR_MARGIN,
-    SEPARATION_RTOL,
     Separation,
     _direction,
 )
-from ocpar.formation.keep_out.separation import close_pairs, segment_closest
+from ocpar.formation.keep_out.separation import SEPARATION_RTOL, close_pairs, segment_closest
 from ocpar.formation.problem import FormationProblem
 from ocpar.formation.targets.slots import Slots
 from ocpar.ocp import DmocShape, dmoc_problem, solve_tasks

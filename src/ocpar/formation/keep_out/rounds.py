@@ -111,6 +111,7 @@ from ocpar.bsp import Backend
 from ocpar.bsp.columns import Columns
 from ocpar.formation.keep_out.obstacles import Clearance, Obstacle, cleared, closest_obstacle
 from ocpar.formation.keep_out.separation import (
+    SEPARATION_RTOL,
     ClosestApproach,
     close_pairs,
     closest_approach,
@@ -118,6 +119,7 @@ from ocpar.formation.keep_out.separation import (
     segment_closest,
 )
 from ocpar.formation.problem import FormationProblem
+from ocpar.formation.verify import checked_positions
 from ocpar.ocp import solve_tasks
 from ocpar.ocp.batch import AUTO_SOLVER
 from ocpar.ocp.dmoc import UNUSED_OFFSET, DmocShape
@@ -131,8 +133,6 @@ NEIGHBOUR_MARGIN = 0.5
 #: Agents with a partner within (1 + this) D on a round's targets re-solve in it, with those
 #: the spread moved (:func:`resolving`); the others keep their paths.
 RESOLVE_MARGIN = 0.1
-#: Separation counts as met at D (1 − this): the keep-outs hold to the solver's accuracy.
-SEPARATION_RTOL = 1e-9
 #: The rounds have stopped changing the paths once no node moves by more than this · D.
 CHANGE_RTOL = 1e-2
 #: The keep-outs' penalty ρ per unit of slack (:mod:`ocpar.ocp.dmoc`), in units of the
@@ -472,7 +472,6 @@ def _measure(problem: FormationProblem, q: np.ndarray, u: np.ndarray, distance: 
     an ODE agent's dense re-integration), whether it is ≥ ``distance`` D
     (1 − :data:`SEPARATION_RTOL`); their obstacle clearance and whether it is clear (None
     and True without obstacles)."""
-    from ocpar.formation.verify import checked_positions  # verify imports this module
     positions = checked_positions(problem, q, u, separation=True)
     duration = problem.common_shape.duration
     closest = closest_approach(positions, duration)

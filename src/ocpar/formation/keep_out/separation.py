@@ -34,6 +34,9 @@ import numpy as np
 
 from ocpar.ocp.obstacles import segment_closest
 
+#: Separation counts as met at D (1 − this): the keep-outs hold to the solver's accuracy.
+SEPARATION_RTOL = 1e-9
+
 if TYPE_CHECKING:
     from ocpar.bsp import Backend
 
