@@ -333,10 +333,10 @@ class ResidentSet:
         #: agents' share of their slot's busy time, averaged over the steps measured
         #: (:data:`COST_SMOOTHING`); None before the first.
         self.costs: np.ndarray | None = None
-        size = unit_size(agents)
-        #: The agents of each reduction unit (all :func:`~ocpar.bsp.partition.unit_size`
-        #: but the last).
-        self.unit_lengths = np.diff(np.append(np.arange(0, agents, size), agents))
+        #: Agents per reduction unit (:func:`~ocpar.bsp.partition.unit_size`).
+        self.unit = unit_size(agents)
+        #: The agents of each reduction unit (all :attr:`unit` but the last).
+        self.unit_lengths = np.diff(np.append(np.arange(0, agents, self.unit), agents))
         #: How far a step's measured slot times stray from their estimates, relative to the
         #: mean slot's (averaged like the costs; :data:`INITIAL_NOISE` until measured).
         self.noise = INITIAL_NOISE
@@ -423,7 +423,7 @@ class ResidentSet:
                                  imported=None if imported is None else imported[0],
                                  imports=None if imported is None else imported[1],
                                  export=leaving[w] if len(leaving[w]) else None,
-                                 function=function, unit=unit_size(self.agents))
+                                 function=function, unit=self.unit)
 
         first = self.backend._run_chunks(RUNNER, [[chunk(w)] for w in range(len(groups))])
         replies = [_replies(c) for c in first]
@@ -490,7 +490,7 @@ class ResidentSet:
 
     def _in_units(self, blocks: list[range]) -> list[range]:
         """``blocks`` of whole units (agent ranges) as ranges of unit indices."""
-        size = unit_size(self.agents)
+        size = self.unit
         return [range(b.start // size, -(-b.stop // size)) for b in blocks]
 
     def _measure(self, groups: list[range], busy_s: list[float], arrived: list[bool]) -> None:
@@ -510,8 +510,9 @@ class ResidentSet:
         if settled.any() and expected.mean() > 0:
             stray = np.abs(np.asarray(busy_s) - expected)[settled].max() / expected.mean()
             self.noise = COST_SMOOTHING * stray + (1.0 - COST_SMOOTHING) * self.noise
-        self.costs = np.where(np.repeat(settled, counts), COST_SMOOTHING * sample
-                              + (1.0 - COST_SMOOTHING) * self.costs, self.costs)
+        averaged = COST_SMOOTHING * sample + (1.0 - COST_SMOOTHING) * self.costs
+        self.costs = averaged if not any(arrived) else np.where(
+            np.repeat(settled, counts), averaged, self.costs)
 
     def close(self) -> None:
         """Forget the states on every worker (idempotent)."""
