@@ -505,14 +505,17 @@ class ResidentSet:
         if self.costs is None or self.version == 1:  # the first step's times, which include
             self.costs = sample                        # building the solvers, until the next
             return
-        settled = np.logical_not(arrived)
         expected = block_loads(self.costs, units)
-        if settled.any() and expected.mean() > 0:
-            stray = np.abs(np.asarray(busy_s) - expected)[settled].max() / expected.mean()
-            self.noise = COST_SMOOTHING * stray + (1.0 - COST_SMOOTHING) * self.noise
+        stray = np.abs(np.asarray(busy_s) - expected)  # per slot (s)
         averaged = COST_SMOOTHING * sample + (1.0 - COST_SMOOTHING) * self.costs
-        self.costs = averaged if not any(arrived) else np.where(
-            np.repeat(settled, counts), averaged, self.costs)
+        if any(arrived):  # masks only then (the usual step measures every slot)
+            settled = np.logical_not(arrived)
+            stray = stray[settled]
+            averaged = np.where(np.repeat(settled, counts), averaged, self.costs)
+        mean = expected.mean()
+        if len(stray) and mean > 0:
+            self.noise = COST_SMOOTHING * (stray.max() / mean) + (1.0 - COST_SMOOTHING) * self.noise
+        self.costs = averaged
 
     def close(self) -> None:
         """Forget the states on every worker (idempotent)."""
