@@ -463,10 +463,15 @@ class ResidentSet:
         if tolerance is None or self.costs is None or len(self.blocks) < 2:
             return self.blocks
         loads = block_loads(self.costs, self._in_units(self.blocks))
-        if loads.max() <= (1.0 + tolerance + self.noise) * loads.mean():
+        heaviest, mean = loads.max(), loads.mean()
+        if heaviest <= (1.0 + tolerance + self.noise) * mean:
+            return self.blocks
+        # no blocks' makespan is below the mean load (but by rounding, far below 1 ns): blocks
+        # can save at most the excess over the mean; below a move's fixed cost, none pays
+        if heaviest - mean < MOVE_SECONDS * (1.0 - 1e-6):
             return self.blocks
         proposed = unit_blocks(self.agents, len(self.blocks), self.costs)
-        saving = loads.max() - block_loads(self.costs, self._in_units(proposed)).max()
+        saving = heaviest - block_loads(self.costs, self._in_units(proposed)).max()
         staying = sum(max(0, min(a.stop, b.stop) - max(a.start, b.start))
                       for a, b in zip(self.blocks, proposed, strict=True))
         moving_s = MOVE_SECONDS + (self.agents - staying) * self.state_bytes * MOVE_SECONDS_PER_BYTE
