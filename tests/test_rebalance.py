@@ -17,7 +17,7 @@ from test_resident import assert_bitwise, serial_reference
 
 import ocpar
 from ocpar.bsp import open_backend
-from ocpar.bsp.partition import contiguous_blocks
+from ocpar.bsp.partition import block_loads, contiguous_blocks, unit_blocks
 from ocpar.bsp.resident import (
     MOVE_SECONDS,
     MOVE_SECONDS_PER_BYTE,
@@ -93,6 +93,27 @@ def test_the_move_rule_on_given_estimates():
         agents.noise = 0.7  # the timings stray by as much as the imbalance: no move
         assert agents.rebalanced() == agents.blocks
 
+
+
+def test_the_move_rule_near_its_fixed_cost_is_the_rule_written_out():
+    """Random imbalances whose excess over the mean load lies around a move's fixed cost (where
+    :meth:`~ocpar.bsp.resident.ResidentSet.rebalanced` skips proposing blocks that cannot
+    pay): its answer is the docstring's rule computed here in full, blocks proposed always."""
+    rng = np.random.default_rng(7)
+    with open_backend("serial") as backend:
+        agents = backend.resident(solve_agents, 100)
+        agents.blocks, agents.state_bytes = contiguous_blocks(100, 3), 0.0
+        moves = 0
+        for _ in range(300):
+            heavier = np.where(np.arange(100) < 34, rng.uniform(1.0, 3.0), 1.0)  # block 0's
+            agents.costs = rng.uniform(0.5, 1.5, 100) * heavier * MOVE_SECONDS / 30
+            loads = block_loads(agents.costs, agents.blocks)
+            proposed = unit_blocks(100, 3, agents.costs)
+            pays = (loads.max() > (1.05 + agents.noise) * loads.mean()
+                    and loads.max() - block_loads(agents.costs, proposed).max() > MOVE_SECONDS)
+            assert agents.rebalanced() == (proposed if pays else agents.blocks)
+            moves += pays
+        assert 0 < moves < 300
 
 def test_dask_blocks_follow_the_costs_and_every_result_is_the_serial_one(serial_run):
     """Dask, 2 workers: with fixed blocks nothing moves; with measured ones worker 0 (the

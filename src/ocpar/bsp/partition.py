@@ -92,8 +92,10 @@ def unit_blocks(n: int, n_workers: int, costs: Sequence[float] | np.ndarray | No
 
 def block_loads(costs: Sequence[float] | np.ndarray, blocks: Sequence[range]) -> np.ndarray:
     """The total of ``costs`` over each of the contiguous ``blocks`` (ranges of step 1)."""
-    prefix = np.concatenate([[0.0], np.cumsum(np.asarray(costs, dtype=float))])
-    return np.array([prefix[b.stop] - prefix[b.start] for b in blocks])
+    costs = np.asarray(costs, dtype=float)
+    prefix = np.zeros(len(costs) + 1)
+    np.cumsum(costs, out=prefix[1:])
+    return prefix[[b.stop for b in blocks]] - prefix[[b.start for b in blocks]]
 
 
 def longest_first(costs: list[float], n_workers: int) -> list[list[int]]:

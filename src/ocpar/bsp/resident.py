@@ -333,10 +333,10 @@ class ResidentSet:
         #: agents' share of their slot's busy time, averaged over the steps measured
         #: (:data:`COST_SMOOTHING`); None before the first.
         self.costs: np.ndarray | None = None
-        size = unit_size(agents)
-        #: The agents of each reduction unit (all :func:`~ocpar.bsp.partition.unit_size`
-        #: but the last).
-        self.unit_lengths = np.diff(np.append(np.arange(0, agents, size), agents))
+        #: Agents per reduction unit (:func:`~ocpar.bsp.partition.unit_size`).
+        self.unit = unit_size(agents)
+        #: The agents of each reduction unit (all :attr:`unit` but the last).
+        self.unit_lengths = np.diff(np.append(np.arange(0, agents, self.unit), agents))
         #: How far a step's measured slot times stray from their estimates, relative to the
         #: mean slot's (averaged like the costs; :data:`INITIAL_NOISE` until measured).
         self.noise = INITIAL_NOISE
@@ -423,7 +423,7 @@ class ResidentSet:
                                  imported=None if imported is None else imported[0],
                                  imports=None if imported is None else imported[1],
                                  export=leaving[w] if len(leaving[w]) else None,
-                                 function=function, unit=unit_size(self.agents))
+                                 function=function, unit=self.unit)
 
         first = self.backend._run_chunks(RUNNER, [[chunk(w)] for w in range(len(groups))])
         replies = [_replies(c) for c in first]
@@ -463,10 +463,15 @@ class ResidentSet:
         if tolerance is None or self.costs is None or len(self.blocks) < 2:
             return self.blocks
         loads = block_loads(self.costs, self._in_units(self.blocks))
-        if loads.max() <= (1.0 + tolerance + self.noise) * loads.mean():
+        heaviest, mean = loads.max(), loads.mean()
+        if heaviest <= (1.0 + tolerance + self.noise) * mean:
+            return self.blocks
+        # no blocks' makespan is below the mean load (but by rounding, far below 1 ns): blocks
+        # can save at most the excess over the mean; below a move's fixed cost, none pays
+        if heaviest - mean < MOVE_SECONDS * (1.0 - 1e-6):
             return self.blocks
         proposed = unit_blocks(self.agents, len(self.blocks), self.costs)
-        saving = loads.max() - block_loads(self.costs, self._in_units(proposed)).max()
+        saving = heaviest - block_loads(self.costs, self._in_units(proposed)).max()
         staying = sum(max(0, min(a.stop, b.stop) - max(a.start, b.start))
                       for a, b in zip(self.blocks, proposed, strict=True))
         moving_s = MOVE_SECONDS + (self.agents - staying) * self.state_bytes * MOVE_SECONDS_PER_BYTE
@@ -490,7 +495,7 @@ class ResidentSet:
 
     def _in_units(self, blocks: list[range]) -> list[range]:
         """``blocks`` of whole units (agent ranges) as ranges of unit indices."""
-        size = unit_size(self.agents)
+        size = self.unit
         return [range(b.start // size, -(-b.stop // size)) for b in blocks]
 
     def _measure(self, groups: list[range], busy_s: list[float], arrived: list[bool]) -> None:
@@ -505,13 +510,17 @@ class ResidentSet:
         if self.costs is None or self.version == 1:  # the first step's times, which include
             self.costs = sample                        # building the solvers, until the next
             return
-        settled = np.logical_not(arrived)
         expected = block_loads(self.costs, units)
-        if settled.any() and expected.mean() > 0:
-            stray = np.abs(np.asarray(busy_s) - expected)[settled].max() / expected.mean()
-            self.noise = COST_SMOOTHING * stray + (1.0 - COST_SMOOTHING) * self.noise
-        self.costs = np.where(np.repeat(settled, counts), COST_SMOOTHING * sample
-                              + (1.0 - COST_SMOOTHING) * self.costs, self.costs)
+        stray = np.abs(np.asarray(busy_s) - expected)  # per slot (s)
+        averaged = COST_SMOOTHING * sample + (1.0 - COST_SMOOTHING) * self.costs
+        if any(arrived):  # masks only then (the usual step measures every slot)
+            settled = np.logical_not(arrived)
+            stray = stray[settled]
+            averaged = np.where(np.repeat(settled, counts), averaged, self.costs)
+        mean = expected.mean()
+        if len(stray) and mean > 0:
+            self.noise = COST_SMOOTHING * (stray.max() / mean) + (1.0 - COST_SMOOTHING) * self.noise
+        self.costs = averaged
 
     def close(self) -> None:
         """Forget the states on every worker (idempotent)."""
