@@ -269,15 +269,15 @@ def spread(positions: np.ndarray, distance: float, obstacles: Sequence[Obstacle]
     goal = distance * (1 + SPREAD_MARGIN)
     # pairs farther than (1 + SPREAD_LIST_MARGIN) D apart when listed cannot come closer than
     # D before some node has moved SPREAD_LIST_MARGIN D / 2: list them anew only then
+    points = target.reshape(-1, target.shape[2])       # a view: node (a, k) is row a (N+1) + k
     listed = target.copy()
-    entries = conflicts(target, distance, SPREAD_LIST_MARGIN)
-    start, end, gap, s = _entry_gaps(target, entries)
+    first, second = _listed(target, distance)
+    start, end, gap, s = _entry_gaps(points, first, second)
     for iteration in range(SPREAD_ITERATIONS):
         short = np.flatnonzero(gap < distance)
         pushed = _obstacle_pushes(target, obstacles)
         if not len(short) and not len(pushed[0]):
             return target, iteration
-        i, j, k = entries[short].T
         s_short = s[short]
         rel = (1 - s_short[:, None]) * start[short] + s_short[:, None] * end[short]
         direction = _direction(rel, end[short] - start[short], distance)
@@ -288,8 +288,8 @@ def spread(positions: np.ndarray, distance: float, obstacles: Sequence[Obstacle]
         agent, node, step = pushed
         weights = [weight[:, None] * direction
                    for weight in (amount * (1 - s_short), amount * s_short)]
-        flat = np.concatenate([i * nodes + k, j * nodes + k, i * nodes + k + 1,
-                               j * nodes + k + 1, agent * nodes + node])
+        flat = np.concatenate([first[short], second[short], first[short] + 1,
+                               second[short] + 1, agent * nodes + node])
         steps = np.concatenate([weights[0], -weights[0], weights[1], -weights[1], step])
         count = np.bincount(flat, minlength=n * nodes).reshape(n, nodes)
         push = np.column_stack([np.bincount(flat, steps[:, c], minlength=n * nodes)
@@ -302,22 +302,34 @@ def spread(positions: np.ndarray, distance: float, obstacles: Sequence[Obstacle]
         if np.linalg.norm(target[agents] - listed[agents], axis=-1).max(initial=0.0) \
                 >= SPREAD_LIST_MARGIN * distance / 2:
             listed = target.copy()
-            entries = conflicts(target, distance, SPREAD_LIST_MARGIN)
-            start, end, gap, s = _entry_gaps(target, entries)
+            first, second = _listed(target, distance)
+            start, end, gap, s = _entry_gaps(points, first, second)
             continue
-        i, j, k = entries.T
-        stale = np.flatnonzero(moved[i, k] | moved[i, k + 1] | moved[j, k] | moved[j, k + 1])
-        start[stale], end[stale], gap[stale], s[stale] = _entry_gaps(target, entries[stale])
+        moved = moved.ravel()
+        stale = np.flatnonzero(moved[first] | moved[first + 1] | moved[second]
+                               | moved[second + 1])
+        start[stale], end[stale], gap[stale], s[stale] = _entry_gaps(points, first[stale],
+                                                                     second[stale])
     return target, SPREAD_ITERATIONS
 
 
-def _entry_gaps(target: np.ndarray, entries: np.ndarray
+def _listed(target: np.ndarray, distance: float) -> tuple[np.ndarray, np.ndarray]:
+    """The pair-intervals (i, j, k) within (1 + :data:`SPREAD_LIST_MARGIN`) D on the paths
+    ``target`` (n, N+1, d) (:func:`conflicts`, in its order) as the rows of node k of i and
+    of j among the n (N+1) nodes, (m,) each."""
+    i, j, k = conflicts(target, distance, SPREAD_LIST_MARGIN).T
+    nodes = target.shape[1]
+    return i * nodes + k, j * nodes + k
+
+
+def _entry_gaps(points: np.ndarray, first: np.ndarray, second: np.ndarray
                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """For entries (m, 3) (i, j, k) on the paths ``target`` (n, N+1, d): the relative
-    positions r_i − r_j at nodes k and k + 1 (m, d) each, the closest distance on the
-    interval (m,) and the fraction s (m,) where it occurs."""
-    i, j, k = entries.T
-    start, end = target[i, k] - target[j, k], target[i, k + 1] - target[j, k + 1]
+    """For the pair-intervals whose start nodes are rows ``first`` and ``second`` (m,) of
+    the nodes ``points`` (n (N+1), d): the relative positions r_i − r_j at the interval's
+    start and end (m, d) each, the closest distance on it (m,) and the fraction s (m,)
+    where it occurs."""
+    start = points[first] - points[second]
+    end = points[first + 1] - points[second + 1]
     gap, s = segment_closest(start, end)
     return start, end, gap, s
 
