@@ -90,6 +90,55 @@ def test_spread_widens_a_squeezed_band_and_keeps_the_ends():
     np.testing.assert_array_equal(target[:, [0, -1]], positions[:, [0, -1]])
 
 
+def _spread_reference(positions: np.ndarray, distance: float) -> tuple[np.ndarray, int]:
+    """The spread's Jacobi projection written plainly: every pair and interval measured
+    every iteration, the pushes summed by np.add.at (no listing, no incremental update)."""
+    target = positions.copy()
+    n, nodes, _ = target.shape
+    i, j = np.triu_indices(n, 1)
+    i, j, k = (np.repeat(i, nodes - 1), np.repeat(j, nodes - 1),
+               np.tile(np.arange(nodes - 1), len(i)))
+    for iteration in range(keep_out.SPREAD_ITERATIONS):
+        start, end = target[i, k] - target[j, k], target[i, k + 1] - target[j, k + 1]
+        step = end - start
+        s = np.clip(-np.sum(start * step, axis=1) / np.sum(step * step, axis=1), 0, 1)
+        rel = (1 - s[:, None]) * start + s[:, None] * end
+        gap = np.linalg.norm(rel, axis=1)
+        short = gap < distance
+        if not np.any(short):
+            return target, iteration
+        a, b, c, s = i[short], j[short], k[short], s[short]
+        direction = rel[short] / gap[short, None]
+        amount = (distance * (1 + keep_out.SPREAD_MARGIN) - gap[short]) / 2 \
+            / ((1 - s) ** 2 + s ** 2)
+        push, count = np.zeros_like(target), np.zeros((n, nodes))
+        for node, weight in ((c, amount * (1 - s)), (c + 1, amount * s)):
+            np.add.at(push, (a, node), weight[:, None] * direction)
+            np.add.at(push, (b, node), -weight[:, None] * direction)
+            np.add.at(count, (a, node), 1)
+            np.add.at(count, (b, node), 1)
+        push[:, [0, -1]] = 0
+        target += push / np.maximum(count, 1)[..., None]
+    return target, keep_out.SPREAD_ITERATIONS
+
+
+def test_spread_equals_the_plain_projection():
+    """40 agents crossing a grid to a random permutation of it: the spread (pairs listed by
+    the spatial index, re-measured only where a node moved, pushes summed by bincount) takes
+    the same iterations to the same targets as the projection over all pairs every
+    iteration (bit for bit: the same pushes summed in the same order)."""
+    rng = np.random.default_rng(3)
+    grid = np.stack(np.meshgrid(np.arange(8), np.arange(5)), axis=-1).reshape(-1, 2) * 0.2
+    ends = np.stack([grid, grid[rng.permutation(40)]])     # start and end ≥ 0.2 apart
+    s = np.linspace(0, 1, 9)[None, :, None]
+    positions = (1 - s) * ends[0][:, None] + s * ends[1][:, None]
+    positions[:, 1:-1] += rng.normal(0, 0.02, (40, 7, 2))
+    target, iterations = keep_out.spread(positions, 0.12)
+    expected, expected_iterations = _spread_reference(positions, 0.12)
+    assert 10 < iterations == expected_iterations < keep_out.SPREAD_ITERATIONS
+    np.testing.assert_allclose(target, expected, rtol=0, atol=1e-12)
+    assert np.abs(target - positions).max() > keep_out.SPREAD_LIST_MARGIN * 0.12 / 2
+
 def test_spread_targets_meet_every_half_space():
     """The half-spaces built about the spread targets hold at the targets' nodes: the agents'
     keep-out problems are feasible together (the targets are a witness)."""

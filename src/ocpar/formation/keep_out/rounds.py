@@ -142,6 +142,7 @@ PENALTY = 10.0
 SPREAD_MARGIN = 1e-3
 #: ... in at most this many iterations.
 SPREAD_ITERATIONS = 2000
+SPREAD_LIST_MARGIN = 3.0
 #: Below this distance (relative to D) a pair's direction is taken from the first axis.
 DEGENERATE_RTOL = 1e-12
 
@@ -192,12 +193,13 @@ def keep_out_problem(problem: FormationProblem) -> FormationProblem:
 BOUNDARY_BLENDS = (0.0, 0.25, 0.5, 0.75, 1.0)
 
 
-def conflicts(positions: np.ndarray, distance: float) -> np.ndarray:
+def conflicts(positions: np.ndarray, distance: float, margin: float = NEIGHBOUR_MARGIN
+              ) -> np.ndarray:
     """Entries (m, 3) (i, j, k), i < j, sorted: pairs whose paths (positions (n, N+1, d))
-    come within (1 + :data:`NEIGHBOUR_MARGIN`) D on interval k."""
-    pairs = close_pairs(positions, distance * (1 + NEIGHBOUR_MARGIN))
+    come within (1 + ``margin``) D on interval k."""
+    pairs = close_pairs(positions, distance * (1 + margin))
     gap, _ = interval_closest(positions, pairs)
-    row, k = np.nonzero(gap <= distance * (1 + NEIGHBOUR_MARGIN))
+    row, k = np.nonzero(gap <= distance * (1 + margin))
     return np.column_stack([pairs[row], k])
 
 
@@ -269,45 +271,78 @@ def spread(positions: np.ndarray, distance: float, obstacles: Sequence[Obstacle]
     difference there by δ/2, δ what it lacks of D (1 + :data:`SPREAD_MARGIN`), spread over
     the interval's two nodes in proportion (1 − s, s); each node moves by the mean of what it
     is asked (the pairs within reach are found anew once a node has moved
-    :data:`NEIGHBOUR_MARGIN` D / 2 since they were last). Many cheap iterations carry a push
+    :data:`SPREAD_LIST_MARGIN` D / 2 since they were last; between listings only the pairs
+    with a node moved in the last iteration are measured again). Many cheap iterations carry a push
     through a crowd, which one round of per-agent solves cannot (a squeezed band must widen
     as a whole)."""
     target = positions.copy()
     n, nodes, _ = target.shape
     goal = distance * (1 + SPREAD_MARGIN)
-    # pairs farther than (1 + NEIGHBOUR_MARGIN) D apart when listed cannot come closer than D
-    # before some node has moved NEIGHBOUR_MARGIN D / 2: list them anew only then
-    entries, listed = conflicts(target, distance), target.copy()
+    # pairs farther than (1 + SPREAD_LIST_MARGIN) D apart when listed cannot come closer than
+    # D before some node has moved SPREAD_LIST_MARGIN D / 2: list them anew only then
+    points = target.reshape(-1, target.shape[2])       # a view: node (a, k) is row a (N+1) + k
+    listed = target.copy()
+    first, second = _listed(target, distance)
+    start, end, gap, s = _entry_gaps(points, first, second)
     for iteration in range(SPREAD_ITERATIONS):
-        if np.linalg.norm(target - listed, axis=-1).max() >= NEIGHBOUR_MARGIN * distance / 2:
-            entries, listed = conflicts(target, distance), target.copy()
-        i, j, k = entries.T
-        start, end = target[i, k] - target[j, k], target[i, k + 1] - target[j, k + 1]
-        gap, s = segment_closest(start, end)
-        short = gap < distance
+        short = np.flatnonzero(gap < distance)
         pushed = _obstacle_pushes(target, obstacles)
-        if not np.any(short) and not len(pushed[0]):
+        if not len(short) and not len(pushed[0]):
             return target, iteration
-        i, j, k, s = i[short], j[short], k[short], s[short]
-        rel = (1 - s[:, None]) * start[short] + s[:, None] * end[short]
+        s_short = s[short]
+        rel = (1 - s_short[:, None]) * start[short] + s_short[:, None] * end[short]
         direction = _direction(rel, end[short] - start[short], distance)
         # moving node k by a (1 − s) and node k+1 by a s moves the point at s by
         # a ((1 − s)² + s²): a makes it δ/2
-        amount = (goal - gap[short]) / 2 / ((1 - s) ** 2 + s ** 2)
-        push = np.zeros_like(target)
-        count = np.zeros((n, nodes))
-        for node, weight in ((k, amount * (1 - s)), (k + 1, amount * s)):
-            step = weight[:, None] * direction
-            np.add.at(push, (i, node), step)
-            np.add.at(push, (j, node), -step)
-            np.add.at(count, (i, node), 1)
-            np.add.at(count, (j, node), 1)
+        amount = (goal - gap[short]) / 2 / ((1 - s_short) ** 2 + s_short ** 2)
+        # every (agent, node) asked to move, in the order np.add.at would add them
         agent, node, step = pushed
-        np.add.at(push, (agent, node), step)
-        np.add.at(count, (agent, node), 1)
+        weights = [weight[:, None] * direction
+                   for weight in (amount * (1 - s_short), amount * s_short)]
+        flat = np.concatenate([first[short], second[short], first[short] + 1,
+                               second[short] + 1, agent * nodes + node])
+        steps = np.concatenate([weights[0], -weights[0], weights[1], -weights[1], step])
+        count = np.bincount(flat, minlength=n * nodes).reshape(n, nodes)
+        push = np.column_stack([np.bincount(flat, steps[:, c], minlength=n * nodes)
+                                for c in range(steps.shape[1])]).reshape(target.shape)
         push[:, [0, -1]] = 0
+        moved = np.any(push != 0, axis=-1)
         target += push / np.maximum(count, 1)[..., None]
+        # only the moved nodes' distance from where the pairs were listed can have grown
+        agents = np.flatnonzero(np.any(moved, axis=1))
+        if np.linalg.norm(target[agents] - listed[agents], axis=-1).max(initial=0.0) \
+                >= SPREAD_LIST_MARGIN * distance / 2:
+            listed = target.copy()
+            first, second = _listed(target, distance)
+            start, end, gap, s = _entry_gaps(points, first, second)
+            continue
+        moved = moved.ravel()
+        stale = np.flatnonzero(moved[first] | moved[first + 1] | moved[second]
+                               | moved[second + 1])
+        start[stale], end[stale], gap[stale], s[stale] = _entry_gaps(points, first[stale],
+                                                                     second[stale])
     return target, SPREAD_ITERATIONS
+
+
+def _listed(target: np.ndarray, distance: float) -> tuple[np.ndarray, np.ndarray]:
+    """The pair-intervals (i, j, k) within (1 + :data:`SPREAD_LIST_MARGIN`) D on the paths
+    ``target`` (n, N+1, d) (:func:`conflicts`, in its order) as the rows of node k of i and
+    of j among the n (N+1) nodes, (m,) each."""
+    i, j, k = conflicts(target, distance, SPREAD_LIST_MARGIN).T
+    nodes = target.shape[1]
+    return i * nodes + k, j * nodes + k
+
+
+def _entry_gaps(points: np.ndarray, first: np.ndarray, second: np.ndarray
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """For the pair-intervals whose start nodes are rows ``first`` and ``second`` (m,) of
+    the nodes ``points`` (n (N+1), d): the relative positions r_i − r_j at the interval's
+    start and end (m, d) each, the closest distance on it (m,) and the fraction s (m,)
+    where it occurs."""
+    start = points[first] - points[second]
+    end = points[first + 1] - points[second + 1]
+    gap, s = segment_closest(start, end)
+    return start, end, gap, s
 
 
 def _obstacle_pushes(target: np.ndarray, obstacles: Sequence[Obstacle]
