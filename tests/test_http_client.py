@@ -174,7 +174,8 @@ def test_the_same_idempotency_key_gives_the_same_job(server):
     first = ocpar("submit", "formation-60", *key, *server.as_alice)
     again = ocpar("submit", "formation-60", *key, *server.as_alice)
     assert first.code == again.code == 0 and first.out == again.out
-    assert ocpar("cancel", first.out.strip(), *server.as_alice).code == 0
+    cancel = ocpar("cancel", first.out.strip(), *server.as_alice)  # a warm server may be done
+    assert cancel.code == 0 or "is already succeeded (HTTP 409)" in cancel.err
 
 
 @pytest.mark.parametrize(("args", "needles"), [
