@@ -4,14 +4,23 @@ short or altered (a power loss) resumes from its intact prefix to the uninterrup
 
 from __future__ import annotations
 
+import hashlib
 import json
 import os
+import struct
 
 import numpy as np
 import pytest
 from conftest import run_cli
 
-from ocpar.bsp.journal import INTERVAL_ENV, LOG, MANIFEST, CheckpointError, Journal
+from ocpar.bsp.journal import (
+    INTERVAL_ENV,
+    LOG,
+    MANIFEST,
+    CheckpointError,
+    Journal,
+    recorded_supersteps,
+)
 from ocpar.bsp.serial import SerialBackend
 from ocpar.examples.formation_point_masses import make as paper_example
 from ocpar.formation import solve_formation
@@ -101,3 +110,13 @@ def test_a_bad_interval_is_refused_with_one_line(tmp_path, monkeypatch):
                    str(tmp_path / "b"))
     lines = proc.stderr.strip().splitlines()
     assert proc.returncode == 2 and len(lines) == 1 and INTERVAL_ENV in lines[0], proc.stderr
+
+
+def test_readers_count_the_whole_entries_of_the_log(tmp_path):
+    assert recorded_supersteps(tmp_path) == 0
+    entries = [b"a" * 5, b"", b"b" * 300]
+    with open(tmp_path / LOG, "wb") as log:
+        for data in entries:
+            log.write(struct.pack("<Q32s", len(data), hashlib.sha256(data).digest()) + data)
+        log.write(struct.pack("<Q32s", 50, bytes(32)) + b"c" * 10)   # cut short by a kill
+    assert recorded_supersteps(tmp_path) == 3

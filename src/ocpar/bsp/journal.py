@@ -11,8 +11,8 @@ exactly, and the final result is identical to an uninterrupted run's.
 Durability: each superstep is appended to the log as it completes, without waiting for the
 disk: a killed process (SIGKILL, out of memory, a crash) keeps every completed superstep.
 The manifest's count (written to a temporary name and renamed) follows at most
-:data:`PROGRESS_S` later: it is what readers show as progress, while a resumed run reads the
-log. The disk
+:data:`PROGRESS_S` later; readers count the log's whole entries for progress
+(:func:`recorded_supersteps`), and a resumed run reads the log. The disk
 is synced (``fsync`` of the log, then of the manifest) at most every ``interval_s`` seconds
 of run time (default :data:`INTERVAL_S`, or the environment variable :data:`INTERVAL_ENV`;
 0: after every superstep) and when the run ends (its backend's ``with`` block exits:
@@ -287,6 +287,26 @@ def _intact(log: BinaryIO) -> list[tuple[int, int]]:
         entries.append((offset + _HEADER.size, length))
         offset += _HEADER.size + length
     return entries
+
+
+def recorded_supersteps(directory: str | Path) -> int:
+    """The supersteps whose entries the log of the checkpoint in ``directory`` holds whole,
+    now (their headers read, their data not checked: progress for readers, exact where the
+    manifest's count lags by up to :data:`PROGRESS_S`); 0 without a log."""
+    count = offset = 0
+    try:
+        with open(Path(directory) / LOG, "rb") as log:
+            size = os.fstat(log.fileno()).st_size
+            while offset + _HEADER.size <= size:
+                log.seek(offset)
+                length, _ = _HEADER.unpack(log.read(_HEADER.size))
+                offset += _HEADER.size + length
+                if offset > size:
+                    break
+                count += 1
+    except OSError:
+        return 0
+    return count
 
 
 class Journal:

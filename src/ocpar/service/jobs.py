@@ -41,7 +41,7 @@ import time
 from pathlib import Path
 from typing import Any
 
-from ocpar.bsp.journal import MANIFEST
+from ocpar.bsp.journal import MANIFEST, recorded_supersteps
 from ocpar.cli import EXIT_CANCELLED
 from ocpar.results import EXIT_STATUS
 
@@ -121,10 +121,7 @@ def run_command(path: Path, scheme: str, argv: list[str], backend: list[str],
 
 def supersteps_done(path: Path) -> int:
     """The supersteps recorded in the checkpoint of the job in ``path`` (0 if none yet)."""
-    try:
-        return int(json.loads((path / "checkpoint" / MANIFEST).read_text())["supersteps"])
-    except (OSError, ValueError, KeyError, TypeError):
-        return 0
+    return recorded_supersteps(path / "checkpoint")
 
 
 def has_checkpoint(path: Path) -> bool:
