@@ -61,8 +61,12 @@ AUTO_SOLVER = "auto"
 MAX_COLUMNS = 256
 #: The block sizes whose calls are compiled (:func:`compiled_block`), largest first: a batch is
 #: cut into blocks of these sizes in turn and a rest of fewer columns than the smallest (e.g.
-#: 625 = 2 · 256 + 3 · 32 + 17: 97 % compiled; a rank's share of a formation on 16 ranks).
-COMPILED_BLOCKS = (MAX_COLUMNS, 32)
+#: 625 = 2 · 256 + 113: 82 % compiled; a rank's share of a formation on 16 ranks). Only full
+#: blocks of 256: a compile (0.45 s for a point mass's Newton step, 2–8 s for a mapped
+#: sqpmethod) pays for itself only over many columns, and a fleet of tens of agents of a new
+#: shape should not wait for a compiler (the test suite's shapes compiled 360 libraries from an
+#: empty cache with blocks of 32 too).
+COMPILED_BLOCKS = (MAX_COLUMNS,)
 
 
 def sqp_options(tol: float, max_iter: int, qp_max_iter: int | None = None) -> dict:
@@ -207,7 +211,7 @@ def compiled_block(function: ca.Function, columns: int) -> ca.Function:
     compiler (:func:`ocpar.ocp.compiled.compiled`: cached on disk by content, the same bits
     as the virtual machine's) where ``columns`` is one of :data:`COMPILED_BLOCKS`, the full
     blocks that batches are made of: a shape then compiles once per block size per host,
-    whatever the batch sizes, and batches under 32 tasks never wait for a compiler. Elsewhere
+    whatever the batch sizes, and batches under 256 tasks never wait for a compiler. Elsewhere
     (or without a compiler) the function itself, on the virtual machine."""
     if columns in COMPILED_BLOCKS:
         return compiled(function) or function
