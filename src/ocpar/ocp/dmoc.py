@@ -193,6 +193,7 @@ from ocpar.ocp.obstacles import (
     ellipsoids,
     entered,
     guess_planes,
+    keep_out_rows,
     obstacle_rows,
     on_near_side,
     plane_multipliers,
@@ -702,18 +703,9 @@ class DmocTranscription:
         """n·r(q) − b + σ at the free nodes q of each interval k, slot s (b the slot's offset
         at that node), from the keep-out block ``data`` of p and the slacks (module
         docstring)."""
-        slots, n = self.shape.keep_out_slots, self.n
-        positions = list(self.shape.keep_out_positions)
-        dim = len(positions)
-        rows = []
-        for k in range(n):
-            for s in range(slots):
-                start = (k * slots + s) * (dim + 2)
-                normal = data[start:start + dim]
-                rows += [ca.dot(normal, qs[node][positions]) - data[start + dim + end]
-                         + slack[k * slots + s]
-                         for end, node in enumerate((k, k + 1)) if 0 < node < n]
-        return rows
+        shape = self.shape
+        return keep_out_rows(data, qs, 1, self.n, shape.keep_out_slots,
+                             list(shape.keep_out_positions), slack)
 
     @property
     def first_duration(self) -> float:

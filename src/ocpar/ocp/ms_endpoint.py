@@ -94,7 +94,13 @@ from ocpar.ocp.constraints import (
 from ocpar.ocp.contract import InnerSolution, call_nlpsol, check_params
 from ocpar.ocp.duration import build_at_unit_duration, check_time_fields, over_duration
 from ocpar.ocp.multiple_shooting import INTEGRATORS, step_function, timed_step_function
-from ocpar.ocp.obstacles import Obstacle, check_obstacles, segment_rows, side_guesses
+from ocpar.ocp.obstacles import (
+    Obstacle,
+    check_obstacles,
+    keep_out_rows,
+    segment_rows,
+    side_guesses,
+)
 from ocpar.ocp.riccati import RiccatiNewton, stage_function
 from ocpar.ocp.sensitivity import cost_hessian_function
 from ocpar.ocp.solver_options import SolverOptions, ipopt, newton, solver_options, sqpmethod
@@ -484,19 +490,8 @@ class MsEndpointTranscription:
         ``keep_out_positions``, from the keep-out block ``data`` of p (as
         :mod:`ocpar.ocp.dmoc`'s) and the slacks σ (N K,)."""
         shape = self.shape
-        slots, steps, n = shape.keep_out_slots, shape.steps, self.n
-        positions = list(shape.keep_out_positions)
-        dim = len(positions)
-        rows = []
-        for k in range(n):
-            for s in range(slots):
-                start = (k * slots + s) * (dim + 2)
-                normal = data[start:start + dim]
-                first, last = data[start + dim], data[start + dim + 1]
-                rows += [ca.dot(normal, polyline[k * steps + j][positions])
-                         - ((1 - j / steps) * first + j / steps * last) + slack[k * slots + s]
-                         for j in range(steps + 1) if 0 < k * steps + j < n * steps]
-        return rows
+        return keep_out_rows(data, polyline, shape.steps, self.n, shape.keep_out_slots,
+                             list(shape.keep_out_positions), slack)
 
     def _without_penalty(self, f: np.ndarray, w: np.ndarray, params: np.ndarray
                          ) -> np.ndarray:

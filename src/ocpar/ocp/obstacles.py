@@ -416,3 +416,25 @@ def side_guesses(obstacles: Sequence[Obstacle], positions: np.ndarray
             planes[size[0] < 1, e] = sign * side
         guesses.append((path, planes.ravel()))
     return guesses
+
+
+def keep_out_rows(data: ca.SX, points: list[ca.SX], steps: int, n: int, slots: int,
+                  positions: list[int], slack: ca.SX) -> list[ca.SX]:
+    """The keep-out half-spaces' rows n·r − b + σ ≥ 0 (a formation's separation rounds) at
+    the points of a path's polyline: ``points`` (n ``steps`` + 1) the nodes and, with
+    ``steps`` > 1, the ``steps`` − 1 states between each two (an RK4 path's sub-steps), r their
+    entries ``positions``; for each interval k and slot s, from the keep-out block ``data``
+    (per interval and slot: the normal n, then the offsets b⁰ at node k and b¹ at node k + 1,
+    b linear in time between) and the slack σ[k·slots + s]. The first and last points are
+    data (the boundary), not rows."""
+    dim = len(positions)
+    rows = []
+    for k in range(n):
+        for s in range(slots):
+            start = (k * slots + s) * (dim + 2)
+            normal = data[start:start + dim]
+            first, last = data[start + dim], data[start + dim + 1]
+            rows += [ca.dot(normal, points[k * steps + j][positions])
+                     - ((1 - j / steps) * first + j / steps * last) + slack[k * slots + s]
+                     for j in range(steps + 1) if 0 < k * steps + j < n * steps]
+    return rows
