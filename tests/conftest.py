@@ -21,6 +21,11 @@ import pytest
 
 from ocpar.result_files import RUNTIME_FIELDS
 
+#: The suite runs its inner functions on CasADi's virtual machine (the same bits): its many
+#: small shapes would otherwise compile tens of libraries into an empty cache, ~70 s of gcc
+#: on a fresh machine. tests/test_compiled.py and the Riccati test compile on purpose.
+os.environ["OCPAR_COMPILE"] = "0"
+
 BIN = Path(sys.executable).parent
 REPO = Path(__file__).resolve().parents[1]
 

@@ -21,9 +21,16 @@ from ocpar.examples.formation_halo import make as halo_example
 from ocpar.examples.formation_point_masses import make as point_masses
 from ocpar.ocp import dmoc_problem
 from ocpar.ocp.batch import COMPILED_BLOCKS, BatchSolve, KktNewton, MappedNlp
+from ocpar.ocp.compiled import COMPILE_ENV
 
 COMPILER = shutil.which(os.environ.get("CC", "cc"))
 needs_compiler = pytest.mark.skipif(COMPILER is None, reason="no C compiler on this host")
+
+
+@pytest.fixture(autouse=True)
+def compiling(monkeypatch):
+    """Compiling on (the suite turns it off: conftest.py)."""
+    monkeypatch.delenv(COMPILE_ENV, raising=False)
 #: Tasks per solve: one full (compiled) block of each size and a rest the virtual machine
 #: solves.
 TASKS = sum(COMPILED_BLOCKS) + 3
@@ -93,7 +100,8 @@ print(digest(solve_fresh(make(4))))
 def start_solve(cache: Path, compiler: str) -> subprocess.Popen:
     """:func:`solve_fresh` of four point masses started in a new process with
     ``OCPAR_CACHE`` and ``CC`` set; its stdout the result's digest."""
-    env = os.environ | {"OCPAR_CACHE": str(cache), "CC": compiler}
+    env = {k: v for k, v in os.environ.items() if k != COMPILE_ENV} | {
+        "OCPAR_CACHE": str(cache), "CC": compiler}
     return subprocess.Popen([sys.executable, "-c", SCRIPT, str(Path(__file__).parent)],
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
 
@@ -127,3 +135,19 @@ def test_processes_of_one_host_compile_once_and_a_host_without_compiler_says_so(
     assert without == first
     lines = without_err.splitlines()
     assert len(lines) == 1 and lines[0].startswith("ocpar: no C compiler")
+
+
+def test_compiling_turned_off_runs_on_the_virtual_machine(tmp_path, monkeypatch):
+    """With ``OCPAR_COMPILE=0`` nothing is compiled (the cache stays empty) and the batch
+    solves as on a host without a compiler, to the same bits."""
+    monkeypatch.setenv("OCPAR_CACHE", str(tmp_path))
+    monkeypatch.setenv(COMPILE_ENV, "0")
+    off = solve_fresh(point_masses(4), "newton")
+    assert not list(tmp_path.glob("**/*.so"))
+    monkeypatch.delenv(COMPILE_ENV)
+    monkeypatch.setenv("CC", str(tmp_path / "no-such-compiler"))
+    without_compiler = solve_fresh(point_masses(4), "newton")
+    assert off.success.all()
+    for name in ("x", "f", "lam_g", "lam_p"):
+        assert np.array_equal(getattr(off, name), getattr(without_compiler, name))
+

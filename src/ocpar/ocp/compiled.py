@@ -49,10 +49,24 @@ def cache_directory() -> Path:
     return Path(root) / "compiled"
 
 
-@lru_cache(maxsize=32)
+#: The environment variable that turns compiling off (``0``): every inner function then runs
+#: on CasADi's virtual machine, with the same bits, slower, and no run waits for a compiler
+#: (e.g. many short runs of shapes the cache has not seen: the test suite sets it).
+COMPILE_ENV = "OCPAR_COMPILE"
+
+
 def compiled(function: ca.Function) -> ca.Function | None:
-    """``function`` compiled (module docstring), or None where this host has no C compiler
-    (``$CC``, else ``cc``) or the compilation fails: the caller then evaluates it as it is."""
+    """``function`` compiled (module docstring), or None where compiling is turned off
+    (:data:`COMPILE_ENV` ``0``), this host has no C compiler (``$CC``, else ``cc``) or the
+    compilation fails: the caller then evaluates it as it is."""
+    if os.environ.get(COMPILE_ENV) == "0":
+        return None
+    return _compiled(function)
+
+
+@lru_cache(maxsize=32)
+def _compiled(function: ca.Function) -> ca.Function | None:
+    """:func:`compiled` where compiling is on."""
     command = os.environ.get("CC", "cc")
     compiler = shutil.which(command)
     if compiler is None:
